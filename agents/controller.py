@@ -1,0 +1,71 @@
+"""Composite tracking controller, paper eq. (28), and the thrust/attitude inversion after it.
+
+Pure numerics (numpy + math). Works on (3,) vectors or (N, 3) stacks.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["composite_control", "invert_thrust_attitude", "virtual_control_from_attitude"]
+
+
+def composite_control(
+    q_ref: np.ndarray,
+    v_ref: np.ndarray,
+    vdot_ref: np.ndarray,
+    q: np.ndarray,
+    v: np.ndarray,
+    d_hat: np.ndarray,
+    kp: np.ndarray,
+    kd: np.ndarray,
+    g: float = 9.81,
+) -> np.ndarray:
+    """u_i = G - d_hat + K_p (q* - q) + K_d (v* - v) + v*', eq. (28).
+
+    q_ref, v_ref, vdot_ref: generator output q*_i (m), v*_i (m/s) and v*_i' (m/s^2, eq. 17).
+    q, v: measured position and velocity. d_hat: ESO disturbance estimate (m/s^2; zeros when
+    the ESO is disabled). kp, kd: (3,) diagonals of K_p (1/s^2) and K_d (1/s).
+    Returns the virtual control u (same shape as q), m/s^2.
+    """
+    u = kp * (q_ref - q) + kd * (v_ref - v) + vdot_ref - d_hat
+    u[..., 2] += g
+    return u
+
+
+def invert_thrust_attitude(
+    u: np.ndarray, mass: float, yaw: float = 0.0, min_uz: float = 0.1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Total thrust and desired roll/pitch from u (after eq. 28).
+
+    F = m ||u||, phi_d = arcsin(m/F (u_x sin psi_d - u_y cos psi_d)),
+    theta_d = arctan((u_x cos psi_d + u_y sin psi_d) / u_z).
+
+    u: (3,) or (N, 3) m/s^2. mass: kg. yaw: desired yaw psi_d, rad. u_z is floored at
+    ``min_uz`` (m/s^2) so the inversion is defined when the command asks to accelerate downward
+    faster than gravity (the thrust cannot point down); the arcsin argument is clipped to [-1, 1].
+    Returns (F (N,) or scalar, N; phi_d; theta_d) in rad. Tilt limits are the plant's job.
+    """
+    u = np.asarray(u, dtype=float)
+    ux = u[..., 0]
+    uy = u[..., 1]
+    uz = np.maximum(u[..., 2], min_uz)
+    norm = np.sqrt(ux * ux + uy * uy + uz * uz)
+    F = mass * norm
+    s, c = np.sin(yaw), np.cos(yaw)
+    phi = np.arcsin(np.clip((ux * s - uy * c) / norm, -1.0, 1.0))
+    theta = np.arctan2(ux * c + uy * s, uz)
+    return F, phi, theta
+
+
+def virtual_control_from_attitude(F: np.ndarray, rpy: np.ndarray, mass: float) -> np.ndarray:
+    """u = R(phi, theta, psi) [0, 0, F]^T / m, the definition under eq. (2); the inverse check."""
+    rpy = np.asarray(rpy, dtype=float)
+    phi, theta, psi = rpy[..., 0], rpy[..., 1], rpy[..., 2]
+    cphi, sphi = np.cos(phi), np.sin(phi)
+    cth, sth = np.cos(theta), np.sin(theta)
+    cps, sps = np.cos(psi), np.sin(psi)
+    a = np.asarray(F, dtype=float) / mass
+    return np.stack(
+        [a * (cps * sth * cphi + sps * sphi), a * (sps * sth * cphi - cps * sphi), a * (cphi * cth)], axis=-1
+    )

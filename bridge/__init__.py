@@ -1,0 +1,1 @@
+"""The swarm bus and the outside world: MCAP recorder and replay, MAVLink bridge."""

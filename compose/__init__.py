@@ -1,0 +1,1 @@
+"""Scenarios (``compose/scenarios/*.toml``) and the supervisor that launches and watches a swarm."""

@@ -1,0 +1,15 @@
+"""CLI entry points of the swarm's processes (what the supervisor starts, one OS process each)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    from agents.process import add_parser as add_agent
+    from leader.process import add_parser as add_leader
+    from plant.process import add_parser as add_plant
+
+    add_plant(sub)
+    add_leader(sub)
+    add_agent(sub)

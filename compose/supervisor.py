@@ -1,0 +1,405 @@
+"""``zenswarm up``: start a Zenoh router, then the plant, the leader and N agents as separate OS
+processes; watch them, show progress, merge their logs, stop them cleanly, write results.
+
+The supervisor's router session subscribes to the swarm's whole key space to assemble the
+flight's time series (the same :class:`zenswarm.metrics.TimeSeries` the in-process simulator
+writes), so ``results.json`` is computed by the same code for both. Apart from the recorder it
+is the only subscriber to the whole key space; the swarm's processes see only their graph rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from zenswarm import bus, wire
+from zenswarm.config import Scenario, load_scenario
+from zenswarm.errors import ScenarioError, ZenswarmError
+from zenswarm.metrics import TimeSeries, compute_results
+
+__all__ = ["add_parsers", "Collector", "Supervisor", "role_names"]
+
+EXIT_OK, EXIT_MISSION_FAILED, EXIT_BAD_INPUT, EXIT_PROCESS_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+
+
+def role_names(n: int) -> list[str]:
+    """Process names of a swarm of n UAVs, in start order."""
+    return ["plant", "leader"] + [f"agent:{i}" for i in range(1, n + 1)]
+
+
+class Collector:
+    """Assembles the flight's time series from the bus (callback on the supervisor's session)."""
+
+    def __init__(self, scenario: Scenario, keys: wire.Keys) -> None:
+        self.sc = scenario
+        self.keys = keys
+        self.T = scenario.timing.n_ticks
+        self.ts = TimeSeries.allocate(self.T, scenario.n)
+        self.ts.t[:] = np.arange(self.T) * scenario.timing.dt
+        self.dt_ns = wire.t_ns(scenario.timing.dt)
+        self.decoder = wire.Decoder()
+        self.lock = threading.Lock()
+        self.sim_t_ns = -1
+        self.leader_q: np.ndarray | None = None
+        self.diag: dict[str, dict] = {}
+        self.counts: dict[str, int] = {}
+
+    def on_sample(self, key: str, payload: bytes) -> None:
+        try:
+            kind, idx, proc = self.keys.parse(key)
+        except ZenswarmError:
+            return
+        self.counts[kind] = self.counts.get(kind, 0) + 1
+        msg = self.decoder.decode(key, "ref" if kind == "leader_ref" else kind, payload)
+        if msg is None:
+            return
+        if kind == "diag":
+            self.diag[msg.process] = msg.counters
+            return
+        if kind == "mission":
+            return
+        k = (msg.t + self.dt_ns // 2) // self.dt_ns
+        with self.lock:
+            if kind == "clock":
+                self.sim_t_ns = max(self.sim_t_ns, msg.t)
+                return
+            if not 0 <= k < self.T:
+                return
+            ts = self.ts
+            if kind == "leader_ref":
+                ts.q0[k] = msg.q
+                ts.v0[k] = msg.v
+                self.leader_q = msg.q
+            elif kind == "ref" and idx is not None:
+                ts.qref[k, idx - 1] = msg.q
+                ts.vref[k, idx - 1] = msg.v
+            elif kind == "state" and idx is not None:
+                ts.q[k, idx - 1] = msg.q
+                ts.v[k, idx - 1] = msg.v
+                ts.rpy[k, idx - 1] = msg.rpy
+            elif kind == "cmd" and idx is not None:
+                ts.u[k, idx - 1] = msg.u
+                ts.thrust[k, idx - 1] = msg.thrust
+                ts.d_hat[k, idx - 1] = msg.d_hat
+
+    def series(self, upto_tick: int | None = None, fill: bool = False) -> TimeSeries:
+        """The collected series up to ``upto_tick``; ``fill`` forward-fills gaps (realtime)."""
+        with self.lock:
+            T = self.T if upto_tick is None else max(0, min(self.T, upto_tick))
+            ts = self.ts.truncated(T)
+            ts = TimeSeries(**{f: np.array(getattr(ts, f)) for f in TimeSeries.FIELDS})
+        if fill:
+            for f in TimeSeries.FIELDS:
+                a = getattr(ts, f)
+                for k in range(1, len(a)):
+                    bad = np.isnan(a[k])
+                    if np.any(bad):
+                        a[k][bad] = a[k - 1][bad]
+        return ts
+
+
+def _pdeathsig() -> None:  # runs in the child between fork and exec
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG: die with the supervisor
+    except OSError:
+        pass
+
+
+@dataclass
+class Child:
+    name: str
+    popen: subprocess.Popen
+    started: float
+    returncode: int | None = None
+    reader: threading.Thread | None = None
+    lines: list[str] = field(default_factory=list)
+
+
+class Supervisor:
+    """Starts and watches one swarm. ``run()`` returns the exit code."""
+
+    def __init__(self, args: argparse.Namespace, scenario: Scenario) -> None:
+        self.args = args
+        self.sc = scenario
+        self.keys = wire.Keys(args.swarm)
+        self.children: dict[str, Child] = {}
+        self.stop = threading.Event()
+        self.stop_reason = ""
+        self.print_lock = threading.Lock()
+        self.alive: set[str] = set()
+
+    # ------------------------------------------------------------------ output
+    def say(self, text: str) -> None:
+        with self.print_lock:
+            print(f"[supervisor] {text}", flush=True)
+
+    def _pump(self, child: Child) -> None:
+        assert child.popen.stdout is not None
+        for raw in child.popen.stdout:
+            line = raw.rstrip("\n")
+            child.lines.append(line)
+            del child.lines[:-50]
+            if not self.args.quiet_children:
+                with self.print_lock:
+                    print(f"[{child.name}] {line}", flush=True)
+
+    # ------------------------------------------------------------------ processes
+    def child_argv(self, role: str) -> list[str]:
+        a = self.args
+        argv = [sys.executable, "-m", "zenswarm"]
+        if role.startswith("agent:"):
+            argv += ["agent", "--id", role.split(":", 1)[1]]
+        else:
+            argv += [role]
+        argv += ["--scenario", str(a.scenario), "--swarm", a.swarm, "--lockstep-timeout", str(a.lockstep_timeout)]
+        for ep in self.connect_endpoints:
+            argv += ["--connect", ep]
+        if a.realtime:
+            argv.append("--realtime")
+        return argv
+
+    def spawn(self, role: str) -> Child:
+        env = dict(os.environ)
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        p = subprocess.Popen(
+            self.child_argv(role),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            text=True,
+            start_new_session=True,  # Ctrl-C reaches the supervisor only; it stops the children
+            preexec_fn=_pdeathsig,
+            env=env,
+        )
+        c = Child(role, p, time.monotonic())
+        c.reader = threading.Thread(target=self._pump, args=(c,), daemon=True)
+        c.reader.start()
+        self.children[role] = c
+        return c
+
+    def terminate_all(self, grace_s: float = 5.0) -> None:
+        for c in self.children.values():
+            if c.popen.poll() is None:
+                try:
+                    c.popen.send_signal(signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+        deadline = time.monotonic() + grace_s
+        for c in self.children.values():
+            left = max(0.0, deadline - time.monotonic())
+            try:
+                c.popen.wait(timeout=left)
+            except subprocess.TimeoutExpired:
+                self.say(f"{c.name} did not stop within {grace_s:.0f} s; killing it")
+                c.popen.kill()
+                c.popen.wait()
+        for c in self.children.values():
+            if c.reader is not None:
+                c.reader.join(timeout=2.0)
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        self.stop_reason = f"received {signal.Signals(signum).name}"
+        self.stop.set()
+
+    # ------------------------------------------------------------------ main loop
+    def run(self) -> int:
+        a = self.args
+        sc = self.sc
+        out: Path = a.out
+        listen = a.listen or [f"tcp/127.0.0.1:{bus.free_port()}"]
+        self.connect_endpoints = a.connect or [ep for ep in listen]
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._on_signal)
+
+        session = bus.open_session(bus.router_config(listen, connect=a.router_connect or []))
+        collector = Collector(sc, self.keys)
+        subs = []
+        try:
+            subs.append(session.declare_subscriber(self.keys.all, lambda s: collector.on_sample(str(s.key_expr), s.payload.to_bytes())))
+            subs.append(session.liveliness().declare_subscriber(self.keys.alive_all, self._on_liveliness, history=True))
+            self.say(
+                f"swarm '{a.swarm}': router on {', '.join(listen)}; {sc.n} UAVs; "
+                f"{'realtime' if a.realtime else 'lockstep'}; scenario {sc.name}"
+            )
+            for role in role_names(sc.n):
+                self.spawn(role)
+            code = self._watch(collector)
+        finally:
+            self.terminate_all()
+            for s in subs:
+                try:
+                    s.undeclare()
+                except Exception:  # noqa: BLE001 - best effort on shutdown
+                    pass
+            session.close()
+        return self._finish(collector, code, out)
+
+    def _on_liveliness(self, sample: Any) -> None:
+        try:
+            _, _, proc = self.keys.parse(str(sample.key_expr))
+        except ZenswarmError:
+            return
+        if proc is None:
+            return
+        if str(sample.kind).endswith("PUT"):
+            self.alive.add(proc)
+        else:
+            self.alive.discard(proc)
+
+    def _watch(self, collector: Collector) -> int:
+        sc = self.sc
+        last_print = 0.0
+        goal = np.asarray(sc.leader.goal, dtype=float)
+        limit_ns = wire.t_ns(sc.timing.time_limit_s)
+        wall0 = time.monotonic()
+        while True:
+            if self.stop.is_set():
+                self.say(f"stopping: {self.stop_reason}")
+                return EXIT_INTERRUPTED
+            done = True
+            for c in self.children.values():
+                rc = c.popen.poll()
+                if rc is None:
+                    done = False
+                    continue
+                if c.returncode is None:
+                    c.returncode = rc
+                    if rc != 0:
+                        how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
+                        tail = "; last output: " + " | ".join(c.lines[-3:]) if c.lines else ""
+                        self.say(f"process {c.name} died ({how}){tail}")
+                        self.failed = c.name
+                        return EXIT_PROCESS_FAILED
+            if done:
+                return EXIT_OK
+            if self.args.realtime and collector.sim_t_ns >= limit_ns:
+                # plant has flown the time limit; give the others a moment to finish on their own
+                pass
+            now = time.monotonic()
+            if now - last_print >= self.args.progress_every and not self.args.quiet:
+                last_print = now
+                t = max(collector.sim_t_ns, 0) / 1e9
+                lq = collector.leader_q
+                dist = f"{np.linalg.norm(lq - goal):.3f} m" if lq is not None else "-"
+                el = now - wall0
+                health = " ".join(
+                    f"{name}:{'up' if name in self.alive else ('exit ' + str(c.returncode) if c.returncode is not None else 'starting')}"
+                    for name, c in self.children.items()
+                )
+                self.say(
+                    f"t={t:6.2f}/{sc.timing.time_limit_s:g} s  {t / el if el > 0 else 0:5.1f}x  leader->goal {dist}  {health}"
+                )
+            time.sleep(0.05)
+
+    def _finish(self, collector: Collector, code: int, out: Path) -> int:
+        sc = self.sc
+        upto = None
+        if code != EXIT_OK:
+            upto = int(max(collector.sim_t_ns, 0) // collector.dt_ns)
+        ts = collector.series(upto, fill=self.args.realtime)
+        res = compute_results(ts, sc, wall_time_s=None)
+        res["mode"] = "realtime" if self.args.realtime else "lockstep"
+        res["swarm"] = self.args.swarm
+        res["processes"] = {name: c.returncode for name, c in self.children.items()}
+        res["diagnostics"] = collector.diag
+        res["decoder_rejects"] = collector.decoder.counters()
+        if code == EXIT_PROCESS_FAILED:
+            res["success"] = False
+            res["failure"] = f"process {getattr(self, 'failed', '?')} died"
+        elif code == EXIT_INTERRUPTED:
+            res["success"] = False
+            res["failure"] = f"interrupted ({self.stop_reason})"
+        out.mkdir(parents=True, exist_ok=True)
+        ts.save(str(out / "timeseries.npz"))
+        (out / "results.json").write_text(json.dumps(res, indent=2, sort_keys=True, default=str) + "\n")
+        from zenswarm.sim import summary_line
+
+        self.say(summary_line({**res, "wall_time_s": time.monotonic() - self.t_start}))
+        self.say(f"wrote {out / 'results.json'} and {out / 'timeseries.npz'}")
+        if code != EXIT_OK:
+            return code
+        return EXIT_OK if res["success"] else EXIT_MISSION_FAILED
+
+
+def _run_up(args: argparse.Namespace) -> int:
+    sc = load_scenario(args.scenario)
+    if args.only:
+        return _run_only(args)
+    sup = Supervisor(args, sc)
+    sup.t_start = time.monotonic()
+    return sup.run()
+
+
+def _run_only(args: argparse.Namespace) -> int:
+    """``--only ROLE``: run one role of a swarm in this process, against a remote router."""
+    from zenswarm.cli import main as cli_main
+
+    role = args.only
+    argv: list[str]
+    if role.startswith("agent:"):
+        argv = ["agent", "--id", role.split(":", 1)[1]]
+    elif role in ("plant", "leader"):
+        argv = [role]
+    else:
+        raise ScenarioError("--only", f"unknown role {role!r}: expected plant, leader or agent:<i>")
+    argv += ["--scenario", str(args.scenario), "--swarm", args.swarm, "--lockstep-timeout", str(args.lockstep_timeout)]
+    for ep in args.connect or ["tcp/127.0.0.1:7447"]:
+        argv += ["--connect", ep]
+    if args.realtime:
+        argv.append("--realtime")
+    return cli_main(argv)
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "up",
+        help="fly a scenario as a distributed swarm (router + plant + leader + one process per UAV)",
+        description=(
+            "Start a Zenoh router inside this process, then the plant, the leader and one agent "
+            "process per UAV; show progress, merge their logs, stop everything on Ctrl-C, and write "
+            "OUT/results.json and OUT/timeseries.npz. Exit status: 0 mission succeeded, 1 mission "
+            "failed (goal not reached, collision), 2 bad input, 3 a process died, 130 interrupted."
+        ),
+    )
+    p.add_argument("scenario", type=Path, help="scenario TOML file")
+    p.add_argument("--swarm", default="default", help="swarm name (key prefix swarm/<name>); default: default")
+    p.add_argument("--out", type=Path, default=Path("runs/up"), help="output directory (default runs/up)")
+    p.add_argument("--realtime", action="store_true", help="wall-clock mode: fixed-rate loops, latest value wins")
+    p.add_argument(
+        "--listen",
+        action="append",
+        metavar="ENDPOINT",
+        help="router listen endpoint (repeatable); default tcp/127.0.0.1:<free port>. "
+        "Use a non-loopback address so processes on other hosts can join",
+    )
+    p.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="endpoint the swarm's processes connect to (default: the router's listen endpoints); "
+        "with --only, the remote router to join",
+    )
+    p.add_argument("--router-connect", action="append", metavar="ENDPOINT", help="other routers this router connects to")
+    p.add_argument(
+        "--only",
+        metavar="ROLE",
+        help="run a single role here (plant, leader, agent:<i>) against a router elsewhere (--connect)",
+    )
+    p.add_argument("--lockstep-timeout", type=float, default=5.0, metavar="S", help="lockstep input wait before a drop (default 5 s)")
+    p.add_argument("--progress-every", type=float, default=1.0, metavar="S", help="seconds between progress lines")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--quiet-children", action="store_true", help="do not echo the processes' own output")
+    p.set_defaults(func=_run_up)

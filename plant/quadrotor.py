@@ -1,0 +1,407 @@
+"""Quadrotor rigid-body model (paper eqs 1-5) with the onboard attitude PID, vectorised over N UAVs.
+
+Pure numerics: numpy and the standard library's ``math`` only; no I/O, no clock, no globals that
+change. Frames as in the paper: inertial ENU (z up), body FLU (x forward, z along the thrust).
+
+State of UAV i (rows of :class:`PlantState`): position q_i and velocity v_i (inertial, eq. 1/3),
+Euler angles Theta_i = [phi, theta, psi] (ZYX, eq. 2) and body angular velocity omega_i (eq. 5).
+
+Input of one physics sub-step (:func:`step`): collective thrust F_i (eq. 1) and the attitude
+setpoint [phi_d, theta_d, psi_d] of the inversion after eq. (28); the onboard attitude controller
+turns the setpoint into the body torque tau_i of eq. (5), as the Crazyflie firmware does.
+
+Performance: :func:`step` is the simulator's inner loop (1 kHz per UAV), so it uses whole-array
+numpy operations with preallocated scratch buffers and precomputed constants (a small
+``_Compiled`` object cached on the state, rebuilt when ``params``, ``dt`` or N change); it has
+no Python loop over UAVs. It is not thread-safe for one state shared between threads.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .params import QuadParams
+
+__all__ = [
+    "rotation_matrix",
+    "euler_rate_matrix",
+    "PlantState",
+    "initial_state",
+    "step",
+    "wrap_angle",
+    "COS_THETA_MIN",
+]
+
+COS_THETA_MIN = 1e-6
+"""Guard on |cos(theta)| in the Euler kinematics (4); see :func:`step`."""
+
+_PI = math.pi
+_TWO_PI = 2.0 * math.pi
+
+
+def wrap_angle(a: Any) -> np.ndarray:
+    """Wrap angles to (-pi, pi] as pi - ((pi - a) mod 2 pi), rad (the formula :func:`step` uses).
+
+    a: array_like, rad -> ndarray of the same shape. Inside the interval the result differs from
+    ``a`` by at most a rounding of pi - a (about 4e-16 rad); exactly at the boundary one rounding
+    can give -pi instead of pi.
+    """
+    a = np.asarray(a, dtype=float)
+    return _PI - np.remainder(_PI - a, _TWO_PI)
+
+
+def rotation_matrix(rpy: Any) -> np.ndarray:
+    """Rotation matrix R(Theta) of eq. (2), ZYX Euler angles, body (FLU) -> inertial (ENU).
+
+    Parameters
+    ----------
+    rpy : (N, 3) or (3,) array_like
+        [phi, theta, psi] roll, pitch, yaw, rad.
+
+    Returns
+    -------
+    R : (N, 3, 3) or (3, 3) ndarray
+        R = Rz(psi) Ry(theta) Rx(phi); eq. (2) entry by entry. A body vector b maps to R @ b.
+    """
+    a = np.asarray(rpy, dtype=float)
+    single = a.ndim == 1
+    a = np.atleast_2d(a)
+    if a.shape[-1] != 3:
+        raise ValueError(f"rpy must have shape (N, 3) or (3,), got {np.shape(rpy)}")
+    s = np.sin(a)
+    c = np.cos(a)
+    sf, st, sp = s[:, 0], s[:, 1], s[:, 2]
+    cf, ct, cp = c[:, 0], c[:, 1], c[:, 2]
+    R = np.empty((a.shape[0], 3, 3))
+    R[:, 0, 0] = ct * cp
+    R[:, 0, 1] = cp * st * sf - sp * cf
+    R[:, 0, 2] = cp * st * cf + sp * sf
+    R[:, 1, 0] = ct * sp
+    R[:, 1, 1] = sp * st * sf + cp * cf
+    R[:, 1, 2] = sp * st * cf - cp * sf
+    R[:, 2, 0] = -st
+    R[:, 2, 1] = sf * ct
+    R[:, 2, 2] = cf * ct
+    return R[0] if single else R
+
+
+def euler_rate_matrix(rpy: Any) -> np.ndarray:
+    """Euler-rate matrix T(Theta) of eq. (4): d/dt [phi, theta, psi] = T(Theta) omega.
+
+    Parameters
+    ----------
+    rpy : (N, 3) or (3,) array_like
+        [phi, theta, psi], rad. Singular at cos(theta) = 0 (gimbal lock); no guard here.
+
+    Returns
+    -------
+    T : (N, 3, 3) or (3, 3) ndarray
+        Maps body rates omega (rad/s, FLU; eq. 5) to Euler-angle rates (rad/s).
+    """
+    a = np.asarray(rpy, dtype=float)
+    single = a.ndim == 1
+    a = np.atleast_2d(a)
+    if a.shape[-1] != 3:
+        raise ValueError(f"rpy must have shape (N, 3) or (3,), got {np.shape(rpy)}")
+    sf, cf = np.sin(a[:, 0]), np.cos(a[:, 0])
+    tt, ct = np.tan(a[:, 1]), np.cos(a[:, 1])
+    T = np.zeros((a.shape[0], 3, 3))
+    T[:, 0, 0] = 1.0
+    T[:, 0, 1] = tt * sf
+    T[:, 0, 2] = tt * cf
+    T[:, 1, 1] = cf
+    T[:, 1, 2] = -sf
+    T[:, 2, 1] = sf / ct
+    T[:, 2, 2] = cf / ct
+    return T[0] if single else T
+
+
+@dataclass(eq=False)
+class PlantState:
+    """State of N quadrotors, updated in place by :func:`step`.
+
+    Attributes
+    ----------
+    q : (N, 3) ndarray
+        Position, m, ENU; eq. (1).
+    v : (N, 3) ndarray
+        Velocity, m/s, ENU; eq. (3).
+    rpy : (N, 3) ndarray
+        Euler angles [phi, theta, psi] (ZYX, eq. 2), rad, each wrapped to (-pi, pi].
+    w : (N, 3) ndarray
+        Body angular velocity omega, rad/s, FLU; eq. (5).
+    rate_int : (N, 3) ndarray
+        Onboard controller: integral of the body-rate error, rad (clamped, anti-windup).
+    rate_err_prev : (N, 3) ndarray
+        Onboard controller: body-rate error of the previous sub-step, rad/s (derivative term).
+    """
+
+    q: np.ndarray
+    v: np.ndarray
+    rpy: np.ndarray
+    w: np.ndarray
+    rate_int: np.ndarray
+    rate_err_prev: np.ndarray
+    _cache: Any = field(default=None, repr=False, compare=False)
+
+    @property
+    def n(self) -> int:
+        """Number of UAVs N."""
+        return self.q.shape[0]
+
+    def copy(self) -> "PlantState":
+        """A deep copy (own arrays; scratch buffers are not shared)."""
+        return PlantState(
+            q=self.q.copy(),
+            v=self.v.copy(),
+            rpy=self.rpy.copy(),
+            w=self.w.copy(),
+            rate_int=self.rate_int.copy(),
+            rate_err_prev=self.rate_err_prev.copy(),
+        )
+
+
+def initial_state(q0: Any) -> PlantState:
+    """At rest, level, yaw 0, controller internals zero.
+
+    q0: (N, 3) array_like, m, ENU -> :class:`PlantState` with N rows.
+    """
+    q = np.array(q0, dtype=float, copy=True)
+    if q.ndim != 2 or q.shape[1] != 3:
+        raise ValueError(f"q0 must have shape (N, 3), got {q.shape}")
+    n = q.shape[0]
+    z = lambda: np.zeros((n, 3))  # noqa: E731
+    return PlantState(q=q, v=z(), rpy=z(), w=z(), rate_int=z(), rate_err_prev=z())
+
+
+class _Compiled:
+    """Constants of :func:`step` for one (params, dt, N), pre-broadcast to (N, 3) (numpy
+    broadcasting a (3,) operand costs about 3x a same-shape operation), plus scratch buffers."""
+
+    def __init__(self, p: QuadParams, dt: float, n: int) -> None:
+        self.params = p
+        self.dt = dt
+        self.n = n
+        full = lambda x: np.ascontiguousarray(np.broadcast_to(np.asarray(x, dtype=float), (n, 3)))  # noqa: E731
+        J = np.asarray(p.inertia, dtype=float)
+        kp = np.asarray(p.rate_kp, dtype=float)
+        ki = np.asarray(p.rate_ki, dtype=float)
+        kd = np.asarray(p.rate_kd, dtype=float)
+        tmax = np.asarray(p.max_torque, dtype=float)
+        tilt = float(p.max_tilt)
+        # scalars as 0-d arrays (faster than Python floats as ufunc operands)
+        self.zero = np.array(0.0)
+        self.dt0 = np.array(dt)
+        self.pi = np.array(_PI)
+        self.two_pi = np.array(_TWO_PI)
+        self.fmax = np.full(n, float(p.max_thrust))
+        self.fdt_m = np.array(dt / p.mass)
+        self.cos_min = np.array(COS_THETA_MIN)
+        # attitude command bounds: roll, pitch within +-max_tilt; yaw free (wrapped)
+        self.cmd_lo = full([-tilt, -tilt, -np.inf])
+        self.cmd_hi = full([tilt, tilt, np.inf])
+        self.att_kp = full(p.att_kp)
+        self.rate_hi = full(p.max_rate)
+        self.rate_lo = -self.rate_hi
+        # rate PID, derivative on the error by backward difference:
+        # tau = kp e + ki I + kd (e - e_prev)/dt = (kp + kd/dt) e - (kd/dt) e_prev + ki I
+        self.k_e = full(kp + kd / dt)
+        self.k_prev = full(kd / dt)
+        self.ki = full(ki)
+        # anti-windup: the integral term alone never exceeds the torque limit
+        with np.errstate(divide="ignore"):
+            ilim = np.where(ki > 0, tmax / np.where(ki > 0, ki, 1.0), 0.0)
+        self.int_hi = full(ilim)
+        self.int_lo = -self.int_hi
+        self.tau_hi = full(tmax)
+        self.tau_lo = -self.tau_hi
+        # eq. (5), diagonal J: w' = tau/J - c * (w_y w_z, w_z w_x, w_x w_y) + d_a,
+        # c = ((Jz - Jy)/Jx, (Jx - Jz)/Jy, (Jy - Jx)/Jz); pre-multiplied by dt
+        self.jinv_dt = full(dt / J)
+        self.gyro_dt = full(dt * np.array([(J[2] - J[1]) / J[0], (J[0] - J[2]) / J[1], (J[1] - J[0]) / J[2]]))
+        self.g_dt = full([0.0, 0.0, -p.g * dt])
+        # scratch: W5 holds (wx, wy, wz, wx, wy) so W5[:, 1:4] * W5[:, 2:5] = (wy wz, wz wx, wx wy)
+        self.W5 = np.zeros((n, 5))
+        self.W3 = self.W5[:, 0:3]
+        self.W5a = self.W5[:, 1:4]
+        self.W5b = self.W5[:, 2:5]
+        self.W5head = self.W5[:, 0:2]
+        self.W5tail = self.W5[:, 3:5]
+        self.wx, self.wy, self.wz = self.W5[:, 0], self.W5[:, 1], self.W5[:, 2]
+        self.S = np.zeros((n, 3))
+        self.C = np.zeros((n, 3))
+        self.sf, self.st, self.sp = self.S[:, 0], self.S[:, 1], self.S[:, 2]
+        self.cf, self.ct, self.cp = self.C[:, 0], self.C[:, 1], self.C[:, 2]
+        self.E = np.zeros((n, 3))  # Euler rates, then thrust direction
+        self.e0, self.e1, self.e2 = self.E[:, 0], self.E[:, 1], self.E[:, 2]
+        self.t1 = np.zeros(n)
+        self.t2 = np.zeros(n)
+        self.t3 = np.zeros(n)
+        self.t4 = np.zeros(n)
+        self.tmp = np.zeros((n, 3))
+        self.consts = (
+            self.zero, self.fmax, self.cmd_lo, self.cmd_hi, self.pi, self.two_pi, self.att_kp,
+            self.rate_lo, self.rate_hi, self.dt0, self.int_lo, self.int_hi, self.k_e, self.k_prev,
+            self.ki, self.tau_lo, self.tau_hi, self.W3, self.W5a, self.W5b, self.W5head,
+            self.W5tail, self.jinv_dt, self.gyro_dt, self.wx, self.wy, self.wz, self.S, self.C,
+            self.sf, self.st, self.sp, self.cf, self.ct, self.cp, self.cos_min, self.E, self.e0,
+            self.e1, self.e2, self.t1, self.t2, self.t3, self.t4, self.tmp, self.fdt_m, self.g_dt,
+        )
+
+
+def _compile(state: PlantState, params: QuadParams, dt: float) -> _Compiled:
+    if not isinstance(params, QuadParams):
+        raise TypeError(f"params must be a QuadParams, got {type(params).__name__}")
+    if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive finite number of seconds, got {dt!r}")
+    c = _Compiled(params, float(dt), state.q.shape[0])
+    state._cache = c
+    return c
+
+
+_mul = np.multiply
+_add = np.add
+_sub = np.subtract
+_div = np.divide
+_rem = np.remainder
+_fmin = np.fmin
+_fmax = np.fmax
+_sin = np.sin
+_cos = np.cos
+_abs = np.absolute
+_copysign = np.copysign
+
+
+def step(
+    state: PlantState,
+    thrust_cmd: Any,
+    rpy_cmd: Any,
+    params: QuadParams,
+    dt: float,
+    d_p: Any = None,
+    d_a: Any = None,
+) -> None:
+    """Advance N quadrotors by one physics sub-step, in place.
+
+    Parameters
+    ----------
+    state : PlantState
+        Updated in place (the arrays ``q``, ``v``, ``rpy``, ``w`` are written, not replaced).
+    thrust_cmd : (N,) array_like
+        Collective thrust F, N; eq. (1). Clamped to [0, max_thrust] (NaN -> 0).
+    rpy_cmd : (N, 3) array_like
+        Attitude setpoint [phi_d, theta_d, psi_d], rad. Roll and pitch clamped to +-max_tilt.
+    params : QuadParams
+    dt : float
+        Sub-step, s (1e-3 typically; the controller gains are designed for 1 kHz).
+    d_p : (N, 3) array_like or None
+        Translational lumped disturbance as an acceleration, m/s^2, ENU; eq. (1). None = 0.
+    d_a : (N, 3) array_like or None
+        Attitude disturbance as an angular acceleration, rad/s^2, body; eq. (5) with the
+        disturbance torque J d_a. None = 0.
+
+    Notes
+    -----
+    Onboard attitude controller (cascade as in the Crazyflie firmware), per axis::
+
+        e      = wrap(Theta_d - Theta)                          angle error, rad
+        w_d    = clamp(att_kp * e, +-max_rate)                   body-rate setpoint, rad/s
+        e_w    = w_d - omega
+        I      = clamp(I + e_w dt, +-max_torque / rate_ki)     anti-windup
+        tau    = clamp(rate_kp e_w + rate_ki I + rate_kd (e_w - e_w_prev)/dt, +-max_torque)
+
+    Integrator: semi-implicit (symplectic) Euler, in this order:
+
+    1. omega_{k+1} = omega_k + dt J^-1 (tau - omega_k x J omega_k) + dt d_a          eq. (5)
+    2. Theta_{k+1} = Theta_k + dt T(Theta_k) omega_{k+1}, wrapped to (-pi, pi]      eq. (4)
+    3. v_{k+1} = v_k + dt (R(Theta_{k+1}) [0, 0, F]/m - [0, 0, g] + d_p)             eq. (1)
+    4. q_{k+1} = q_k + dt v_{k+1}                                                     eq. (3)
+
+    T(Theta) is singular at cos(theta) = 0; there |cos(theta)| is floored at ``COS_THETA_MIN``
+    (sign kept) so the state stays finite; the Euler angles are meaningless for that step only.
+    Deterministic: identical inputs give bit-identical results.
+    """
+    c = state._cache
+    if c is None or c.params is not params or c.dt != dt or c.n != state.q.shape[0]:
+        c = _compile(state, params, dt)
+    (zero, fmaxv, cmd_lo, cmd_hi, pi, two_pi, att_kp, rate_lo, rate_hi, dt0, int_lo, int_hi, k_e,
+     k_prev, ki, tau_lo, tau_hi, W3, W5a, W5b, W5head, W5tail, jinv_dt, gyro_dt, wx, wy, wz, S, C,
+     sf, st, sp, cf, ct, cp, cos_min, E, e0, e1, e2, t1, t2, t3, t4, tmp, fdt_m, g_dt) = c.consts
+    mul = _mul
+    add = _add
+    sub = _sub
+    fmin = _fmin
+    fmax = _fmax
+    q, v, rpy, w = state.q, state.v, state.rpy, state.w
+
+    # ---- commands (fmin/fmax map NaN to a bound, so no NaN reaches the state)
+    F = fmin(fmax(thrust_cmd, zero), fmaxv)  # (N,) N
+    e = fmax(rpy_cmd, cmd_lo)
+    fmin(e, cmd_hi, e)  # (N, 3) rad, attitude setpoint
+
+    # ---- onboard attitude controller: angle P -> rate PID -> torque
+    sub(e, rpy, e)
+    sub(pi, e, e)  # wrap to (-pi, pi]: pi - ((pi - e) mod 2 pi)
+    _rem(e, two_pi, e)
+    sub(pi, e, e)
+    mul(e, att_kp, e)
+    fmin(fmax(e, rate_lo, e), rate_hi, e)  # body-rate setpoint w_d
+    ew = sub(e, w, e)  # rate error e_w
+    I = state.rate_int
+    add(I, mul(ew, dt0, tmp), I)
+    fmin(fmax(I, int_lo, I), int_hi, I)
+    tau = mul(ew, k_e)
+    sub(tau, mul(state.rate_err_prev, k_prev, tmp), tau)
+    add(tau, mul(I, ki, tmp), tau)
+    fmin(fmax(tau, tau_lo, tau), tau_hi, tau)
+    state.rate_err_prev = ew  # a fresh array each call
+
+    # ---- 1. attitude dynamics, eq. (5): omega += dt (J^-1 (tau - omega x J omega) + d_a)
+    W3[...] = w
+    W5tail[...] = W5head
+    dw = mul(tau, jinv_dt, tau)
+    sub(dw, mul(mul(W5a, W5b, tmp), gyro_dt, tmp), dw)
+    if d_a is not None:
+        add(dw, mul(d_a, dt0, tmp), dw)
+    add(w, dw, W3)  # the new omega into scratch (views wx, wy, wz) ...
+    w[...] = W3  # ... and into the state
+
+    # ---- 2. Euler kinematics, eq. (4), T at Theta_k times the new omega
+    _sin(rpy, S)
+    _cos(rpy, C)
+    # guard cos(theta) away from 0, keeping its sign (a no-op when |cos(theta)| >= cos_min)
+    _copysign(fmax(_abs(ct, t1), cos_min, t1), ct, ct)
+    # a = s_phi w_y + c_phi w_z;  phi' = w_x + tan(theta) a;  theta' = c_phi w_y - s_phi w_z;
+    # psi' = a / cos(theta)
+    add(mul(sf, wy, t1), mul(cf, wz, t2), t3)
+    sub(mul(cf, wy, t1), mul(sf, wz, t2), e1)
+    _div(t3, ct, e2)
+    add(wx, mul(st, e2, t1), e0)
+    add(rpy, mul(E, dt0, E), rpy)
+    sub(pi, rpy, rpy)  # wrap to (-pi, pi]
+    _rem(rpy, two_pi, rpy)
+    sub(pi, rpy, rpy)
+
+    # ---- 3. translational dynamics, eq. (1), with R(Theta_{k+1}):
+    # v += dt (F/m R e3 - g e3 + d_p),  R e3 = (c_psi s_th c_phi + s_psi s_phi,
+    #                                           s_psi s_th c_phi - c_psi s_phi,  c_phi c_th)
+    _sin(rpy, S)
+    _cos(rpy, C)
+    fdm = mul(F, fdt_m, t4)  # F dt / m
+    cfF = mul(cf, fdm, t3)
+    sfF = mul(sf, fdm, t4)
+    stcf = mul(st, cfF, t1)
+    add(mul(cp, stcf, e0), mul(sp, sfF, t2), e0)
+    sub(mul(sp, stcf, e1), mul(cp, sfF, t2), e1)
+    mul(cfF, ct, e2)
+    add(v, E, v)
+    add(v, g_dt, v)
+    if d_p is not None:
+        add(v, mul(d_p, dt0, tmp), v)
+
+    # ---- 4. position, eq. (3)
+    add(q, mul(v, dt0, tmp), q)

@@ -1,0 +1,268 @@
+"""What every swarm process shares: its Zenoh session, an inbox of decoded inputs, lockstep waits,
+diagnostics, liveliness, and a clean exit on SIGINT/SIGTERM.
+
+The process shells (``agents/process.py``, ``leader/process.py``, ``plant/process.py``) are thin:
+decode -> pure step -> encode. This module is the glue they share; messages cross the network in
+:mod:`zenswarm.bus` (sessions) and :mod:`zenswarm.wire` (keys and payloads).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any, Callable
+
+import zenoh
+
+from . import bus, wire
+from .config import Scenario, load_scenario, scenario_from_dict
+from .errors import ScenarioError
+
+__all__ = ["Inbox", "SwarmProcess", "add_common_args", "LoopStats"]
+
+# Lockstep: a missing input is waited for this long (wall clock) before it counts as a drop.
+DEFAULT_LOCKSTEP_TIMEOUT_S = 5.0
+
+
+class Inbox:
+    """Decoded messages by key: the latest one, and (for lockstep) one per tick index.
+
+    Filled from Zenoh callbacks (other threads); read by the process loop. ``wait`` blocks until
+    every (key, tick) needed is present or a deadline passes.
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self.latest: dict[str, Any] = {}
+        self.latest_rx: dict[str, float] = {}
+        self._by_tick: dict[str, dict[int, Any]] = defaultdict(dict)
+
+    def put(self, key: str, tick: int, msg: Any) -> None:
+        with self._cond:
+            self.latest[key] = msg
+            self.latest_rx[key] = time.monotonic()
+            self._by_tick[key][tick] = msg
+            self._cond.notify_all()
+
+    def get(self, key: str, tick: int) -> Any | None:
+        with self._cond:
+            return self._by_tick[key].get(tick)
+
+    def wait(self, needs: list[tuple[str, int]], timeout_s: float, stop: threading.Event | None = None) -> list[tuple[str, int]]:
+        """Wait until every (key, tick) in ``needs`` has arrived; return the ones still missing."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                missing = [(k, t) for (k, t) in needs if t not in self._by_tick[k]]
+                if not missing:
+                    return []
+                left = deadline - time.monotonic()
+                if left <= 0 or (stop is not None and stop.is_set()):
+                    return missing
+                self._cond.wait(min(left, 0.2))
+
+    def forget_before(self, tick: int) -> None:
+        """Drop per-tick entries older than ``tick`` (bounded memory)."""
+        with self._cond:
+            for d in self._by_tick.values():
+                for t in [t for t in d if t < tick]:
+                    del d[t]
+
+    def wake(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
+
+
+class LoopStats:
+    """Realtime loop timing: period jitter and missed deadlines."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period = period_s
+        self.ticks = 0
+        self.missed = 0
+        self.max_jitter_s = 0.0
+        self._sum_jitter = 0.0
+
+    def record(self, lateness_s: float) -> None:
+        self.ticks += 1
+        j = abs(lateness_s)
+        self._sum_jitter += j
+        self.max_jitter_s = max(self.max_jitter_s, j)
+        if lateness_s > self.period:
+            self.missed += 1
+
+    def as_dict(self) -> dict[str, float]:
+        return {
+            "loop_ticks": self.ticks,
+            "missed_deadlines": self.missed,
+            "jitter_max_ms": 1e3 * self.max_jitter_s,
+            "jitter_mean_ms": 1e3 * self._sum_jitter / self.ticks if self.ticks else 0.0,
+        }
+
+
+def add_common_args(p: argparse.ArgumentParser) -> None:
+    """The flags every swarm process takes."""
+    p.add_argument("--scenario", type=Path, help="scenario TOML; if omitted, fetched from the leader's mission key")
+    p.add_argument("--swarm", default="default", help="swarm name: the key prefix swarm/<name> (default: default)")
+    p.add_argument(
+        "--connect",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help="Zenoh router endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; default tcp/127.0.0.1:7447)",
+    )
+    p.add_argument("--realtime", action="store_true", help="run on the wall clock (latest value wins) instead of lockstep")
+    p.add_argument(
+        "--lockstep-timeout",
+        type=float,
+        default=DEFAULT_LOCKSTEP_TIMEOUT_S,
+        metavar="S",
+        help=f"lockstep: wall seconds to wait for an input before it counts as a drop (default {DEFAULT_LOCKSTEP_TIMEOUT_S})",
+    )
+
+
+class SwarmProcess:
+    """A process of the swarm: session, keys, decoder, inbox, diagnostics, liveliness, stop flag.
+
+    Use as a context manager; the session is always closed (a session left open with Python
+    callbacks hangs interpreter exit).
+    """
+
+    def __init__(self, name: str, args: argparse.Namespace) -> None:
+        self.name = name
+        self.args = args
+        self.keys = wire.Keys(args.swarm)
+        self.decoder = wire.Decoder()
+        self.inbox = Inbox()
+        self.stop = threading.Event()
+        self.session: zenoh.Session | None = None
+        self._subs: list[Any] = []
+        self._pubs: dict[str, Any] = {}
+        self._token = None
+        self.counters: dict[str, float] = defaultdict(float)
+        self._diag_seq = 0
+        self.scenario: Scenario | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    def __enter__(self) -> "SwarmProcess":
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._on_signal)
+        connect = self.args.connect or ["tcp/127.0.0.1:7447"]
+        self.session = bus.open_session(bus.client_config(connect))
+        self.scenario = self._load_scenario()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        self.stop.set()
+        self.inbox.wake()
+
+    def close(self) -> None:
+        s, self.session = self.session, None
+        if s is None:
+            return
+        try:
+            if self._token is not None:
+                self._token.undeclare()
+        except Exception:  # noqa: BLE001 - best effort on shutdown
+            pass
+        for sub in self._subs:
+            try:
+                sub.undeclare()
+            except Exception:  # noqa: BLE001
+                pass
+        s.close()
+
+    def _load_scenario(self) -> Scenario:
+        if self.args.scenario is not None:
+            return load_scenario(self.args.scenario)
+        # Fetch the mission from the leader (late joiners, other hosts).
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline and not self.stop.is_set():
+            for reply in self.session.get(self.keys.mission, timeout=2.0):
+                ok = getattr(reply, "ok", None)
+                if ok is None:
+                    continue
+                msg = wire.decode("mission", ok.payload.to_bytes())
+                return scenario_from_dict(msg.scenario)
+            time.sleep(0.2)
+        raise ScenarioError("--scenario", "not given, and no leader answered on the mission key within 30 s")
+
+    # ------------------------------------------------------------------ bus
+    def subscribe(self, key: str, kind: str, on_msg: Callable[[str, Any], None] | None = None) -> None:
+        """Subscribe to ``key``; decoded messages go to the inbox keyed by their tick."""
+        dt_ns = wire.t_ns(self.scenario.timing.dt)
+        decoder = self.decoder
+        inbox = self.inbox
+
+        def cb(sample: zenoh.Sample) -> None:
+            msg = decoder.decode(key, kind, sample.payload.to_bytes())
+            if msg is None:
+                return
+            tick = (msg.t + dt_ns // 2) // dt_ns
+            inbox.put(key, tick, msg)
+            if on_msg is not None:
+                on_msg(key, msg)
+
+        self._subs.append(self.session.declare_subscriber(key, cb))
+
+    def publisher(self, key: str) -> Any:
+        pub = self._pubs.get(key)
+        if pub is None:
+            pub = self.session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK, express=True, reliability=zenoh.Reliability.RELIABLE
+            )
+            self._pubs[key] = pub
+        return pub
+
+    def publish(self, key: str, msg: Any) -> None:
+        self.publisher(key).put(wire.encode(msg))
+
+    def announce(self) -> None:
+        """Declare this process's liveliness token: all its subscriptions are in place."""
+        self._token = self.session.liveliness().declare_token(self.keys.alive(self.name))
+
+    def wait_for_alive(self, names: list[str], timeout_s: float = 60.0) -> list[str]:
+        """Block until every named process has announced itself; return those still missing."""
+        deadline = time.monotonic() + timeout_s
+        want = {self.keys.alive(n): n for n in names}
+        while not self.stop.is_set():
+            seen = set()
+            for reply in self.session.liveliness().get(self.keys.alive_all, timeout=1.0):
+                ok = getattr(reply, "ok", None)
+                if ok is not None:
+                    seen.add(str(ok.key_expr))
+            missing = [n for k, n in want.items() if k not in seen]
+            if not missing or time.monotonic() > deadline:
+                return missing
+            time.sleep(0.02)
+        return list(want.values())
+
+    def publish_diag(self, t_ns: int, info: dict[str, Any] | None = None) -> None:
+        counters = dict(self.counters)
+        counters.update(self.decoder.counters())
+        self._diag_seq += 1
+        self.publish(
+            self.keys.diag(self.name),
+            wire.Diag(t=t_ns, seq=self._diag_seq, process=self.name, counters=counters, info=info or {}),
+        )
+
+    def log(self, text: str) -> None:
+        print(text, flush=True)
+
+
+def run_process(fn: Callable[[SwarmProcess], int], name: str, args: argparse.Namespace) -> int:
+    """Run ``fn`` inside a :class:`SwarmProcess`; map errors to exit codes and always close."""
+    try:
+        with SwarmProcess(name, args) as proc:
+            return fn(proc)
+    except ScenarioError as e:
+        print(f"{name}: error: {e}", file=sys.stderr, flush=True)
+        return 2
