@@ -224,7 +224,8 @@ class Supervisor:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
 
-        session = bus.open_session(bus.router_config(listen, connect=a.router_connect or []))
+        session_cm = bus.open_session(bus.router_config(listen, connect=a.router_connect or []), handle_signals=False)
+        session = session_cm.__enter__()
         collector = Collector(sc, self.keys)
         subs = []
         try:
@@ -244,7 +245,7 @@ class Supervisor:
                     s.undeclare()
                 except Exception:  # noqa: BLE001 - best effort on shutdown
                     pass
-            session.close()
+            session_cm.__exit__(None, None, None)
         return self._finish(collector, code, out)
 
     def _on_liveliness(self, sample: Any) -> None:

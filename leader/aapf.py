@@ -70,7 +70,10 @@ class AapfParams:
     speed_limit: m/s, 0 = off.
     """
 
-    __slots__ = ("goal", "k_att", "k_rep_min", "k_rep_max", "d0", "r_f", "adaptive", "k_rep_fixed", "speed_limit", "obstacles")
+    __slots__ = (
+        "goal", "k_att", "k_rep_min", "k_rep_max", "d0", "r_f", "adaptive", "k_rep_fixed", "speed_limit", "obstacles",
+        "_goal_t", "_obs_t",
+    )
 
     def __init__(
         self,
@@ -95,6 +98,10 @@ class AapfParams:
         self.adaptive = bool(adaptive)
         self.k_rep_fixed = float(k_rep_fixed)
         self.speed_limit = float(speed_limit)
+        self._goal_t = tuple(float(g) for g in self.goal)
+        self._obs_t = tuple(
+            (float(o.center[0]), float(o.center[1]), float(o.center[2]) + float(o.height), float(o.radius)) for o in self.obstacles
+        )
 
     @classmethod
     def from_scenario(cls, scenario) -> "AapfParams":
@@ -224,17 +231,68 @@ def repulsive_force(q0: np.ndarray, p: AapfParams) -> np.ndarray:
     return f
 
 
+def _force_and_margin(x: float, y: float, z: float, p: AapfParams) -> tuple[float, float, float, float]:
+    """Scalar core of eqs (9)-(14): (v_x, v_y, v_z, min d_obs) at q0 = (x, y, z).
+
+    Plain floats: this runs 10+ times per control tick, where numpy's per-call overhead on
+    3-vectors would dominate. Same arithmetic as :func:`repulsive_force`.
+    """
+    k_att = p.k_att
+    gx, gy, gz = p._goal_t
+    fx = -k_att * (x - gx)
+    fy = -k_att * (y - gy)
+    fz = -k_att * (z - gz)
+    d0 = p.d0
+    d_floor = D_FLOOR_FRACTION * d0
+    inv_d0 = 1.0 / d0
+    margin = math.inf
+    for xc, yc, top, ro in p._obs_t:
+        dx = x - xc
+        dy = y - yc
+        if z <= top:
+            r = math.sqrt(dx * dx + dy * dy)
+            if r == 0.0:
+                nx, ny, nz = 1.0, 0.0, 0.0
+            else:
+                nx, ny, nz = dx / r, dy / r, 0.0
+        else:
+            dz = z - top
+            r = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if r == 0.0:
+                nx, ny, nz = 0.0, 0.0, 1.0
+            else:
+                nx, ny, nz = dx / r, dy / r, dz / r
+        d = r - ro - p.r_f
+        if d < margin:
+            margin = d
+        if d > d0:
+            continue
+        if p.adaptive:
+            frac = 1.0 - (d if d > 0.0 else 0.0) / d0
+            k = p.k_rep_min + (p.k_rep_max - p.k_rep_min) * (frac if frac < 1.0 else 1.0)
+        else:
+            k = p.k_rep_fixed
+        dd = d if d > d_floor else d_floor
+        c = k / (dd * dd) * (1.0 / dd - inv_d0)
+        fx += c * nx
+        fy += c * ny
+        fz += c * nz
+    if p.speed_limit > 0.0:
+        s = math.sqrt(fx * fx + fy * fy + fz * fz)
+        if s > p.speed_limit:
+            f = p.speed_limit / s
+            fx, fy, fz = fx * f, fy * f, fz * f
+    return fx, fy, fz, margin
+
+
 def total_force(q0: np.ndarray, p: AapfParams) -> np.ndarray:
     """Gamma*_total = Gamma_att + Gamma_rep, eq. (14); the leader velocity v0 of eq. (15), m/s.
 
     With ``p.speed_limit > 0`` the result is scaled down to that norm (off by default).
+    Returns (3,).
     """
-    v = attractive_force(q0, p.goal, p.k_att) + repulsive_force(q0, p)
-    if p.speed_limit > 0.0:
-        s = float(np.linalg.norm(v))
-        if s > p.speed_limit:
-            v *= p.speed_limit / s
-    return v
+    fx, fy, fz, _ = _force_and_margin(float(q0[0]), float(q0[1]), float(q0[2]), p)
+    return np.array([fx, fy, fz])
 
 
 def min_d_obs(q0: np.ndarray, p: AapfParams) -> float:
@@ -269,7 +327,7 @@ def integrate_leader(
 
     q0: (3,) m. dt: s. Returns (q0 at t + dt, info).
     """
-    q = np.array(q0, dtype=float)
+    x, y, z = float(q0[0]), float(q0[1]), float(q0[2])
     h_nom = dt / max(1, int(min_substeps))
     remaining = dt
     n = 0
@@ -277,23 +335,23 @@ def integrate_leader(
     near = p.d0 * 4.0
     while remaining > 1e-15 * dt:
         if n >= MAX_SUBSTEPS:
-            return q, LeaderStepInfo(n, True)
-        h = min(h_nom, remaining)
-        v = total_force(q, p)
-        if p.obstacles:
-            margin = min_d_obs(q, p)
-            if margin < near:
-                lim = STEP_FRACTION * max(margin, d_floor)
-                speed = float(np.linalg.norm(v))
-                while speed * h > lim and h > 1e-9 * dt:
-                    h *= 0.5
+            return np.array([x, y, z]), LeaderStepInfo(n, True)
+        h = h_nom if h_nom < remaining else remaining
+        vx, vy, vz, margin = _force_and_margin(x, y, z, p)
+        if margin < near:
+            lim = STEP_FRACTION * (margin if margin > d_floor else d_floor)
+            speed = math.sqrt(vx * vx + vy * vy + vz * vz)
+            while speed * h > lim and h > 1e-9 * dt:
+                h *= 0.5
         # snap the last sub-step to the interval end to avoid a sliver step
         if remaining - h < 1e-12 * dt:
             h = remaining
-        q += h * v
+        x += h * vx
+        y += h * vy
+        z += h * vz
         remaining -= h
         n += 1
-    return q, LeaderStepInfo(n, False)
+    return np.array([x, y, z]), LeaderStepInfo(n, False)
 
 
 def obstacle_clearance_many(p: np.ndarray, ob: ObstacleLike) -> np.ndarray:

@@ -4,7 +4,8 @@ Publishes ``leader/ref`` and answers queries on ``mission`` with the scenario, s
 join late (or run on other hosts without the scenario file) can fetch it.
 
 Lockstep: on the plant's clock(k) it publishes ref(k) (if not yet sent) and ref(k+1), staying one
-tick ahead so pinned agents never wait for it. Realtime: it follows the plant's clock on a fixed
+tick ahead so pinned agents rarely wait for it (the plant starts the clock only once every process
+has subscribed, so nothing is published into the void). Realtime: it follows the plant's clock on a fixed
 loop, integrating from its current time to the newest clock time.
 """
 
@@ -59,14 +60,15 @@ def _run(proc: SwarmProcess) -> int:
 
     try:
         if not proc.args.realtime:
-            publish_current()  # ref(0)
-            sent = 0
+            sent = -1  # newest tick whose ref was published
             k = 0
             while k < n_ticks and not proc.stop.is_set():
                 if proc.inbox.wait([(keys.clock, k)], proc.args.lockstep_timeout, proc.stop):
                     continue
-                while sent < k + 1 and k_q < n_ticks:
-                    advance()
+                # clock(k) means every process has subscribed: publish ref(k) and ref(k+1)
+                while sent < min(k + 1, n_ticks - 1):
+                    if sent >= 0:
+                        advance()
                     publish_current()
                     sent = k_q
                 proc.inbox.forget_before(k - 1)

@@ -34,24 +34,29 @@ __all__ = [
     "step",
     "wrap_angle",
     "COS_THETA_MIN",
+    "YAW_CMD_MAX",
 ]
 
 COS_THETA_MIN = 1e-6
 """Guard on |cos(theta)| in the Euler kinematics (4); see :func:`step`."""
+
+YAW_CMD_MAX = 1e6
+"""Yaw setpoints are clamped to +-YAW_CMD_MAX rad before wrapping (keeps the state finite for
+any command, including inf and NaN)."""
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
 
 
 def wrap_angle(a: Any) -> np.ndarray:
-    """Wrap angles to (-pi, pi] as pi - ((pi - a) mod 2 pi), rad (the formula :func:`step` uses).
+    """Wrap angles to (-pi, pi], rad: a - 2 pi ceil(a / (2 pi) - 1/2) (the formula :func:`step`
+    applies to the Euler angles).
 
-    a: array_like, rad -> ndarray of the same shape. Inside the interval the result differs from
-    ``a`` by at most a rounding of pi - a (about 4e-16 rad); exactly at the boundary one rounding
-    can give -pi instead of pi.
+    a: array_like, rad -> ndarray of the same shape. Values inside (-pi, pi) are returned
+    bit-exactly; within one rounding of +-pi the result may be off the interval by an ulp.
     """
     a = np.asarray(a, dtype=float)
-    return _PI - np.remainder(_PI - a, _TWO_PI)
+    return a - _TWO_PI * np.ceil(a * (1.0 / _TWO_PI) - 0.5)
 
 
 def rotation_matrix(rpy: Any) -> np.ndarray:
@@ -148,6 +153,14 @@ class PlantState:
     rate_err_prev: np.ndarray
     _cache: Any = field(default=None, repr=False, compare=False)
 
+    def __post_init__(self) -> None:
+        n = np.shape(self.q)[0] if np.ndim(self.q) == 2 else -1
+        for name in ("q", "v", "rpy", "w", "rate_int", "rate_err_prev"):
+            a = np.asarray(getattr(self, name), dtype=float)
+            if a.shape != (n, 3):
+                raise ValueError(f"PlantState.{name} must have shape (N, 3) with N = len(q), got {a.shape}")
+            object.__setattr__(self, name, a)
+
     @property
     def n(self) -> int:
         """Number of UAVs N."""
@@ -198,12 +211,15 @@ class _Compiled:
         self.dt0 = np.array(dt)
         self.pi = np.array(_PI)
         self.two_pi = np.array(_TWO_PI)
+        self.inv_two_pi = np.array(1.0 / _TWO_PI)
+        self.half = np.array(0.5)
         self.fmax = np.full(n, float(p.max_thrust))
         self.fdt_m = np.array(dt / p.mass)
         self.cos_min = np.array(COS_THETA_MIN)
-        # attitude command bounds: roll, pitch within +-max_tilt; yaw free (wrapped)
-        self.cmd_lo = full([-tilt, -tilt, -np.inf])
-        self.cmd_hi = full([tilt, tilt, np.inf])
+        # attitude command bounds: roll, pitch within +-max_tilt; yaw within +-YAW_CMD_MAX (then
+        # wrapped), a finite bound so that no command can make the state non-finite
+        self.cmd_lo = full([-tilt, -tilt, -YAW_CMD_MAX])
+        self.cmd_hi = full([tilt, tilt, YAW_CMD_MAX])
         self.att_kp = full(p.att_kp)
         self.rate_hi = full(p.max_rate)
         self.rate_lo = -self.rate_hi
@@ -224,14 +240,9 @@ class _Compiled:
         self.jinv_dt = full(dt / J)
         self.gyro_dt = full(dt * np.array([(J[2] - J[1]) / J[0], (J[0] - J[2]) / J[1], (J[1] - J[0]) / J[2]]))
         self.g_dt = full([0.0, 0.0, -p.g * dt])
-        # scratch: W5 holds (wx, wy, wz, wx, wy) so W5[:, 1:4] * W5[:, 2:5] = (wy wz, wz wx, wx wy)
-        self.W5 = np.zeros((n, 5))
-        self.W3 = self.W5[:, 0:3]
-        self.W5a = self.W5[:, 1:4]
-        self.W5b = self.W5[:, 2:5]
-        self.W5head = self.W5[:, 0:2]
-        self.W5tail = self.W5[:, 3:5]
-        self.wx, self.wy, self.wz = self.W5[:, 0], self.W5[:, 1], self.W5[:, 2]
+        # scratch, C-contiguous (numpy is ~3x slower on 2-D strided views); column views
+        self.G = np.zeros((n, 3))  # gyroscopic products (w_y w_z, w_z w_x, w_x w_y)
+        self.G0, self.G1, self.G2 = self.G[:, 0], self.G[:, 1], self.G[:, 2]
         self.S = np.zeros((n, 3))
         self.C = np.zeros((n, 3))
         self.sf, self.st, self.sp = self.S[:, 0], self.S[:, 1], self.S[:, 2]
@@ -246,19 +257,24 @@ class _Compiled:
         self.consts = (
             self.zero, self.fmax, self.cmd_lo, self.cmd_hi, self.pi, self.two_pi, self.att_kp,
             self.rate_lo, self.rate_hi, self.dt0, self.int_lo, self.int_hi, self.k_e, self.k_prev,
-            self.ki, self.tau_lo, self.tau_hi, self.W3, self.W5a, self.W5b, self.W5head,
-            self.W5tail, self.jinv_dt, self.gyro_dt, self.wx, self.wy, self.wz, self.S, self.C,
+            self.ki, self.tau_lo, self.tau_hi, self.G, self.G0, self.G1, self.G2, self.jinv_dt,
+            self.gyro_dt, self.S, self.C,
             self.sf, self.st, self.sp, self.cf, self.ct, self.cp, self.cos_min, self.E, self.e0,
             self.e1, self.e2, self.t1, self.t2, self.t3, self.t4, self.tmp, self.fdt_m, self.g_dt,
+            self.inv_two_pi, self.half,
         )
 
 
 def _compile(state: PlantState, params: QuadParams, dt: float) -> _Compiled:
     if not isinstance(params, QuadParams):
         raise TypeError(f"params must be a QuadParams, got {type(params).__name__}")
-    if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+    try:
+        dtf = float(dt)
+    except (TypeError, ValueError):
+        dtf = math.nan
+    if not (math.isfinite(dtf) and dtf > 0):
         raise ValueError(f"dt must be a positive finite number of seconds, got {dt!r}")
-    c = _Compiled(params, float(dt), state.q.shape[0])
+    c = _Compiled(params, dtf, state.q.shape[0])
     state._cache = c
     return c
 
@@ -274,6 +290,7 @@ _sin = np.sin
 _cos = np.cos
 _abs = np.absolute
 _copysign = np.copysign
+_ceil = np.ceil
 
 
 def step(
@@ -294,7 +311,9 @@ def step(
     thrust_cmd : (N,) array_like
         Collective thrust F, N; eq. (1). Clamped to [0, max_thrust] (NaN -> 0).
     rpy_cmd : (N, 3) array_like
-        Attitude setpoint [phi_d, theta_d, psi_d], rad. Roll and pitch clamped to +-max_tilt.
+        Attitude setpoint [phi_d, theta_d, psi_d], rad. Roll and pitch are clamped to
+        +-max_tilt, yaw to +-YAW_CMD_MAX (a NaN becomes the lower bound): no command, finite or
+        not, can make the state non-finite. (Decoders upstream reject non-finite commands.)
     params : QuadParams
     dt : float
         Sub-step, s (1e-3 typically; the controller gains are designed for 1 kHz).
@@ -329,8 +348,9 @@ def step(
     if c is None or c.params is not params or c.dt != dt or c.n != state.q.shape[0]:
         c = _compile(state, params, dt)
     (zero, fmaxv, cmd_lo, cmd_hi, pi, two_pi, att_kp, rate_lo, rate_hi, dt0, int_lo, int_hi, k_e,
-     k_prev, ki, tau_lo, tau_hi, W3, W5a, W5b, W5head, W5tail, jinv_dt, gyro_dt, wx, wy, wz, S, C,
-     sf, st, sp, cf, ct, cp, cos_min, E, e0, e1, e2, t1, t2, t3, t4, tmp, fdt_m, g_dt) = c.consts
+     k_prev, ki, tau_lo, tau_hi, G, G0, G1, G2, jinv_dt, gyro_dt, S, C,
+     sf, st, sp, cf, ct, cp, cos_min, E, e0, e1, e2, t1, t2, t3, t4, tmp, fdt_m, g_dt, inv_two_pi,
+     half) = c.consts
     mul = _mul
     add = _add
     sub = _sub
@@ -361,14 +381,15 @@ def step(
     state.rate_err_prev = ew  # a fresh array each call
 
     # ---- 1. attitude dynamics, eq. (5): omega += dt (J^-1 (tau - omega x J omega) + d_a)
-    W3[...] = w
-    W5tail[...] = W5head
+    wx, wy, wz = w.T  # column views of the state; they see the in-place update below
+    mul(wy, wz, G0)  # G = (w_y w_z, w_z w_x, w_x w_y)
+    mul(wz, wx, G1)
+    mul(wx, wy, G2)
     dw = mul(tau, jinv_dt, tau)
-    sub(dw, mul(mul(W5a, W5b, tmp), gyro_dt, tmp), dw)
+    sub(dw, mul(G, gyro_dt, G), dw)
     if d_a is not None:
         add(dw, mul(d_a, dt0, tmp), dw)
-    add(w, dw, W3)  # the new omega into scratch (views wx, wy, wz) ...
-    w[...] = W3  # ... and into the state
+    add(w, dw, w)
 
     # ---- 2. Euler kinematics, eq. (4), T at Theta_k times the new omega
     _sin(rpy, S)
@@ -382,9 +403,10 @@ def step(
     _div(t3, ct, e2)
     add(wx, mul(st, e2, t1), e0)
     add(rpy, mul(E, dt0, E), rpy)
-    sub(pi, rpy, rpy)  # wrap to (-pi, pi]
-    _rem(rpy, two_pi, rpy)
-    sub(pi, rpy, rpy)
+    # wrap to (-pi, pi], bit-exact inside: Theta -= 2 pi ceil(Theta / (2 pi) - 1/2)
+    k = sub(mul(rpy, inv_two_pi, tmp), half, tmp)
+    _ceil(k, k)
+    sub(rpy, mul(k, two_pi, k), rpy)
 
     # ---- 3. translational dynamics, eq. (1), with R(Theta_{k+1}):
     # v += dt (F/m R e3 - g e3 + d_p),  R e3 = (c_psi s_th c_phi + s_psi s_phi,

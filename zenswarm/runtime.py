@@ -28,6 +28,10 @@ __all__ = ["Inbox", "SwarmProcess", "add_common_args", "LoopStats"]
 # Lockstep: a missing input is waited for this long (wall clock) before it counts as a drop.
 DEFAULT_LOCKSTEP_TIMEOUT_S = 5.0
 
+# Zenoh runs Python callbacks on its own threads; with the default 5 ms GIL switch interval a
+# callback thread can keep the main loop waiting for the GIL for milliseconds per message.
+SWITCH_INTERVAL_S = 0.0002
+
 
 class Inbox:
     """Decoded messages by key: the latest one, and (for lockstep) one per tick index.
@@ -150,10 +154,12 @@ class SwarmProcess:
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> "SwarmProcess":
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
         connect = self.args.connect or ["tcp/127.0.0.1:7447"]
-        self.session = bus.open_session(bus.client_config(connect))
+        self._session_cm = bus.open_session(bus.client_config(connect), handle_signals=False)
+        self.session = self._session_cm.__enter__()
         self.scenario = self._load_scenario()
         return self
 
@@ -178,7 +184,7 @@ class SwarmProcess:
                 sub.undeclare()
             except Exception:  # noqa: BLE001
                 pass
-        s.close()
+        self._session_cm.__exit__(None, None, None)
 
     def _load_scenario(self) -> Scenario:
         if self.args.scenario is not None:

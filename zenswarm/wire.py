@@ -102,7 +102,7 @@ REASONS: Final = (
     "nonfinite",  # NaN or +-inf anywhere
     "negative",  # t or seq < 0
     "out_of_range",  # t > MAX_T_NS, seq > MAX_SEQ
-    "nesting",  # containers nested deeper than MAX_DEPTH
+    "nesting",  # containers nested deeper than MAX_DEPTH (or than msgpack's unpacker allows)
     "value",  # a well-typed value that is not allowed (e.g. an unknown process name)
     "stale",  # Decoder with check_seq: seq not greater than the last accepted on that key
 )
@@ -715,6 +715,8 @@ def _unpack(kind: str, payload: bytes) -> dict[str, Any]:
             max_map_len=n,
             max_ext_len=n,
         )
+    except msgpack.StackError:
+        raise WireDecodeError("nesting", "nested deeper than msgpack's unpacker allows") from None
     except Exception as e:  # msgpack raises ValueError, its own exception types, UnicodeDecodeError...
         raise WireDecodeError("malformed", f"not msgpack ({type(e).__name__}: {e})") from None
     if type(obj) is not dict:

@@ -1,0 +1,70 @@
+"""Subcommands of the flight recorder, wired into ``zenswarm`` by :func:`add_parsers`.
+
+``record`` (:mod:`bridge.recorder`), ``replay`` and ``verify`` (:mod:`bridge.replay`),
+``recover`` (:mod:`bridge.mcapio`); ``report`` (:mod:`bridge.report`) and ``export``
+(:mod:`bridge.foxglove`) when those modules are present.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+__all__ = ["add_parsers"]
+
+
+def _run_recover(args: argparse.Namespace) -> int:
+    from .mcapio import recover
+
+    st = recover(args.src, args.out)
+    span = ""
+    if st.first_log_time is not None and st.last_log_time is not None:
+        span = f" spanning {(st.last_log_time - st.first_log_time) / 1e9:.3f} s"
+    print(
+        f"recover: {args.src} ({'complete' if st.source_complete else 'incomplete'}) -> {args.out}: "
+        f"{st.messages} messages on {st.channels} channels{span}, {st.metadata} metadata records"
+    )
+    for p in st.problems:
+        print(f"recover: source problem: {p}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(st.as_dict(), sort_keys=True))
+    return 0
+
+
+def _add_recover(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "recover",
+        help="rewrite a truncated or corrupted recording into a complete MCAP file",
+        description=(
+            "Read SRC leniently (everything written before a crash, skipping chunks that fail their "
+            "CRC) and write DST as a complete MCAP file with summary and indexes: same messages, "
+            "channels and metadata. Lists the damage found on stderr."
+        ),
+    )
+    p.add_argument("src", type=Path, help="damaged recording")
+    p.add_argument("--out", type=Path, required=True, metavar="DST", help="output MCAP file (must differ from SRC)")
+    p.add_argument("--json", action="store_true", help="also print the statistics as JSON")
+    p.set_defaults(func=_run_recover)
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    """Register ``record``, ``replay``, ``verify``, ``recover`` (and ``report``/``export``
+    when :mod:`bridge.report` / :mod:`bridge.foxglove` exist)."""
+    from . import recorder, replay
+
+    recorder.add_parser(sub)
+    replay.add_parsers(sub)
+    _add_recover(sub)
+    for modname in ("bridge.report", "bridge.foxglove"):
+        try:
+            mod = __import__(modname, fromlist=["add_parser"])
+        except ImportError as e:
+            if not (e.name and modname.startswith(e.name)):
+                # present but broken (a missing dependency): keep every other command working
+                print(f"zenswarm: warning: {modname} not available: {e}", file=sys.stderr)
+            continue
+        register = getattr(mod, "add_parsers", None) or getattr(mod, "add_parser", None)
+        if register is not None:
+            register(sub)

@@ -1,0 +1,1302 @@
+"""MAVLink bridge: fly the swarm's agents on PX4 or ArduPilot vehicles (or the simulated ones of
+:mod:`plant.mavlink_vehicle`) without changing a line of the agents.
+
+``zenswarm bridge mavlink SCENARIO --swarm S --connect EP [--conn I=URL ...]`` (or
+``python -m bridge.mavlink SCENARIO ...``) takes the plant's place on the swarm bus in realtime
+mode. For each UAV i it opens (or shares) a MAVLink connection (pymavlink connection string:
+``udpout:host:port``, ``udpin:host:port``, ``tcp:host:port``, ``/dev/ttyUSB0,921600``) to the
+vehicle with system id ``sysid_i`` and then:
+
+1. sends its own HEARTBEAT at 1 Hz (MAV_TYPE_ONBOARD_CONTROLLER) and waits for the vehicle's;
+2. streams setpoints (a position hold at the current position) for ``stream_s`` seconds before
+   asking for the offboard mode, as PX4 requires (it refuses OFFBOARD unless setpoints arrive at
+   more than 2 Hz, and leaves it after ``COM_OF_LOSS_T`` without them);
+3. asks for the mode with MAV_CMD_DO_SET_MODE (PX4: OFFBOARD = main mode 6; ArduPilot copter:
+   GUIDED = 4 for position setpoints or a takeoff, GUIDED_NOGPS = 20 for attitude only) and waits
+   until the vehicle's heartbeat reports it. It never arms a vehicle whose heartbeat reports a
+   mode it did not ask for: if the vehicle acknowledges the request but keeps reporting another
+   mode, the UAV is *refused* (reason in the diag message) and left alone;
+4. arms (MAV_CMD_COMPONENT_ARM_DISARM) and, with ``takeoff = true``, flies to the UAV's initial
+   position of the scenario with position setpoints (ArduPilot: after MAV_CMD_NAV_TAKEOFF);
+5. once every UAV is ready (or ``start_timeout_s`` passed) and, unless ``--no-wait-alive``, the
+   leader and the agents hold liveliness tokens, starts the mission clock: every control tick it
+   publishes ``clock`` and each ready UAV's ``uav/<i>/state`` (from LOCAL_POSITION_NED and
+   ATTITUDE/ATTITUDE_QUATERNION, converted to ENU/FLU by :mod:`bridge.frames`), exactly as the
+   realtime plant does, and forwards each agent's ``uav/<i>/cmd`` as SET_ATTITUDE_TARGET
+   (quaternion + normalised thrust through :class:`bridge.frames.ThrustMap`) at
+   ``max(rate_hz, 20)`` Hz, re-sending the latest command if the agent is slower; with
+   ``setpoint = "position"`` it forwards ``uav/<i>/ref`` as SET_POSITION_TARGET_LOCAL_NED
+   (position + velocity) instead and lets the vehicle run its own position loop. A command older
+   than ``cmd_timeout_s`` is replaced by a position hold;
+6. a vehicle silent for more than ``link_timeout_s`` is marked unhealthy in ``diag/bridge``
+   (its state is no longer published; the other UAVs keep flying); when it talks again it is
+   marked healthy and, if it left the offboard mode during the silence (offboard-loss failsafe)
+   but is still armed, the bridge asks for the mode again. If the mode changes while the link
+   is healthy (a pilot took over), the UAV is *released* and no longer commanded;
+7. at the end of the mission (``timing.time_limit_s``) or on SIGTERM/SIGINT it switches every
+   vehicle it armed to the land mode (PX4 AUTO.LAND, ArduPilot LAND), waits (at most
+   ``land_timeout_s``) until the vehicles report disarmed (auto-disarm after landing) and sends a
+   (non-forced) disarm to any that did not.
+
+Unknown and malformed MAVLink traffic (bad CRC/garbage, unknown message ids, non-finite fields,
+other system ids) is ignored and counted (``mav_bad``, ``mav_unknown``, ``mav_malformed``,
+``mav_other_system``, ``mav_unhandled`` in the bridge's diag counters).
+
+Configuration: the scenario's ``[mavlink]`` table (see :func:`mavlink_settings` for every key),
+overridden by command-line flags. All frames conversions are in :mod:`bridge.frames`.
+
+Importing this module sets ``MAVLINK20=1`` in the environment before importing pymavlink, so all
+connections of the process speak MAVLink 2 (PX4 and ArduPilot both do).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from zenswarm.config import Scenario
+from zenswarm.errors import ScenarioError
+
+from . import frames
+
+
+def _load_mavutil() -> Any:
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink import mavutil as mu
+
+    if getattr(mu.mavlink, "WIRE_PROTOCOL_VERSION", "1.0") != "2.0":
+        mu.set_dialect(mu.current_dialect)
+    return mu
+
+
+mavutil = _load_mavutil()
+mavlink = mavutil.mavlink
+
+__all__ = [
+    "PX4_MAIN",
+    "PX4_AUTO_SUB",
+    "AP_COPTER_MODES",
+    "px4_custom_mode",
+    "px4_decode",
+    "PX4_OFFBOARD",
+    "PX4_HOLD",
+    "PX4_LAND",
+    "PX4_POSCTL",
+    "mode_name",
+    "mode_request_params",
+    "autopilot_name",
+    "MavlinkSettings",
+    "mavlink_settings",
+    "Bridge",
+    "main",
+    "add_parsers",
+]
+
+# --------------------------------------------------------------------------- MAVLink modes
+
+PX4_MAIN: dict[str, int] = {
+    "MANUAL": 1,
+    "ALTCTL": 2,
+    "POSCTL": 3,
+    "AUTO": 4,
+    "ACRO": 5,
+    "OFFBOARD": 6,
+    "STABILIZED": 7,
+    "RATTITUDE": 8,
+}
+"""PX4 custom main modes (``PX4_CUSTOM_MAIN_MODE`` in PX4's ``px4_custom_mode.h``)."""
+
+PX4_AUTO_SUB: dict[str, int] = {"READY": 1, "TAKEOFF": 2, "LOITER": 3, "MISSION": 4, "RTL": 5, "LAND": 6}
+"""PX4 sub modes of main mode AUTO (``PX4_CUSTOM_SUB_MODE_AUTO``)."""
+
+AP_COPTER_MODES: dict[str, int] = {
+    "STABILIZE": 0,
+    "ALT_HOLD": 2,
+    "AUTO": 3,
+    "GUIDED": 4,
+    "LOITER": 5,
+    "RTL": 6,
+    "LAND": 9,
+    "POSHOLD": 16,
+    "BRAKE": 17,
+    "GUIDED_NOGPS": 20,
+}
+"""ArduCopter flight mode numbers (HEARTBEAT.custom_mode, DO_SET_MODE param2)."""
+
+
+def px4_custom_mode(main: int, sub: int = 0) -> int:
+    """PX4 HEARTBEAT.custom_mode for (main, sub): the union ``{uint16 reserved; uint8 main_mode;
+    uint8 sub_mode}`` read as a little-endian uint32: ``main << 16 | sub << 24``."""
+    return ((int(main) & 0xFF) << 16) | ((int(sub) & 0xFF) << 24)
+
+
+def px4_decode(custom_mode: int) -> tuple[int, int]:
+    """(main_mode, sub_mode) of a PX4 custom_mode."""
+    return (int(custom_mode) >> 16) & 0xFF, (int(custom_mode) >> 24) & 0xFF
+
+
+PX4_OFFBOARD = px4_custom_mode(PX4_MAIN["OFFBOARD"])
+PX4_HOLD = px4_custom_mode(PX4_MAIN["AUTO"], PX4_AUTO_SUB["LOITER"])
+PX4_LAND = px4_custom_mode(PX4_MAIN["AUTO"], PX4_AUTO_SUB["LAND"])
+PX4_POSCTL = px4_custom_mode(PX4_MAIN["POSCTL"])
+
+_PX4_MAIN_NAME = {v: k for k, v in PX4_MAIN.items()}
+_PX4_SUB_NAME = {v: k for k, v in PX4_AUTO_SUB.items()}
+_AP_NAME = {v: k for k, v in AP_COPTER_MODES.items()}
+
+
+def autopilot_name(mav_autopilot: int) -> str:
+    """'px4' for MAV_AUTOPILOT_PX4, 'ardupilot' for MAV_AUTOPILOT_ARDUPILOTMEGA, else 'px4'
+    (a generic autopilot is driven like PX4)."""
+    return "ardupilot" if int(mav_autopilot) == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA else "px4"
+
+
+def mode_name(autopilot: str, custom_mode: int | None) -> str:
+    """Readable mode, e.g. ``OFFBOARD``, ``AUTO.LOITER``, ``GUIDED_NOGPS``, ``?(1234)``."""
+    if custom_mode is None:
+        return "unknown"
+    if autopilot == "ardupilot":
+        return _AP_NAME.get(int(custom_mode), f"?({custom_mode})")
+    main, sub = px4_decode(custom_mode)
+    name = _PX4_MAIN_NAME.get(main)
+    if name is None:
+        return f"?({custom_mode})"
+    if main == PX4_MAIN["AUTO"]:
+        return f"AUTO.{_PX4_SUB_NAME.get(sub, str(sub))}"
+    return name
+
+
+def mode_request_params(autopilot: str, custom_mode: int) -> tuple[float, float, float]:
+    """(param1, param2, param3) of MAV_CMD_DO_SET_MODE for ``custom_mode``: param1 =
+    MAV_MODE_FLAG_CUSTOM_MODE_ENABLED; PX4: param2 = main mode, param3 = sub mode; ArduPilot:
+    param2 = mode number."""
+    flag = float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED)
+    if autopilot == "ardupilot":
+        return flag, float(custom_mode), 0.0
+    main, sub = px4_decode(custom_mode)
+    return flag, float(main), float(sub)
+
+
+def _same_mode(autopilot: str, a: int | None, b: int | None) -> bool:
+    if a is None or b is None:
+        return False
+    if autopilot == "ardupilot":
+        return int(a) == int(b)
+    ma, sa = px4_decode(a)
+    mb, sb = px4_decode(b)
+    if ma != mb:
+        return False
+    return ma != PX4_MAIN["AUTO"] or sa == sb  # the sub mode matters only for AUTO
+
+
+# --------------------------------------------------------------------------- settings
+
+_MAV_KEYS: dict[str, str] = {
+    "connections": "list of pymavlink connection strings, one per UAV (default udpout:HOST:BASE_PORT+i-1)",
+    "sysids": "list of MAVLink system ids, one per UAV (default 1..N)",
+    "origins": "list of [x, y, z], m ENU: where each vehicle's local NED origin is in the swarm frame (default 0)",
+    "host": "host of the simulated vehicles (default 127.0.0.1)",
+    "base_port": "UDP port of vehicle 1; vehicle i on base_port + i - 1 (default 14540)",
+    "autopilot": "px4 | ardupilot | auto (bridge: from the vehicle's heartbeat; default auto)",
+    "setpoint": "attitude (SET_ATTITUDE_TARGET from uav/<i>/cmd) | position (SET_POSITION_TARGET_LOCAL_NED from uav/<i>/ref)",
+    "rate_hz": "minimum setpoint rate, Hz, >= 20 (default max(20, control rate))",
+    "hover_throttle": "normalised throttle at which the vehicle hovers, (0, 1) (default: thrust / max_thrust)",
+    "takeoff": "fly to the scenario's initial positions before the mission (default true)",
+    "takeoff_tolerance_m": "takeoff done within this distance, m (default 0.08)",
+    "takeoff_timeout_s": "give up a takeoff after this long, s (default 30)",
+    "link_timeout_s": "a vehicle silent this long is unhealthy, s (default 1.0)",
+    "stream_s": "setpoints streamed before asking for the offboard mode, s (default 1.0)",
+    "cmd_timeout_s": "an agent command older than this is replaced by a position hold, s (default 0.5)",
+    "land_timeout_s": "wait at most this long for the vehicles to land and disarm, s (default 15)",
+    "start_timeout_s": "start the mission clock after this long even if some UAV is not ready, s (default 60)",
+    "reengage": "after a link loss, ask a still-armed vehicle for the offboard mode again (default true)",
+    "source_system": "the bridge's MAVLink system id (default 245)",
+    "telemetry_hz": "simulated vehicle: LOCAL_POSITION_NED and ATTITUDE rate, Hz (default 50)",
+    "offboard_loss_s": "simulated vehicle: no setpoint this long -> hold (PX4 COM_OF_LOSS_T), s (default 0.5)",
+    "failsafe_land_s": "simulated vehicle: hold this long after the loss, then land, s (default 5)",
+    "ground_z": "simulated vehicle: ground height, m ENU (default 0)",
+}
+
+
+@dataclass(frozen=True)
+class MavlinkSettings:
+    """Validated ``[mavlink]`` table plus command-line overrides (see ``_MAV_KEYS`` for units)."""
+
+    n: int
+    connections: tuple[str, ...]
+    sysids: tuple[int, ...]
+    origins: tuple[tuple[float, float, float], ...]
+    host: str = "127.0.0.1"
+    base_port: int = 14540
+    autopilot: str = "auto"
+    setpoint: str = "attitude"
+    rate_hz: float = 20.0
+    hover_throttle: float | None = None
+    takeoff: bool = True
+    takeoff_tolerance_m: float = 0.08
+    takeoff_timeout_s: float = 30.0
+    link_timeout_s: float = 1.0
+    stream_s: float = 1.0
+    cmd_timeout_s: float = 0.5
+    land_timeout_s: float = 15.0
+    start_timeout_s: float = 60.0
+    reengage: bool = True
+    source_system: int = 245
+    telemetry_hz: float = 50.0
+    offboard_loss_s: float = 0.5
+    failsafe_land_s: float = 5.0
+    ground_z: float = 0.0
+
+
+def _num(fieldname: str, x: Any, lo: float | None = None, hi: float | None = None, *, strict_lo: bool = False) -> float:
+    if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+        raise ScenarioError(fieldname, f"expected a finite number, got {x!r}")
+    x = float(x)
+    if lo is not None and (x <= lo if strict_lo else x < lo):
+        raise ScenarioError(fieldname, f"must be {'>' if strict_lo else '>='} {lo:g}, got {x:g}")
+    if hi is not None and x > hi:
+        raise ScenarioError(fieldname, f"must be <= {hi:g}, got {x:g}")
+    return x
+
+
+def _int(fieldname: str, x: Any, lo: int, hi: int) -> int:
+    if isinstance(x, bool) or not isinstance(x, int) or not lo <= x <= hi:
+        raise ScenarioError(fieldname, f"expected an integer in {lo}..{hi}, got {x!r}")
+    return int(x)
+
+
+def _bool(fieldname: str, x: Any) -> bool:
+    if not isinstance(x, bool):
+        raise ScenarioError(fieldname, f"expected true or false, got {x!r}")
+    return x
+
+
+def _choice(fieldname: str, x: Any, options: tuple[str, ...]) -> str:
+    if x not in options:
+        raise ScenarioError(fieldname, f"expected one of {', '.join(options)}, got {x!r}")
+    return str(x)
+
+
+_URL_SCHEMES = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:")
+
+
+def _check_url(fieldname: str, url: Any) -> str:
+    """A pymavlink connection string for a live link (not a log file): udpin:, udpout:, udp:,
+    udpbcast:, tcp:, tcpin: HOST:PORT, or a serial device (``/dev/...`` or ``COMn``, optionally
+    ``,BAUD``)."""
+    if not isinstance(url, str) or not url:
+        raise ScenarioError(fieldname, f"expected a connection string, got {url!r}")
+    if url.startswith(_URL_SCHEMES):
+        host, sep, port = url.split(":", 1)[1].rpartition(":")
+        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise ScenarioError(fieldname, f"expected SCHEME:HOST:PORT, got {url!r}")
+        return url
+    dev = url.split(",", 1)[0]
+    if dev.startswith("/dev/") or (dev.upper().startswith("COM") and dev[3:].isdigit()):
+        return url
+    raise ScenarioError(
+        fieldname, f"{url!r} is not a live MAVLink link: use udpin:/udpout:/tcp:HOST:PORT or a serial device /dev/...[,BAUD]"
+    )
+
+
+def mavlink_settings(sc: Scenario, cli: dict[str, Any] | None = None) -> MavlinkSettings:
+    """The scenario's ``[mavlink]`` table, validated, with command-line overrides applied.
+
+    cli: optional overrides with the same keys as the table (None values are ignored), plus
+    ``conn`` ({uav: url}) and ``sysid`` ({uav: id}) for single UAVs. Errors are
+    :class:`ScenarioError` naming the field (``mavlink.<key>`` or the flag). Keys of the table:
+
+    """
+    raw = sc.extra.get("mavlink", {})
+    if not isinstance(raw, dict):
+        raise ScenarioError("mavlink", "expected a table")
+    for k in raw:
+        if k not in _MAV_KEYS:
+            raise ScenarioError(f"mavlink.{k}", f"unknown key; expected one of {', '.join(sorted(_MAV_KEYS))}")
+    d = dict(raw)
+    cli = dict(cli or {})
+    conn_over: dict[int, str] = cli.pop("conn", None) or {}
+    sysid_over: dict[int, int] = cli.pop("sysid", None) or {}
+    for k, v in cli.items():
+        if k not in _MAV_KEYS:
+            raise ScenarioError(f"--{k}", "unknown setting")
+        if v is not None:
+            d[k] = v
+    n = sc.n
+    f = lambda k: f"mavlink.{k}"  # noqa: E731
+
+    host = d.get("host", "127.0.0.1")
+    if not isinstance(host, str) or not host:
+        raise ScenarioError(f("host"), f"expected a host name or address, got {host!r}")
+    base_port = _int(f("base_port"), d.get("base_port", 14540), 1, 65535 - n + 1)
+
+    conns = d.get("connections")
+    if conns is None:
+        conns = [f"udpout:{host}:{base_port + i}" for i in range(n)]
+    if not isinstance(conns, list) or len(conns) != n or not all(isinstance(c, str) and c for c in conns):
+        raise ScenarioError(f("connections"), f"expected a list of {n} connection strings (one per UAV)")
+    conns = list(conns)
+    for k, url in enumerate(conns):
+        _check_url(f"mavlink.connections[{k}]", url)
+    for i, url in conn_over.items():
+        if not 1 <= i <= n:
+            raise ScenarioError("--conn", f"UAV {i} is not in 1..{n}")
+        conns[i - 1] = _check_url("--conn", url)
+
+    sysids = d.get("sysids", list(range(1, n + 1)))
+    if not isinstance(sysids, list) or len(sysids) != n:
+        raise ScenarioError(f("sysids"), f"expected a list of {n} system ids")
+    sysids = [_int(f"mavlink.sysids[{k}]", s, 1, 254) for k, s in enumerate(sysids)]
+    for i, s in sysid_over.items():
+        if not 1 <= i <= n:
+            raise ScenarioError("--sysid", f"UAV {i} is not in 1..{n}")
+        sysids[i - 1] = _int("--sysid", s, 1, 254)
+    seen: dict[tuple[str, int], int] = {}
+    for i, (c, s) in enumerate(zip(conns, sysids)):
+        if (c, s) in seen:
+            raise ScenarioError(f("sysids"), f"UAV {seen[(c, s)] + 1} and UAV {i + 1} share connection {c!r} and system id {s}")
+        seen[(c, s)] = i
+
+    origins = d.get("origins", [[0.0, 0.0, 0.0]] * n)
+    if not isinstance(origins, list) or len(origins) != n:
+        raise ScenarioError(f("origins"), f"expected a list of {n} [x, y, z] points, m ENU")
+    org = []
+    for k, o in enumerate(origins):
+        if not isinstance(o, list) or len(o) != 3:
+            raise ScenarioError(f"mavlink.origins[{k}]", "expected [x, y, z], m ENU")
+        org.append(tuple(_num(f"mavlink.origins[{k}]", x) for x in o))
+
+    ctrl_hz = sc.timing.control_rate_hz
+    rate = _num(f("rate_hz"), d.get("rate_hz", max(20.0, ctrl_hz)), 20.0)
+    hover = d.get("hover_throttle")
+    if hover is not None:
+        hover = _num(f("hover_throttle"), hover, 0.0, 1.0, strict_lo=True)
+        if hover >= 1.0:
+            raise ScenarioError(f("hover_throttle"), "must be < 1")
+    return MavlinkSettings(
+        n=n,
+        connections=tuple(conns),
+        sysids=tuple(sysids),
+        origins=tuple(org),  # type: ignore[arg-type]
+        host=host,
+        base_port=base_port,
+        autopilot=_choice(f("autopilot"), d.get("autopilot", "auto"), ("auto", "px4", "ardupilot")),
+        setpoint=_choice(f("setpoint"), d.get("setpoint", "attitude"), ("attitude", "position")),
+        rate_hz=rate,
+        hover_throttle=hover,
+        takeoff=_bool(f("takeoff"), d.get("takeoff", True)),
+        takeoff_tolerance_m=_num(f("takeoff_tolerance_m"), d.get("takeoff_tolerance_m", 0.08), 0.0, strict_lo=True),
+        takeoff_timeout_s=_num(f("takeoff_timeout_s"), d.get("takeoff_timeout_s", 30.0), 0.0, strict_lo=True),
+        link_timeout_s=_num(f("link_timeout_s"), d.get("link_timeout_s", 1.0), 0.0, strict_lo=True),
+        stream_s=_num(f("stream_s"), d.get("stream_s", 1.0), 0.0),
+        cmd_timeout_s=_num(f("cmd_timeout_s"), d.get("cmd_timeout_s", 0.5), 0.0, strict_lo=True),
+        land_timeout_s=_num(f("land_timeout_s"), d.get("land_timeout_s", 15.0), 0.0),
+        start_timeout_s=_num(f("start_timeout_s"), d.get("start_timeout_s", 60.0), 0.0),
+        reengage=_bool(f("reengage"), d.get("reengage", True)),
+        source_system=_int(f("source_system"), d.get("source_system", 245), 1, 255),
+        telemetry_hz=_num(f("telemetry_hz"), d.get("telemetry_hz", 50.0), 0.0, 1000.0, strict_lo=True),
+        offboard_loss_s=_num(f("offboard_loss_s"), d.get("offboard_loss_s", 0.5), 0.0, strict_lo=True),
+        failsafe_land_s=_num(f("failsafe_land_s"), d.get("failsafe_land_s", 5.0), 0.0),
+        ground_z=_num(f("ground_z"), d.get("ground_z", 0.0)),
+    )
+
+
+mavlink_settings.__doc__ = (mavlink_settings.__doc__ or "") + "".join(
+    f"    ``{k}``: {v}\n" for k, v in _MAV_KEYS.items()
+)
+
+# --------------------------------------------------------------------------- per-UAV link
+
+# SET_ATTITUDE_TARGET type_mask: ignore the body rates (bits 0-2), use attitude and thrust.
+ATT_MASK = (
+    mavlink.ATTITUDE_TARGET_TYPEMASK_BODY_ROLL_RATE_IGNORE
+    | mavlink.ATTITUDE_TARGET_TYPEMASK_BODY_PITCH_RATE_IGNORE
+    | mavlink.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE
+)
+# SET_POSITION_TARGET_LOCAL_NED type_mask: use position, velocity and yaw; ignore acceleration
+# and yaw rate.
+POS_MASK = (
+    mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_AY_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_AZ_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+)
+
+# phases of a link (diag: uav.<i>.phase)
+CONNECTING, STREAM, MODE, ARM, TAKEOFF, READY, REFUSED, RELEASED, GROUNDED, LANDING, DONE = (
+    "connecting", "stream", "mode", "arm", "takeoff", "ready", "refused", "released", "grounded", "landing", "done",
+)
+_PENDING = (CONNECTING, STREAM, MODE, ARM, TAKEOFF)
+_MODE_RETRY_S = 1.0
+_MODE_ATTEMPTS = 8
+_ARM_RETRY_S = 1.0
+_ARM_ATTEMPTS = 5
+_MISMATCH_HEARTBEATS = 2  # heartbeats reporting another mode after an accepted request -> refuse
+
+
+@dataclass
+class Telemetry:
+    """The latest report of one vehicle, MAVLink frames; times are time.monotonic() s."""
+
+    last_rx: float = -math.inf
+    hb_rx: float = -math.inf
+    hb_count: int = 0
+    armed: bool = False
+    custom_mode: int | None = None
+    autopilot: str | None = None
+    pos_ned: np.ndarray | None = None
+    vel_ned: np.ndarray | None = None
+    pos_rx: float = -math.inf
+    rpy_ned: np.ndarray | None = None
+    rates_frd: np.ndarray | None = None
+    att_rx: float = -math.inf
+
+
+class Endpoint:
+    """One MAVLink connection (possibly shared by several UAVs with different system ids)."""
+
+    def __init__(self, url: str, source_system: int) -> None:
+        self.url = url
+        self.source_system = source_system
+        self.conn: Any = None
+        self.links: dict[int, UavLink] = {}
+        self.next_open = 0.0
+        self.open_error: str | None = None
+        self.next_heartbeat = 0.0
+
+    def ensure_open(self, now: float) -> bool:
+        if self.conn is not None:
+            return True
+        if now < self.next_open:
+            return False
+        self.next_open = now + 2.0
+        try:
+            self.conn = mavutil.mavlink_connection(
+                self.url,
+                source_system=self.source_system,
+                source_component=mavlink.MAV_COMP_ID_ONBOARD_COMPUTER,
+                retries=0,
+                autoreconnect=True,
+                udp_timeout=5,
+            )
+            self.open_error = None
+        except Exception as e:  # noqa: BLE001 - serial/tcp may fail now and work later
+            self.open_error = f"{type(e).__name__}: {e}"
+            self.conn = None
+            return False
+        return True
+
+    def close(self) -> None:
+        c, self.conn = self.conn, None
+        if c is not None:
+            try:
+                c.close()
+            except Exception:  # noqa: BLE001
+                pass
+
+
+@dataclass
+class UavLink:
+    """Bridge state of UAV ``uav`` (1-based) on its vehicle ``sysid``."""
+
+    uav: int
+    sysid: int
+    endpoint: Endpoint
+    origin: np.ndarray  # (3,) m ENU: the vehicle's local NED origin in the swarm frame
+    takeoff_enu: np.ndarray  # (3,) m ENU
+    tel: Telemetry = field(default_factory=Telemetry)
+    phase: str = CONNECTING
+    reason: str = ""
+    autopilot: str = "px4"
+    wanted_mode: int | None = None
+    healthy: bool = False
+    was_lost: bool = False  # a link loss happened since the UAV was last engaged
+    engaged_once: bool = False
+    armed_by_us: bool = False
+    phase_t: float = 0.0
+    hold_ned: np.ndarray | None = None
+    hold_yaw_ned: float = 0.0
+    mode_req_t: float = -math.inf
+    mode_attempts: int = 0
+    mode_accepted_t: float = -math.inf
+    mismatch: int = 0
+    last_hb_seen: int = 0
+    arm_req_t: float = -math.inf
+    arm_attempts: int = 0
+    land_req_t: float = -math.inf
+    still_since: float = math.inf
+    recovered_t: float = -math.inf
+    takeoff_sent: bool = False
+    acks: list[tuple[float, int, int]] = field(default_factory=list)
+
+    def info(self, now: float) -> dict[str, Any]:
+        t = self.tel
+        return {
+            "sysid": self.sysid,
+            "phase": self.phase,
+            "healthy": self.healthy,
+            "armed": bool(t.armed),
+            "mode": mode_name(self.autopilot, t.custom_mode),
+            "wanted_mode": mode_name(self.autopilot, self.wanted_mode) if self.wanted_mode is not None else "",
+            "silent_s": round(now - t.last_rx, 3) if math.isfinite(t.last_rx) else -1.0,
+            "reason": self.reason,
+            "url": self.endpoint.url,
+        }
+
+
+def _finite(*xs: float) -> bool:
+    return all(math.isfinite(x) for x in xs)
+
+
+class Bridge:
+    """The bridge's core: MAVLink side, phase machines, setpoints. The bus side is injected.
+
+    Parameters
+    ----------
+    settings : MavlinkSettings
+    scenario : Scenario
+    counters : dict[str, float]
+        Incremented in place (the process's diag counters).
+    get_cmd, get_ref : callable(uav) -> (message or None, age s)
+        The latest ``uav/<i>/cmd`` / ``uav/<i>/ref`` of the swarm and its age.
+    log : callable(str)
+    clock : callable() -> float
+        Monotonic clock, s (time.monotonic).
+    """
+
+    def __init__(
+        self,
+        settings: MavlinkSettings,
+        scenario: Scenario,
+        counters: dict[str, float],
+        get_cmd: Callable[[int], tuple[Any, float]],
+        get_ref: Callable[[int], tuple[Any, float]],
+        log: Callable[[str], None] = print,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        from plant.params import QuadParams
+
+        self.s = settings
+        self.sc = scenario
+        self.counters = counters
+        self.get_cmd = get_cmd
+        self.get_ref = get_ref
+        self.log = log
+        self.clock = clock
+        params = QuadParams.from_vehicle(scenario.vehicle)
+        self.hover_thrust = params.hover_thrust
+        self.tmap = frames.ThrustMap(params.max_thrust, params.hover_thrust, settings.hover_throttle)
+        self.yaw_ned = float(frames.euler_enu_to_ned([0.0, 0.0, scenario.controller.yaw])[2])
+        self.endpoints: dict[str, Endpoint] = {}
+        self.links: list[UavLink] = []
+        self.boot = clock()
+        self.changed = False  # a phase or health transition since the last diag (publish it now)
+        for i in range(settings.n):
+            url = settings.connections[i]
+            ep = self.endpoints.get(url)
+            if ep is None:
+                ep = self.endpoints[url] = Endpoint(url, settings.source_system)
+            link = UavLink(
+                uav=i + 1,
+                sysid=settings.sysids[i],
+                endpoint=ep,
+                origin=np.array(settings.origins[i], dtype=float),
+                takeoff_enu=np.array(scenario.initial_positions[i], dtype=float),
+                phase_t=self.boot,
+            )
+            if settings.autopilot != "auto":
+                link.autopilot = settings.autopilot
+            ep.links[link.sysid] = link
+            self.links.append(link)
+
+    # ------------------------------------------------------------------ helpers
+    def _count(self, name: str, k: float = 1) -> None:
+        self.counters[name] = self.counters.get(name, 0) + k
+
+    def _ms(self, now: float) -> int:
+        return int((now - self.boot) * 1000.0) & 0xFFFFFFFF
+
+    def _set_phase(self, link: UavLink, phase: str, now: float, reason: str | None = None) -> None:
+        if link.phase != phase:
+            self.changed = True
+            self.log(f"bridge: uav {link.uav}: {link.phase} -> {phase}" + (f" ({reason})" if reason else ""))
+            link.phase = phase
+            link.phase_t = now
+        if reason is not None:
+            link.reason = reason
+
+    def _mav(self, link: UavLink) -> Any:
+        c = link.endpoint.conn
+        return None if c is None else c.mav
+
+    # ------------------------------------------------------------------ receive
+    def poll(self, now: float, max_per_endpoint: int = 2000) -> None:
+        """Open what is not open yet, drain every connection (bounded), update health."""
+        for ep in self.endpoints.values():
+            if not ep.ensure_open(now):
+                continue
+            for _ in range(max_per_endpoint):
+                try:
+                    m = ep.conn.recv_msg()
+                except Exception as e:  # noqa: BLE001 - a broken link must not stop the loop
+                    self._count("mav_recv_errors")
+                    if self.counters.get("mav_recv_errors", 0) <= 3:
+                        self.log(f"bridge: {ep.url}: receive error {type(e).__name__}: {e}")
+                    break
+                if m is None:
+                    break
+                self._handle(ep, m, now)
+        for link in self.links:
+            self._update_health(link, now)
+
+    def _handle(self, ep: Endpoint, m: Any, now: float) -> None:
+        mtype = m.get_type()
+        if mtype == "BAD_DATA":
+            self._count("mav_bad")
+            return
+        if mtype.startswith("UNKNOWN_"):
+            self._count("mav_unknown")
+            return
+        link = ep.links.get(m.get_srcSystem())
+        if link is None:
+            self._count("mav_other_system")
+            return
+        t = link.tel
+        if mtype == "HEARTBEAT":
+            if m.get_srcComponent() != mavlink.MAV_COMP_ID_AUTOPILOT1 or m.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
+                self._count("mav_unhandled")  # another component of that system (camera, GCS...)
+                return
+            t.hb_rx = now
+            t.hb_count += 1
+            t.armed = bool(m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            t.custom_mode = int(m.custom_mode)
+            t.autopilot = autopilot_name(m.autopilot)
+            if self.s.autopilot == "auto":
+                link.autopilot = t.autopilot
+        elif mtype == "LOCAL_POSITION_NED":
+            if not _finite(m.x, m.y, m.z, m.vx, m.vy, m.vz):
+                self._count("mav_malformed")
+                return
+            t.pos_ned = np.array([m.x, m.y, m.z])
+            t.vel_ned = np.array([m.vx, m.vy, m.vz])
+            t.pos_rx = now
+        elif mtype == "ATTITUDE":
+            if not _finite(m.roll, m.pitch, m.yaw, m.rollspeed, m.pitchspeed, m.yawspeed):
+                self._count("mav_malformed")
+                return
+            t.rpy_ned = np.array([m.roll, m.pitch, m.yaw])
+            t.rates_frd = np.array([m.rollspeed, m.pitchspeed, m.yawspeed])
+            t.att_rx = now
+        elif mtype == "ATTITUDE_QUATERNION":
+            try:
+                rpy = frames.quat_to_euler([m.q1, m.q2, m.q3, m.q4])
+            except ValueError:
+                self._count("mav_malformed")
+                return
+            if not _finite(m.rollspeed, m.pitchspeed, m.yawspeed):
+                self._count("mav_malformed")
+                return
+            t.rpy_ned = rpy
+            t.rates_frd = np.array([m.rollspeed, m.pitchspeed, m.yawspeed])
+            t.att_rx = now
+        elif mtype == "COMMAND_ACK":
+            if m.target_system not in (0, self.s.source_system):
+                self._count("mav_unhandled")
+                return
+            link.acks.append((now, int(m.command), int(m.result)))
+            del link.acks[:-16]
+        else:
+            self._count("mav_unhandled")
+        t.last_rx = now
+        self._count("mav_rx")
+
+    def _update_health(self, link: UavLink, now: float) -> None:
+        ok = (now - link.tel.last_rx) <= self.s.link_timeout_s
+        if ok == link.healthy:
+            return
+        link.healthy = ok
+        self.changed = True
+        if ok:
+            link.recovered_t = now
+            if link.tel.hb_count and link.phase != CONNECTING:
+                self._count("link_recovered")
+                self.log(f"bridge: uav {link.uav}: link recovered")
+        else:
+            if math.isfinite(link.tel.last_rx):
+                self._count("link_lost")
+                link.was_lost = True
+                self.log(f"bridge: uav {link.uav}: link lost (silent > {self.s.link_timeout_s:g} s), marked unhealthy")
+
+    def _ack(self, link: UavLink, command: int, since: float) -> int | None:
+        for t, c, r in reversed(link.acks):
+            if c == command and t >= since:
+                return r
+        return None
+
+    # ------------------------------------------------------------------ commands
+    def _command(self, link: UavLink, command: int, *params: float) -> None:
+        mav = self._mav(link)
+        if mav is None:
+            return
+        p = list(params) + [0.0] * (7 - len(params))
+        mav.command_long_send(link.sysid, mavlink.MAV_COMP_ID_AUTOPILOT1, command, 0, *p)
+
+    def _request_mode(self, link: UavLink, mode: int, now: float) -> None:
+        self._command(link, mavlink.MAV_CMD_DO_SET_MODE, *mode_request_params(link.autopilot, mode))
+        link.mode_req_t = now
+        self._count("mode_requests")
+
+    def _offboard_mode(self, link: UavLink) -> int:
+        if link.autopilot == "ardupilot":
+            need_pos = self.s.setpoint == "position" or (self.s.takeoff and not link.engaged_once)
+            return AP_COPTER_MODES["GUIDED" if need_pos else "GUIDED_NOGPS"]
+        return PX4_OFFBOARD
+
+    def _land_mode(self, link: UavLink) -> int:
+        return AP_COPTER_MODES["LAND"] if link.autopilot == "ardupilot" else PX4_LAND
+
+    # ------------------------------------------------------------------ phases
+    def advance(self, now: float) -> None:
+        """Run every UAV's phase machine one step."""
+        for link in self.links:
+            self._advance(link, now)
+
+    def _advance(self, link: UavLink, now: float) -> None:
+        t = link.tel
+        if link.phase in (REFUSED, RELEASED, GROUNDED, DONE, LANDING):
+            return
+        if not link.healthy:
+            return  # keep the phase; setpoints keep streaming (the uplink may still work)
+        if link.phase == CONNECTING:
+            if t.hb_count:
+                link.wanted_mode = self._offboard_mode(link)
+                self._set_phase(link, STREAM, now, "")
+                self.log(
+                    f"bridge: uav {link.uav}: vehicle sysid {link.sysid} ({link.autopilot}) on {link.endpoint.url}, "
+                    f"mode {mode_name(link.autopilot, t.custom_mode)}, {'armed' if t.armed else 'disarmed'}"
+                )
+            return
+        if link.phase in (READY, TAKEOFF):
+            if t.hb_rx <= link.recovered_t:
+                return  # judge the mode only from a heartbeat sent after the link came back
+            if not _same_mode(link.autopilot, t.custom_mode, link.wanted_mode):
+                now_mode = mode_name(link.autopilot, t.custom_mode)
+                if link.was_lost and t.armed and self.s.reengage:
+                    self._count("reengage")
+                    link.mode_attempts = 0
+                    link.mismatch = 0
+                    link.mode_req_t = -math.inf
+                    link.hold_ned = None
+                    self._set_phase(link, MODE, now, f"vehicle in {now_mode} after a link loss; re-engaging")
+                elif link.was_lost and not t.armed:
+                    self._set_phase(link, GROUNDED, now, f"vehicle in {now_mode} and disarmed after a link loss; not re-arming")
+                else:
+                    self._count("released")
+                    self._set_phase(link, RELEASED, now, f"vehicle switched to {now_mode} (pilot or failsafe); no longer commanded")
+                return
+            link.was_lost = False
+            if not t.armed:
+                self._set_phase(link, GROUNDED, now, "vehicle disarmed")
+                return
+        if link.phase == STREAM:
+            if t.pos_ned is None and self._needs_position(link):
+                return  # a position hold needs the vehicle's position first
+            if now - link.phase_t >= self.s.stream_s:
+                link.mode_attempts = 0
+                link.mismatch = 0
+                link.mode_req_t = -math.inf
+                self._set_phase(link, MODE, now)
+            return
+        if link.phase == MODE:
+            if _same_mode(link.autopilot, t.custom_mode, link.wanted_mode) and t.hb_rx > link.mode_req_t:
+                link.arm_attempts = 0
+                link.arm_req_t = -math.inf
+                self._set_phase(link, ARM, now)
+                return
+            acc = self._ack(link, mavlink.MAV_CMD_DO_SET_MODE, link.mode_req_t)
+            if acc == mavlink.MAV_RESULT_ACCEPTED and link.last_hb_seen != t.hb_count and t.hb_rx > self._ack_time(link):
+                link.last_hb_seen = t.hb_count
+                link.mismatch += 1  # accepted, but a later heartbeat reports another mode
+                if link.mismatch >= _MISMATCH_HEARTBEATS:
+                    self._refuse(
+                        link,
+                        now,
+                        f"vehicle reports mode {mode_name(link.autopilot, t.custom_mode)} after accepting "
+                        f"{mode_name(link.autopilot, link.wanted_mode)}; not arming",
+                    )
+                    return
+            if now - link.mode_req_t >= _MODE_RETRY_S:
+                if acc is not None and acc != mavlink.MAV_RESULT_ACCEPTED:
+                    self._count("mode_rejected")
+                if link.mode_attempts >= _MODE_ATTEMPTS:
+                    self._refuse(
+                        link, now, f"mode {mode_name(link.autopilot, link.wanted_mode)} not reached after {link.mode_attempts} requests"
+                    )
+                    return
+                link.mode_attempts += 1
+                self._request_mode(link, link.wanted_mode, now)  # type: ignore[arg-type]
+                link.last_hb_seen = t.hb_count
+            return
+        if link.phase == ARM:
+            if not _same_mode(link.autopilot, t.custom_mode, link.wanted_mode):
+                # never arm a vehicle that reports a mode we did not ask for
+                self._count("arm_withheld")
+                link.mode_req_t = -math.inf
+                self._set_phase(link, MODE, now, f"vehicle reports {mode_name(link.autopilot, t.custom_mode)} before arming")
+                return
+            if t.armed and t.hb_rx > link.phase_t:
+                link.was_lost = False
+                if link.engaged_once:
+                    self._set_phase(link, READY, now, "re-engaged")
+                elif self.s.takeoff:
+                    link.takeoff_sent = False
+                    self._set_phase(link, TAKEOFF, now, "")
+                else:
+                    link.engaged_once = True
+                    self._set_phase(link, READY, now, "")
+                return
+            if link.engaged_once and not t.armed and t.hb_rx > link.phase_t:
+                self._set_phase(link, GROUNDED, now, "vehicle disarmed while re-engaging; not re-arming")
+                return
+            if now - link.arm_req_t >= _ARM_RETRY_S and not (link.engaged_once or t.armed):
+                if link.arm_attempts >= _ARM_ATTEMPTS:
+                    self._refuse(link, now, f"vehicle did not arm after {link.arm_attempts} requests")
+                    return
+                link.arm_attempts += 1
+                self._command(link, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+                link.arm_req_t = now
+                link.armed_by_us = True
+                self._count("arm_requests")
+            return
+        if link.phase == TAKEOFF:
+            if link.autopilot == "ardupilot" and not link.takeoff_sent:
+                alt = float(-self._takeoff_ned(link)[2])
+                self._command(link, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, alt)
+                link.takeoff_sent = True
+            if t.pos_ned is not None:
+                err = float(np.linalg.norm(t.pos_ned - self._takeoff_ned(link)))
+                speed = float(np.linalg.norm(t.vel_ned)) if t.vel_ned is not None else 0.0
+                if err <= self.s.takeoff_tolerance_m and speed <= 0.2:
+                    link.engaged_once = True
+                    self._set_phase(link, READY, now, "")
+                    return
+            if now - link.phase_t > self.s.takeoff_timeout_s:
+                link.engaged_once = True
+                self._set_phase(
+                    link, READY, now,
+                    f"takeoff not within {self.s.takeoff_tolerance_m:g} m after {self.s.takeoff_timeout_s:g} s; flying anyway",
+                )
+            return
+
+    def _ack_time(self, link: UavLink) -> float:
+        for t, c, r in reversed(link.acks):
+            if c == mavlink.MAV_CMD_DO_SET_MODE and t >= link.mode_req_t:
+                return t
+        return math.inf
+
+    def _refuse(self, link: UavLink, now: float, reason: str) -> None:
+        self._count("refused")
+        self._set_phase(link, REFUSED, now, reason)
+
+    def _needs_position(self, link: UavLink) -> bool:
+        return not (link.autopilot == "ardupilot" and link.wanted_mode == AP_COPTER_MODES["GUIDED_NOGPS"])
+
+    def _takeoff_ned(self, link: UavLink) -> np.ndarray:
+        return frames.enu_to_ned(link.takeoff_enu - link.origin)
+
+    @property
+    def settled(self) -> bool:
+        """Every UAV ready or given up on (the mission clock may start)."""
+        return all(link.phase not in _PENDING for link in self.links)
+
+    @property
+    def ready(self) -> list[UavLink]:
+        return [link for link in self.links if link.phase == READY]
+
+    # ------------------------------------------------------------------ send
+    def send(self, now: float) -> None:
+        """Heartbeats (1 Hz per connection) and one setpoint per engaged UAV."""
+        for ep in self.endpoints.values():
+            if ep.conn is not None and now >= ep.next_heartbeat:
+                ep.next_heartbeat = now + 1.0
+                try:
+                    ep.conn.mav.heartbeat_send(
+                        mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
+                    )
+                except Exception:  # noqa: BLE001
+                    self._count("mav_send_errors")
+        for link in self.links:
+            try:
+                self._send_setpoint(link, now)
+            except Exception as e:  # noqa: BLE001
+                self._count("mav_send_errors")
+                if self.counters.get("mav_send_errors", 0) <= 3:
+                    self.log(f"bridge: uav {link.uav}: send error {type(e).__name__}: {e}")
+
+    def _hold(self, link: UavLink) -> None:
+        t = link.tel
+        if link.hold_ned is None and t.pos_ned is not None:
+            link.hold_ned = t.pos_ned.copy()
+            link.hold_yaw_ned = float(t.rpy_ned[2]) if t.rpy_ned is not None else self.yaw_ned
+
+    def _send_setpoint(self, link: UavLink, now: float) -> None:
+        mav = self._mav(link)
+        if mav is None or link.phase in (CONNECTING, REFUSED, RELEASED, GROUNDED, LANDING, DONE):
+            return
+        ms = self._ms(now)
+        if link.phase == TAKEOFF:
+            p = self._takeoff_ned(link)
+            self._pos_target(mav, link, ms, p, np.zeros(3), self.yaw_ned)
+            return
+        if link.phase == READY:
+            if self.s.setpoint == "attitude":
+                cmd, age = self.get_cmd(link.uav)
+                if cmd is not None and age <= self.s.cmd_timeout_s:
+                    link.hold_ned = None
+                    q = frames.attitude_to_quat_ned(cmd.rpy)
+                    thr = self.tmap.to_normalized(cmd.thrust)
+                    mav.set_attitude_target_send(ms, link.sysid, mavlink.MAV_COMP_ID_AUTOPILOT1, ATT_MASK, q.tolist(), 0.0, 0.0, 0.0, thr)
+                    self._count("setpoints_attitude")
+                    return
+            else:
+                ref, age = self.get_ref(link.uav)
+                if ref is not None and age <= self.s.cmd_timeout_s:
+                    link.hold_ned = None
+                    p = frames.enu_to_ned(np.asarray(ref.q) - link.origin)
+                    v = frames.enu_to_ned(ref.v)
+                    self._pos_target(mav, link, ms, p, v, self.yaw_ned)
+                    self._count("setpoints_position")
+                    return
+            self._count("cmd_stale_ticks")
+        # before the mission, or without a fresh command: hold where the vehicle is
+        if not self._needs_position(link):
+            # attitude-only vehicle: level at the current yaw; hover throttle once flying, else 0
+            q = frames.euler_to_quat([0.0, 0.0, link.tel.rpy_ned[2] if link.tel.rpy_ned is not None else self.yaw_ned])
+            thr = self.tmap.to_normalized(self.hover_thrust) if link.phase == READY else 0.0
+            mav.set_attitude_target_send(ms, link.sysid, mavlink.MAV_COMP_ID_AUTOPILOT1, ATT_MASK, q.tolist(), 0.0, 0.0, 0.0, thr)
+            return
+        self._hold(link)
+        if link.hold_ned is not None:
+            self._pos_target(mav, link, ms, link.hold_ned, np.zeros(3), link.hold_yaw_ned)
+
+    def _pos_target(self, mav: Any, link: UavLink, ms: int, p: np.ndarray, v: np.ndarray, yaw: float) -> None:
+        mav.set_position_target_local_ned_send(
+            ms, link.sysid, mavlink.MAV_COMP_ID_AUTOPILOT1, mavlink.MAV_FRAME_LOCAL_NED, POS_MASK,
+            float(p[0]), float(p[1]), float(p[2]), float(v[0]), float(v[1]), float(v[2]), 0.0, 0.0, 0.0, float(yaw), 0.0,
+        )
+
+    # ------------------------------------------------------------------ state out
+    def state_enu(self, link: UavLink, now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """(q, v, rpy, w) of the UAV in the swarm frame (ENU/FLU), or None if the telemetry is
+        missing or older than the link timeout."""
+        t = link.tel
+        if t.pos_ned is None or t.rpy_ned is None:
+            return None
+        lim = self.s.link_timeout_s
+        if now - t.pos_rx > lim or now - t.att_rx > lim:
+            return None
+        q = frames.ned_to_enu(t.pos_ned) + link.origin
+        v = frames.ned_to_enu(t.vel_ned)
+        rpy = frames.euler_ned_to_enu(t.rpy_ned)
+        w = frames.frd_to_flu(t.rates_frd)
+        return q, v, rpy, w
+
+    def info(self, now: float) -> dict[str, Any]:
+        return {
+            "uav": {str(link.uav): link.info(now) for link in self.links},
+            "unhealthy": [link.uav for link in self.links if not link.healthy],
+            "ready": [link.uav for link in self.links if link.phase == READY],
+        }
+
+    # ------------------------------------------------------------------ landing
+    def begin_landing(self, now: float, why: str) -> None:
+        for link in self.links:
+            if link.phase in (REFUSED, RELEASED, DONE, CONNECTING) or not link.armed_by_us:
+                if link.phase != DONE and link.phase not in (REFUSED, RELEASED):
+                    self._set_phase(link, DONE, now, f"{why}; never armed by the bridge")
+                continue
+            self._set_phase(link, LANDING, now, why)
+            link.land_req_t = -math.inf
+
+    def land_step(self, now: float) -> bool:
+        """One step of landing; True when every landing UAV is disarmed (or given up).
+
+        Asks for the land mode once a second until the vehicle reports it, then waits for the
+        vehicle's own auto-disarm after touchdown. A normal (non-forced) disarm is sent only
+        once the vehicle has been in the land mode and still (|v| < 0.1 m/s) for 2 s, so a
+        vehicle that is still flying is never asked to stop its motors.
+        """
+        busy = False
+        for link in self.links:
+            if link.phase != LANDING:
+                continue
+            t = link.tel
+            if not t.armed and t.hb_rx > link.phase_t:
+                self._set_phase(link, DONE, now, "landed and disarmed")
+                continue
+            busy = True
+            in_land = _same_mode(link.autopilot, t.custom_mode, self._land_mode(link))
+            still = in_land and t.vel_ned is not None and float(np.linalg.norm(t.vel_ned)) < 0.1
+            if not still:
+                link.still_since = math.inf
+            elif not math.isfinite(link.still_since):
+                link.still_since = now
+            if now - link.land_req_t >= 1.0:
+                link.land_req_t = now
+                if not in_land:
+                    self._request_mode(link, self._land_mode(link), now)
+                elif now - link.still_since >= 2.0:
+                    self._command(link, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0)
+                    self._count("disarm_requests")
+        return not busy
+
+    def give_up_landing(self, now: float) -> None:
+        """Landing timed out: report it. The vehicles are left in their land mode (they land and
+        disarm by themselves); the bridge never force-disarms a vehicle that may be flying."""
+        for link in self.links:
+            if link.phase == LANDING:
+                self._set_phase(
+                    link, DONE, now,
+                    f"still armed after {self.s.land_timeout_s:g} s of landing; left in "
+                    f"{mode_name(link.autopilot, link.tel.custom_mode)}",
+                )
+                self._count("land_timeouts")
+
+    def close(self) -> None:
+        for ep in self.endpoints.values():
+            ep.close()
+
+
+# --------------------------------------------------------------------------- process
+
+
+def _run(proc: Any) -> int:
+    from zenswarm import wire
+    from zenswarm.runtime import LoopStats
+
+    sc = proc.scenario
+    args = proc.args
+    settings = mavlink_settings(sc, _cli_overrides(args))
+    keys = proc.keys
+    n = sc.n
+    dt = sc.timing.dt
+    dt_ns = wire.t_ns(dt)
+    n_ticks = sc.timing.n_ticks
+    sub = max(1, math.ceil(settings.rate_hz / sc.timing.control_rate_hz - 1e-9))
+    period = dt / sub
+    cmd_keys = [keys.cmd(i + 1) for i in range(n)]
+    ref_keys = [keys.ref(i + 1) for i in range(n)]
+    inbox = proc.inbox
+
+    def latest(key: str) -> tuple[Any, float]:
+        m = inbox.latest.get(key)
+        if m is None:
+            return None, math.inf
+        return m, time.monotonic() - inbox.latest_rx.get(key, -math.inf)
+
+    if settings.setpoint == "attitude":
+        for key in cmd_keys:
+            proc.subscribe(key, "cmd")
+    else:
+        for key in ref_keys:
+            proc.subscribe(key, "ref")
+    bridge = Bridge(
+        settings,
+        sc,
+        proc.counters,
+        get_cmd=lambda i: latest(cmd_keys[i - 1]),
+        get_ref=lambda i: latest(ref_keys[i - 1]),
+        log=proc.log,
+    )
+    proc.announce()
+    proc.log(
+        f"bridge: {n} UAV(s), setpoint={settings.setpoint}, {1 / period:g} Hz setpoints, "
+        + ", ".join(f"uav {i + 1}: sysid {settings.sysids[i]} @ {settings.connections[i]}" for i in range(n))
+    )
+    stats = LoopStats(period)
+    code = 0
+    k_tick = 0  # control ticks of the mission clock
+    seq = 0
+    started = False
+    finished = False
+    start_deadline = time.monotonic() + settings.start_timeout_s
+    next_diag = 0.0
+    waited_alive = getattr(args, "no_wait_alive", False)
+    try:
+        next_t = time.monotonic()
+        j = 0
+        while not proc.stop.is_set():
+            now = time.monotonic()
+            bridge.poll(now)
+            bridge.advance(now)
+            bridge.send(now)
+            if not started and (bridge.settled or now >= start_deadline):
+                if not bridge.ready:
+                    proc.log("bridge: no UAV is ready: " + "; ".join(f"uav {lk.uav}: {lk.phase} {lk.reason}" for lk in bridge.links))
+                    code = 3
+                    break
+                if not waited_alive:
+                    others = ["leader"] + [f"agent:{i + 1}" for i in range(n)]
+                    missing = proc.wait_for_alive(others, timeout_s=60.0)
+                    waited_alive = True
+                    if missing and not proc.stop.is_set():
+                        proc.log(f"bridge: these processes never announced themselves: {', '.join(missing)}")
+                        code = 3
+                        break
+                    next_t = time.monotonic()
+                    now = next_t
+                started = True
+                proc.log(f"bridge: mission clock started with UAV(s) {[lk.uav for lk in bridge.ready]}")
+            if started and j % sub == 0:
+                t = k_tick * dt_ns
+                seq += 1
+                proc.publish(keys.clock, wire.Clock(t=t, seq=seq))
+                for link in bridge.ready:
+                    st = bridge.state_enu(link, now)
+                    if st is not None:
+                        q, v, rpy, w = st
+                        proc.publish(keys.state(link.uav), wire.State(t=t, seq=seq, q=q, v=v, rpy=rpy, w=w))
+                        proc.counters["states_published"] += 1
+                inbox.forget_before(k_tick - 2)
+                if k_tick >= n_ticks:
+                    finished = True
+                    break
+                k_tick += 1
+            if now >= next_diag or bridge.changed:
+                next_diag = now + 1.0
+                bridge.changed = False
+                proc.publish_diag(k_tick * dt_ns, {**bridge.info(now), **stats.as_dict(), "started": started})
+            j += 1
+            next_t += period
+            now = time.monotonic()
+            if now < next_t:
+                time.sleep(next_t - now)
+            elif now - next_t > 0.5:
+                next_t = now  # far behind (suspended?): resynchronise instead of bursting
+                proc.counters["loop_resync"] += 1
+            stats.record(time.monotonic() - next_t)
+        # land and disarm whatever we armed: end of mission, SIGTERM/SIGINT, or an error above
+        why = "mission finished" if finished else ("stop requested" if proc.stop.is_set() else "bridge stopping")
+        bridge.begin_landing(time.monotonic(), why)
+        deadline = time.monotonic() + settings.land_timeout_s
+        while time.monotonic() < deadline:
+            now = time.monotonic()
+            bridge.poll(now)
+            bridge.send(now)
+            if bridge.land_step(now):
+                break
+            if now >= next_diag or bridge.changed:
+                next_diag = now + 1.0
+                bridge.changed = False
+                proc.publish_diag(k_tick * dt_ns, {**bridge.info(now), "landing": True})
+            time.sleep(0.02)
+        else:
+            bridge.give_up_landing(time.monotonic())
+        now = time.monotonic()
+        proc.publish_diag(k_tick * dt_ns, {**bridge.info(now), **stats.as_dict(), "finished": finished})
+        proc.log("bridge: done: " + "; ".join(f"uav {lk.uav}: {lk.phase} {lk.reason}" for lk in bridge.links))
+    finally:
+        bridge.close()
+    return code
+
+
+def _cli_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    def pairs(items: list[str] | None, flag: str, conv: Callable[[str], Any]) -> dict[int, Any]:
+        out: dict[int, Any] = {}
+        for s in items or []:
+            i, sep, val = s.partition("=")
+            if not sep or not i.strip().isdigit() or not val:
+                raise ScenarioError(flag, f"expected I=VALUE (I = UAV number), got {s!r}")
+            try:
+                out[int(i)] = conv(val)
+            except ValueError:
+                raise ScenarioError(flag, f"bad value in {s!r}") from None
+        return out
+
+    return {
+        "conn": pairs(getattr(args, "conn", None), "--conn", str),
+        "sysid": pairs(getattr(args, "sysid", None), "--sysid", int),
+        "base_port": getattr(args, "base_port", None),
+        "host": getattr(args, "mav_host", None),
+        "setpoint": getattr(args, "setpoint", None),
+        "rate_hz": getattr(args, "rate", None),
+        "autopilot": getattr(args, "autopilot", None),
+        "hover_throttle": getattr(args, "hover_throttle", None),
+        "takeoff": False if getattr(args, "no_takeoff", False) else None,
+        "link_timeout_s": getattr(args, "link_timeout", None),
+        "land_timeout_s": getattr(args, "land_timeout", None),
+        "stream_s": getattr(args, "stream_s", None),
+        "start_timeout_s": getattr(args, "start_timeout", None),
+    }
+
+
+def _main_args(args: argparse.Namespace) -> int:
+    from zenswarm.runtime import run_process
+
+    if getattr(args, "scenario_path", None) is not None:
+        args.scenario = args.scenario_path
+    args.realtime = True
+    return run_process(_run, "bridge", args)
+
+
+def _configure(p: argparse.ArgumentParser) -> None:
+    from zenswarm.runtime import add_common_args
+
+    p.add_argument("scenario_path", nargs="?", type=Path, metavar="SCENARIO", help="scenario TOML (its [mavlink] table configures the links)")
+    add_common_args(p)
+    g = p.add_argument_group("MAVLink")
+    g.add_argument(
+        "--conn", action="append", metavar="I=URL",
+        help="pymavlink connection string of UAV I, e.g. 1=udpout:127.0.0.1:14540, 2=udpin:0.0.0.0:14541, "
+        "3=tcp:127.0.0.1:5762, 4=/dev/ttyUSB0,921600 (repeatable; overrides mavlink.connections)",
+    )
+    g.add_argument("--sysid", action="append", metavar="I=ID", help="MAVLink system id of UAV I's vehicle (repeatable)")
+    g.add_argument("--base-port", type=int, help="default connections udpout:HOST:P+i-1 (overrides mavlink.base_port)")
+    g.add_argument("--mav-host", help="host of the default connections (overrides mavlink.host)")
+    g.add_argument("--setpoint", choices=("attitude", "position"), help="SET_ATTITUDE_TARGET from uav/<i>/cmd, or SET_POSITION_TARGET_LOCAL_NED from uav/<i>/ref")
+    g.add_argument("--rate", type=float, metavar="HZ", help="minimum setpoint rate, >= 20 Hz")
+    g.add_argument("--autopilot", choices=("auto", "px4", "ardupilot"), help="mode numbering (default: from the vehicle's heartbeat)")
+    g.add_argument("--hover-throttle", type=float, metavar="U", help="normalised throttle at hover (PX4 MPC_THR_HOVER)")
+    g.add_argument("--no-takeoff", action="store_true", help="do not fly to the initial positions before the mission")
+    g.add_argument("--link-timeout", type=float, metavar="S", help="silence after which a vehicle is unhealthy (default 1 s)")
+    g.add_argument("--land-timeout", type=float, metavar="S", help="wait at most S for the vehicles to land and disarm")
+    g.add_argument("--stream-s", type=float, metavar="S", help="setpoints streamed before asking for the offboard mode")
+    g.add_argument("--start-timeout", type=float, metavar="S", help="start the mission after S even if some UAV is not ready")
+    g.add_argument("--no-wait-alive", action="store_true", help="start the mission clock without waiting for the leader and agents")
+    p.set_defaults(func=_main_args)
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    """Register ``bridge`` with its ``mavlink`` subcommand."""
+    p = sub.add_parser("bridge", help="connect the swarm bus to the outside (MAVLink vehicles)", description="Bridges between the swarm bus and the outside world.")
+    bsub = p.add_subparsers(dest="bridge_cmd", metavar="{mavlink}", required=True)
+    m = bsub.add_parser(
+        "mavlink",
+        help="fly the swarm's agents on MAVLink vehicles (PX4, ArduPilot, or `mavlink-vehicle`)",
+        description=(__doc__ or "").split("\n\n")[0],
+    )
+    _configure(m)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m bridge.mavlink SCENARIO [options]`` (same options as ``zenswarm bridge mavlink``)."""
+    p = argparse.ArgumentParser(prog="python -m bridge.mavlink", description=(__doc__ or "").split("\n\n")[0])
+    _configure(p)
+    args = p.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except ScenarioError as e:
+        print(f"bridge: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

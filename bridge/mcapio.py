@@ -1,0 +1,589 @@
+"""Reading zenswarm flight recordings (MCAP) robustly, and rewriting damaged ones.
+
+Pure-ish: the :mod:`mcap` library, the standard library and nothing of Zenoh. Shared by the
+recorder's tools (``zenswarm replay``, ``zenswarm recover``) and the flight report.
+
+A zenswarm recording (written by :mod:`bridge.recorder`) is an MCAP file with
+
+* one channel per concrete Zenoh key (``topic`` = the key, e.g. ``swarm/demo/uav/2/state``),
+  ``message_encoding = "msgpack"`` (MCAP's well-known encoding), no schema (``schema_id = 0``,
+  as the MCAP registry allows for self-describing encodings), channel metadata ``{"kind": ...}``
+  (the key kind of :meth:`zenswarm.wire.Keys.parse`, empty for keys outside the swarm layout);
+* messages with ``log_time`` = receive wall time (ns since the Unix epoch; non-decreasing in
+  file order), ``publish_time`` = the sender's sim time ``t`` (ns) when the payload carries one,
+  else ``log_time``, ``sequence`` = running count per channel (1, 2, ..., modulo 2**32), and
+  ``data`` = the payload exactly as received;
+* metadata records named ``"zenswarm"`` (:data:`METADATA_NAME`) with string values ``swarm``,
+  ``zenswarm_version``, ``mode``, ``scenario_source``, ``recorder_start_unix_ns`` and
+  ``scenario_json`` (json of :func:`zenswarm.config.scenario_to_dict`). The first is written
+  right after the header; when the scenario comes from the leader's mission rather than
+  ``--scenario``, a second one carrying ``scenario_json`` follows when it arrives. Readers merge
+  them in file order (:attr:`Recording.metadata`);
+* small zstd chunks closed at least every :data:`bridge.recorder.DEFAULT_FLUSH_INTERVAL_S`, and
+  on a clean stop a summary section (statistics, channels, chunk and metadata indexes) + footer.
+
+Reading is done by a bounded record walker of our own on top of ``mcap.records`` (the parsing
+primitives of the mcap library) rather than by ``mcap.reader``: the stock readers either need
+the summary (seeking) or stop with a bare exception at the first damaged byte (streaming), and
+we want to say *where* a file is damaged, keep everything before it, and step over a chunk whose
+CRC does not match when the records around it are intact.
+
+Errors are :class:`zenswarm.errors.RecordingError` and always name the file.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import struct
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator, NamedTuple
+
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import McapError
+from mcap.opcode import Opcode
+from mcap.records import (
+    Attachment,
+    AttachmentIndex,
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Message,
+    MessageIndex,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
+from mcap.stream_reader import breakup_chunk
+from mcap.well_known import MessageEncoding
+
+from zenswarm.errors import RecordingError
+
+__all__ = [
+    "MAGIC",
+    "METADATA_NAME",
+    "MESSAGE_ENCODING",
+    "RecordedMessage",
+    "Recording",
+    "RecoverStats",
+    "read_recording",
+    "recover",
+    "file_is_complete",
+]
+
+MAGIC = b"\x89MCAP0\r\n"
+"""The 8 bytes that start and end every MCAP file."""
+METADATA_NAME = "zenswarm"
+"""Name of the metadata record that describes a zenswarm recording."""
+MESSAGE_ENCODING = MessageEncoding.MessagePack  # "msgpack"
+
+MAX_CHUNK_UNCOMPRESSED = 1 << 30
+"""A chunk claiming to decompress to more than this (bytes) is treated as corrupted."""
+
+_FOOTER_LEN = 1 + 8 + 20  # opcode, length, summary_start(8) summary_offset_start(8) crc(4)
+_KNOWN_OPCODES = frozenset(int(o) for o in Opcode)
+
+
+class RecordedMessage(NamedTuple):
+    """One recorded sample: the key, receive wall time (ns), sender sim time (ns), raw payload."""
+
+    topic: str
+    log_time: int
+    publish_time: int
+    payload: bytes
+
+
+@dataclass
+class RecoverStats:
+    """What :func:`recover` did. ``problems`` lists the damage found in the source."""
+
+    src: str
+    dst: str
+    messages: int = 0
+    channels: int = 0
+    metadata: int = 0
+    source_complete: bool = False
+    problems: list[str] = field(default_factory=list)
+    first_log_time: int | None = None
+    last_log_time: int | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+# --------------------------------------------------------------------------- low level
+
+
+class _Damage(Exception):
+    """Internal: a record cannot be read. ``fatal`` = the framing is lost (stop reading)."""
+
+    def __init__(self, offset: int, text: str, fatal: bool, truncated: bool = False) -> None:
+        super().__init__(text)
+        self.offset = offset
+        self.text = text
+        self.fatal = fatal
+        self.truncated = truncated
+
+
+def _parse(opcode: int, body: bytes) -> Any:
+    s = ReadDataStream(io.BytesIO(body))
+    if opcode == Opcode.MESSAGE:
+        return Message.read(s, len(body))
+    reader = {
+        Opcode.HEADER: Header.read,
+        Opcode.FOOTER: Footer.read,
+        Opcode.SCHEMA: Schema.read,
+        Opcode.CHANNEL: Channel.read,
+        Opcode.CHUNK: Chunk.read,
+        Opcode.MESSAGE_INDEX: MessageIndex.read,
+        Opcode.CHUNK_INDEX: ChunkIndex.read,
+        Opcode.ATTACHMENT: Attachment.read,
+        Opcode.ATTACHMENT_INDEX: AttachmentIndex.read,
+        Opcode.STATISTICS: Statistics.read,
+        Opcode.METADATA: Metadata.read,
+        Opcode.METADATA_INDEX: MetadataIndex.read,
+        Opcode.SUMMARY_OFFSET: SummaryOffset.read,
+        Opcode.DATA_END: DataEnd.read,
+    }[Opcode(opcode)]
+    return reader(s)
+
+
+def _walk(f: io.BufferedReader, start: int, end: int, *, complete: bool) -> Iterator[tuple[int, int, Any]]:
+    """Yield ``(offset, opcode, record)`` for the records in ``[start, end)`` of ``f``.
+
+    Stops after a Footer. Raises :class:`_Damage` (fatal) where the framing breaks: an unknown
+    opcode, a length running past ``end``, a record that does not parse. ``complete`` only
+    chooses the wording (a record cut by the end of a file without footer is a truncation).
+    """
+    f.seek(start)
+    pos = start
+    while pos < end:
+        hdr = f.read(9)
+        if len(hdr) < 9:
+            raise _Damage(pos, f"file ends inside a record header at offset {pos}", True, truncated=not complete)
+        opcode, length = struct.unpack("<BQ", hdr)
+        if opcode not in _KNOWN_OPCODES:
+            raise _Damage(pos, f"unknown record opcode 0x{opcode:02x} at offset {pos}", True)
+        if length > end - pos - 9:
+            name = Opcode(opcode).name
+            if complete:
+                raise _Damage(pos, f"{name} record at offset {pos} claims {length} bytes, past the end of its section", True)
+            raise _Damage(pos, f"{name} record at offset {pos} is cut short by the end of the file", True, truncated=True)
+        body = f.read(length)
+        if len(body) != length:
+            raise _Damage(pos, f"file ends inside the record at offset {pos}", True, truncated=True)
+        try:
+            rec = _parse(opcode, body)
+        except Exception as e:  # noqa: BLE001 - mcap raises EndOfFile, struct.error, UnicodeDecodeError...
+            raise _Damage(pos, f"{Opcode(opcode).name} record at offset {pos} does not parse ({type(e).__name__}: {e})", True) from None
+        yield pos, opcode, rec
+        pos += 9 + length
+        if opcode == Opcode.FOOTER:
+            return
+
+
+def _chunk_records(chunk: Chunk, offset: int) -> list[Any]:
+    """Records inside a chunk, its CRC checked. Raises :class:`_Damage` (not fatal: the chunk
+    was framed correctly, so the records after it can still be read)."""
+    if chunk.uncompressed_size > MAX_CHUNK_UNCOMPRESSED:
+        raise _Damage(offset, f"chunk at offset {offset} claims {chunk.uncompressed_size} uncompressed bytes", False)
+    if chunk.compression not in ("", "zstd", "lz4"):
+        raise _Damage(offset, f"chunk at offset {offset} has unknown compression {chunk.compression!r}", False)
+    try:
+        return breakup_chunk(chunk, validate_crc=True)
+    except Exception as e:  # noqa: BLE001 - CRCValidationError, zstd/lz4 errors, EndOfFile, struct.error
+        return_text = f"chunk at offset {offset} is corrupted ({type(e).__name__}: {e})"
+        raise _Damage(offset, return_text, False) from None
+
+
+def _read_tail(f: io.BufferedReader, size: int) -> tuple[Footer | None, str | None]:
+    """The footer if the file ends with a valid footer + magic (and, if the footer has a summary
+    CRC, the summary matches it); else ``(None, why)``."""
+    if size < 8 + _FOOTER_LEN + 8:
+        return None, f"file is only {size} bytes: no footer"
+    f.seek(size - 8 - _FOOTER_LEN)
+    tail = f.read(_FOOTER_LEN + 8)
+    if tail[-8:] != MAGIC:
+        return None, "no closing magic at the end of the file: it was not closed cleanly (truncated)"
+    opcode, length = struct.unpack("<BQ", tail[:9])
+    if opcode != Opcode.FOOTER or length != 20:
+        return None, "no footer record before the closing magic"
+    summary_start, summary_offset_start, summary_crc = struct.unpack("<QQI", tail[9:29])
+    footer = Footer(summary_start=summary_start, summary_offset_start=summary_offset_start, summary_crc=summary_crc)
+    footer_pos = size - 8 - _FOOTER_LEN
+    if summary_start and not 8 <= summary_start <= footer_pos:
+        return None, f"footer points at a summary outside the file (offset {summary_start})"
+    if summary_crc:
+        if summary_start:
+            f.seek(summary_start)
+            data = f.read(footer_pos - summary_start)
+        else:
+            data = b""
+        crc = zlib.crc32(data)
+        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
+        if crc != summary_crc:
+            return None, "summary section fails its CRC check (corrupted)"
+    return footer, None
+
+
+def file_is_complete(path: str | os.PathLike[str]) -> bool:
+    """True if ``path`` is an MCAP file that ends with a valid footer (and summary CRC)."""
+    try:
+        with open(path, "rb") as f:
+            if f.read(8) != MAGIC:
+                return False
+            return _read_tail(f, os.fstat(f.fileno()).st_size)[0] is not None
+    except OSError:
+        return False
+
+
+# --------------------------------------------------------------------------- Recording
+
+
+class Recording:
+    """A zenswarm recording opened by :func:`read_recording`.
+
+    Attributes
+    ----------
+    path: the file. complete: it ends with a valid footer (and a summary, for recorder files).
+    summary_problem: why it is not complete (None if complete).
+    metadata: name -> values of the metadata records, merged in file order (a later record of
+        the same name adds or overrides keys: the recorder writes a first ``zenswarm`` record at
+        start and a second one with the scenario when it learns it from the leader).
+    scenario: the recorded scenario as a dict (``scenario_to_dict`` form) or None.
+    swarm, mode, zenswarm_version: from the ``zenswarm`` metadata record (None if absent).
+    statistics: the summary's Statistics record (complete files) or None.
+    channels: channel id -> ``mcap.records.Channel``: from the summary when complete, else as
+        discovered while iterating.
+    problems: damage found (lenient mode): why the file is incomplete, then what was met while
+        iterating, each naming the offset.
+    """
+
+    def __init__(self, path: Path, strict: bool) -> None:
+        self.path = path
+        self.strict = strict
+        self.size = 0
+        self.complete = False
+        self.summary_problem: str | None = None
+        self.header: Header | None = None
+        self.metadata: dict[str, dict[str, str]] = {}
+        self.metadata_records: list[Metadata] = []
+        self.statistics: Statistics | None = None
+        self.channels: dict[int, Channel] = {}
+        self.schemas: dict[int, Schema] = {}
+        self.problems: list[str] = []
+        self.skipped_messages = 0
+        self._footer: Footer | None = None
+        self._summary_start = 0
+
+    # ------------------------------------------------------------------ info
+    @property
+    def info(self) -> dict[str, str]:
+        """Values of the ``zenswarm`` metadata record ({} if absent)."""
+        return self.metadata.get(METADATA_NAME, {})
+
+    @property
+    def scenario(self) -> dict[str, Any] | None:
+        import json
+
+        text = self.info.get("scenario_json")
+        if not text:
+            return None
+        try:
+            d = json.loads(text)
+        except ValueError as e:
+            raise RecordingError(f"{self.path}: metadata scenario_json is not valid JSON: {e}") from None
+        if not isinstance(d, dict):
+            raise RecordingError(f"{self.path}: metadata scenario_json is not a JSON object")
+        return d
+
+    def load_scenario(self) -> Any:
+        """The recorded scenario as a :class:`zenswarm.config.Scenario` (validated); raises
+        RecordingError if the recording has none."""
+        from zenswarm.config import scenario_from_dict
+        from zenswarm.errors import ScenarioError
+
+        d = self.scenario
+        if d is None:
+            raise RecordingError(
+                f"{self.path}: no scenario in the recording's metadata (record with --scenario, "
+                "or while a leader serves the mission)"
+            )
+        try:
+            return scenario_from_dict(d)
+        except ScenarioError as e:
+            raise RecordingError(f"{self.path}: recorded scenario is invalid: {e}") from None
+
+    @property
+    def swarm(self) -> str | None:
+        return self.info.get("swarm")
+
+    @property
+    def mode(self) -> str | None:
+        return self.info.get("mode")
+
+    @property
+    def zenswarm_version(self) -> str | None:
+        return self.info.get("zenswarm_version")
+
+    @property
+    def message_count(self) -> int | None:
+        """From the summary statistics (complete files), else None."""
+        return self.statistics.message_count if self.statistics is not None else None
+
+    def topics(self) -> list[str]:
+        """Topics of the known channels, sorted."""
+        return sorted({c.topic for c in self.channels.values()})
+
+    def __repr__(self) -> str:
+        return f"Recording({str(self.path)!r}, complete={self.complete}, channels={len(self.channels)})"
+
+    # ------------------------------------------------------------------ iteration
+    def _fail(self, text: str) -> None:
+        """Strict: raise; lenient: note it."""
+        if self.strict:
+            raise RecordingError(f"{self.path}: {text}")
+        if text not in self.problems:
+            self.problems.append(text)
+
+    def raw_messages(
+        self, topics: Callable[[str], bool] | None = None
+    ) -> Iterator[tuple[Channel, Message]]:
+        """``(channel, mcap Message)`` in file order (= log-time order for recorder files).
+
+        topics: optional predicate on the topic. Strict: raises RecordingError (naming the file
+        and offset) at the first damage, after yielding everything before it. Lenient: skips a
+        chunk that fails its CRC (or does not decompress) and goes on; stops where the framing
+        breaks or the file ends; every problem goes to :attr:`problems`.
+        """
+        end = self._summary_start if (self.complete and self._summary_start) else self.size
+        if self.complete and not self._summary_start:
+            end = self.size - 8 - _FOOTER_LEN
+        with open(self.path, "rb") as f:
+            try:
+                for pos, opcode, rec in _walk(f, 8, end, complete=self.complete):
+                    if opcode == Opcode.CHUNK:
+                        try:
+                            inner = _chunk_records(rec, pos)
+                        except _Damage as d:
+                            self._fail(d.text)
+                            continue
+                        for r in inner:
+                            if isinstance(r, Message):
+                                ch = self.channels.get(r.channel_id)
+                                if ch is None:
+                                    self.skipped_messages += 1
+                                    self._fail(f"message on unknown channel id {r.channel_id} in chunk at offset {pos}")
+                                    continue
+                                if topics is None or topics(ch.topic):
+                                    yield ch, r
+                            elif isinstance(r, Channel):
+                                self.channels.setdefault(r.id, r)
+                            elif isinstance(r, Schema):
+                                self.schemas.setdefault(r.id, r)
+                    elif opcode == Opcode.MESSAGE:
+                        ch = self.channels.get(rec.channel_id)
+                        if ch is None:
+                            self.skipped_messages += 1
+                            self._fail(f"message on unknown channel id {rec.channel_id} at offset {pos}")
+                            continue
+                        if topics is None or topics(ch.topic):
+                            yield ch, rec
+                    elif opcode == Opcode.CHANNEL:
+                        self.channels.setdefault(rec.id, rec)
+                    elif opcode == Opcode.SCHEMA:
+                        self.schemas.setdefault(rec.id, rec)
+                    elif opcode == Opcode.DATA_END:
+                        return
+                    elif opcode == Opcode.FOOTER:
+                        return
+            except _Damage as d:
+                self._fail(d.text)
+                return
+            if not self.complete:
+                # walked to the end of a file without summary: nothing was cut mid-record
+                self._fail(f"file ends after {self.size} bytes without a data-end record, summary or footer (truncated)")
+
+    def messages(self, topics: Callable[[str], bool] | None = None) -> Iterator[RecordedMessage]:
+        """``RecordedMessage(topic, log_time, publish_time, payload)`` in log-time order (file
+        order: the recorder writes non-decreasing log times). See :meth:`raw_messages`."""
+        for ch, m in self.raw_messages(topics):
+            yield RecordedMessage(ch.topic, m.log_time, m.publish_time, m.data)
+
+    __iter__ = messages
+
+
+def _load_metadata(rec: Recording, f: io.BufferedReader, everything: bool) -> None:
+    """Fill rec.header and rec.metadata. Complete files: via the summary's metadata indexes;
+    otherwise by walking the records (chunks are not decompressed) until a ``zenswarm`` record
+    with the scenario is found, or to the end when ``everything``."""
+    summary_mi: list[MetadataIndex] = []
+    if rec.complete and rec._summary_start:
+        end = rec.size - 8 - _FOOTER_LEN
+        try:
+            for _, opcode, r in _walk(f, rec._summary_start, end, complete=True):
+                if opcode == Opcode.STATISTICS:
+                    rec.statistics = r
+                elif opcode == Opcode.CHANNEL:
+                    rec.channels.setdefault(r.id, r)
+                elif opcode == Opcode.SCHEMA:
+                    rec.schemas.setdefault(r.id, r)
+                elif opcode == Opcode.METADATA_INDEX:
+                    summary_mi.append(r)
+        except _Damage as d:
+            raise RecordingError(f"{rec.path}: summary section is damaged: {d.text}") from None
+    # header
+    try:
+        first = next(_walk(f, 8, rec.size, complete=rec.complete), None)
+    except _Damage as d:
+        raise RecordingError(f"{rec.path}: cannot read the header record: {d.text}") from None
+    if first is None or first[1] != Opcode.HEADER:
+        raise RecordingError(f"{rec.path}: not an MCAP file (no header record after the magic)")
+    rec.header = first[2]
+    if summary_mi and not everything:
+        for mi in summary_mi:
+            try:
+                for _, opcode, r in _walk(f, mi.offset, mi.offset + mi.length, complete=True):
+                    if opcode == Opcode.METADATA:
+                        rec.metadata_records.append(r)
+                        rec.metadata.setdefault(r.name, {}).update(r.metadata)
+            except _Damage as d:
+                raise RecordingError(f"{rec.path}: metadata record is damaged: {d.text}") from None
+        return
+    end = rec._summary_start if rec._summary_start else rec.size
+    try:
+        for _, opcode, r in _walk(f, 8, end, complete=rec.complete):
+            if opcode == Opcode.METADATA:
+                rec.metadata_records.append(r)
+                rec.metadata.setdefault(r.name, {}).update(r.metadata)
+                if r.name == METADATA_NAME and "scenario_json" in r.metadata and not everything:
+                    return
+            elif opcode in (Opcode.DATA_END, Opcode.FOOTER):
+                return
+    except _Damage:
+        return  # reported (strict: raised) when the messages are read
+
+
+def read_recording(path: str | os.PathLike[str], *, strict: bool = True) -> Recording:
+    """Open a recording: check it, read its metadata (scenario) and summary.
+
+    strict (default): the file must be complete; raises :class:`RecordingError` naming the file
+    if it is missing, not an MCAP file, truncated (no footer/summary: the recorder was killed),
+    or its summary is corrupted; iterating raises at the first corrupted chunk (after yielding
+    everything before it).
+
+    strict=False: only a missing or non-MCAP file raises; a truncated file yields every message
+    that was written out before the cut, a chunk that fails its CRC is skipped, and the damage is
+    listed in ``Recording.problems`` (filled while iterating) and ``summary_problem``.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise RecordingError(f"{p}: no such file")
+    if not p.is_file():
+        raise RecordingError(f"{p}: not a regular file")
+    rec = Recording(p, strict)
+    try:
+        with open(p, "rb") as f:
+            rec.size = os.fstat(f.fileno()).st_size
+            head = f.read(8)
+            if head != MAGIC:
+                what = "empty file" if not head else f"starts with {head[:8]!r}"
+                raise RecordingError(f"{p}: not an MCAP file ({what}, expected the MCAP magic)")
+            footer, why = _read_tail(f, rec.size)
+            if footer is None:
+                rec.summary_problem = why
+                rec.problems.append(why)
+                if strict:
+                    raise RecordingError(
+                        f"{p}: incomplete recording: {why}. Read it with strict=False, or rewrite it "
+                        f"with `zenswarm recover {p} --out FIXED.mcap`"
+                    )
+            else:
+                rec.complete = True
+                rec._footer = footer
+                rec._summary_start = footer.summary_start
+            _load_metadata(rec, f, everything=False)
+    except OSError as e:
+        raise RecordingError(f"{p}: cannot read: {e}") from None
+    except McapError as e:  # pragma: no cover - _walk wraps parsing errors already
+        raise RecordingError(f"{p}: {e}") from None
+    return rec
+
+
+# --------------------------------------------------------------------------- recover
+
+
+def recover(
+    src: str | os.PathLike[str],
+    dst: str | os.PathLike[str],
+    *,
+    chunk_size: int = 1 << 20,
+) -> RecoverStats:
+    """Rewrite ``src`` (possibly truncated or corrupted) into a complete MCAP file ``dst``.
+
+    Keeps every readable message (same topic, log/publish time, sequence and payload, in the
+    same order), every readable metadata record (first, before the messages), and the channels
+    and schemas they use; writes a summary with statistics and indexes. ``dst`` is written to a
+    temporary file beside it and renamed into place. Raises RecordingError if ``src`` is missing
+    or not MCAP, or if ``dst`` is ``src``.
+    """
+    from mcap.writer import CompressionType, Writer
+
+    from zenswarm import __version__
+
+    s, d = Path(src), Path(dst)
+    if d.exists() and s.exists() and os.path.samefile(s, d):
+        raise RecordingError(f"{d}: recover must write to another file than its source")
+    rec = read_recording(s, strict=False)
+    stats = RecoverStats(src=str(s), dst=str(d), source_complete=rec.complete)
+    # all metadata (a full walk: metadata may come after the first chunks)
+    with open(s, "rb") as f:
+        rec.metadata_records.clear()
+        rec.metadata.clear()
+        _load_metadata(rec, f, everything=True)
+    d.parent.mkdir(parents=True, exist_ok=True)
+    tmp = d.with_name(d.name + ".partial")
+    try:
+        with open(tmp, "wb") as out:
+            w = Writer(out, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+            profile = rec.header.profile if rec.header is not None else ""
+            w.start(profile=profile, library=f"zenswarm-recover/{__version__}")
+            for m in rec.metadata_records:
+                w.add_metadata(m.name, dict(m.metadata))
+                stats.metadata += 1
+            schema_ids: dict[int, int] = {}
+            channel_ids: dict[int, int] = {}
+            for ch, msg in rec.raw_messages():
+                cid = channel_ids.get(ch.id)
+                if cid is None:
+                    sid = 0
+                    if ch.schema_id:
+                        sid = schema_ids.get(ch.schema_id, 0)
+                        sc = rec.schemas.get(ch.schema_id)
+                        if not sid and sc is not None:
+                            sid = w.register_schema(sc.name, sc.encoding, sc.data)
+                            schema_ids[ch.schema_id] = sid
+                    cid = w.register_channel(ch.topic, ch.message_encoding, sid, dict(ch.metadata))
+                    channel_ids[ch.id] = cid
+                w.add_message(cid, msg.log_time, msg.data, msg.publish_time, msg.sequence)
+                stats.messages += 1
+                if stats.first_log_time is None:
+                    stats.first_log_time = msg.log_time
+                stats.last_log_time = msg.log_time
+            stats.channels = len(channel_ids)
+            w.finish()
+        os.replace(tmp, d)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    for p in rec.problems:
+        if p not in stats.problems:
+            stats.problems.append(p)
+    return stats

@@ -1,0 +1,663 @@
+"""``zenswarm report``: the flight report, from an MCAP recording alone (or a simulator time series).
+
+From a recording (``zenswarm report FILE.mcap --out DIR``) the scenario comes from the file's
+``zenswarm`` metadata record, the flight's :class:`zenswarm.metrics.TimeSeries` is rebuilt from the
+recorded samples by the supervisor's :class:`compose.supervisor.Collector` (the same code that
+builds it live, so a lockstep recording gives the run's own series), and the results by
+:func:`zenswarm.metrics.compute_results` (so ``results.json`` matches the run's own on every field
+of :data:`zenswarm.metrics.RESULT_FIELDS`; ``wall_time_s`` is null, the recording does not know the
+run's compute time). Figures (PNG, matplotlib Agg, no display needed), after the paper's Figs 4-8:
+
+``trajectories_3d.png``  3D trajectories of the virtual leader and the UAVs, obstacles as cylinders
+                         with hemispherical caps, start/goal markers (Fig. 4); beside it a top view
+                         with formation snapshots and the leader's enclosing circle r_f.
+``formation_errors.png`` generator formation errors q*_i - q0 - h_i and v*_i - v0, per axis and UAV,
+                         eqs (16)-(17) (Figs 5 and 7).
+``tracking_errors.png``  tracking errors q*_i - q_i and v*_i - v_i, eq. (28) (Figs 6 and 8).
+``clearance.png``        each UAV's distance to the nearest obstacle surface (capped cylinder), and
+                         the leader sphere's clearance d_obs(q0) against the threshold d0.
+``links.png``            messages per key in the recording (and how many the report's decoder
+                         rejected), and the drop/reject/timeout counters each process reported in
+                         its last ``diag`` message (recordings only).
+
+``zenswarm report --series RUN/timeseries.npz --scenario SCENARIO.toml --out DIR`` plots the
+output of ``zenswarm sim`` (or of ``zenswarm up``) the same way, without ``links.png`` and without
+rewriting the run's ``results.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple, Sequence
+
+import numpy as np
+
+from zenswarm import wire
+from zenswarm.config import Scenario, load_scenario
+from zenswarm.errors import RecordingError, ScenarioError, ZenswarmError
+from zenswarm.metrics import TimeSeries, compute_results
+
+__all__ = [
+    "METADATA_NAME",
+    "FIGURES",
+    "RecordedMessage",
+    "Recording",
+    "Flight",
+    "load_recording",
+    "flight_from_recording",
+    "report_recording",
+    "report_from_series",
+    "add_parsers",
+]
+
+METADATA_NAME = "zenswarm"
+"""Name of the MCAP metadata record the recorder writes (keys scenario_json, swarm, mode)."""
+
+FIGURES = ("trajectories_3d.png", "formation_errors.png", "tracking_errors.png", "clearance.png", "links.png")
+"""Figures of a report from a recording (``links.png`` only from a recording)."""
+
+_DPI = 120
+_STYLES = ("-", "--", "-.", ":")
+"""Line styles by UAV, so curves that coincide (symmetric UAVs) stay visible."""
+
+
+# =========================================================================== reading a recording
+
+
+class RecordedMessage(NamedTuple):
+    """One recorded sample. log_time: receive wall time, ns; publish_time: sender's sim time, ns."""
+
+    topic: str
+    log_time: int
+    publish_time: int
+    data: bytes
+    encoding: str
+
+
+@dataclass
+class Recording:
+    """An MCAP recording of a swarm, loaded whole (messages in file order).
+
+    metadata: the ``zenswarm`` metadata record; scenario from its ``scenario_json``; swarm and mode
+    (``lockstep`` or ``realtime``) from it too. truncated: why reading stopped early (None when
+    the file was read to its end).
+    """
+
+    path: Path
+    metadata: dict[str, str]
+    scenario: Scenario
+    swarm: str
+    mode: str
+    messages: list[RecordedMessage]
+    truncated: str | None = None
+    other_metadata: list[tuple[str, dict[str, str]]] = field(default_factory=list)
+
+    @property
+    def realtime(self) -> bool:
+        return self.mode == "realtime"
+
+
+def load_recording(path: str | Path) -> Recording:
+    """Load a recording and the scenario it carries (read by :func:`bridge.mcapio.read_recording`,
+    leniently: a truncated file or a corrupted chunk costs only what is unreadable, and
+    :attr:`Recording.truncated` says what happened).
+
+    Raises :class:`RecordingError` naming the file when it is missing, not an MCAP file, has no
+    ``zenswarm`` metadata record, or its scenario is missing or invalid.
+    """
+    from bridge import mcapio
+
+    p = Path(path)
+    r = mcapio.read_recording(p, strict=False)
+    meta = r.metadata.get(METADATA_NAME)
+    if not meta:
+        raise RecordingError(
+            f"{p}: no '{METADATA_NAME}' metadata record: not a zenswarm recording "
+            "(the recorder writes the scenario, swarm name and mode there)"
+        )
+    scenario = r.load_scenario()
+    messages = [
+        RecordedMessage(ch.topic, m.log_time, m.publish_time, bytes(m.data), ch.message_encoding) for ch, m in r.raw_messages()
+    ]
+    problems = ([r.summary_problem] if r.summary_problem else []) + [x for x in r.problems if x != r.summary_problem]
+    swarm = meta.get("swarm") or _guess_swarm(messages)
+    if swarm is None:
+        raise RecordingError(f"{p}: no swarm name in the metadata and no swarm key among the messages")
+    try:
+        wire.validate_swarm_name(swarm)
+    except wire.InvalidKeyError as e:
+        raise RecordingError(f"{p}: {e}") from None
+    mode = meta.get("mode") or "lockstep"
+    others = [(name, dict(d)) for name, d in r.metadata.items() if name != METADATA_NAME]
+    return Recording(p, dict(meta), scenario, swarm, mode, messages, "; ".join(problems) or None, others)
+
+
+def _guess_swarm(messages: Sequence[RecordedMessage]) -> str | None:
+    for m in messages:
+        parts = m.topic.split("/")
+        if len(parts) >= 3 and parts[0] == "swarm":
+            return parts[1]
+    return None
+
+
+# =========================================================================== the flight
+
+
+@dataclass
+class Flight:
+    """What a report needs: the series, and (from a recording) the bus statistics."""
+
+    series: TimeSeries
+    scenario: Scenario
+    message_counts: dict[str, int] = field(default_factory=dict)
+    decoder_rejects: dict[str, int] = field(default_factory=dict)
+    decoder_counters: dict[str, int] = field(default_factory=dict)
+    diagnostics: dict[str, dict[str, Any]] = field(default_factory=dict)
+    mode: str = "lockstep"
+    swarm: str | None = None
+
+
+def _last_data_tick(ts: TimeSeries) -> int:
+    """Index of the last tick that holds any sample (-1 if none)."""
+    T = len(ts.t)
+    if T == 0:
+        return -1
+    have = np.zeros(T, dtype=bool)
+    for a in (ts.q0, ts.qref, ts.q, ts.u):
+        have |= np.isfinite(a.reshape(T, -1)).any(axis=1)
+    idx = np.flatnonzero(have)
+    return int(idx[-1]) if len(idx) else -1
+
+
+def flight_from_recording(rec: Recording) -> Flight:
+    """Rebuild the flight's time series from the recorded samples with the supervisor's Collector.
+
+    The series runs to the last tick that has any sample (the whole time limit for a complete
+    run); realtime recordings are forward-filled over gaps, exactly as ``zenswarm up --realtime``
+    does. Raises RecordingError when no sample of the swarm is in the file.
+    """
+    from compose.supervisor import Collector
+
+    keys = wire.Keys(rec.swarm)
+    col = Collector(rec.scenario, keys)
+    counts: dict[str, int] = {}
+    for m in rec.messages:
+        counts[m.topic] = counts.get(m.topic, 0) + 1
+        if m.encoding == "msgpack":
+            col.on_sample(m.topic, m.data)
+    raw = col.series(None, fill=False)
+    last = _last_data_tick(raw)
+    if last < 0:
+        raise RecordingError(f"{rec.path}: no flight data (leader/ref, uav/*/state|ref|cmd) of swarm '{rec.swarm}'")
+    ts = col.series(last + 1, fill=rec.realtime)
+    return Flight(
+        series=ts,
+        scenario=rec.scenario,
+        message_counts=counts,
+        decoder_rejects=dict(col.decoder.rejects),
+        decoder_counters=col.decoder.counters(),
+        diagnostics={k: dict(v) for k, v in col.diag.items()},
+        mode=rec.mode,
+        swarm=rec.swarm,
+    )
+
+
+# =========================================================================== figures
+
+
+def _figure(figsize: tuple[float, float], layout: str | None = None, **adjust: float):
+    """A figure without pyplot (no global state, Agg canvas). Fixed margins (``adjust``, as for
+    ``subplots_adjust``) unless a layout engine is asked for: constrained layout costs seconds."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, layout=layout)
+    if adjust:
+        fig.subplots_adjust(**adjust)
+    return fig
+
+
+def _uav_colors(n: int) -> list:
+    from matplotlib import colormaps
+
+    cmap = colormaps["tab10"] if n <= 10 else colormaps["turbo"]
+    if n <= 10:
+        return [cmap(i) for i in range(n)]
+    return [cmap(0.05 + 0.9 * i / max(1, n - 1)) for i in range(n)]
+
+
+def _cylinder_mesh(ob: Any, nth: int = 40, nz: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    xc, yc, zc = ob.center
+    th = np.linspace(0.0, 2.0 * math.pi, nth)
+    z = np.linspace(zc, zc + ob.height, nz)
+    TH, Z = np.meshgrid(th, z)
+    return xc + ob.radius * np.cos(TH), yc + ob.radius * np.sin(TH), Z
+
+
+def _cap_mesh(ob: Any, nth: int = 40, nphi: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Upper hemisphere of radius r_o on top of the cylinder (Remark 1)."""
+    xc, yc, zc = ob.center
+    th = np.linspace(0.0, 2.0 * math.pi, nth)
+    ph = np.linspace(0.0, 0.5 * math.pi, nphi)  # polar angle from +z
+    TH, PH = np.meshgrid(th, ph)
+    r = ob.radius
+    return xc + r * np.sin(PH) * np.cos(TH), yc + r * np.sin(PH) * np.sin(TH), zc + ob.height + r * np.cos(PH)
+
+
+def _finite_rows(a: np.ndarray) -> np.ndarray:
+    """Rows of an (T, 3) array with every element finite."""
+    return a[np.all(np.isfinite(a), axis=-1)]
+
+
+def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
+    """3D trajectories (paper Fig. 4) plus a top view with formation snapshots."""
+    n = ts.q.shape[1]
+    colors = _uav_colors(n)
+    fig = _figure((13.0, 6.2))
+    gs = fig.add_gridspec(1, 2, width_ratios=[1.35, 1.0], left=0.0, right=0.98, bottom=0.08, top=0.9, wspace=0.12)
+    ax = fig.add_subplot(gs[0, 0], projection="3d")
+    top = fig.add_subplot(gs[0, 1])
+
+    pts = [_finite_rows(ts.q0)] + [_finite_rows(ts.q[:, i]) for i in range(n)]
+    pts.append(np.asarray([sc.leader.start, sc.leader.goal], dtype=float))
+    for ob in sc.obstacles:
+        xc, yc, zc = ob.center
+        r = ob.radius
+        pts.append(np.array([[xc - r, yc - r, zc], [xc + r, yc + r, zc + ob.height + r]]))
+    allp = np.vstack([p for p in pts if len(p)])
+    lo, hi = allp.min(axis=0), allp.max(axis=0)
+    span = np.maximum(hi - lo, 1e-3)
+    pad = 0.06 * span.max()
+    lo, hi = lo - pad, hi + pad
+    lo[2] = min(lo[2], 0.0)  # show the ground
+    span = hi - lo
+    aspect = np.maximum(span, 0.25 * span.max())  # equal scaling, but never a flat box
+    grow = aspect - span
+    lo[:2] -= 0.5 * grow[:2]
+    hi[:2] += 0.5 * grow[:2]
+    hi[2] += grow[2]  # z grows upward only: the ground stays at the bottom
+
+    for k, ob in enumerate(sc.obstacles):
+        ax.plot_surface(*_cylinder_mesh(ob), color="0.55", alpha=0.35, linewidth=0, shade=True)
+        ax.plot_surface(*_cap_mesh(ob), color="0.55", alpha=0.35, linewidth=0, shade=True)
+    q0 = ts.q0
+    ax.plot(q0[:, 0], q0[:, 1], q0[:, 2], color="k", ls="--", lw=1.4, label="virtual leader $q_0$")
+    for i in range(n):
+        qi = ts.q[:, i]
+        ax.plot(qi[:, 0], qi[:, 1], qi[:, 2], color=colors[i], lw=1.5, label=f"UAV {i + 1}")
+        f = _finite_rows(qi)
+        if len(f):
+            ax.scatter(*f[0], color=colors[i], marker="o", s=22, depthshade=False)
+            ax.scatter(*f[-1], color=colors[i], marker="^", s=30, depthshade=False)
+    st, gl = np.asarray(sc.leader.start, float), np.asarray(sc.leader.goal, float)
+    ax.scatter(*st, color="k", marker="s", s=40, depthshade=False, label="start")
+    ax.scatter(*gl, color="tab:green", marker="*", s=160, depthshade=False, label="goal")
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_zlim(lo[2], hi[2])
+    ax.set_box_aspect(tuple(aspect))
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.zaxis.set_rotate_label(False)
+    ax.set_zlabel("z [m]", rotation=90)
+    ax.view_init(elev=24, azim=-125)
+    ax.set_title("3D trajectories (o start, ^ end)")
+    ax.legend(loc="upper left", fontsize=8)
+
+    # top view: obstacles, paths, formation snapshots, enclosing circle r_f
+    from matplotlib.patches import Circle
+
+    for k, ob in enumerate(sc.obstacles):
+        xc, yc, _ = ob.center
+        top.add_patch(Circle((xc, yc), ob.radius, color="0.55", alpha=0.5))
+        top.annotate(f"obs {k + 1}\nh={ob.height:g}+{ob.radius:g} m", (xc, yc), ha="center", va="center", fontsize=7)
+    top.plot(q0[:, 0], q0[:, 1], color="k", ls="--", lw=1.2, label="$q_0$")
+    for i in range(n):
+        top.plot(ts.q[:, i, 0], ts.q[:, i, 1], color=colors[i], lw=1.3, label=f"UAV {i + 1}")
+    T = len(ts.t)
+    good = np.flatnonzero(np.all(np.isfinite(ts.q.reshape(T, -1)), axis=1) & np.all(np.isfinite(q0), axis=1))
+    if len(good):
+        snaps = _snapshot_ticks(q0, good, 7)
+        for k in snaps:
+            poly = np.vstack([ts.q[k], ts.q[k][:1]]) if n > 2 else ts.q[k]
+            top.plot(poly[:, 0], poly[:, 1], color="0.3", lw=0.7, alpha=0.7)
+            top.add_patch(Circle((q0[k, 0], q0[k, 1]), sc.r_f, fill=False, ls=":", lw=0.8, color="0.4"))
+            top.annotate(f"{ts.t[k]:.1f} s", (q0[k, 0], q0[k, 1]), fontsize=7, color="0.25", xytext=(3, -9), textcoords="offset points")
+    top.plot(*st[:2], "ks", ms=6)
+    top.plot(*gl[:2], "*", color="tab:green", ms=13)
+    top.set_aspect("equal", adjustable="datalim")
+    top.set_xlabel("x [m]")
+    top.set_ylabel("y [m]")
+    top.set_title(f"top view: formation snapshots, enclosing circle $r_f$={sc.r_f:.3f} m")
+    top.grid(True, alpha=0.3)
+    top.legend(loc="best", fontsize=8)
+    fig.suptitle(f"{sc.name}: trajectories of the virtual leader and {n} UAVs")
+    fig.savefig(path, dpi=_DPI)
+    return path
+
+
+def _snapshot_ticks(q0: np.ndarray, good: np.ndarray, count: int) -> np.ndarray:
+    """``count`` ticks among ``good`` evenly spaced along the leader's path length (so the
+    snapshots do not pile up where the leader hovers at the goal)."""
+    p = q0[good]
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    if s[-1] <= 1e-9:
+        return good[:1]
+    idx = np.searchsorted(s, np.linspace(0.0, s[-1] * 0.999, count))
+    return good[np.unique(np.clip(idx, 0, len(good) - 1))]
+
+
+def _plot_error_grid(t: np.ndarray, pos: np.ndarray, vel: np.ndarray, path: Path, title: str, plabel: str, vlabel: str) -> Path:
+    """2 x 3 grid: position (top) and velocity (bottom) error components, one line per UAV."""
+    n = pos.shape[1]
+    colors = _uav_colors(n)
+    fig = _figure((13.0, 6.4), left=0.06, right=0.985, bottom=0.08, top=0.88, wspace=0.24, hspace=0.3)
+    axes = fig.subplots(2, 3, sharex=True)
+    for row, (err, lab, unit) in enumerate(((pos, plabel, "m"), (vel, vlabel, "m/s"))):
+        for c, axis in enumerate("xyz"):
+            ax = axes[row, c]
+            for i in range(n):
+                ax.plot(t, err[:, i, c], color=colors[i], ls=_STYLES[i % len(_STYLES)], lw=1.1, label=f"UAV {i + 1}")
+            ax.axhline(0.0, color="0.5", lw=0.6)
+            ax.set_title(f"{lab}, {axis} [{unit}]", fontsize=10)
+            ax.grid(True, alpha=0.3)
+            ax.ticklabel_format(axis="y", style="sci", scilimits=(-2, 3), useMathText=True)
+            if row == 1:
+                ax.set_xlabel("t [s]")
+    axes[0, 0].legend(fontsize=8, loc="best")
+    fig.suptitle(title)
+    fig.savefig(path, dpi=_DPI)
+    return path
+
+
+def plot_formation_errors(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
+    """Generator formation errors q*_i - q0 - h_i and v*_i - v0 (eqs 16-17; paper Figs 5 and 7)."""
+    h = np.asarray(sc.offsets, dtype=float)
+    ep = ts.qref - ts.q0[:, None, :] - h[None]
+    ev = ts.vref - ts.v0[:, None, :]
+    return _plot_error_grid(
+        ts.t,
+        ep,
+        ev,
+        path,
+        f"{sc.name}: formation errors of the reference generator, eqs (16)-(17)",
+        r"$q^*_i - q_0 - h_i$",
+        r"$v^*_i - v_0$",
+    )
+
+
+def plot_tracking_errors(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
+    """Tracking errors q*_i - q_i and v*_i - v_i (composite controller, eq. 28; paper Figs 6 and 8)."""
+    return _plot_error_grid(
+        ts.t,
+        ts.qref - ts.q,
+        ts.vref - ts.v,
+        path,
+        f"{sc.name}: trajectory tracking errors under the composite controller, eq. (28)",
+        r"$q^*_i - q_i$",
+        r"$v^*_i - v_i$",
+    )
+
+
+def leader_d_obs(q0: np.ndarray, sc: Scenario) -> np.ndarray:
+    """min over obstacles of the sphere clearance d_obs(q0) = ||q0 - q_obs(q0)|| - r_o - r_f, (T,) m."""
+    from leader.aapf import d_obs
+
+    out = np.full(len(q0), np.inf)
+    r_f = sc.r_f
+    for k in range(len(q0)):
+        if not np.all(np.isfinite(q0[k])):
+            out[k] = np.nan
+            continue
+        for ob in sc.obstacles:
+            out[k] = min(out[k], d_obs(q0[k], ob, r_f))
+    return out
+
+
+def uav_clearance(q: np.ndarray, sc: Scenario) -> np.ndarray:
+    """Each UAV's distance to the nearest obstacle surface, (T, N) m (negative inside)."""
+    from leader.aapf import obstacle_clearance_many
+
+    c = np.full(q.shape[:-1], np.inf)
+    for ob in sc.obstacles:
+        c = np.fmin(c, obstacle_clearance_many(q, ob))
+    return c
+
+
+def plot_clearance(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
+    """UAV clearance to the nearest obstacle, and the leader sphere's d_obs against d0."""
+    n = ts.q.shape[1]
+    colors = _uav_colors(n)
+    fig = _figure((11.0, 6.6), left=0.08, right=0.98, bottom=0.08, top=0.9, hspace=0.2)
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    if not sc.obstacles:
+        for ax in (ax1, ax2):
+            ax.text(0.5, 0.5, "no obstacles in this scenario", ha="center", va="center", transform=ax.transAxes)
+    else:
+        c = uav_clearance(ts.q, sc)
+        for i in range(n):
+            ax1.plot(ts.t, c[:, i], color=colors[i], lw=1.2, label=f"UAV {i + 1}")
+        ax1.axhline(0.0, color="tab:red", lw=1.0, ls="--", label="surface (collision)")
+        if np.isfinite(c).any():
+            k, i = np.unravel_index(np.nanargmin(c), c.shape)
+            ax1.plot(ts.t[k], c[k, i], "v", color="tab:red", ms=7)
+            ax1.annotate(f"min {c[k, i]:.3f} m (UAV {i + 1}, t={ts.t[k]:.2f} s)", (ts.t[k], c[k, i]), xytext=(6, 10), textcoords="offset points", fontsize=8)
+        ax1.set_ylabel("clearance [m]")
+        ax1.set_title("UAV distance to the nearest obstacle surface (cylinder + hemispherical cap)", fontsize=10)
+        ax1.set_ylim(bottom=min(-0.02, float(np.nanmin(c)) - 0.02) if np.isfinite(c).any() else None)
+        d = leader_d_obs(ts.q0, sc)
+        ax2.plot(ts.t, d, color="k", lw=1.3, label=r"$d_{obs}(q_0)$ (sphere of radius $r_f$)")
+        ax2.axhline(sc.leader.d0, color="tab:orange", ls="--", lw=1.0, label=f"$d_0$ = {sc.leader.d0:g} m (avoidance threshold)")
+        ax2.axhline(0.0, color="tab:red", ls="--", lw=1.0, label="sphere touches obstacle")
+        if np.isfinite(d).any():
+            k = int(np.nanargmin(d))
+            ax2.plot(ts.t[k], d[k], "v", color="tab:red", ms=7)
+            ax2.annotate(f"min {d[k]:.3f} m at t={ts.t[k]:.2f} s", (ts.t[k], d[k]), xytext=(6, 10), textcoords="offset points", fontsize=8)
+            hi = float(np.nanmax(d[np.isfinite(d)]))
+            ax2.set_ylim(min(-0.02, float(np.nanmin(d)) - 0.02), max(4.0 * sc.leader.d0, min(hi, 8.0 * sc.leader.d0)))
+        ax2.set_ylabel("clearance [m]")
+        ax2.set_title(f"virtual leader: formation-sphere clearance $d_{{obs}}$, $r_f$={sc.r_f:.3f} m", fontsize=10)
+        for ax in (ax1, ax2):
+            ax.grid(True, alpha=0.3)
+            ax.legend(fontsize=8, loc="upper right")
+    ax2.set_xlabel("t [s]")
+    fig.suptitle(f"{sc.name}: obstacle clearance")
+    fig.savefig(path, dpi=_DPI)
+    return path
+
+
+_FAULT_RE = re.compile(r"drop|reject|timeout|late|lost|loss|stale|held|miss|undecodable|error", re.IGNORECASE)
+
+
+def _short_key(topic: str, swarm: str | None) -> str:
+    prefix = f"swarm/{swarm}/" if swarm else None
+    return topic[len(prefix) :] if prefix and topic.startswith(prefix) else topic
+
+
+def plot_links(fl: Flight, path: Path) -> Path:
+    """Messages per key, the report decoder's rejects per key, and each process's fault counters.
+
+    Fault counters are every numeric counter of a process's last diag message whose name says
+    drop, reject, timeout, late, lost/loss, stale, held, miss, undecodable or error; per-link counters (their name
+    names the link or key) show up as their own bars.
+    """
+    keys = sorted(fl.message_counts, key=lambda k: (_short_key(k, fl.swarm).split("/")[0], _key_order(k), k))
+    faults: list[tuple[str, float]] = []
+    for proc in sorted(fl.diagnostics, key=_proc_order):
+        for name, val in sorted(fl.diagnostics[proc].items()):
+            if isinstance(val, (int, float)) and _FAULT_RE.search(name):
+                faults.append((f"{proc}: {name}", float(val)))
+    for key, nrej in sorted(fl.decoder_rejects.items()):
+        faults.append((f"report decoder: {_short_key(key, fl.swarm)}", float(nrej)))
+    nrows = max(len(keys), len(faults), 1)
+    fig = _figure((13.0, max(4.0, 0.24 * nrows + 1.6)), layout="constrained")
+    ax1, ax2 = fig.subplots(1, 2)
+    y = np.arange(len(keys))
+    counts = np.array([fl.message_counts[k] for k in keys], dtype=float)
+    rej = np.array([fl.decoder_rejects.get(k, 0) for k in keys], dtype=float)
+    ax1.barh(y, counts, color=["tab:red" if r else "tab:blue" for r in rej])
+    ax1.set_yticks(y, [_short_key(k, fl.swarm) for k in keys], fontsize=8)
+    ax1.invert_yaxis()
+    ax1.set_xlabel("messages recorded")
+    ax1.set_xlim(0, max(1.0, float(counts.max(initial=0.0))) * 1.3)
+    nrej = int(rej.sum())
+    ax1.set_title(
+        f"messages per key: {int(counts.sum())} recorded" + (f", {nrej} rejected by the decoder (red)" if nrej else ", none rejected"),
+        fontsize=10,
+    )
+    for yy, c, r in zip(y, counts, rej):
+        text = f"{int(c)}" + (f"  ({int(r)} rejected)" if r else "")
+        ax1.annotate(text, (c, yy), xytext=(2, 0), textcoords="offset points", va="center", fontsize=7, color="tab:red" if r else "black")
+    ax1.grid(True, axis="x", alpha=0.3)
+    if faults:
+        yf = np.arange(len(faults))
+        vals = np.array([v for _, v in faults])
+        ax2.barh(yf, vals, color=["tab:red" if v > 0 else "0.7" for v in vals])
+        ax2.set_yticks(yf, [lab for lab, _ in faults], fontsize=8)
+        ax2.invert_yaxis()
+        for yy, v in zip(yf, vals):
+            ax2.annotate(f"{v:g}", (v, yy), xytext=(2, 0), textcoords="offset points", va="center", fontsize=7)
+        ax2.set_xlim(0, max(1.0, float(vals.max()) * 1.15))
+        nz = int(np.count_nonzero(vals))
+        ax2.set_title(f"drop / reject / timeout counters ({nz} of {len(vals)} nonzero)", fontsize=10)
+    else:
+        ax2.text(0.5, 0.5, "no diag messages with drop/reject counters\nin this recording", ha="center", va="center", transform=ax2.transAxes)
+        ax2.set_title("drop / reject / timeout counters", fontsize=10)
+        ax2.set_yticks([])
+    ax2.set_xlabel("count (last diag message of each process)")
+    ax2.grid(True, axis="x", alpha=0.3)
+    fig.suptitle(f"bus traffic of swarm '{fl.swarm}' ({fl.mode})")
+    fig.savefig(path, dpi=_DPI)
+    return path
+
+
+def _key_order(topic: str) -> int:
+    m = re.search(r"/uav/(\d+)/", topic)
+    return int(m.group(1)) if m else 0
+
+
+def _proc_order(proc: str) -> tuple[int, int, str]:
+    m = re.fullmatch(r"agent:(\d+)", proc)
+    if m:
+        return (1, int(m.group(1)), proc)
+    return (0 if proc in ("plant", "leader") else 2, 0, proc)
+
+
+# =========================================================================== reports
+
+
+def report_from_series(ts: TimeSeries, scenario: Scenario, out_dir: str | Path) -> list[Path]:
+    """Write the figures that need only the time series (trajectories, formation and tracking
+    errors, clearance) into ``out_dir`` (created); returns their paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if len(ts.t) == 0:
+        raise ZenswarmError("the time series is empty: nothing to plot")
+    return [
+        plot_trajectories(ts, scenario, out / "trajectories_3d.png"),
+        plot_formation_errors(ts, scenario, out / "formation_errors.png"),
+        plot_tracking_errors(ts, scenario, out / "tracking_errors.png"),
+        plot_clearance(ts, scenario, out / "clearance.png"),
+    ]
+
+
+def results_from_flight(fl: Flight) -> dict[str, Any]:
+    """results.json of a recorded flight: compute_results plus the bus statistics."""
+    res = compute_results(fl.series, fl.scenario, wall_time_s=None)
+    res["mode"] = fl.mode
+    res["swarm"] = fl.swarm
+    res["diagnostics"] = fl.diagnostics
+    res["decoder_rejects"] = fl.decoder_counters
+    res["message_counts"] = dict(sorted(fl.message_counts.items()))
+    return res
+
+
+def report_recording(path: str | Path, out_dir: str | Path) -> list[Path]:
+    """The full report of a recording: every figure of :data:`FIGURES` and ``results.json``."""
+    rec = load_recording(path)
+    fl = flight_from_recording(rec)
+    out = Path(out_dir)
+    files = report_from_series(fl.series, fl.scenario, out)
+    files.append(plot_links(fl, out / "links.png"))
+    res = results_from_flight(fl)
+    res["recording"] = str(rec.path)
+    res["recording_truncated"] = rec.truncated
+    rp = out / "results.json"
+    rp.write_text(json.dumps(res, indent=2, sort_keys=True, default=str) + "\n")
+    files.append(rp)
+    return files
+
+
+# =========================================================================== CLI
+
+
+def _run_report(args: argparse.Namespace) -> int:
+    if (args.recording is None) == (args.series is None):
+        args._parser.error("give either a recording FILE or --series NPZ --scenario TOML")
+    if args.series is not None:
+        if args.scenario is None:
+            args._parser.error("--series needs --scenario (the scenario the series was flown with)")
+        sc = load_scenario(args.scenario)
+        try:
+            ts = TimeSeries.load(str(args.series))
+        except FileNotFoundError:
+            raise RecordingError(f"{args.series}: no such time series file") from None
+        except (OSError, ValueError, KeyError) as e:
+            raise RecordingError(f"{args.series}: not a zenswarm timeseries.npz ({e})") from None
+        if ts.q.ndim != 3 or ts.q.shape[1] != sc.n:
+            raise ScenarioError("--scenario", f"{args.scenario} has {sc.n} UAVs but {args.series} has {ts.q.shape[1] if ts.q.ndim == 3 else '?'}")
+        files = report_from_series(ts, sc, args.out)
+    else:
+        rec_files = report_recording(args.recording, args.out)
+        files = rec_files
+    for f in files:
+        print(f)
+    return 0
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    """Register ``zenswarm report`` on the CLI's subparsers."""
+    p = sub.add_parser(
+        "report",
+        help="flight report (figures like the paper's Figs 4-8, results.json) from a recording",
+        description=(
+            "Write the flight report of a recording into OUT: trajectories_3d.png, "
+            "formation_errors.png, tracking_errors.png, clearance.png, links.png and results.json "
+            "(the same fields as `zenswarm sim`). Works from the MCAP file alone. With --series, "
+            "plot a `zenswarm sim` time series instead (no links.png, no results.json)."
+        ),
+    )
+    p.add_argument("recording", nargs="?", type=Path, metavar="FILE", help="MCAP recording (zenswarm up --record / zenswarm record)")
+    p.add_argument("--out", type=Path, required=True, help="output directory (created)")
+    p.add_argument("--series", type=Path, metavar="NPZ", help="a timeseries.npz written by zenswarm sim or zenswarm up")
+    p.add_argument("--scenario", type=Path, metavar="TOML", help="with --series: the scenario file of that run")
+    p.set_defaults(func=_run_report, _parser=p)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Stand-alone entry (``python -m bridge.report ...``) until the CLI wires it."""
+    import sys
+
+    parser = argparse.ArgumentParser(prog="zenswarm")
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_parsers(sub)
+    try:
+        from bridge import foxglove
+    except ImportError:  # pragma: no cover
+        pass
+    else:
+        foxglove.add_parsers(sub)
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except ZenswarmError as e:
+        print(f"zenswarm: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

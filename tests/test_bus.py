@@ -1,0 +1,321 @@
+"""Bus helpers against a real Zenoh router on loopback, with real client processes.
+
+Every test uses its own free ports and swarm name and reaps every process it starts.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import queue
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+
+import pytest
+import zenoh
+
+from zenswarm import wire
+from zenswarm.bus import (
+    AliveWatcher,
+    BusError,
+    client_config,
+    free_port,
+    open_session,
+    router_config,
+    tcp_endpoint,
+)
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+class Child:
+    """A Python subprocess running ``code`` with ``args``; stdout+stderr read line by line."""
+
+    def __init__(self, code: str, *args: object) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", textwrap.dedent(code), *map(str, args)],
+            cwd=REPO,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        self.lines: queue.Queue[str] = queue.Queue()
+        self.seen: list[str] = []
+        threading.Thread(target=self._pump, daemon=True).start()
+
+    def _pump(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.put(line.rstrip("\n"))
+
+    def expect(self, prefix: str, timeout: float = 5.0) -> str:
+        """Next line starting with ``prefix`` (other lines are kept in ``seen``)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            try:
+                line = self.lines.get(timeout=max(0.0, left))
+            except queue.Empty:
+                raise AssertionError(f"no {prefix!r} line within {timeout} s; output so far: {self.seen}") from None
+            self.seen.append(line)
+            if line.startswith(prefix):
+                return line
+
+    def wait(self, timeout: float) -> int:
+        return self.proc.wait(timeout=timeout)
+
+    def reap(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(timeout=10)
+
+
+@contextlib.contextmanager
+def children() -> Iterator[list[Child]]:
+    """Collects children and kills and waits for all of them on exit, whatever happens."""
+    started: list[Child] = []
+    try:
+        yield started
+    finally:
+        for c in started:
+            c.reap()
+
+
+@contextlib.contextmanager
+def router() -> Iterator[str]:
+    """An in-process router on a free loopback port; yields its endpoint."""
+    ep = tcp_endpoint(free_port())
+    with open_session(router_config([ep]), handle_signals=False):
+        yield ep
+
+
+def swarm_name() -> str:
+    return "t" + uuid.uuid4().hex[:10]
+
+
+SUB = """
+import json, sys
+import zenoh
+from zenswarm import wire
+from zenswarm.bus import client_config, open_session
+ep, swarm, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
+keys = wire.Keys(swarm)
+dec = wire.Decoder()
+got = []
+with open_session(client_config([ep])) as session:
+    sub = session.declare_subscriber(keys.all, zenoh.handlers.FifoChannel(1024))
+    print("ready", flush=True)
+    while len(got) + dec.rejected < n:  # bounded by the parent's timeout
+        sample = sub.recv()
+        key = str(sample.key_expr)
+        kind, uav, _ = keys.parse(key)
+        msg = dec.decode(key, wire.message_kind(kind), sample.payload.to_bytes())
+        if msg is not None:
+            got.append([key, uav, msg.seq, msg.q.tolist()])
+print("result", json.dumps({"got": got, "counters": dec.counters(), "rejects": dec.rejects}), flush=True)
+"""
+
+PUB = """
+import json, sys, time
+import zenoh
+from zenswarm import wire
+from zenswarm.bus import client_config, open_session, wait_matching
+ep, swarm, uav, first, count, garbage = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5]), sys.argv[6] == "1"
+keys = wire.Keys(swarm)
+with open_session(client_config([ep])) as session:
+    pub = session.declare_publisher(keys.state(uav), congestion_control=zenoh.CongestionControl.BLOCK)
+    matched = wait_matching(pub, timeout=0.5 if first < 0 else 5.0)
+    for k in range(max(first, 0), max(first, 0) + count):
+        q = [float(k), 0.1, -0.0]
+        pub.put(wire.encode(wire.State(t=wire.t_ns(k * 0.01), seq=k, q=q, v=q, rpy=[0, 0, 0], w=[0, 0, 0])))
+    if garbage:
+        pub.put(b"\\xc1 not msgpack")
+print("done", json.dumps({"matched": matched}), flush=True)
+"""
+
+TOKEN = """
+import sys, time
+from zenswarm import wire
+from zenswarm.bus import client_config, declare_alive, open_session
+ep, swarm, process = sys.argv[1], sys.argv[2], sys.argv[3]
+keys = wire.Keys(swarm)
+with open_session(client_config([ep])) as session:
+    session.declare_subscriber(keys.all, lambda sample: None)  # a Python-callback thread, the hang risk
+    token = declare_alive(session, keys, process)
+    print("ready", flush=True)
+    time.sleep(30)
+"""
+
+
+# --------------------------------------------------------------------------- configs and keys
+
+
+def test_every_key_is_a_valid_zenoh_key() -> None:
+    keys = wire.Keys("demo")
+    concrete = [keys.clock, keys.mission, keys.leader_ref, keys.state(1), keys.ref(2), keys.cmd(30)]
+    concrete += [keys.diag(p) for p in ("plant", "leader", "agent:2", "recorder", "bridge", "supervisor")]
+    concrete += [keys.alive(p) for p in ("plant", "agent:12")]
+    everything = zenoh.KeyExpr(keys.all)
+    for k in concrete:
+        assert str(zenoh.KeyExpr(k)) == k  # ':' is legal in a chunk and the keys are canonical
+        assert everything.includes(zenoh.KeyExpr(k))
+    assert zenoh.KeyExpr(keys.alive_all).includes(zenoh.KeyExpr(keys.alive("agent:2")))
+    assert not zenoh.KeyExpr(keys.alive_all).intersects(zenoh.KeyExpr(keys.state(1)))
+    assert not zenoh.KeyExpr(wire.Keys("demo2").all).intersects(zenoh.KeyExpr(keys.state(1)))
+
+
+def test_configs() -> None:
+    r = router_config(["tcp/127.0.0.1:1"], settings={"transport/unicast/lowlatency": False})
+    assert json.loads(r.get_json("mode")) == "router"
+    assert json.loads(r.get_json("listen/endpoints")) == ["tcp/127.0.0.1:1"]
+    c = client_config(["tcp/127.0.0.1:2"], connect_timeout_s=1.5)
+    assert json.loads(c.get_json("mode")) == "client"
+    assert json.loads(c.get_json("connect/endpoints")) == ["tcp/127.0.0.1:2"]
+    assert json.loads(c.get_json("connect/timeout_ms")) == 1500
+    for conf in (r, c):
+        assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+        assert json.loads(conf.get_json("scouting/gossip/enabled")) is False
+    with pytest.raises(BusError):
+        router_config([])
+    with pytest.raises(BusError):
+        client_config([])
+    with pytest.raises(BusError, match="no/such/key"):
+        client_config(["tcp/127.0.0.1:2"], settings={"no/such/key": 1})
+
+
+def test_client_fails_fast_without_router_and_waits_for_a_late_one() -> None:
+    ep = tcp_endpoint(free_port())
+    t0 = time.monotonic()
+    with pytest.raises(BusError):
+        with open_session(client_config([ep], connect_timeout_s=0.2), handle_signals=False):
+            pass
+    assert time.monotonic() - t0 < 3.0
+
+    stop = threading.Event()
+
+    def late_router() -> None:
+        time.sleep(0.4)
+        with open_session(router_config([ep]), handle_signals=False):
+            stop.wait(10)
+
+    th = threading.Thread(target=late_router)
+    th.start()
+    try:
+        with open_session(client_config([ep], connect_timeout_s=5.0), handle_signals=False) as s:
+            assert len(s.info.routers_zid()) == 1
+    finally:
+        stop.set()
+        th.join(10)
+
+
+# --------------------------------------------------------------------------- pub/sub across processes
+
+
+def test_two_client_processes_exchange_messages() -> None:
+    swarm = swarm_name()
+    n = 40
+    with router() as ep, children() as kids:
+        sub = Child(SUB, ep, swarm, n + 1)
+        kids.append(sub)
+        sub.expect("ready")
+        pub = Child(PUB, ep, swarm, 2, 0, n, 1)
+        kids.append(pub)
+        assert json.loads(pub.expect("done", 10).split(" ", 1)[1]) == {"matched": True}
+        res = json.loads(sub.expect("result", 10).split(" ", 1)[1])
+        assert sub.wait(5) == 0 and pub.wait(5) == 0
+    key = wire.Keys(swarm).state(2)
+    assert res["got"] == [[key, 2, k, [float(k), 0.1, -0.0]] for k in range(n)]
+    assert res["counters"] == {"decoded": n, "rejected": 1, "rejected.malformed": 1}
+    assert res["rejects"] == {key: 1}
+
+
+def test_two_routers_with_the_same_swarm_name_are_isolated() -> None:
+    swarm = swarm_name()
+    with router() as ep_a, router() as ep_b, children() as kids:
+        sub = Child(SUB, ep_a, swarm, 1)
+        # On router B nobody subscribes: its publisher never matches, and what it sends is lost.
+        pub_b = Child(PUB, ep_b, swarm, 1, -1, 20, 0)
+        kids += [sub, pub_b]
+        sub.expect("ready")
+        assert json.loads(pub_b.expect("done", 10).split(" ", 1)[1]) == {"matched": False}
+        pub_a = Child(PUB, ep_a, swarm, 7, 999, 1, 0)
+        kids.append(pub_a)
+        assert json.loads(pub_a.expect("done", 10).split(" ", 1)[1]) == {"matched": True}
+        res = json.loads(sub.expect("result", 10).split(" ", 1)[1])
+    assert res["got"] == [[wire.Keys(swarm).state(7), 7, 999, [999.0, 0.1, -0.0]]]
+
+
+# --------------------------------------------------------------------------- liveliness and exit
+
+
+def test_liveliness_token_of_killed_process_goes_within_2s() -> None:
+    swarm = swarm_name()
+    keys = wire.Keys(swarm)
+    with router() as ep, children() as kids:
+        holder = Child(TOKEN, ep, swarm, "agent:3")
+        kids.append(holder)
+        holder.expect("ready")
+        with open_session(client_config([ep]), handle_signals=False) as session, AliveWatcher(session, keys) as watch:
+            assert watch.wait_for("agent:3", alive=True, timeout=5.0)  # reported from history
+            holder.proc.send_signal(signal.SIGKILL)
+            t0 = time.monotonic()
+            assert watch.wait_for("agent:3", alive=False, timeout=2.0)
+            gone_after = time.monotonic() - t0
+            assert watch.alive == frozenset()
+            assert [(p, a) for _, p, a in watch.events] == [("agent:3", True), ("agent:3", False)]
+    assert gone_after < 2.0
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_closes_session_and_exits_cleanly(sig: signal.Signals) -> None:
+    """A process in open_session with a Python-callback subscriber exits 0 on SIGTERM/SIGINT
+    (default SIGTERM would kill it, and falling off the end would hang)."""
+    swarm = swarm_name()
+    keys = wire.Keys(swarm)
+    with router() as ep, children() as kids:
+        with open_session(client_config([ep]), handle_signals=False) as session, AliveWatcher(session, keys) as watch:
+            holder = Child(TOKEN, ep, swarm, "leader")
+            kids.append(holder)
+            holder.expect("ready")
+            assert watch.wait_for("leader", alive=True, timeout=5.0)
+            holder.proc.send_signal(sig)
+            assert holder.wait(timeout=5.0) == 0
+            assert watch.wait_for("leader", alive=False, timeout=2.0)
+
+
+def test_blocked_recv_and_forgotten_close_do_not_hang() -> None:
+    blocked = """
+    import sys, zenoh
+    from zenswarm.bus import client_config, open_session
+    with open_session(client_config([sys.argv[1]])) as session:
+        sub = session.declare_subscriber("nothing/here", zenoh.handlers.FifoChannel(8))
+        print("ready", flush=True)
+        sub.recv()  # nothing ever comes; SIGTERM must still end the process
+    """
+    forgotten = """
+    import sys, zenoh
+    from zenswarm.bus import client_config, close_at_exit
+    session = zenoh.open(client_config([sys.argv[1]]))
+    close_at_exit(session)
+    session.declare_subscriber("nothing/here", lambda s: None)
+    print("ready", flush=True)
+    # falls off the end without closing: close_at_exit runs before the thread join
+    """
+    with router() as ep, children() as kids:
+        a, b = Child(blocked, ep), Child(forgotten, ep)
+        kids += [a, b]
+        a.expect("ready")
+        b.expect("ready")
+        assert b.wait(timeout=5.0) == 0
+        a.proc.send_signal(signal.SIGTERM)
+        assert a.wait(timeout=5.0) == 0

@@ -1,0 +1,540 @@
+"""Flight recorder: ``zenswarm record``, ``replay``, ``recover`` and ``replay --verify``.
+
+Real processes and a real router on loopback: every test has its own router port(s) and swarm
+name, and kills and waits for every process it starts (in ``finally``). Timing figures are in
+``bench/recorder_throughput.py``, not here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import queue
+import shutil
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+
+from bridge.mcapio import METADATA_NAME, file_is_complete, read_recording, recover
+from bridge.recorder import McapSink, build_metadata, sim_time
+from bridge.replay import verify_agent
+from zenswarm import __version__, wire
+from zenswarm.bus import AliveWatcher, client_config, free_port, open_session, router_config, tcp_endpoint
+from zenswarm.config import load_scenario, scenario_to_dict
+from zenswarm.errors import RecordingError
+
+REPO = Path(__file__).resolve().parents[1]
+EX1 = REPO / "compose" / "scenarios" / "paper_example1.toml"
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def swarm_name() -> str:
+    return "rec" + uuid.uuid4().hex[:10]
+
+
+@contextlib.contextmanager
+def router(*extra_listen: str) -> Iterator[str]:
+    """An in-process router on a free loopback port; yields its endpoint."""
+    ep = tcp_endpoint(free_port())
+    with open_session(router_config([ep, *extra_listen]), handle_signals=False):
+        yield ep
+
+
+class Proc:
+    """A ``python -m zenswarm ...`` child; its output is collected by a thread."""
+
+    def __init__(self, *args: object) -> None:
+        self.argv = [sys.executable, "-m", "zenswarm", *map(str, args)]
+        self.popen = subprocess.Popen(
+            self.argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True
+        )
+        self.lines: list[str] = []
+        self._t = threading.Thread(target=self._pump, daemon=True)
+        self._t.start()
+
+    def _pump(self) -> None:
+        assert self.popen.stdout is not None
+        for line in self.popen.stdout:
+            self.lines.append(line.rstrip("\n"))
+
+    @property
+    def output(self) -> str:
+        return "\n".join(self.lines)
+
+    def stop(self, timeout: float = 30.0) -> int:
+        """SIGTERM and wait: a clean stop."""
+        if self.popen.poll() is None:
+            self.popen.send_signal(signal.SIGTERM)
+        rc = self.popen.wait(timeout=timeout)
+        self._t.join(5.0)
+        return rc
+
+    def reap(self) -> None:
+        if self.popen.poll() is None:
+            self.popen.kill()
+        self.popen.wait(timeout=10)
+        self._t.join(5.0)
+
+
+@contextlib.contextmanager
+def processes() -> Iterator[list[Proc]]:
+    started: list[Proc] = []
+    try:
+        yield started
+    finally:
+        for p in started:
+            p.reap()
+
+
+def start_recorder(procs: list[Proc], ep: str, swarm: str, out: Path, *extra: object) -> Proc:
+    p = Proc("record", "--swarm", swarm, "--connect", ep, "--out", out, *extra)
+    procs.append(p)
+    return p
+
+
+def wait_alive(session: zenoh.Session, swarm: str, process: str = "recorder", timeout: float = 30.0) -> None:
+    with AliveWatcher(session, wire.Keys(swarm)) as w:
+        assert w.wait_for(process, timeout=timeout), f"{process} of swarm {swarm} never announced itself"
+
+
+def wait_recorded(session: zenoh.Session, swarm: str, n: int, timeout: float = 30.0) -> None:
+    """Wait until the recorder reports (diag/recorder counters) at least ``n`` recorded messages
+    beyond its own diag messages."""
+    done = threading.Event()
+
+    def on_diag(sample: zenoh.Sample) -> None:
+        d = wire.decode("diag", sample.payload.to_bytes())
+        if d.counters["recorded"] >= n + d.seq - 1:
+            done.set()
+
+    sub = session.declare_subscriber(wire.Keys(swarm).diag("recorder"), on_diag)
+    try:
+        assert done.wait(timeout), f"the recorder did not record {n} messages within {timeout} s"
+    finally:
+        sub.undeclare()
+
+
+def publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
+    return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+
+
+def short_scenario(tmp_path: Path, seconds: float = 3.0) -> Path:
+    """paper_example1 with a short time limit, as a TOML file in tmp_path."""
+    text = EX1.read_text()
+    lines = []
+    for line in text.splitlines():
+        if line.startswith("time_limit_s"):
+            line = f"time_limit_s = {seconds}"
+        elif line.startswith("settle_time_s"):
+            line = f"settle_time_s = {seconds / 3}"
+        lines.append(line)
+    p = tmp_path / "short.toml"
+    p.write_text("\n".join(lines) + "\n")
+    assert load_scenario(p).timing.time_limit_s == seconds
+    return p
+
+
+def synthetic_traffic(swarm: str, n_each: int, scenario: dict) -> list[tuple[str, bytes]]:
+    """``n_each`` messages of every wire kind on several keys, plus undecodable payloads and a key
+    outside the swarm layout; in publication order."""
+    keys = wire.Keys(swarm)
+    rng = np.random.default_rng(7)
+    out: list[tuple[str, bytes]] = []
+    for k in range(n_each):
+        t = k * 10_000_000
+        i = 1 + k % 3
+        v = rng.normal(size=(4, 3))
+        out.append((keys.clock, wire.encode(wire.Clock(t=t, seq=k + 1))))
+        out.append((keys.state(i), wire.encode(wire.State(t=t, seq=k + 1, q=v[0], v=v[1], rpy=v[2], w=v[3]))))
+        out.append((keys.ref(i), wire.encode(wire.Ref(t=t, seq=k + 1, q=v[0], v=v[1]))))
+        out.append((keys.leader_ref, wire.encode(wire.Ref(t=t, seq=k + 1, q=v[2], v=v[3]))))
+        out.append((keys.cmd(i), wire.encode(wire.Cmd(t=t, seq=k + 1, thrust=float(v[0, 0]), rpy=v[1], u=v[2], d_hat=v[3]))))
+        out.append(
+            (keys.diag(f"agent:{i}"), wire.encode(wire.Diag(t=t, seq=k + 1, process=f"agent:{i}", counters={"n": k}, info={"k": [k]})))
+        )
+        if k % 100 == 0:
+            out.append((keys.mission, wire.encode(wire.Mission(t=t, seq=k + 1, scenario=scenario))))
+        if k % 50 == 0:
+            out.append((keys.cmd(2), bytes([0xC1, k % 256]) + b"not msgpack"))  # undecodable
+            out.append((f"{keys.prefix}/extra/thing", msgpack.packb({"t": t, "x": k})))  # outside the layout
+    return out
+
+
+def fake_recording(path: Path, swarm: str, n: int, scenario: dict, chunk_size: int = 4096) -> list[tuple[str, int, int, bytes]]:
+    """A recording written by the recorder's McapSink without Zenoh (small chunks, many of them).
+    Returns the expected (topic, log_time, publish_time, payload) in order."""
+    keys = wire.Keys(swarm)
+    sink = McapSink(path, keys, chunk_size=chunk_size, metadata=build_metadata(swarm, "lockstep", scenario, "test"))
+    sink.start()
+    expected = []
+    lt0 = 1_700_000_000_000_000_000
+    for k in range(n):
+        t = k * 10_000_000
+        key = keys.state(1 + k % 3)
+        payload = wire.encode(wire.State(t=t, seq=k + 1, q=[k, 0, 1], v=[0, k, 1], rpy=[0, 0, 0], w=[1, 2, 3]))
+        sink.put(lt0 + k * 1000, key, payload)
+        expected.append((key, lt0 + k * 1000, t, payload))
+    sink.close()
+    assert sink.error is None
+    return expected
+
+
+# --------------------------------------------------------------------------- (a) record
+
+
+def test_record_synthetic_traffic_every_payload_in_order(tmp_path: Path) -> None:
+    swarm = swarm_name()
+    scenario = scenario_to_dict(load_scenario(EX1))
+    traffic = synthetic_traffic(swarm, 2000, scenario)
+    out = tmp_path / "a.mcap"
+    with router() as ep, processes() as procs, open_session(client_config([ep]), handle_signals=False) as s:
+        rec = start_recorder(procs, ep, swarm, out, "--scenario", EX1)
+        wait_alive(s, swarm)
+        pubs = {key: publisher(s, key) for key in dict.fromkeys(k for k, _ in traffic)}
+        for key, payload in traffic:
+            pubs[key].put(payload)
+        wait_recorded(s, swarm, len(traffic))
+        assert rec.stop() == 0, rec.output
+    undecodable = sum(1 for k, p in traffic if sim_time(p) is None)
+    assert f"{undecodable} undecodable" in rec.output, rec.output
+    assert "recorder: recording" in rec.output and "messages on" in rec.output
+
+    r = read_recording(out)  # strict: the file is complete
+    assert r.complete and r.statistics is not None
+    own_diag = wire.Keys(swarm).diag("recorder")
+    got = [m for m in r.messages() if m.topic != own_diag]
+    assert [(m.topic, m.payload) for m in got] == traffic  # every payload, as sent, in order
+    # log times non-decreasing; publish_time = the payload's t, else log_time
+    assert all(a.log_time <= b.log_time for a, b in zip(got, got[1:]))
+    for m in got:
+        t = sim_time(m.payload)
+        assert m.publish_time == (t if t is not None else m.log_time)
+    # one msgpack channel per key, no schema, sequence = running count per channel
+    topics = {c.topic for c in r.channels.values()}
+    assert topics == {k for k, _ in traffic} | {own_diag}
+    assert all(c.message_encoding == "msgpack" and c.schema_id == 0 for c in r.channels.values())
+    seqs: dict[str, list[int]] = {}
+    for ch, m in r.raw_messages():
+        seqs.setdefault(ch.topic, []).append(m.sequence)
+    assert all(v == list(range(1, len(v) + 1)) for v in seqs.values())
+    assert r.statistics.message_count == sum(len(v) for v in seqs.values())
+    # the scenario (and the rest) in the metadata record
+    assert r.scenario == scenario
+    assert r.load_scenario() == load_scenario(EX1)
+    assert r.swarm == swarm and r.mode == "lockstep" and r.zenswarm_version == __version__
+    assert r.metadata[METADATA_NAME]["scenario_json"]
+
+
+# --------------------------------------------------------------------------- (b) replay
+
+
+def test_record_replay_record_gives_the_same_payloads(tmp_path: Path) -> None:
+    a, b = swarm_name(), swarm_name()
+    scenario = scenario_to_dict(load_scenario(EX1))
+    traffic = synthetic_traffic(a, 150, scenario)
+    first, second = tmp_path / "first.mcap", tmp_path / "second.mcap"
+    with router() as ep, processes() as procs, open_session(client_config([ep]), handle_signals=False) as s:
+        rec1 = start_recorder(procs, ep, a, first, "--scenario", EX1, "--diag-interval", "0")
+        rec2 = start_recorder(procs, ep, b, second, "--diag-interval", "0")
+        wait_alive(s, a)
+        wait_alive(s, b)
+        pubs = {key: publisher(s, key) for key in dict.fromkeys(k for k, _ in traffic)}
+        t0 = time.monotonic()
+        for j, (key, payload) in enumerate(traffic):
+            pubs[key].put(payload)
+            if j % 100 == 99:
+                time.sleep(0.05)  # about 1 s of traffic with gaps, to check the timing
+        span_pub = time.monotonic() - t0
+        time.sleep(0.5)
+        assert rec1.stop() == 0, rec1.output
+        replay = Proc("replay", first, "--swarm", b, "--connect", ep)
+        procs.append(replay)
+        assert replay.popen.wait(timeout=60) == 0, replay.output
+        assert "replay: end of recording" in replay.output, replay.output
+        time.sleep(0.5)
+        assert rec2.stop() == 0, rec2.output
+    one = list(read_recording(first).messages())
+    two = list(read_recording(second).messages())
+    assert [(m.topic, m.payload) for m in one] == traffic
+    prefix_a, prefix_b = f"swarm/{a}/", f"swarm/{b}/"
+    assert [(m.topic, m.payload) for m in two] == [(prefix_b + k[len(prefix_a) :], p) for k, p in traffic]
+    assert [m.publish_time for m in two] == [
+        m.publish_time if sim_time(m.payload) is not None else n.log_time for m, n in zip(one, two)
+    ]
+    # original timing: the replayed span matches the recorded one
+    span1 = (one[-1].log_time - one[0].log_time) / 1e9
+    span2 = (two[-1].log_time - two[0].log_time) / 1e9
+    assert span1 > 0.5 * span_pub
+    assert abs(span2 - span1) < 0.25 * span1 + 0.05, (span1, span2)
+
+
+def test_replay_filters_topics_and_window(tmp_path: Path) -> None:
+    a, b = swarm_name(), swarm_name()
+    path = tmp_path / "fake.mcap"
+    expected = fake_recording(path, a, 300, scenario_to_dict(load_scenario(EX1)))  # 300 us of log time
+    out = tmp_path / "filtered.mcap"
+    with router() as ep, processes() as procs, open_session(client_config([ep]), handle_signals=False) as s:
+        rec = start_recorder(procs, ep, b, out, "--diag-interval", "0")
+        wait_alive(s, b)
+        replay = Proc("replay", path, "--swarm", b, "--connect", ep, "--topics", f"swarm/{a}/uav/2/**", "--start", "100e-6", "--rate", "0")
+        procs.append(replay)
+        assert replay.popen.wait(timeout=60) == 0, replay.output
+        time.sleep(0.3)
+        assert rec.stop() == 0, rec.output
+    got = [(m.topic, m.payload) for m in read_recording(out).messages()]
+    lt0 = expected[0][1]
+    want = [
+        (k.replace(f"swarm/{a}/", f"swarm/{b}/"), p)
+        for k, lt, _, p in expected
+        if k.endswith("/uav/2/state") and lt - lt0 >= 100_000
+    ]
+    assert got == want and len(want) == 67
+
+
+# --------------------------------------------------------------------------- (c) SIGKILL
+
+
+def test_sigkill_file_reads_up_to_one_second_before_and_recovers(tmp_path: Path) -> None:
+    swarm = swarm_name()
+    out, fixed = tmp_path / "killed.mcap", tmp_path / "fixed.mcap"
+    keys = wire.Keys(swarm)
+    sent: list[bytes] = []
+    with router() as ep, processes() as procs, open_session(client_config([ep]), handle_signals=False) as s:
+        rec = start_recorder(procs, ep, swarm, out, "--scenario", EX1)
+        wait_alive(s, swarm)
+        pub = publisher(s, keys.state(1))
+        t0 = time.monotonic()
+        k = 0
+        while time.monotonic() - t0 < 2.5:  # steady ~1000 msg/s
+            k += 1
+            p = wire.encode(wire.State(t=k * 1_000_000, seq=k, q=[k, 0, 0], v=[0, 0, 0], rpy=[0, 0, 0], w=[0, 0, 0]))
+            pub.put(p)
+            sent.append(p)
+            time.sleep(0.001)
+        kill_ns = time.time_ns()
+        rec.popen.send_signal(signal.SIGKILL)
+        rec.popen.wait(timeout=10)
+    with pytest.raises(RecordingError) as ei:
+        read_recording(out)  # strict
+    assert str(out) in str(ei.value) and "incomplete" in str(ei.value)
+    r = read_recording(out, strict=False)
+    got = [m for m in r.messages() if m.topic == keys.state(1)]
+    assert r.problems and not r.complete
+    assert len(got) > 1000
+    assert [m.payload for m in got] == sent[: len(got)]  # a prefix of what was sent, nothing altered
+    lag_s = (kill_ns - got[-1].log_time) / 1e9
+    assert lag_s <= 1.0, f"the file ends {lag_s:.3f} s before the kill"
+    assert r.scenario == scenario_to_dict(load_scenario(EX1))  # the metadata came first
+
+    cli = subprocess.run(
+        [sys.executable, "-m", "zenswarm", "recover", str(out), "--out", str(fixed)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert cli.returncode == 0, cli.stderr
+    assert "truncated" in cli.stderr
+    assert file_is_complete(fixed)
+    r2 = read_recording(fixed)  # strict: complete, with summary
+    assert r2.statistics is not None and r2.statistics.message_count >= len(got)
+    got2 = [m for m in r2.messages() if m.topic == keys.state(1)]
+    assert got2 == got
+    assert r2.scenario == r.scenario and r2.swarm == swarm
+
+
+# --------------------------------------------------------------------------- (d) damage
+
+
+def test_missing_and_foreign_files_name_the_file(tmp_path: Path) -> None:
+    missing = tmp_path / "nope.mcap"
+    with pytest.raises(RecordingError, match="nope.mcap: no such file"):
+        read_recording(missing)
+    foreign = tmp_path / "foreign.mcap"
+    foreign.write_bytes(b"PK\x03\x04 definitely a zip file" * 10)
+    with pytest.raises(RecordingError, match="foreign.mcap: not an MCAP file"):
+        read_recording(foreign, strict=False)
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    with pytest.raises(RecordingError, match="empty.mcap: not an MCAP file"):
+        read_recording(empty)
+    with pytest.raises(RecordingError, match="foreign.mcap: not an MCAP file"):
+        recover(foreign, tmp_path / "out.mcap")
+
+
+def test_truncated_file_error_and_recover(tmp_path: Path) -> None:
+    swarm = swarm_name()
+    scenario = scenario_to_dict(load_scenario(EX1))
+    whole = tmp_path / "whole.mcap"
+    expected = fake_recording(whole, swarm, 3000, scenario)
+    assert list(read_recording(whole).messages()) == expected
+    data = whole.read_bytes()
+    for cut in (len(data) // 2, len(data) * 9 // 10, len(data) - 3):
+        trunc = tmp_path / f"trunc{cut}.mcap"
+        trunc.write_bytes(data[:cut])
+        with pytest.raises(RecordingError) as ei:
+            read_recording(trunc)
+        assert str(trunc) in str(ei.value) and "incomplete" in str(ei.value)
+        r = read_recording(trunc, strict=False)
+        got = list(r.messages())
+        assert got == expected[: len(got)], "a truncated file yields a prefix, unaltered"
+        if cut < len(data) - 1000:
+            assert 0 < len(got) < len(expected)
+        assert r.problems and r.scenario == scenario
+        fixed = tmp_path / f"fixed{cut}.mcap"
+        st = recover(trunc, fixed)
+        assert st.messages == len(got) and not st.source_complete and st.problems
+        r2 = read_recording(fixed)
+        assert list(r2.messages()) == got
+        assert r2.scenario == scenario and r2.statistics is not None and r2.statistics.message_count == len(got)
+
+
+def test_corrupted_chunk_error_and_recover(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    swarm = swarm_name()
+    scenario = scenario_to_dict(load_scenario(EX1))
+    whole = tmp_path / "whole.mcap"
+    expected = fake_recording(whole, swarm, 3000, scenario)
+    with open(whole, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert len(chunks) > 10
+    bad = chunks[len(chunks) // 2]
+    data = bytearray(whole.read_bytes())
+    mid = bad.chunk_start_offset + bad.chunk_length // 2
+    for j in range(8):
+        data[mid + j] ^= 0x5A  # flip bytes in the middle of a chunk's data
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(bytes(data))
+
+    r = read_recording(broken)  # the summary is intact: opening works
+    before = [m for m in expected if m[1] < bad.message_start_time]
+    got: list = []
+    with pytest.raises(RecordingError) as ei:
+        for m in r.messages():
+            got.append(m)
+    assert str(broken) in str(ei.value) and f"offset {bad.chunk_start_offset}" in str(ei.value)
+    assert got == before, "strict read yields everything before the damage"
+
+    fixed = tmp_path / "fixed.mcap"
+    st = recover(broken, fixed)
+    assert st.source_complete and any("corrupted" in p for p in st.problems)
+    rec = list(read_recording(fixed).messages())
+    lost = [m for m in expected if bad.message_start_time <= m[1] <= bad.message_end_time]
+    assert rec[: len(before)] == before  # what precedes the bad chunk
+    assert rec == [m for m in expected if m not in lost]  # and, framing intact, what follows it
+    assert 0 < len(lost) < 600
+
+
+def test_corrupted_summary_is_reported(tmp_path: Path) -> None:
+    whole = tmp_path / "whole.mcap"
+    expected = fake_recording(whole, swarm_name(), 500, scenario_to_dict(load_scenario(EX1)))
+    data = bytearray(whole.read_bytes())
+    data[-60] ^= 0xFF  # inside the summary section
+    broken = tmp_path / "badsummary.mcap"
+    broken.write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match="badsummary.mcap: incomplete recording: summary section fails its CRC"):
+        read_recording(broken)
+    fixed = tmp_path / "fixed.mcap"
+    assert recover(broken, fixed).messages == len(expected)
+    assert list(read_recording(fixed).messages()) == expected
+
+
+# --------------------------------------------------------------------------- (e) verify
+
+
+def _tamper(src: Path, dst: Path, topic: str, tick: int, dt_ns: int) -> float:
+    """Copy ``src`` to ``dst`` with the thrust of the cmd of ``tick`` on ``topic`` nudged by one ulp.
+    Returns the new thrust."""
+    from mcap.writer import Writer
+
+    r = read_recording(src)
+    new_thrust = None
+    with open(dst, "wb") as f:
+        w = Writer(f)
+        w.start()
+        for m in r.metadata_records:
+            w.add_metadata(m.name, dict(m.metadata))
+        ids: dict[int, int] = {}
+        for ch, msg in r.raw_messages():
+            if ch.id not in ids:
+                ids[ch.id] = w.register_channel(ch.topic, ch.message_encoding, 0, dict(ch.metadata))
+            data = msg.data
+            if ch.topic == topic:
+                o = msgpack.unpackb(data)
+                if o["t"] == tick * dt_ns:
+                    o["thrust"] = new_thrust = float(np.nextafter(o["thrust"], np.inf))
+                    data = msgpack.packb(o, use_bin_type=True)
+            w.add_message(ids[ch.id], msg.log_time, data, msg.publish_time, msg.sequence)
+        w.finish()
+    assert new_thrust is not None
+    return new_thrust
+
+
+def test_replay_verify_lockstep_recording_and_tampered_copy(tmp_path: Path) -> None:
+    swarm = swarm_name()
+    scen_path = short_scenario(tmp_path, 3.0)
+    sc = load_scenario(scen_path)
+    out = tmp_path / "flight.mcap"
+    # The recorder joins a router of ours, and `zenswarm up` links its router to it: the recorder
+    # is subscribed before the swarm exists, so it sees the first tick.
+    with router() as ep, processes() as procs, open_session(client_config([ep]), handle_signals=False) as s:
+        rec = start_recorder(procs, ep, swarm, out)  # scenario from the leader's mission
+        wait_alive(s, swarm)
+        up = Proc(
+            "up", scen_path, "--swarm", swarm, "--listen", tcp_endpoint(free_port()), "--router-connect", ep,
+            "--out", tmp_path / "up", "--quiet", "--quiet-children",
+        )  # fmt: skip
+        procs.append(up)
+        assert up.popen.wait(timeout=120) in (0, 1), up.output  # 3 s is too short to reach the goal: 1
+        assert rec.stop() == 0, rec.output
+    assert "received from the leader's mission" in rec.output
+    r = read_recording(out)
+    assert r.load_scenario() == sc and r.mode == "lockstep"
+    n_ticks = sc.timing.n_ticks
+
+    cli = subprocess.run(
+        [sys.executable, "-m", "zenswarm", "replay", "--verify", str(out), "--agent", "2"],
+        cwd=REPO, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert cli.returncode == 0, cli.stdout + cli.stderr
+    assert f"verified {n_ticks} ticks" in cli.stdout
+    for i in (1, 3):
+        res = verify_agent(out, i)
+        assert res.ok and res.ticks == n_ticks, res
+
+    tampered = tmp_path / "tampered.mcap"
+    dt_ns = wire.t_ns(sc.timing.dt)
+    new = _tamper(out, tampered, wire.Keys(swarm).cmd(2), 137, dt_ns)
+    cli = subprocess.run(
+        [sys.executable, "-m", "zenswarm", "replay", "--verify", str(tampered), "--agent", "2"],
+        cwd=REPO, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert cli.returncode == 1, cli.stdout + cli.stderr
+    assert "first difference at tick 137, cmd.thrust: recorded" in cli.stdout, cli.stdout
+    res = verify_agent(tampered, 2)
+    assert not res.ok and res.ticks == 137
+    d = res.difference
+    assert d.tick == 137 and d.field == "cmd.thrust" and d.recorded == new
+    assert struct.pack("<d", d.recomputed) != struct.pack("<d", new)
+    assert verify_agent(tampered, 1).ok  # the others are untouched
+
+
+def test_sim_time_extraction() -> None:
+    assert sim_time(wire.encode(wire.Clock(t=123, seq=1))) == 123
+    assert sim_time(msgpack.packb({"t": 5})) == 5
+    for bad in (b"", b"\xc1", msgpack.packb([1, 2]), msgpack.packb({"t": -1}), msgpack.packb({"t": 1.5}), msgpack.packb({"x": 1})):
+        assert sim_time(bad) is None

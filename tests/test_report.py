@@ -1,0 +1,283 @@
+"""Flight report and Foxglove export from an MCAP recording (bridge/report.py, bridge/foxglove.py).
+
+The recording is built here, not by the recorder: paper example 1 flown for 3 s by the in-process
+simulator, each tick's samples encoded as the swarm's wire messages on their keys with t = k dt
+(what a lockstep swarm publishes), written with the mcap Writer the way the recorder writes them
+(one channel per key, message encoding msgpack, no schema, log_time = receive wall time,
+publish_time = sim time) plus the ``zenswarm`` metadata record.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+from bridge import foxglove as fx
+from bridge import report
+from zenswarm import wire
+from zenswarm.config import scenario_from_dict, scenario_to_dict
+from zenswarm.errors import RecordingError
+from zenswarm.metrics import RESULT_FIELDS, compute_results
+from zenswarm.sim import simulate
+
+jsonschema = pytest.importorskip("jsonschema")
+
+EX1 = Path(__file__).resolve().parents[1] / "compose" / "scenarios" / "paper_example1.toml"
+SWARM = "demo"
+WALL0 = 1_700_000_000_000_000_000  # receive wall time of the first sample, ns
+
+
+@pytest.fixture(scope="module")
+def flight():
+    doc = tomllib.loads(EX1.read_text())
+    doc["timing"]["time_limit_s"] = 3.0
+    doc["timing"]["settle_time_s"] = 1.0  # so max_formation_error_m is a number, not null
+    sc = scenario_from_dict(doc)
+    return sc, simulate(sc)
+
+
+def _samples(sc, series):
+    """(key, t_ns, payload) of a lockstep flight, in publication order per tick."""
+    keys = wire.Keys(SWARM)
+    n = sc.n
+    out = [(keys.mission, 0, wire.encode(wire.Mission(0, 0, scenario_to_dict(sc))))]
+    dt_ns = wire.t_ns(sc.timing.dt)
+    zero = np.zeros(3)
+    for k in range(len(series.t)):
+        t = k * dt_ns
+        assert t == wire.t_ns(float(series.t[k]))
+        out.append((keys.clock, t, wire.encode(wire.Clock(t, k))))
+        for i in range(n):
+            out.append((keys.state(i + 1), t, wire.encode(wire.State(t, k, series.q[k, i], series.v[k, i], series.rpy[k, i], zero))))
+        out.append((keys.leader_ref, t, wire.encode(wire.Ref(t, k, series.q0[k], series.v0[k]))))
+        for i in range(n):
+            out.append((keys.ref(i + 1), t, wire.encode(wire.Ref(t, k, series.qref[k, i], series.vref[k, i]))))
+            out.append(
+                (
+                    keys.cmd(i + 1),
+                    t,
+                    wire.encode(wire.Cmd(t, k, float(series.thrust[k, i]), series.rpy[k, i], series.u[k, i], series.d_hat[k, i])),
+                )
+            )
+    t_end = (len(series.t) - 1) * dt_ns
+    procs = ["plant", "leader"] + [wire.agent(i + 1) for i in range(n)]
+    for j, p in enumerate(procs):
+        counters = {"decoded": 300 * (j + 1), "rejected": 0, "input_timeouts": 0.0, "loop_ticks": len(series.t)}
+        if p == "agent:2":
+            counters.update({"rejected": 2, "rejected.nonfinite": 2, "dropped.agent:1": 3})
+        out.append((keys.diag(p), t_end, wire.encode(wire.Diag(t_end, 1, p, counters, {"note": "synthetic"}))))
+    # a garbage payload on a real key: the report's decoder must count it, the export skip it
+    out.append((keys.ref(2), t_end, b"\xc1garbage"))
+    return out
+
+
+def write_recording(path: Path, sc, series, *, metadata: bool = True, chunk_size: int = 1 << 20) -> int:
+    """Write a recording of ``series`` as the recorder does; returns the number of messages."""
+    samples = _samples(sc, series)
+    with open(path, "wb") as f:
+        w = Writer(f, chunk_size=chunk_size)
+        w.start(profile="", library="test_report")
+        if metadata:
+            w.add_metadata(
+                "zenswarm",
+                {"scenario_json": json.dumps(scenario_to_dict(sc)), "swarm": SWARM, "mode": "lockstep"},
+            )
+        channels: dict[str, int] = {}
+        for n, (key, t, payload) in enumerate(samples):
+            cid = channels.get(key)
+            if cid is None:
+                cid = channels[key] = w.register_channel(key, "msgpack", 0)
+            w.add_message(cid, log_time=WALL0 + 37_000 * n, data=payload, publish_time=t, sequence=n)
+        w.finish()
+    return len(samples)
+
+
+def _png_size(path: Path) -> tuple[int, int]:
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n", f"{path} is not a PNG"
+    assert data[12:16] == b"IHDR"
+    return struct.unpack(">II", data[16:24])
+
+
+@pytest.fixture(scope="module")
+def recording(flight, tmp_path_factory):
+    sc, sim = flight
+    p = tmp_path_factory.mktemp("rec") / "flight.mcap"
+    n = write_recording(p, sc, sim.series)
+    return p, n
+
+
+def test_report_writes_every_figure_and_the_runs_results(flight, recording, tmp_path, capsys):
+    sc, sim = flight
+    path, _ = recording
+    out = tmp_path / "report"
+    assert report.main(["report", str(path), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out.split()
+    for name in report.FIGURES:
+        f = out / name
+        assert str(f) in printed
+        assert f.stat().st_size > 20_000, f"{name} is suspiciously small"
+        w, h = _png_size(f)
+        assert w >= 800 and h >= 400, (name, w, h)
+    res = json.loads((out / "results.json").read_text())
+    assert str(out / "results.json") in printed
+    expected = compute_results(sim.series, sc)
+    for k in RESULT_FIELDS:
+        assert res[k] == expected[k], k
+        assert res[k] == sim.results[k], k
+    assert res["max_formation_error_m"] is not None
+    assert res["mode"] == "lockstep" and res["swarm"] == SWARM
+    # bus statistics: the garbage payload is counted against its key, diag counters are kept
+    assert res["decoder_rejects"]["rejected"] == 1
+    assert res["diagnostics"]["agent:2"]["dropped.agent:1"] == 3
+    assert res["message_counts"][f"swarm/{SWARM}/uav/2/ref"] == len(sim.series.t) + 1
+
+
+def test_flight_from_recording_equals_the_simulated_series(flight, recording):
+    sc, sim = flight
+    fl = report.flight_from_recording(report.load_recording(recording[0]))
+    for f in ("t", "q0", "v0", "qref", "vref", "q", "v", "rpy", "u", "thrust", "d_hat"):
+        np.testing.assert_array_equal(getattr(fl.series, f), getattr(sim.series, f), err_msg=f)
+
+
+def test_report_from_series(flight, tmp_path, capsys):
+    sc, sim = flight
+    run = tmp_path / "run"
+    run.mkdir()
+    sim.series.save(str(run / "timeseries.npz"))
+    scen = tmp_path / "scenario.toml"
+    scen.write_text(_toml(scenario_to_dict(sc)))
+    out = tmp_path / "plots"
+    assert report.main(["report", "--series", str(run / "timeseries.npz"), "--scenario", str(scen), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out.split()
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted(n for n in report.FIGURES if n != "links.png")
+    assert printed == [str(out / n) for n in report.FIGURES if n != "links.png"]
+
+
+def _toml(d: dict) -> str:
+    """Minimal TOML writer for a scenario_to_dict() document (tables, arrays of tables)."""
+
+    def val(v):
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(val(x) for x in v) + "]"
+        return repr(float(v)) if isinstance(v, float) else str(v)
+
+    lines = []
+    for sec, body in d.items():
+        if isinstance(body, list):
+            for item in body:
+                lines.append(f"[[{sec}]]")
+                lines += [f"{k} = {val(v)}" for k, v in item.items()]
+        else:
+            lines.append(f"[{sec}]")
+            lines += [f"{k} = {val(v)}" for k, v in body.items()]
+    return "\n".join(lines) + "\n"
+
+
+def test_export_foxglove_validates_against_its_schemas(flight, recording, tmp_path, capsys):
+    sc, sim = flight
+    path, n_written = recording
+    out = tmp_path / "fox.mcap"
+    assert report.main(["export", "--foxglove", str(path), "--out", str(out)]) == 0
+    assert str(out) in capsys.readouterr().out.split()
+
+    validators: dict[int, object] = {}
+    per_topic: dict[str, int] = {}
+    scene_ids: set[str] = set()
+    last_state = None
+    with open(out, "rb") as f:
+        r = make_reader(f)
+        summary = r.get_summary()
+        assert summary is not None and summary.chunk_indexes, "a complete, indexed file"
+        for ch in summary.channels.values():
+            assert ch.message_encoding == "json", ch.topic
+            assert ch.schema_id != 0, ch.topic
+            assert summary.schemas[ch.schema_id].encoding == "jsonschema", ch.topic
+        meta = {m.name: m.metadata for m in r.iter_metadata()}
+        assert json.loads(meta["zenswarm"]["scenario_json"]) == scenario_to_dict(sc)
+        for schema, ch, msg in r.iter_messages(log_time_order=True):
+            v = validators.get(schema.id)
+            if v is None:
+                s = json.loads(schema.data)
+                jsonschema.validators.validator_for(s).check_schema(s)
+                v = validators[schema.id] = jsonschema.validators.validator_for(s)(s)
+            obj = json.loads(msg.data)
+            v.validate(obj)
+            per_topic[ch.topic] = per_topic.get(ch.topic, 0) + 1
+            if ch.topic == fx.SCENE_TOPIC:
+                assert schema.name == "foxglove.SceneUpdate"
+                scene_ids |= {e["id"] for e in obj["entities"]}
+            elif ch.topic == fx.TF_TOPIC:
+                assert schema.name == "foxglove.FrameTransforms"
+            elif ch.topic == f"swarm/{SWARM}/uav/1/state":
+                assert schema.name == "zenswarm.State"
+                last_state = (msg, obj)
+    # every decodable recorded message is there (only the garbage payload is skipped)
+    n_scene = per_topic.pop(fx.SCENE_TOPIC)
+    assert per_topic.pop(fx.TF_TOPIC) == n_scene
+    assert sum(per_topic.values()) == n_written - 1
+    assert n_scene == len(range(0, len(sim.series.t), 5))  # 20 Hz of a 100 Hz control loop
+    assert {"leader", "trails", "goal", "start", "obstacle/1", "obstacle/2", "uav/1", "uav/2", "uav/3"} <= scene_ids
+    # JSON carries the wire fields exactly; log time = base + sim time
+    msg, obj = last_state
+    k = len(sim.series.t) - 1
+    assert obj["t"] == k * 10_000_000 and obj["k"] == "state" and obj["v"] == wire.SCHEMA_VERSION
+    assert obj["q"] == sim.series.q[k, 0].tolist()
+    assert msg.log_time == WALL0 + obj["t"]
+
+
+def test_wire_schemas_reject_what_the_decoder_rejects():
+    s = fx.wire_json_schema("state")
+    v = jsonschema.Draft202012Validator(s)
+    good = {"v": 1, "k": "state", "t": 0, "seq": 0, "q": [0, 0, 0.4], "vel": [0.0] * 3, "rpy": [0.0] * 3, "w": [0.0] * 3}
+    v.validate(good)
+    for bad in ({**good, "q": [0, 0]}, {**good, "t": -1}, {**good, "extra": 1}, {**good, "k": "ref"}):
+        assert not v.is_valid(bad), bad
+
+
+def test_no_metadata_is_a_recording_error(flight, tmp_path):
+    sc, sim = flight
+    p = tmp_path / "bare.mcap"
+    write_recording(p, sc, sim.series.truncated(5), metadata=False)
+    with pytest.raises(RecordingError, match="bare.mcap.*zenswarm"):
+        report.report_recording(p, tmp_path / "out")
+    with pytest.raises(RecordingError, match="bare.mcap"):
+        fx.export_foxglove(p, tmp_path / "x.mcap")
+    assert report.main(["report", str(p), "--out", str(tmp_path / "out")]) == 2
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap file at all")
+    with pytest.raises(RecordingError, match="junk.mcap"):
+        report.load_recording(junk)
+    with pytest.raises(RecordingError, match="missing.mcap"):
+        report.load_recording(tmp_path / "missing.mcap")
+
+
+def test_truncated_recording_reports_what_it_holds(flight, tmp_path):
+    sc, sim = flight
+    p = tmp_path / "cut.mcap"
+    write_recording(p, sc, sim.series, chunk_size=16 * 1024)
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    rec = report.load_recording(p)
+    assert rec.truncated and "truncated" in rec.truncated
+    fl = report.flight_from_recording(rec)
+    T = len(fl.series.t)
+    assert 0 < T < len(sim.series.t)
+    np.testing.assert_array_equal(fl.series.q, sim.series.q[:T])
+    res = report.results_from_flight(fl)
+    assert res["sim_time_s"] == pytest.approx(T * sc.timing.dt)
+    files = report.plot_links(fl, tmp_path / "links.png"), report.plot_clearance(fl.series, sc, tmp_path / "c.png")
+    assert all(f.stat().st_size > 20_000 for f in files)

@@ -1,0 +1,364 @@
+"""Thin Zenoh helpers: configs, sessions that always close, liveliness (eclipse-zenoh 1.10.x).
+
+This is where messages cross the network; payloads are built and checked by :mod:`zenswarm.wire`.
+
+Topology: one router per swarm (``mode: router``, possibly inside a Python process, see
+``python -m zenswarm.bus``) and every swarm process a client of it. Multicast scouting and
+gossip are off everywhere, so a session only ever talks to the endpoints it was given: two
+swarms on different router ports never see each other, even with the same swarm name.
+
+Exiting cleanly (observed with eclipse-zenoh 1.10.2; ``tests/test_bus.py`` checks the safe pattern):
+
+* A subscriber declared with a plain Python callable runs it on a *non-daemon* Python thread
+  (``pyo3-closure``) that ends only when the subscriber is undeclared or the session closed.
+  The interpreter joins non-daemon threads *before* ``atexit`` hooks run, so a process that
+  reaches the end of its main module with such a session open hangs forever, and
+  ``atexit.register(session.close)`` does not help. :func:`open_session` closes on every exit
+  path of its ``with`` block and also registers the close with ``threading._register_atexit``
+  (runs before the join) for sessions that escape it.
+* Subscribers with a channel handler (``FifoChannel``/``RingChannel``), liveliness tokens,
+  publishers and ``Callback(f, indirect=False)`` create no Python thread and do not hang.
+* SIGTERM's default action kills the process without any cleanup (the router then drops its
+  tokens at once, as for SIGKILL). :func:`open_session` installs SIGTERM/SIGINT handlers that
+  raise :class:`Shutdown` (a ``SystemExit``) in the main thread, so the ``with`` block unwinds
+  and the session is closed. A blocking ``recv()`` on a zenoh channel checks for signals every
+  100 ms, so it is interrupted too; a closed session wakes a blocked ``recv()`` with ``ZError``.
+* Publishers, channel subscribers and liveliness tokens are undeclared when their Python object
+  is garbage-collected: keep references. Callback subscribers live until the session closes.
+* Sessions do not survive ``fork``: open them in the process that uses them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import signal
+import socket
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from types import FrameType
+from typing import Any, Final
+
+import zenoh
+
+from .errors import ZenswarmError
+from .wire import InvalidKeyError, Keys, validate_process
+
+__all__ = [
+    "DEFAULT_CONNECT_TIMEOUT_S",
+    "BusError",
+    "Shutdown",
+    "free_port",
+    "tcp_endpoint",
+    "apply_settings",
+    "router_config",
+    "client_config",
+    "close_at_exit",
+    "open_session",
+    "declare_alive",
+    "AliveWatcher",
+    "wait_matching",
+    "main",
+]
+
+DEFAULT_CONNECT_TIMEOUT_S: Final = 5.0
+"""How long a client keeps trying to reach its router before ``zenoh.open`` fails, s."""
+
+
+class BusError(ZenswarmError):
+    """A Zenoh session could not be configured or opened."""
+
+
+class Shutdown(SystemExit):
+    """Raised in the main thread by the signal handlers of :func:`open_session`.
+
+    A ``SystemExit`` with exit status 0 (a requested, clean stop); ``signum`` is the signal.
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(0)
+        self.signum = signum
+
+
+# --------------------------------------------------------------------------- configuration
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that was free on ``host`` a moment ago (bind to port 0, read it, close)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def tcp_endpoint(port: int, host: str = "127.0.0.1") -> str:
+    """Zenoh locator ``tcp/<host>:<port>``."""
+    return f"tcp/{host}:{port}"
+
+
+def apply_settings(conf: zenoh.Config, settings: Mapping[str, Any]) -> zenoh.Config:
+    """Insert ``{"path/in/config": json_value}`` into ``conf`` and return it.
+
+    The one hook for everything beyond the basics, e.g. user/password auth
+    (``transport/auth/usrpwd/user``, ``.../password``), TLS (``transport/link/tls/...`` with
+    ``tls/`` endpoints), ``access_control``, or tuning (``transport/unicast/lowlatency``).
+    """
+    for path, value in settings.items():
+        try:
+            conf.insert_json5(path, json.dumps(value))
+        except Exception as e:  # zenoh raises ZError
+            raise BusError(f"config {path!r} = {value!r}: {e}") from None
+    return conf
+
+
+def _base_config(mode: str) -> zenoh.Config:
+    conf = zenoh.Config()
+    return apply_settings(
+        conf,
+        {
+            "mode": mode,
+            # Talk only to the endpoints we are given: no multicast discovery, no gossip.
+            "scouting/multicast/enabled": False,
+            "scouting/gossip/enabled": False,
+        },
+    )
+
+
+def router_config(
+    listen: Sequence[str],
+    *,
+    connect: Sequence[str] = (),
+    settings: Mapping[str, Any] | None = None,
+) -> zenoh.Config:
+    """Config of a swarm router listening on ``listen`` (e.g. ``["tcp/127.0.0.1:7447"]``).
+
+    connect: other routers to link to (none by default); settings: see :func:`apply_settings`.
+    """
+    if not listen:
+        raise BusError("a router needs at least one listen endpoint")
+    conf = _base_config("router")
+    apply_settings(conf, {"listen/endpoints": list(listen), "connect/endpoints": list(connect)})
+    return apply_settings(conf, settings or {})
+
+
+def client_config(
+    connect: Sequence[str],
+    *,
+    connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S,
+    settings: Mapping[str, Any] | None = None,
+) -> zenoh.Config:
+    """Config of a swarm process: a client of the router(s) at ``connect``.
+
+    ``zenoh.open`` keeps retrying for ``connect_timeout_s`` seconds (so a process may start
+    before its router), then fails; 0 fails at once. settings: see :func:`apply_settings`.
+    """
+    if not connect:
+        raise BusError("a client needs at least one connect endpoint")
+    conf = _base_config("client")
+    apply_settings(
+        conf,
+        {
+            "connect/endpoints": list(connect),
+            "connect/timeout_ms": max(0, round(connect_timeout_s * 1000)),
+            "listen/endpoints": [],
+        },
+    )
+    return apply_settings(conf, settings or {})
+
+
+# --------------------------------------------------------------------------- sessions
+
+
+def close_at_exit(session: zenoh.Session) -> None:
+    """Close ``session`` when the interpreter shuts down, *before* it joins non-daemon threads
+    (zenoh's Python-callback threads), which ``atexit`` would be too late for."""
+    register = getattr(threading, "_register_atexit", None)  # CPython >= 3.9, private
+    try:
+        if register is not None:
+            register(session.close)
+        else:  # pragma: no cover - other interpreters
+            import atexit
+
+            atexit.register(session.close)
+    except RuntimeError:  # interpreter already shutting down
+        pass
+
+
+@contextlib.contextmanager
+def open_session(conf: zenoh.Config, *, handle_signals: bool = True) -> Iterator[zenoh.Session]:
+    """Open a session and close it on every exit path::
+
+        with open_session(client_config([endpoint])) as session:
+            ...
+
+    handle_signals: in the main thread, SIGTERM and SIGINT raise :class:`Shutdown` for the
+    duration of the block (the previous handlers are restored afterwards); a second signal
+    while unwinding is ignored. Pass False in a process that manages signals itself (or in
+    tests that open sessions inside pytest). Raises :class:`BusError` if the session cannot
+    be opened (e.g. the router is not reachable within the client's connect timeout).
+    """
+    try:
+        session = zenoh.open(conf)
+    except Exception as e:  # ZError
+        raise BusError(f"cannot open zenoh session: {e}") from None
+    close_at_exit(session)
+    previous: dict[int, Any] = {}
+    if handle_signals and threading.current_thread() is threading.main_thread():
+        fired = False
+
+        def _handler(signum: int, frame: FrameType | None) -> None:
+            nonlocal fired
+            if not fired:
+                fired = True
+                raise Shutdown(signum)
+
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            previous[sig] = signal.signal(sig, _handler)
+    try:
+        yield session
+    finally:
+        try:
+            session.close()
+        finally:
+            for sig, h in previous.items():
+                signal.signal(sig, h)
+
+
+# --------------------------------------------------------------------------- liveliness
+
+
+def declare_alive(session: zenoh.Session, keys: Keys, process: str) -> zenoh.LivelinessToken:
+    """Declare the liveliness token ``swarm/<name>/alive/<process>``.
+
+    Keep the returned token referenced: it is undeclared when garbage-collected, when the
+    session closes, and (by the router, within milliseconds on loopback) when the process dies.
+    """
+    return session.liveliness().declare_token(keys.alive(process))
+
+
+class AliveWatcher:
+    """Track which processes of a swarm hold a liveliness token (the supervisor's view).
+
+    On creation the tokens already present are reported (history), then every join and leave.
+    ``on_change(process, alive)`` is called on zenoh's callback thread: keep it short and never
+    close the session from it. Tokens whose key is not ``alive/<valid process>`` are ignored
+    (counted in ``ignored``). Use as a context manager or call :meth:`close`.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        on_change: Callable[[str, bool], None] | None = None,
+        *,
+        history: bool = True,
+    ) -> None:
+        self._keys = keys
+        self._on_change = on_change
+        self._cond = threading.Condition()
+        self._alive: set[str] = set()
+        self.events: list[tuple[float, str, bool]] = []
+        """(time.monotonic() s, process, alive) of every change, in arrival order."""
+        self.ignored = 0
+        self._sub = session.liveliness().declare_subscriber(keys.alive_all, self._on_sample, history=history)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        alive = sample.kind == zenoh.SampleKind.PUT
+        try:
+            kind, _, process = self._keys.parse(str(sample.key_expr))
+        except InvalidKeyError:
+            kind, process = "", None
+        if kind != "alive" or process is None:
+            with self._cond:
+                self.ignored += 1
+            return
+        with self._cond:
+            if alive:
+                self._alive.add(process)
+            else:
+                self._alive.discard(process)
+            self.events.append((time.monotonic(), process, alive))
+            self._cond.notify_all()
+        if self._on_change is not None:
+            self._on_change(process, alive)
+
+    @property
+    def alive(self) -> frozenset[str]:
+        """Processes holding a token now."""
+        with self._cond:
+            return frozenset(self._alive)
+
+    def wait_for(self, process: str, alive: bool = True, timeout: float = 5.0) -> bool:
+        """Block until ``process`` is (alive=True) or is not (False) holding a token, at most
+        ``timeout`` s. Returns whether that happened."""
+        validate_process(process)
+        with self._cond:
+            return self._cond.wait_for(lambda: (process in self._alive) == alive, timeout=timeout)
+
+    def close(self) -> None:
+        """Undeclare the liveliness subscriber (idempotent; a closed session already did)."""
+        with contextlib.suppress(Exception):
+            self._sub.undeclare()
+
+    def __enter__(self) -> AliveWatcher:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def wait_matching(publisher: zenoh.Publisher, timeout: float = 5.0, poll_s: float = 0.001) -> bool:
+    """Wait up to ``timeout`` s until some subscriber matches ``publisher`` (through the router).
+
+    Publications made before a subscription has reached the router are lost; use this before
+    the first put when it matters. Note ``Publisher.matching_status`` is a ``MatchingStatus``
+    (always truthy) in 1.10.2: its ``.matching`` is the bool.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        if publisher.matching_status.matching:
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(poll_s)
+
+
+# --------------------------------------------------------------------------- router process
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m zenswarm.bus --listen tcp/127.0.0.1:7447 [--set PATH=JSON ...]``: run a swarm
+    router until SIGTERM/SIGINT (exit 0). Prints one line ``ready <zid> <endpoints...>`` once
+    listening; exit 1 with a message on stderr if it cannot start."""
+    parser = argparse.ArgumentParser(prog="python -m zenswarm.bus", description="Run a zenswarm Zenoh router.")
+    parser.add_argument("--listen", action="append", required=True, help="endpoint, e.g. tcp/127.0.0.1:7447")
+    parser.add_argument("--connect", action="append", default=[], help="another router to link to")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="PATH=JSON", help="config setting, e.g. adminspace/enabled=true"
+    )
+    args = parser.parse_args(argv)
+    try:
+        settings = {}
+        for item in args.set:
+            path, sep, value = item.partition("=")
+            if not sep:
+                raise BusError(f"--set {item!r}: expected PATH=JSON")
+            try:
+                settings[path] = json.loads(value)
+            except json.JSONDecodeError as e:
+                raise BusError(f"--set {item!r}: {e}") from None
+        with open_session(router_config(args.listen, connect=args.connect, settings=settings)) as session:
+            print("ready", session.zid(), *args.listen, flush=True)
+            while True:  # bounded by a signal: Shutdown ends it
+                signal.pause()
+    except Shutdown:
+        return 0
+    except BusError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
