@@ -19,7 +19,7 @@ import numpy as np
 
 from plant.params import QuadParams
 from zenswarm import wire
-from zenswarm.runtime import LoopStats, SwarmProcess, add_common_args, run_process
+from zenswarm.runtime import Lockstep, LoopStats, SwarmProcess, add_common_args, run_process
 
 from .core import AgentCore, AgentRow
 
@@ -84,29 +84,35 @@ def _run(proc: SwarmProcess, index: int) -> int:
         proc.publish(ref_key, _ref_msg(k_t_ns + dt_ns, seq, core.q_ref, core.v_ref))
 
     if not proc.args.realtime:
-        k = 0
-        while k < n_ticks and not proc.stop.is_set():
-            if proc.inbox.wait([(state_key, k)], timeout, proc.stop):
-                if proc.stop.is_set():
-                    break
-                proc.counters["state_timeouts"] += 1
-                continue  # the plant is the clock: keep waiting for it
-            st = proc.inbox.get(state_key, k)
+
+        def prepare(k: int) -> None:
             if not core.initialised:
-                core.reset(st.q, st.v)
-                seq += 1
-                proc.publish(ref_key, _ref_msg(k * dt_ns, seq, core.q_ref, core.v_ref))
-            missing = proc.inbox.wait([(key, k) for key in input_keys], timeout, proc.stop)
-            if proc.stop.is_set():
-                break
-            if missing:
-                proc.counters["input_timeouts"] += len(missing)
-            compute(k * dt_ns, st, k)
+                st = proc.inbox.get(state_key, k)
+                if st is not None:  # first state: start the generator there and share ref(k)
+                    nonlocal seq
+                    core.reset(st.q, st.v)
+                    seq += 1
+                    proc.publish(ref_key, _ref_msg(k * dt_ns, seq, core.q_ref, core.v_ref))
+
+        def ready(k: int) -> bool:
+            get = proc.inbox.get
+            return get(state_key, k) is not None and all(get(key, k) is not None for key in input_keys)
+
+        def step(k: int, forced: bool) -> None:
+            if forced:
+                proc.counters["input_timeouts"] += 1
+            compute(k * dt_ns, proc.inbox.get(state_key, k), k)
             proc.inbox.forget_before(k - 2)
             if k % 500 == 0:
                 proc.publish_diag(k * dt_ns)
-            k += 1
-        proc.publish_diag(k * dt_ns, {"finished": k >= n_ticks})
+
+        ls = Lockstep(
+            n_ticks, ready, step, timeout, proc.stop, prepare=prepare,
+            can_force=lambda k: proc.inbox.get(state_key, k) is not None,  # the plant is the clock
+        )
+        proc.on_input = ls.poke
+        k = ls.run()
+        proc.publish_diag(k * dt_ns, {"finished": k >= n_ticks, **ls.timing()})
         return 0
 
     # realtime: fixed-rate loop on the wall clock, latest value wins

@@ -15,6 +15,7 @@ x express (batching bypass) on or off.
     python bench/bus_latency.py --rounds 3           # interleaved repeats, pooled figures
     python bench/bus_latency.py -n 500 --handlers fifo --senders publisher --express-modes off
     python bench/bus_latency.py --lowlatency         # transport/unicast/lowlatency everywhere
+    python bench/bus_latency.py --congestion block   # puts wait instead of dropping on a full queue
 
 Not a test: numbers depend on the machine and its load.
 """
@@ -96,7 +97,8 @@ def run_pub(args: argparse.Namespace) -> None:
     conf = client_config([args.endpoint], settings=_settings(args))
     cost: list[int] = []
     with open_session(conf) as session:
-        pub = session.declare_publisher(KEY, express=args.express_flag)
+        cc = zenoh.CongestionControl.BLOCK if args.congestion == "block" else zenoh.CongestionControl.DROP
+        pub = session.declare_publisher(KEY, express=args.express_flag, congestion_control=cc)
         if not wait_matching(pub, timeout=5.0):
             print(json.dumps({"error": "no matching subscriber"}), flush=True)
             return
@@ -109,7 +111,7 @@ def run_pub(args: argparse.Namespace) -> None:
             if args.sender == "publisher":
                 pub.put(payload)
             else:
-                session.put(KEY, payload, express=args.express_flag)
+                session.put(KEY, payload, express=args.express_flag, congestion_control=cc)
             cost.append(time.perf_counter_ns() - t0)
             nxt += period
             delay = nxt - time.monotonic()
@@ -172,7 +174,7 @@ def run_all(args: argparse.Namespace) -> None:
         router_argv += ["--set", f"{path}={json.dumps(value)}"]
     router = subprocess.Popen(router_argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     common = ["--endpoint", ep, "-n", str(args.n), "--warmup", str(args.warmup), "--size", str(args.size)]
-    common += ["--interval-ms", str(args.interval_ms), "--timeout", str(args.timeout)]
+    common += ["--interval-ms", str(args.interval_ms), "--timeout", str(args.timeout), "--congestion", args.congestion]
     if settings:
         common += ["--settings", json.dumps(settings)]
     variants = list(itertools.product(args.handlers, args.senders, args.express_modes))
@@ -184,7 +186,8 @@ def run_all(args: argparse.Namespace) -> None:
         if not line.startswith("ready"):
             raise SystemExit(f"router did not start: {line!r} {router.stderr.read() if router.stderr else ''}")
         print(
-            f"router {ep} {settings or ''}; {args.n} msgs of {args.size} B every {args.interval_ms} ms "
+            f"router {ep} {settings or ''}; congestion {args.congestion}; {args.n} msgs of {args.size} B every "
+            f"{args.interval_ms} ms "
             f"per variant and round; {args.rounds} round(s)",
             flush=True,
         )
@@ -234,6 +237,8 @@ def main() -> None:
     ap.add_argument("--express-modes", nargs="+", type=lambda s: s == "on", default=[False, True],
                     help="on/off (default: both)")
     ap.add_argument("--settings", default="", help="JSON {config path: value} for the router and the clients")
+    ap.add_argument("--congestion", choices=["drop", "block"], default="drop",
+                    help="congestion control of the puts (zenoh's default is drop)")
     ap.add_argument("--rounds", type=int, default=1, help="repeat every variant, in shuffled order")
     ap.add_argument("--seed", type=int, default=0, help="seed of the shuffling")
     ap.add_argument("--lowlatency", action="store_true",

@@ -440,6 +440,7 @@ _MODE_ATTEMPTS = 8
 _ARM_RETRY_S = 1.0
 _ARM_ATTEMPTS = 5
 _MISMATCH_HEARTBEATS = 2  # heartbeats reporting another mode after an accepted request -> refuse
+_STALL_S = 0.25  # a bridge loop gap this long may have tripped an offboard-loss failsafe
 
 
 @dataclass
@@ -627,6 +628,8 @@ class Bridge:
     def _set_phase(self, link: UavLink, phase: str, now: float, reason: str | None = None) -> None:
         if link.phase != phase:
             self.changed = True
+            if phase in (TAKEOFF, READY):
+                link.hold_ned = None  # the pre-arm hold (on the ground) must not outlive its phase
             self.log(f"bridge: uav {link.uav}: {link.phase} -> {phase}" + (f" ({reason})" if reason else ""))
             link.phase = phase
             link.phase_t = now
@@ -887,6 +890,8 @@ class Bridge:
                 if err <= self.s.takeoff_tolerance_m and speed <= 0.2:
                     link.engaged_once = True
                     self._set_phase(link, READY, now, "")
+                    link.hold_ned = self._takeoff_ned(link)  # hold there until the agent commands
+                    link.hold_yaw_ned = self.yaw_ned
                     return
             if now - link.phase_t > self.s.takeoff_timeout_s:
                 link.engaged_once = True
@@ -895,6 +900,20 @@ class Bridge:
                     f"takeoff not within {self.s.takeoff_tolerance_m:g} m after {self.s.takeoff_timeout_s:g} s; flying anyway",
                 )
             return
+
+    def note_stall(self, gap_s: float) -> None:
+        """The bridge's own loop stopped for ``gap_s`` seconds (overloaded host, suspended
+        process). Its setpoint streams were interrupted, so a vehicle that left the offboard mode
+        meanwhile did so because of us: treat it like a link loss (re-engage), not like a pilot
+        taking over."""
+        if gap_s < _STALL_S:
+            return
+        self._count("loop_stalls")
+        self.log(f"bridge: loop stalled for {gap_s:.2f} s (setpoints interrupted)")
+        for link in self.links:
+            if link.phase in (READY, TAKEOFF):
+                link.was_lost = True
+                link.recovered_t = max(link.recovered_t, self.clock())
 
     def _ack_time(self, link: UavLink) -> float:
         for t, c, r in reversed(link.acks):
@@ -1133,8 +1152,11 @@ def _run(proc: Any) -> int:
     try:
         next_t = time.monotonic()
         j = 0
+        last = next_t
         while not proc.stop.is_set():
             now = time.monotonic()
+            bridge.note_stall(now - last)
+            last = now
             bridge.poll(now)
             bridge.advance(now)
             bridge.send(now)
@@ -1152,7 +1174,7 @@ def _run(proc: Any) -> int:
                         code = 3
                         break
                     next_t = time.monotonic()
-                    now = next_t
+                    now = last = next_t
                 started = True
                 proc.log(f"bridge: mission clock started with UAV(s) {[lk.uav for lk in bridge.ready]}")
             if started and j % sub == 0:

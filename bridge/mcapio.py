@@ -199,8 +199,7 @@ def _chunk_records(chunk: Chunk, offset: int) -> list[Any]:
     try:
         return breakup_chunk(chunk, validate_crc=True)
     except Exception as e:  # noqa: BLE001 - CRCValidationError, zstd/lz4 errors, EndOfFile, struct.error
-        return_text = f"chunk at offset {offset} is corrupted ({type(e).__name__}: {e})"
-        raise _Damage(offset, return_text, False) from None
+        raise _Damage(offset, f"chunk at offset {offset} is corrupted ({type(e).__name__}: {e})", False) from None
 
 
 def _read_tail(f: io.BufferedReader, size: int) -> tuple[Footer | None, str | None]:

@@ -28,9 +28,15 @@ Threads and crash safety
   close the session, let the writer drain the queue, then ``Writer.finish()`` writes the
   summary (statistics, channels, chunk/message/metadata indexes) and the footer.
 
-The scenario goes into a metadata record ``zenswarm``: from ``--scenario``, else from the
-leader's mission queryable (asked once a second in a helper thread until a leader answers; the
-record is written whenever it arrives, and without ``scenario_json`` at the stop if none did).
+Metadata: a ``zenswarm`` record is written right after the header (swarm, mode, version and,
+with ``--scenario``, the scenario). Without ``--scenario`` a helper thread asks the leader's
+mission queryable once a second until a leader answers, and a second ``zenswarm`` record with
+``scenario_json`` is written when it does (readers merge the two).
+
+Every ``--diag-interval`` seconds (default 1) the recorder publishes its counters on
+``swarm/<name>/diag/recorder`` (recorded, channels, undecodable, backlog, ...); being in the key
+space, they are recorded too. ``bench/recorder_throughput.py`` uses them to know when the
+recorder has caught up.
 """
 
 from __future__ import annotations
@@ -43,7 +49,7 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
@@ -75,6 +81,7 @@ DEFAULT_CONNECT_TIMEOUT_S: Final = 60.0
 """The recorder may start before the swarm's router: keep trying to reach it this long, s."""
 
 _STOP = object()
+_META = object()
 
 
 def sim_time(payload: bytes) -> int | None:
@@ -128,7 +135,6 @@ class RecorderStats:
     first_log_time: int | None = None
     last_log_time: int | None = None
     last_sim_t: int = 0
-    per_kind: dict[str, int] = field(default_factory=dict)
 
     def counters(self, backlog: int) -> dict[str, int]:
         """Counters for the recorder's own ``diag/recorder`` messages."""
@@ -153,8 +159,11 @@ class RecorderStats:
 class McapSink:
     """Owns the MCAP writer and its thread. ``put`` is called from the Zenoh callback.
 
-    Usage: ``sink.start()``; ``sink.put(log_time, key, payload)`` any number of times (thread
-    safe, never blocks); ``sink.set_metadata(values)`` once; ``sink.close()`` drains and finishes.
+    Usage: ``sink.start()``; ``sink.put(log_time, key, payload)`` (or, cheaper, from a hot
+    callback, ``sink.put_item((log_time, key, payload))``) any number of times: thread safe,
+    never blocks, never drops; ``sink.set_metadata(values)`` to add a ``zenswarm`` metadata
+    record; ``sink.close()`` drains the queue and writes summary + footer. ``metadata`` is
+    written right after the header, before any message.
     """
 
     def __init__(
@@ -184,8 +193,8 @@ class McapSink:
             self._writer.add_metadata(METADATA_NAME, metadata)
         self._file.flush()
         self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
-        # the callback's hot path: bound methods, looked up once
-        self.put = self._put
+        self.put_item = self._q.put
+        """Queue one ``(log_time_ns, key, payload)`` tuple (the Zenoh callback's hot path)."""
 
     def start(self) -> None:
         self._thread.start()
@@ -195,12 +204,13 @@ class McapSink:
         """Samples received but not yet written."""
         return self._q.qsize()
 
-    def _put(self, log_time: int, key: str, payload: bytes) -> None:
+    def put(self, log_time: int, key: str, payload: bytes) -> None:
+        """Queue one sample: receive wall time (ns), key, payload."""
         self._q.put((log_time, key, payload))
 
     def set_metadata(self, values: dict[str, str]) -> None:
         """Queue another ``zenswarm`` metadata record (readers merge them in file order)."""
-        self._q.put(("meta", values))
+        self._q.put((_META, values))
 
     def close(self, timeout_s: float = 60.0) -> None:
         """Drain the queue, write summary + footer, close the file (idempotent)."""
@@ -217,7 +227,6 @@ class McapSink:
         st = self.stats
         channels: dict[str, int] = {}
         seqs: dict[int, int] = {}
-        per_kind = st.per_kind
         keys = self.keys
         mono = time.monotonic
         interval = self.flush_interval_s
@@ -234,10 +243,10 @@ class McapSink:
                 if item is _STOP:
                     break
                 if item is not None:
-                    lt, key, payload = item if len(item) == 3 else (None, item[0], item[1])
-                    if lt is None:  # ("meta", values)
-                        self._write_metadata(payload)
+                    if item[0] is _META:
+                        self._write_metadata(item[1])
                         continue
+                    lt, key, payload = item
                     cid = channels.get(key)
                     if cid is None:
                         try:
@@ -248,7 +257,6 @@ class McapSink:
                         channels[key] = cid
                         seqs[cid] = 0
                         st.channels += 1
-                        per_kind.setdefault(kind, 0)
                     if lt < last_lt:
                         lt = last_lt  # keep log times non-decreasing in file order (clock steps)
                     last_lt = lt
@@ -378,11 +386,11 @@ def run(args: argparse.Namespace) -> int:
             metadata=build_metadata(args.swarm, mode, scenario, source),
         )
         sink.start()
-        put = sink.put
+        put_item = sink.put_item
         now_ns = time.time_ns
 
-        def on_sample(sample: Any) -> None:
-            put(now_ns(), str(sample.key_expr), sample.payload.to_bytes())
+        def on_sample(sample: Any) -> None:  # the whole callback: stamp, copy, enqueue
+            put_item((now_ns(), str(sample.key_expr), sample.payload.to_bytes()))
 
         sub = session.declare_subscriber(keys.all, on_sample)
         token = bus.declare_alive(session, keys, PROCESS_NAME)  # only now: the subscriber is in place

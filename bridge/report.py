@@ -83,9 +83,10 @@ class RecordedMessage(NamedTuple):
 class Recording:
     """An MCAP recording of a swarm, loaded whole (messages in file order).
 
-    metadata: the ``zenswarm`` metadata record; scenario from its ``scenario_json``; swarm and mode
-    (``lockstep`` or ``realtime``) from it too. truncated: why reading stopped early (None when
-    the file was read to its end).
+    metadata: the ``zenswarm`` metadata record(s), merged; scenario from its ``scenario_json``;
+    swarm and mode (``lockstep``, ``realtime``; anything else counts as lockstep) from it too.
+    truncated: the damage met while reading (file cut short, chunk failing its CRC), None for a
+    complete, intact file.
     """
 
     path: Path

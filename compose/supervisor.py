@@ -53,6 +53,9 @@ class Collector:
         self.lock = threading.Lock()
         self.sim_t_ns = -1
         self.leader_q: np.ndarray | None = None
+        self.goal_tick: int | None = None
+        self._goal = np.asarray(scenario.leader.goal, dtype=float)
+        self._goal_tol = scenario.timing.goal_tolerance_m
         self.diag: dict[str, dict] = {}
         self.counts: dict[str, int] = {}
 
@@ -66,7 +69,7 @@ class Collector:
         if msg is None:
             return
         if kind == "diag":
-            self.diag[msg.process] = msg.counters
+            self.diag[msg.process] = {**msg.counters, **{k: v for k, v in msg.info.items() if isinstance(v, (int, float, bool, str))}}
             return
         if kind == "mission":
             return
@@ -82,6 +85,8 @@ class Collector:
                 ts.q0[k] = msg.q
                 ts.v0[k] = msg.v
                 self.leader_q = msg.q
+                if self.goal_tick is None and float(np.linalg.norm(msg.q - self._goal)) <= self._goal_tol:
+                    self.goal_tick = int(k)
             elif kind == "ref" and idx is not None:
                 ts.qref[k, idx - 1] = msg.q
                 ts.vref[k, idx - 1] = msg.v
@@ -140,6 +145,8 @@ class Supervisor:
         self.stop_reason = ""
         self.print_lock = threading.Lock()
         self.alive: set[str] = set()
+        self.pending_kills: dict[str, int] = {role: wire.t_ns(t) for role, t in (args.kill or [])}
+        self.ended_at_goal = False
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -286,9 +293,15 @@ class Supervisor:
                         return EXIT_PROCESS_FAILED
             if done:
                 return EXIT_OK
-            if self.args.realtime and collector.sim_t_ns >= limit_ns:
-                # plant has flown the time limit; give the others a moment to finish on their own
-                pass
+            for role, at_ns in list(self.pending_kills.items()):
+                if collector.sim_t_ns >= at_ns and role in self.children and self.children[role].popen.poll() is None:
+                    self.say(f"injecting SIGKILL into {role} at sim time {collector.sim_t_ns / 1e9:.2f} s (--kill)")
+                    self.children[role].popen.kill()
+                    del self.pending_kills[role]
+            if self.args.stop_at_goal and collector.goal_tick is not None:
+                self.say(f"goal reached at sim time {collector.goal_tick * sc.timing.dt:.2f} s; stopping (--stop-at-goal)")
+                self.ended_at_goal = True
+                return EXIT_OK
             now = time.monotonic()
             if now - last_print >= self.args.progress_every and not self.args.quiet:
                 last_print = now
@@ -308,7 +321,7 @@ class Supervisor:
     def _finish(self, collector: Collector, code: int, out: Path) -> int:
         sc = self.sc
         upto = None
-        if code != EXIT_OK:
+        if code != EXIT_OK or self.ended_at_goal:
             upto = int(max(collector.sim_t_ns, 0) // collector.dt_ns)
         ts = collector.series(upto, fill=self.args.realtime)
         res = compute_results(ts, sc, wall_time_s=None)
@@ -364,6 +377,30 @@ def _run_only(args: argparse.Namespace) -> int:
     return cli_main(argv)
 
 
+def _parse_kill(text: str) -> tuple[str, float]:
+    """``agent:2@10s`` -> ("agent:2", 10.0); argparse turns ValueError into a usage error."""
+    role, sep, when = text.partition("@")
+    if not sep:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected ROLE@TIME, e.g. agent:2@10s")
+    try:
+        wire.validate_process(role)
+    except ZenswarmError:
+        raise argparse.ArgumentTypeError(f"{text!r}: unknown process {role!r} (plant, leader, agent:<i>)") from None
+    w = when.strip()
+    scale = 1.0
+    for suffix, f in (("ms", 1e-3), ("s", 1.0)):
+        if w.endswith(suffix):
+            w, scale = w[: -len(suffix)], f
+            break
+    try:
+        t = float(w) * scale
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: bad time {when!r} (e.g. 10s, 500ms)") from None
+    if not t >= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: time must be >= 0")
+    return role, t
+
+
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "up",
@@ -400,6 +437,18 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="run a single role here (plant, leader, agent:<i>) against a router elsewhere (--connect)",
     )
     p.add_argument("--lockstep-timeout", type=float, default=5.0, metavar="S", help="lockstep input wait before a drop (default 5 s)")
+    p.add_argument(
+        "--kill",
+        action="append",
+        type=_parse_kill,
+        metavar="ROLE@T",
+        help="inject a SIGKILL into ROLE when sim time reaches T, e.g. agent:2@10s (repeatable; for tests and demos)",
+    )
+    p.add_argument(
+        "--stop-at-goal",
+        action="store_true",
+        help="end the mission as soon as the leader is within the goal tolerance (useful in realtime mode)",
+    )
     p.add_argument("--progress-every", type=float, default=1.0, metavar="S", help="seconds between progress lines")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--quiet-children", action="store_true", help="do not echo the processes' own output")

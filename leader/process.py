@@ -18,7 +18,7 @@ import numpy as np
 
 from zenswarm import wire
 from zenswarm.config import scenario_to_dict
-from zenswarm.runtime import LoopStats, SwarmProcess, add_common_args, run_process
+from zenswarm.runtime import Lockstep, LoopStats, SwarmProcess, add_common_args, run_process
 
 from .aapf import AapfParams, integrate_leader, total_force
 
@@ -61,10 +61,12 @@ def _run(proc: SwarmProcess) -> int:
     try:
         if not proc.args.realtime:
             sent = -1  # newest tick whose ref was published
-            k = 0
-            while k < n_ticks and not proc.stop.is_set():
-                if proc.inbox.wait([(keys.clock, k)], proc.args.lockstep_timeout, proc.stop):
-                    continue
+
+            def ready(k: int) -> bool:
+                return proc.inbox.get(keys.clock, k) is not None
+
+            def step(k: int, forced: bool) -> None:
+                nonlocal sent
                 # clock(k) means every process has subscribed: publish ref(k) and ref(k+1)
                 while sent < min(k + 1, n_ticks - 1):
                     if sent >= 0:
@@ -75,8 +77,11 @@ def _run(proc: SwarmProcess) -> int:
                 if k % 500 == 0:
                     proc.counters["substep_cap_hits"] = capped
                     proc.publish_diag(k * dt_ns)
-                k += 1
-            proc.publish_diag(k * dt_ns, {"finished": k >= n_ticks})
+
+            ls = Lockstep(n_ticks, ready, step, proc.args.lockstep_timeout, proc.stop, can_force=lambda k: False)
+            proc.on_input = ls.poke
+            k = ls.run()
+            proc.publish_diag(k * dt_ns, {"finished": k >= n_ticks, **ls.timing()})
             return 0
 
         stats = LoopStats(dt)

@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from zenswarm import wire
-from zenswarm.runtime import LoopStats, SwarmProcess, add_common_args, run_process
+from zenswarm.runtime import Lockstep, LoopStats, SwarmProcess, add_common_args, run_process
 
 from .disturbance import DisturbanceModel
 from .params import QuadParams
@@ -76,14 +76,13 @@ def _run(proc: SwarmProcess) -> int:
             step(plant, thrust, rpy_cmd, params, h, d_p, d_a)
 
     if not proc.args.realtime:
-        k = 0
-        while k < n_ticks and not proc.stop.is_set():
-            publish_tick(k)
-            missing = proc.inbox.wait([(key, k) for key in cmd_keys], proc.args.lockstep_timeout, proc.stop)
-            if proc.stop.is_set():
-                break
-            if missing:
-                proc.counters["cmd_timeouts"] += len(missing)
+
+        def ready(k: int) -> bool:
+            return all(proc.inbox.get(key, k) is not None for key in cmd_keys)
+
+        def step_tick(k: int, forced: bool) -> None:
+            if forced:
+                proc.counters["cmd_timeouts"] += 1
             for i, key in enumerate(cmd_keys):
                 c = proc.inbox.get(key, k)
                 if c is not None:
@@ -92,10 +91,14 @@ def _run(proc: SwarmProcess) -> int:
             proc.inbox.forget_before(k - 1)
             if k % 500 == 0:
                 proc.publish_diag(k * dt_ns)
-            k += 1
-        if not proc.stop.is_set():
-            publish_tick(k)  # the final state, t = time limit
-        proc.publish_diag(k * dt_ns, {"finished": k >= n_ticks})
+            publish_tick(k + 1)  # the last one is the final state, t = time limit
+
+        ls = Lockstep(n_ticks, ready, step_tick, proc.args.lockstep_timeout, proc.stop)
+        proc.on_input = ls.poke
+        with ls.lock:
+            publish_tick(0)
+        k = ls.run()
+        proc.publish_diag(k * dt_ns, {"finished": k >= n_ticks, **ls.timing()})
         return 0
 
     stats = LoopStats(dt)

@@ -8,9 +8,6 @@ name, and kills and waits for every process it starts (in ``finally``). Timing f
 from __future__ import annotations
 
 import contextlib
-import os
-import queue
-import shutil
 import signal
 import struct
 import subprocess

@@ -14,6 +14,7 @@ import struct
 import tomllib
 from pathlib import Path
 
+import jsonschema
 import numpy as np
 import pytest
 
@@ -23,12 +24,11 @@ from mcap.writer import Writer
 from bridge import foxglove as fx
 from bridge import report
 from zenswarm import wire
+from zenswarm.cli import main as cli_main
 from zenswarm.config import scenario_from_dict, scenario_to_dict
 from zenswarm.errors import RecordingError
 from zenswarm.metrics import RESULT_FIELDS, compute_results
 from zenswarm.sim import simulate
-
-jsonschema = pytest.importorskip("jsonschema")
 
 EX1 = Path(__file__).resolve().parents[1] / "compose" / "scenarios" / "paper_example1.toml"
 SWARM = "demo"
@@ -119,7 +119,7 @@ def test_report_writes_every_figure_and_the_runs_results(flight, recording, tmp_
     sc, sim = flight
     path, _ = recording
     out = tmp_path / "report"
-    assert report.main(["report", str(path), "--out", str(out)]) == 0
+    assert cli_main(["report", str(path), "--out", str(out)]) == 0
     printed = capsys.readouterr().out.split()
     for name in report.FIGURES:
         f = out / name
@@ -156,7 +156,7 @@ def test_report_from_series(flight, tmp_path, capsys):
     scen = tmp_path / "scenario.toml"
     scen.write_text(_toml(scenario_to_dict(sc)))
     out = tmp_path / "plots"
-    assert report.main(["report", "--series", str(run / "timeseries.npz"), "--scenario", str(scen), "--out", str(out)]) == 0
+    assert cli_main(["report", "--series", str(run / "timeseries.npz"), "--scenario", str(scen), "--out", str(out)]) == 0
     printed = capsys.readouterr().out.split()
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(n for n in report.FIGURES if n != "links.png")
@@ -191,7 +191,7 @@ def test_export_foxglove_validates_against_its_schemas(flight, recording, tmp_pa
     sc, sim = flight
     path, n_written = recording
     out = tmp_path / "fox.mcap"
-    assert report.main(["export", "--foxglove", str(path), "--out", str(out)]) == 0
+    assert cli_main(["export", "--foxglove", str(path), "--out", str(out)]) == 0
     assert str(out) in capsys.readouterr().out.split()
 
     validators: dict[int, object] = {}
@@ -256,7 +256,7 @@ def test_no_metadata_is_a_recording_error(flight, tmp_path):
         report.report_recording(p, tmp_path / "out")
     with pytest.raises(RecordingError, match="bare.mcap"):
         fx.export_foxglove(p, tmp_path / "x.mcap")
-    assert report.main(["report", str(p), "--out", str(tmp_path / "out")]) == 2
+    assert cli_main(["report", str(p), "--out", str(tmp_path / "out")]) == 2
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"not an mcap file at all")
     with pytest.raises(RecordingError, match="junk.mcap"):

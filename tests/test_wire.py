@@ -444,14 +444,14 @@ messages = st.one_of(
 )
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=200, deadline=None)
 @given(messages)
 def test_property_round_trip(msg: w.Message) -> None:
     back = w.decode(msg.kind, w.encode(msg))
     _assert_bit_equal(msg, back)
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=200, deadline=None)
 @given(st.binary(max_size=300), st.sampled_from([*w.KINDS, "bogus"]))
 def test_property_random_bytes_never_raise(data: bytes, kind: str) -> None:
     d = w.Decoder(check_seq=True)

@@ -205,20 +205,21 @@ def open_session(conf: zenoh.Config, *, handle_signals: bool = True) -> Iterator
         raise BusError(f"cannot open zenoh session: {e}") from None
     close_at_exit(session)
     previous: dict[int, Any] = {}
+    quiet = False  # set once a signal fired or the block is left: further signals are ignored
+
+    def _handler(signum: int, frame: FrameType | None) -> None:
+        nonlocal quiet
+        if not quiet:
+            quiet = True
+            raise Shutdown(signum)
+
     if handle_signals and threading.current_thread() is threading.main_thread():
-        fired = False
-
-        def _handler(signum: int, frame: FrameType | None) -> None:
-            nonlocal fired
-            if not fired:
-                fired = True
-                raise Shutdown(signum)
-
         for sig in (signal.SIGTERM, signal.SIGINT):
             previous[sig] = signal.signal(sig, _handler)
     try:
         yield session
     finally:
+        quiet = True
         try:
             session.close()
         finally:

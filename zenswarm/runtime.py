@@ -151,6 +151,8 @@ class SwarmProcess:
         self.counters: dict[str, float] = defaultdict(float)
         self._diag_seq = 0
         self.scenario: Scenario | None = None
+        self.on_input: Callable[[], None] | None = None  # called after every accepted message
+        self.subscribed: list[str] = []  # every key this process subscribed to (contract tests)
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> "SwarmProcess":
@@ -216,8 +218,12 @@ class SwarmProcess:
             inbox.put(key, tick, msg)
             if on_msg is not None:
                 on_msg(key, msg)
+            hook = self.on_input
+            if hook is not None:
+                hook()
 
         self._subs.append(self.session.declare_subscriber(key, cb))
+        self.subscribed.append(key)
 
     def publisher(self, key: str) -> Any:
         pub = self._pubs.get(key)
@@ -257,7 +263,13 @@ class SwarmProcess:
         self._diag_seq += 1
         self.publish(
             self.keys.diag(self.name),
-            wire.Diag(t=t_ns, seq=self._diag_seq, process=self.name, counters=counters, info=info or {}),
+            wire.Diag(
+                t=t_ns,
+                seq=self._diag_seq,
+                process=self.name,
+                counters=counters,
+                info={"subscriptions": ",".join(sorted(self.subscribed)), **(info or {})},
+            ),
         )
 
     def log(self, text: str) -> None:
@@ -272,3 +284,98 @@ def run_process(fn: Callable[[SwarmProcess], int], name: str, args: argparse.Nam
     except ScenarioError as e:
         print(f"{name}: error: {e}", file=sys.stderr, flush=True)
         return 2
+
+
+class Lockstep:
+    """Event-driven lockstep loop: tick k runs as soon as its inputs are there.
+
+    ``ready(k)`` says whether tick k's inputs have all arrived; ``step(k, forced)`` runs the tick
+    (``forced`` = some input timed out and the tick runs with held values). ``prepare(k)`` runs
+    before each readiness check (e.g. to publish what others need from us first).
+    ``can_force(k)`` says whether a timed-out tick may run anyway (False when the missing input
+    is the clock itself).
+
+    Ticks run inside the Zenoh callback that delivered the last missing input (call
+    :meth:`poke` from every subscriber callback), so no thread hand-off sits on the critical
+    path; a lock serialises callbacks of different subscribers. :meth:`run` (main thread)
+    waits for the end and forces timed-out ticks.
+    """
+
+    def __init__(
+        self,
+        n_ticks: int,
+        ready: Callable[[int], bool],
+        step: Callable[[int, bool], None],
+        timeout_s: float,
+        stop: threading.Event,
+        prepare: Callable[[int], None] | None = None,
+        can_force: Callable[[int], bool] | None = None,
+    ) -> None:
+        self.n = n_ticks
+        self.k = 0
+        self._ready = ready
+        self._step = step
+        self._prepare = prepare
+        self._can_force = can_force or (lambda k: True)
+        self.timeout = timeout_s
+        self.stop = stop
+        self.lock = threading.Lock()
+        self.done = threading.Event()
+        self.error: BaseException | None = None
+        self.forced = 0
+        self._wait_since: float | None = None
+        self.step_s = 0.0  # wall time spent inside step(), s
+        self.wait_s = 0.0  # wall time between the end of a tick and the start of the next, s
+        self._t_end: float | None = None
+
+    def poke(self) -> None:
+        """Advance as far as the inputs allow (safe to call from any thread)."""
+        with self.lock:
+            self._advance(False)
+
+    def _advance(self, force: bool) -> None:
+        if self.done.is_set():
+            return
+        try:
+            while self.k < self.n and not self.stop.is_set():
+                k = self.k
+                if self._prepare is not None:
+                    self._prepare(k)
+                ok = self._ready(k)
+                if not ok and not force:
+                    if self._wait_since is None:
+                        self._wait_since = time.monotonic()
+                    return
+                t0 = time.perf_counter()
+                if self._t_end is not None:
+                    self.wait_s += t0 - self._t_end
+                self._step(k, not ok)
+                self._t_end = time.perf_counter()
+                self.step_s += self._t_end - t0
+                if not ok:
+                    self.forced += 1
+                force = False
+                self._wait_since = None
+                self.k = k + 1
+            self.done.set()
+        except BaseException as e:  # noqa: BLE001 - surfaced by run() in the main thread
+            self.error = e
+            self.done.set()
+
+    def timing(self) -> dict[str, float]:
+        """Mean step and wait times per tick, ms (for diagnostics)."""
+        n = max(self.k, 1)
+        return {"step_ms_mean": 1e3 * self.step_s / n, "wait_ms_mean": 1e3 * self.wait_s / n, "forced_ticks": self.forced}
+
+    def run(self) -> int:
+        """Block until every tick ran (or stop); returns the number of ticks run."""
+        self.poke()
+        while not self.done.is_set() and not self.stop.is_set():
+            self.done.wait(0.05)
+            with self.lock:
+                ws = self._wait_since
+                if ws is not None and time.monotonic() - ws > self.timeout and self._can_force(self.k):
+                    self._advance(True)
+        if self.error is not None:
+            raise self.error
+        return self.k

@@ -38,6 +38,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any, ClassVar, Final, Union
 
 import msgpack
@@ -110,7 +111,7 @@ REASONS: Final = (
 KINDS: Final = ("clock", "state", "ref", "cmd", "mission", "diag")
 """Message kinds (the ``"k"`` tag)."""
 
-KEY_KINDS: Final = {
+KEY_KINDS: Final = MappingProxyType({
     "clock": "clock",
     "mission": "mission",
     "leader_ref": "ref",
@@ -119,7 +120,7 @@ KEY_KINDS: Final = {
     "cmd": "cmd",
     "diag": "diag",
     "alive": None,
-}
+})
 """Key kind (as returned by :meth:`Keys.parse`) -> message kind carried there (None: a token)."""
 
 _SWARM_RE: Final = re.compile(r"[A-Za-z0-9_-]{1,64}")
@@ -292,8 +293,7 @@ def t_s(t: int) -> float:
 
 # --------------------------------------------------------------------------- message types
 
-Vec3 = np.ndarray
-"""float64 array of shape (3,), read-only inside a message."""
+Vec3 = np.ndarray  # float64, shape (3,), read-only inside a message
 
 
 def _mk_vec3(name: str, value: Any) -> np.ndarray:
@@ -584,7 +584,7 @@ class Diag(_Msg):
 
 Message = Union[Clock, State, Ref, Cmd, Mission, Diag]
 
-_LIMIT: Final = {k: (MAX_MISSION_PAYLOAD if k == "mission" else MAX_PAYLOAD) for k in KINDS}
+_LIMIT: Final = MappingProxyType({k: (MAX_MISSION_PAYLOAD if k == "mission" else MAX_PAYLOAD) for k in KINDS})
 
 
 # --------------------------------------------------------------------------- encode
@@ -606,14 +606,14 @@ def encode(msg: Message) -> bytes:
 
 # --------------------------------------------------------------------------- decode
 
-_FIELDS: Final = {
+_FIELDS: Final = MappingProxyType({
     "clock": frozenset({"v", "k", "t", "seq"}),
     "state": frozenset({"v", "k", "t", "seq", "q", "vel", "rpy", "w"}),
     "ref": frozenset({"v", "k", "t", "seq", "q", "vel"}),
     "cmd": frozenset({"v", "k", "t", "seq", "thrust", "rpy", "u", "d_hat"}),
     "mission": frozenset({"v", "k", "t", "seq", "scenario"}),
     "diag": frozenset({"v", "k", "t", "seq", "process", "counters", "info"}),
-}
+})
 
 
 def _d_int(obj: dict[str, Any], name: str, hi: int) -> int:

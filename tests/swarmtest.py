@@ -1,0 +1,98 @@
+"""Helpers for tests that run real swarm processes: unique names, short scenarios, process checks."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+import uuid
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENARIOS = ROOT / "compose" / "scenarios"
+
+
+def unique_swarm(prefix: str = "t") -> str:
+    return f"{prefix}{uuid.uuid4().hex[:10]}"
+
+
+def scenario_variant(tmp: Path, base: str = "paper_example1", **timing: Any) -> Path:
+    """Write a copy of a paper scenario with [timing] fields overridden; returns its path."""
+    from zenswarm.generate import to_toml
+
+    d = tomllib.loads((SCENARIOS / f"{base}.toml").read_text())
+    d["timing"].update(timing)
+    p = tmp / f"{base}_{'_'.join(f'{k}{v}' for k, v in timing.items()) or 'copy'}.toml"
+    p.write_text(to_toml(d))
+    return p
+
+
+def processes_mentioning(text: str) -> list[tuple[int, str]]:
+    """(pid, cmdline) of live processes whose command line contains ``text`` (not zombies)."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            cmd = (Path("/proc") / entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            stat = (Path("/proc") / entry / "stat").read_text()
+        except OSError:
+            continue
+        if text in cmd and ") Z " not in stat:
+            found.append((int(entry), cmd))
+    return found
+
+
+def kill_mentioning(text: str) -> None:
+    for pid, _ in processes_mentioning(text):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+def zenswarm(*args: str, timeout: float = 300.0, **kw: Any) -> subprocess.CompletedProcess:
+    """Run ``python -m zenswarm ARGS`` to completion and return it (stdout+stderr as text)."""
+    return subprocess.run(
+        [sys.executable, "-m", "zenswarm", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        timeout=timeout,
+        cwd=kw.pop("cwd", ROOT),
+        **kw,
+    )
+
+
+def start_zenswarm(*args: str, **kw: Any) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "zenswarm", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        cwd=kw.pop("cwd", ROOT),
+        **kw,
+    )
+
+
+def read_results(out: Path) -> dict:
+    return json.loads((out / "results.json").read_text())
+
+
+def wait_port_free(port: int, timeout: float = 10.0) -> bool:
+    import socket
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+                return True
+            except OSError:
+                time.sleep(0.1)
+    return False

@@ -1,0 +1,207 @@
+"""The swarm as real OS processes over a real Zenoh router on loopback (issue: swarm).
+
+Every test uses its own swarm name and router port and checks that no process is left behind.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.core import AgentRow
+from agents.process import subscriptions
+from zenswarm import wire
+from zenswarm.bus import free_port
+from zenswarm.config import load_scenario
+from zenswarm.metrics import RESULT_FIELDS, TimeSeries
+from zenswarm.sim import simulate
+
+from swarmtest import (
+    SCENARIOS,
+    kill_mentioning,
+    processes_mentioning,
+    read_results,
+    scenario_variant,
+    start_zenswarm,
+    unique_swarm,
+    wait_port_free,
+    zenswarm,
+)
+
+
+def _up(scenario: Path, out: Path, swarm: str, *extra: str, timeout: float = 400.0):
+    port = free_port()
+    try:
+        cp = zenswarm(
+            "up", str(scenario), "--out", str(out), "--swarm", swarm, "--listen", f"tcp/127.0.0.1:{port}",
+            "--quiet-children", "--progress-every", "5", *extra, timeout=timeout,
+        )
+    finally:
+        leftovers = processes_mentioning(f"--swarm {swarm}")
+        kill_mentioning(f"--swarm {swarm}")
+    assert not leftovers, f"processes left behind: {leftovers}"
+    assert wait_port_free(port), f"router port {port} still bound after exit"
+    return cp
+
+
+def _assert_equal_to_sim(scenario: Path, out: Path) -> dict:
+    sc = load_scenario(scenario)
+    ref = simulate(sc)
+    got = TimeSeries.load(str(out / "timeseries.npz"))
+    for f in TimeSeries.FIELDS:
+        a, b = getattr(ref.series, f), getattr(got, f)
+        assert a.shape == b.shape, f
+        assert not np.any(np.isnan(b)), f"{f}: the swarm run left gaps"
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-9, err_msg=f"{f} differs from the in-process simulator")
+    res = read_results(out)
+    for k in RESULT_FIELDS:
+        assert res[k] == pytest.approx(ref.results[k], abs=1e-9), k
+    return res
+
+
+@pytest.mark.parametrize("example", ["paper_example1", "paper_example2"])
+def test_lockstep_swarm_equals_in_process_simulator(example: str, tmp_path: Path) -> None:
+    """Lockstep: leader, references and UAV states equal the simulator's within 1e-9; same JSON."""
+    scenario = SCENARIOS / f"{example}.toml"
+    out = tmp_path / "out"
+    cp = _up(scenario, out, unique_swarm())
+    assert cp.returncode == 0, cp.stdout[-3000:]
+    res = _assert_equal_to_sim(scenario, out)
+    assert res["success"] and res["goal_reached"] and res["min_obstacle_clearance_m"] > 0
+    # contract: every live agent subscribed to exactly its graph row
+    sc = load_scenario(scenario)
+    keys = wire.Keys("x")
+    for i in range(1, sc.n + 1):
+        row = AgentRow.from_scenario(sc, i - 1, 0.027, 9.81)
+        want = sorted(k.replace("swarm/x/", "") for k, _ in subscriptions(keys, row))
+        live = res["diagnostics"][f"agent:{i}"]["subscriptions"].split(",")
+        assert sorted(k.split("/", 2)[2] for k in live) == want
+
+
+def test_agent_subscriptions_follow_the_graph(tmp_path: Path) -> None:
+    """Contract: subscriptions are the graph row; a different graph gives different ones (live)."""
+    import tomllib
+
+    from zenswarm.generate import to_toml
+
+    d = tomllib.loads((SCENARIOS / "paper_example1.toml").read_text())
+    d["timing"].update(time_limit_s=0.5)
+    d["graph"] = {"adjacency": [[0, 1, 0], [1, 0, 1], [0, 1, 0]], "pinning": [0.0, 0.0, 1.0]}
+    p = tmp_path / "line.toml"
+    p.write_text(to_toml(d))
+    sc = load_scenario(p)
+    keys = wire.Keys("s")
+    expected = {
+        1: {"uav/1/state", "uav/2/ref"},
+        2: {"uav/2/state", "uav/1/ref", "uav/3/ref"},
+        3: {"uav/3/state", "uav/2/ref", "leader/ref"},
+    }
+    for i, want in expected.items():
+        row = AgentRow.from_scenario(sc, i - 1, 0.027, 9.81)
+        assert {k.replace("swarm/s/", "") for k, _ in subscriptions(keys, row)} == want
+    out = tmp_path / "out"
+    cp = _up(p, out, unique_swarm())
+    assert cp.returncode in (0, 1), cp.stdout[-3000:]  # 0.5 s cannot reach the goal: exit 1 is fine
+    diag = read_results(out)["diagnostics"]
+    for i, want in expected.items():
+        live = {k.split("/", 2)[2] for k in diag[f"agent:{i}"]["subscriptions"].split(",")}
+        assert live == want, f"agent:{i}"
+
+
+def test_process_killed_at_start_fails_naming_it(tmp_path: Path) -> None:
+    scenario = scenario_variant(tmp_path, time_limit_s=5.0)
+    cp = _up(scenario, tmp_path / "out", unique_swarm(), "--kill", "agent:2@0s", "--lockstep-timeout", "30")
+    assert cp.returncode == 3, cp.stdout[-3000:]
+    assert "process agent:2 died (killed by SIGKILL)" in cp.stdout
+    res = read_results(tmp_path / "out")
+    assert res["success"] is False and "agent:2" in res["failure"]
+
+
+def test_ctrl_c_leaves_no_process_behind(tmp_path: Path) -> None:
+    swarm = unique_swarm()
+    port = free_port()
+    out = tmp_path / "out"
+    p = start_zenswarm(
+        "up", str(SCENARIOS / "paper_example1.toml"), "--out", str(out), "--swarm", swarm,
+        "--listen", f"tcp/127.0.0.1:{port}", "--progress-every", "0.2", "--quiet-children",
+    )
+    try:
+        deadline = time.monotonic() + 60
+        seen_progress = False
+        assert p.stdout is not None
+        for line in p.stdout:
+            if "t=" in line and "leader->goal" in line and " 0.00/" not in line:
+                seen_progress = True
+                break
+            if time.monotonic() > deadline:
+                break
+        assert seen_progress, "the swarm never started flying"
+        assert len(processes_mentioning(f"--swarm {swarm}")) >= 5
+        p.send_signal(signal.SIGINT)
+        rest, _ = p.communicate(timeout=30)
+        assert p.returncode == 130, rest[-2000:]
+        assert "stopping: received SIGINT" in rest
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+        leftovers = processes_mentioning(f"--swarm {swarm}")
+        kill_mentioning(f"--swarm {swarm}")
+    assert not leftovers, f"processes left behind: {leftovers}"
+    assert wait_port_free(port), "router port still bound"
+    res = read_results(out)  # what was flown is still written
+    assert res["success"] is False and "interrupted" in res["failure"] and res["sim_time_s"] > 0
+
+
+def test_two_swarms_side_by_side_no_crosstalk(tmp_path: Path) -> None:
+    """Two swarms on linked routers (so traffic could cross) both equal the simulator exactly."""
+    scenario = scenario_variant(tmp_path, time_limit_s=4.0, settle_time_s=1.0)
+    a, b = unique_swarm("a"), unique_swarm("b")
+    pa, pb = free_port(), free_port()
+    outa, outb = tmp_path / "a", tmp_path / "b"
+    common = ("--quiet-children", "--quiet")
+    procs = [
+        start_zenswarm("up", str(scenario), "--out", str(outa), "--swarm", a, "--listen", f"tcp/127.0.0.1:{pa}", *common),
+        start_zenswarm(
+            "up", str(scenario), "--out", str(outb), "--swarm", b, "--listen", f"tcp/127.0.0.1:{pb}",
+            "--router-connect", f"tcp/127.0.0.1:{pa}", *common,
+        ),
+    ]
+    try:
+        outs = [p.communicate(timeout=300)[0] for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        leftovers = processes_mentioning(f"--swarm {a}") + processes_mentioning(f"--swarm {b}")
+        kill_mentioning(f"--swarm {a}")
+        kill_mentioning(f"--swarm {b}")
+    assert not leftovers
+    for p, o in zip(procs, outs):
+        assert p.returncode in (0, 1), o[-2000:]
+    for out in (outa, outb):
+        _assert_equal_to_sim(scenario, out)
+        res = read_results(out)
+        # each supervisor counted only its own swarm's traffic
+        assert res["decoder_rejects"]["rejected"] == 0
+
+
+def test_realtime_example1_reaches_goal(tmp_path: Path) -> None:
+    """--realtime: fixed-rate loops on the wall clock, latest value wins; goal, no collision."""
+    out = tmp_path / "out"
+    cp = _up(SCENARIOS / "paper_example1.toml", out, unique_swarm(), "--realtime", "--stop-at-goal", timeout=200)
+    assert cp.returncode == 0, cp.stdout[-3000:]
+    res = read_results(out)
+    assert res["goal_reached"] and res["success"]
+    assert res["min_obstacle_clearance_m"] > 0 and res["min_inter_uav_distance_m"] > 0.05
+    assert res["rms_tracking_error_m"] < 0.05
+    # each process reported its loop timing
+    for name in ("plant", "leader", "agent:1"):
+        assert "missed_deadlines" in res["diagnostics"][name], name
+    json.dumps(res)
