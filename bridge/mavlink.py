@@ -98,6 +98,7 @@ __all__ = [
     "Bridge",
     "main",
     "add_parsers",
+    "add_mavlink_parser",
 ]
 
 # --------------------------------------------------------------------------- MAVLink modes
@@ -859,6 +860,12 @@ class Bridge:
                 link.was_lost = False
                 if link.engaged_once:
                     self._set_phase(link, READY, now, "re-engaged")
+                elif not link.armed_by_us:
+                    # already armed (and in our mode) when we met it, e.g. the bridge restarted in
+                    # flight: adopt it where it is, no takeoff; it is ours to land at the end
+                    link.engaged_once = True
+                    link.armed_by_us = True
+                    self._set_phase(link, READY, now, "vehicle already armed; adopted in place")
                 elif self.s.takeoff:
                     link.takeoff_sent = False
                     self._set_phase(link, TAKEOFF, now, "")
@@ -1296,16 +1303,22 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.set_defaults(func=_main_args)
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:
-    """Register ``bridge`` with its ``mavlink`` subcommand."""
-    p = sub.add_parser("bridge", help="connect the swarm bus to the outside (MAVLink vehicles)", description="Bridges between the swarm bus and the outside world.")
-    bsub = p.add_subparsers(dest="bridge_cmd", metavar="{mavlink}", required=True)
-    m = bsub.add_parser(
+def add_mavlink_parser(bridge_sub: argparse._SubParsersAction) -> None:
+    """Add the ``mavlink`` subcommand to an existing ``bridge`` subcommand's subparsers (for a
+    ``bridge`` command that also has other subcommands, e.g. record/replay)."""
+    m = bridge_sub.add_parser(
         "mavlink",
         help="fly the swarm's agents on MAVLink vehicles (PX4, ArduPilot, or `mavlink-vehicle`)",
         description=(__doc__ or "").split("\n\n")[0],
     )
     _configure(m)
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    """Register ``bridge`` with its ``mavlink`` subcommand (``zenswarm bridge mavlink ...``)."""
+    p = sub.add_parser("bridge", help="connect the swarm bus to the outside (MAVLink vehicles)", description="Bridges between the swarm bus and the outside world.")
+    bsub = p.add_subparsers(dest="bridge_cmd", metavar="{mavlink}", required=True)
+    add_mavlink_parser(bsub)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -106,12 +106,19 @@ class Collector:
             ts = self.ts.truncated(T)
             ts = TimeSeries(**{f: np.array(getattr(ts, f)) for f in TimeSeries.FIELDS})
         if fill:
+            # realtime: a tick a process skipped holds its previous value (latest value wins);
+            # ticks before every process produced its first value are dropped.
+            first = 0
             for f in TimeSeries.FIELDS:
                 a = getattr(ts, f)
                 for k in range(1, len(a)):
                     bad = np.isnan(a[k])
                     if np.any(bad):
                         a[k][bad] = a[k - 1][bad]
+                rows = np.isnan(a.reshape(len(a), -1)).any(axis=1)
+                if np.any(rows):
+                    first = max(first, int(np.flatnonzero(rows)[-1]) + 1)
+            ts = TimeSeries(**{f: getattr(ts, f)[first:] for f in TimeSeries.FIELDS})
         return ts
 
 

@@ -30,6 +30,10 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = ["DisturbanceModel"]
 
 
+_add = np.add
+_mul = np.multiply
+
+
 def _frozen(a: np.ndarray) -> np.ndarray:
     a.flags.writeable = False
     return a
@@ -57,17 +61,21 @@ class DisturbanceModel:
         self.active = bool(cfg.active)
         self._zero_p = _frozen(np.zeros((self.n, 3)))
         self._zero_a = _frozen(np.zeros((self.n, 3)))
-        self._wind = np.asarray(cfg.wind, dtype=float).reshape(1, 3)
-        self._sine = np.asarray(cfg.sine_amplitude, dtype=float).reshape(1, 3)
+        # (N, 3) copies: numpy broadcasting a (1, 3) operand costs ~3x a same-shape operation
+        self._wind = np.tile(np.asarray(cfg.wind, dtype=float), (self.n, 1))
+        self._sine = np.tile(np.asarray(cfg.sine_amplitude, dtype=float), (self.n, 1))
         self._has_sine = bool(np.any(self._sine)) and cfg.sine_freq_hz > 0
         self._omega = 2.0 * math.pi * float(cfg.sine_freq_hz)
         self._gust_std = float(cfg.gust_std)
         self._tau = float(cfg.gust_tau_s)
         self._att_std = float(cfg.attitude_std)
+        self._att_std_0d = np.array(self._att_std)
         self._gust = np.zeros((self.n, 3))
-        self._dt = None
-        self._a = 0.0
-        self._b = 0.0
+        self._noise = np.zeros((self.n, 3))
+        self._tmp = np.zeros((self.n, 3))
+        self._dt: float | None = None
+        self._a = np.array(0.0)
+        self._b = np.array(0.0)
 
     @property
     def gust(self) -> np.ndarray:
@@ -101,21 +109,24 @@ class DisturbanceModel:
         """
         if not self.active:
             return self._zero_p, self._zero_a
-        d_p = self._wind + self._gust  # value at t (gust starts from 0)
+        d_p = _add(self._wind, self._gust)  # value at t (the gust starts from 0)
         if self._has_sine:
-            d_p += self._sine * math.sin(self._omega * t)
+            _add(d_p, _mul(self._sine, math.sin(self._omega * t), self._tmp), d_p)
         if self._gust_std > 0.0:
             if dt != self._dt:
                 if not (dt > 0 and math.isfinite(dt)):
                     raise ValueError(f"dt must be a positive finite number of seconds, got {dt!r}")
                 self._dt = dt
-                self._a = math.exp(-dt / self._tau)
-                self._b = self._gust_std * math.sqrt(-math.expm1(-2.0 * dt / self._tau))  # sqrt(1 - a^2)
+                a = math.exp(-dt / self._tau)
+                self._a = np.array(a)
+                self._b = np.array(self._gust_std * math.sqrt(-math.expm1(-2.0 * dt / self._tau)))  # std sqrt(1 - a^2)
             g = self._gust
-            g *= self._a
-            g += self._b * self.rng.standard_normal((self.n, 3))
+            _mul(g, self._a, g)
+            noise = self.rng.standard_normal(out=self._noise)
+            _add(g, _mul(noise, self._b, noise), g)
         if self._att_std > 0.0:
-            d_a = self._att_std * self.rng.standard_normal((self.n, 3))
+            d_a = self.rng.standard_normal((self.n, 3))
+            _mul(d_a, self._att_std_0d, d_a)
         else:
             d_a = self._zero_a
         return d_p, d_a

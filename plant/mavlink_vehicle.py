@@ -654,8 +654,9 @@ class MavlinkFleet:
 
     def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> str:
         """Loop on the wall clock until ``stop`` is set or ``duration_s`` passed; returns why it
-        stopped. A loop period that overruns by more than 0.1 s resynchronises (counted in
-        ``overruns``) instead of bursting to catch up."""
+        stopped. Late periods are caught up (physics stays on the wall clock); a stall of more
+        than 0.5 s resynchronises instead (counted in ``overruns``; the simulation then runs
+        behind the wall clock by the stall)."""
         stop = stop or self._stop
         end = math.inf if duration_s is None else time.monotonic() + duration_s
         next_t = time.monotonic()
@@ -670,7 +671,7 @@ class MavlinkFleet:
             delay = next_t - time.monotonic()
             if delay > 0:
                 stop.wait(delay)
-            elif delay < -0.1:
+            elif delay < -0.5:
                 self.overruns += 1
                 next_t = time.monotonic()
 

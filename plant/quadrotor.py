@@ -129,6 +129,10 @@ def euler_rate_matrix(rpy: Any) -> np.ndarray:
 class PlantState:
     """State of N quadrotors, updated in place by :func:`step`.
 
+    :func:`step` writes ``q``, ``v``, ``rpy``, ``w`` and ``rate_int`` in place (views stay valid)
+    and rebinds ``rate_err_prev`` to a fresh array. Arrays are converted to float64 on
+    construction; all must have shape (N, 3).
+
     Attributes
     ----------
     q : (N, 3) ndarray
@@ -136,7 +140,8 @@ class PlantState:
     v : (N, 3) ndarray
         Velocity, m/s, ENU; eq. (3).
     rpy : (N, 3) ndarray
-        Euler angles [phi, theta, psi] (ZYX, eq. 2), rad, each wrapped to (-pi, pi].
+        Euler angles [phi, theta, psi] (ZYX, eq. 2), rad, each wrapped to (-pi, pi] by
+        :func:`step` (pitch leaves [-pi/2, pi/2] only if the vehicle tumbles over).
     w : (N, 3) ndarray
         Body angular velocity omega, rad/s, FLU; eq. (5).
     rate_int : (N, 3) ndarray
@@ -253,6 +258,7 @@ class _Compiled:
         self.t2 = np.zeros(n)
         self.t3 = np.zeros(n)
         self.t4 = np.zeros(n)
+        self.Fb = np.zeros(n)  # clamped thrust
         self.tmp = np.zeros((n, 3))
         self.consts = (
             self.zero, self.fmax, self.cmd_lo, self.cmd_hi, self.pi, self.two_pi, self.att_kp,
@@ -261,7 +267,7 @@ class _Compiled:
             self.gyro_dt, self.S, self.C,
             self.sf, self.st, self.sp, self.cf, self.ct, self.cp, self.cos_min, self.E, self.e0,
             self.e1, self.e2, self.t1, self.t2, self.t3, self.t4, self.tmp, self.fdt_m, self.g_dt,
-            self.inv_two_pi, self.half,
+            self.inv_two_pi, self.half, self.Fb,
         )
 
 
@@ -350,7 +356,7 @@ def step(
     (zero, fmaxv, cmd_lo, cmd_hi, pi, two_pi, att_kp, rate_lo, rate_hi, dt0, int_lo, int_hi, k_e,
      k_prev, ki, tau_lo, tau_hi, G, G0, G1, G2, jinv_dt, gyro_dt, S, C,
      sf, st, sp, cf, ct, cp, cos_min, E, e0, e1, e2, t1, t2, t3, t4, tmp, fdt_m, g_dt, inv_two_pi,
-     half) = c.consts
+     half, Fb) = c.consts
     mul = _mul
     add = _add
     sub = _sub
@@ -359,7 +365,7 @@ def step(
     q, v, rpy, w = state.q, state.v, state.rpy, state.w
 
     # ---- commands (fmin/fmax map NaN to a bound, so no NaN reaches the state)
-    F = fmin(fmax(thrust_cmd, zero), fmaxv)  # (N,) N
+    F = fmin(fmax(thrust_cmd, zero, Fb), fmaxv, Fb)  # (N,) N
     e = fmax(rpy_cmd, cmd_lo)
     fmin(e, cmd_hi, e)  # (N, 3) rad, attitude setpoint
 

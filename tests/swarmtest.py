@@ -85,11 +85,13 @@ def read_results(out: Path) -> dict:
 
 
 def wait_port_free(port: int, timeout: float = 10.0) -> bool:
+    """True once nothing listens on 127.0.0.1:port (connections in TIME_WAIT do not count)."""
     import socket
 
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
                 s.bind(("127.0.0.1", port))
                 return True

@@ -10,8 +10,6 @@ timing figures belong in bench/).
 from __future__ import annotations
 
 import math
-import os
-import queue
 import re
 import signal
 import socket
@@ -408,6 +406,56 @@ def test_bridge_counts_and_ignores_malformed_mavlink():
         raw.close()
     finally:
         b.close()
+
+
+def test_bridge_position_setpoints_on_ardupilot_vehicles_in_process():
+    """setpoint = "position" against ArduCopter-flavoured vehicles: the bridge reads the
+    autopilot from the heartbeat, asks for GUIDED (4), arms, forwards uav/<i>/ref as
+    SET_POSITION_TARGET_LOCAL_NED (vehicle position loop), then lands (LAND, 9) and the vehicles
+    disarm. Driven in process (no bus): get_ref stands in for the agents' refs."""
+    base = free_udp_block(3)
+    sc = scenario_from_dict(_doc_with({"base_port": base, "setpoint": "position", "takeoff": False, "stream_s": 0.3}))
+    fleet = MavlinkFleet.from_scenario(sc, opts=VehicleOptions(autopilot="ardupilot", offboard_loss_s=1.0)).start()
+    targets = {1: [0.3, 0.1, 0.5], 2: [0.1, 0.4, 0.6], 3: [-0.2, -0.3, 0.45]}  # ENU, m
+    counters: dict[str, float] = {}
+    logs: list[str] = []
+    b = Bridge(
+        mavlink_settings(sc), sc, counters,
+        get_cmd=lambda i: (None, math.inf),
+        get_ref=lambda i: (wire.Ref(t=0, seq=1, q=targets[i], v=[0.0, 0.0, 0.0]), 0.0),
+        log=logs.append,
+    )
+
+    def spin(seconds: float, done: Callable[[], bool]) -> bool:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            now = time.monotonic()
+            b.poll(now)
+            b.advance(now)
+            b.send(now)
+            if done():
+                return True
+            time.sleep(0.02)
+        return False
+
+    try:
+        at_targets = lambda: all(  # noqa: E731
+            lk.phase == "ready" and np.linalg.norm(fleet.state.q[k] - targets[k + 1]) < 0.03 for k, lk in enumerate(b.links)
+        )
+        assert spin(20.0, at_targets), (logs, fleet.status())
+        for k, lk in enumerate(b.links):
+            assert lk.autopilot == "ardupilot" and fleet.vehicles[k].custom_mode == AP_COPTER_MODES["GUIDED"]
+            assert fleet.vehicles[k].armed
+        assert counters["setpoints_position"] > 100
+        b.begin_landing(time.monotonic(), "test over")
+        assert spin(15.0, lambda: b.land_step(time.monotonic())), (logs, fleet.status())
+        for k in range(3):
+            assert not fleet.vehicles[k].armed and fleet.vehicles[k].custom_mode == AP_COPTER_MODES["LAND"]
+            assert fleet.state.q[k, 2] == pytest.approx(0.0, abs=0.01)
+    finally:
+        b.close()
+        fleet.stop()
+    assert fleet.error is None
 
 
 def _doc_with(mav: dict[str, Any]) -> dict[str, Any]:

@@ -190,12 +190,18 @@ def run_sim_cli(scenario: Scenario, out: Path, quiet: bool = False) -> int:
     return 0 if r["success"] else 1
 
 
+def _fmt(x: object, unit: str = " m") -> str:
+    return "n/a" if x is None else f"{x:.4f}{unit}"
+
+
 def summary_line(r: dict) -> str:
-    ttg = r["time_to_goal_s"]
+    """One line: verdict, goal time and the headline metrics of a results dict."""
+    ttg = r.get("time_to_goal_s")
+    wall = r.get("wall_time_s")
     return (
         f"{r['scenario']}: {'SUCCESS' if r['success'] else 'FAILED'}  "
         f"goal {'reached at %.2f s' % ttg if ttg is not None else 'NOT reached'}  "
-        f"min clearance {r['min_obstacle_clearance_m']} m  min UAV distance {r['min_inter_uav_distance_m']} m  "
-        f"max formation error {r['max_formation_error_m']} m  rms tracking {r['rms_tracking_error_m']} m  "
-        f"wall {r['wall_time_s']:.2f} s"
+        f"min clearance {_fmt(r['min_obstacle_clearance_m'])}  min UAV distance {_fmt(r['min_inter_uav_distance_m'])}  "
+        f"max formation error {_fmt(r['max_formation_error_m'])}  rms tracking {_fmt(r['rms_tracking_error_m'])}"
+        + (f"  wall {wall:.2f} s" if wall is not None else "")
     )
