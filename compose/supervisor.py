@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from zenswarm import bus, wire
+from zenswarm import bus, security, wire
 from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.metrics import TimeSeries, compute_results
@@ -183,6 +183,8 @@ class Supervisor:
             argv += ["--connect", ep]
         if a.realtime:
             argv.append("--realtime")
+        if self.keys_dir is not None:
+            argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
         return argv
 
     def spawn(self, role: str) -> Child:
@@ -234,11 +236,14 @@ class Supervisor:
         sc = self.sc
         out: Path = a.out
         listen = a.listen or [f"tcp/127.0.0.1:{bus.free_port()}"]
+        settings, listen = self._security(listen, out)
         self.connect_endpoints = a.connect or [ep for ep in listen]
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
 
-        session_cm = bus.open_session(bus.router_config(listen, connect=a.router_connect or []), handle_signals=False)
+        session_cm = bus.open_session(
+            bus.router_config(listen, connect=a.router_connect or [], settings=settings), handle_signals=False
+        )
         session = session_cm.__enter__()
         collector = Collector(sc, self.keys)
         subs = []
@@ -261,6 +266,29 @@ class Supervisor:
                     pass
             session_cm.__exit__(None, None, None)
         return self._finish(collector, code, out)
+
+    def _security(self, listen: list[str], out: Path) -> tuple[dict, list[str]]:
+        """Router settings and listen endpoints for --secure/--tls (secure by default off loopback)."""
+        a = self.args
+        self.keys_dir = None
+        open_net = not all(security.is_loopback_endpoint(e) for e in listen)
+        secure = a.secure or a.tls or a.keys is not None or (open_net and not a.insecure)
+        if not secure:
+            if open_net:
+                self.say("WARNING: --insecure on a non-loopback address: anyone who reaches the router can command the swarm")
+            return {}, listen
+        auth = "tls" if a.tls else "usrpwd"
+        if a.tls:
+            listen = [security.tls_endpoint(e) for e in listen]
+        if a.keys is not None:
+            self.keys_dir = a.keys
+        else:
+            self.keys_dir = out / "keys"
+            if not (self.keys_dir / "manifest.json").exists():
+                security.generate_credentials(self.sc, self.keys_dir, a.swarm)
+                self.say(f"generated credentials for this run in {self.keys_dir}")
+        self.say(f"secure mode: {'mutual TLS' if a.tls else 'user/password'} authentication, access control from the graph")
+        return security.router_security_config(self.keys_dir, self.sc, a.swarm, auth=auth), listen
 
     def _on_liveliness(self, sample: Any) -> None:
         try:
@@ -381,6 +409,8 @@ def _run_only(args: argparse.Namespace) -> int:
         argv += ["--connect", ep]
     if args.realtime:
         argv.append("--realtime")
+    if args.keys is not None:
+        argv += ["--keys", str(args.keys)] + (["--tls"] if args.tls else [])
     return cli_main(argv)
 
 
@@ -438,6 +468,20 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "with --only, the remote router to join",
     )
     p.add_argument("--router-connect", action="append", metavar="ENDPOINT", help="other routers this router connects to")
+    p.add_argument(
+        "--secure",
+        action="store_true",
+        help="router requires authentication (user/password) and enforces access control generated from the "
+        "scenario's graph; the default whenever the router listens on a non-loopback address",
+    )
+    p.add_argument("--tls", action="store_true", help="secure mode with mutual TLS (tls/ endpoints) instead of user/password")
+    p.add_argument(
+        "--keys",
+        type=Path,
+        metavar="DIR",
+        help="credentials from `zenswarm keys` (default with --secure: generate them into OUT/keys)",
+    )
+    p.add_argument("--insecure", action="store_true", help="allow an open router on a non-loopback address (not recommended)")
     p.add_argument(
         "--only",
         metavar="ROLE",

@@ -97,7 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_sim(sub)
     _add_scenario(sub)
-    for modname in ("compose.supervisor", "compose.roles", "bridge.cli"):
+    for modname in ("compose.supervisor", "compose.roles", "bridge.cli", "zenswarm.security"):
         try:
             mod = __import__(modname, fromlist=["add_parsers"])
         except ImportError as e:

@@ -19,9 +19,9 @@ from typing import Any, Callable
 
 import zenoh
 
-from . import bus, wire
+from . import bus, security, wire
 from .config import Scenario, load_scenario, scenario_from_dict
-from .errors import ScenarioError
+from .errors import ScenarioError, ZenswarmError
 
 __all__ = ["Inbox", "SwarmProcess", "add_common_args", "LoopStats"]
 
@@ -121,6 +121,7 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
         help="Zenoh router endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; default tcp/127.0.0.1:7447)",
     )
     p.add_argument("--realtime", action="store_true", help="run on the wall clock (latest value wins) instead of lockstep")
+    security.add_security_args(p)
     p.add_argument(
         "--lockstep-timeout",
         type=float,
@@ -160,7 +161,8 @@ class SwarmProcess:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
         connect = self.args.connect or ["tcp/127.0.0.1:7447"]
-        self._session_cm = bus.open_session(bus.client_config(connect), handle_signals=False)
+        conf = bus.client_config(connect, settings=security.client_fragments_from_args(self.name, self.args))
+        self._session_cm = bus.open_session(conf, handle_signals=False)
         self.session = self._session_cm.__enter__()
         self.scenario = self._load_scenario()
         return self
@@ -281,7 +283,7 @@ def run_process(fn: Callable[[SwarmProcess], int], name: str, args: argparse.Nam
     try:
         with SwarmProcess(name, args) as proc:
             return fn(proc)
-    except ScenarioError as e:
+    except ZenswarmError as e:  # bad scenario, credentials, unreachable router: say what, exit 2
         print(f"{name}: error: {e}", file=sys.stderr, flush=True)
         return 2
 
