@@ -4,9 +4,13 @@ Subscribes to exactly its graph row: its own state ``uav/<i>/state``, its neighb
 references ``uav/<j>/ref`` (a_ij > 0) and, only if pinned (b_i > 0), ``leader/ref``. Publishes its
 reference ``uav/<i>/ref`` and its command ``uav/<i>/cmd``. See :func:`subscriptions`.
 
-Lockstep tick k: wait for state(k); (first tick: start the generator from it and publish
-ref(k)); wait for the neighbours' ref(k) and, if pinned, leader ref(k) (a timeout counts as a drop
-and holds the newest earlier value); compute and publish cmd(k); publish ref(k+1).
+Lockstep tick k: wait for state(k) (the plant's clock); first tick: start the generator from it
+and publish ref(k); wait for the neighbours' ref(k) and, if pinned, leader ref(k); compute and
+publish cmd(k); publish ref(k+1). A timeout (``--lockstep-timeout``) counts as a drop and holds
+the newest earlier value; a sender whose liveliness token is gone is not waited for. With link
+faults each input goes through its link's :class:`zenswarm.linkfaults.Box` (hold last value),
+exactly as in the in-process simulator. A (re)started agent joins at the first state it sees and
+restarts its generator from it.
 Realtime: the same computation at the control rate on the wall clock with the latest values.
 """
 
@@ -19,6 +23,8 @@ import numpy as np
 
 from plant.params import QuadParams
 from zenswarm import wire
+from zenswarm.faults import FaultState
+from zenswarm.linkfaults import Box, box_counters, plan_from_args
 from zenswarm.runtime import Lockstep, LoopStats, SwarmProcess, add_common_args, run_process
 
 from .core import AgentCore, AgentRow
@@ -35,10 +41,6 @@ def subscriptions(keys: wire.Keys, row: AgentRow) -> list[tuple[str, str]]:
     return subs
 
 
-def _ref_msg(t_ns: int, seq: int, q: np.ndarray, v: np.ndarray) -> wire.Ref:
-    return wire.Ref(t=t_ns, seq=seq, q=q, v=v)
-
-
 def _run(proc: SwarmProcess, index: int) -> int:
     sc = proc.scenario
     if not 1 <= index <= sc.n:
@@ -48,98 +50,154 @@ def _run(proc: SwarmProcess, index: int) -> int:
     row = AgentRow.from_scenario(sc, index - 1, params.mass, params.g)
     core = AgentCore(row)
     keys = proc.keys
-    for key, kind in subscriptions(keys, row):
-        proc.subscribe(key, kind)
-    proc.announce()
+    me = f"agent:{index}"
     state_key = keys.state(index)
     nbr_keys = [keys.ref(j + 1) for j in row.neighbours]
     input_keys = nbr_keys + ([keys.leader_ref] if row.pinned else [])
+    sender = {state_key: "plant", keys.leader_ref: "leader"}
+    sender.update({keys.ref(j + 1): f"agent:{j + 1}" for j in row.neighbours})
     ref_key, cmd_key = keys.ref(index), keys.cmd(index)
     dt = sc.timing.dt
     dt_ns = wire.t_ns(dt)
     n_ticks = sc.timing.n_ticks
     timeout = proc.args.lockstep_timeout
     seq = 0
-    held: dict[str, wire.Ref] = {}
 
-    def compute(k_t_ns: int, st: wire.State, k: int) -> None:
-        """Tick k with the inputs of tick k; a missing one holds the newest earlier value."""
+    plan = plan_from_args(sc, proc.args)
+    links = {key: (sender[key], me, "state" if key == state_key else ("leader" if key == keys.leader_ref else "ref"))
+             for key in [state_key] + input_keys}
+    boxes: dict[str, Box] = {}
+    if plan is not None and not proc.args.realtime:
+        fstate = FaultState(plan)
+        boxes = {key: Box(fstate, *link, dt) for key, link in links.items()}
+        proc.extra_counters = lambda: box_counters(boxes)
+    elif plan is not None:
+        proc.use_delay_line(FaultState(plan), links)
+
+    def publish(k_t_ns: int, cmd) -> None:  # noqa: ANN001
         nonlocal seq
-        for key in input_keys:
-            m = proc.inbox.get(key, k)
-            if m is not None:
-                held[key] = m
-            elif key in held:
-                proc.counters["held_inputs"] += 1
-        present = [x for x, key in enumerate(nbr_keys) if key in held]
-        qn = np.array([held[nbr_keys[x]].q for x in present]).reshape(-1, 3)
-        vn = np.array([held[nbr_keys[x]].v for x in present]).reshape(-1, 3)
-        lead = held.get(keys.leader_ref) if row.pinned else None
-        q0 = lead.q if lead is not None else None
-        v0 = lead.v if lead is not None else None
-        cmd = core.tick(st.q, st.v, qn, vn, q0, v0, present)
         seq += 1
         proc.publish(cmd_key, wire.Cmd(t=k_t_ns, seq=seq, thrust=cmd.thrust, rpy=cmd.rpy, u=cmd.u, d_hat=cmd.d_hat))
         seq += 1
-        proc.publish(ref_key, _ref_msg(k_t_ns + dt_ns, seq, core.q_ref, core.v_ref))
+        proc.publish(ref_key, wire.Ref(t=k_t_ns + dt_ns, seq=seq, q=core.q_ref, v=core.v_ref))
+
+    def start(st: wire.State, k: int) -> None:
+        """(Re)start the generator from a measured state and share ref(k)."""
+        nonlocal seq
+        core.reset(st.q, st.v)
+        seq += 1
+        proc.publish(ref_key, wire.Ref(t=k * dt_ns, seq=seq, q=core.q_ref, v=core.v_ref))
+        if k > 0:
+            proc.log(f"{me}: joined at tick {k} (t = {k * dt:.2f} s), generator restarted from the measured state")
+
+    def tick(k: int, st: wire.State, inputs: dict[str, wire.Ref]) -> None:
+        """Tick k with the inputs given (a missing neighbour or leader is left out this tick)."""
+        present = [x for x, key in enumerate(nbr_keys) if key in inputs]
+        qn = np.array([inputs[nbr_keys[x]].q for x in present]).reshape(-1, 3)
+        vn = np.array([inputs[nbr_keys[x]].v for x in present]).reshape(-1, 3)
+        lead = inputs.get(keys.leader_ref)
+        cmd = core.tick(st.q, st.v, qn, vn, lead.q if lead else None, lead.v if lead else None, present)
+        publish(k * dt_ns if not proc.args.realtime else st.t, cmd)
 
     if not proc.args.realtime:
+        held: dict[str, wire.Ref] = {}
+        join_tick = [0]
+
+        def on_msg(key: str, k: int, msg) -> None:  # noqa: ANN001 - under the lockstep lock
+            if boxes:
+                boxes[key].offer(k, msg.seq, msg)
+            if key == state_key and not core.initialised and k > ls.k:
+                ls.k = join_tick[0] = k  # a (re)started agent joins at the first state it sees
 
         def prepare(k: int) -> None:
             if not core.initialised:
                 st = proc.inbox.get(state_key, k)
-                if st is not None:  # first state: start the generator there and share ref(k)
-                    nonlocal seq
-                    core.reset(st.q, st.v)
-                    seq += 1
-                    proc.publish(ref_key, _ref_msg(k * dt_ns, seq, core.q_ref, core.v_ref))
+                if st is not None:
+                    start(st, k)
+
+        def needed(key: str, k: int) -> bool:
+            """Wait for this input of tick k? Not if its sender is gone, or if the sender has
+            already moved past tick k (a restarted neighbour that skipped it)."""
+            if not proc.is_alive(sender[key]):
+                return False
+            m = proc.inbox.latest.get(key)
+            return m is None or m.t <= k * dt_ns
 
         def ready(k: int) -> bool:
-            get = proc.inbox.get
-            return get(state_key, k) is not None and all(get(key, k) is not None for key in input_keys)
+            if proc.inbox.get(state_key, k) is None:  # the plant's state of tick k is the clock
+                return False
+            if k == join_tick[0] and k > 0:
+                return True  # rejoining: the inputs of this tick were sent before we subscribed
+            if boxes:
+                return all(b.ready(k) or not needed(key, k) for key, b in boxes.items())
+            return all(proc.inbox.get(key, k) is not None or not needed(key, k) for key in input_keys)
 
         def step(k: int, forced: bool) -> None:
+            if boxes:
+                if forced:
+                    for b in boxes.values():
+                        if not b.ready(k):
+                            b.mark_timeout(b.due(k))
+                got = {key: b.at(k) for key, b in boxes.items()}
+                st = got.pop(state_key).value
+                inputs = {key: h.value for key, h in got.items() if h is not None}
+            else:
+                st = proc.inbox.get(state_key, k)
+                for key in input_keys:
+                    m = proc.inbox.get(key, k)
+                    if m is not None:
+                        held[key] = m
+                    elif key in held:
+                        proc.counters["held_inputs"] += 1
+                inputs = held
             if forced:
                 proc.counters["input_timeouts"] += 1
-            compute(k * dt_ns, proc.inbox.get(state_key, k), k)
+            tick(k, st, inputs)
             proc.inbox.forget_before(k - 2)
             if k % 500 == 0:
                 proc.publish_diag(k * dt_ns)
 
         ls = Lockstep(
             n_ticks, ready, step, timeout, proc.stop, prepare=prepare,
-            can_force=lambda k: proc.inbox.get(state_key, k) is not None,  # the plant is the clock
+            can_force=lambda k: proc.inbox.get(state_key, k) is not None,
+            on_msg=on_msg,
         )
         proc.on_input = ls.poke
+        proc.watch_alive(sorted(set(sender[key] for key in [state_key] + input_keys)), ls.poke)
+        for key, kind in subscriptions(keys, row):
+            proc.subscribe(key, kind)
+        proc.announce()
         k = ls.run()
         proc.publish_diag(k * dt_ns, {"finished": k >= n_ticks, **ls.timing()})
+        proc.linger_until_gone("plant")
         return 0
 
     # realtime: fixed-rate loop on the wall clock, latest value wins
+    for key, kind in subscriptions(keys, row):
+        proc.subscribe(key, kind)
+    proc.announce()
     stats = LoopStats(dt)
     next_t = time.monotonic()
     last_state_t = -1
+    limit_ns = wire.t_ns(sc.timing.time_limit_s)
     while not proc.stop.is_set():
         now = time.monotonic()
         if now < next_t:
             time.sleep(next_t - now)
         stats.record(time.monotonic() - next_t)
         next_t += dt
+        proc.release_delayed()
         st = proc.inbox.latest.get(state_key)
         if st is None or st.t == last_state_t:
             continue
         last_state_t = st.t
-        k = int(round(st.t / dt_ns))
-        if st.t >= wire.t_ns(sc.timing.time_limit_s):
+        if st.t >= limit_ns:
             break
+        k = int(round(st.t / dt_ns))
         if not core.initialised:
-            core.reset(st.q, st.v)
-        for key in input_keys:
-            m = proc.inbox.latest.get(key)
-            if m is not None:
-                proc.inbox.put(key, k, m)  # latest value wins: present it as this tick's input
-        compute(st.t, st, k)
-        proc.inbox.forget_before(k - 2)
+            start(st, k)
+        inputs = {key: m for key in input_keys if (m := proc.inbox.latest.get(key)) is not None}
+        tick(k, st, inputs)
         if stats.ticks % 100 == 0:
             proc.publish_diag(st.t, stats.as_dict())
     proc.publish_diag(max(last_state_t, 0), stats.as_dict())

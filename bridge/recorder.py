@@ -109,8 +109,13 @@ def sim_time(payload: bytes) -> int | None:
     return t
 
 
-def build_metadata(swarm: str, mode: str, scenario: dict[str, Any] | None, source: str) -> dict[str, str]:
-    """Values of the ``zenswarm`` metadata record (all strings, as MCAP requires)."""
+def build_metadata(
+    swarm: str, mode: str, scenario: dict[str, Any] | None, source: str, fault_args: list[str] | None = None
+) -> dict[str, str]:
+    """Values of the ``zenswarm`` metadata record (all strings, as MCAP requires).
+
+    fault_args: the swarm's link-fault flags (``--link-loss 0.2 ...``), kept so that
+    ``replay --verify`` can rebuild the same fault plan (with the scenario's ``[faults]``)."""
     meta = {
         "swarm": swarm,
         "zenswarm_version": __version__,
@@ -118,6 +123,8 @@ def build_metadata(swarm: str, mode: str, scenario: dict[str, Any] | None, sourc
         "scenario_source": source,
         "recorder_start_unix_ns": str(time.time_ns()),
     }
+    if fault_args:
+        meta["fault_args"] = json.dumps(list(fault_args))
     if scenario is not None:
         meta["scenario_json"] = json.dumps(scenario, sort_keys=True, allow_nan=False)
     return meta
@@ -376,6 +383,7 @@ def run(args: argparse.Namespace) -> int:
     sink: McapSink | None = None
     fetcher: threading.Thread | None = None
     source = f"file:{args.scenario}" if scenario is not None else "pending: asking the leader's mission"
+    fault_args = _fault_argv(args)
     try:
         sink = McapSink(
             out,
@@ -383,7 +391,7 @@ def run(args: argparse.Namespace) -> int:
             flush_interval_s=args.flush_interval,
             chunk_size=args.chunk_size,
             compression=args.compression,
-            metadata=build_metadata(args.swarm, mode, scenario, source),
+            metadata=build_metadata(args.swarm, mode, scenario, source, fault_args),
         )
         sink.start()
         put_item = sink.put_item
@@ -397,7 +405,7 @@ def run(args: argparse.Namespace) -> int:
         if scenario is None:
             fetcher = threading.Thread(
                 target=_fetch_mission,
-                args=(session, keys, stop, lambda d: sink.set_metadata(build_metadata(args.swarm, mode, d, "mission")), log),
+                args=(session, keys, stop, lambda d: sink.set_metadata(build_metadata(args.swarm, mode, d, "mission", fault_args)), log),
                 name="mission-fetch",
                 daemon=True,
             )
@@ -462,6 +470,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fault_argv(args: argparse.Namespace) -> list[str]:
+    try:
+        from zenswarm.linkfaults import fault_argv
+    except ImportError:  # pragma: no cover - built without link faults
+        return []
+    return fault_argv(args)
+
+
 def main(args: argparse.Namespace) -> int:
     return run(args)
 
@@ -520,4 +536,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="S",
         help="publish the recorder's counters on diag/recorder every S seconds (recorded too; 0 = never; default 1)",
     )
+    try:
+        from zenswarm.linkfaults import add_fault_args
+    except ImportError:  # pragma: no cover - built without link faults
+        pass
+    else:
+        add_fault_args(p)  # not applied here: stored in the metadata for `replay --verify`
     p.set_defaults(func=main)

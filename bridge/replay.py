@@ -334,18 +334,39 @@ def _swarm_of(rec: Recording) -> str:
     raise RecordingError(f"{rec.path}: cannot tell the swarm name (no metadata and no swarm/<name>/ topics)")
 
 
+def _fault_plan(rec: Recording, sc: Any) -> Any:
+    """The link-fault plan of the recorded run: the scenario's ``[faults]`` table plus the fault
+    flags the recorder was given (metadata ``fault_args``). None when no fault was active."""
+    import json
+
+    try:
+        from zenswarm.linkfaults import add_fault_args, plan_from_args
+    except ImportError:  # pragma: no cover - built without link faults
+        return None
+    p = argparse.ArgumentParser(add_help=False)
+    add_fault_args(p)
+    words = json.loads(rec.info.get("fault_args", "[]"))
+    return plan_from_args(sc, p.parse_args(words))
+
+
 def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> VerifyResult:
     """Re-run agent ``agent``'s controller on its recorded inputs and compare its outputs.
 
-    Lockstep (and unknown-mode) recordings are replayed as :mod:`agents.process` runs lockstep:
-    tick k = 0, 1, ... up to the last recorded command; own state of tick k (the first tick also
-    resets the generator and ESO from it, and the recorded ref of tick 0 must equal the reset);
-    neighbours' refs and, if pinned, the leader's ref of tick k, holding the newest earlier value
-    when one is missing from the recording (as the agent does after a timeout). The tick of a
-    message is ``(t + dt_ns // 2) // dt_ns``, as in :meth:`zenswarm.runtime.SwarmProcess.subscribe`.
-    Realtime recordings: the agent ticked on each new state with the latest inputs; inputs are
-    taken as the newest recorded before the command's receive time (an approximation: a
-    difference may come from it).
+    Lockstep (and unknown-mode) recordings are replayed as :mod:`agents.process` runs lockstep.
+    The agent (re)starts where it published a reference with ``seq == 1`` (normally tick 0; a
+    restarted process starts its sequence numbers again): it resets the generator and ESO from
+    the state of that tick, and that recorded reference must equal the reset. Then for each tick
+    k up to the last recorded command: own state of tick k, neighbours' refs and, if pinned, the
+    leader's ref of tick k, holding the newest earlier value when one is missing from the
+    recording (as the agent does after a timeout). With link faults (the scenario's ``[faults]``
+    table and the recorder's fault flags) every input goes through the same
+    :class:`zenswarm.linkfaults.Box` the agent uses, so the same messages are lost or delayed.
+    The tick of a message is ``(t + dt_ns // 2) // dt_ns`` as in
+    :meth:`zenswarm.runtime.SwarmProcess.subscribe`. A restarted agent's first tick is fed no
+    inputs of that tick (they were sent before it subscribed): an approximation.
+    Realtime recordings: the agent ticked on each new state with the latest inputs; the inputs
+    are taken as the newest recorded before the command's receive time (an approximation: a
+    difference may come from it; link faults are not replayed there).
 
     Compares, bit for bit, cmd(k) (thrust, rpy, u, d_hat) and ref(k + 1) (q, v), and stops at the
     first difference. strict: refuse a damaged file (default: verify what is readable and list
@@ -360,41 +381,55 @@ def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> Verif
         raise ScenarioError("--agent", f"agent {agent} out of range 1..{sc.n} for scenario {sc.name}")
     res = VerifyResult(agent=agent, mode=rec.mode)
     keys = wire.Keys(_swarm_of(rec))
+    me = f"agent:{agent}"
     params = QuadParams.from_vehicle(sc.vehicle)
     row = AgentRow.from_scenario(sc, agent - 1, params.mass, params.g)
     dt_ns = wire.t_ns(sc.timing.dt)
     state_key, ref_key, cmd_key = keys.state(agent), keys.ref(agent), keys.cmd(agent)
     nbr_keys = [keys.ref(j + 1) for j in row.neighbours]
     input_keys = nbr_keys + ([keys.leader_ref] if row.pinned else [])
+    sender = {state_key: "plant", keys.leader_ref: "leader"}
+    sender.update({keys.ref(j + 1): f"agent:{j + 1}" for j in row.neighbours})
     wanted = {state_key: "state", ref_key: "ref", cmd_key: "cmd"}
     wanted.update({k: "ref" for k in input_keys})
     by_tick: dict[str, dict[int, Any]] = {k: {} for k in wanted}
-    timeline: dict[str, list[tuple[int, Any]]] = {k: [] for k in wanted}  # (log_time, msg), realtime
+    timeline: dict[str, list[tuple[int, int, Any]]] = {k: [] for k in wanted}  # (log_time, tick, msg)
+    start_refs: dict[int, wire.Ref] = {}  # own ref with seq 1: a (re)start of the agent process
     decoder = wire.Decoder()
     for m in rec.messages(topics=wanted.__contains__):
         msg = decoder.decode(m.topic, wanted[m.topic], m.payload)
         if msg is None:
             continue
-        by_tick[m.topic][(msg.t + dt_ns // 2) // dt_ns] = msg  # the latest wins, as in the inbox
-        timeline[m.topic].append((m.log_time, msg))
+        k = (msg.t + dt_ns // 2) // dt_ns
+        if m.topic == ref_key and msg.seq == 1:
+            start_refs[k] = msg
+        else:
+            by_tick[m.topic][k] = msg  # the latest wins, as in the inbox
+        timeline[m.topic].append((m.log_time, k, msg))
     res.problems += rec.problems
     if decoder.rejected:
         res.notes.append(f"{decoder.rejected} recorded payloads of agent {agent}'s keys were rejected by the decoder")
     cmds = by_tick[cmd_key]
     if not cmds:
         raise RecordingError(f"{rec.path}: no commands of agent {agent} ({cmd_key}) in the recording")
+    last = max(cmds)
+    refs = by_tick[ref_key]  # references published after a tick (seq > 1)
+    states = by_tick[state_key]
+    starts = sorted(start_refs)
+    if not starts:
+        starts = [min(cmds)]
+        res.notes.append(f"the agent's start reference (seq 1) is not in the recording; starting at tick {starts[0]}")
+    if len(starts) > 1:
+        res.notes.append(f"the agent (re)started at ticks {starts}")
     core = AgentCore(row)
-    held: dict[str, Any] = {}
-    refs = by_tick[ref_key]
 
-    def step(k: int, st: wire.State) -> Difference | None:
-        present = [x for x, key in enumerate(nbr_keys) if key in held]
-        qn = np.array([held[nbr_keys[x]].q for x in present]).reshape(-1, 3)
-        vn = np.array([held[nbr_keys[x]].v for x in present]).reshape(-1, 3)
-        lead = held.get(keys.leader_ref) if row.pinned else None
-        q0 = lead.q if lead is not None else None
-        v0 = lead.v if lead is not None else None
-        cmd = core.tick(st.q, st.v, qn, vn, q0, v0, present)
+    def compute(k: int, st: wire.State, inputs: dict[str, Any], seg_end: int) -> Difference | None:
+        """Tick k exactly as agents.process.tick(), then compare cmd(k) and ref(k + 1)."""
+        present = [x for x, key in enumerate(nbr_keys) if key in inputs]
+        qn = np.array([inputs[nbr_keys[x]].q for x in present]).reshape(-1, 3)
+        vn = np.array([inputs[nbr_keys[x]].v for x in present]).reshape(-1, 3)
+        lead = inputs.get(keys.leader_ref)
+        cmd = core.tick(st.q, st.v, qn, vn, lead.q if lead else None, lead.v if lead else None, present)
         rc = cmds.get(k)
         if rc is None:
             return Difference(k, "cmd", "<missing from the recording>", f"thrust={float(cmd.thrust)!r}")
@@ -403,62 +438,111 @@ def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> Verif
             return d
         rr = refs.get(k + 1)
         if rr is None:
-            if k == last:
-                res.notes.append(f"ref of tick {k + 1} (after the last command) is not in the recording")
+            if k == seg_end:
+                res.notes.append(f"ref of tick {k + 1} (after the last command of a run) is not in the recording")
                 return None
             return Difference(k + 1, "ref", "<missing from the recording>", f"q={core.q_ref.tolist()}")
         return _compare_ref(k + 1, rr, core.q_ref, core.v_ref)
 
-    last = max(cmds)
-    if rec.mode != "realtime":
-        states = by_tick[state_key]
-        for k in range(0, last + 1):
+    def restart(k: int, st: wire.State) -> Difference | None:
+        core.reset(st.q, st.v)
+        r0 = start_refs.get(k)
+        if r0 is None:
+            return None
+        return _compare_ref(k, r0, core.q_ref, core.v_ref)
+
+    if rec.mode == "realtime":
+        res.notes.append("realtime recording: inputs reconstructed from the recorder's receive times")
+        lt_of = {key: [lt for lt, _, _ in timeline[key]] for key in input_keys}
+        started: set[int] = set()
+        for lt_cmd, k, rc in timeline[cmd_key]:
             st = states.get(k)
             if st is None:
                 res.difference = Difference(k, "input state", "<missing from the recording>", "needed to compute the tick")
-                break
-            if not core.initialised:
+                return res
+            s = max((x for x in starts if x <= k), default=None)
+            if s is not None and s not in started:
+                started.add(s)
+                d = restart(s, states.get(s, st))
+                if d is not None:
+                    res.difference = d
+                    return res
+            elif not core.initialised:
                 core.reset(st.q, st.v)
-                r0 = refs.get(k)
-                if r0 is None:
-                    res.notes.append(f"ref of tick {k} (the reset) is not in the recording")
-                else:
-                    d = _compare_ref(k, r0, core.q_ref, core.v_ref)
-                    if d is not None:
-                        res.difference = d
-                        break
+            inputs = {}
             for key in input_keys:
-                m = by_tick[key].get(k)
-                if m is not None:
-                    held[key] = m
-            d = step(k, st)
+                j = bisect.bisect_right(lt_of[key], lt_cmd) - 1
+                if j >= 0:
+                    inputs[key] = timeline[key][j][2]
+            d = compute(k, st, inputs, last)
             if d is not None:
                 res.difference = d
-                break
+                return res
             res.ticks += 1
         return res
 
-    # realtime: one tick per recorded command, inputs = newest recorded before the command
-    res.notes.append("realtime recording: inputs reconstructed from the recorder's receive times")
-    states = by_tick[state_key]
-    lt_of = {key: [lt for lt, _ in timeline[key]] for key in input_keys}
-    for lt_cmd, rc in timeline[cmd_key]:
-        k = (rc.t + dt_ns // 2) // dt_ns
-        st = states.get(k)
-        if st is None:
-            res.difference = Difference(k, "input state", "<missing from the recording>", "needed to compute the tick")
-            break
-        if not core.initialised:
-            core.reset(st.q, st.v)
-        for key in input_keys:
-            j = bisect.bisect_right(lt_of[key], lt_cmd) - 1
-            if j >= 0:
-                held[key] = timeline[key][j][1]
-        d = step(k, st)
-        if d is not None:
-            res.difference = d
-            break
-        res.ticks += 1
+    plan = _fault_plan(rec, sc)
+    if plan is not None:
+        res.notes.append("link faults replayed through the agent's receive boxes")
+    for idx, s in enumerate(starts):
+        hi = starts[idx + 1] - 1 if idx + 1 < len(starts) else last
+        seg = [k for k in cmds if s <= k <= hi]
+        if not seg:
+            continue
+        seg_end = max(seg)
+        held: dict[str, Any] = {}  # a new process: nothing held yet
+        boxes: dict[str, Any] = {}
+        feed: dict[str, list[tuple[int, Any]]] = {}
+        if plan is not None:
+            from zenswarm.faults import FaultState
+            from zenswarm.linkfaults import Box
+
+            fstate = FaultState(plan)
+            kinds = {state_key: "state", keys.leader_ref: "leader"}
+            boxes = {
+                key: Box(fstate, sender[key], me, kinds.get(key, "ref"), sc.timing.dt) for key in [state_key] + input_keys
+            }
+            feed = {key: [(k, msg) for _, k, msg in timeline[key] if k >= s] for key in boxes}
+        pos = {key: 0 for key in feed}
+        for k in range(s, seg_end + 1):
+            st_raw = states.get(k)
+            if st_raw is None:
+                res.difference = Difference(k, "input state", "<missing from the recording>", "needed to compute the tick")
+                return res
+            if k == s:
+                d = restart(k, st_raw)
+                if d is not None:
+                    res.difference = d
+                    return res
+            rejoin = k == s and s > 0  # the inputs of this tick were sent before it subscribed
+            if boxes:
+                for key, box in boxes.items():
+                    lst, i = feed[key], pos[key]
+                    while i < len(lst) and lst[i][0] <= k:
+                        if not (rejoin and key != state_key and lst[i][0] == k):
+                            box.offer(lst[i][0], lst[i][1].seq, lst[i][1])
+                        i += 1
+                    pos[key] = i
+                for box in boxes.values():
+                    if not box.ready(k) and not rejoin:
+                        box.mark_timeout(box.due(k))
+                got = {key: box.at(k) for key, box in boxes.items()}
+                h = got.pop(state_key)
+                st = h.value if h is not None else st_raw
+                inputs = {key: g.value for key, g in got.items() if g is not None}
+            else:
+                st = st_raw
+                if not rejoin:
+                    for key in input_keys:
+                        m = by_tick[key].get(k)
+                        if m is not None:
+                            held[key] = m
+                inputs = held
+            d = compute(k, st, inputs, seg_end)
+            if d is not None:
+                res.difference = d
+                return res
+            res.ticks += 1
     return res
 
 

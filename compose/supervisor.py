@@ -27,6 +27,9 @@ import numpy as np
 from zenswarm import bus, security, wire
 from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import ScenarioError, ZenswarmError
+from zenswarm.linkfaults import add_fault_args, fault_argv, plan_for
+
+from .policy import restart_policy
 from zenswarm.metrics import TimeSeries, compute_results
 
 __all__ = ["add_parsers", "Collector", "Supervisor", "role_names"]
@@ -153,6 +156,10 @@ class Supervisor:
         self.print_lock = threading.Lock()
         self.alive: set[str] = set()
         self.pending_kills: dict[str, int] = {role: wire.t_ns(t) for role, t in (args.kill or [])}
+        self.policy = restart_policy(scenario.extra.get("restart"), force=args.restart)
+        self.restart_at: dict[str, float] = {}
+        self.restarts: dict[str, int] = {}
+        self.deaths: list[dict] = []
         self.ended_at_goal = False
 
     # ------------------------------------------------------------------ output
@@ -185,7 +192,7 @@ class Supervisor:
             argv.append("--realtime")
         if self.keys_dir is not None:
             argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
-        return argv
+        return argv + fault_argv(a)
 
     def spawn(self, role: str) -> Child:
         env = dict(os.environ)
@@ -313,7 +320,16 @@ class Supervisor:
                 self.say(f"stopping: {self.stop_reason}")
                 return EXIT_INTERRUPTED
             done = True
-            for c in self.children.values():
+            now = time.monotonic()
+            for c in list(self.children.values()):
+                if c.name in self.restart_at:
+                    done = False
+                    if now >= self.restart_at[c.name]:
+                        del self.restart_at[c.name]
+                        self.restarts[c.name] = self.restarts.get(c.name, 0) + 1
+                        self.say(f"restarting {c.name} (restart {self.restarts[c.name]} of {self.policy.max_restarts})")
+                        self.spawn(c.name)
+                    continue
                 rc = c.popen.poll()
                 if rc is None:
                     done = False
@@ -323,7 +339,16 @@ class Supervisor:
                     if rc != 0:
                         how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
                         tail = "; last output: " + " | ".join(c.lines[-3:]) if c.lines else ""
-                        self.say(f"process {c.name} died ({how}){tail}")
+                        self.say(f"process {c.name} died ({how}) at sim time {max(collector.sim_t_ns, 0) / 1e9:.2f} s{tail}")
+                        self.deaths.append({"process": c.name, "how": how, "sim_time_s": max(collector.sim_t_ns, 0) / 1e9})
+                        delay = self.policy.delay(self.restarts.get(c.name, 0)) if self.policy.allows(c.name) else None
+                        if delay is not None:
+                            self.restart_at[c.name] = now + delay
+                            self.say(f"{c.name} will be restarted in {delay:.2f} s")
+                            done = False
+                            continue
+                        if self.policy.enabled and self.policy.allows(c.name):
+                            self.say(f"{c.name}: restart limit ({self.policy.max_restarts}) reached; aborting the mission")
                         self.failed = c.name
                         return EXIT_PROCESS_FAILED
             if done:
@@ -363,6 +388,8 @@ class Supervisor:
         res["mode"] = "realtime" if self.args.realtime else "lockstep"
         res["swarm"] = self.args.swarm
         res["processes"] = {name: c.returncode for name, c in self.children.items()}
+        res["process_deaths"] = self.deaths
+        res["restarts"] = self.restarts
         res["diagnostics"] = collector.diag
         res["decoder_rejects"] = collector.decoder.counters()
         if code == EXIT_PROCESS_FAILED:
@@ -385,6 +412,7 @@ class Supervisor:
 
 def _run_up(args: argparse.Namespace) -> int:
     sc = load_scenario(args.scenario)
+    plan_for(sc, args.link_delay, args.link_jitter, args.link_loss, args.partition, args.seed)  # bad flags: exit 2 now
     if args.only:
         return _run_only(args)
     sup = Supervisor(args, sc)
@@ -496,6 +524,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="inject a SIGKILL into ROLE when sim time reaches T, e.g. agent:2@10s (repeatable; for tests and demos)",
     )
     p.add_argument(
+        "--restart",
+        action="store_true",
+        help="restart crashed agents and the leader with the scenario's [restart] backoff (default policy if absent)",
+    )
+    p.add_argument(
         "--stop-at-goal",
         action="store_true",
         help="end the mission as soon as the leader is within the goal tolerance (useful in realtime mode)",
@@ -503,4 +536,5 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--progress-every", type=float, default=1.0, metavar="S", help="seconds between progress lines")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--quiet-children", action="store_true", help="do not echo the processes' own output")
+    add_fault_args(p)
     p.set_defaults(func=_run_up)

@@ -40,6 +40,7 @@ def _run(proc: SwarmProcess) -> int:
 
     queryable = proc.session.declare_queryable(keys.mission, on_query)
     proc.subscribe(keys.clock, "clock")
+    proc.watch_alive(["plant"])
     proc.announce()
 
     q0 = np.asarray(sc.leader.start, dtype=float).copy()
@@ -82,6 +83,7 @@ def _run(proc: SwarmProcess) -> int:
             proc.on_input = ls.poke
             k = ls.run()
             proc.publish_diag(k * dt_ns, {"finished": k >= n_ticks, **ls.timing()})
+            proc.linger_until_gone("plant")
             return 0
 
         stats = LoopStats(dt)

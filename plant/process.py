@@ -2,8 +2,10 @@
 
 Subscribes to each UAV's ``uav/<i>/cmd``; publishes ``clock`` and each ``uav/<i>/state``.
 Lockstep tick k: publish clock(k) and state_i(k) for all i, wait for every cmd_i(k) (a timeout
-counts as a drop and holds the UAV's previous command), then integrate ``timing.substeps``
-physics sub-steps. It starts only when the leader and every agent have announced themselves.
+counts as a drop and holds the UAV's previous command; an agent whose liveliness token is gone is
+not waited for), then integrate ``timing.substeps`` physics sub-steps. A UAV whose newest command
+is too old goes into the failsafe of :mod:`plant.failsafe` (hover, then land). It starts only
+when the leader and every agent have announced themselves.
 Realtime: a fixed-rate loop at the control rate; each period integrates one control period of
 physics with the latest command of each UAV (hover thrust, level, before the first one).
 """
@@ -16,9 +18,12 @@ import time
 import numpy as np
 
 from zenswarm import wire
+from zenswarm.faults import FaultState
+from zenswarm.linkfaults import Box, box_counters, plan_from_args
 from zenswarm.runtime import Lockstep, LoopStats, SwarmProcess, add_common_args, run_process
 
 from .disturbance import DisturbanceModel
+from .failsafe import FailsafeState, failsafe_config
 from .params import QuadParams
 from .quadrotor import initial_state, step
 
@@ -35,23 +40,25 @@ def _run(proc: SwarmProcess) -> int:
     nsub = sc.timing.substeps
     h = dt / nsub
     n_ticks = sc.timing.n_ticks
+    yaw = sc.controller.yaw
     rng = np.random.default_rng(sc.seed)
     dist = DisturbanceModel(sc.disturbance, n, rng)
     plant = initial_state(np.asarray(sc.initial_positions, dtype=float))
+    failsafe = FailsafeState(n, failsafe_config(sc.extra.get("failsafe")))
     thrust = np.full(n, params.mass * params.g)
     rpy_cmd = np.zeros((n, 3))
-    rpy_cmd[:, 2] = sc.controller.yaw
+    rpy_cmd[:, 2] = yaw
+    last_cmd_tick = [0] * n
     cmd_keys = [keys.cmd(i + 1) for i in range(n)]
-    for key in cmd_keys:
-        proc.subscribe(key, "cmd")
-    proc.announce()
-    others = ["leader"] + [f"agent:{i + 1}" for i in range(n)]
-    missing = proc.wait_for_alive(others, timeout_s=60.0)
-    if proc.stop.is_set():
-        return 0
-    if missing:
-        proc.log(f"plant: these processes never announced themselves: {', '.join(missing)}")
-        return 3
+    agents = [f"agent:{i + 1}" for i in range(n)]
+    plan = plan_from_args(sc, proc.args)
+    boxes: dict[str, Box] = {}
+    if plan is not None and not proc.args.realtime:
+        fstate = FaultState(plan)
+        boxes = {key: Box(fstate, agents[i], "plant", "cmd", dt) for i, key in enumerate(cmd_keys)}
+        proc.extra_counters = lambda: box_counters(boxes)
+    elif plan is not None:
+        proc.use_delay_line(FaultState(plan), {key: (agents[i], "plant", "cmd") for i, key in enumerate(cmd_keys)})
     seq = 0
 
     def publish_tick(k: int) -> None:
@@ -65,40 +72,96 @@ def _run(proc: SwarmProcess) -> int:
                 wire.State(t=t, seq=seq, q=plant.q[i].copy(), v=plant.v[i].copy(), rpy=plant.rpy[i].copy(), w=plant.w[i].copy()),
             )
 
-    def apply(i: int, c: wire.Cmd) -> None:
+    def apply(i: int, c: wire.Cmd, k_cmd: int) -> None:
         thrust[i] = c.thrust
         rpy_cmd[i] = c.rpy
+        last_cmd_tick[i] = k_cmd
 
     def integrate(k: int) -> None:
+        before = len(failsafe.events)
+        ages = [(k - last_cmd_tick[i]) * dt for i in range(n)]
+        f_app, r_app = failsafe.apply(k, ages, plant.q, plant.v, thrust, rpy_cmd, params.mass, params.g, yaw)
+        if len(failsafe.events) > before:
+            for ev in failsafe.events[before:]:
+                proc.log(f"plant: tick {ev[0]} (t = {ev[0] * dt:.2f} s): UAV {ev[1]} failsafe {ev[2]} -> {ev[3]}")
+            proc.counters["failsafe_events"] = len(failsafe.events)
+            proc.publish_diag(k * dt_ns, {"failsafe": failsafe.summary() or "none"})
         t = k * dt
         for j in range(nsub):
             d_p, d_a = dist.sample(t + j * h, h)
-            step(plant, thrust, rpy_cmd, params, h, d_p, d_a)
+            step(plant, f_app, r_app, params, h, d_p, d_a)
 
     if not proc.args.realtime:
 
+        def on_msg(key: str, k: int, msg) -> None:  # noqa: ANN001 - under the lockstep lock
+            if boxes:
+                boxes[key].offer(k, msg.seq, msg)
+
+        def needed(i: int, k: int) -> bool:
+            """Wait for agent i's cmd(k)? Not if it is gone or has moved past tick k."""
+            if not proc.is_alive(agents[i]):
+                return False
+            m = proc.inbox.latest.get(cmd_keys[i])
+            return m is None or m.t <= k * dt_ns
+
         def ready(k: int) -> bool:
-            return all(proc.inbox.get(key, k) is not None for key in cmd_keys)
+            if boxes:
+                return all(b.ready(k) or not needed(i, k) for i, b in enumerate(boxes.values()))
+            return all(proc.inbox.get(key, k) is not None or not needed(i, k) for i, key in enumerate(cmd_keys))
+
+        last_tick_wall = [0.0]
+
+        def pace() -> None:
+            """While an agent is down, run no faster than real time: failsafe timers and restart
+            delays then mean in sim time what they mean on the wall clock."""
+            if all(proc.is_alive(a) for a in agents):
+                return
+            proc.counters["paced_ticks"] += 1
+            wait = last_tick_wall[0] + dt - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+            last_tick_wall[0] = time.monotonic()
 
         def step_tick(k: int, forced: bool) -> None:
             if forced:
                 proc.counters["cmd_timeouts"] += 1
             for i, key in enumerate(cmd_keys):
-                c = proc.inbox.get(key, k)
-                if c is not None:
-                    apply(i, c)
+                if boxes:
+                    b = boxes[key]
+                    if forced and not b.ready(k):
+                        b.mark_timeout(b.due(k))
+                    held = b.at(k)
+                    if held is not None:
+                        apply(i, held.value, held.send_tick)
+                else:
+                    c = proc.inbox.get(key, k)
+                    if c is not None:
+                        apply(i, c, k)
             integrate(k)
             proc.inbox.forget_before(k - 1)
             if k % 500 == 0:
                 proc.publish_diag(k * dt_ns)
+            pace()
             publish_tick(k + 1)  # the last one is the final state, t = time limit
 
-        ls = Lockstep(n_ticks, ready, step_tick, proc.args.lockstep_timeout, proc.stop)
+        ls = Lockstep(n_ticks, ready, step_tick, proc.args.lockstep_timeout, proc.stop, on_msg=on_msg)
         proc.on_input = ls.poke
+    for key in cmd_keys:
+        proc.subscribe(key, "cmd")
+    proc.announce()
+    missing = proc.wait_for_alive(["leader"] + agents, timeout_s=60.0)
+    if proc.stop.is_set():
+        return 0
+    if missing:
+        proc.log(f"plant: these processes never announced themselves: {', '.join(missing)}")
+        return 3
+
+    if not proc.args.realtime:
+        proc.watch_alive(agents, ls.poke)
         with ls.lock:
             publish_tick(0)
         k = ls.run()
-        proc.publish_diag(k * dt_ns, {"finished": k >= n_ticks, **ls.timing()})
+        proc.publish_diag(k * dt_ns, {"finished": k >= n_ticks, "failsafe": failsafe.summary() or "none", **ls.timing()})
         return 0
 
     stats = LoopStats(dt)
@@ -108,10 +171,11 @@ def _run(proc: SwarmProcess) -> int:
         publish_tick(k)
         if k == n_ticks:
             break
+        proc.release_delayed()
         for i, key in enumerate(cmd_keys):
             c = proc.inbox.latest.get(key)
-            if c is not None:
-                apply(i, c)
+            if c is not None and c.t >= last_cmd_tick[i] * dt_ns:
+                apply(i, c, int(round(c.t / dt_ns)))
         integrate(k)
         k += 1
         next_t += dt
@@ -121,7 +185,7 @@ def _run(proc: SwarmProcess) -> int:
         stats.record(time.monotonic() - next_t)
         if k % 100 == 0:
             proc.publish_diag(k * dt_ns, stats.as_dict())
-    proc.publish_diag(k * dt_ns, {**stats.as_dict(), "finished": k >= n_ticks})
+    proc.publish_diag(k * dt_ns, {**stats.as_dict(), "finished": k >= n_ticks, "failsafe": failsafe.summary() or "none"})
     return 0
 
 

@@ -123,7 +123,7 @@ def test_round_trip_with_every_optional_section() -> None:
     d["vehicle"] = {"mass": 0.034, "inertia": [1.6e-5, 1.6e-5, 2.9e-5], "max_thrust": 0.6}
     d["disturbance"] = {"wind": [0.1, 0.0, 0.0], "sine_amplitude": [0.0, 0.2, 0.0], "sine_freq_hz": 0.5,
                         "gust_std": 0.05, "gust_tau_s": 2.0, "attitude_std": 0.1}
-    d["faults"] = {"anything": 1}
+    d["faults"] = {"loss": 0.1}
     d["scenario"]["seed"] = 7
     d["leader"]["adaptive"] = False
     s = scenario_from_dict(d)
@@ -131,7 +131,7 @@ def test_round_trip_with_every_optional_section() -> None:
     assert s.disturbance.active
     s2 = scenario_from_dict(scenario_to_dict(s))
     assert s2 == s
-    assert s2.extra == {"faults": {"anything": 1}}
+    assert s2.extra == {"faults": {"loss": 0.1}}
 
 
 def test_defaults_when_optional_sections_are_absent() -> None:

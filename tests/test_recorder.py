@@ -481,34 +481,46 @@ def _tamper(src: Path, dst: Path, topic: str, tick: int, dt_ns: int) -> float:
     return new_thrust
 
 
+def record_flight(tmp_path: Path, scen_path: Path, swarm: str) -> Path:
+    """Fly ``scen_path`` with ``zenswarm up`` (lockstep) while ``zenswarm record`` records it.
+
+    The recorder joins a router of ours and `zenswarm up` links its own router to it: the
+    recorder is subscribed before the swarm exists, so it sees the first tick. The scenario comes
+    from the leader's mission queryable (no --scenario)."""
+    out = tmp_path / f"{swarm}.mcap"
+    with router() as ep, processes() as procs, open_session(client_config([ep]), handle_signals=False) as s:
+        rec = start_recorder(procs, ep, swarm, out)
+        wait_alive(s, swarm)
+        up = Proc(
+            "up", scen_path, "--swarm", swarm, "--listen", tcp_endpoint(free_port()), "--router-connect", ep,
+            "--out", tmp_path / f"up-{swarm}", "--quiet", "--quiet-children",
+        )  # fmt: skip
+        procs.append(up)
+        assert up.popen.wait(timeout=120) in (0, 1), up.output  # a few seconds are too short for the goal: 1
+        assert rec.stop() == 0, rec.output
+    assert "received from the leader's mission" in rec.output, rec.output
+    return out
+
+
+def verify_cli(path: Path, agent: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "zenswarm", "replay", "--verify", str(path), "--agent", agent],
+        cwd=REPO, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+
+
 def test_replay_verify_lockstep_recording_and_tampered_copy(tmp_path: Path) -> None:
     swarm = swarm_name()
     scen_path = short_scenario(tmp_path, 3.0)
     sc = load_scenario(scen_path)
-    out = tmp_path / "flight.mcap"
-    # The recorder joins a router of ours, and `zenswarm up` links its router to it: the recorder
-    # is subscribed before the swarm exists, so it sees the first tick.
-    with router() as ep, processes() as procs, open_session(client_config([ep]), handle_signals=False) as s:
-        rec = start_recorder(procs, ep, swarm, out)  # scenario from the leader's mission
-        wait_alive(s, swarm)
-        up = Proc(
-            "up", scen_path, "--swarm", swarm, "--listen", tcp_endpoint(free_port()), "--router-connect", ep,
-            "--out", tmp_path / "up", "--quiet", "--quiet-children",
-        )  # fmt: skip
-        procs.append(up)
-        assert up.popen.wait(timeout=120) in (0, 1), up.output  # 3 s is too short to reach the goal: 1
-        assert rec.stop() == 0, rec.output
-    assert "received from the leader's mission" in rec.output
+    out = record_flight(tmp_path, scen_path, swarm)
     r = read_recording(out)
     assert r.load_scenario() == sc and r.mode == "lockstep"
     n_ticks = sc.timing.n_ticks
 
-    cli = subprocess.run(
-        [sys.executable, "-m", "zenswarm", "replay", "--verify", str(out), "--agent", "2"],
-        cwd=REPO, capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+    cli = verify_cli(out, "2")
     assert cli.returncode == 0, cli.stdout + cli.stderr
-    assert f"verified {n_ticks} ticks" in cli.stdout
+    assert f"agent 2: verified {n_ticks} ticks" in cli.stdout
     for i in (1, 3):
         res = verify_agent(out, i)
         assert res.ok and res.ticks == n_ticks, res
@@ -516,18 +528,33 @@ def test_replay_verify_lockstep_recording_and_tampered_copy(tmp_path: Path) -> N
     tampered = tmp_path / "tampered.mcap"
     dt_ns = wire.t_ns(sc.timing.dt)
     new = _tamper(out, tampered, wire.Keys(swarm).cmd(2), 137, dt_ns)
-    cli = subprocess.run(
-        [sys.executable, "-m", "zenswarm", "replay", "--verify", str(tampered), "--agent", "2"],
-        cwd=REPO, capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+    cli = verify_cli(tampered, "2")
     assert cli.returncode == 1, cli.stdout + cli.stderr
-    assert "first difference at tick 137, cmd.thrust: recorded" in cli.stdout, cli.stdout
+    assert "agent 2: first difference at tick 137, cmd.thrust: recorded" in cli.stdout, cli.stdout
     res = verify_agent(tampered, 2)
     assert not res.ok and res.ticks == 137
     d = res.difference
     assert d.tick == 137 and d.field == "cmd.thrust" and d.recorded == new
     assert struct.pack("<d", d.recomputed) != struct.pack("<d", new)
     assert verify_agent(tampered, 1).ok  # the others are untouched
+
+
+def test_replay_verify_replays_link_faults(tmp_path: Path) -> None:
+    """With the scenario's [faults] (loss, delay, jitter) the agents' inputs go through their
+    receive boxes; verify rebuilds the same boxes and still reproduces every bit."""
+    swarm = swarm_name()
+    scen_path = short_scenario(tmp_path, 1.5)
+    with open(scen_path, "a") as f:
+        f.write('\n[faults]\nloss = 0.2\ndelay = "15ms"\njitter = "10ms"\n')
+    sc = load_scenario(scen_path)
+    out = record_flight(tmp_path, scen_path, swarm)
+    cli = subprocess.run(
+        [sys.executable, "-m", "zenswarm", "verify", str(out)], cwd=REPO, capture_output=True, text=True, timeout=120
+    )
+    assert cli.returncode == 0, cli.stdout + cli.stderr
+    for i in range(1, sc.n + 1):
+        assert f"agent {i}: verified {sc.timing.n_ticks} ticks" in cli.stdout
+    assert "link faults replayed" in cli.stderr
 
 
 def test_sim_time_extraction() -> None:

@@ -43,6 +43,9 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
         help="use the fixed-gain APF with K_rep = K instead of the adaptive gain (12), for comparison",
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    from .linkfaults import add_fault_args
+
+    add_fault_args(p)
     p.set_defaults(func=_run_sim)
 
 
@@ -50,8 +53,14 @@ def _run_sim(args: argparse.Namespace) -> int:
     from .config import load_scenario
     from .sim import apply_overrides, run_sim_cli
 
+    from dataclasses import replace
+
+    from .linkfaults import plan_from_args
+
     sc = apply_overrides(load_scenario(args.scenario), no_eso=args.no_eso, fixed_gain=args.fixed_gain)
-    return run_sim_cli(sc, args.out, quiet=args.quiet)
+    if args.seed is not None:
+        sc = replace(sc, seed=args.seed)
+    return run_sim_cli(sc, args.out, quiet=args.quiet, faults=plan_from_args(sc, args))
 
 
 def _add_scenario(sub: argparse._SubParsersAction) -> None:

@@ -466,6 +466,23 @@ def validate(s: Scenario) -> None:
                     f"lies inside obstacles[{k}] inflated by the formation radius r_f={r_f:.3f} m "
                     f"(clearance to the surface {c:.3f} m)",
                 )
+    _validate_extra(s)
+
+
+def _validate_extra(s: Scenario) -> None:
+    """Sections owned by subsystems are validated on load too, so errors show up at once."""
+    if "faults" in s.extra:
+        from .faults import plan_from_scenario
+
+        plan_from_scenario(s.extra["faults"], s.seed)
+    if "failsafe" in s.extra:
+        from plant.failsafe import failsafe_config
+
+        failsafe_config(s.extra["failsafe"])
+    if "restart" in s.extra:
+        from compose.policy import restart_policy
+
+        restart_policy(s.extra["restart"])
 
 
 def load_scenario(path: str | Path) -> Scenario:

@@ -14,6 +14,7 @@ import sys
 import threading
 import time
 from collections import defaultdict
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -122,6 +123,9 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--realtime", action="store_true", help="run on the wall clock (latest value wins) instead of lockstep")
     security.add_security_args(p)
+    from .linkfaults import add_fault_args
+
+    add_fault_args(p)
     p.add_argument(
         "--lockstep-timeout",
         type=float,
@@ -152,8 +156,14 @@ class SwarmProcess:
         self.counters: dict[str, float] = defaultdict(float)
         self._diag_seq = 0
         self.scenario: Scenario | None = None
-        self.on_input: Callable[[], None] | None = None  # called after every accepted message
+        self.on_input: Callable[[str, int, Any], None] | None = None  # (key, tick, msg) of every accepted message
         self.subscribed: list[str] = []  # every key this process subscribed to (contract tests)
+        self.extra_counters: Callable[[], dict[str, float]] | None = None
+        self._delay_line: Any = None
+        self._dl_lock = threading.Lock()
+        self._links: dict[str, tuple[str, str, str]] = {}
+        self._alive: dict[str, bool] = {}
+        self._alive_subs: list[Any] = []
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> "SwarmProcess":
@@ -183,7 +193,7 @@ class SwarmProcess:
                 self._token.undeclare()
         except Exception:  # noqa: BLE001 - best effort on shutdown
             pass
-        for sub in self._subs:
+        for sub in self._subs + self._alive_subs:
             try:
                 sub.undeclare()
             except Exception:  # noqa: BLE001
@@ -191,6 +201,11 @@ class SwarmProcess:
         self._session_cm.__exit__(None, None, None)
 
     def _load_scenario(self) -> Scenario:
+        sc = self._fetch_scenario()
+        seed = getattr(self.args, "seed", None)
+        return sc if seed is None else replace(sc, seed=int(seed))
+
+    def _fetch_scenario(self) -> Scenario:
         if self.args.scenario is not None:
             return load_scenario(self.args.scenario)
         # Fetch the mission from the leader (late joiners, other hosts).
@@ -217,12 +232,17 @@ class SwarmProcess:
             if msg is None:
                 return
             tick = (msg.t + dt_ns // 2) // dt_ns
+            dl = self._delay_line
+            if dl is not None and key in self._links:
+                with self._dl_lock:
+                    dl.offer(time.monotonic(), self._links[key], key, tick, msg)
+                return
             inbox.put(key, tick, msg)
             if on_msg is not None:
                 on_msg(key, msg)
             hook = self.on_input
             if hook is not None:
-                hook()
+                hook(key, tick, msg)
 
         self._subs.append(self.session.declare_subscriber(key, cb))
         self.subscribed.append(key)
@@ -259,9 +279,55 @@ class SwarmProcess:
             time.sleep(0.02)
         return list(want.values())
 
+    # ------------------------------------------------------------------ liveliness of senders
+    def watch_alive(self, names: list[str], on_change: Callable[[], None] | None = None) -> None:
+        """Track the liveliness tokens of ``names`` (one subscriber each, with history)."""
+        for name in names:
+            self._alive.setdefault(name, True)  # assume alive until told otherwise
+
+            def cb(sample: Any, name: str = name) -> None:
+                self._alive[name] = sample.kind == zenoh.SampleKind.PUT
+                if on_change is not None:
+                    on_change()
+
+            self._alive_subs.append(self.session.liveliness().declare_subscriber(self.keys.alive(name), cb, history=True))
+
+    def linger_until_gone(self, name: str, timeout_s: float = 30.0) -> None:
+        """Lockstep end: stay (token held) until ``name`` is gone, so a receiver still on its last
+        tick never mistakes our normal exit for a crash and stops waiting for what we sent."""
+        if name not in self._alive:
+            self.watch_alive([name])
+        deadline = time.monotonic() + timeout_s
+        while self._alive.get(name, False) and not self.stop.is_set() and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+    def is_alive(self, name: str) -> bool:
+        """False once ``name``'s liveliness token is gone (True for names not watched)."""
+        return self._alive.get(name, True)
+
+    # ------------------------------------------------------------------ realtime link faults
+    def use_delay_line(self, state: Any, links: dict[str, tuple[str, str, str]]) -> None:
+        """Realtime link faults on these keys: decided on receipt, released after their delay."""
+        from .linkfaults import DelayLine
+
+        self._links = dict(links)
+        self._delay_line = DelayLine(state, self.scenario.timing.dt)
+
+    def release_delayed(self) -> None:
+        """Hand over the delayed messages whose time has come (call from the process loop)."""
+        dl = self._delay_line
+        if dl is None:
+            return
+        with self._dl_lock:
+            dl.release(time.monotonic(), self.inbox.put)
+
     def publish_diag(self, t_ns: int, info: dict[str, Any] | None = None) -> None:
         counters = dict(self.counters)
         counters.update(self.decoder.counters())
+        if self.extra_counters is not None:
+            counters.update(self.extra_counters())
+        if self._delay_line is not None:
+            counters.update(self._delay_line.dropped)
         self._diag_seq += 1
         self.publish(
             self.keys.diag(self.name),
@@ -312,6 +378,7 @@ class Lockstep:
         stop: threading.Event,
         prepare: Callable[[int], None] | None = None,
         can_force: Callable[[int], bool] | None = None,
+        on_msg: Callable[[str, int, Any], None] | None = None,
     ) -> None:
         self.n = n_ticks
         self.k = 0
@@ -319,6 +386,7 @@ class Lockstep:
         self._step = step
         self._prepare = prepare
         self._can_force = can_force or (lambda k: True)
+        self._on_msg = on_msg
         self.timeout = timeout_s
         self.stop = stop
         self.lock = threading.Lock()
@@ -330,9 +398,19 @@ class Lockstep:
         self.wait_s = 0.0  # wall time between the end of a tick and the start of the next, s
         self._t_end: float | None = None
 
-    def poke(self) -> None:
-        """Advance as far as the inputs allow (safe to call from any thread)."""
+    def poke(self, key: str | None = None, tick: int = 0, msg: Any = None) -> None:
+        """Take a message (``on_msg``, under the lock) and advance as far as the inputs allow.
+
+        Safe to call from any thread; ``poke()`` without a message just re-checks readiness
+        (e.g. after a sender's liveliness changed)."""
         with self.lock:
+            if key is not None and self._on_msg is not None:
+                try:
+                    self._on_msg(key, tick, msg)
+                except BaseException as e:  # noqa: BLE001 - surfaced by run()
+                    self.error = e
+                    self.done.set()
+                    return
             self._advance(False)
 
     def _advance(self, force: bool) -> None:

@@ -599,7 +599,14 @@ def _grants(process: str, sc: Scenario, k: wire.Keys) -> list[tuple[tuple[str, .
         sub += [k.state(i)] + [k.ref(j + 1) for j in sc.graph.neighbours(i - 1)]
         if sc.graph.pinning[i - 1] > 0:
             sub.append(k.leader_ref)
-        extra += query_mission
+        # an agent watches the liveliness of the processes it waits for (not to wait on the dead)
+        deps = ["plant"] + [f"agent:{j + 1}" for j in sc.graph.neighbours(i - 1)]
+        deps += ["leader"] if sc.graph.pinning[i - 1] > 0 else []
+        watch = [k.alive(p) for p in deps]
+        extra += query_mission + [
+            (("liveliness_query", "declare_liveliness_subscriber"), "ingress", watch),
+            (("liveliness_token",), "egress", watch),
+        ]
     elif process in ("plant", "bridge"):
         pub += [f"{P}/uav/*/state", k.clock]
         sub += [f"{P}/uav/*/cmd"]

@@ -34,14 +34,18 @@ from typing import Callable
 import numpy as np
 
 from agents.controller import composite_control, invert_thrust_attitude
+from agents.core import AgentCore, AgentRow
 from agents.eso import eso_step
 from agents.generator import euler_step, generator_rates_all
 from leader.aapf import AapfParams, integrate_leader, total_force
 from plant.disturbance import DisturbanceModel
+from plant.failsafe import FailsafeState, failsafe_config
 from plant.params import QuadParams
 from plant.quadrotor import initial_state, step as plant_step
 
 from .config import Scenario
+from .faults import FaultPlan, FaultState
+from .linkfaults import Box, box_counters
 from .metrics import TimeSeries, compute_results
 
 __all__ = ["simulate", "SimResult", "run_sim_cli"]
@@ -56,10 +60,17 @@ class SimResult:
 ProgressFn = Callable[[int, int, float], None]
 
 
-def simulate(scenario: Scenario, progress: ProgressFn | None = None, n_ticks: int | None = None) -> SimResult:
+def simulate(
+    scenario: Scenario,
+    progress: ProgressFn | None = None,
+    n_ticks: int | None = None,
+    faults: FaultPlan | None = None,
+) -> SimResult:
     """Run ``scenario`` for ``n_ticks`` control ticks (default: the time limit).
 
-    progress(k, n_ticks, dist_to_goal_m) is called about every 100 ticks.
+    progress(k, n_ticks, dist_to_goal_m) is called about every 100 ticks. ``faults``: a link
+    fault plan (:func:`zenswarm.linkfaults.plan_for`); each receiver then holds the newest value
+    its links delivered (:class:`zenswarm.linkfaults.Box`), exactly as the lockstep processes do.
     Returns the time series (one sample per tick, taken at step 2 of the tick) and the results.
     """
     wall0 = time.perf_counter()
@@ -95,11 +106,62 @@ def simulate(scenario: Scenario, progress: ProgressFn | None = None, n_ticks: in
     rpy_cmd[:, 2] = yaw
     zeros = np.zeros((n, 3))
 
+    faulty = faults is not None and faults.active
+    if faulty:
+        fstate = FaultState(faults)
+        rows = [AgentRow.from_scenario(scenario, i, mass, g) for i in range(n)]
+        cores = [AgentCore(r) for r in rows]
+        st_box = [Box(fstate, "plant", f"agent:{i + 1}", "state", dt) for i in range(n)]
+        nb_box = [[Box(fstate, f"agent:{j + 1}", f"agent:{i + 1}", "ref", dt) for j in r.neighbours] for i, r in enumerate(rows)]
+        ld_box = [Box(fstate, "leader", f"agent:{i + 1}", "leader", dt) if r.pinned else None for i, r in enumerate(rows)]
+        cmd_box = [Box(fstate, f"agent:{i + 1}", "plant", "cmd", dt) for i in range(n)]
+        failsafe = FailsafeState(n, failsafe_config(scenario.extra.get("failsafe")))
+
     for k in range(T):
         t = k * dt
         v0 = total_force(q0, aapf)
         q = plant.q.copy()
         v = plant.v.copy()
+        if faulty:
+            # every agent reads its links (hold last value), then ticks; the plant reads its links
+            for i in range(n):
+                st_box[i].offer(k, k, (q[i], v[i]))
+                if not cores[i].initialised:
+                    held = st_box[i].at(k)
+                    cores[i].reset(*held.value)
+            refs = [(c.q_ref, c.v_ref) for c in cores]
+            for i, r in enumerate(rows):
+                for x, j in enumerate(r.neighbours):
+                    nb_box[i][x].offer(k, k, refs[j])
+                if ld_box[i] is not None:
+                    ld_box[i].offer(k, k, (q0, v0))
+            for i, r in enumerate(rows):
+                qm, vm = st_box[i].at(k).value
+                nb = [box.at(k).value for box in nb_box[i]]
+                qn = np.array([x[0] for x in nb]).reshape(-1, 3)
+                vn = np.array([x[1] for x in nb]).reshape(-1, 3)
+                lead = ld_box[i].at(k).value if ld_box[i] is not None else (None, None)
+                cmd = cores[i].tick(qm, vm, qn, vn, lead[0], lead[1])
+                ts.qref[k, i], ts.vref[k, i] = refs[i]
+                ts.u[k, i] = cmd.u
+                ts.thrust[k, i] = cmd.thrust
+                ts.d_hat[k, i] = cmd.d_hat
+                cmd_box[i].offer(k, k, (cmd.thrust, cmd.rpy))
+            thrust_held = np.empty(n)
+            ages = []
+            for i in range(n):
+                held = cmd_box[i].at(k)
+                thrust_held[i], rpy_cmd[i] = held.value
+                ages.append(held.age_ticks * dt)
+            thrust_applied, rpy_applied = failsafe.apply(k, ages, plant.q, plant.v, thrust_held, rpy_cmd, mass, g, yaw)
+            ts.t[k], ts.q0[k], ts.v0[k], ts.q[k], ts.v[k], ts.rpy[k] = t, q0, v0, q, v, plant.rpy
+            for j in range(nsub):
+                d_p, d_a = dist.sample(t + j * h_phys, h_phys)
+                plant_step(plant, thrust_applied, rpy_applied, params, h_phys, d_p, d_a)
+            q0, _info = integrate_leader(q0, dt, aapf, nsub)
+            if progress is not None and (k % 100 == 0 or k == T - 1):
+                progress(k + 1, T, float(np.linalg.norm(q0 - goal)))
+            continue
         if k == 0:
             qref, vref = q.copy(), np.zeros((n, 3))
             q_hat, v_hat, d_hat = q.copy(), v.copy(), np.zeros((n, 3))
@@ -134,6 +196,11 @@ def simulate(scenario: Scenario, progress: ProgressFn | None = None, n_ticks: in
 
     wall = time.perf_counter() - wall0
     results = compute_results(ts, scenario, wall_time_s=wall)
+    if faulty:
+        boxes = {f"{b.src}{b.dst}{b.kind}": b for lst in (st_box, cmd_box, [x for x in ld_box if x]) for b in lst}
+        boxes.update({f"{b.src}{b.dst}{b.kind}": b for lst in nb_box for b in lst})
+        results["link_counters"] = box_counters(boxes)
+        results["failsafe_events"] = [list(e) for e in failsafe.events]
     return SimResult(ts, results)
 
 
@@ -179,10 +246,10 @@ def apply_overrides(scenario: Scenario, no_eso: bool = False, fixed_gain: float 
     return scenario
 
 
-def run_sim_cli(scenario: Scenario, out: Path, quiet: bool = False) -> int:
+def run_sim_cli(scenario: Scenario, out: Path, quiet: bool = False, faults: FaultPlan | None = None) -> int:
     """``zenswarm sim``: run, write outputs, print a summary; exit code 0 on mission success."""
     prog = None if quiet else ProgressPrinter("sim", scenario.timing.dt)
-    res = simulate(scenario, progress=prog)
+    res = simulate(scenario, progress=prog, faults=faults)
     write_outputs(out, res.series, res.results)
     r = res.results
     print(summary_line(r))

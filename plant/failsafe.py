@@ -1,0 +1,139 @@
+"""Per-UAV command-loss failsafe of the simulated vehicle (pure: numpy only).
+
+Like PX4's offboard-loss handling: when a UAV's commands stop (its newest command is older than
+``hover_after_s``) the vehicle holds its position (hover) with an onboard position loop; after
+``land_after_s`` it descends at ``land_speed`` m/s and cuts the motors on the ground. Unlike PX4,
+control returns to the agent as soon as its commands are fresh again (a restarted agent rejoins).
+The timeouts are the scenario's ``[failsafe]`` fields.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from agents.controller import invert_thrust_attitude
+from zenswarm.errors import ScenarioError
+
+__all__ = ["FailsafeConfig", "FailsafeMode", "failsafe_config", "mode_for_age", "hold_command"]
+
+NOMINAL, HOVER, LAND, LANDED = 0, 1, 2, 3
+FailsafeMode = int
+MODE_NAMES = {NOMINAL: "nominal", HOVER: "hover", LAND: "land", LANDED: "landed"}
+
+
+@dataclass(frozen=True)
+class FailsafeConfig:
+    """hover_after_s < land_after_s, s of sim time without a fresh command; land_speed m/s;
+    hold gains kp (1/s^2), kd (1/s); ground_z m (motors off below it while landing)."""
+
+    hover_after_s: float = 0.5
+    land_after_s: float = 5.0
+    land_speed: float = 0.3
+    kp: float = 4.0
+    kd: float = 3.0
+    ground_z: float = 0.03
+
+
+def failsafe_config(section: dict[str, Any] | None) -> FailsafeConfig:
+    """Parse the scenario's ``[failsafe]`` table (``Scenario.extra``); errors name the field."""
+    if section is None:
+        return FailsafeConfig()
+    allowed = set(FailsafeConfig.__dataclass_fields__)
+    vals: dict[str, float] = {}
+    for k, v in section.items():
+        if k not in allowed:
+            raise ScenarioError(f"failsafe.{k}", f"unknown key (allowed: {', '.join(sorted(allowed))})")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise ScenarioError(f"failsafe.{k}", f"expected a finite number, got {v!r}")
+        if k != "ground_z" and v <= 0:
+            raise ScenarioError(f"failsafe.{k}", f"must be > 0, got {v}")
+        vals[k] = float(v)
+    cfg = FailsafeConfig(**vals)
+    if cfg.land_after_s <= cfg.hover_after_s:
+        raise ScenarioError("failsafe.land_after_s", f"must be > failsafe.hover_after_s ({cfg.land_after_s} <= {cfg.hover_after_s})")
+    return cfg
+
+
+def mode_for_age(age_s: float, current: FailsafeMode, cfg: FailsafeConfig) -> FailsafeMode:
+    """Failsafe mode for a command age (s). LANDED stays LANDED until commands are fresh."""
+    if age_s <= cfg.hover_after_s:
+        return NOMINAL
+    if current == LANDED:
+        return LANDED
+    return LAND if age_s > cfg.land_after_s else HOVER
+
+
+def hold_command(
+    mode: FailsafeMode,
+    q: np.ndarray,
+    v: np.ndarray,
+    hold: np.ndarray,
+    mass: float,
+    g: float,
+    yaw: float,
+    cfg: FailsafeConfig,
+) -> tuple[float, np.ndarray]:
+    """Onboard (thrust N, rpy (3,) rad) for HOVER (hold position ``hold``) or LAND (descend at
+    land_speed above ``hold``'s x, y). LANDED: zero thrust, level."""
+    if mode == LANDED:
+        return 0.0, np.array([0.0, 0.0, yaw])
+    v_ref = np.zeros(3)
+    target = np.array(hold, dtype=float)
+    if mode == LAND:
+        target[2] = q[2]
+        v_ref[2] = -cfg.land_speed
+    u = cfg.kp * (target - q) + cfg.kd * (v_ref - v)
+    u[2] += g
+    F, phi, theta = invert_thrust_attitude(u, mass, yaw)
+    return float(F), np.array([float(phi), float(theta), yaw])
+
+
+class FailsafeState:
+    """Failsafe modes of N UAVs; :meth:`apply` turns the held commands into applied ones.
+
+    Used identically by the plant process and the in-process simulator (faulty runs), so both
+    agree. ``events`` lists (tick, uav index 1-based, old mode name, new mode name).
+    """
+
+    def __init__(self, n: int, cfg: FailsafeConfig) -> None:
+        self.cfg = cfg
+        self.modes = [NOMINAL] * n
+        self.hold = np.zeros((n, 3))
+        self.events: list[tuple[int, int, str, str]] = []
+
+    def apply(
+        self,
+        k: int,
+        ages_s: list[float],
+        q: np.ndarray,
+        v: np.ndarray,
+        thrust: np.ndarray,
+        rpy: np.ndarray,
+        mass: float,
+        g: float,
+        yaw: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Applied (thrust (N,), rpy (N, 3)) for tick k given each UAV's command age (s)."""
+        out_t, out_r = thrust, rpy
+        for i, age in enumerate(ages_s):
+            old = self.modes[i]
+            new = mode_for_age(age, old, self.cfg)
+            if new == LAND and q[i][2] <= self.cfg.ground_z and old in (LAND, LANDED):
+                new = LANDED
+            if new != old:
+                if old == NOMINAL:
+                    self.hold[i] = q[i]
+                self.events.append((k, i + 1, MODE_NAMES[old], MODE_NAMES[new]))
+                self.modes[i] = new
+            if new != NOMINAL:
+                if out_t is thrust:
+                    out_t, out_r = thrust.copy(), rpy.copy()
+                out_t[i], out_r[i] = hold_command(new, q[i], v[i], self.hold[i], mass, g, yaw, self.cfg)
+        return out_t, out_r
+
+    def summary(self) -> str:
+        """``"2:hover,3:nominal"`` for UAVs not in NOMINAL mode ('' when all are nominal)."""
+        return ",".join(f"{i + 1}:{MODE_NAMES[m]}" for i, m in enumerate(self.modes) if m != NOMINAL)
