@@ -55,7 +55,7 @@ from typing import Any, Final
 
 import msgpack
 
-from zenswarm import __version__, bus, wire
+from zenswarm import __version__, bus, security, wire
 
 from .mcapio import MESSAGE_ENCODING, METADATA_NAME
 
@@ -314,34 +314,54 @@ class McapSink:
 
 
 def _fetch_mission(session: Any, keys: wire.Keys, stop: threading.Event, on_scenario: Any, log: Any) -> None:
-    """Ask the leader's mission queryable once a second until it answers or ``stop`` is set."""
+    """Ask the leader's mission queryable until it answers or ``stop`` is set: at once when the
+    leader's liveliness token appears (it declares the queryable before the token), and once a
+    second in any case."""
     from zenswarm.config import scenario_from_dict, scenario_to_dict
 
+    leader_seen = threading.Event()
+    watch = None
+    try:
+        watch = session.liveliness().declare_subscriber(
+            keys.alive("leader"), lambda sample: leader_seen.set(), history=True
+        )
+    except Exception:  # noqa: BLE001 - fall back to polling
+        pass
     asked = 0
-    while not stop.is_set():
-        asked += 1
-        try:
-            for reply in session.get(keys.mission, timeout=1.0):
-                ok = getattr(reply, "ok", None)
-                if ok is None:
-                    continue
-                try:
-                    msg = wire.decode("mission", ok.payload.to_bytes())
-                    sc = scenario_from_dict(msg.scenario)
-                except Exception as e:  # noqa: BLE001 - a bad answer: keep asking
-                    log(f"recorder: ignoring an invalid mission answer: {e}")
-                    continue
-                on_scenario(scenario_to_dict(sc))
-                log(f"recorder: scenario '{sc.name}' received from the leader's mission")
-                return
-        except Exception as e:  # noqa: BLE001 - session closing, router gone: retry until stop
-            if stop.is_set():
-                return
-            if asked == 1:
-                log(f"recorder: mission query failed ({e}); retrying")
-        if asked == 30:
-            log("recorder: no leader has answered on the mission key for 30 s; still asking")
-        stop.wait(1.0)
+    try:
+        while not stop.is_set():
+            asked += 1
+            leader_seen.clear()
+            try:
+                for reply in session.get(keys.mission, timeout=1.0):
+                    ok = getattr(reply, "ok", None)
+                    if ok is None:
+                        continue
+                    try:
+                        msg = wire.decode("mission", ok.payload.to_bytes())
+                        sc = scenario_from_dict(msg.scenario)
+                    except Exception as e:  # noqa: BLE001 - a bad answer: keep asking
+                        log(f"recorder: ignoring an invalid mission answer: {e}")
+                        continue
+                    on_scenario(scenario_to_dict(sc))
+                    log(f"recorder: scenario '{sc.name}' received from the leader's mission")
+                    return
+            except Exception as e:  # noqa: BLE001 - session closing, router gone: retry until stop
+                if stop.is_set():
+                    return
+                if asked == 1:
+                    log(f"recorder: mission query failed ({e}); retrying")
+            if asked == 30:
+                log("recorder: no leader has answered on the mission key yet; still asking")
+            for _ in range(20):  # up to 1 s, sooner if the leader shows up
+                if stop.is_set() or leader_seen.wait(0.05):
+                    break
+    finally:
+        if watch is not None:
+            try:
+                watch.undeclare()
+            except Exception:  # noqa: BLE001 - best effort
+                pass
 
 
 def run(args: argparse.Namespace) -> int:
@@ -372,7 +392,10 @@ def run(args: argparse.Namespace) -> int:
         connect,
         connect_timeout_s=args.connect_timeout,
         # retry quickly while the swarm's router is not up yet
-        settings={"connect/retry": {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}},
+        settings={
+            "connect/retry": {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2},
+            **security.client_fragments_from_args(PROCESS_NAME, args),
+        },
     )
     try:
         session_cm = bus.open_session(conf, handle_signals=False)
@@ -529,6 +552,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--chunk-size", type=int, default=DEFAULT_CHUNK_SIZE, metavar="BYTES", help="close a chunk at this size (default 1 MiB)"
     )
     p.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd", help="chunk compression (default zstd)")
+    security.add_security_args(p)
     p.add_argument(
         "--diag-interval",
         type=float,

@@ -181,9 +181,19 @@ class Supervisor:
     def child_argv(self, role: str) -> list[str]:
         a = self.args
         argv = [sys.executable, "-m", "zenswarm"]
-        if role.startswith("agent:"):
+        if role == "recorder":
+            argv += ["record", "--swarm", a.swarm, "--out", str(a.record), "--scenario", str(a.scenario)]
+            argv += [w for ep in self.connect_endpoints for w in ("--connect", ep)]
+            if a.realtime:
+                argv.append("--realtime")
+            if self.keys_dir is not None:
+                argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
+            return argv + fault_argv(a)
+        if role == "plant" and a.record is not None:
+            argv += ["plant", "--expect", "recorder"]
+        elif role.startswith("agent:"):
             argv += ["agent", "--id", role.split(":", 1)[1]]
-        else:
+        elif role != "plant" or a.record is None:
             argv += [role]
         argv += ["--scenario", str(a.scenario), "--swarm", a.swarm, "--lockstep-timeout", str(a.lockstep_timeout)]
         for ep in self.connect_endpoints:
@@ -214,14 +224,26 @@ class Supervisor:
         return c
 
     def terminate_all(self, grace_s: float = 5.0) -> None:
-        for c in self.children.values():
+        """SIGTERM the swarm's roles and wait (then SIGKILL); the recorder last, after a moment for
+        messages in flight, with time to drain its queue and write the summary."""
+        rec = self.children.get("recorder")
+        self._terminate([c for c in self.children.values() if c.name != "recorder"], grace_s)
+        if rec is not None:
+            if rec.popen.poll() is None:
+                time.sleep(0.3)
+            self._terminate([rec], 60.0)
+            for line in rec.lines[-1:]:
+                self.say(line)
+
+    def _terminate(self, children: list, grace_s: float) -> None:
+        for c in children:
             if c.popen.poll() is None:
                 try:
                     c.popen.send_signal(signal.SIGTERM)
                 except ProcessLookupError:
                     pass
         deadline = time.monotonic() + grace_s
-        for c in self.children.values():
+        for c in children:
             left = max(0.0, deadline - time.monotonic())
             try:
                 c.popen.wait(timeout=left)
@@ -229,7 +251,7 @@ class Supervisor:
                 self.say(f"{c.name} did not stop within {grace_s:.0f} s; killing it")
                 c.popen.kill()
                 c.popen.wait()
-        for c in self.children.values():
+        for c in children:
             if c.reader is not None:
                 c.reader.join(timeout=2.0)
 
@@ -261,6 +283,9 @@ class Supervisor:
                 f"swarm '{a.swarm}': router on {', '.join(listen)}; {sc.n} UAVs; "
                 f"{'realtime' if a.realtime else 'lockstep'}; scenario {sc.name}"
             )
+            if a.record is not None:
+                a.record.parent.mkdir(parents=True, exist_ok=True)
+                self.spawn("recorder")  # first: the plant waits for it, so no tick goes unrecorded
             for role in role_names(sc.n):
                 self.spawn(role)
             code = self._watch(collector)
@@ -297,6 +322,17 @@ class Supervisor:
         self.say(f"secure mode: {'mutual TLS' if a.tls else 'user/password'} authentication, access control from the graph")
         return security.router_security_config(self.keys_dir, self.sc, a.swarm, auth=auth), listen
 
+    def _report(self, out: Path) -> None:
+        """Flight report from the recording alone (``--report``)."""
+        try:
+            from bridge.report import report_recording
+
+            written = report_recording(self.args.record, out / "report")
+        except ZenswarmError as e:
+            self.say(f"report failed: {e}")
+            return
+        self.say(f"report: {len(written)} files in {out / 'report'}")
+
     def _on_liveliness(self, sample: Any) -> None:
         try:
             _, _, proc = self.keys.parse(str(sample.key_expr))
@@ -332,7 +368,8 @@ class Supervisor:
                     continue
                 rc = c.popen.poll()
                 if rc is None:
-                    done = False
+                    if c.name != "recorder":
+                        done = False
                     continue
                 if c.returncode is None:
                     c.returncode = rc
@@ -389,6 +426,8 @@ class Supervisor:
         res["swarm"] = self.args.swarm
         res["processes"] = {name: c.returncode for name, c in self.children.items()}
         res["process_deaths"] = self.deaths
+        if self.args.record is not None:
+            res["recording"] = str(self.args.record)
         res["restarts"] = self.restarts
         res["diagnostics"] = collector.diag
         res["decoder_rejects"] = collector.decoder.counters()
@@ -405,6 +444,8 @@ class Supervisor:
 
         self.say(summary_line({**res, "wall_time_s": time.monotonic() - self.t_start}))
         self.say(f"wrote {out / 'results.json'} and {out / 'timeseries.npz'}")
+        if self.args.record is not None and self.args.report:
+            self._report(out)
         if code != EXIT_OK:
             return code
         return EXIT_OK if res["success"] else EXIT_MISSION_FAILED
@@ -481,6 +522,17 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--swarm", default="default", help="swarm name (key prefix swarm/<name>); default: default")
     p.add_argument("--out", type=Path, default=Path("runs/up"), help="output directory (default runs/up)")
     p.add_argument("--realtime", action="store_true", help="wall-clock mode: fixed-rate loops, latest value wins")
+    p.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE.mcap",
+        help="record every message of the swarm to this MCAP file (a recorder process started first, stopped last)",
+    )
+    p.add_argument(
+        "--report",
+        action="store_true",
+        help="with --record: write the flight report (figures like the paper's, results.json) to OUT/report from the recording",
+    )
     p.add_argument(
         "--listen",
         action="append",

@@ -149,7 +149,7 @@ def _run(proc: SwarmProcess) -> int:
     for key in cmd_keys:
         proc.subscribe(key, "cmd")
     proc.announce()
-    missing = proc.wait_for_alive(["leader"] + agents, timeout_s=60.0)
+    missing = proc.wait_for_alive(["leader"] + agents + list(proc.args.expect or []), timeout_s=60.0)
     if proc.stop.is_set():
         return 0
     if missing:
@@ -200,4 +200,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description="Simulate every UAV of the scenario (eqs 1-5, onboard attitude PID) and publish their states.",
     )
     add_common_args(p)
+    p.add_argument(
+        "--expect",
+        action="append",
+        metavar="PROCESS",
+        help="also wait for this process (e.g. recorder) to announce itself before the first tick",
+    )
     p.set_defaults(func=main)

@@ -39,7 +39,7 @@ def _up(scenario: Path, out: Path, swarm: str, *extra: str, timeout: float = 400
     try:
         cp = zenswarm(
             "up", str(scenario), "--out", str(out), "--swarm", swarm, "--listen", f"tcp/127.0.0.1:{port}",
-            "--quiet-children", "--progress-every", "5", *extra, timeout=timeout,
+            "--progress-every", "5", *extra, timeout=timeout,
         )
     finally:
         leftovers = processes_mentioning(f"--swarm {swarm}")

@@ -1,0 +1,109 @@
+"""Issue 5 acceptance on paper example 1, lockstep, real processes and router on loopback.
+
+Link faults are decided by a pure function of (seed, link, tick), so a faulty swarm run equals the
+in-process simulator with the same faults, bit for bit; the figures asserted here are the README's.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from zenswarm.config import load_scenario
+from zenswarm.linkfaults import plan_for
+from zenswarm.metrics import RESULT_FIELDS, TimeSeries
+from zenswarm.sim import simulate
+
+from swarmtest import SCENARIOS, read_results, unique_swarm
+from test_swarm import _up
+
+EX1 = SCENARIOS / "paper_example1.toml"
+
+
+@pytest.fixture(scope="module")
+def fault_free() -> dict:
+    return simulate(load_scenario(EX1)).results
+
+
+def _formation_error(ts: TimeSeries, scenario, i: int) -> np.ndarray:
+    h = np.asarray(scenario.offsets, dtype=float)
+    return np.linalg.norm(ts.qref[:, i] - ts.q0 - h[i], axis=1)
+
+
+def _swarm_equals_sim(out: Path, seed: int, **faults) -> tuple[dict, TimeSeries]:
+    sc = replace(load_scenario(EX1), seed=seed)
+    ref = simulate(sc, faults=plan_for(sc, seed=seed, **faults))
+    got = TimeSeries.load(str(out / "timeseries.npz"))
+    for f in TimeSeries.FIELDS:
+        np.testing.assert_array_equal(getattr(got, f), getattr(ref.series, f), err_msg=f"{f}: swarm != simulator")
+    res = read_results(out)
+    for k in RESULT_FIELDS:
+        assert res[k] == pytest.approx(ref.results[k], abs=1e-12), k
+    return ref.results, got
+
+
+def test_loss_and_delay_on_every_link(tmp_path: Path, fault_free: dict) -> None:
+    """20 % independent loss and 50 ms delay on every link: goal, clearance > 0, formation error
+    at most twice the fault-free run's; and the swarm equals the simulator with the same faults."""
+    out = tmp_path / "out"
+    cp = _up(EX1, out, unique_swarm("f"), "--link-loss", "0.2", "--link-delay", "50ms", "--seed", "7")
+    assert cp.returncode == 0, cp.stdout[-3000:]
+    res, _ = _swarm_equals_sim(out, 7, link_loss="0.2", link_delay="50ms")
+    assert res["goal_reached"] and res["success"]
+    assert res["min_obstacle_clearance_m"] > 0
+    assert res["max_formation_error_m"] <= 2 * fault_free["max_formation_error_m"]
+    diag = read_results(out)["diagnostics"]
+    drops = diag["agent:1"]["link:agent:2->agent:1:ref.dropped"]
+    assert 0.15 * 7000 < drops < 0.25 * 7000  # about 20 % of 7000 refs, counted per link
+    assert diag["plant"]["link:agent:2->plant:cmd.dropped"] > 0
+    print(f"\n20% loss + 50 ms: max formation error {res['max_formation_error_m']:.4f} m "
+          f"(fault-free {fault_free['max_formation_error_m']:.4f} m), clearance {res['min_obstacle_clearance_m']:.4f} m")
+
+
+def test_partition_of_agent2_rejoins(tmp_path: Path) -> None:
+    """Agent 2 cut off from 10 s to 13 s: it holds stale inputs, the plant's failsafe holds UAV 2,
+    it rejoins at 13 s and its formation error then decays; the peak is reported."""
+    out = tmp_path / "out"
+    cp = _up(EX1, out, unique_swarm("p"), "--partition", "agent:2@10s-13s")
+    assert cp.returncode == 0, cp.stdout[-3000:]
+    res, ts = _swarm_equals_sim(out, 0, partitions=["agent:2@10s-13s"])
+    assert res["success"]
+    sc = load_scenario(EX1)
+    err = _formation_error(ts, sc, 1)
+    t = ts.t
+    before = err[(t > 8) & (t < 10)].max()
+    peak_i = int(np.argmax(np.where((t >= 10) & (t < 20), err, -1)))
+    peak = float(err[peak_i])
+    assert peak > 2 * before, "the partition should disturb agent 2's reference"
+    assert err[(t > 40) & (t < 41)].max() < 0.5 * peak, "the formation error decays after the rejoin"
+    # the plant's failsafe took over UAV 2 while its commands were cut, and gave it back
+    events = [tuple(e) for e in res["failsafe_events"]]
+    assert any(e[1] == 2 and e[3] == "hover" for e in events)
+    assert any(e[1] == 2 and e[3] == "nominal" for e in events)
+    print(f"\npartition agent:2 10-13 s: formation error peak {peak:.3f} m at t = {t[peak_i]:.2f} s "
+          f"(before {before:.3f} m); failsafe events {events}")
+
+
+def test_sigkill_of_agent2_restarts_and_completes(tmp_path: Path) -> None:
+    """SIGKILL of agent 2 at 10 s: restarted within 2 s, mission completes without collision, and
+    the plant reports the failsafe interval of UAV 2."""
+    out = tmp_path / "out"
+    cp = _up(EX1, out, unique_swarm("k"), "--kill", "agent:2@10s", "--restart")
+    assert cp.returncode == 0, cp.stdout[-3000:]
+    res = read_results(out)
+    assert res["success"] and res["min_obstacle_clearance_m"] > 0 and res["min_inter_uav_distance_m"] > 0.05
+    assert res["restarts"] == {"agent:2": 1}
+    death = res["process_deaths"][0]
+    assert death["process"] == "agent:2" and "SIGKILL" in death["how"]
+    rejoin = [ln for ln in cp.stdout.splitlines() if "agent:2: joined at tick" in ln]
+    assert rejoin, cp.stdout[-3000:]
+    t_join = float(rejoin[0].split("t = ")[1].split(" s")[0])
+    # while an agent is down the lockstep clock runs at most at real time: sim time ~ wall time
+    assert 0 < t_join - death["sim_time_s"] <= 2.0 + 0.2, (death, t_join)
+    fs = [ln for ln in cp.stdout.splitlines() if "UAV 2 failsafe" in ln]
+    assert any("nominal -> hover" in ln for ln in fs) and any("-> nominal" in ln for ln in fs), fs
+    json.dumps(res)
