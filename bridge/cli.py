@@ -57,6 +57,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     recorder.add_parser(sub)
     replay.add_parsers(sub)
     _add_recover(sub)
+    from . import mavlink
+
+    mavlink.add_parsers(sub)
     for modname in ("bridge.report", "bridge.foxglove"):
         try:
             mod = __import__(modname, fromlist=["add_parser"])

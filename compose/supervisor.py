@@ -37,6 +37,32 @@ __all__ = ["add_parsers", "Collector", "Supervisor", "role_names"]
 EXIT_OK, EXIT_MISSION_FAILED, EXIT_BAD_INPUT, EXIT_PROCESS_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
 
+def _free_udp_base(n: int) -> int:
+    """A UDP port p on 127.0.0.1 with p .. p+n-1 free a moment ago."""
+    import socket
+
+    for _ in range(50):
+        socks = []
+        try:
+            s0 = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s0.bind(("127.0.0.1", 0))
+            base = s0.getsockname()[1]
+            socks.append(s0)
+            if base + n > 65535:
+                continue
+            for i in range(1, n):
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                socks.append(s)
+                s.bind(("127.0.0.1", base + i))
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise ZenswarmError("no free block of UDP ports for the MAVLink vehicles")
+
+
 def role_names(n: int) -> list[str]:
     """Process names of a swarm of n UAVs, in start order."""
     return ["plant", "leader"] + [f"agent:{i}" for i in range(1, n + 1)]
@@ -161,6 +187,9 @@ class Supervisor:
         self.restarts: dict[str, int] = {}
         self.deaths: list[dict] = []
         self.ended_at_goal = False
+        if args.plant == "mavlink":
+            args.realtime = True  # real vehicles (or their simulation over UDP) run on the wall clock
+        self.mav_base_port = args.mavlink_base_port or _free_udp_base(scenario.n)
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -189,6 +218,14 @@ class Supervisor:
             if self.keys_dir is not None:
                 argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
             return argv + fault_argv(a)
+        if role == "vehicles":  # simulated MAVLink vehicles (no Zenoh): the bridge talks to them over UDP
+            return argv + ["mavlink-vehicle", str(a.scenario), "--base-port", str(self.mav_base_port), "--telemetry-hz", "100"]
+        if role == "bridge":
+            argv += ["bridge", "mavlink", str(a.scenario), "--base-port", str(self.mav_base_port), "--swarm", a.swarm]
+            argv += [w for ep in self.connect_endpoints for w in ("--connect", ep)]
+            if self.keys_dir is not None:
+                argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
+            return argv
         if role == "plant" and a.record is not None:
             argv += ["plant", "--expect", "recorder"]
         elif role.startswith("agent:"):
@@ -286,7 +323,7 @@ class Supervisor:
             if a.record is not None:
                 a.record.parent.mkdir(parents=True, exist_ok=True)
                 self.spawn("recorder")  # first: the plant waits for it, so no tick goes unrecorded
-            for role in role_names(sc.n):
+            for role in self.roles():
                 self.spawn(role)
             code = self._watch(collector)
         finally:
@@ -321,6 +358,14 @@ class Supervisor:
                 self.say(f"generated credentials for this run in {self.keys_dir}")
         self.say(f"secure mode: {'mutual TLS' if a.tls else 'user/password'} authentication, access control from the graph")
         return security.router_security_config(self.keys_dir, self.sc, a.swarm, auth=auth), listen
+
+    def roles(self) -> list[str]:
+        """The processes this supervisor starts, in start order (``--external`` ones excluded)."""
+        names = role_names(self.sc.n)
+        if self.args.plant == "mavlink":
+            names = ["vehicles", "bridge"] + names[1:]
+        external = set(self.args.external or [])
+        return [r for r in names if r not in external]
 
     def _report(self, out: Path) -> None:
         """Flight report from the recording alone (``--report``)."""
@@ -522,6 +567,20 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--swarm", default="default", help="swarm name (key prefix swarm/<name>); default: default")
     p.add_argument("--out", type=Path, default=Path("runs/up"), help="output directory (default runs/up)")
     p.add_argument("--realtime", action="store_true", help="wall-clock mode: fixed-rate loops, latest value wins")
+    p.add_argument(
+        "--plant",
+        choices=("sim", "mavlink"),
+        default="sim",
+        help="sim: the simulated plant process (default); mavlink: simulated MAVLink vehicles over UDP flown "
+        "through the MAVLink bridge (zenswarm bridge mavlink), realtime",
+    )
+    p.add_argument("--mavlink-base-port", type=int, metavar="P", help="with --plant mavlink: vehicle i on UDP P+i-1 (default: free ports)")
+    p.add_argument(
+        "--external",
+        action="append",
+        metavar="ROLE",
+        help="a role started elsewhere (e.g. another host or network namespace with --only); not spawned here",
+    )
     p.add_argument(
         "--record",
         type=Path,
