@@ -221,7 +221,7 @@ _MAV_KEYS: dict[str, str] = {
     "reengage": "after a link loss, ask a still-armed vehicle for the offboard mode again (default true)",
     "source_system": "the bridge's MAVLink system id (default 245)",
     "telemetry_hz": "simulated vehicle: LOCAL_POSITION_NED and ATTITUDE rate, Hz (default 50)",
-    "offboard_loss_s": "simulated vehicle: no setpoint this long -> hold (PX4 COM_OF_LOSS_T), s (default 0.5)",
+    "offboard_loss_s": "simulated vehicle: no setpoint this long -> hold (PX4 COM_OF_LOSS_T, whose default is also 1 s), s (default 1.0)",
     "failsafe_land_s": "simulated vehicle: hold this long after the loss, then land, s (default 5)",
     "ground_z": "simulated vehicle: ground height, m ENU (default 0)",
 }
@@ -252,7 +252,7 @@ class MavlinkSettings:
     reengage: bool = True
     source_system: int = 245
     telemetry_hz: float = 50.0
-    offboard_loss_s: float = 0.5
+    offboard_loss_s: float = 1.0
     failsafe_land_s: float = 5.0
     ground_z: float = 0.0
 
@@ -404,7 +404,7 @@ def mavlink_settings(sc: Scenario, cli: dict[str, Any] | None = None) -> Mavlink
         reengage=_bool(f("reengage"), d.get("reengage", True)),
         source_system=_int(f("source_system"), d.get("source_system", 245), 1, 255),
         telemetry_hz=_num(f("telemetry_hz"), d.get("telemetry_hz", 50.0), 0.0, 1000.0, strict_lo=True),
-        offboard_loss_s=_num(f("offboard_loss_s"), d.get("offboard_loss_s", 0.5), 0.0, strict_lo=True),
+        offboard_loss_s=_num(f("offboard_loss_s"), d.get("offboard_loss_s", 1.0), 0.0, strict_lo=True),
         failsafe_land_s=_num(f("failsafe_land_s"), d.get("failsafe_land_s", 5.0), 0.0),
         ground_z=_num(f("ground_z"), d.get("ground_z", 0.0)),
     )
@@ -1036,7 +1036,13 @@ class Bridge:
         return q, v, rpy, w
 
     def info(self, now: float) -> dict[str, Any]:
+        """The diag ``info`` map: ``uav`` (per-UAV details), plus flat scalars that survive into
+        the supervisor's results.json (``phases`` = ``"1:ready,2:ready,..."``, ``armed_uavs`` =
+        how many vehicles report armed, ``unhealthy_uavs``)."""
         return {
+            "phases": ",".join(f"{link.uav}:{link.phase}" for link in self.links),
+            "armed_uavs": sum(1 for link in self.links if link.tel.armed),
+            "unhealthy_uavs": sum(1 for link in self.links if not link.healthy),
             "uav": {str(link.uav): link.info(now) for link in self.links},
             "unhealthy": [link.uav for link in self.links if not link.healthy],
             "ready": [link.uav for link in self.links if link.phase == READY],
@@ -1067,6 +1073,7 @@ class Bridge:
             t = link.tel
             if not t.armed and t.hb_rx > link.phase_t:
                 self._set_phase(link, DONE, now, "landed and disarmed")
+                self._count("landed")
                 continue
             busy = True
             in_land = _same_mode(link.autopilot, t.custom_mode, self._land_mode(link))
@@ -1128,12 +1135,19 @@ def _run(proc: Any) -> int:
             return None, math.inf
         return m, time.monotonic() - inbox.latest_rx.get(key, -math.inf)
 
-    if settings.setpoint == "attitude":
-        for key in cmd_keys:
-            proc.subscribe(key, "cmd")
-    else:
-        for key in ref_keys:
-            proc.subscribe(key, "ref")
+    # Link faults (--link-delay/--link-jitter/--link-loss/--partition, or the scenario's [faults]):
+    # the bridge takes the plant's place, so agent i's link to it is the plant's `agent:i -> plant`
+    # cmd link (also when it forwards uav/<i>/ref as position setpoints), decided on receipt and
+    # released after its delay, exactly as in the realtime plant.
+    from zenswarm.faults import FaultState
+    from zenswarm.linkfaults import plan_from_args
+
+    in_keys = cmd_keys if settings.setpoint == "attitude" else ref_keys
+    plan = plan_from_args(sc, args)
+    if plan is not None:
+        proc.use_delay_line(FaultState(plan), {key: (f"agent:{i + 1}", "plant", "cmd") for i, key in enumerate(in_keys)})
+    for key in in_keys:
+        proc.subscribe(key, "cmd" if settings.setpoint == "attitude" else "ref")
     bridge = Bridge(
         settings,
         sc,
@@ -1164,6 +1178,7 @@ def _run(proc: Any) -> int:
             now = time.monotonic()
             bridge.note_stall(now - last)
             last = now
+            proc.release_delayed()
             bridge.poll(now)
             bridge.advance(now)
             bridge.send(now)
@@ -1173,7 +1188,7 @@ def _run(proc: Any) -> int:
                     code = 3
                     break
                 if not waited_alive:
-                    others = ["leader"] + [f"agent:{i + 1}" for i in range(n)]
+                    others = ["leader"] + [f"agent:{i + 1}" for i in range(n)] + list(getattr(args, "expect", None) or [])
                     missing = proc.wait_for_alive(others, timeout_s=60.0)
                     waited_alive = True
                     if missing and not proc.stop.is_set():
@@ -1300,6 +1315,10 @@ def _configure(p: argparse.ArgumentParser) -> None:
     g.add_argument("--stream-s", type=float, metavar="S", help="setpoints streamed before asking for the offboard mode")
     g.add_argument("--start-timeout", type=float, metavar="S", help="start the mission after S even if some UAV is not ready")
     g.add_argument("--no-wait-alive", action="store_true", help="start the mission clock without waiting for the leader and agents")
+    g.add_argument(
+        "--expect", action="append", metavar="PROCESS",
+        help="also wait for this process (e.g. recorder) to announce itself before starting the mission clock",
+    )
     p.set_defaults(func=_main_args)
 
 

@@ -264,7 +264,12 @@ class Supervisor:
         """SIGTERM the swarm's roles and wait (then SIGKILL); the recorder last, after a moment for
         messages in flight, with time to drain its queue and write the summary."""
         rec = self.children.get("recorder")
-        self._terminate([c for c in self.children.values() if c.name != "recorder"], grace_s)
+        last = ("recorder", "bridge", "vehicles")
+        self._terminate([c for c in self.children.values() if c.name not in last], grace_s)
+        # MAVLink: the bridge lands and disarms its vehicles, which must still be running for that
+        for name, grace in (("bridge", 25.0), ("vehicles", grace_s)):
+            if name in self.children:
+                self._terminate([self.children[name]], grace)
         if rec is not None:
             if rec.popen.poll() is None:
                 time.sleep(0.3)
@@ -464,8 +469,9 @@ class Supervisor:
         sc = self.sc
         upto = None
         if code != EXIT_OK or self.ended_at_goal:
-            upto = int(max(collector.sim_t_ns, 0) // collector.dt_ns)
-        ts = collector.series(upto, fill=self.args.realtime)
+            upto = max(int(max(collector.sim_t_ns, 0) // collector.dt_ns), collector.goal_tick + 1 if self.ended_at_goal and self.args.realtime else 0)
+        # realtime, or a process that was down: a tick without a message holds the previous value
+        ts = collector.series(upto, fill=self.args.realtime or bool(self.deaths))
         res = compute_results(ts, sc, wall_time_s=None)
         res["mode"] = "realtime" if self.args.realtime else "lockstep"
         res["swarm"] = self.args.swarm

@@ -27,16 +27,17 @@ Modes: OFFBOARD (PX4 main 6; ArduCopter GUIDED 4 / GUIDED_NOGPS 20) follows the 
 refused (MAV_RESULT_TEMPORARILY_REJECTED) unless a setpoint arrived in the last
 ``offboard_loss_s`` (PX4 flavour); HOLD (AUTO.LOITER, POSCTL, ALTCTL; LOITER, BRAKE, ...) holds
 the position where it was entered; LAND (AUTO.LAND; LAND) descends at ``land_speed`` and disarms
-0.5 s after touchdown. Offboard-loss failsafe: no setpoint for ``offboard_loss_s`` (PX4
-``COM_OF_LOSS_T``) -> HOLD; still none ``failsafe_land_s`` later -> LAND. Arming in OFFBOARD needs
+0.5 s after touchdown. Offboard-loss failsafe: no setpoint for ``offboard_loss_s`` (1 s, as PX4's
+default ``COM_OF_LOSS_T``) -> HOLD; still none ``failsafe_land_s`` later -> LAND. Arming in OFFBOARD needs
 fresh setpoints; disarming needs the vehicle on the ground unless forced (param2 = 21196).
 
 Test hooks (also what a faulty vehicle looks like): :meth:`MavlinkFleet.silence` drops all
 traffic of one vehicle both ways for a while (physics goes on); ``mode_override`` makes a vehicle
 accept mode requests but keep reporting (and flying) another mode.
 
-``zenswarm mavlink-vehicle SCENARIO --base-port P`` (or ``python -m plant.mavlink_vehicle``) runs
-the fleet until SIGTERM/SIGINT. Importing this module sets ``MAVLINK20=1`` (see bridge.mavlink).
+``zenswarm mavlink-vehicle SCENARIO --base-port P`` (or ``zenswarm plant --mavlink --scenario
+SCENARIO --base-port P``, or ``python -m plant.mavlink_vehicle``) runs the fleet until
+SIGTERM/SIGINT. Importing this module sets ``MAVLINK20=1`` (see bridge.mavlink).
 """
 
 from __future__ import annotations
@@ -74,7 +75,7 @@ from .quadrotor import PlantState, initial_state, step
 
 mavlink = mavutil.mavlink
 
-__all__ = ["VehicleOptions", "SimVehicle", "MavlinkFleet", "main", "add_parsers"]
+__all__ = ["VehicleOptions", "SimVehicle", "MavlinkFleet", "run_fleet", "add_vehicle_args", "main", "add_parsers"]
 
 _FORCE_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that forces (dis)arming
 
@@ -105,7 +106,7 @@ class VehicleOptions:
     telemetry_hz: float = 50.0
     heartbeat_hz: float = 1.0
     sys_status_hz: float = 1.0
-    offboard_loss_s: float = 0.5
+    offboard_loss_s: float = 1.0  # PX4 COM_OF_LOSS_T default
     failsafe_land_s: float = 5.0
     land_speed: float = 0.5
     disarm_after_land_s: float = 0.5
@@ -643,9 +644,9 @@ class MavlinkFleet:
     def _ground(self) -> None:
         """Flat ground at ground_z: a vehicle below it is put back on it, at rest and level."""
         st = self.state
-        below = st.q[:, 2] < self.opts.ground_z
-        if not below.any():
+        if st.q[:, 2].min() >= self.opts.ground_z:  # the common case, cheap (runs every sub-step)
             return
+        below = st.q[:, 2] < self.opts.ground_z
         st.q[below, 2] = self.opts.ground_z
         st.v[below] = 0.0
         st.w[below] = 0.0
@@ -727,10 +728,9 @@ class MavlinkFleet:
 # --------------------------------------------------------------------------- CLI
 
 
-def _run_cli(args: argparse.Namespace) -> int:
-    from zenswarm.config import load_scenario
-
-    sc = load_scenario(args.scenario)
+def run_fleet(sc: Any, args: argparse.Namespace) -> int:
+    """Run the fleet of scenario ``sc`` in the calling thread until SIGTERM/SIGINT (or
+    ``args.duration``); ``args`` carries the flags of :func:`add_vehicle_args`."""
     fleet = MavlinkFleet.from_scenario(sc, base_port=args.base_port)
     if args.autopilot or args.telemetry_hz:
         opts = fleet.opts
@@ -762,12 +762,28 @@ def _run_cli(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_cli(args: argparse.Namespace) -> int:
+    from zenswarm.config import load_scenario
+
+    sc = load_scenario(args.scenario)
+    if getattr(args, "seed", None) is not None:
+        sc = replace(sc, seed=int(args.seed))
+    return run_fleet(sc, args)
+
+
+def add_vehicle_args(p: argparse.ArgumentParser) -> None:
+    """The simulated vehicles' flags (``mavlink-vehicle`` and ``plant --mavlink``)."""
+    g = p.add_argument_group("simulated MAVLink vehicles")
+    g.add_argument("--base-port", type=int, default=None, metavar="P", help="vehicle i listens on UDP P+i-1 (default mavlink.base_port, 14540)")
+    g.add_argument("--autopilot", choices=("px4", "ardupilot"), help="mode numbering and heartbeat flavour (default px4)")
+    g.add_argument("--telemetry-hz", type=float, metavar="HZ", help="LOCAL_POSITION_NED + ATTITUDE rate (default 50)")
+    g.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until SIGTERM/SIGINT)")
+
+
 def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", type=Path, help="scenario TOML (N vehicles, [vehicle], [timing], [mavlink])")
-    p.add_argument("--base-port", type=int, default=None, metavar="P", help="vehicle i listens on UDP P+i-1 (default mavlink.base_port, 14540)")
-    p.add_argument("--autopilot", choices=("px4", "ardupilot"), help="mode numbering and heartbeat flavour (default px4)")
-    p.add_argument("--telemetry-hz", type=float, metavar="HZ", help="LOCAL_POSITION_NED + ATTITUDE rate (default 50)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until SIGTERM/SIGINT)")
+    add_vehicle_args(p)
+    p.add_argument("--seed", type=int, default=None, help="seed of the disturbances (default: the scenario's)")
     p.set_defaults(func=_run_cli)
 
 

@@ -190,7 +190,27 @@ def _run(proc: SwarmProcess) -> int:
 
 
 def main(args: argparse.Namespace) -> int:
+    if getattr(args, "mavlink", False):
+        return _run_mavlink(args)
     return run_process(_run, "plant", args)
+
+
+def _run_mavlink(args: argparse.Namespace) -> int:
+    """``plant --mavlink``: the scenario's quadrotors as simulated MAVLink vehicles over UDP
+    (:mod:`plant.mavlink_vehicle`; no Zenoh session: the MAVLink bridge is their swarm side)."""
+    from dataclasses import replace
+
+    from zenswarm.config import load_scenario
+    from zenswarm.errors import ScenarioError
+
+    from .mavlink_vehicle import run_fleet
+
+    if args.scenario is None:
+        raise ScenarioError("--scenario", "plant --mavlink needs the scenario file (it has no bus to fetch it from)")
+    sc = load_scenario(args.scenario)
+    if args.seed is not None:
+        sc = replace(sc, seed=int(args.seed))
+    return run_fleet(sc, args)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -206,4 +226,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="PROCESS",
         help="also wait for this process (e.g. recorder) to announce itself before the first tick",
     )
+    from .mavlink_vehicle import add_vehicle_args
+
+    p.add_argument(
+        "--mavlink",
+        action="store_true",
+        help="run the quadrotors as simulated MAVLink vehicles over UDP instead (vehicle i on UDP --base-port + i - 1; "
+        "fly them with `zenswarm bridge mavlink`); the bus flags are then ignored",
+    )
+    add_vehicle_args(p)
     p.set_defaults(func=main)

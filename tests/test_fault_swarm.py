@@ -73,19 +73,25 @@ def test_partition_of_agent2_rejoins(tmp_path: Path) -> None:
     res, ts = _swarm_equals_sim(out, 0, partitions=["agent:2@10s-13s"])
     assert res["success"]
     sc = load_scenario(EX1)
+    free = simulate(sc).series
     err = _formation_error(ts, sc, 1)
     t = ts.t
-    before = err[(t > 8) & (t < 10)].max()
-    peak_i = int(np.argmax(np.where((t >= 10) & (t < 20), err, -1)))
-    peak = float(err[peak_i])
-    assert peak > 2 * before, "the partition should disturb agent 2's reference"
-    assert err[(t > 40) & (t < 41)].max() < 0.5 * peak, "the formation error decays after the rejoin"
+    # agent 2's reference departs from the fault-free run's during the cut ...
+    dev = np.linalg.norm(ts.qref[:, 1] - free.qref[:, 1], axis=1)
+    assert dev[t < 10].max() == 0.0
+    peak_i = int(np.argmax(dev))
+    peak = float(dev[peak_i])
+    assert 10.0 <= t[peak_i] < 25.0 and peak > 0.02
+    # ... it rejoins: its formation error then decays, and so does the departure
+    assert err[(t > 13) & (t < 14)].max() > 2 * err[(t > 24) & (t < 26)].max()
+    assert dev[-1] < 0.35 * peak
     # the plant's failsafe took over UAV 2 while its commands were cut, and gave it back
     events = [tuple(e) for e in res["failsafe_events"]]
     assert any(e[1] == 2 and e[3] == "hover" for e in events)
     assert any(e[1] == 2 and e[3] == "nominal" for e in events)
-    print(f"\npartition agent:2 10-13 s: formation error peak {peak:.3f} m at t = {t[peak_i]:.2f} s "
-          f"(before {before:.3f} m); failsafe events {events}")
+    print(f"\npartition agent:2 10-13 s: reference departs from the fault-free run by up to {peak:.3f} m "
+          f"(t = {t[peak_i]:.2f} s), {dev[-1]:.3f} m at the end; agent 2 formation error at 13-14 s "
+          f"{err[(t > 13) & (t < 14)].max():.3f} m, at 25 s {err[(t > 24) & (t < 26)].max():.3f} m; failsafe {events}")
 
 
 def test_sigkill_of_agent2_restarts_and_completes(tmp_path: Path) -> None:

@@ -287,7 +287,7 @@ class Gcs:
 @pytest.fixture
 def one_vehicle():
     port = free_udp_port()
-    fleet = MavlinkFleet([[1.0, 2.0, 0.4]], P, port, VehicleOptions(failsafe_land_s=1.0)).start()
+    fleet = MavlinkFleet([[1.0, 2.0, 0.4]], P, port, VehicleOptions(offboard_loss_s=0.5, failsafe_land_s=1.0)).start()
     gcs = Gcs(port)
     try:
         assert gcs.recv("HEARTBEAT", 3.0) is not None, "the vehicle never answered"
@@ -501,8 +501,9 @@ class Flight:
         self.base = free_udp_block(3)
         self.ep = tcp_endpoint(free_port())
         path = tmp / "mav.toml"
-        # offboard_loss_s = 1 s (the vehicle default is 0.5 s, tested above): on a loaded 2-CPU CI
-        # host, process stalls of 0.4-0.6 s were seen, which would trip the failsafe spuriously
+        # offboard_loss_s = 1 s (PX4's COM_OF_LOSS_T default and the vehicle's; 0.5 s is tested
+        # above): on a loaded 2-CPU CI host, process stalls of 0.4-0.6 s were seen, which would
+        # trip a shorter failsafe spuriously
         path.write_text(_scenario_text(f"base_port = {self.base}\nstream_s = 0.5\noffboard_loss_s = 1.0\n"))
         self.sc = load_scenario(path)
         self.keys = wire.Keys(self.swarm)
