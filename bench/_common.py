@@ -63,9 +63,10 @@ def machine_info() -> dict[str, Any]:
         "openblas_env": {k: os.environ[k] for k in OPENBLAS_VARS if k in os.environ},
     }
     try:
-        import zenoh
+        from importlib.metadata import version
 
-        info["zenoh"] = getattr(zenoh, "__version__", "?")
+        info["zenoh"] = version("eclipse-zenoh")
+        info["msgpack"] = version("msgpack")
     except Exception:  # noqa: BLE001
         pass
     try:
@@ -205,7 +206,9 @@ def run_sim_worker(scenario: Path, keep_openblas: bool = False, timeout_s: float
         "r = simulate(sc)\n"
         "w = time.perf_counter() - w0; c = time.process_time() - c0\n"
         "print(json.dumps({'wall_s': w, 'cpu_s': c, 'sim_time_s': r.results['sim_time_s'],"
-        " 'success': r.results['success'], 'goal_reached': r.results['goal_reached']}))\n"
+        " 'success': r.results['success'], 'goal_reached': r.results['goal_reached'],"
+        " 'rms_tracking_error_m': r.results.get('rms_tracking_error_m'),"
+        " 'min_inter_uav_distance_m': r.results.get('min_inter_uav_distance_m')}))\n"
     )
     win = CpuWindow()
     p = subprocess.run([sys.executable, "-c", code, str(scenario)], capture_output=True, text=True,
@@ -307,6 +310,14 @@ class ProcSample:
     threads: int = 0
     first_seen: float = 0.0
     last_seen: float = 0.0
+    hist: list = field(default_factory=list)  # (monotonic time, cpu_s, rss_kb)
+
+    def cpu_cores(self, t0: float, t1: float) -> float | None:
+        """Mean cores this process used between t0 and t1 (monotonic), from the samples."""
+        pts = [(t, c) for t, c, _ in self.hist if t0 <= t <= t1]
+        if len(pts) < 2 or pts[-1][0] <= pts[0][0]:
+            return None
+        return (pts[-1][1] - pts[0][1]) / (pts[-1][0] - pts[0][0])
 
 
 class TreeSampler(threading.Thread):
@@ -336,6 +347,7 @@ class TreeSampler(threading.Thread):
             ps.cpu_s = max(ps.cpu_s, st.get("cpu_s", 0.0))
             ps.threads = max(ps.threads, st.get("Threads", 0))
             ps.last_seen = now
+            ps.hist.append((now, st.get("cpu_s", 0.0), st.get("VmRSS", 0)))
             if self.pss:
                 pss = read_pss_kb(pid)
                 if pss:
@@ -365,7 +377,9 @@ def free_port() -> int:
 
 
 def port_is_free(port: int) -> bool:
+    """No socket listens on 127.0.0.1:port (SO_REUSEADDR: connections in TIME_WAIT don't count)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind(("127.0.0.1", port))
             return True

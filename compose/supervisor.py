@@ -418,7 +418,7 @@ class Supervisor:
                     continue
                 rc = c.popen.poll()
                 if rc is None:
-                    if c.name != "recorder":
+                    if c.name not in ("recorder", "vehicles"):  # both are stopped once the rest is done
                         done = False
                     continue
                 if c.returncode is None:

@@ -1,0 +1,83 @@
+"""Benchmark-only instrumentation of the swarm processes (bench/swarm_realtime.py).
+
+Python imports ``sitecustomize`` at start-up from ``sys.path``; bench/swarm_realtime.py puts this
+folder on ``PYTHONPATH`` and sets ``ZENSWARM_BENCH_STAMPS=<dir>`` for ``zenswarm up`` only, so the
+plant, the leader and every agent it starts (``python -m zenswarm plant|leader|agent ...``) get
+two wrappers, and nothing else changes (no source file of the project is touched):
+
+* ``SwarmProcess.publish``: the ``CLOCK_MONOTONIC`` time (``time.monotonic_ns``, system-wide on
+  Linux, so comparable across processes) right before ``publisher.put`` of each message, by
+  (key, seq); and, for ``Diag`` messages, the loop counters they carry (loop_ticks,
+  missed_deadlines) so the in-flight share of missed deadlines can be separated from start-up.
+* ``wire.Decoder.decode``: the time a sample reached the receiving process's Zenoh callback,
+  taken on entry to the decoder (the first thing the subscriber callback does), by (key, seq).
+
+At exit each process writes ``<dir>/<role>-<pid>.json``; the benchmark pairs publications with
+receptions by (key, seq): latency = receive time - publish time. Other processes (the
+supervisor, pip, ...) are left alone: the wrappers are installed only for the three roles.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+_DIR = os.environ.get("ZENSWARM_BENCH_STAMPS")
+_ROLE = None
+if _DIR:
+    _argv = list(sys.argv)  # at this point: ['-m', '<subcommand>', ...] for `python -m zenswarm ...`
+    if len(_argv) > 1 and _argv[1] in ("agent", "plant", "leader"):
+        _ROLE = _argv[1]
+        if _ROLE == "agent" and "--id" in _argv:
+            _ROLE = f"agent{_argv[_argv.index('--id') + 1]}"
+
+
+def _install(role: str, out_dir: str) -> None:
+    import atexit
+    import json
+    import time
+
+    from zenswarm import runtime, wire
+
+    mono = time.monotonic_ns
+    pub: dict[str, list] = {}
+    rx: dict[str, list] = {}
+    diags: list = []
+
+    def publish(self, key, msg):  # noqa: ANN001 - same contract as SwarmProcess.publish
+        data = wire.encode(msg)
+        t = mono()
+        self.publisher(key).put(data)
+        lst = pub.get(key)
+        if lst is None:
+            lst = pub[key] = []
+        lst.append((msg.seq, t))
+        if msg.kind == "diag":
+            info = msg.info
+            diags.append((t, info.get("loop_ticks"), info.get("missed_deadlines"), info.get("jitter_mean_ms")))
+
+    orig_decode = wire.Decoder.decode
+
+    def decode(self, key, kind, payload):  # noqa: ANN001
+        t = mono()
+        msg = orig_decode(self, key, kind, payload)
+        if msg is not None and kind != "diag":
+            lst = rx.get(key)
+            if lst is None:
+                lst = rx[key] = []
+            lst.append((msg.seq, t))
+        return msg
+
+    runtime.SwarmProcess.publish = publish
+    wire.Decoder.decode = decode
+
+    def dump() -> None:
+        path = os.path.join(out_dir, f"{role}-{os.getpid()}.json")
+        with open(path, "w") as f:
+            json.dump({"role": role, "pid": os.getpid(), "pub": pub, "rx": rx, "diags": diags}, f)
+
+    atexit.register(dump)
+
+
+if _ROLE is not None:
+    _install(_ROLE, _DIR)

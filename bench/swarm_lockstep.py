@@ -1,0 +1,206 @@
+"""Speed of the distributed swarm in lockstep (``zenswarm up``), beside the in-process simulator.
+
+Each run starts, as a child process,
+
+    zenswarm up SCEN --out DIR --quiet --quiet-children --swarm <unique> --listen tcp/127.0.0.1:<free port>
+
+(router inside the supervisor, plant, leader and one agent process per UAV, all on loopback)
+and, interleaved with it, the in-process simulator (``zenswarm.sim.simulate``, timed as in
+bench/sim_speed.py) on the very same scenario file. Median of ``--runs``.
+
+How the flight is timed: the plant is the lockstep clock, and its diagnostics in
+``results.json`` (``diagnostics.plant``) give ``step_ms_mean`` (integrating a tick and publishing
+the states) and ``wait_ms_mean`` (from the end of one tick to the start of the next: waiting for
+the agents' commands). Flight wall time = n_ticks x (step_ms_mean + wait_ms_mean): from the
+first tick to the last, without start-up (spawning ~N+3 Python processes, imports, Zenoh
+sessions, liveliness handshakes) and shut-down. The whole command's wall time is reported too
+(``up s``), and start-up + shut-down = up s - flight s. x real time = simulated s / flight s.
+Ratio = swarm flight wall time / simulator wall time (how many times slower the swarm is).
+
+While the swarm flies, the process tree is sampled every 0.25 s (/proc/<pid>/stat): the mean
+CPU cores each role used in the middle 80 % of the flight tell where the CPU goes
+(supervisor = router + result collector; plant; leader; all agents together).
+
+Scenarios (default: example1 example2 gen3 gen8 gen16 gen32): the paper examples run their
+full 70 s; generated ``gen<N>`` scenarios (``zenswarm scenario generate --n N --shape circle
+--topology knn --k 3 --obstacles 2 --seed 1``) are shortened to ``--gen-time-limit`` (default
+10 s of flight: per-tick cost is what is measured; the mission then "fails" for lack of time,
+which is expected and not an error: a run counts when the plant finished every tick).
+
+    python bench/swarm_lockstep.py                                  # defaults, 3 runs
+    python bench/swarm_lockstep.py --runs 5 --scenarios example1 --json bench/results/lockstep.json
+
+Every process a run starts is stopped at the end (or on Ctrl-C); leftovers and a port still
+bound after a run are reported. Not a test: numbers depend on the machine and its load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import _common as C  # noqa: E402
+
+DEFAULT_SCENARIOS = ["example1", "example2", "gen3", "gen8", "gen16", "gen32"]
+
+
+def analyse(run: C.UpRun, facts: dict) -> dict:
+    """Figures of one ``zenswarm up`` run."""
+    res = run.results
+    diag = res.get("diagnostics", {})
+    plant = diag.get("plant", {})
+    n_ticks = facts["n_ticks"]
+    out: dict = {
+        "returncode": run.returncode,
+        "up_wall_s": run.wall_s,
+        "finished": bool(plant.get("finished")),
+        "mission_success": res.get("success"),
+        "forced_ticks": sum(int(d.get("forced_ticks", 0) or 0) for d in diag.values()),
+        "leftover_processes": len(run.leftovers),
+        "port_free_after": run.port_free_after,
+        "background_cores": run.cpu.get("background_cores"),
+        "load1_start": run.cpu.get("load1_start"),
+        "own_cpu_s": run.cpu.get("own_cpu_s"),
+    }
+    step, wait = plant.get("step_ms_mean"), plant.get("wait_ms_mean")
+    if step is not None and wait is not None:
+        fw = n_ticks * (step + wait) / 1e3
+        out.update(plant_step_ms=step, plant_wait_ms=wait, ms_per_tick=step + wait, flight_wall_s=fw,
+                   x_real_time=facts["sim_time_s"] / fw, startup_shutdown_s=run.wall_s - fw)
+        agents = [d for name, d in diag.items() if name.startswith("agent:")]
+        if agents:
+            out["agent_step_ms_mean"] = sum(d.get("step_ms_mean", 0.0) for d in agents) / len(agents)
+            out["agent_step_ms_max"] = max(d.get("step_ms_mean", 0.0) for d in agents)
+        if "leader" in diag:
+            out["leader_step_ms"] = diag["leader"].get("step_ms_mean")
+        # CPU by role over the middle 80 % of the flight
+        pl = run.procs.get("plant")
+        if pl is not None and fw > 0.5:
+            t1 = pl.last_seen - 0.1 * fw
+            t0 = pl.last_seen - 0.9 * fw
+            cores: dict[str, float] = {}
+            for role, ps in run.procs.items():
+                c = ps.cpu_cores(t0, t1)
+                if c is None:
+                    continue
+                key = "agents" if role.startswith("agent:") else role
+                cores[key] = cores.get(key, 0.0) + c
+            out["flight_cores"] = cores
+            out["flight_cores_total"] = sum(cores.values())
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", type=int, default=3, help="runs per scenario (median reported; default 3)")
+    ap.add_argument("--scenarios", nargs="+", default=DEFAULT_SCENARIOS, metavar="S",
+                    help="example1, example2, gen<N> or TOML paths (default: %(default)s)")
+    ap.add_argument("--gen-time-limit", type=float, default=10.0, metavar="S",
+                    help="flight length of the generated scenarios, s (default 10; 0 = the generator's own, 75-90 s)")
+    ap.add_argument("--json", type=Path, metavar="FILE", help="write every run and the medians to FILE")
+    ap.add_argument("--keep", type=Path, metavar="DIR", help="keep each run's results.json under DIR")
+    ap.add_argument("--no-sim", action="store_true", help="skip the simulator baseline (no ratios)")
+    ap.add_argument("--timeout", type=float, default=900.0, metavar="S", help="per-run limit of zenswarm up (default 900 s)")
+    ap.add_argument("--quiet-wait", type=float, default=0.0, metavar="CORES",
+                    help="before each run wait (up to 120 s) until other jobs use at most CORES cores (0 = don't wait)")
+    a = ap.parse_args(argv)
+    C.install_cleanup()
+
+    tmp = tempfile.TemporaryDirectory(prefix="zenswarm-lockstep-bench-")
+    tmpdir = Path(tmp.name)
+    info = C.machine_info()
+    for line in C.machine_lines(info):
+        print(line)
+    scen = [C.scenario_file(s, tmpdir, a.gen_time_limit or None) for s in a.scenarios]
+    facts = {label: C.scenario_facts(p) for label, p in scen}
+    swarm_runs: dict[str, list[dict]] = {label: [] for label, _ in scen}
+    sim_runs: dict[str, list[dict]] = {label: [] for label, _ in scen}
+    failures = 0
+    try:
+        for r in range(a.runs):
+            for label, path in scen:
+                f = facts[label]
+                if not a.no_sim:
+                    if a.quiet_wait > 0:
+                        C.wait_for_quiet(a.quiet_wait, 120.0)
+                    s = C.run_sim_worker(path)
+                    sim_runs[label].append(s)
+                if a.quiet_wait > 0:
+                    C.wait_for_quiet(a.quiet_wait, 120.0)
+                out = tmpdir / f"{label}-run{r + 1}"
+                run = C.run_up(path, out, tag=f"ls{r}", timeout_s=a.timeout)
+                m = analyse(run, f)
+                swarm_runs[label].append(m)
+                if a.keep is not None and (out / "results.json").exists():
+                    a.keep.mkdir(parents=True, exist_ok=True)
+                    shutil.copy(out / "results.json", a.keep / f"{label}-run{r + 1}.json")
+                shutil.rmtree(out, ignore_errors=True)
+                if not m["finished"]:
+                    failures += 1
+                    print(f"  run {r + 1}/{a.runs} {label}: the plant did not finish (exit {run.returncode});"
+                          f" output:\n{run.output_tail}", flush=True)
+                    continue
+                sim_txt = f"  sim {s['wall_s']:.2f} s ({s['x_real_time']:.1f}x)" if not a.no_sim else ""
+                print(f"  run {r + 1}/{a.runs} {label:9s} flight {m['flight_wall_s']:7.2f} s = {m['x_real_time']:5.2f}x real time"
+                      f" ({m['ms_per_tick']:.2f} ms/tick: plant step {m['plant_step_ms']:.2f} + wait {m['plant_wait_ms']:.2f})"
+                      f"  up {m['up_wall_s']:.1f} s{sim_txt}  cpu cores in flight {m.get('flight_cores_total', 0):.2f}"
+                      f"  background {m['background_cores']:.2f}", flush=True)
+    finally:
+        C.cleanup_all()
+
+    rows, summary = [], {}
+    for label, _ in scen:
+        ok = [m for m in swarm_runs[label] if m["finished"]]
+        f = facts[label]
+        if not ok:
+            summary[label] = {"runs_ok": 0}
+            rows.append([label, f["n_uav"], f"{f['sim_time_s']:g}"] + ["-"] * 11)
+            continue
+        sm: dict = {"n_uav": f["n_uav"], "sim_time_s": f["sim_time_s"], "runs_ok": len(ok), "runs": len(swarm_runs[label])}
+        for k in ("flight_wall_s", "up_wall_s", "startup_shutdown_s", "ms_per_tick", "plant_step_ms", "plant_wait_ms",
+                  "agent_step_ms_mean", "leader_step_ms", "flight_cores_total", "background_cores"):
+            sm[k] = C.median(m.get(k) for m in ok)
+        roles = sorted({k for m in ok for k in m.get("flight_cores", {})})
+        sm["flight_cores"] = {k: C.median(m.get("flight_cores", {}).get(k) for m in ok) for k in roles}
+        sm["x_real_time"] = f["sim_time_s"] / sm["flight_wall_s"]
+        sm["leftover_processes"] = sum(m["leftover_processes"] for m in swarm_runs[label])
+        sm["port_left_bound"] = sum(not m["port_free_after"] for m in swarm_runs[label])
+        sm["forced_ticks"] = sum(m["forced_ticks"] for m in ok)
+        if sim_runs[label]:
+            sw = C.median(s["wall_s"] for s in sim_runs[label])
+            sm["sim_wall_s"] = sw
+            sm["sim_x_real_time"] = f["sim_time_s"] / sw
+            sm["ratio_swarm_over_sim"] = sm["flight_wall_s"] / sw
+        summary[label] = sm
+        fc = sm["flight_cores"]
+        rows.append([
+            label, f["n_uav"], f"{f['sim_time_s']:g}", sm["flight_wall_s"], f"{sm['x_real_time']:.2f}x",
+            sm["ms_per_tick"], f"{sm['plant_step_ms']:.2f} / {sm['plant_wait_ms']:.2f}", sm["agent_step_ms_mean"],
+            sm["startup_shutdown_s"],
+            f"{sm['sim_x_real_time']:.1f}x" if "sim_x_real_time" in sm else "-",
+            f"{sm['ratio_swarm_over_sim']:.1f}" if "ratio_swarm_over_sim" in sm else "-",
+            " ".join(f"{k[:3]}={v:.2f}" for k, v in fc.items() if v is not None) or "-",
+            sm["background_cores"], f"{sm['runs_ok']}/{sm['runs']}",
+        ])
+    print()
+    print(f"lockstep swarm (zenswarm up) vs in-process simulator, median of {a.runs} runs")
+    print(C.table(["scenario", "UAVs", "sim s", "flight wall s", "x real time", "ms/tick", "plant step/wait ms",
+                   "agent step ms", "start+stop s", "simulator", "swarm/sim", "CPU cores in flight by role",
+                   "background cores", "ok runs"], rows))
+    leftovers = sum(s.get("leftover_processes", 0) for s in summary.values())
+    bound = sum(s.get("port_left_bound", 0) for s in summary.values())
+    print(f"cleanup: {leftovers} leftover processes, {bound} ports left bound")
+    C.write_json(a.json, {"benchmark": "swarm_lockstep", "command": C.command_line(), "machine": info,
+                          "loadavg_at_end": list(os.getloadavg()), "scenarios": facts, "summary": summary,
+                          "swarm_runs": swarm_runs, "sim_runs": sim_runs})
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
