@@ -225,7 +225,7 @@ class Supervisor:
             argv += [w for ep in self.connect_endpoints for w in ("--connect", ep)]
             if self.keys_dir is not None:
                 argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
-            return argv
+            return argv + fault_argv(a) + (["--expect", "recorder"] if a.record is not None else [])
         if role == "plant" and a.record is not None:
             argv += ["plant", "--expect", "recorder"]
         elif role.startswith("agent:"):
