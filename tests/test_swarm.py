@@ -205,3 +205,50 @@ def test_realtime_example1_reaches_goal(tmp_path: Path) -> None:
     for name in ("plant", "leader", "agent:1"):
         assert "missed_deadlines" in res["diagnostics"][name], name
     json.dumps(res)
+
+
+def test_agent_joins_from_elsewhere_and_fetches_the_mission(tmp_path: Path) -> None:
+    """`--external agent:3`: agent 3 is started by hand, as on another host, with no scenario file:
+    it fetches the mission from the leader's queryable; the run still equals the simulator."""
+    scenario = scenario_variant(tmp_path, time_limit_s=3.0, settle_time_s=1.0)
+    swarm = unique_swarm("x")
+    port = free_port()
+    out = tmp_path / "out"
+    sup = start_zenswarm(
+        "up", str(scenario), "--out", str(out), "--swarm", swarm, "--listen", f"tcp/127.0.0.1:{port}",
+        "--external", "agent:3", "--quiet",
+    )
+    agent = start_zenswarm("agent", "--id", "3", "--swarm", swarm, "--connect", f"tcp/127.0.0.1:{port}")
+    try:
+        a_out = agent.communicate(timeout=120)[0]
+        s_out = sup.communicate(timeout=120)[0]
+    finally:
+        for p in (sup, agent):
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        leftovers = processes_mentioning(f"--swarm {swarm}")
+        kill_mentioning(f"--swarm {swarm}")
+    assert not leftovers
+    assert agent.returncode == 0, a_out[-2000:]
+    assert sup.returncode in (0, 1), s_out[-2000:]
+    _assert_equal_to_sim(scenario, out)
+
+
+def test_record_and_report_match_the_run(tmp_path: Path) -> None:
+    """`--record --report`: the report, from the MCAP alone, gives the run's own results; every
+    agent's recorded commands are reproduced bit for bit by `zenswarm verify`."""
+    scenario = scenario_variant(tmp_path, time_limit_s=4.0, settle_time_s=1.0)
+    out = tmp_path / "out"
+    rec = tmp_path / "flight.mcap"
+    cp = _up(scenario, out, unique_swarm("r"), "--record", str(rec), "--report")
+    assert cp.returncode in (0, 1), cp.stdout[-3000:]
+    run = read_results(out)
+    rep = json.loads((out / "report" / "results.json").read_text())
+    for k in RESULT_FIELDS:
+        assert rep[k] == run[k], k
+    for png in ("trajectories_3d.png", "formation_errors.png", "tracking_errors.png", "clearance.png", "links.png"):
+        assert (out / "report" / png).stat().st_size > 10_000, png
+    v = zenswarm("verify", str(rec), "--agent", "all", timeout=120)
+    assert v.returncode == 0, v.stdout
+    assert v.stdout.count("verified 400 ticks") == 3, v.stdout

@@ -117,8 +117,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# The swarm's own processes start with only what they need (a restarted agent rejoins sooner).
+_ROLE_MODULES = {"agent": "agents.process", "leader": "leader.process", "plant": "plant.process"}
+
+
+def _role_parser(role: str) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="zenswarm")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    __import__(_ROLE_MODULES[role], fromlist=["add_parser"]).add_parser(sub)
+    return parser
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = _role_parser(argv[0]) if argv and argv[0] in _ROLE_MODULES else build_parser()
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
