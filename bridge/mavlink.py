@@ -220,7 +220,8 @@ _MAV_KEYS: dict[str, str] = {
     "start_timeout_s": "start the mission clock after this long even if some UAV is not ready, s (default 60)",
     "reengage": "after a link loss, ask a still-armed vehicle for the offboard mode again (default true)",
     "source_system": "the bridge's MAVLink system id (default 245)",
-    "telemetry_hz": "simulated vehicle: LOCAL_POSITION_NED and ATTITUDE rate, Hz (default 50)",
+    "telemetry_hz": "LOCAL_POSITION_NED and ATTITUDE rate, Hz: the simulated vehicles send at it, the bridge asks real ones for it (default 50)",
+    "request_telemetry": "ask each vehicle for telemetry_hz with MAV_CMD_SET_MESSAGE_INTERVAL on connect and after a link loss (default true)",
     "offboard_loss_s": "simulated vehicle: no setpoint this long -> hold (PX4 COM_OF_LOSS_T, whose default is also 1 s), s (default 1.0)",
     "failsafe_land_s": "simulated vehicle: hold this long after the loss, then land, s (default 5)",
     "ground_z": "simulated vehicle: ground height, m ENU (default 0)",
@@ -252,6 +253,7 @@ class MavlinkSettings:
     reengage: bool = True
     source_system: int = 245
     telemetry_hz: float = 50.0
+    request_telemetry: bool = True
     offboard_loss_s: float = 1.0
     failsafe_land_s: float = 5.0
     ground_z: float = 0.0
@@ -404,6 +406,7 @@ def mavlink_settings(sc: Scenario, cli: dict[str, Any] | None = None) -> Mavlink
         reengage=_bool(f("reengage"), d.get("reengage", True)),
         source_system=_int(f("source_system"), d.get("source_system", 245), 1, 255),
         telemetry_hz=_num(f("telemetry_hz"), d.get("telemetry_hz", 50.0), 0.0, 1000.0, strict_lo=True),
+        request_telemetry=_bool(f("request_telemetry"), d.get("request_telemetry", True)),
         offboard_loss_s=_num(f("offboard_loss_s"), d.get("offboard_loss_s", 1.0), 0.0, strict_lo=True),
         failsafe_land_s=_num(f("failsafe_land_s"), d.get("failsafe_land_s", 5.0), 0.0),
         ground_z=_num(f("ground_z"), d.get("ground_z", 0.0)),
@@ -733,6 +736,7 @@ class Bridge:
             if link.tel.hb_count and link.phase != CONNECTING:
                 self._count("link_recovered")
                 self.log(f"bridge: uav {link.uav}: link recovered")
+                self._request_telemetry(link)  # the vehicle may have rebooted (rates reset)
         else:
             if math.isfinite(link.tel.last_rx):
                 self._count("link_lost")
@@ -752,6 +756,18 @@ class Bridge:
             return
         p = list(params) + [0.0] * (7 - len(params))
         mav.command_long_send(link.sysid, mavlink.MAV_COMP_ID_AUTOPILOT1, command, 0, *p)
+
+    def _request_telemetry(self, link: UavLink) -> None:
+        """Ask the vehicle for LOCAL_POSITION_NED and ATTITUDE at ``telemetry_hz``
+        (MAV_CMD_SET_MESSAGE_INTERVAL, param1 = message id, param2 = interval in us). PX4's onboard
+        link streams both by default (30 and 100 Hz); ArduPilot sends on a port only what its
+        SRn_* parameters or such a request ask for. The answer is not waited for."""
+        if not self.s.request_telemetry:
+            return
+        interval_us = 1e6 / self.s.telemetry_hz
+        for msg_id in (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE):
+            self._command(link, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), interval_us)
+        self._count("telemetry_requests")
 
     def _request_mode(self, link: UavLink, mode: int, now: float) -> None:
         self._command(link, mavlink.MAV_CMD_DO_SET_MODE, *mode_request_params(link.autopilot, mode))
@@ -782,6 +798,7 @@ class Bridge:
         if link.phase == CONNECTING:
             if t.hb_count:
                 link.wanted_mode = self._offboard_mode(link)
+                self._request_telemetry(link)
                 self._set_phase(link, STREAM, now, "")
                 self.log(
                     f"bridge: uav {link.uav}: vehicle sysid {link.sysid} ({link.autopilot}) on {link.endpoint.url}, "

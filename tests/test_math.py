@@ -28,6 +28,8 @@ PURE_MODULES = [
     "plant/params.py",
     "plant/quadrotor.py",
     "plant/disturbance.py",
+    "plant/failsafe.py",
+    "bridge/frames.py",
     "zenswarm/metrics.py",
 ]
 ALLOWED_IMPORTS = {"numpy", "math", "dataclasses", "typing", "__future__", "leader", "agents", "plant", "zenswarm"}

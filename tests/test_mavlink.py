@@ -369,6 +369,37 @@ def test_vehicle_offboard_loss_failsafe(one_vehicle):
     assert veh.counters["failsafe_hold"] == 1 and veh.counters["failsafe_land"] == 1
 
 
+def test_plant_mavlink_flag_runs_the_simulated_vehicles():
+    """`zenswarm plant --mavlink --scenario S --base-port P` runs the scenario's quadrotors as
+    MAVLink vehicles: vehicle i answers on UDP P+i-1 with system id i; it stops by itself after
+    --duration."""
+    base = free_udp_block(3)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "zenswarm", "plant", "--mavlink", "--scenario", str(EX1), "--base-port", str(base), "--duration", "6"],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    gcs = None
+    try:
+        gcs = Gcs(base + 1, sysid=2)
+        hb = None
+        deadline = time.monotonic() + 5.0
+        while hb is None and time.monotonic() < deadline:
+            gcs.c.mav.heartbeat_send(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 4)
+            hb = gcs.recv("HEARTBEAT", 1.0)
+        assert hb is not None and hb.get_srcSystem() == 2 and hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
+        lp = gcs.recv("LOCAL_POSITION_NED", 2.0)  # UAV 2 spawns on the ground under ENU (0, 0.2, 0.4)
+        assert (lp.x, lp.y, lp.z) == pytest.approx((0.2, 0.0, 0.0), abs=1e-6)
+        out, _ = p.communicate(timeout=20)
+        assert p.returncode == 0, out
+        assert "stopped (duration reached)" in out
+    finally:
+        if gcs is not None:
+            gcs.close()
+        if p.poll() is None:
+            p.kill()
+        p.wait(timeout=10)
+
+
 # =========================================================================== bridge, in process (no bus)
 
 
@@ -405,6 +436,45 @@ def test_bridge_counts_and_ignores_malformed_mavlink():
         other.close()
         raw.close()
     finally:
+        b.close()
+
+
+def test_bridge_asks_each_vehicle_for_its_telemetry_rate():
+    """On meeting a vehicle the bridge asks it for LOCAL_POSITION_NED (32) and ATTITUDE (30) at
+    telemetry_hz with MAV_CMD_SET_MESSAGE_INTERVAL (param2 = interval, us): ArduPilot sends on a
+    port only what its SRn_* parameters or such a request ask for."""
+    port = free_udp_port()
+    conns = [f"udpin:127.0.0.1:{port}", "udpout:127.0.0.1:9", "udpout:127.0.0.1:9"]
+    sc = scenario_from_dict(_doc_with({"connections": conns, "telemetry_hz": 40.0}))
+    counters: dict[str, float] = {}
+    b = Bridge(mavlink_settings(sc), sc, counters, lambda i: (None, math.inf), lambda i: (None, math.inf), log=lambda s: None)
+    veh = None
+    try:
+        b.poll(time.monotonic())  # opens the sockets
+        veh = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+        veh.mav.heartbeat_send(
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+            AP_COPTER_MODES["STABILIZE"], mavlink.MAV_STATE_STANDBY,
+        )
+
+        def step() -> bool:
+            now = time.monotonic()
+            b.poll(now)
+            b.advance(now)
+            return b.links[0].phase == "stream"
+
+        wait_until(step, 3.0, "the bridge meeting the vehicle")
+        got: dict[int, tuple[float, int, int]] = {}
+        deadline = time.monotonic() + 3.0
+        while len(got) < 2 and time.monotonic() < deadline:
+            m = veh.recv_match(type="COMMAND_LONG", blocking=True, timeout=0.2)
+            if m is not None and m.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+                got[int(m.param1)] = (m.param2, m.target_system, m.target_component)
+        assert got == {32: (25000.0, 1, 1), 30: (25000.0, 1, 1)}, got  # 1e6 / 40 Hz
+        assert counters["telemetry_requests"] == 1
+    finally:
+        if veh is not None:
+            veh.close()
         b.close()
 
 

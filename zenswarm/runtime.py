@@ -4,16 +4,36 @@ diagnostics, liveliness, and a clean exit on SIGINT/SIGTERM.
 The process shells (``agents/process.py``, ``leader/process.py``, ``plant/process.py``) are thin:
 decode -> pure step -> encode. This module is the glue they share; messages cross the network in
 :mod:`zenswarm.bus` (sessions) and :mod:`zenswarm.wire` (keys and payloads).
+
+Malformed input (issue 5). Every sample a process subscribed to goes through
+:meth:`SwarmProcess.handle_sample`, which never raises: first the :class:`zenswarm.wire.Decoder`
+(bytes, size, msgpack, version, kind, fields, types, lengths, finiteness, t/seq ranges), then an
+:class:`InputGuard` that judges the decoded message against what this key has delivered so far.
+Each reject is counted per key and per reason (:data:`GUARD_REASONS` beside the decoder's
+:data:`zenswarm.wire.REASONS`) and shows up in the process's diag counters as ``rejected``,
+``rejected.<reason>`` and ``rejected@<key>.<reason>`` (``<key>`` without ``swarm/<name>/``).
+
+Sender identity (open swarms). :meth:`SwarmProcess.publish` stamps every sample with the
+publisher's ``zenoh.SourceInfo`` (zenoh 1.10 does not fill it in by itself: ``Sample.source_info``
+is None unless the publisher sets it), and :meth:`SwarmProcess.announce` declares, beside the
+process's token ``alive/<process>``, a second liveliness token ``alive/<process>/<zid>`` that
+ties the process name to its session id. A receiver pins, per key, the session id of the sender
+it accepts; samples from any other session are ``foreign_sender`` unless the pinned session's
+token is gone and the new one holds the expected sender's token (a restarted process). The ids are
+not authenticated (any client can forge a ``SourceInfo``): this guards against mistakes (a process
+started with the wrong ``--id``, a stray tool), not an attacker; secure mode (``--keys``) relies
+on the router's access control instead and skips the check.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 import threading
 import time
-from collections import defaultdict
+from collections import defaultdict, deque
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
@@ -24,7 +44,8 @@ from . import bus, security, wire
 from .config import Scenario, load_scenario, scenario_from_dict
 from .errors import ScenarioError, ZenswarmError
 
-__all__ = ["Inbox", "SwarmProcess", "add_common_args", "LoopStats"]
+__all__ = ["Inbox", "SwarmProcess", "add_common_args", "LoopStats", "InputGuard", "GUARD_REASONS", "sample_sender",
+           "expected_senders"]
 
 # Lockstep: a missing input is waited for this long (wall clock) before it counts as a drop.
 DEFAULT_LOCKSTEP_TIMEOUT_S = 5.0
@@ -32,6 +53,24 @@ DEFAULT_LOCKSTEP_TIMEOUT_S = 5.0
 # Zenoh runs Python callbacks on its own threads; with the default 5 ms GIL switch interval a
 # callback thread can keep the main loop waiting for the GIL for milliseconds per message.
 SWITCH_INTERVAL_S = 0.0002
+
+GUARD_REASONS = (
+    "out_of_range",  # a finite value so large it can only be garbage (|x| > MAX_ABS_VALUE)
+    "foreign_sender",  # not the session pinned for this key (open mode)
+    "stale",  # seq not greater than the last accepted on this key (repeated or older)
+    "duplicate",  # a second message for a tick this key already delivered
+    "past",  # older than the newest tick of this key, or than the lockstep/fault horizon
+    "future",  # beyond the mission's end, or too far ahead of this key's stream
+    "internal",  # the guard itself failed (a bug; counted, never raised)
+)
+"""Reasons of :class:`InputGuard` rejects (the decoder's are :data:`zenswarm.wire.REASONS`)."""
+
+MAX_ABS_VALUE = 1e9
+"""Largest magnitude accepted for any vector element or scalar of a state, ref or cmd (SI units).
+Finite values above it are garbage, and would overflow to inf in the controllers' arithmetic."""
+
+GUARD_MARGIN_TICKS = 4
+"""Ticks of slack on both sides of the time window, beyond the link-fault delay horizon."""
 
 
 class Inbox:
@@ -108,6 +147,290 @@ class LoopStats:
             "jitter_max_ms": 1e3 * self.max_jitter_s,
             "jitter_mean_ms": 1e3 * self._sum_jitter / self.ticks if self.ticks else 0.0,
         }
+
+
+def sample_sender(sample: Any) -> str:
+    """Session id (zid, hex) of a sample's publisher from its ``source_info``; ``""`` when the
+    publisher did not set one (or the sample is not a zenoh Sample). Never raises."""
+    try:
+        si = sample.source_info
+        if si is None:
+            return ""
+        return str(si.source_id.zid)
+    except Exception:  # noqa: BLE001 - a fake or odd sample: anonymous
+        return ""
+
+
+def expected_senders(keys: wire.Keys, key: str) -> tuple[str, ...]:
+    """Process names allowed to publish on ``key`` (``()`` for a key of unknown layout)::
+
+        clock, uav/<i>/state   plant (or the MAVLink bridge in its place)
+        uav/<i>/ref, cmd        agent:<i>
+        leader/ref, mission     leader
+        diag/<p>                p
+    """
+    try:
+        kind, idx, proc = keys.parse(key)
+    except ZenswarmError:
+        return ()
+    if kind in ("clock", "state"):
+        return ("plant", "bridge")
+    if kind in ("ref", "cmd") and idx is not None:
+        return (wire.agent(idx),)
+    if kind in ("leader_ref", "mission"):
+        return ("leader",)
+    if kind == "diag" and proc is not None:
+        return (proc,)
+    return ()
+
+
+def _implausible(msg: Any) -> bool:
+    """True if a decoded state, ref or cmd holds a finite value above :data:`MAX_ABS_VALUE`."""
+    big = MAX_ABS_VALUE
+    for name in ("q", "v", "rpy", "w", "u", "d_hat"):
+        a = getattr(msg, name, None)
+        if a is None:
+            continue
+        x, y, z = a.tolist()
+        if not (-big <= x <= big and -big <= y <= big and -big <= z <= big):
+            return True
+    thrust = getattr(msg, "thrust", None)
+    return thrust is not None and not -big <= thrust <= big
+
+
+class _KeyState:
+    """What one key has delivered: pinned sender, newest seq and tick, recent ticks."""
+
+    __slots__ = ("pin", "last_seq", "last_tick", "last_rx", "recent")
+
+    def __init__(self) -> None:
+        self.pin: str | None = None
+        self.last_seq: int | None = None
+        self.last_tick: int | None = None  # None: no stream position (new key, new sender, or a gap)
+        self.last_rx = 0.0
+        self.recent: deque[int] = deque(maxlen=64)
+
+    def reset(self) -> None:
+        self.pin = None
+        self.last_seq = None
+        self.last_tick = None
+        self.recent.clear()
+
+
+class InputGuard:
+    """Checks a decoded message against what its key has delivered; counts rejects.
+
+    Called after the decoder, once per sample, with the key, the key's expected senders (process
+    names, see :func:`expected_senders`), the message's tick, seq and the publishing session's
+    id. In this order (the first failing check names the reject):
+
+    1. ``out_of_range``: a state, ref or cmd value above :data:`MAX_ABS_VALUE` (finite garbage).
+    2. ``foreign_sender`` (only with ``check_sender``): the key is pinned to the first session it
+       accepted; another session is rejected, unless the pinned one no longer holds a liveliness
+       token and the new one does (or nobody does yet): a restarted process, accepted again with a
+       fresh stream. Before anything is pinned, a session is rejected if others hold the expected
+       sender's token and it does not. Tokens are reported with :meth:`token`. Without
+       ``check_sender`` (secure mode: the router's access control admits only the right process)
+       a new session on a key is that process restarted: a fresh stream, no reject.
+    3. ``stale``: seq not greater than the newest accepted on this key (repeated or older seq).
+    4. ``duplicate``: a tick this key already delivered (the last 64 kept).
+    5. ``past``: older than this key's newest tick, or (lockstep, once ticking) older than
+       ``now_tick() - window`` with ``window = horizon_ticks + margin_ticks``: a legitimate input
+       is never later than the link-fault horizon unless the receiver already gave up on it.
+    6. ``future``: beyond ``n_ticks + window`` (the mission's end), or more than ``window`` ticks
+       plus one tick per ``growth_period_s`` of silence ahead of ``max(this key's newest tick,
+       now_tick())``. The window is relative to the key's own stream, not only to the receiver's
+       tick: in lockstep a receiver may legitimately lag its senders by many ticks (a partitioned
+       or slow agent whose inputs the others no longer wait for), and rejecting the plant's next
+       state there would stall it forever. A stream's first message (new key, new sender, or
+       after :meth:`discontinuity`) is bounded by the mission's end only: a restarted agent joins
+       at whatever tick the plant has reached.
+
+    Accepted messages move the key's stream (pin, seq, tick). ``clock`` is injectable (tests).
+    Thread-safe.
+    """
+
+    def __init__(
+        self,
+        *,
+        dt_ns: int,
+        n_ticks: int,
+        horizon_ticks: int = 0,
+        margin_ticks: int = GUARD_MARGIN_TICKS,
+        growth_period_s: float = 0.01,
+        check_sender: bool = True,
+        now_tick: Callable[[], int | None] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        max_keys: int = 1024,
+        prefix: str = "",
+    ) -> None:
+        self.dt_ns = int(dt_ns)
+        self.window = int(horizon_ticks) + int(margin_ticks)
+        self.cap = int(n_ticks) + self.window
+        self.growth_period_s = max(float(growth_period_s), 1e-6)
+        self.check_sender = check_sender
+        self.now_tick = now_tick
+        self.clock = clock
+        self.max_keys = max_keys
+        self._plen = len(prefix)
+        self._lock = threading.Lock()
+        self._keys: dict[str, _KeyState] = {}
+        self._holders: dict[str, set[str]] = defaultdict(set)  # process name -> zids holding its token
+        self._gone: dict[str, deque[str]] = defaultdict(lambda: deque(maxlen=64))  # zids whose token went away
+        self.accepted = 0
+        self.reasons: dict[str, int] = {}
+        self.by_key: dict[tuple[str, str], int] = {}
+        self.last_reject: str | None = None
+
+    # ------------------------------------------------------------------ sender tokens
+    def token(self, name: str, zid: str, alive: bool) -> None:
+        """``alive/<name>/<zid>`` appeared (alive) or went away. A pinned session whose token
+        comes back (a client that reconnected) restarts its keys' streams (messages were lost)."""
+        with self._lock:
+            holders = self._holders[name]
+            if alive:
+                back = zid not in holders and zid in self._gone[name]
+                holders.add(zid)
+                if back:
+                    for st in self._keys.values():
+                        if st.pin == zid:
+                            st.last_tick = None
+            else:
+                holders.discard(zid)
+                gone = self._gone[name]
+                if zid not in gone:
+                    gone.append(zid)
+
+    def discontinuity(self) -> None:
+        """Messages may have been lost on every key (our own link to the router came back):
+        each key's next message starts a fresh stream position (pins and seqs are kept)."""
+        with self._lock:
+            for st in self._keys.values():
+                st.last_tick = None
+
+    def _holders_of(self, senders: tuple[str, ...]) -> set[str]:
+        out: set[str] = set()
+        for s in senders:
+            h = self._holders.get(s)
+            if h:
+                out |= h
+        return out
+
+    def _was_holder(self, senders: tuple[str, ...], zid: str) -> bool:
+        return any(zid in self._gone[s] for s in senders if s in self._gone)
+
+    # ------------------------------------------------------------------ the check
+    def check(self, key: str, senders: tuple[str, ...], tick: int, msg: Any, zid: str) -> str | None:
+        """None if accepted (the key's stream moves on), else the reject reason (counted)."""
+        try:
+            reason = self._check(key, senders, int(tick), msg, str(zid))
+        except Exception as e:  # noqa: BLE001 - never raise into a callback
+            reason = "internal"
+            self.last_reject = f"{key}: internal: {type(e).__name__}: {e}"
+        if reason is None:
+            self.accepted += 1
+        else:
+            self.count(key, reason)
+        return reason
+
+    def _check(self, key: str, senders: tuple[str, ...], tick: int, msg: Any, zid: str) -> str | None:
+        if _implausible(msg):
+            return "out_of_range"
+        seq = int(msg.seq)
+        with self._lock:
+            st = self._keys.get(key)
+            if st is None:
+                if len(self._keys) >= self.max_keys:
+                    return "internal"
+                st = self._keys[key] = _KeyState()
+            now = self.clock()
+            repin = False
+            if self.check_sender:
+                if st.pin is None:
+                    holders = self._holders_of(senders)
+                    if holders and zid not in holders:
+                        return "foreign_sender"
+                elif zid != st.pin:
+                    holders = self._holders_of(senders)
+                    if st.pin in holders:
+                        return "foreign_sender"
+                    if zid in holders or (not holders and self._was_holder(senders, st.pin)):
+                        repin = True  # the pinned session is gone: a restarted process
+                    else:
+                        return "foreign_sender"
+            elif st.pin is not None and zid != st.pin:
+                repin = True  # secure mode: only the process itself may publish here; a new session is its restart
+            fresh = repin or st.pin is None
+            last_tick = None if fresh else st.last_tick
+            if not fresh and st.last_seq is not None and seq <= st.last_seq:
+                return "stale"
+            if not fresh and tick in st.recent:
+                return "duplicate"
+            if last_tick is not None and tick < last_tick:
+                return "past"
+            c = self.now_tick() if self.now_tick is not None else None
+            if c is not None and tick < c - self.window:
+                return "past"
+            if tick > self.cap:
+                return "future"
+            if last_tick is not None:
+                base = last_tick if c is None else max(last_tick, c)
+                growth = (now - st.last_rx) / self.growth_period_s
+                if tick > base + self.window + growth:
+                    return "future"
+            # accepted
+            if repin:
+                st.reset()
+            st.pin = zid
+            st.last_seq = seq
+            st.last_tick = tick
+            st.last_rx = now
+            st.recent.append(tick)
+            return None
+
+    # ------------------------------------------------------------------ counters
+    def count(self, key: str, reason: str) -> None:
+        """Count a reject of ``reason`` on ``key``."""
+        self.reasons[reason] = self.reasons.get(reason, 0) + 1
+        k = (key, reason)
+        if k in self.by_key or len(self.by_key) < self.max_keys:
+            self.by_key[k] = self.by_key.get(k, 0) + 1
+        self.last_reject = f"{key}: {reason}"
+
+    @property
+    def rejected(self) -> int:
+        return sum(self.reasons.values())
+
+    def counters(self) -> dict[str, int]:
+        """``rejected.<reason>`` for every guard reason and ``rejected@<key>.<reason>`` for the
+        keys that had rejects (``<key>`` without the ``swarm/<name>/`` prefix)."""
+        out = {f"rejected.{r}": self.reasons.get(r, 0) for r in GUARD_REASONS}
+        for (key, reason), n in list(self.by_key.items()):
+            out[f"rejected@{key[self._plen:]}.{reason}"] = n
+        return out
+
+    def pinned(self) -> dict[str, str]:
+        """key -> pinned sender session id (diagnostics)."""
+        with self._lock:
+            return {k: st.pin for k, st in self._keys.items() if st.pin is not None}
+
+
+class _KeyedDecoder(wire.Decoder):
+    """:class:`zenswarm.wire.Decoder` that also counts rejects per (key, reason)."""
+
+    def __init__(self, **kw: Any) -> None:
+        super().__init__(**kw)
+        self.by_key: dict[tuple[str, str], int] = {}
+
+    def _reject(self, key: str, reason: str, text: str) -> None:
+        super()._reject(key, reason, text)
+        k = (str(key), reason)
+        if k in self.by_key or len(self.by_key) < self.max_keys:
+            self.by_key[k] = self.by_key.get(k, 0) + 1
+
+    def reject(self, key: str, reason: str, text: str) -> None:
+        """Count a payload rejected before decoding (e.g. unreadable sample)."""
+        self._reject(key, reason, text)
 
 
 def add_common_args(p: argparse.ArgumentParser) -> None:
