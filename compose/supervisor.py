@@ -87,8 +87,24 @@ class Collector:
         self._goal_tol = scenario.timing.goal_tolerance_m
         self.diag: dict[str, dict] = {}
         self.counts: dict[str, int] = {}
+        self._eager = {keys.clock, keys.leader_ref}
+        self._pending: list[tuple[str, bytes]] = []
 
     def on_sample(self, key: str, payload: bytes) -> None:
+        """Take one sample. The clock, the leader's ref and diagnostics (what progress needs) are
+        decoded at once; the rest is queued and decoded by :meth:`series`, off the swarm's hot
+        path (this runs in a Zenoh callback on a machine the swarm's processes share)."""
+        if key in self._eager or "/diag/" in key:
+            self._apply(key, payload)
+        else:
+            self._pending.append((key, payload))
+
+    def _drain(self) -> None:
+        pending, self._pending = self._pending, []
+        for key, payload in pending:
+            self._apply(key, payload)
+
+    def _apply(self, key: str, payload: bytes) -> None:
         try:
             kind, idx, proc = self.keys.parse(key)
         except ZenswarmError:
@@ -130,6 +146,7 @@ class Collector:
 
     def series(self, upto_tick: int | None = None, fill: bool = False) -> TimeSeries:
         """The collected series up to ``upto_tick``; ``fill`` forward-fills gaps (realtime)."""
+        self._drain()
         with self.lock:
             T = self.T if upto_tick is None else max(0, min(self.T, upto_tick))
             ts = self.ts.truncated(T)

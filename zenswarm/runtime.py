@@ -469,7 +469,7 @@ class SwarmProcess:
         self.name = name
         self.args = args
         self.keys = wire.Keys(args.swarm)
-        self.decoder = wire.Decoder()
+        self.decoder = _KeyedDecoder()
         self.inbox = Inbox()
         self.stop = threading.Event()
         self.session: zenoh.Session | None = None
@@ -479,7 +479,8 @@ class SwarmProcess:
         self.counters: dict[str, float] = defaultdict(float)
         self._diag_seq = 0
         self.scenario: Scenario | None = None
-        self.on_input: Callable[[str, int, Any], None] | None = None  # (key, tick, msg) of every accepted message
+        self._on_input: Callable[[str, int, Any], None] | None = None
+        self._lockstep: Lockstep | None = None
         self.subscribed: list[str] = []  # every key this process subscribed to (contract tests)
         self.extra_counters: Callable[[], dict[str, float]] | None = None
         self._delay_line: Any = None
@@ -487,6 +488,27 @@ class SwarmProcess:
         self._links: dict[str, tuple[str, str, str]] = {}
         self._alive: dict[str, bool] = {}
         self._alive_subs: list[Any] = []
+        # input hardening (see the module docstring): sender pinning only in an open swarm
+        self.check_sender = getattr(args, "keys", None) is None
+        self._guard: InputGuard | None = None
+        self._watched_senders: set[str] = set()
+        self._zid_token = None
+        self._source_info: dict[str, Any] = {}
+        self._transport_listener = None
+        self._link_lost = False
+
+    @property
+    def on_input(self) -> Callable[[str, int, Any], None] | None:
+        """Called with (key, tick, msg) of every accepted message. Assigning a
+        :meth:`Lockstep.poke` also tells the input guard the process's current tick."""
+        return self._on_input
+
+    @on_input.setter
+    def on_input(self, hook: Callable[[str, int, Any], None] | None) -> None:
+        self._on_input = hook
+        owner = getattr(hook, "__self__", None)
+        if isinstance(owner, Lockstep):
+            self._lockstep = owner
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> "SwarmProcess":
@@ -497,6 +519,10 @@ class SwarmProcess:
         conf = bus.client_config(connect, settings=security.client_fragments_from_args(self.name, self.args))
         self._session_cm = bus.open_session(conf, handle_signals=False)
         self.session = self._session_cm.__enter__()
+        try:
+            self._transport_listener = self.session.info.declare_transport_events_listener(self._on_transport)
+        except Exception:  # noqa: BLE001 - diagnostics only
+            self._transport_listener = None
         self.scenario = self._load_scenario()
         return self
 
@@ -511,11 +537,12 @@ class SwarmProcess:
         s, self.session = self.session, None
         if s is None:
             return
-        try:
-            if self._token is not None:
-                self._token.undeclare()
-        except Exception:  # noqa: BLE001 - best effort on shutdown
-            pass
+        for tok in (self._token, self._zid_token, self._transport_listener):
+            try:
+                if tok is not None:
+                    tok.undeclare()
+            except Exception:  # noqa: BLE001 - best effort on shutdown
+                pass
         for sub in self._subs + self._alive_subs:
             try:
                 sub.undeclare()
@@ -531,44 +558,149 @@ class SwarmProcess:
     def _fetch_scenario(self) -> Scenario:
         if self.args.scenario is not None:
             return load_scenario(self.args.scenario)
-        # Fetch the mission from the leader (late joiners, other hosts).
+        # Fetch the mission from the leader (late joiners, other hosts). A reply that does not
+        # decode or is not a valid scenario is counted (decoder / rejected.value) and skipped.
         deadline = time.monotonic() + 30.0
+        key = self.keys.mission
         while time.monotonic() < deadline and not self.stop.is_set():
-            for reply in self.session.get(self.keys.mission, timeout=2.0):
+            for reply in self.session.get(key, timeout=2.0):
                 ok = getattr(reply, "ok", None)
                 if ok is None:
                     continue
-                msg = wire.decode("mission", ok.payload.to_bytes())
-                return scenario_from_dict(msg.scenario)
+                try:
+                    payload = ok.payload.to_bytes()
+                except Exception as e:  # noqa: BLE001
+                    self.decoder.reject(key, "malformed", f"unreadable reply: {e}")
+                    continue
+                msg = self.decoder.decode(key, "mission", payload)
+                if msg is None:
+                    continue
+                try:
+                    return scenario_from_dict(msg.scenario)
+                except ZenswarmError as e:
+                    self.decoder.reject(key, "value", f"not a valid scenario: {e}")
             time.sleep(0.2)
         raise ScenarioError("--scenario", "not given, and no leader answered on the mission key within 30 s")
 
     # ------------------------------------------------------------------ bus
+    @property
+    def guard(self) -> InputGuard:
+        """The input guard of this process (created on first use, from the scenario and flags)."""
+        g = self._guard
+        if g is None:
+            sc = self.scenario
+            dt = sc.timing.dt
+            timeout = float(getattr(self.args, "lockstep_timeout", DEFAULT_LOCKSTEP_TIMEOUT_S) or DEFAULT_LOCKSTEP_TIMEOUT_S)
+            realtime = bool(getattr(self.args, "realtime", False))
+            g = self._guard = InputGuard(
+                dt_ns=wire.t_ns(dt),
+                n_ticks=sc.timing.n_ticks,
+                horizon_ticks=self._fault_horizon_ticks(),
+                growth_period_s=dt if realtime else min(dt, timeout),
+                check_sender=self.check_sender,
+                now_tick=self._now_tick,
+                prefix=self.keys.prefix + "/",
+            )
+        return g
+
+    def _fault_horizon_ticks(self) -> int:
+        """Largest link-fault delay of the run, in ticks (+1), 0 without faults."""
+        try:
+            from .linkfaults import plan_from_args
+
+            plan = plan_from_args(self.scenario, self.args)
+        except Exception:  # noqa: BLE001 - bad flags are reported by the process itself
+            return 0
+        if plan is None:
+            return 0
+        specs = [plan.default, *plan.per_link.values()]
+        worst = max(s.max_delay_s for s in specs)
+        return int(math.ceil(worst / self.scenario.timing.dt)) + 1 if worst > 0 else 0
+
+    def _now_tick(self) -> int | None:
+        """Lockstep: the tick this process is at, once it ran one (None before, and in realtime)."""
+        ls = self._lockstep
+        if ls is None or not ls.started:
+            return None
+        return ls.k
+
+    def handle_sample(self, key: str, kind: str, sample: Any, senders: tuple[str, ...] = (),
+                      on_msg: Callable[[str, Any], None] | None = None) -> Any | None:
+        """One received sample of ``key``: decode, guard, then hand it on (delay line or inbox,
+        ``on_msg``, :attr:`on_input`). Returns the accepted message, or None if it was rejected
+        (counted). Never raises for a bad sample (exceptions of the hand-on callbacks propagate)."""
+        try:
+            payload = sample.payload.to_bytes()
+        except Exception as e:  # noqa: BLE001 - not a readable zenoh sample
+            self.decoder.reject(key, "malformed", f"unreadable sample: {type(e).__name__}")
+            return None
+        msg = self.decoder.decode(key, kind, payload)
+        if msg is None:
+            return None
+        dt_ns = self.guard.dt_ns
+        tick = (msg.t + dt_ns // 2) // dt_ns
+        if self.guard.check(key, senders, tick, msg, sample_sender(sample)) is not None:
+            return None
+        dl = self._delay_line
+        if dl is not None and key in self._links:
+            with self._dl_lock:
+                dl.offer(time.monotonic(), self._links[key], key, tick, msg)
+            return msg
+        self.inbox.put(key, tick, msg)
+        if on_msg is not None:
+            on_msg(key, msg)
+        hook = self._on_input
+        if hook is not None:
+            hook(key, tick, msg)
+        return msg
+
     def subscribe(self, key: str, kind: str, on_msg: Callable[[str, Any], None] | None = None) -> None:
-        """Subscribe to ``key``; decoded messages go to the inbox keyed by their tick."""
-        dt_ns = wire.t_ns(self.scenario.timing.dt)
-        decoder = self.decoder
-        inbox = self.inbox
+        """Subscribe to ``key``; decoded messages that pass the input guard go to the inbox keyed
+        by their tick (see :meth:`handle_sample`)."""
+        senders = expected_senders(self.keys, key)
+        self.guard  # noqa: B018 - create it before the first sample
+        if self.check_sender:
+            self._watch_sender_tokens(senders)
+        handle = self.handle_sample
 
         def cb(sample: zenoh.Sample) -> None:
-            msg = decoder.decode(key, kind, sample.payload.to_bytes())
-            if msg is None:
-                return
-            tick = (msg.t + dt_ns // 2) // dt_ns
-            dl = self._delay_line
-            if dl is not None and key in self._links:
-                with self._dl_lock:
-                    dl.offer(time.monotonic(), self._links[key], key, tick, msg)
-                return
-            inbox.put(key, tick, msg)
-            if on_msg is not None:
-                on_msg(key, msg)
-            hook = self.on_input
-            if hook is not None:
-                hook(key, tick, msg)
+            handle(key, kind, sample, senders, on_msg)
 
         self._subs.append(self.session.declare_subscriber(key, cb))
         self.subscribed.append(key)
+
+    def _watch_sender_tokens(self, names: tuple[str, ...]) -> None:
+        """Follow ``alive/<name>/<zid>`` of each sender name (which sessions are that process)."""
+        guard = self.guard
+        for name in names:
+            if name in self._watched_senders:
+                continue
+            self._watched_senders.add(name)
+            prefix = self.keys.alive(name) + "/"
+
+            def cb(sample: Any, name: str = name, prefix: str = prefix) -> None:
+                key = str(sample.key_expr)
+                if key.startswith(prefix):
+                    guard.token(name, key[len(prefix):], sample.kind == zenoh.SampleKind.PUT)
+
+            self._alive_subs.append(self.session.liveliness().declare_subscriber(prefix + "*", cb, history=True))
+
+    def _on_transport(self, event: Any) -> None:
+        """Our link to the router went away or came back (zenoh clients reconnect by themselves)."""
+        try:
+            up = event.kind == zenoh.SampleKind.PUT
+        except Exception:  # noqa: BLE001
+            return
+        if not up:
+            self._link_lost = True
+            self.counters["router_link_lost"] += 1
+            self.log(f"{self.name}: link to the router lost; zenoh keeps trying to reconnect")
+        elif self._link_lost:
+            self._link_lost = False
+            self.counters["router_reconnects"] += 1
+            if self._guard is not None:
+                self._guard.discontinuity()
+            self.log(f"{self.name}: reconnected to the router")
 
     def publisher(self, key: str) -> Any:
         pub = self._pubs.get(key)
@@ -580,10 +712,19 @@ class SwarmProcess:
         return pub
 
     def publish(self, key: str, msg: Any) -> None:
-        self.publisher(key).put(wire.encode(msg))
+        """Encode and put ``msg`` on ``key``, stamped with this publisher's id (``SourceInfo``),
+        so receivers can tell which session sent it."""
+        pub = self.publisher(key)
+        si = self._source_info.get(key)
+        if si is None:
+            si = self._source_info[key] = zenoh.SourceInfo(pub.id, 0)
+        pub.put(wire.encode(msg), source_info=si)
 
     def announce(self) -> None:
-        """Declare this process's liveliness token: all its subscriptions are in place."""
+        """Declare this process's liveliness token: all its subscriptions are in place. In an
+        open swarm also ``alive/<process>/<zid>``: which session is this process."""
+        if self.check_sender and self._zid_token is None:
+            self._zid_token = self.session.liveliness().declare_token(f"{self.keys.alive(self.name)}/{self.session.zid()}")
         self._token = self.session.liveliness().declare_token(self.keys.alive(self.name))
 
     def wait_for_alive(self, names: list[str], timeout_s: float = 60.0) -> list[str]:
@@ -647,6 +788,14 @@ class SwarmProcess:
     def publish_diag(self, t_ns: int, info: dict[str, Any] | None = None) -> None:
         counters = dict(self.counters)
         counters.update(self.decoder.counters())
+        plen = len(self.keys.prefix) + 1
+        for (key, reason), n in list(self.decoder.by_key.items()):
+            counters[f"rejected@{key[plen:] if key.startswith(self.keys.prefix) else key}.{reason}"] = n
+        if self._guard is not None:
+            for name, n in self._guard.counters().items():  # out_of_range is a decoder reason too: add up
+                counters[name] = counters.get(name, 0) + n
+            counters["rejected"] = self.decoder.rejected + self._guard.rejected
+            counters["accepted"] = self._guard.accepted
         if self.extra_counters is not None:
             counters.update(self.extra_counters())
         if self._delay_line is not None:
@@ -764,6 +913,11 @@ class Lockstep:
         except BaseException as e:  # noqa: BLE001 - surfaced by run() in the main thread
             self.error = e
             self.done.set()
+
+    @property
+    def started(self) -> bool:
+        """True once a tick ran."""
+        return self._t_end is not None
 
     def timing(self) -> dict[str, float]:
         """Mean step and wait times per tick, ms (for diagnostics)."""
