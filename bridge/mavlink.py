@@ -21,8 +21,10 @@ vehicle with system id ``sysid_i`` and then:
 5. once every UAV is ready (or ``start_timeout_s`` passed) and, unless ``--no-wait-alive``, the
    leader and the agents hold liveliness tokens, starts the mission clock: every control tick it
    publishes ``clock`` and each ready UAV's ``uav/<i>/state`` (from LOCAL_POSITION_NED and
-   ATTITUDE/ATTITUDE_QUATERNION, converted to ENU/FLU by :mod:`bridge.frames`), exactly as the
-   realtime plant does, and forwards each agent's ``uav/<i>/cmd`` as SET_ATTITUDE_TARGET
+   ATTITUDE/ATTITUDE_QUATERNION, converted to ENU/FLU by :mod:`bridge.frames`), as the realtime
+   plant does (mission time is wall time since the start: a tick the loop missed on an overloaded
+   host is skipped and counted in ``ticks_skipped``, never caught up in a burst), and forwards
+   each agent's ``uav/<i>/cmd`` as SET_ATTITUDE_TARGET
    (quaternion + normalised thrust through :class:`bridge.frames.ThrustMap`) at
    ``max(rate_hz, 20)`` Hz, re-sending the latest command if the agent is slower; with
    ``setpoint = "position"`` it forwards ``uav/<i>/ref`` as SET_POSITION_TARGET_LOCAL_NED
@@ -1180,7 +1182,8 @@ def _run(proc: Any) -> int:
     )
     stats = LoopStats(period)
     code = 0
-    k_tick = 0  # control ticks of the mission clock
+    k_tick = 0  # control tick of the mission clock last published
+    t0 = math.inf  # time.monotonic() of mission time 0
     seq = 0
     started = False
     finished = False
@@ -1189,7 +1192,6 @@ def _run(proc: Any) -> int:
     waited_alive = getattr(args, "no_wait_alive", False)
     try:
         next_t = time.monotonic()
-        j = 0
         last = next_t
         while not proc.stop.is_set():
             now = time.monotonic()
@@ -1198,7 +1200,6 @@ def _run(proc: Any) -> int:
             proc.release_delayed()
             bridge.poll(now)
             bridge.advance(now)
-            bridge.send(now)
             if not started and (bridge.settled or now >= start_deadline):
                 if not bridge.ready:
                     proc.log("bridge: no UAV is ready: " + "; ".join(f"uav {lk.uav}: {lk.phase} {lk.reason}" for lk in bridge.links))
@@ -1215,8 +1216,20 @@ def _run(proc: Any) -> int:
                     next_t = time.monotonic()
                     now = last = next_t
                 started = True
+                t0 = now
+                k_tick = -1
                 proc.log(f"bridge: mission clock started with UAV(s) {[lk.uav for lk in bridge.ready]}")
-            if started and j % sub == 0:
+            # Mission time is wall time since the start: the tick due now is published (once), and
+            # ticks the loop missed (an overloaded host) are skipped, never caught up in a burst.
+            # Every stream derived from the clock (the leader's and agents' refs, the commands)
+            # then advances with the wall clock, as the receivers' input guards expect.
+            # The tick is taken from the clock right before publishing: a message sent late for its
+            # tick would look, to the receivers, like the stream slowing down and then jumping.
+            k_due = min(n_ticks, int((time.monotonic() - t0) / dt + 1e-9)) if started else -1
+            if k_due > k_tick:
+                if k_due > k_tick + 1:
+                    proc.counters["ticks_skipped"] += k_due - k_tick - 1
+                k_tick = k_due
                 t = k_tick * dt_ns
                 seq += 1
                 proc.publish(keys.clock, wire.Clock(t=t, seq=seq))
@@ -1230,19 +1243,21 @@ def _run(proc: Any) -> int:
                 if k_tick >= n_ticks:
                     finished = True
                     break
-                k_tick += 1
+            bridge.send(now)
             if now >= next_diag or bridge.changed:
                 next_diag = now + 1.0
                 bridge.changed = False
-                proc.publish_diag(k_tick * dt_ns, {**bridge.info(now), **stats.as_dict(), "started": started})
-            j += 1
+                proc.publish_diag(max(k_tick, 0) * dt_ns, {**bridge.info(now), **stats.as_dict(), "started": started})
             next_t += period
             now = time.monotonic()
             if now < next_t:
                 time.sleep(next_t - now)
-            elif now - next_t > 0.5:
-                next_t = now  # far behind (suspended?): resynchronise instead of bursting
+            elif now - next_t > period:
+                # more than a period behind: start again from now (no burst of back-to-back setpoints)
+                stats.record(now - next_t)
+                next_t = now
                 proc.counters["loop_resync"] += 1
+                continue
             stats.record(time.monotonic() - next_t)
         # land and disarm whatever we armed: end of mission, SIGTERM/SIGINT, or an error above
         why = "mission finished" if finished else ("stop requested" if proc.stop.is_set() else "bridge stopping")
@@ -1257,12 +1272,12 @@ def _run(proc: Any) -> int:
             if now >= next_diag or bridge.changed:
                 next_diag = now + 1.0
                 bridge.changed = False
-                proc.publish_diag(k_tick * dt_ns, {**bridge.info(now), "landing": True})
+                proc.publish_diag(max(k_tick, 0) * dt_ns, {**bridge.info(now), "landing": True})
             time.sleep(0.02)
         else:
             bridge.give_up_landing(time.monotonic())
         now = time.monotonic()
-        proc.publish_diag(k_tick * dt_ns, {**bridge.info(now), **stats.as_dict(), "finished": finished})
+        proc.publish_diag(max(k_tick, 0) * dt_ns, {**bridge.info(now), **stats.as_dict(), "finished": finished})
         proc.log("bridge: done: " + "; ".join(f"uav {lk.uav}: {lk.phase} {lk.reason}" for lk in bridge.links))
     finally:
         bridge.close()

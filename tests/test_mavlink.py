@@ -657,7 +657,9 @@ def test_bridge_arms_takes_off_and_publishes_enu_state(flight):
     t_end = time.monotonic() + 1.2
     while time.monotonic() < t_end:
         seq += 1
-        f.cmd_pub.put(wire.encode(wire.Cmd(t=seq, seq=seq, thrust=P.hover_thrust, rpy=rpy_cmd, u=[0, 0, 9.81], d_hat=[0, 0, 0])))
+        # one tick per command (the receiver's input guard drops a second message for a tick)
+        t_ns = seq * wire.t_ns(f.sc.timing.dt)
+        f.cmd_pub.put(wire.encode(wire.Cmd(t=t_ns, seq=seq, thrust=P.hover_thrust, rpy=rpy_cmd, u=[0, 0, 9.81], d_hat=[0, 0, 0])))
         time.sleep(0.02)
     rpy_true = f.fleet.state.rpy[0].copy()
     st = f.states[1]
