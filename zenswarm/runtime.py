@@ -28,7 +28,6 @@ on the router's access control instead and skips the check.
 from __future__ import annotations
 
 import argparse
-import math
 import signal
 import sys
 import threading
@@ -201,7 +200,7 @@ def _implausible(msg: Any) -> bool:
 class _KeyState:
     """What one key has delivered: pinned sender, newest seq and tick, recent ticks."""
 
-    __slots__ = ("pin", "last_seq", "last_tick", "last_rx", "recent")
+    __slots__ = ("pin", "last_seq", "last_tick", "last_rx", "recent", "ahead", "ahead_rx")
 
     def __init__(self) -> None:
         self.pin: str | None = None
@@ -209,12 +208,15 @@ class _KeyState:
         self.last_tick: int | None = None  # None: no stream position (new key, new sender, or a gap)
         self.last_rx = 0.0
         self.recent: deque[int] = deque(maxlen=64)
+        self.ahead: int | None = None  # tick of the last message refused as too far ahead
+        self.ahead_rx = 0.0
 
     def reset(self) -> None:
         self.pin = None
         self.last_seq = None
         self.last_tick = None
         self.recent.clear()
+        self.ahead = None
 
 
 class InputGuard:
@@ -244,7 +246,10 @@ class InputGuard:
        or slow agent whose inputs the others no longer wait for), and rejecting the plant's next
        state there would stall it forever. A stream's first message (new key, new sender, or
        after :meth:`discontinuity`) is bounded by the mission's end only: a restarted agent joins
-       at whatever tick the plant has reached.
+       at whatever tick the plant has reached. A lockstep stream never skips a tick; a realtime
+       one does (a process catching up runs faster than the wall clock for a while), so a jump is
+       taken when the next message agrees with the one refused (within ``window`` of it): one
+       lost message per jump, and a single stray far tick moves nothing.
 
     Accepted messages move the key's stream (pin, seq, tick). ``clock`` is injectable (tests).
     Thread-safe.
@@ -322,15 +327,24 @@ class InputGuard:
     # ------------------------------------------------------------------ the check
     def check(self, key: str, senders: tuple[str, ...], tick: int, msg: Any, zid: str) -> str | None:
         """None if accepted (the key's stream moves on), else the reject reason (counted)."""
+        detail = ""
         try:
             reason = self._check(key, senders, int(tick), msg, str(zid))
+            if reason is not None:
+                st = self._keys.get(key)
+                detail = f" (tick {tick} seq {getattr(msg, 'seq', '?')} from {zid or '?'}"
+                if st is not None:
+                    detail += f"; key at tick {st.last_tick} seq {st.last_seq} from {st.pin or '?'}"
+                detail += ")"
         except Exception as e:  # noqa: BLE001 - never raise into a callback
-            reason = "internal"
-            self.last_reject = f"{key}: internal: {type(e).__name__}: {e}"
+            reason, detail = "internal", f": {type(e).__name__}: {e}"
         if reason is None:
-            self.accepted += 1
+            with self._lock:
+                self.accepted += 1
         else:
             self.count(key, reason)
+            if detail:
+                self.last_reject += detail
         return reason
 
     def _check(self, key: str, senders: tuple[str, ...], tick: int, msg: Any, zid: str) -> str | None:
@@ -377,7 +391,11 @@ class InputGuard:
                 base = last_tick if c is None else max(last_tick, c)
                 growth = (now - st.last_rx) / self.growth_period_s
                 if tick > base + self.window + growth:
-                    return "future"
+                    a = st.ahead
+                    if a is None or not a < tick <= a + self.window + (now - st.ahead_rx) / self.growth_period_s:
+                        st.ahead, st.ahead_rx = tick, now
+                        return "future"
+                    # else a second message agrees with the one refused: the stream did jump
             # accepted
             if repin:
                 st.reset()
@@ -386,27 +404,32 @@ class InputGuard:
             st.last_tick = tick
             st.last_rx = now
             st.recent.append(tick)
+            st.ahead = None
             return None
 
     # ------------------------------------------------------------------ counters
     def count(self, key: str, reason: str) -> None:
         """Count a reject of ``reason`` on ``key``."""
-        self.reasons[reason] = self.reasons.get(reason, 0) + 1
-        k = (key, reason)
-        if k in self.by_key or len(self.by_key) < self.max_keys:
-            self.by_key[k] = self.by_key.get(k, 0) + 1
-        self.last_reject = f"{key}: {reason}"
+        with self._lock:
+            self.reasons[reason] = self.reasons.get(reason, 0) + 1
+            k = (key, reason)
+            if k in self.by_key or len(self.by_key) < self.max_keys:
+                self.by_key[k] = self.by_key.get(k, 0) + 1
+            self.last_reject = f"{key}: {reason}"
 
     @property
     def rejected(self) -> int:
-        return sum(self.reasons.values())
+        """Total rejects of the guard."""
+        with self._lock:
+            return sum(self.reasons.values())
 
     def counters(self) -> dict[str, int]:
         """``rejected.<reason>`` for every guard reason and ``rejected@<key>.<reason>`` for the
         keys that had rejects (``<key>`` without the ``swarm/<name>/`` prefix)."""
-        out = {f"rejected.{r}": self.reasons.get(r, 0) for r in GUARD_REASONS}
-        for (key, reason), n in list(self.by_key.items()):
-            out[f"rejected@{key[self._plen:]}.{reason}"] = n
+        with self._lock:
+            out = {f"rejected.{r}": self.reasons.get(r, 0) for r in GUARD_REASONS}
+            for (key, reason), n in self.by_key.items():
+                out[f"rejected@{key[self._plen:]}.{reason}"] = n
         return out
 
     def pinned(self) -> dict[str, str]:
@@ -496,6 +519,7 @@ class SwarmProcess:
         self._source_info: dict[str, Any] = {}
         self._transport_listener = None
         self._link_lost = False
+        self.on_reconnect: Callable[[], None] | None = None  # called (zenoh's thread) when the link to the router is back
 
     @property
     def on_input(self) -> Callable[[str, int, Any], None] | None:
@@ -613,9 +637,10 @@ class SwarmProcess:
             return 0
         if plan is None:
             return 0
-        specs = [plan.default, *plan.per_link.values()]
-        worst = max(s.max_delay_s for s in specs)
-        return int(math.ceil(worst / self.scenario.timing.dt)) + 1 if worst > 0 else 0
+        from .faults import delivery_tick
+
+        worst = max(spec.max_delay_s for spec in [plan.default, *plan.per_link.values()])
+        return delivery_tick(0, worst, self.scenario.timing.dt) + 1 if worst > 0 else 0
 
     def _now_tick(self) -> int | None:
         """Lockstep: the tick this process is at, once it ran one (None before, and in realtime)."""
@@ -700,7 +725,10 @@ class SwarmProcess:
             self.counters["router_reconnects"] += 1
             if self._guard is not None:
                 self._guard.discontinuity()
-            self.log(f"{self.name}: reconnected to the router")
+            self.log(f"{self.name}: reconnected to the router (messages sent meanwhile are lost)")
+            hook = self.on_reconnect
+            if hook is not None:
+                hook()
 
     def publisher(self, key: str) -> Any:
         pub = self._pubs.get(key)
@@ -786,6 +814,32 @@ class SwarmProcess:
             dl.release(time.monotonic(), self.inbox.put)
 
     def publish_diag(self, t_ns: int, info: dict[str, Any] | None = None) -> None:
+        counters = self.diag_counters()
+        self._diag_seq += 1
+        self.publish(
+            self.keys.diag(self.name),
+            wire.Diag(
+                t=t_ns,
+                seq=self._diag_seq,
+                process=self.name,
+                counters=counters,
+                info={"subscriptions": ",".join(sorted(self.subscribed)), **self._reject_info(), **(info or {})},
+            ),
+        )
+
+    def _reject_info(self) -> dict[str, str]:
+        """The last rejected input, for the humans reading diagnostics."""
+        out = {}
+        if self.decoder.last_error:
+            out["last_decode_error"] = self.decoder.last_error[:200]
+        if self._guard is not None and self._guard.last_reject:
+            out["last_reject"] = self._guard.last_reject[:200]
+        return out
+
+    def diag_counters(self) -> dict[str, float]:
+        """Every counter of this process: its own, the decoder's (``decoded``, ``rejected``,
+        ``rejected.<reason>``), the input guard's (``accepted``, ``rejected.<reason>``), rejects
+        per key (``rejected@<key>.<reason>``), link faults and the process's extra counters."""
         counters = dict(self.counters)
         counters.update(self.decoder.counters())
         plen = len(self.keys.prefix) + 1
@@ -800,17 +854,7 @@ class SwarmProcess:
             counters.update(self.extra_counters())
         if self._delay_line is not None:
             counters.update(self._delay_line.dropped)
-        self._diag_seq += 1
-        self.publish(
-            self.keys.diag(self.name),
-            wire.Diag(
-                t=t_ns,
-                seq=self._diag_seq,
-                process=self.name,
-                counters=counters,
-                info={"subscriptions": ",".join(sorted(self.subscribed)), **(info or {})},
-            ),
-        )
+        return counters
 
     def log(self, text: str) -> None:
         print(text, flush=True)
