@@ -162,7 +162,15 @@ def _run(proc: SwarmProcess, index: int) -> int:
             can_force=lambda k: proc.inbox.get(state_key, k) is not None,
             on_msg=on_msg,
         )
+        def on_reconnect() -> None:
+            """Back from a split longer than the session lease: what we waited for is lost, so
+            rejoin like a restarted agent, at the next state we see, from the measured state."""
+            with ls.lock:
+                core.q_ref = None
+                proc.log(f"{me}: will rejoin at the next state (generator restarted from it)")
+
         proc.on_input = ls.poke
+        proc.on_reconnect = on_reconnect
         proc.watch_alive(sorted(set(sender[key] for key in [state_key] + input_keys)), ls.poke)
         for key, kind in subscriptions(keys, row):
             proc.subscribe(key, kind)
