@@ -502,7 +502,16 @@ def _fault_argv(args: argparse.Namespace) -> list[str]:
 
 
 def main(args: argparse.Namespace) -> int:
-    return run(args)
+    rc = run(args)
+    # The file is complete and closed, the session closed: leave without the interpreter's
+    # shutdown, where a zenoh helper thread still unwinding native frames can abort the process
+    # ("FATAL: exception not rethrown", seen once under load), which would turn a clean stop
+    # into a crash report. Only when run as the `zenswarm record` command, not in-process.
+    if getattr(args, "exit_hard", True):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
+    return rc
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -25,14 +25,13 @@ def test_secure_example1_reaches_goal_and_equals_open_run(tmp_path: Path) -> Non
 
 
 def test_tls_swarm_equals_open_swarm(tmp_path: Path) -> None:
-    """Mutual TLS: a short flight equals the same flight on an open router, bit for bit."""
+    """Mutual TLS: a short flight equals the in-process simulator bit for bit, as the open swarm
+    does (tests/test_swarm.py), so it equals the open swarm."""
     scenario = scenario_variant(tmp_path, time_limit_s=3.0, settle_time_s=1.0)
-    cp_open = _up(scenario, tmp_path / "open", unique_swarm("o"))
     cp_tls = _up(scenario, tmp_path / "tls", unique_swarm("t"), "--tls")
-    assert cp_open.returncode in (0, 1) and cp_tls.returncode in (0, 1), cp_tls.stdout[-3000:]
+    assert cp_tls.returncode in (0, 1), cp_tls.stdout[-3000:]
     assert "mutual TLS" in cp_tls.stdout
-    a = TimeSeries.load(str(tmp_path / "open" / "timeseries.npz"))
+    _assert_equal_to_sim(scenario, tmp_path / "tls")
     b = TimeSeries.load(str(tmp_path / "tls" / "timeseries.npz"))
-    for f in TimeSeries.FIELDS:
-        np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
+    assert not any(np.isnan(getattr(b, f)).any() for f in TimeSeries.FIELDS)
     assert read_results(tmp_path / "tls")["decoder_rejects"]["rejected"] == 0
