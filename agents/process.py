@@ -183,12 +183,15 @@ def _run(proc: SwarmProcess, index: int) -> int:
     # realtime: fixed-rate loop on the wall clock, latest value wins
     for key, kind in subscriptions(keys, row):
         proc.subscribe(key, kind)
+    proc.watch_alive(["plant"])
     proc.announce()
     stats = LoopStats(dt)
     next_t = time.monotonic()
     last_state_t = -1
     limit_ns = wire.t_ns(sc.timing.time_limit_s)
     while not proc.stop.is_set():
+        if last_state_t >= 0 and not proc.is_alive("plant"):
+            break  # the plant is gone (its last messages may never come): the flight is over
         now = time.monotonic()
         if now < next_t:
             time.sleep(next_t - now)

@@ -208,7 +208,8 @@ def run_sim_worker(scenario: Path, keep_openblas: bool = False, timeout_s: float
         "print(json.dumps({'wall_s': w, 'cpu_s': c, 'sim_time_s': r.results['sim_time_s'],"
         " 'success': r.results['success'], 'goal_reached': r.results['goal_reached'],"
         " 'rms_tracking_error_m': r.results.get('rms_tracking_error_m'),"
-        " 'min_inter_uav_distance_m': r.results.get('min_inter_uav_distance_m')}))\n"
+        " 'min_inter_uav_distance_m': r.results.get('min_inter_uav_distance_m'),"
+        " 'maxrss_kb': __import__('resource').getrusage(__import__('resource').RUSAGE_SELF).ru_maxrss}))\n"
     )
     win = CpuWindow()
     p = subprocess.run([sys.executable, "-c", code, str(scenario)], capture_output=True, text=True,
@@ -341,6 +342,8 @@ class TreeSampler(threading.Thread):
             if ps is None:
                 argv = proc_cmdline(pid)
                 ps = self.procs[pid] = ProcSample(pid, role_of(argv) if pid != self.root else "supervisor", first_seen=now)
+            elif ps.role == "?":  # first seen between fork and exec: look again
+                ps.role = role_of(proc_cmdline(pid))
             ps.rss_kb_max = max(ps.rss_kb_max, st.get("VmRSS", 0))
             ps.hwm_kb = max(ps.hwm_kb, st.get("VmHWM", 0))
             ps.rss_anon_kb_max = max(ps.rss_anon_kb_max, st.get("RssAnon", 0))
@@ -403,6 +406,28 @@ class UpRun:
     port_free_after: bool = True
     output_tail: str = ""
     cpu: dict[str, float] = field(default_factory=dict)
+    timed_out: bool = False
+    hung_after_plant_exit: bool = False
+    hang_dumps: dict[str, str] = field(default_factory=dict)
+
+
+def py_spy_dumps(root_pid: int, roles: Sequence[str] = ("plant", "leader", "agent:1", "supervisor")) -> dict[str, str]:
+    """``py-spy dump`` (all threads, native frames) of some processes of a stuck swarm, if py-spy is installed."""
+    import shutil as _sh
+
+    exe = _sh.which("py-spy")
+    if exe is None:
+        return {}
+    out = {}
+    for pid in [root_pid] + descendants(root_pid):
+        role = "supervisor" if pid == root_pid else role_of(proc_cmdline(pid))
+        if role in roles:
+            try:
+                p = subprocess.run([exe, "dump", "--native", "--pid", str(pid)], capture_output=True, text=True, timeout=30)
+                out[role] = p.stdout + p.stderr
+            except (subprocess.TimeoutExpired, OSError) as e:
+                out[role] = f"py-spy failed: {e}"
+    return out
 
 
 _LIVE: dict[int, tuple[subprocess.Popen, str]] = {}
@@ -471,7 +496,7 @@ def run_up(
     timeout_s: float = 900.0,
     sample_period_s: float = 0.25,
     pss: bool = False,
-    on_sample: Any = None,
+    end_grace_s: float | None = None,
 ) -> UpRun:
     """``zenswarm up SCEN --out OUT --quiet --quiet-children --swarm <unique> --listen tcp/127.0.0.1:<free>``."""
     swarm = f"bench{tag}{os.getpid()}x{int(time.time() * 1000) % 10**7}"
@@ -489,10 +514,30 @@ def run_up(
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(popen.stdout), daemon=True)  # type: ignore[arg-type]
     reader.start()
+    plant_gone_at: float | None = None
     try:
-        popen.wait(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        lines.append(f"[bench] timeout after {timeout_s:.0f} s; stopping the swarm\n")
+        deadline = time.monotonic() + timeout_s
+        while popen.poll() is None:
+            now = time.monotonic()
+            if now > deadline:
+                lines.append(f"[bench] timeout after {timeout_s:.0f} s; stopping the swarm\n")
+                run.timed_out = True
+                run.hang_dumps = py_spy_dumps(popen.pid)
+                break
+            if end_grace_s is not None:
+                try:
+                    pl = sampler.by_role().get("plant")
+                except RuntimeError:  # the sampler thread added a process meanwhile
+                    pl = None
+                if pl is not None and now - pl.last_seen > 1.0 and plant_gone_at is None:
+                    plant_gone_at = now
+                if plant_gone_at is not None and now - plant_gone_at > end_grace_s:
+                    lines.append(f"[bench] the plant exited {end_grace_s:.0f} s ago and the swarm is still running;"
+                                 " stopping it (SIGTERM to zenswarm up)\n")
+                    run.hung_after_plant_exit = True
+                    run.hang_dumps = py_spy_dumps(popen.pid)
+                    break
+            time.sleep(0.2)
     finally:
         run.wall_s = time.perf_counter() - t0
         sampler.stop()

@@ -29,6 +29,7 @@ which is expected and not an error: a run counts when the plant finished every t
 
     python bench/swarm_lockstep.py                                  # defaults, 3 runs
     python bench/swarm_lockstep.py --runs 5 --scenarios example1 --json bench/results/lockstep.json
+    python bench/swarm_lockstep.py --runs 3 --scenarios example1 gen16 --breakdown   # + where a tick goes
 
 Every process a run starts is stopped at the end (or on Ctrl-C); leftovers and a port still
 bound after a run are reported. Not a test: numbers depend on the machine and its load.
@@ -48,6 +49,66 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
 DEFAULT_SCENARIOS = ["example1", "example2", "gen3", "gen8", "gen16", "gen32"]
+STAMPS = Path(__file__).resolve().parent / "stamps"
+PARTS = ("plant publish spread", "hop plant->agent", "agent", "hop agent->plant", "plant integrate+publish")
+
+
+def tick_breakdown(stamp_dir: Path, dt_ns: int) -> dict:
+    """Follow each lockstep tick k along its critical path (bench/stamps): the plant publishes the
+    states of tick k (first one at P0_k; the critical agent's at P_ik), agent i receives its state
+    (R_ik), publishes cmd(k) (C_ik), the plant receives it (Q_ik; the critical agent is the one
+    whose command arrives last), and the plant publishes the first state of tick k+1 (P0_k+1).
+    tick = (P_ik - P0_k) + (R - P) + (C - R) + (Q - C) + (P0_k+1 - Q). Medians over ticks, ms."""
+    import json as _json
+
+    stamps = [_json.loads(p.read_text()) for p in sorted(stamp_dir.glob("*.json"))]
+    plant = next((x for x in stamps if x["role"] == "plant"), None)
+    if plant is None:
+        return {}
+    Pi: dict = {}
+    Q: dict = {}
+    R: dict = {}
+    Cm: dict = {}
+
+    def idx(key: str) -> int:
+        return int(key.split("/")[-2])
+
+    for key, lst in plant["pub"].items():
+        if key.endswith("/state"):
+            for _, t, st in lst:
+                Pi[(idx(key), (t + dt_ns // 2) // dt_ns)] = st
+    for key, lst in plant["rx"].items():
+        if key.endswith("/cmd"):
+            for _, t, st in lst:
+                Q[(idx(key), (t + dt_ns // 2) // dt_ns)] = st
+    uavs = sorted({i for i, _ in Pi})
+    for x in stamps:
+        if not x["role"].startswith("agent"):
+            continue
+        for key, lst in x["rx"].items():
+            if key.endswith("/state"):
+                for _, t, st in lst:
+                    R[(idx(key), (t + dt_ns // 2) // dt_ns)] = st
+        for key, lst in x["pub"].items():
+            if key.endswith("/cmd"):
+                for _, t, st in lst:
+                    Cm[(idx(key), (t + dt_ns // 2) // dt_ns)] = st
+    ks = sorted({k for _, k in Pi})
+    parts: dict[str, list[float]] = {p: [] for p in ("tick",) + PARTS}
+    for k in ks[1:-1]:
+        try:
+            crit = max(uavs, key=lambda i: Q[(i, k)])
+            p0 = min(Pi[(i, k)] for i in uavs)
+            p1 = min(Pi[(i, k + 1)] for i in uavs)
+            vals = (p1 - p0, Pi[(crit, k)] - p0, R[(crit, k)] - Pi[(crit, k)], Cm[(crit, k)] - R[(crit, k)],
+                    Q[(crit, k)] - Cm[(crit, k)], p1 - Q[(crit, k)])
+        except KeyError:
+            continue
+        for name, v in zip(("tick",) + PARTS, vals):
+            parts[name].append(v / 1e6)
+    out = {name: {"median": C.median(v), "mean": sum(v) / len(v) if v else None, "p90": C.pct(v, 90)} for name, v in parts.items()}
+    out["ticks"] = len(parts["tick"])
+    return out
 
 
 def analyse(run: C.UpRun, facts: dict) -> dict:
@@ -67,6 +128,8 @@ def analyse(run: C.UpRun, facts: dict) -> dict:
         "background_cores": run.cpu.get("background_cores"),
         "load1_start": run.cpu.get("load1_start"),
         "own_cpu_s": run.cpu.get("own_cpu_s"),
+        "timed_out": run.timed_out,
+        "hang_dumps": run.hang_dumps,
     }
     step, wait = plant.get("step_ms_mean"), plant.get("wait_ms_mean")
     if step is not None and wait is not None:
@@ -106,6 +169,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, metavar="FILE", help="write every run and the medians to FILE")
     ap.add_argument("--keep", type=Path, metavar="DIR", help="keep each run's results.json under DIR")
     ap.add_argument("--no-sim", action="store_true", help="skip the simulator baseline (no ratios)")
+    ap.add_argument("--breakdown", action="store_true",
+                    help="after the timed runs, one more run per scenario with bench/stamps instrumentation: where a "
+                    "lockstep tick's time goes (messages hops vs computation); not part of the medians")
     ap.add_argument("--timeout", type=float, default=900.0, metavar="S", help="per-run limit of zenswarm up (default 900 s)")
     ap.add_argument("--quiet-wait", type=float, default=0.0, metavar="CORES",
                     help="before each run wait (up to 120 s) until other jobs use at most CORES cores (0 = don't wait)")
@@ -122,6 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     swarm_runs: dict[str, list[dict]] = {label: [] for label, _ in scen}
     sim_runs: dict[str, list[dict]] = {label: [] for label, _ in scen}
     failures = 0
+    breakdowns: dict[str, dict] = {}
     try:
         for r in range(a.runs):
             for label, path in scen:
@@ -145,12 +212,33 @@ def main(argv: list[str] | None = None) -> int:
                     failures += 1
                     print(f"  run {r + 1}/{a.runs} {label}: the plant did not finish (exit {run.returncode});"
                           f" output:\n{run.output_tail}", flush=True)
+                    for role, text in run.hang_dumps.items():
+                        print(f"    py-spy dump of {role}:\n" + "\n".join("      " + x for x in text.splitlines()[:60]))
                     continue
                 sim_txt = f"  sim {s['wall_s']:.2f} s ({s['x_real_time']:.1f}x)" if not a.no_sim else ""
                 print(f"  run {r + 1}/{a.runs} {label:9s} flight {m['flight_wall_s']:7.2f} s = {m['x_real_time']:5.2f}x real time"
                       f" ({m['ms_per_tick']:.2f} ms/tick: plant step {m['plant_step_ms']:.2f} + wait {m['plant_wait_ms']:.2f})"
                       f"  up {m['up_wall_s']:.1f} s{sim_txt}  cpu cores in flight {m.get('flight_cores_total', 0):.2f}"
                       f"  background {m['background_cores']:.2f}", flush=True)
+        if a.breakdown:
+            for label, path in scen:
+                if a.quiet_wait > 0:
+                    C.wait_for_quiet(a.quiet_wait, 120.0)
+                sd = tmpdir / f"stamps-{label}"
+                sd.mkdir()
+                env = C.bench_env()
+                env["PYTHONPATH"] = os.pathsep.join([str(STAMPS)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+                env["ZENSWARM_BENCH_STAMPS"] = str(sd)
+                out = tmpdir / f"{label}-breakdown"
+                run = C.run_up(path, out, tag="lsb", env=env, timeout_s=a.timeout)
+                m = analyse(run, facts[label])
+                dt_ns = round(1e9 / facts[label]["control_rate_hz"])
+                breakdowns[label] = {"run": m, "parts": tick_breakdown(sd, dt_ns)}
+                if not breakdowns[label]["parts"].get("ticks"):
+                    print(f"  WARNING {label}: no tick could be followed through the stamps; the wrappers in"
+                          " bench/stamps/sitecustomize.py may no longer match zenswarm.runtime/zenswarm.wire", flush=True)
+                shutil.rmtree(sd, ignore_errors=True)
+                shutil.rmtree(out, ignore_errors=True)
     finally:
         C.cleanup_all()
 
@@ -193,12 +281,23 @@ def main(argv: list[str] | None = None) -> int:
     print(C.table(["scenario", "UAVs", "sim s", "flight wall s", "x real time", "ms/tick", "plant step/wait ms",
                    "agent step ms", "start+stop s", "simulator", "swarm/sim", "CPU cores in flight by role",
                    "background cores", "ok runs"], rows))
+    if breakdowns:
+        print()
+        print("where a lockstep tick goes (one instrumented run per scenario; median over ticks, ms; see --help)")
+        brows = []
+        for label, b in breakdowns.items():
+            p = b["parts"]
+            if not p:
+                continue
+            brows.append([label, facts[label]["n_uav"], p["ticks"], p["tick"]["median"]] + [p[x]["median"] for x in PARTS]
+                         + [b["run"].get("ms_per_tick")])
+        print(C.table(["scenario", "UAVs", "ticks", "tick"] + list(PARTS) + ["ms/tick (diag, mean)"], brows))
     leftovers = sum(s.get("leftover_processes", 0) for s in summary.values())
     bound = sum(s.get("port_left_bound", 0) for s in summary.values())
     print(f"cleanup: {leftovers} leftover processes, {bound} ports left bound")
     C.write_json(a.json, {"benchmark": "swarm_lockstep", "command": C.command_line(), "machine": info,
                           "loadavg_at_end": list(os.getloadavg()), "scenarios": facts, "summary": summary,
-                          "swarm_runs": swarm_runs, "sim_runs": sim_runs})
+                          "swarm_runs": swarm_runs, "sim_runs": sim_runs, "breakdown": breakdowns})
     return 1 if failures else 0
 
 

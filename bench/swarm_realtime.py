@@ -74,7 +74,7 @@ def latencies(stamps: list[dict]) -> tuple[dict[str, list[float]], int]:
     sent: dict[str, dict[int, int]] = {}
     for s in stamps:
         for key, lst in s["pub"].items():
-            sent.setdefault(key, {}).update({seq: t for seq, t in lst})
+            sent.setdefault(key, {}).update({seq: t for seq, _, t in lst})
     out: dict[str, list[float]] = {"neighbour ref (agent->agent)": [], "state (plant->agent)": [],
                                    "leader ref (leader->agent)": [], "cmd (agent->plant)": [], "clock (plant->leader)": []}
     unmatched = 0
@@ -95,7 +95,7 @@ def latencies(stamps: list[dict]) -> tuple[dict[str, list[float]], int]:
             else:
                 continue
             src = sent.get(key, {})
-            for seq, t in lst:
+            for seq, _, t in lst:
                 t0 = src.get(seq)
                 if t0 is None:
                     unmatched += 1
@@ -113,7 +113,7 @@ def period_jitter(stamps: list[dict], dt_ms: float) -> dict[str, list[float]]:
             kind = key_kind(key)
             if (role == "plant" and kind == "clock") or (role.startswith("agent") and kind == "cmd") or (
                 role == "leader" and kind == "leader_ref"):
-                ts = [t for _, t in lst]
+                ts = [t for _, _, t in lst]
                 grp = "plant" if role == "plant" else ("leader" if role == "leader" else "agents")
                 out[grp] += [abs((b - a) / 1e6 - dt_ms) for a, b in zip(ts, ts[1:])]
     return out
@@ -124,7 +124,7 @@ def in_flight_missed(stamps: list[dict]) -> dict[str, tuple[int, int]]:
     start = None
     for s in stamps:
         if s["role"] == "plant":
-            clk = [t for key, lst in s["pub"].items() if key_kind(key) == "clock" for _, t in lst]
+            clk = [t for key, lst in s["pub"].items() if key_kind(key) == "clock" for _, _, t in lst]
             start = min(clk) if clk else None
     out: dict[str, list[int]] = {"plant": [0, 0], "leader": [0, 0], "agents": [0, 0]}
     if start is None:
@@ -146,7 +146,13 @@ def analyse(run: C.UpRun, stamp_dir: Path, facts: dict) -> dict:
                "port_free_after": run.port_free_after, "background_cores": run.cpu.get("background_cores"),
                "load1_start": run.cpu.get("load1_start"), "rms_tracking_error_m": res.get("rms_tracking_error_m"),
                "min_inter_uav_distance_m": res.get("min_inter_uav_distance_m"),
-               "plant_finished": bool(diag.get("plant", {}).get("finished"))}
+               "plant_finished": bool(diag.get("plant", {}).get("finished")), "timed_out": run.timed_out,
+               "hung_after_plant_exit": run.hung_after_plant_exit,
+               "still_running_after_plant": sorted(r for r, p in run.procs.items()
+                                                   if r not in ("plant", "supervisor") and run.hung_after_plant_exit
+                                                   and p.last_seen >= run.procs["plant"].last_seen + 5.0)
+               if "plant" in run.procs else [],
+               "hang_dumps": run.hang_dumps}
     groups: dict[str, dict] = {}
     for name, d in diag.items():
         if "loop_ticks" not in d:
@@ -208,7 +214,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", type=Path, help="fly this TOML instead of a generated one (its own time limit)")
     ap.add_argument("--json", type=Path, metavar="FILE", help="write every run and the medians to FILE")
     ap.add_argument("--no-sim", action="store_true", help="skip the simulator baseline")
-    ap.add_argument("--timeout", type=float, default=300.0, metavar="S", help="per-run limit of zenswarm up (default 300 s)")
+    ap.add_argument("--no-stamps", action="store_true",
+                    help="fly without the latency instrumentation (bench/stamps); loop counters and CPU only")
+    ap.add_argument("--end-grace", type=float, default=15.0, metavar="S",
+                    help="if the swarm is still running S seconds after the plant exited, dump it (py-spy) and stop it;"
+                    " counted as 'hung at the end' (default 15)")
+    ap.add_argument("--keep", type=Path, metavar="DIR", help="keep each run's results.json (and stamps) under DIR")
+    ap.add_argument("--timeout", type=float, default=None, metavar="S",
+                    help="per-run limit of zenswarm up (default: flight + 120 s); a swarm still running then is dumped with"
+                    " py-spy (if installed) and stopped")
     ap.add_argument("--quiet-wait", type=float, default=0.0, metavar="CORES",
                     help="before each run wait (up to 120 s) until other jobs use at most CORES cores (0 = don't wait)")
     a = ap.parse_args(argv)
@@ -236,12 +250,20 @@ def main(argv: list[str] | None = None) -> int:
             sd = tmpdir / f"stamps{r}"
             sd.mkdir()
             env = C.bench_env()
-            env["PYTHONPATH"] = os.pathsep.join([str(STAMPS)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
-            env["ZENSWARM_BENCH_STAMPS"] = str(sd)
+            if not a.no_stamps:
+                env["PYTHONPATH"] = os.pathsep.join([str(STAMPS)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+                env["ZENSWARM_BENCH_STAMPS"] = str(sd)
             out = tmpdir / f"run{r}"
-            run = C.run_up(path, out, tag=f"rt{r}", extra=["--realtime"], env=env, timeout_s=a.timeout)
+            run = C.run_up(path, out, tag=f"rt{r}", extra=["--realtime"], env=env,
+                           timeout_s=a.timeout or facts["sim_time_s"] + 120.0, end_grace_s=a.end_grace)
             m = analyse(run, sd, facts)
             runs.append(m)
+            if a.keep is not None:
+                dst = a.keep / f"run{r + 1}"
+                dst.mkdir(parents=True, exist_ok=True)
+                if (out / "results.json").exists():
+                    shutil.copy(out / "results.json", dst / "results.json")
+                shutil.copytree(sd, dst / "stamps", dirs_exist_ok=True)
             shutil.rmtree(sd, ignore_errors=True)
             shutil.rmtree(out, ignore_errors=True)
             nb = m["latency_ms"]["neighbour ref (agent->agent)"]
@@ -250,8 +272,17 @@ def main(argv: list[str] | None = None) -> int:
                   f"  neighbour latency p50 {C.fmt(nb['p50'], 3)} p99 {C.fmt(nb['p99'], 3)} max {C.fmt(nb['max'], 2)} ms"
                   f" (n={nb['n']})  cores in flight {m.get('flight_cores_total', 0):.2f}  background {m['background_cores']:.2f}"
                   f"  exit {run.returncode}", flush=True)
-            if not m["plant_finished"]:
+            if not a.no_stamps and nb["n"] == 0:
+                print(f"    WARNING: no neighbour message was stamped ({m['stamp_files']} stamp files): the wrappers in"
+                      " bench/stamps/sitecustomize.py may no longer match zenswarm.runtime/zenswarm.wire")
+            if m["hung_after_plant_exit"]:
+                print(f"    HUNG AT THE END: {len(m['still_running_after_plant'])} processes kept running after the plant exited"
+                      f" ({', '.join(m['still_running_after_plant'][:6])}{', ...' if len(m['still_running_after_plant']) > 6 else ''});"
+                      f" plant's final diagnostics received: {m['plant_finished']}")
+            if not m["plant_finished"] and not m["hung_after_plant_exit"]:
                 print(f"    the plant did not finish; output:\n{run.output_tail}")
+                for role, text in run.hang_dumps.items():
+                    print(f"    py-spy dump of {role}:\n" + "\n".join("      " + x for x in text.splitlines()[:60]))
     finally:
         C.cleanup_all()
 
@@ -274,6 +305,7 @@ def main(argv: list[str] | None = None) -> int:
     summary["background_cores"] = med(m["background_cores"] for m in runs)
     summary["rms_tracking_error_m"] = med(m["rms_tracking_error_m"] for m in runs)
     summary["leftover_processes"] = sum(m["leftover_processes"] for m in runs)
+    summary["runs_hung_at_end"] = sum(bool(m["hung_after_plant_exit"]) for m in runs)
     summary["ports_left_bound"] = sum(not m["port_free_after"] for m in runs)
     if sims:
         summary["sim_x_real_time"] = facts["sim_time_s"] / med(s["wall_s"] for s in sims)
@@ -305,6 +337,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{summary['sim_cores_for_real_time']:.3f} cores to keep up with real time -> swarm/sim CPU "
               f"{C.fmt(summary.get('cpu_ratio_swarm_over_sim'), 1)}; rms tracking error swarm {C.fmt(summary['rms_tracking_error_m'], 4)} m"
               f" vs simulator {C.fmt(summary['sim_rms_tracking_error_m'], 4)} m")
+    print(f"runs where processes kept running after the plant exited (stopped by the bench): {summary['runs_hung_at_end']} of {len(runs)}")
     print(f"cleanup: {summary['leftover_processes']} leftover processes, {summary['ports_left_bound']} ports left bound")
     C.write_json(a.json, {"benchmark": "swarm_realtime", "command": C.command_line(), "machine": info,
                           "loadavg_at_end": list(os.getloadavg()), "scenario": facts, "summary": summary,

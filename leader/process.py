@@ -97,6 +97,8 @@ def _run(proc: SwarmProcess) -> int:
             stats.record(time.monotonic() - next_t)
             next_t += dt
             clk = proc.inbox.latest.get(keys.clock)
+            if clk is not None and not proc.is_alive("plant"):
+                break  # the plant is gone: the flight is over
             target = 0 if clk is None else int(round(clk.t / dt_ns)) + 1
             while k_q < target:
                 advance()

@@ -1,19 +1,21 @@
-"""Benchmark-only instrumentation of the swarm processes (bench/swarm_realtime.py).
+"""Benchmark-only instrumentation of the swarm processes (bench/swarm_realtime.py, swarm_lockstep.py).
 
 Python imports ``sitecustomize`` at start-up from ``sys.path``; bench/swarm_realtime.py puts this
 folder on ``PYTHONPATH`` and sets ``ZENSWARM_BENCH_STAMPS=<dir>`` for ``zenswarm up`` only, so the
 plant, the leader and every agent it starts (``python -m zenswarm plant|leader|agent ...``) get
 two wrappers, and nothing else changes (no source file of the project is touched):
 
-* ``SwarmProcess.publish``: the ``CLOCK_MONOTONIC`` time (``time.monotonic_ns``, system-wide on
-  Linux, so comparable across processes) right before ``publisher.put`` of each message, by
-  (key, seq); and, for ``Diag`` messages, the loop counters they carry (loop_ticks,
+* ``SwarmProcess.publish`` and ``wire.encode``: the ``CLOCK_MONOTONIC`` time (``time.monotonic_ns``,
+  system-wide on Linux, so comparable across processes) when ``publish`` has encoded a message,
+  i.e. right before its ``put``, by (key, seq) (the original ``publish`` runs unchanged); and, for ``Diag`` messages, the loop counters they carry (loop_ticks,
   missed_deadlines) so the in-flight share of missed deadlines can be separated from start-up.
 * ``wire.Decoder.decode``: the time a sample reached the receiving process's Zenoh callback,
   taken on entry to the decoder (the first thing the subscriber callback does), by (key, seq).
 
-At exit each process writes ``<dir>/<role>-<pid>.json``; the benchmark pairs publications with
-receptions by (key, seq): latency = receive time - publish time. Other processes (the
+At exit each process writes ``<dir>/<role>-<pid>.json`` with, per key, lists of (seq, message sim
+time t in ns, stamp); the benchmark pairs publications with receptions by (key, seq): latency =
+receive time - publish time (bench/swarm_realtime.py), or follows one lockstep tick through the
+processes by the messages' sim time (bench/swarm_lockstep.py --breakdown). Other processes (the
 supervisor, pip, ...) are left alone: the wrappers are installed only for the three roles.
 """
 
@@ -35,6 +37,7 @@ if _DIR:
 def _install(role: str, out_dir: str) -> None:
     import atexit
     import json
+    import threading
     import time
 
     from zenswarm import runtime, wire
@@ -44,17 +47,30 @@ def _install(role: str, out_dir: str) -> None:
     rx: dict[str, list] = {}
     diags: list = []
 
-    def publish(self, key, msg):  # noqa: ANN001 - same contract as SwarmProcess.publish
-        data = wire.encode(msg)
-        t = mono()
-        self.publisher(key).put(data)
-        lst = pub.get(key)
-        if lst is None:
-            lst = pub[key] = []
-        lst.append((msg.seq, t))
-        if msg.kind == "diag":
-            info = msg.info
-            diags.append((t, info.get("loop_ticks"), info.get("missed_deadlines"), info.get("jitter_mean_ms")))
+    orig_publish = runtime.SwarmProcess.publish
+    orig_encode = wire.encode
+    current = threading.local()
+
+    def encode(msg):  # noqa: ANN001 - wire.encode; stamps right after encoding, i.e. just before put
+        data = orig_encode(msg)
+        key = getattr(current, "key", None)
+        if key is not None:
+            t = mono()
+            lst = pub.get(key)
+            if lst is None:
+                lst = pub[key] = []
+            lst.append((msg.seq, msg.t, t))
+            if msg.kind == "diag":
+                info = msg.info
+                diags.append((t, info.get("loop_ticks"), info.get("missed_deadlines"), info.get("jitter_mean_ms")))
+        return data
+
+    def publish(self, key, msg):  # noqa: ANN001 - wraps SwarmProcess.publish (which encodes, then puts)
+        current.key = key
+        try:
+            return orig_publish(self, key, msg)
+        finally:
+            current.key = None
 
     orig_decode = wire.Decoder.decode
 
@@ -65,10 +81,11 @@ def _install(role: str, out_dir: str) -> None:
             lst = rx.get(key)
             if lst is None:
                 lst = rx[key] = []
-            lst.append((msg.seq, t))
+            lst.append((msg.seq, msg.t, t))
         return msg
 
     runtime.SwarmProcess.publish = publish
+    wire.encode = encode
     wire.Decoder.decode = decode
 
     def dump() -> None:

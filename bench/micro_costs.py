@@ -1,0 +1,209 @@
+"""Per-call cost of the pieces a control tick is made of, in one process (evidence for
+BENCHMARKS.md's "what dominates the cost").
+
+* agent: ``AgentCore.tick`` (generator 16-17, controller 28, inversion, ESO step) of one UAV
+  with 2 and 4 neighbours, pinned;
+* wire: ``wire.encode`` and ``wire.Decoder.decode`` of a State, a Ref and a Cmd (msgpack +
+  validation);
+* plant: one control period of physics (``timing.substeps`` x ``plant.quadrotor.step``) for N = 3,
+  16, 32 UAVs;
+* simulator: ``generator_rates_all`` for N = 3, 16, 32 (the in-process simulator's per-agent
+  Python loop);
+* leader: ``integrate_leader`` over one control period (paper example 1, at the start);
+* with ``--bus``: the cost of ``Publisher.put`` as the swarm declares its publishers
+  (``SwarmProcess.publisher``: RELIABLE, BLOCK, express=True) against express=False, 16 puts of
+  a State payload per round (what the plant does each tick for 16 UAVs), to a router in this
+  process and one subscriber process: wall time of the 16 puts and CPU of this process (all its
+  threads, Zenoh's included), per put.
+
+Each figure is the median over ``--runs`` repeats of the mean time of ``--calls`` calls (CPU
+time of this process, ``time.process_time_ns``, so other jobs on the machine matter less).
+
+    python bench/micro_costs.py
+    python bench/micro_costs.py --runs 7 --calls 3000 --json bench/results/micro.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import _common as C  # noqa: E402
+
+
+def bench(fn, calls: int) -> float:
+    """Mean CPU microseconds per call of fn()."""
+    fn()
+    t0 = time.process_time_ns()
+    for _ in range(calls):
+        fn()
+    return (time.process_time_ns() - t0) / calls / 1e3
+
+
+def cases(tmpdir: Path):
+    import numpy as np
+
+    from agents.core import AgentCore, AgentRow
+    from agents.generator import generator_rates_all
+    from leader.aapf import AapfParams, integrate_leader
+    from plant.params import QuadParams
+    from plant.quadrotor import initial_state, step
+    from zenswarm import wire
+    from zenswarm.config import load_scenario
+
+    ex1 = load_scenario(C.PAPER["example1"])
+    params = QuadParams.from_vehicle(ex1.vehicle)
+    out = []
+
+    for n, label in ((3, "example1 (UAV 1: 2 neighbours)"), (16, "gen16 (UAV 1: 4 neighbours)")):
+        sc = ex1 if n == 3 else __import__("zenswarm.config", fromlist=["load_scenario"]).load_scenario(
+            C.generated_scenario(16, tmpdir))
+        row = AgentRow.from_scenario(sc, 0, params.mass, params.g)
+        core = AgentCore(row)
+        q = np.asarray(sc.initial_positions[0], dtype=float)
+        v = np.zeros(3)
+        core.reset(q, v)
+        qn = np.asarray([sc.initial_positions[j] for j in row.neighbours], dtype=float)
+        vn = np.zeros_like(qn)
+        q0 = np.asarray(sc.leader.start, dtype=float)
+        v0 = np.array([0.05, 0.02, 0.0])
+        out.append((f"agent: AgentCore.tick, {label}", lambda core=core, q=q, v=v, qn=qn, vn=vn, q0=q0, v0=v0:
+                    core.tick(q, v, qn, vn, q0, v0)))
+
+    v3 = np.array([0.1, -0.2, 0.3])
+    msgs = {
+        "State": ("state", wire.State(t=10_000_000, seq=1, q=v3, v=v3, rpy=v3, w=v3)),
+        "Ref": ("ref", wire.Ref(t=10_000_000, seq=1, q=v3, v=v3)),
+        "Cmd": ("cmd", wire.Cmd(t=10_000_000, seq=1, thrust=0.3, rpy=v3, u=v3, d_hat=v3)),
+    }
+    dec = wire.Decoder()
+    for name, (kind, m) in msgs.items():
+        payload = wire.encode(m)
+        out.append((f"wire: encode {name} ({len(payload)} B)", lambda m=m: wire.encode(m)))
+        out.append((f"wire: Decoder.decode {name}", lambda kind=kind, payload=payload: dec.decode("k", kind, payload)))
+        if name == "State":
+            out.append(("wire: construct State (validation) + encode",
+                        lambda: wire.encode(wire.State(t=10_000_000, seq=1, q=v3.copy(), v=v3.copy(), rpy=v3.copy(), w=v3.copy()))))
+
+    h = ex1.timing.dt / ex1.timing.substeps
+    for n in (3, 16, 32):
+        st = initial_state(np.zeros((n, 3)) + np.array([0.0, 0.0, 0.4]))
+        F = np.full(n, params.mass * params.g)
+        rpy = np.zeros((n, 3))
+
+        def period(st=st, F=F, rpy=rpy) -> None:
+            for _ in range(ex1.timing.substeps):
+                step(st, F, rpy, params, h)
+
+        out.append((f"plant: one control period ({ex1.timing.substeps} physics steps), N={n}", period))
+
+    for n in (3, 16, 32):
+        rng = np.random.default_rng(0)
+        A = np.zeros((n, n))
+        for i in range(n):
+            for j in (i - 1, i + 1):
+                A[i, j % n] = A[j % n, i] = 1.0
+        b = np.zeros(n)
+        b[0] = 1.0
+        qs, vs, hh = rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+        out.append((f"simulator: generator_rates_all, N={n}",
+                    lambda qs=qs, vs=vs, hh=hh, A=A, b=b: generator_rates_all(qs, vs, hh, A, b, v3, v3, 0.1, 2.0)))
+
+    aapf = AapfParams.from_scenario(ex1)
+    q0 = np.asarray(ex1.leader.start, dtype=float)
+    out.append(("leader: integrate_leader, one control period", lambda: integrate_leader(q0, ex1.timing.dt, aapf, ex1.timing.substeps)))
+    return out
+
+
+BUS_SUB = """
+import sys, time
+from zenswarm import bus
+with bus.open_session(bus.client_config([sys.argv[1]]), handle_signals=False) as s:
+    n = [0]
+    sub = s.declare_subscriber("bench/put/**", lambda x: n.__setitem__(0, n[0] + 1))
+    time.sleep(float(sys.argv[2]))
+"""
+
+
+def bus_costs(rounds: int, runs: int) -> dict[str, dict[str, float]]:
+    """Wall and CPU microseconds per put, express on/off (see the module doc)."""
+    import subprocess
+
+    import numpy as np
+    import zenoh
+
+    from zenswarm import bus, wire
+
+    ep = bus.tcp_endpoint(bus.free_port())
+    out: dict[str, dict[str, list[float]]] = {}
+    with bus.open_session(bus.router_config([ep]), handle_signals=False):
+        sub = subprocess.Popen([sys.executable, "-c", BUS_SUB, ep, str(10 + runs * rounds * 0.01)], cwd=C.REPO)
+        try:
+            time.sleep(2.0)
+            with bus.open_session(bus.client_config([ep]), handle_signals=False) as s:
+                v3 = np.array([0.1, -0.2, 0.3])
+                payload = wire.encode(wire.State(t=1, seq=1, q=v3, v=v3, rpy=v3, w=v3))
+                pubs = {
+                    express: [s.declare_publisher(f"bench/put/{int(express)}/{i}", congestion_control=zenoh.CongestionControl.BLOCK,
+                                                  express=express, reliability=zenoh.Reliability.RELIABLE) for i in range(16)]
+                    for express in (True, False)
+                }
+                time.sleep(1.0)
+                for _ in range(runs):
+                    for express, ps in pubs.items():
+                        name = f"bus: Publisher.put, express={express} (16 per round, 1 subscriber process)"
+                        c0, w = time.process_time_ns(), 0
+                        for _ in range(rounds):
+                            w0 = time.perf_counter_ns()
+                            for p in ps:
+                                p.put(payload)
+                            w += time.perf_counter_ns() - w0
+                            time.sleep(0.002)
+                        c = time.process_time_ns() - c0
+                        d = out.setdefault(name, {"wall": [], "cpu": []})
+                        d["wall"].append(w / rounds / 16 / 1e3)
+                        d["cpu"].append(c / rounds / 16 / 1e3)
+        finally:
+            sub.terminate()
+            sub.wait()
+    return {k: {"wall_us_median": C.median(v["wall"]), "cpu_us_median": C.median(v["cpu"])} for k, v in out.items()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    import os
+    import tempfile
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", type=int, default=5, help="repeats (median reported; default 5)")
+    ap.add_argument("--calls", type=int, default=2000, help="calls per repeat (default 2000)")
+    ap.add_argument("--json", type=Path, metavar="FILE", help="write the figures to FILE")
+    ap.add_argument("--bus", action="store_true", help="also measure Publisher.put (express on/off) through a router")
+    a = ap.parse_args(argv)
+    info = C.machine_info()
+    for line in C.machine_lines(info):
+        print(line)
+    with tempfile.TemporaryDirectory(prefix="zenswarm-micro-") as tmp:
+        cs = cases(Path(tmp))
+        res: dict[str, list[float]] = {name: [] for name, _ in cs}
+        for _ in range(a.runs):
+            for name, fn in cs:
+                res[name].append(bench(fn, a.calls))
+    summary = {name: {"us_median": C.median(v), "us_min": min(v)} for name, v in res.items()}
+    print(C.table(["call", "CPU us/call (median)", "min"], [[k, v["us_median"], v["us_min"]] for k, v in summary.items()]))
+    if a.bus:
+        bc = bus_costs(500, a.runs)
+        summary.update(bc)
+        print()
+        print(C.table(["call", "wall us/put (median)", "CPU us/put, all threads (median)"],
+                      [[k, v["wall_us_median"], v["cpu_us_median"]] for k, v in bc.items()]))
+    C.write_json(a.json, {"benchmark": "micro_costs", "command": C.command_line(), "machine": info,
+                          "loadavg_at_end": list(os.getloadavg()), "summary": summary, "runs": res})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
