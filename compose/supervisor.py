@@ -37,32 +37,6 @@ __all__ = ["add_parsers", "Collector", "Supervisor", "role_names"]
 EXIT_OK, EXIT_MISSION_FAILED, EXIT_BAD_INPUT, EXIT_PROCESS_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
 
-def _free_udp_base(n: int) -> int:
-    """A UDP port p on 127.0.0.1 with p .. p+n-1 free a moment ago."""
-    import socket
-
-    for _ in range(50):
-        socks = []
-        try:
-            s0 = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            s0.bind(("127.0.0.1", 0))
-            base = s0.getsockname()[1]
-            socks.append(s0)
-            if base + n > 65535:
-                continue
-            for i in range(1, n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind(("127.0.0.1", base + i))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise ZenswarmError("no free block of UDP ports for the MAVLink vehicles")
-
-
 def role_names(n: int) -> list[str]:
     """Process names of a swarm of n UAVs, in start order."""
     return ["plant", "leader"] + [f"agent:{i}" for i in range(1, n + 1)]
@@ -206,7 +180,7 @@ class Supervisor:
         self.ended_at_goal = False
         if args.plant == "mavlink":
             args.realtime = True  # real vehicles (or their simulation over UDP) run on the wall clock
-        self.mav_base_port = args.mavlink_base_port or _free_udp_base(scenario.n)
+        self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n)
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:

@@ -24,6 +24,8 @@ from typing import Any, Callable
 import numpy as np
 import pytest
 
+from zenswarm.bus import free_udp_block as bus_free_udp_block
+
 from bridge import frames
 from bridge.mavlink import (
     AP_COPTER_MODES,
@@ -59,24 +61,8 @@ def free_udp_port() -> int:
 
 
 def free_udp_block(n: int) -> int:
-    """A base port with n consecutive free UDP ports (checked by binding them all)."""
-    for _ in range(200):
-        base = free_udp_port()
-        if base + n >= 65535:
-            continue
-        socks = []
-        try:
-            for k in range(n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind(("127.0.0.1", base + k))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError("no block of free UDP ports")
+    """A base port with n consecutive free UDP ports (zenswarm.bus.free_udp_block)."""
+    return bus_free_udp_block(n)
 
 
 def wait_until(pred: Callable[[], Any], timeout: float, what: str, poll: float = 0.02) -> Any:

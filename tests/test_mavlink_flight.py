@@ -26,30 +26,11 @@ from swarmtest import (
     zenswarm,
 )
 
+from zenswarm.bus import free_udp_block
+
 N_UAV = 3  # paper example 1
 
 
-def _free_udp_block(n: int) -> int:
-    """A base port with n consecutive UDP ports free (checked by binding them all)."""
-    for _ in range(200):
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s0:
-            s0.bind(("127.0.0.1", 0))
-            base = s0.getsockname()[1]
-        if base + n >= 65535:
-            continue
-        socks = []
-        try:
-            for k in range(n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind(("127.0.0.1", base + k))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError("no block of free UDP ports")
 
 
 def _udp_free(base: int, n: int) -> bool:
@@ -73,7 +54,7 @@ def _up_mavlink(scenario: Path, out: Path, *extra: str, timeout: float = 240.0):
     completed process (stdout + stderr in ``.stdout``)."""
     swarm = unique_swarm("mf")
     port = free_port()
-    base = _free_udp_block(N_UAV)
+    base = free_udp_block(N_UAV)
     marks = (f"--swarm {swarm}", f"--base-port {base} ")
     try:
         cp = zenswarm(

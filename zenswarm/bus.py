@@ -52,6 +52,7 @@ __all__ = [
     "BusError",
     "Shutdown",
     "free_port",
+    "free_udp_block",
     "tcp_endpoint",
     "apply_settings",
     "router_config",
@@ -91,6 +92,29 @@ def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return int(s.getsockname()[1])
+
+
+def free_udp_block(n: int, host: str = "127.0.0.1") -> int:
+    """A UDP port p on ``host`` with p .. p+n-1 free a moment ago (all bound once, then closed)."""
+    for _ in range(200):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s0:
+            s0.bind((host, 0))
+            base = int(s0.getsockname()[1])
+        if base + n >= 65535:
+            continue
+        socks = []
+        try:
+            for k in range(n):
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                socks.append(s)
+                s.bind((host, base + k))
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise BusError(f"no block of {n} free UDP ports on {host}")
 
 
 def tcp_endpoint(port: int, host: str = "127.0.0.1") -> str:
