@@ -733,11 +733,14 @@ class SwarmProcess:
     def publisher(self, key: str) -> Any:
         pub = self._pubs.get(key)
         if pub is None:
-            # BLOCK: lockstep traffic must not be dropped. No express: a message goes out as soon
-            # as the link is idle anyway, and express (one batch per message) costs ~40 us of CPU
-            # per put on this 2-core machine, which the whole swarm shares (bench/BENCHMARKS.md).
+            # BLOCK: lockstep traffic must not be dropped. Express (one batch per message) costs
+            # ~40 us of CPU per put on this 2-core machine: lockstep runs 36 % faster without it,
+            # while realtime's latency tail is better with it (BENCHMARKS.md).
             pub = self.session.declare_publisher(
-                key, congestion_control=zenoh.CongestionControl.BLOCK, express=False, reliability=zenoh.Reliability.RELIABLE
+                key,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                express=bool(getattr(self.args, "realtime", False)),
+                reliability=zenoh.Reliability.RELIABLE,
             )
             self._pubs[key] = pub
         return pub
