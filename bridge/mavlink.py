@@ -1374,14 +1374,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m bridge.mavlink SCENARIO [options]`` (same options as ``zenswarm bridge mavlink``)."""
-    p = argparse.ArgumentParser(prog="python -m bridge.mavlink", description=(__doc__ or "").split("\n\n")[0])
-    _configure(p)
-    args = p.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except ScenarioError as e:
-        print(f"bridge: error: {e}", file=sys.stderr)
-        return 2
+    from zenswarm.cli import run_standalone
+
+    return run_standalone("python -m bridge.mavlink", __doc__, _configure, argv, "bridge")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -799,16 +799,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m plant.mavlink_vehicle SCENARIO --base-port P``."""
-    from zenswarm.errors import ZenswarmError
+    from zenswarm.cli import run_standalone
 
-    p = argparse.ArgumentParser(prog="python -m plant.mavlink_vehicle", description=(__doc__ or "").split("\n\n")[0])
-    _configure(p)
-    args = p.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except ZenswarmError as e:
-        print(f"mavlink-vehicle: error: {e}", file=sys.stderr)
-        return 2
+    return run_standalone("python -m plant.mavlink_vehicle", __doc__, _configure, argv, "mavlink-vehicle")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -117,6 +117,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def run_standalone(prog: str, doc: str | None, configure, argv: Sequence[str] | None, label: str) -> int:
+    """``python -m MODULE`` entry of a subcommand module: build its parser with ``configure``, run
+    it, and turn a :class:`ZenswarmError` into ``label: error: ...`` and exit status 2."""
+    p = argparse.ArgumentParser(prog=prog, description=(doc or "").split("\n\n")[0])
+    configure(p)
+    args = p.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except ZenswarmError as e:
+        print(f"{label}: error: {e}", file=sys.stderr)
+        return 2
+
+
 # The swarm's own processes start with only what they need (a restarted agent rejoins sooner).
 _ROLE_MODULES = {"agent": "agents.process", "leader": "leader.process", "plant": "plant.process"}
 
