@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zenoh
 
 from zenswarm import bus, security, wire
 from zenswarm.config import Scenario, load_scenario
@@ -33,6 +34,9 @@ from .policy import restart_policy
 from zenswarm.metrics import TimeSeries, compute_results
 
 __all__ = ["add_parsers", "Collector", "Supervisor", "role_names"]
+
+COLLECTOR_QUEUE = 4_000_000
+"""Capacity of the supervisor's bus queue, in messages (drained every ~50 ms, so it never fills)."""
 
 EXIT_OK, EXIT_MISSION_FAILED, EXIT_BAD_INPUT, EXIT_PROCESS_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
@@ -63,6 +67,19 @@ class Collector:
         self.counts: dict[str, int] = {}
         self._eager = {keys.clock, keys.leader_ref}
         self._pending: list[tuple[str, bytes]] = []
+
+    def poll(self, sub: Any, budget: int = 1_000_000) -> int:
+        """Take every sample queued on ``sub`` (a subscriber with a channel handler); returns
+        how many. Called from the supervisor's own loop, so the swarm's messages cost the
+        supervisor no Python thread wake-up each (they wait in zenoh's channel between polls)."""
+        n = 0
+        while n < budget:
+            s = sub.try_recv()
+            if s is None:
+                break
+            self.on_sample(str(s.key_expr), s.payload.to_bytes())
+            n += 1
+        return n
 
     def on_sample(self, key: str, payload: bytes) -> None:
         """Take one sample. The clock, the leader's ref and diagnostics (what progress needs) are
@@ -167,6 +184,7 @@ class Supervisor:
         self.args = args
         self.sc = scenario
         self.keys = wire.Keys(args.swarm)
+        self.user_runtime = os.environ.get("ZENOH_RUNTIME")  # None: ours (see spawn and run)
         self.children: dict[str, Child] = {}
         self.stop = threading.Event()
         self.stop_reason = ""
@@ -235,6 +253,8 @@ class Supervisor:
     def spawn(self, role: str) -> Child:
         env = dict(os.environ)
         env.setdefault("PYTHONUNBUFFERED", "1")
+        if self.user_runtime is None:  # the swarm's processes: zenoh on one thread (bus.use_swarm_runtime)
+            env["ZENOH_RUNTIME"] = bus.ZENOH_RUNTIME_DEFAULT
         p = subprocess.Popen(
             self.child_argv(role),
             stdout=subprocess.PIPE,
@@ -303,14 +323,21 @@ class Supervisor:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
 
+        # zenoh reads ZENOH_RUNTIME when this process opens its first session: the router's
+        os.environ.setdefault("ZENOH_RUNTIME", bus.ZENOH_RUNTIME_ROUTER)
         session_cm = bus.open_session(
             bus.router_config(listen, connect=a.router_connect or [], settings=settings), handle_signals=False
         )
         session = session_cm.__enter__()
         collector = Collector(sc, self.keys)
+        self._bus_sub: Any = None
         subs = []
         try:
-            subs.append(session.declare_subscriber(self.keys.all, lambda s: collector.on_sample(str(s.key_expr), s.payload.to_bytes())))
+            # A channel, drained by _watch every loop: no Python callback per message (each would
+            # wake a thread of this process, on the cores the swarm shares). The capacity holds
+            # minutes of a large swarm's traffic, so the router never waits on this queue.
+            self._bus_sub = session.declare_subscriber(self.keys.all, zenoh.handlers.FifoChannel(COLLECTOR_QUEUE))
+            subs.append(self._bus_sub)
             subs.append(session.liveliness().declare_subscriber(self.keys.alive_all, self._on_liveliness, history=True))
             self.say(
                 f"swarm '{a.swarm}': router on {', '.join(listen)}; {sc.n} UAVs; "
@@ -324,6 +351,8 @@ class Supervisor:
             code = self._watch(collector)
         finally:
             self.terminate_all()
+            if self._bus_sub is not None:
+                collector.poll(self._bus_sub)  # what arrived after the last loop
             for s in subs:
                 try:
                     s.undeclare()
@@ -393,6 +422,7 @@ class Supervisor:
         limit_ns = wire.t_ns(sc.timing.time_limit_s)
         wall0 = time.monotonic()
         while True:
+            collector.poll(self._bus_sub)
             if self.stop.is_set():
                 self.say(f"stopping: {self.stop_reason}")
                 return EXIT_INTERRUPTED

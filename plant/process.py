@@ -1,7 +1,7 @@
 """The plant process: simulates every UAV with the core model and is the clock in lockstep.
 
 Subscribes to each UAV's ``uav/<i>/cmd``; publishes ``clock`` and each ``uav/<i>/state``.
-Lockstep tick k: publish clock(k) and state_i(k) for all i, wait for every cmd_i(k) (a timeout
+Lockstep tick k: publish state_i(k) for all i and clock(k), wait for every cmd_i(k) (a timeout
 counts as a drop and holds the UAV's previous command; an agent whose liveliness token is gone is
 not waited for), then integrate ``timing.substeps`` physics sub-steps. A UAV whose newest command
 is too old goes into the failsafe of :mod:`plant.failsafe` (hover, then land). It starts only
@@ -65,12 +65,12 @@ def _run(proc: SwarmProcess) -> int:
         nonlocal seq
         seq += 1
         t = k * dt_ns
-        proc.publish(keys.clock, wire.Clock(t=t, seq=seq))
-        for i in range(n):
+        for i in range(n):  # the states first: they are what the agents wait for
             proc.publish(
                 keys.state(i + 1),
                 wire.State(t=t, seq=seq, q=plant.q[i].copy(), v=plant.v[i].copy(), rpy=plant.rpy[i].copy(), w=plant.w[i].copy()),
             )
+        proc.publish(keys.clock, wire.Clock(t=t, seq=seq))
 
     def apply(i: int, c: wire.Cmd, k_cmd: int) -> None:
         thrust[i] = c.thrust

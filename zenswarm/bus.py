@@ -32,7 +32,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
 import json
+import os
 import signal
 import socket
 import sys
@@ -49,6 +51,9 @@ from .wire import InvalidKeyError, Keys, validate_process
 
 __all__ = [
     "DEFAULT_CONNECT_TIMEOUT_S",
+    "ZENOH_RUNTIME_DEFAULT",
+    "use_swarm_runtime",
+    "ZENOH_RUNTIME_ROUTER",
     "BusError",
     "Shutdown",
     "free_port",
@@ -58,12 +63,47 @@ __all__ = [
     "router_config",
     "client_config",
     "close_at_exit",
+    "direct_callback",
     "open_session",
     "declare_alive",
     "AliveWatcher",
     "wait_matching",
     "main",
 ]
+
+ZENOH_RUNTIME_DEFAULT: Final = "(rx: (handover: app), tx: (handover: app), net: (handover: app), acc: (handover: app), app: (worker_threads: 1))"
+"""zenoh's thread layout in the swarm's plant, leader and agent processes (see :func:`use_swarm_runtime`)."""
+
+
+def use_swarm_runtime() -> None:
+    """Run this process's zenoh on one thread, unless ``ZENOH_RUNTIME`` is already set.
+
+    By default zenoh runs five tokio runtimes (``app``, ``acc``, ``tx``, ``rx``, ``net``; ``rx``
+    with two worker threads), so one message crosses several threads in each process: read by
+    an ``rx`` thread, queued to a ``tx`` thread, and so on, each hand-over a thread wake-up.
+    :data:`ZENOH_RUNTIME_DEFAULT` hands every runtime over to one ``app`` runtime with a single
+    worker thread. On the 2-core machine that, with :func:`direct_callback`, made the lockstep
+    swarm about 1.7x (3 UAVs) to 2x (16 UAVs) faster (BENCHMARKS.md, "What made the swarm faster").
+
+    zenoh reads the variable once, when it creates its runtimes (the first session of the
+    process), so call this before opening one; child processes inherit it. The supervisor's
+    router does not use it: a router blocked on one slow receiver (congestion control ``BLOCK``)
+    must not stop forwarding everything else, which one worker thread would
+    (:data:`ZENOH_RUNTIME_ROUTER`). Set
+    ``ZENOH_RUNTIME`` yourself (RON syntax, zenoh's ``zenoh-runtime`` crate) to override it.
+    """
+    os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME_DEFAULT)
+
+
+ZENOH_RUNTIME_ROUTER: Final = "(rx: (handover: app), net: (handover: app), acc: (handover: app), app: (worker_threads: 1), tx: (worker_threads: 1))"
+"""zenoh's thread layout in the supervisor (the router): one ``app`` thread, and ``tx`` on its own.
+
+A router forwarding a ``BLOCK`` message into a full queue waits, inside the task that read it,
+until the sending task of that queue has drained it. With ``tx`` handed over to the single ``app``
+thread too, that sending task could never run: the wait would end only when zenoh closes the link
+(seconds later), and one slow receiver would stall the whole swarm. Measured: with everything on
+one thread, a flood of 64 KiB garbage messages froze example 1 every time (3 of 3 runs); with
+``tx`` apart, it flew (``tests/test_garbage.py``), and at nearly the same speed."""
 
 DEFAULT_CONNECT_TIMEOUT_S: Final = 5.0
 """How long a client keeps trying to reach its router before ``zenoh.open`` fails, s."""
@@ -249,6 +289,50 @@ def open_session(conf: zenoh.Config, *, handle_signals: bool = True) -> Iterator
         finally:
             for sig, h in previous.items():
                 signal.signal(sig, h)
+
+
+# --------------------------------------------------------------------------- callbacks
+
+
+_PINNED: set[int] = set()
+_PIN_LOCK = threading.Lock()
+
+
+def _pin_thread_state() -> None:
+    """Keep the calling native thread's Python thread state for the life of the process.
+
+    zenoh runs a ``Callback(f, indirect=False)`` on its own network (rx) threads, which have no
+    Python thread state: every call creates one and destroys it again (``PyGILState_Ensure`` /
+    ``Release``; in CPython 3.11 that includes mapping and unmapping a 16 KiB frame stack). One
+    extra ``PyGILState_Ensure`` that is never released keeps the state, so later calls only take
+    the GIL. Called with the GIL held; the rx threads are few (zenoh's ``rx`` runtime).
+    """
+    tid = threading.get_ident()
+    if tid in _PINNED:
+        return
+    with _PIN_LOCK:
+        if tid not in _PINNED:
+            _PINNED.add(tid)
+            ctypes.pythonapi.PyGILState_Ensure()
+
+
+def direct_callback(fn: Callable[[Any], None]) -> "zenoh.handlers.Callback":
+    """A subscriber handler that runs ``fn(sample)`` on zenoh's receiving thread.
+
+    The default for a plain Python callable is a dedicated Python thread per subscriber that
+    zenoh hands each sample to: one thread wake-up and one GIL hand-over per message, and with
+    several subscribers, several threads contending for the GIL. Here the thread that read the
+    sample from the socket runs ``fn`` itself (its Python thread state kept, see
+    :func:`_pin_thread_state`). ``fn`` must be quick and must not block: while it runs, this
+    session receives nothing else. Measured in BENCHMARKS.md ("direct callbacks").
+    """
+
+    def run(sample: Any) -> None:
+        if threading.get_ident() not in _PINNED:
+            _pin_thread_state()
+        fn(sample)
+
+    return zenoh.handlers.Callback(run, indirect=False)
 
 
 # --------------------------------------------------------------------------- liveliness

@@ -539,6 +539,7 @@ class SwarmProcess:
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
+        bus.use_swarm_runtime()  # before the first session: zenoh reads it once per process
         connect = self.args.connect or ["tcp/127.0.0.1:7447"]
         conf = bus.client_config(connect, settings=security.client_fragments_from_args(self.name, self.args))
         self._session_cm = bus.open_session(conf, handle_signals=False)
@@ -691,7 +692,8 @@ class SwarmProcess:
         def cb(sample: zenoh.Sample) -> None:
             handle(key, kind, sample, senders, on_msg)
 
-        self._subs.append(self.session.declare_subscriber(key, cb))
+        # On zenoh's receiving thread, not a Python thread per subscriber (see bus.direct_callback)
+        self._subs.append(self.session.declare_subscriber(key, bus.direct_callback(cb)))
         self.subscribed.append(key)
 
     def _watch_sender_tokens(self, names: tuple[str, ...]) -> None:
