@@ -23,6 +23,8 @@ import zenoh
 
 from zenswarm import wire
 from zenswarm.bus import (
+    ZENOH_RUNTIME_DEFAULT,
+    ZENOH_RUNTIME_ROUTER,
     AliveWatcher,
     BusError,
     client_config,
@@ -30,6 +32,8 @@ from zenswarm.bus import (
     open_session,
     router_config,
     tcp_endpoint,
+    use_swarm_runtime,
+    wait_matching,
 )
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -41,10 +45,11 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 class Child:
     """A Python subprocess running ``code`` with ``args``; stdout+stderr read line by line."""
 
-    def __init__(self, code: str, *args: object) -> None:
+    def __init__(self, code: str, *args: object, env: dict[str, str] | None = None) -> None:
         self.proc = subprocess.Popen(
             [sys.executable, "-c", textwrap.dedent(code), *map(str, args)],
             cwd=REPO,
+            env=env,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
@@ -319,3 +324,67 @@ def test_blocked_recv_and_forgotten_close_do_not_hang() -> None:
         assert b.wait(timeout=5.0) == 0
         a.proc.send_signal(signal.SIGTERM)
         assert a.wait(timeout=5.0) == 0
+
+
+# --------------------------------------------------------------------------- one zenoh thread
+
+
+ONE_THREAD = """
+import json, os, sys, threading, time
+from zenswarm import bus
+bus.use_swarm_runtime()
+import zenoh
+got, where = [], set()
+done = threading.Event()
+def on_sample(sample):
+    got.append(int(sample.payload.to_bytes()))
+    where.add((threading.get_ident(), threading.current_thread() is threading.main_thread()))
+    if len(got) == int(sys.argv[2]):
+        done.set()
+with bus.open_session(bus.client_config([sys.argv[1]]), handle_signals=False) as s:
+    sub = s.declare_subscriber("onethread/data", bus.direct_callback(on_sample))
+    print("ready", flush=True)
+    done.wait(10)
+    names = sorted(open(f).read().strip() for f in
+                   [f"/proc/self/task/{t}/comm" for t in os.listdir("/proc/self/task")])
+    print("result " + json.dumps({"env": os.environ.get("ZENOH_RUNTIME"), "got": got, "threads": names,
+          "callback_threads": sorted(w[1] for w in where), "pinned": len(bus._PINNED)}), flush=True)
+"""
+
+
+def test_swarm_runtime_runs_zenoh_and_callbacks_on_one_thread() -> None:
+    """A swarm process (bus.use_swarm_runtime + bus.direct_callback): zenoh has a single thread
+    (no rx/tx/net/acc threads), every sample reaches the callback on it, in order, and that
+    thread's Python state is created once (pinned), not per sample."""
+    n = 200
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
+    with router() as ep, children() as kids:
+        c = Child(ONE_THREAD, ep, n, env=env)
+        kids.append(c)
+        c.expect("ready", 10)
+        with open_session(client_config([ep]), handle_signals=False) as s:
+            pub = s.declare_publisher("onethread/data", congestion_control=zenoh.CongestionControl.BLOCK)
+            assert wait_matching(pub, 5.0)
+            for k in range(n):
+                pub.put(str(k).encode())
+            res = json.loads(c.expect("result", 15).split(" ", 1)[1])
+        assert c.wait(10) == 0
+    assert res["env"] == ZENOH_RUNTIME_DEFAULT
+    assert res["got"] == list(range(n))
+    # every runtime handed over to app: no rx/tx/net/acc thread (tokio may add a blocking-pool
+    # thread to app, named app-<n> too)
+    runtimes = {t.split("-")[0] for t in res["threads"] if t.split("-")[0] in ("app", "rx", "tx", "net", "acc")}
+    assert runtimes == {"app"}, res["threads"]
+    assert res["callback_threads"] == [False]  # never the main thread, always zenoh's one
+    assert res["pinned"] == 1
+
+
+def test_use_swarm_runtime_keeps_what_the_user_set(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("ZENOH_RUNTIME", raising=False)
+    use_swarm_runtime()
+    assert os.environ["ZENOH_RUNTIME"] == ZENOH_RUNTIME_DEFAULT
+    monkeypatch.setenv("ZENOH_RUNTIME", "(app: (worker_threads: 3))")
+    use_swarm_runtime()
+    assert os.environ["ZENOH_RUNTIME"] == "(app: (worker_threads: 3))"
+    # the router keeps its sending runtime apart (see ZENOH_RUNTIME_ROUTER's docstring)
+    assert "tx: (handover" not in ZENOH_RUNTIME_ROUTER and "tx: (handover: app)" in ZENOH_RUNTIME_DEFAULT

@@ -81,6 +81,10 @@ def test_lockstep_swarm_equals_in_process_simulator(example: str, tmp_path: Path
         want = sorted(k.replace("swarm/x/", "") for k, _ in subscriptions(keys, row))
         live = res["diagnostics"][f"agent:{i}"]["subscriptions"].split(",")
         assert sorted(k.split("/", 2)[2] for k in live) == want
+    # every swarm process ran zenoh on one thread (bus.use_swarm_runtime, set by the supervisor)
+    for name in ["plant", "leader"] + [f"agent:{i}" for i in range(1, sc.n + 1)]:
+        threads = res["diagnostics"][name]["zenoh_threads"].split(",")
+        assert threads and all(t.startswith("app-") for t in threads), (name, threads)
 
 
 def test_agent_subscriptions_follow_the_graph(tmp_path: Path) -> None:

@@ -53,6 +53,7 @@ __all__ = [
     "DEFAULT_CONNECT_TIMEOUT_S",
     "ZENOH_RUNTIME_DEFAULT",
     "use_swarm_runtime",
+    "zenoh_threads",
     "ZENOH_RUNTIME_ROUTER",
     "BusError",
     "Shutdown",
@@ -83,7 +84,7 @@ def use_swarm_runtime() -> None:
     an ``rx`` thread, queued to a ``tx`` thread, and so on, each hand-over a thread wake-up.
     :data:`ZENOH_RUNTIME_DEFAULT` hands every runtime over to one ``app`` runtime with a single
     worker thread. On the 2-core machine that, with :func:`direct_callback`, made the lockstep
-    swarm about 1.7x (3 UAVs) to 2x (16 UAVs) faster (BENCHMARKS.md, "What made the swarm faster").
+    swarm about 1.7x (3 UAVs) to 2.4x (16 UAVs) faster (BENCHMARKS.md, "What made the swarm faster").
 
     zenoh reads the variable once, when it creates its runtimes (the first session of the
     process), so call this before opening one; child processes inherit it. The supervisor's
@@ -102,8 +103,8 @@ A router forwarding a ``BLOCK`` message into a full queue waits, inside the task
 until the sending task of that queue has drained it. With ``tx`` handed over to the single ``app``
 thread too, that sending task could never run: the wait would end only when zenoh closes the link
 (seconds later), and one slow receiver would stall the whole swarm. Measured: with everything on
-one thread, a flood of 64 KiB garbage messages froze example 1 every time (3 of 3 runs); with
-``tx`` apart, it flew (``tests/test_garbage.py``), and at nearly the same speed."""
+one thread, a flood of 64 KiB garbage messages froze example 1 every time (4 of 4 runs); with
+``tx`` apart, it flew (0 of 4 froze, ``tests/test_garbage.py``), and at nearly the same speed."""
 
 DEFAULT_CONNECT_TIMEOUT_S: Final = 5.0
 """How long a client keeps trying to reach its router before ``zenoh.open`` fails, s."""
@@ -289,6 +290,21 @@ def open_session(conf: zenoh.Config, *, handle_signals: bool = True) -> Iterator
         finally:
             for sig, h in previous.items():
                 signal.signal(sig, h)
+
+
+def zenoh_threads() -> str:
+    """Names of this process's zenoh threads, sorted and comma-separated (e.g. ``"app-0"``), as
+    Linux names them; ``""`` where /proc is not readable. For diagnostics."""
+    names = []
+    try:
+        for tid in os.listdir("/proc/self/task"):
+            with open(f"/proc/self/task/{tid}/comm") as f:
+                name = f.read().strip()
+            if name.split("-")[0] in ("app", "acc", "tx", "rx", "net"):
+                names.append(name)
+    except OSError:
+        return ""
+    return ",".join(sorted(names))
 
 
 # --------------------------------------------------------------------------- callbacks

@@ -831,7 +831,12 @@ class SwarmProcess:
                 seq=self._diag_seq,
                 process=self.name,
                 counters=counters,
-                info={"subscriptions": ",".join(sorted(self.subscribed)), **self._reject_info(), **(info or {})},
+                info={
+                    "subscriptions": ",".join(sorted(self.subscribed)),
+                    "zenoh_threads": bus.zenoh_threads(),
+                    **self._reject_info(),
+                    **(info or {}),
+                },
             ),
         )
 
