@@ -184,7 +184,8 @@ class Supervisor:
         self.args = args
         self.sc = scenario
         self.keys = wire.Keys(args.swarm)
-        self.user_runtime = os.environ.get("ZENOH_RUNTIME")  # None: ours (see spawn and run)
+        rt = os.environ.get("ZENOH_RUNTIME")  # the user's choice, unless it is a swarm process's own
+        self.user_runtime = None if rt == bus.ZENOH_RUNTIME_DEFAULT else rt  # None: ours (spawn, run)
         self.children: dict[str, Child] = {}
         self.stop = threading.Event()
         self.stop_reason = ""
@@ -324,7 +325,8 @@ class Supervisor:
             signal.signal(sig, self._on_signal)
 
         # zenoh reads ZENOH_RUNTIME when this process opens its first session: the router's
-        os.environ.setdefault("ZENOH_RUNTIME", bus.ZENOH_RUNTIME_ROUTER)
+        if self.user_runtime is None:
+            os.environ["ZENOH_RUNTIME"] = bus.ZENOH_RUNTIME_ROUTER
         session_cm = bus.open_session(
             bus.router_config(listen, connect=a.router_connect or [], settings=settings), handle_signals=False
         )
@@ -502,6 +504,7 @@ class Supervisor:
             res["recording"] = str(self.args.record)
         res["restarts"] = self.restarts
         res["diagnostics"] = collector.diag
+        res["supervisor_zenoh_threads"] = bus.zenoh_threads()  # the router's (ZENOH_RUNTIME_ROUTER)
         res["decoder_rejects"] = collector.decoder.counters()
         if code == EXIT_PROCESS_FAILED:
             res["success"] = False

@@ -380,7 +380,11 @@ def test_swarm_runtime_runs_zenoh_and_callbacks_on_one_thread() -> None:
 
 
 def test_use_swarm_runtime_keeps_what_the_user_set(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv("ZENOH_RUNTIME", raising=False)
+    # setenv first, so that monkeypatch restores the variable as it was (use_swarm_runtime sets
+    # os.environ itself, which monkeypatch would not undo: a later `zenswarm up` in this process
+    # would then take it for the user's choice)
+    monkeypatch.setenv("ZENOH_RUNTIME", "")
+    monkeypatch.delenv("ZENOH_RUNTIME")
     use_swarm_runtime()
     assert os.environ["ZENOH_RUNTIME"] == ZENOH_RUNTIME_DEFAULT
     monkeypatch.setenv("ZENOH_RUNTIME", "(app: (worker_threads: 3))")

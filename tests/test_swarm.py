@@ -85,6 +85,9 @@ def test_lockstep_swarm_equals_in_process_simulator(example: str, tmp_path: Path
     for name in ["plant", "leader"] + [f"agent:{i}" for i in range(1, sc.n + 1)]:
         threads = res["diagnostics"][name]["zenoh_threads"].split(",")
         assert threads and all(t.startswith("app-") for t in threads), (name, threads)
+    # ... and the router kept its sending thread apart (bus.ZENOH_RUNTIME_ROUTER)
+    router = {t.split("-")[0] for t in res["supervisor_zenoh_threads"].split(",")}
+    assert router == {"app", "tx"}, res["supervisor_zenoh_threads"]
 
 
 def test_agent_subscriptions_follow_the_graph(tmp_path: Path) -> None:

@@ -340,7 +340,11 @@ def direct_callback(fn: Callable[[Any], None]) -> "zenoh.handlers.Callback":
     several subscribers, several threads contending for the GIL. Here the thread that read the
     sample from the socket runs ``fn`` itself (its Python thread state kept, see
     :func:`_pin_thread_state`). ``fn`` must be quick and must not block: while it runs, this
-    session receives nothing else. Measured in BENCHMARKS.md ("direct callbacks").
+    session receives nothing else. And no other thread may wait on this session while it holds
+    the GIL (a ``put`` waiting for queue space, from a loop of its own): with zenoh on one thread
+    (:func:`use_swarm_runtime`) the thread that would make room is the one waiting for the GIL.
+    Hence lockstep only (its ticks and puts run in these callbacks). BENCHMARKS.md, "What made
+    the swarm faster".
     """
 
     def run(sample: Any) -> None:
