@@ -68,15 +68,12 @@ class Collector:
         self._eager = {keys.clock, keys.leader_ref}
         self._pending: list[tuple[str, bytes]] = []
 
-    def poll(self, sub: Any, budget: int = 1_000_000) -> int:
+    def poll(self, sub: Any) -> int:
         """Take every sample queued on ``sub`` (a subscriber with a channel handler); returns
         how many. Called from the supervisor's own loop, so the swarm's messages cost the
         supervisor no Python thread wake-up each (they wait in zenoh's channel between polls)."""
         n = 0
-        while n < budget:
-            s = sub.try_recv()
-            if s is None:
-                break
+        while (s := sub.try_recv()) is not None:
             self.on_sample(str(s.key_expr), s.payload.to_bytes())
             n += 1
         return n

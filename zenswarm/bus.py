@@ -317,15 +317,13 @@ _PIN_LOCK = threading.Lock()
 def _pin_thread_state() -> None:
     """Keep the calling native thread's Python thread state for the life of the process.
 
-    zenoh runs a ``Callback(f, indirect=False)`` on its own network (rx) threads, which have no
-    Python thread state: every call creates one and destroys it again (``PyGILState_Ensure`` /
+    zenoh runs a ``Callback(f, indirect=False)`` on its own (tokio) threads, which have no Python
+    thread state: every call creates one and destroys it again (``PyGILState_Ensure`` /
     ``Release``; in CPython 3.11 that includes mapping and unmapping a 16 KiB frame stack). One
     extra ``PyGILState_Ensure`` that is never released keeps the state, so later calls only take
-    the GIL. Called with the GIL held; the rx threads are few (zenoh's ``rx`` runtime).
+    the GIL. Called with the GIL held; those threads are few (one with :func:`use_swarm_runtime`).
     """
     tid = threading.get_ident()
-    if tid in _PINNED:
-        return
     with _PIN_LOCK:
         if tid not in _PINNED:
             _PINNED.add(tid)
