@@ -106,6 +106,43 @@ class AgentCore:
         self.v_hat = np.array(v_meas, dtype=float)
         self.d_hat = np.zeros(3)
 
+    def rates(
+        self,
+        q_nbr: np.ndarray,
+        v_nbr: np.ndarray,
+        q0: np.ndarray | None,
+        v0: np.ndarray | None,
+        present: list[int] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Step 3 of a tick: the generator rates (q*_i', v*_i') of eqs (16)-(17), each (3,).
+
+        Depends on the references only (own q*_i, v*_i and the neighbours' / leader's), not on
+        the measured state: the agent process computes them as soon as its neighbours'
+        references of tick k are in, before the plant's state(k) arrives (see :meth:`tick`)."""
+        r = self.row
+        weights, h_nbr = r.weights, r.h_nbr
+        if present is not None and len(present) != len(r.neighbours):
+            weights, h_nbr = weights[present], h_nbr[present]
+        b = r.b if q0 is not None else 0.0
+        return generator_rates(self.q_ref, self.v_ref, r.h, q_nbr, v_nbr, h_nbr, weights, b, q0, v0, r.mu1, r.mu2)
+
+    def command(self, q_meas: np.ndarray, v_meas: np.ndarray, dv: np.ndarray) -> AgentCommand:
+        """Steps 4-5: the composite control (28) from the measured state (q, v: (3,) m, m/s)
+        and the generator's v*' = ``dv`` (3,) m/s^2, then thrust/attitude inversion. Changes no
+        state: call :meth:`advance` with the result to finish the tick."""
+        r = self.row
+        d_used = self.d_hat if r.eso_enabled else np.zeros(3)
+        u = composite_control(self.q_ref, self.v_ref, dv, q_meas, v_meas, d_used, r.kp, r.kd, r.g)
+        F, phi, theta = invert_thrust_attitude(u, r.mass, r.yaw)
+        return AgentCommand(float(F), np.array([float(phi), float(theta), r.yaw]), u, d_used.copy(), dv)
+
+    def advance(self, q_meas: np.ndarray, u: np.ndarray, dq: np.ndarray, dv: np.ndarray) -> None:
+        """Step 6: ESO (27) and generator to k+1 with the tick's control ``u`` and rates."""
+        r = self.row
+        self.q_hat, self.v_hat, self.d_hat = eso_step(self.q_hat, self.v_hat, self.d_hat, q_meas, u, r.beta, r.dt, r.g)
+        self.q_ref = self.q_ref + r.dt * dq
+        self.v_ref = self.v_ref + r.dt * dv
+
     def tick(
         self,
         q_meas: np.ndarray,
@@ -119,23 +156,13 @@ class AgentCore:
         """Steps 3-6 of a tick: rates (16-17), control (28), inversion, then ESO and generator
         steps to k+1. q_nbr, v_nbr: (k, 3) neighbours' references in ``row.neighbours`` order.
         q0, v0 are needed only if pinned. After the call ``q_ref, v_ref`` hold tick k+1.
+        Equal to :meth:`rates`, then :meth:`command`, then :meth:`advance` (the same operations
+        in the same order: bit-identical).
 
         Missing data (a neighbour never heard from, or the leader before its first message):
         ``present`` lists the positions in ``row.neighbours`` that q_nbr/v_nbr hold (default: all),
         and q0 = None drops the pinning term for this tick."""
-        r = self.row
-        weights, h_nbr = r.weights, r.h_nbr
-        if present is not None and len(present) != len(r.neighbours):
-            weights, h_nbr = weights[present], h_nbr[present]
-        b = r.b if q0 is not None else 0.0
-        dq, dv = generator_rates(
-            self.q_ref, self.v_ref, r.h, q_nbr, v_nbr, h_nbr, weights, b, q0, v0, r.mu1, r.mu2
-        )
-        d_used = self.d_hat if r.eso_enabled else np.zeros(3)
-        u = composite_control(self.q_ref, self.v_ref, dv, q_meas, v_meas, d_used, r.kp, r.kd, r.g)
-        F, phi, theta = invert_thrust_attitude(u, r.mass, r.yaw)
-        cmd = AgentCommand(float(F), np.array([float(phi), float(theta), r.yaw]), u, d_used.copy(), dv)
-        self.q_hat, self.v_hat, self.d_hat = eso_step(self.q_hat, self.v_hat, self.d_hat, q_meas, u, r.beta, r.dt, r.g)
-        self.q_ref = self.q_ref + r.dt * dq
-        self.v_ref = self.v_ref + r.dt * dv
+        dq, dv = self.rates(q_nbr, v_nbr, q0, v0, present)
+        cmd = self.command(q_meas, v_meas, dv)
+        self.advance(q_meas, cmd.u, dq, dv)
         return cmd

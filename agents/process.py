@@ -6,7 +6,10 @@ reference ``uav/<i>/ref`` and its command ``uav/<i>/cmd``. See :func:`subscripti
 
 Lockstep tick k: wait for state(k) (the plant's clock); first tick: start the generator from it
 and publish ref(k); wait for the neighbours' ref(k) and, if pinned, leader ref(k); compute and
-publish cmd(k); publish ref(k+1). A timeout (``--lockstep-timeout``) counts as a drop and holds
+publish cmd(k); then step the ESO and the generator and publish ref(k+1). The generator rates
+of tick k need only the references, so they are computed as soon as those are in (usually while
+the plant integrates): when state(k) arrives, only the control law (28) and the inversion stand
+between it and cmd(k). A timeout (``--lockstep-timeout``) counts as a drop and holds
 the newest earlier value; a sender whose liveliness token is gone is not waited for. With link
 faults each input goes through its link's :class:`zenswarm.linkfaults.Box` (hold last value),
 exactly as in the in-process simulator. A (re)started agent joins at the first state it sees and
@@ -74,34 +77,48 @@ def _run(proc: SwarmProcess, index: int) -> int:
     elif plan is not None:
         proc.use_delay_line(FaultState(plan), links)
 
-    def publish(k_t_ns: int, cmd) -> None:  # noqa: ANN001
+    def publish_cmd(k_t_ns: int, cmd) -> None:  # noqa: ANN001
         nonlocal seq
         seq += 1
         proc.publish(cmd_key, wire.Cmd(t=k_t_ns, seq=seq, thrust=cmd.thrust, rpy=cmd.rpy, u=cmd.u, d_hat=cmd.d_hat))
+
+    def publish_ref(k_t_ns: int) -> None:
+        nonlocal seq
         seq += 1
-        proc.publish(ref_key, wire.Ref(t=k_t_ns + dt_ns, seq=seq, q=core.q_ref, v=core.v_ref))
+        proc.publish(ref_key, wire.Ref(t=k_t_ns, seq=seq, q=core.q_ref, v=core.v_ref))
 
     def start(st: wire.State, k: int) -> None:
         """(Re)start the generator from a measured state and share ref(k)."""
-        nonlocal seq
         core.reset(st.q, st.v)
-        seq += 1
-        proc.publish(ref_key, wire.Ref(t=k * dt_ns, seq=seq, q=core.q_ref, v=core.v_ref))
+        publish_ref(k * dt_ns)
         if k > 0:
             proc.log(f"{me}: joined at tick {k} (t = {k * dt:.2f} s), generator restarted from the measured state")
 
-    def tick(k: int, st: wire.State, inputs: dict[str, wire.Ref]) -> None:
-        """Tick k with the inputs given (a missing neighbour or leader is left out this tick)."""
+    def rates_from(inputs: dict[str, wire.Ref]) -> tuple[np.ndarray, np.ndarray]:
+        """Generator rates (16-17) from the inputs given (a missing neighbour or leader is left
+        out this tick)."""
         present = [x for x, key in enumerate(nbr_keys) if key in inputs]
         qn = np.array([inputs[nbr_keys[x]].q for x in present]).reshape(-1, 3)
         vn = np.array([inputs[nbr_keys[x]].v for x in present]).reshape(-1, 3)
         lead = inputs.get(keys.leader_ref)
-        cmd = core.tick(st.q, st.v, qn, vn, lead.q if lead else None, lead.v if lead else None, present)
-        publish(k * dt_ns if not proc.args.realtime else st.t, cmd)
+        return core.rates(qn, vn, lead.q if lead else None, lead.v if lead else None, present)
+
+    def tick(k: int, st: wire.State, inputs: dict[str, wire.Ref] | None, rates=None) -> None:  # noqa: ANN001
+        """Tick k: the command first (what the plant waits for), then ESO and generator to k+1
+        and ref(k+1) (what the neighbours need only next tick). ``rates``: the generator rates
+        already computed from these inputs (see ``prepare``)."""
+        dq, dv = rates if rates is not None else rates_from(inputs)
+        cmd = core.command(st.q, st.v, dv)
+        t = k * dt_ns if not proc.args.realtime else st.t
+        publish_cmd(t, cmd)
+        core.advance(st.q, cmd.u, dq, dv)
+        publish_ref(t + dt_ns)
 
     if not proc.args.realtime:
         held: dict[str, wire.Ref] = {}
         join_tick = [0]
+        # rates of tick k computed ahead: (k, q_ref they started from, the input messages, rates)
+        early: list = [None]
 
         def on_msg(key: str, k: int, msg) -> None:  # noqa: ANN001 - under the lockstep lock
             if boxes:
@@ -114,6 +131,16 @@ def _run(proc: SwarmProcess, index: int) -> int:
                 st = proc.inbox.get(state_key, k)
                 if st is not None:
                     start(st, k)
+                return
+            # The generator rates depend on the references only: compute them as soon as every
+            # input of tick k is in, usually while the plant integrates, so that when state(k)
+            # arrives only the control law stands between it and cmd(k).
+            if boxes or (early[0] is not None and early[0][0] == k):
+                return
+            msgs = [proc.inbox.get(key, k) for key in input_keys]
+            if None in msgs:
+                return
+            early[0] = (k, core.q_ref, msgs, rates_from(dict(zip(input_keys, msgs))))
 
         def needed(key: str, k: int) -> bool:
             """Wait for this input of tick k? Not if its sender is gone, or if the sender has
@@ -143,8 +170,10 @@ def _run(proc: SwarmProcess, index: int) -> int:
                 inputs = {key: h.value for key, h in got.items() if h is not None}
             else:
                 st = proc.inbox.get(state_key, k)
+                msgs = []
                 for key in input_keys:
                     m = proc.inbox.get(key, k)
+                    msgs.append(m)
                     if m is not None:
                         held[key] = m
                     elif key in held:
@@ -152,7 +181,11 @@ def _run(proc: SwarmProcess, index: int) -> int:
                 inputs = held
             if forced:
                 proc.counters["input_timeouts"] += 1
-            tick(k, st, inputs)
+            e, early[0] = early[0], None
+            if not boxes and e is not None and e[0] == k and e[1] is core.q_ref and all(a is b for a, b in zip(e[2], msgs)):
+                tick(k, st, None, e[3])  # the same inputs as computed ahead
+            else:
+                tick(k, st, inputs)
             proc.inbox.forget_before(k - 2)
             if k % 500 == 0:
                 proc.publish_diag(k * dt_ns)
