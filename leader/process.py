@@ -3,9 +3,11 @@
 Publishes ``leader/ref`` and answers queries on ``mission`` with the scenario, so processes that
 join late (or run on other hosts without the scenario file) can fetch it.
 
-Lockstep: on the plant's clock(k) it publishes ref(k) (if not yet sent) and ref(k+1), staying one
-tick ahead so pinned agents rarely wait for it (the plant starts the clock only once every process
-has subscribed, so nothing is published into the void). Realtime: it follows the plant's clock on a fixed
+Lockstep: the leader's trajectory does not depend on the swarm, so it runs ahead: on the plant's
+clock(c) (published every :data:`zenswarm.runtime.CLOCK_EVERY_TICKS` ticks) it publishes every
+ref up to ref(c + :data:`zenswarm.runtime.LEADER_AHEAD_TICKS`), so pinned agents never wait for it
+(the plant starts the clock only once every process has subscribed, so nothing is published into
+the void; a leader that starts late catches up at once). Realtime: it follows the plant's clock on a fixed
 loop, integrating from its current time to the newest clock time.
 """
 
@@ -18,7 +20,7 @@ import numpy as np
 
 from zenswarm import wire
 from zenswarm.config import scenario_to_dict
-from zenswarm.runtime import Lockstep, LoopStats, SwarmProcess, add_common_args, run_process
+from zenswarm.runtime import LEADER_AHEAD_TICKS, Lockstep, LoopStats, SwarmProcess, add_common_args, run_process
 
 from .aapf import AapfParams, integrate_leader, total_force
 
@@ -61,20 +63,15 @@ def _run(proc: SwarmProcess) -> int:
 
     try:
         if not proc.args.realtime:
-            sent = -1  # newest tick whose ref was published
-
             def ready(k: int) -> bool:
-                return proc.inbox.get(keys.clock, k) is not None
+                clk = proc.inbox.latest.get(keys.clock)
+                return clk is not None and k <= (clk.t + dt_ns // 2) // dt_ns + LEADER_AHEAD_TICKS
 
             def step(k: int, forced: bool) -> None:
-                nonlocal sent
-                # clock(k) means every process has subscribed: publish ref(k) and ref(k+1)
-                while sent < min(k + 1, n_ticks - 1):
-                    if sent >= 0:
-                        advance()
-                    publish_current()
-                    sent = k_q
-                proc.inbox.forget_before(k - 1)
+                if k > 0:
+                    advance()
+                publish_current()
+                proc.inbox.forget_before(k - 2 * LEADER_AHEAD_TICKS)
                 if k % 500 == 0:
                     proc.counters["substep_cap_hits"] = capped
                     proc.publish_diag(k * dt_ns)

@@ -1,10 +1,13 @@
 """The plant process: simulates every UAV with the core model and is the clock in lockstep.
 
 Subscribes to each UAV's ``uav/<i>/cmd``; publishes ``clock`` and each ``uav/<i>/state``.
-Lockstep tick k: publish state_i(k) for all i and clock(k), wait for every cmd_i(k) (a timeout
+Lockstep tick k: publish state_i(k) for all i, wait for every cmd_i(k) (a timeout
 counts as a drop and holds the UAV's previous command; an agent whose liveliness token is gone is
 not waited for), then integrate ``timing.substeps`` physics sub-steps. A UAV whose newest command
-is too old goes into the failsafe of :mod:`plant.failsafe` (hover, then land). It starts only
+is too old goes into the failsafe of :mod:`plant.failsafe` (hover, then land). The clock, read by
+the leader and the supervisor only, goes out every :data:`zenswarm.runtime.CLOCK_EVERY_TICKS`
+ticks: clock(0) with the first states, then clock(k + 1) as the integration of tick k starts, so
+the leader's burst of refs overlaps the integration, not the agents' work. It starts only
 when the leader and every agent have announced themselves.
 Realtime: a fixed-rate loop at the control rate; each period integrates one control period of
 physics with the latest command of each UAV (hover thrust, level, before the first one).
@@ -20,7 +23,7 @@ import numpy as np
 from zenswarm import wire
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters, plan_from_args
-from zenswarm.runtime import Lockstep, LoopStats, SwarmProcess, add_common_args, run_process
+from zenswarm.runtime import CLOCK_EVERY_TICKS, Lockstep, LoopStats, SwarmProcess, add_common_args, run_process
 
 from .disturbance import DisturbanceModel
 from .failsafe import FailsafeState, failsafe_config
@@ -61,6 +64,8 @@ def _run(proc: SwarmProcess) -> int:
         proc.use_delay_line(FaultState(plan), {key: (agents[i], "plant", "cmd") for i, key in enumerate(cmd_keys)})
     seq = 0
 
+    clock_every = 1 if proc.args.realtime else CLOCK_EVERY_TICKS
+
     def publish_tick(k: int) -> None:
         nonlocal seq
         seq += 1
@@ -70,7 +75,16 @@ def _run(proc: SwarmProcess) -> int:
                 keys.state(i + 1),
                 wire.State(t=t, seq=seq, q=plant.q[i].copy(), v=plant.v[i].copy(), rpy=plant.rpy[i].copy(), w=plant.w[i].copy()),
             )
-        proc.publish(keys.clock, wire.Clock(t=t, seq=seq))
+        if clock_every == 1 or k == 0:
+            proc.publish(keys.clock, wire.Clock(t=t, seq=seq))
+
+    def publish_clock_early(k: int) -> None:
+        """Lockstep: clock(k + 1) once the commands of tick k are in, before integrating: the
+        leader then runs ahead while the plant integrates (when the agents wait) rather than
+        when the agents compute. Every CLOCK_EVERY_TICKS ticks and at the end."""
+        k1 = k + 1
+        if k1 % clock_every == 0 or k1 >= n_ticks:
+            proc.publish(keys.clock, wire.Clock(t=k1 * dt_ns, seq=seq + 1))
 
     def apply(i: int, c: wire.Cmd, k_cmd: int) -> None:
         thrust[i] = c.thrust
@@ -137,6 +151,7 @@ def _run(proc: SwarmProcess) -> int:
                     c = proc.inbox.get(key, k)
                     if c is not None:
                         apply(i, c, k)
+            publish_clock_early(k)
             integrate(k)
             proc.inbox.forget_before(k - 1)
             if k % 500 == 0:

@@ -71,6 +71,17 @@ Finite values above it are garbage, and would overflow to inf in the controllers
 GUARD_MARGIN_TICKS = 4
 """Ticks of slack on both sides of the time window, beyond the link-fault delay horizon."""
 
+CLOCK_EVERY_TICKS = 4
+"""Lockstep: the plant publishes ``clock`` at every this many ticks (and at the last one), not at
+every tick. Only the leader and the supervisor read it; the agents' clock is their own state."""
+
+LEADER_AHEAD_TICKS = 4
+"""Lockstep: the leader publishes its reference up to this many ticks past the newest clock. Its
+trajectory does not depend on the swarm, so it may run ahead; at least :data:`CLOCK_EVERY_TICKS`
+keeps every leader ref published before the ticks that need it."""
+
+assert LEADER_AHEAD_TICKS >= CLOCK_EVERY_TICKS <= GUARD_MARGIN_TICKS
+
 
 class Inbox:
     """Decoded messages by key: the latest one, and (for lockstep) one per tick index.
