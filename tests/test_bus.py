@@ -379,6 +379,65 @@ def test_swarm_runtime_runs_zenoh_and_callbacks_on_one_thread() -> None:
     assert res["pinned"] == 1
 
 
+BLOCKED_PUT = """
+import json, sys, threading, time
+from zenswarm import bus
+bus.use_swarm_runtime()
+import zenoh
+busy = {}
+def on_trigger(sample):  # holds zenoh's only thread, and wants the GIL, for 1 s
+    busy["started"] = True
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 1.0:
+        pass
+    busy["s"] = time.monotonic() - t0
+with bus.open_session(bus.client_config([sys.argv[1]]), handle_signals=False) as s:
+    sub = s.declare_subscriber("blocked/trigger", bus.direct_callback(on_trigger))
+    pub = s.declare_publisher("blocked/data", congestion_control=zenoh.CongestionControl.BLOCK)
+    print("ready", flush=True)
+    deadline = time.monotonic() + 10
+    while "started" not in busy and time.monotonic() < deadline:
+        time.sleep(0.001)
+    t0 = time.monotonic()
+    longest = 0.0
+    for _ in range(int(sys.argv[2])):
+        t1 = time.monotonic()
+        pub.put(bytes(200_000))
+        longest = max(longest, time.monotonic() - t1)
+    print("result " + json.dumps({"puts_s": time.monotonic() - t0, "longest_put_s": longest,
+                                  "callback_s": busy.get("s")}), flush=True)
+"""
+
+
+def test_a_blocked_put_does_not_hold_the_gil() -> None:
+    """Realtime loops put from the main thread while zenoh's only thread runs subscriber
+    callbacks (bus.direct_callback). A put that waits for queue space must release the GIL:
+    otherwise a callback waiting for the GIL on the thread that would make room deadlocks the
+    process. The callback busies zenoh's thread for 1 s while the main thread puts 60 MB with
+    BLOCK: the queue fills, a put waits, the callback finishes, and everything is sent."""
+    n = 300
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
+    got = [0]
+    with router() as ep, children() as kids:
+        c = Child(BLOCKED_PUT, ep, n, env=env)
+        kids.append(c)
+        c.expect("ready", 10)
+        with open_session(client_config([ep]), handle_signals=False) as s:
+            sub = s.declare_subscriber("blocked/data", lambda sample: got.__setitem__(0, got[0] + 1))
+            time.sleep(0.5)  # the child's publisher learns of the subscriber
+            s.put("blocked/trigger", b"go")
+            res = json.loads(c.expect("result", 30).split(" ", 1)[1])
+            deadline = time.monotonic() + 10
+            while got[0] < n and time.monotonic() < deadline:
+                time.sleep(0.05)
+            sub.undeclare()
+        assert c.wait(10) == 0
+    assert res["callback_s"] is not None and res["callback_s"] >= 1.0
+    # a put did wait for queue space while the callback ran (the case under test), and only that long
+    assert 0.3 < res["longest_put_s"] < 10, res
+    assert got[0] == n, f"received {got[0]} of {n}"
+
+
 def test_use_swarm_runtime_keeps_what_the_user_set(monkeypatch: pytest.MonkeyPatch) -> None:
     # setenv first, so that monkeypatch restores the variable as it was (use_swarm_runtime sets
     # os.environ itself, which monkeypatch would not undo: a later `zenswarm up` in this process

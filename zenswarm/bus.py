@@ -338,11 +338,12 @@ def direct_callback(fn: Callable[[Any], None]) -> "zenoh.handlers.Callback":
     several subscribers, several threads contending for the GIL. Here the thread that read the
     sample from the socket runs ``fn`` itself (its Python thread state kept, see
     :func:`_pin_thread_state`). ``fn`` must be quick and must not block: while it runs, this
-    session receives nothing else. And no other thread may wait on this session while it holds
-    the GIL (a ``put`` waiting for queue space, from a loop of its own): with zenoh on one thread
-    (:func:`use_swarm_runtime`) the thread that would make room is the one waiting for the GIL.
-    Hence lockstep only (its ticks and puts run in these callbacks). BENCHMARKS.md, "What made
-    the swarm faster".
+    session receives nothing else. Other threads may put meanwhile: zenoh-python releases the
+    GIL while a ``put`` waits (``py.allow_threads``), so a put from the main loop that waits for
+    queue space lets this callback finish, and the one zenoh thread then makes room
+    (``tests/test_bus.py::test_a_blocked_put_does_not_hold_the_gil``). A put from inside ``fn``
+    that finds the queue full waits for the thread it runs on (see :func:`use_swarm_runtime`).
+    BENCHMARKS.md, "What made the swarm faster".
     """
 
     def run(sample: Any) -> None:

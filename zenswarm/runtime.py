@@ -703,13 +703,11 @@ class SwarmProcess:
         def cb(sample: zenoh.Sample) -> None:
             handle(key, kind, sample, senders, on_msg)
 
-        # Lockstep: on zenoh's receiving thread (bus.direct_callback); the tick, and its puts, run
-        # there. Realtime: a Python thread per subscriber, as zenoh does by default, because the
-        # main loop puts while holding the GIL: with a callback waiting for the GIL on zenoh's
-        # only thread, a put that waits for queue space would wait forever.
-        realtime = bool(getattr(self.args, "realtime", False))
-        handler = cb if realtime else bus.direct_callback(cb)
-        self._subs.append(self.session.declare_subscriber(key, handler))
+        # On zenoh's receiving thread (bus.direct_callback). Lockstep ticks, and their puts, run
+        # there; in realtime the callback only files the message and the main loop puts. A put
+        # releases the GIL while it waits for queue space, so a main-loop put never keeps this
+        # callback from running (tests/test_bus.py checks it).
+        self._subs.append(self.session.declare_subscriber(key, bus.direct_callback(cb)))
         self.subscribed.append(key)
 
     def _watch_sender_tokens(self, names: tuple[str, ...]) -> None:
