@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import re
+import threading
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, ClassVar, Final, Union
@@ -298,6 +299,12 @@ Vec3 = np.ndarray  # float64, shape (3,), read-only inside a message
 
 def _mk_vec3(name: str, value: Any) -> np.ndarray:
     """Copy ``value`` into a read-only float64 (3,) array; MessageError if not finite or wrong shape."""
+    if type(value) is np.ndarray and value.dtype is _F64 and value.shape == (3,):  # the usual case, fast
+        x, y, z = value.tolist()
+        if _isfinite(x + y + z):  # a finite sum means three finite elements (inf - inf is nan)
+            a = value.copy()
+            a.flags.writeable = False
+            return a
     try:
         a = np.array(value, dtype=np.float64)
     except (TypeError, ValueError) as e:
@@ -311,7 +318,13 @@ def _mk_vec3(name: str, value: Any) -> np.ndarray:
     return a
 
 
+_F64: Final = np.dtype(np.float64)
+_isfinite: Final = math.isfinite
+
+
 def _mk_int(name: str, value: Any, hi: int) -> int:
+    if type(value) is int and 0 <= value <= hi:  # the usual case, fast
+        return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
         raise MessageError(name, "type", f"expected an int, got {type(value).__name__}")
     v = int(value)
@@ -590,6 +603,9 @@ _LIMIT: Final = MappingProxyType({k: (MAX_MISSION_PAYLOAD if k == "mission" else
 # --------------------------------------------------------------------------- encode
 
 
+_tls = threading.local()  # one msgpack.Packer per thread (a Packer is not thread-safe), for encode
+
+
 def encode(msg: Message) -> bytes:
     """Pack a message into msgpack bytes (floats as float64). Raises MessageError if the
     result is over the size bound for its kind (:data:`MAX_PAYLOAD`, missions
@@ -598,7 +614,10 @@ def encode(msg: Message) -> bytes:
         to_wire = msg._to_wire
     except AttributeError:
         raise MessageError("msg", "type", f"{type(msg).__name__} is not a wire message") from None
-    data: bytes = msgpack.packb(to_wire(), use_bin_type=True)
+    packer = getattr(_tls, "packer", None)
+    if packer is None:
+        packer = _tls.packer = msgpack.Packer(use_bin_type=True)
+    data: bytes = packer.pack(to_wire())
     if len(data) > _LIMIT[msg.kind]:
         raise MessageError("msg", "oversize", f"{len(data)} bytes > {_LIMIT[msg.kind]} for {msg.kind}")
     return data
@@ -639,10 +658,29 @@ def _d_float(obj: dict[str, Any], name: str) -> float:
     raise WireDecodeError("type", f"expected a number, got {tx.__name__}", name)
 
 
+_NUM_TYPES: Final = frozenset({float, int})
+
+
 def _d_vecs(obj: dict[str, Any], *names: str) -> np.ndarray:
     """Validate the named fields as arrays of 3 finite numbers; one read-only (n, 3) float64
     array whose rows are the vectors (one numpy call for all of them: decode runs ~10 kHz)."""
     flat: list[Any] = []
+    for name in names:
+        x = obj[name]
+        if type(x) is not list or len(x) != 3:
+            break
+        flat += x
+    else:
+        # every field a list of 3: fast path when all elements are floats or ints with a finite
+        # sum (which means each is finite); anything else is judged element by element below
+        try:
+            if _NUM_TYPES.issuperset(map(type, flat)) and _isfinite(sum(flat)):
+                a = np.array(flat, dtype=np.float64)
+                a.flags.writeable = False
+                return a.reshape(len(names), 3)
+        except OverflowError:  # an int too large for a float
+            pass
+    flat = []
     for name in names:
         x = obj[name]
         if type(x) is not list:
