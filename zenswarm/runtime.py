@@ -749,13 +749,14 @@ class SwarmProcess:
     def publisher(self, key: str) -> Any:
         pub = self._pubs.get(key)
         if pub is None:
-            # BLOCK: lockstep traffic must not be dropped. Express (one batch per message) costs
-            # ~40 us of CPU per put on this 2-core machine: lockstep runs 36 % faster without it,
-            # while realtime's latency tail is better with it (BENCHMARKS.md).
+            # BLOCK: lockstep traffic must not be dropped. No express (one batch per message): it
+            # costs a write, and a wake-up of zenoh's thread, per put. Lockstep ran 36 % faster
+            # without it; realtime, once zenoh ran on one thread, missed 8 times fewer deadlines
+            # at 16 UAVs, with a shorter latency tail too (BENCHMARKS.md).
             pub = self.session.declare_publisher(
                 key,
                 congestion_control=zenoh.CongestionControl.BLOCK,
-                express=bool(getattr(self.args, "realtime", False)),
+                express=False,
                 reliability=zenoh.Reliability.RELIABLE,
             )
             self._pubs[key] = pub
