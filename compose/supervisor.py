@@ -59,6 +59,7 @@ class Collector:
         self.decoder = wire.Decoder()
         self.lock = threading.Lock()
         self.sim_t_ns = -1
+        self.ignored_clocks = 0  # decodable clocks beyond the mission's end (garbage), not taken
         self.leader_q: np.ndarray | None = None
         self.goal_tick: int | None = None
         self._goal = np.asarray(scenario.leader.goal, dtype=float)
@@ -109,7 +110,10 @@ class Collector:
         k = (msg.t + self.dt_ns // 2) // self.dt_ns
         with self.lock:
             if kind == "clock":
-                self.sim_t_ns = max(self.sim_t_ns, msg.t)
+                if 0 <= k <= self.T:  # a clock past the mission's end is garbage: progress must not jump
+                    self.sim_t_ns = max(self.sim_t_ns, msg.t)
+                else:
+                    self.ignored_clocks += 1
                 return
             if not 0 <= k < self.T:
                 return

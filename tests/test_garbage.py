@@ -182,6 +182,24 @@ def test_unreadable_and_exploding_samples_are_counted_not_raised() -> None:
     assert _diag(p)["rejected.internal"] == 2 and "internal: " in p.guard.last_reject
 
 
+def test_supervisor_progress_ignores_clocks_beyond_the_mission() -> None:
+    """The supervisor's collector takes its sim time (progress, --kill, the end of the series)
+    from clocks: a decodable clock past the mission's end is garbage and must not move it."""
+    from compose.supervisor import Collector
+
+    sc = load_scenario(EX1)
+    keys = wire.Keys("progress")
+    col = Collector(sc, keys)
+    dt_ns = wire.t_ns(sc.timing.dt)
+    col.on_sample(keys.clock, wire.encode(wire.Clock(t=40 * dt_ns, seq=41)))
+    assert col.sim_t_ns == 40 * dt_ns
+    col.on_sample(keys.clock, wire.encode(wire.Clock(t=(sc.timing.n_ticks + 1) * dt_ns, seq=42)))
+    col.on_sample(keys.clock, wire.encode(wire.Clock(t=10**14, seq=43)))
+    assert col.sim_t_ns == 40 * dt_ns and col.ignored_clocks == 2
+    col.on_sample(keys.clock, wire.encode(wire.Clock(t=sc.timing.n_ticks * dt_ns, seq=44)))  # the last one counts
+    assert col.sim_t_ns == sc.timing.n_ticks * dt_ns
+
+
 def test_foreign_sender_pinning_and_restart() -> None:
     p = _with_tokens(_proc())
     ref = K.ref(2)
