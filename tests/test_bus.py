@@ -384,9 +384,10 @@ import json, sys, threading, time
 from zenswarm import bus
 bus.use_swarm_runtime()
 import zenoh
+started = threading.Event()
 busy = {}
 def on_trigger(sample):  # holds zenoh's only thread, and wants the GIL, for 1 s
-    busy["started"] = True
+    started.set()
     t0 = time.monotonic()
     while time.monotonic() - t0 < 1.0:
         pass
@@ -395,9 +396,8 @@ with bus.open_session(bus.client_config([sys.argv[1]]), handle_signals=False) as
     sub = s.declare_subscriber("blocked/trigger", bus.direct_callback(on_trigger))
     pub = s.declare_publisher("blocked/data", congestion_control=zenoh.CongestionControl.BLOCK)
     print("ready", flush=True)
-    deadline = time.monotonic() + 10
-    while "started" not in busy and time.monotonic() < deadline:
-        time.sleep(0.001)
+    print("matched" if bus.wait_matching(pub, 10) else "unmatched", flush=True)
+    started.wait(10)
     t0 = time.monotonic()
     longest = 0.0
     for _ in range(int(sys.argv[2])):
@@ -418,18 +418,23 @@ def test_a_blocked_put_does_not_hold_the_gil() -> None:
     n = 300
     env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
     got = [0]
+    all_in = threading.Event()
+
+    def on_data(sample: zenoh.Sample) -> None:
+        got[0] += 1
+        if got[0] == n:
+            all_in.set()
+
     with router() as ep, children() as kids:
         c = Child(BLOCKED_PUT, ep, n, env=env)
         kids.append(c)
         c.expect("ready", 10)
         with open_session(client_config([ep]), handle_signals=False) as s:
-            sub = s.declare_subscriber("blocked/data", lambda sample: got.__setitem__(0, got[0] + 1))
-            time.sleep(0.5)  # the child's publisher learns of the subscriber
+            sub = s.declare_subscriber("blocked/data", on_data)
+            c.expect("matched", 15)  # the child's publisher knows of this subscriber
             s.put("blocked/trigger", b"go")
             res = json.loads(c.expect("result", 30).split(" ", 1)[1])
-            deadline = time.monotonic() + 10
-            while got[0] < n and time.monotonic() < deadline:
-                time.sleep(0.05)
+            all_in.wait(10)
             sub.undeclare()
         assert c.wait(10) == 0
     assert res["callback_s"] is not None and res["callback_s"] >= 1.0
