@@ -64,8 +64,6 @@ def _run(proc: SwarmProcess) -> int:
         proc.use_delay_line(FaultState(plan), {key: (agents[i], "plant", "cmd") for i, key in enumerate(cmd_keys)})
     seq = 0
 
-    clock_every = 1 if proc.args.realtime else CLOCK_EVERY_TICKS
-
     def publish_tick(k: int) -> None:
         nonlocal seq
         seq += 1
@@ -75,7 +73,7 @@ def _run(proc: SwarmProcess) -> int:
                 keys.state(i + 1),
                 wire.State(t=t, seq=seq, q=plant.q[i].copy(), v=plant.v[i].copy(), rpy=plant.rpy[i].copy(), w=plant.w[i].copy()),
             )
-        if clock_every == 1 or k == 0:
+        if proc.args.realtime or k == 0:  # lockstep: publish_clock_early
             proc.publish(keys.clock, wire.Clock(t=t, seq=seq))
 
     def publish_clock_early(k: int) -> None:
@@ -83,7 +81,7 @@ def _run(proc: SwarmProcess) -> int:
         leader then runs ahead while the plant integrates (when the agents wait) rather than
         when the agents compute. Every CLOCK_EVERY_TICKS ticks and at the end."""
         k1 = k + 1
-        if k1 % clock_every == 0 or k1 >= n_ticks:
+        if k1 % CLOCK_EVERY_TICKS == 0 or k1 >= n_ticks:
             proc.publish(keys.clock, wire.Clock(t=k1 * dt_ns, seq=seq + 1))
 
     def apply(i: int, c: wire.Cmd, k_cmd: int) -> None:
