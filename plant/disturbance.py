@@ -20,7 +20,7 @@ n(t) is white: a fresh standard normal (N, 3) draw per sample.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -85,6 +85,14 @@ class DisturbanceModel:
     def reset(self) -> None:
         """Gust state back to 0 (the generator is not rewound)."""
         self._gust[...] = 0.0
+
+    def sampler(self, t: float, dt: float) -> "Callable[[int], tuple[np.ndarray, np.ndarray]] | None":
+        """The disturbance argument of :func:`plant.quadrotor.step_held` for the sub-steps of dt
+        from t: ``j -> self.sample(t + j * dt, dt)``; None when the configuration is inactive
+        (no disturbance, and the generator is not touched, as with :meth:`sample`)."""
+        if not self.active:
+            return None
+        return lambda j: self.sample(t + j * dt, dt)
 
     def sample(self, t: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Disturbances to hold over [t, t + dt), then advance the gust by dt.

@@ -28,7 +28,7 @@ from zenswarm.runtime import CLOCK_EVERY_TICKS, Lockstep, LoopStats, SwarmProces
 from .disturbance import DisturbanceModel
 from .failsafe import FailsafeState, failsafe_config
 from .params import QuadParams
-from .quadrotor import initial_state, step
+from .quadrotor import initial_state, step_held
 
 __all__ = ["main", "add_parser"]
 
@@ -98,10 +98,7 @@ def _run(proc: SwarmProcess) -> int:
                 proc.log(f"plant: tick {ev[0]} (t = {ev[0] * dt:.2f} s): UAV {ev[1]} failsafe {ev[2]} -> {ev[3]}")
             proc.counters["failsafe_events"] = len(failsafe.events)
             proc.publish_diag(k * dt_ns, {"failsafe": failsafe.summary() or "none"})
-        t = k * dt
-        for j in range(nsub):
-            d_p, d_a = dist.sample(t + j * h, h)
-            step(plant, f_app, r_app, params, h, d_p, d_a)
+        step_held(plant, f_app, r_app, params, h, nsub, dist.sampler(k * dt, h))
 
     if not proc.args.realtime:
 

@@ -14,11 +14,13 @@ import pytest
 from plant.disturbance import DisturbanceModel
 from plant.params import THRUST_TO_WEIGHT, QuadParams
 from plant.quadrotor import (
+    SCALAR_MAX_N,
     PlantState,
     euler_rate_matrix,
     initial_state,
     rotation_matrix,
     step,
+    step_held,
     wrap_angle,
 )
 from zenswarm.config import DisturbanceConfig, VehicleConfig
@@ -391,6 +393,97 @@ def test_scales_to_32_rows_independent():
     for i in (0, 13, 31):
         np.testing.assert_allclose(s.q[i], singles[i].q[0], rtol=0, atol=1e-12)
         np.testing.assert_allclose(s.rpy[i], singles[i].rpy[0], rtol=0, atol=1e-12)
+
+
+STATE_FIELDS = ("q", "v", "rpy", "w", "rate_int", "rate_err_prev")
+
+
+def random_state(rng, n):
+    """A state anywhere on the attitude sphere, spinning, with controller memory; the first UAV
+    at signed-zero angles and rates (the scalar path must keep numpy's signed zeros)."""
+    s = initial_state(rng.normal(size=(n, 3)))
+    s.v[:] = rng.normal(size=(n, 3))
+    s.rpy[:] = rng.uniform(-math.pi, math.pi, (n, 3))
+    s.w[:] = rng.normal(scale=3.0, size=(n, 3))
+    s.rate_int[:] = rng.normal(scale=1e-3, size=(n, 3))
+    s.rate_err_prev = rng.normal(size=(n, 3))
+    s.rpy[0] = [0.0, -0.0, 0.0]
+    s.w[0] = [-0.0, 0.0, -0.0]
+    return s
+
+
+def assert_bitwise_equal(a: PlantState, b: PlantState, ctx) -> None:
+    for name in STATE_FIELDS:
+        x, y = getattr(a, name), getattr(b, name)
+        np.testing.assert_array_equal(x, y, err_msg=f"{ctx} {name}")
+        np.testing.assert_array_equal(np.signbit(x), np.signbit(y), err_msg=f"{ctx} {name} (sign of zero)")
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, SCALAR_MAX_N, SCALAR_MAX_N + 1, 16])
+def test_step_held_equals_step_bit_for_bit(n):
+    """step_held (Python floats for N <= SCALAR_MAX_N, numpy above) is, bit for bit and sign of
+    zero included, nsub calls of step: random states, commands beyond every clamp, NaN, inf."""
+    rng = np.random.default_rng(100 + n)
+    for trial in range(40):
+        a = random_state(rng, n)
+        b = a.copy()
+        thrust = rng.uniform(-0.2, 1.0, n)
+        cmd = rng.normal(scale=1.5, size=(n, 3))
+        if trial % 4 == 0:
+            thrust[0], cmd[0, 1], cmd[-1, 2] = np.nan, np.nan, np.inf
+        if trial % 5 == 0:
+            cmd[0] = [0.0, -0.0, 0.0]
+            thrust[-1] = -0.0
+        nsub = int(rng.integers(0, 12))
+        for _ in range(nsub):
+            step(a, thrust, cmd, P, DT)
+        step_held(b, thrust, cmd, P, DT, nsub)
+        assert_bitwise_equal(a, b, (n, trial, nsub))
+
+
+@pytest.mark.parametrize("n", [3, SCALAR_MAX_N + 2])
+def test_step_held_with_disturbances_draws_and_applies_them_as_the_loop(n):
+    """A seeded disturbance sampler is called once per sub-step, in order: the generator ends
+    in the same place and the states are bit-identical; None entries mean no disturbance."""
+    cfg = DisturbanceConfig(wind=(0.1, -0.2, 0.05), gust_std=0.3, gust_tau_s=0.5, attitude_std=2.0,
+                            sine_amplitude=(0.1, 0.0, 0.2), sine_freq_hz=0.7)
+    rng = np.random.default_rng(7)
+    a = random_state(rng, n)
+    b = a.copy()
+    da = DisturbanceModel(cfg, n, np.random.default_rng(3))
+    db = DisturbanceModel(cfg, n, np.random.default_rng(3))
+    h = 1e-3
+    for k in range(30):
+        thrust = rng.uniform(0.1, 0.5, n)
+        cmd = rng.normal(scale=0.3, size=(n, 3))
+        t = k * 10 * h
+        for j in range(10):
+            d_p, d_a = da.sample(t + j * h, h)
+            if k % 3 == 1:
+                d_a = None
+            step(a, thrust, cmd, P, h, d_p, d_a)
+
+        def dist(j, t=t, k=k):
+            d_p, d_a = db.sample(t + j * h, h)
+            return d_p, (None if k % 3 == 1 else d_a)
+
+        step_held(b, thrust, cmd, P, h, 10, dist)
+        assert_bitwise_equal(a, b, k)
+    assert da.rng.standard_normal() == db.rng.standard_normal()
+
+
+def test_step_held_nonfinite_state_takes_the_numpy_path_without_raising():
+    s = initial_state(np.zeros((2, 3)))
+    s.rpy[1, 2] = np.inf
+    ref = s.copy()
+    with np.errstate(invalid="ignore"):
+        for _ in range(3):
+            step(ref, np.full(2, 0.3), np.zeros((2, 3)), P, DT)
+        step_held(s, np.full(2, 0.3), np.zeros((2, 3)), P, DT, 3)
+    np.testing.assert_array_equal(s.q, ref.q)  # NaN == NaN here
+    assert np.isfinite(s.q[0]).all()
+    with pytest.raises(ValueError, match="nsub"):
+        step_held(s, np.full(2, 0.3), np.zeros((2, 3)), P, DT, -1)
 
 
 def test_params_or_dt_change_recompiles():

@@ -15,7 +15,8 @@ tick k (t_k = k dt, dt = 1 / timing.control_rate_hz):
 6. generator explicit Euler step -> (q*, v*)_{k+1}.
 7. plant: ``timing.substeps`` physics sub-steps of 1 / physics_rate_hz with the command held
    (zero-order hold), onboard attitude PID at the physics rate, disturbances sampled every
-   sub-step; semi-implicit Euler (see :func:`plant.quadrotor.step`).
+   sub-step; semi-implicit Euler (see :func:`plant.quadrotor.step`; :func:`~plant.quadrotor.step_held`
+   runs the sub-steps of a tick).
 8. leader: q0_{k+1} by :func:`leader.aapf.integrate_leader` (explicit Euler, at least
    ``timing.substeps`` sub-steps, adaptively refined near obstacles).
 
@@ -41,7 +42,7 @@ from leader.aapf import AapfParams, integrate_leader, total_force
 from plant.disturbance import DisturbanceModel
 from plant.failsafe import FailsafeState, failsafe_config
 from plant.params import QuadParams
-from plant.quadrotor import initial_state, step as plant_step
+from plant.quadrotor import initial_state, step_held
 
 from .config import Scenario
 from .faults import FaultPlan, FaultState
@@ -155,9 +156,7 @@ def simulate(
                 ages.append(held.age_ticks * dt)
             thrust_applied, rpy_applied = failsafe.apply(k, ages, plant.q, plant.v, thrust_held, rpy_cmd, mass, g, yaw)
             ts.t[k], ts.q0[k], ts.v0[k], ts.q[k], ts.v[k], ts.rpy[k] = t, q0, v0, q, v, plant.rpy
-            for j in range(nsub):
-                d_p, d_a = dist.sample(t + j * h_phys, h_phys)
-                plant_step(plant, thrust_applied, rpy_applied, params, h_phys, d_p, d_a)
+            step_held(plant, thrust_applied, rpy_applied, params, h_phys, nsub, dist.sampler(t, h_phys))
             q0, _info = integrate_leader(q0, dt, aapf, nsub)
             if progress is not None and (k % 100 == 0 or k == T - 1):
                 progress(k + 1, T, float(np.linalg.norm(q0 - goal)))
@@ -186,9 +185,7 @@ def simulate(
 
         q_hat, v_hat, d_hat = eso_step(q_hat, v_hat, d_hat, q, u, beta, dt, g)
         qref, vref = euler_step(qref, vref, dqr, dvr, dt)
-        for j in range(nsub):
-            d_p, d_a = dist.sample(t + j * h_phys, h_phys)
-            plant_step(plant, F, rpy_cmd, params, h_phys, d_p, d_a)
+        step_held(plant, F, rpy_cmd, params, h_phys, nsub, dist.sampler(t, h_phys))
         q0, _info = integrate_leader(q0, dt, aapf, nsub)
 
         if progress is not None and (k % 100 == 0 or k == T - 1):
