@@ -143,7 +143,7 @@ class Collector:
             T = self.T if upto_tick is None else max(0, min(self.T, upto_tick))
             ts = self.ts.truncated(T)
             ts = TimeSeries(**{f: np.array(getattr(ts, f)) for f in TimeSeries.FIELDS})
-        if fill:
+        if fill and len(ts.t):
             # realtime: a tick a process skipped holds its previous value (latest value wins);
             # ticks before every process produced its first value are dropped.
             first = 0

@@ -200,6 +200,22 @@ def test_supervisor_progress_ignores_clocks_beyond_the_mission() -> None:
     assert col.sim_t_ns == sc.timing.n_ticks * dt_ns
 
 
+def test_supervisor_series_of_a_flight_that_never_started() -> None:
+    """A process that dies before the first tick leaves the collector with nothing: the series
+    up to tick 0 is empty, filled or not, and the results say the mission failed (the
+    supervisor once crashed here on the fill, losing results.json)."""
+    from compose.supervisor import Collector
+    from zenswarm.metrics import compute_results
+
+    sc = load_scenario(EX1)
+    col = Collector(sc, wire.Keys("never"))
+    for fill in (False, True):
+        ts = col.series(0, fill=fill)
+        assert len(ts.t) == 0 and ts.q.shape == (0, sc.n, 3)
+        res = compute_results(ts, sc)
+        assert res["success"] is False and res["goal_reached"] is False
+
+
 def test_foreign_sender_pinning_and_restart() -> None:
     p = _with_tokens(_proc())
     ref = K.ref(2)
