@@ -377,6 +377,12 @@ class Supervisor:
         auth = "tls" if a.tls else "usrpwd"
         if a.tls:
             listen = [security.tls_endpoint(e) for e in listen]
+        # before anything starts: the processes would each die on such an endpoint
+        try:
+            security.check_endpoints([*listen, *(a.connect or [])], auth)
+        except security.CredentialsError as e:
+            why = "secure mode" if (a.secure or a.tls or a.keys is not None) else "secure mode (the default when the router is not on loopback only)"
+            raise security.CredentialsError(f"{why}: {e}") from None
         if a.keys is not None:
             self.keys_dir = a.keys
         else:

@@ -35,3 +35,19 @@ def test_tls_swarm_equals_open_swarm(tmp_path: Path) -> None:
     b = TimeSeries.load(str(tmp_path / "tls" / "timeseries.npz"))
     assert not any(np.isnan(getattr(b, f)).any() for f in TimeSeries.FIELDS)
     assert read_results(tmp_path / "tls")["decoder_rejects"]["rejected"] == 0
+
+
+def test_secure_mode_refuses_an_endpoint_it_cannot_authenticate_before_starting(tmp_path: Path) -> None:
+    """A unix-socket router is not loopback TCP, so secure mode is on by default, and user/password
+    needs tcp/ or tls/ endpoints: `up` says so and exits 2 before starting anything (it once
+    started the router and let every process die on the endpoint)."""
+    from swarmtest import processes_mentioning, zenswarm
+
+    swarm = unique_swarm()
+    sock = tmp_path / "router.sock"
+    cp = zenswarm("up", str(SCENARIOS / "paper_example1.toml"), "--out", str(tmp_path / "out"), "--swarm", swarm,
+                  "--listen", f"unixsock-stream/{sock}", timeout=60)
+    assert cp.returncode == 2, cp.stdout[-2000:]
+    assert "secure mode" in cp.stdout and f"'unixsock-stream/{sock}'" in cp.stdout and "tcp/<host>:<port>" in cp.stdout
+    assert not (tmp_path / "out").exists() and not sock.exists()
+    assert not processes_mentioning(f"--swarm {swarm}")
