@@ -5,6 +5,8 @@ Pure numerics (numpy + math). Works on (3,) vectors or (N, 3) stacks.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = ["composite_control", "invert_thrust_attitude", "virtual_control_from_attitude"]
@@ -47,6 +49,8 @@ def invert_thrust_attitude(
     Returns (F (N,) or scalar, N; phi_d; theta_d) in rad. Tilt limits are the plant's job.
     """
     u = np.asarray(u, dtype=float)
+    if u.shape == (3,):
+        return _invert_one(u, mass, yaw, min_uz)
     ux = u[..., 0]
     uy = u[..., 1]
     uz = np.maximum(u[..., 2], min_uz)
@@ -56,6 +60,27 @@ def invert_thrust_attitude(
     phi = np.arcsin(np.clip((ux * s - uy * c) / norm, -1.0, 1.0))
     theta = np.arctan2(ux * c + uy * s, uz)
     return F, phi, theta
+
+
+def _invert_one(u: np.ndarray, mass: float, yaw: float, min_uz: float) -> tuple[np.float64, np.float64, np.float64]:
+    """:func:`invert_thrust_attitude` of one (3,) u on Python floats (an agent's every tick): the
+    same operations in the same order as the stacked form, so the same bits (np.maximum and
+    np.clip pass NaN through, and so do these; sin/cos of the yaw are the same as numpy's;
+    arcsin and arctan2 stay numpy's, whose results differ from the math module's)."""
+    ux, uy, uz = u.tolist()
+    if not uz >= min_uz and uz == uz:
+        uz = min_uz
+    norm = math.sqrt(ux * ux + uy * uy + uz * uz)
+    if norm == 0.0:  # only with min_uz <= 0: numpy's 0/0 and x/0, with its warnings
+        F, phi, theta = invert_thrust_attitude(u[None, :], mass, yaw, min_uz)
+        return F[0], phi[0], theta[0]
+    s, c = math.sin(yaw), math.cos(yaw)
+    a = (ux * s - uy * c) / norm
+    if a < -1.0:
+        a = -1.0
+    elif a > 1.0:
+        a = 1.0
+    return np.float64(mass * norm), np.arcsin(a), np.arctan2(ux * c + uy * s, uz)
 
 
 def virtual_control_from_attitude(F: np.ndarray, rpy: np.ndarray, mass: float) -> np.ndarray:

@@ -231,6 +231,29 @@ def test_inversion_then_rotation_reproduces_u() -> None:
         np.testing.assert_allclose(back, u, atol=1e-12)
 
 
+def test_inversion_of_one_u_equals_its_row_of_the_stacked_form_bit_for_bit() -> None:
+    """An agent inverts its own (3,) u on Python floats; the simulator inverts the (N, 3) stack.
+    Every output must be the same bits (sign included) and a numpy float64, for downward u
+    (u_z floor), NaN, inf and u = 0 with a zero floor (numpy's 0/0 path)."""
+    rng = np.random.default_rng(11)
+    U = rng.normal(scale=5.0, size=(3000, 3))
+    U[::7, 2] = -3.0
+    U[::11] = [np.nan, 1.0, 2.0]
+    U[::13, 2] = np.nan
+    U[::17] = [0.0, -0.0, 0.1]
+    U[::19, 0] = np.inf
+    for yaw, min_uz in ((0.0, 0.1), (0.3, 0.1), (-2.0, 0.1), (0.5, 0.0)):
+        if min_uz == 0.0:
+            U[::5] = 0.0
+        with np.errstate(all="ignore"):
+            stacked = invert_thrust_attitude(U, 0.027, yaw, min_uz)
+            for i in range(len(U)):
+                one = invert_thrust_attitude(U[i], 0.027, yaw, min_uz)
+                for a, b in zip(one, (x[i] for x in stacked)):
+                    assert type(a) is np.float64, (i, yaw)
+                    assert (a == b or (math.isnan(a) and math.isnan(b))) and np.signbit(a) == np.signbit(b), (i, yaw, a, b)
+
+
 def test_inversion_matches_plant_rotation_matrix() -> None:
     from plant.quadrotor import rotation_matrix
 
