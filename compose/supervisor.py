@@ -29,6 +29,7 @@ from zenswarm import bus, security, wire
 from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.linkfaults import add_fault_args, fault_argv, plan_for
+from zenswarm.runtime import expected_senders, sample_sender
 
 from .policy import restart_policy
 from zenswarm.metrics import TimeSeries, compute_results
@@ -68,6 +69,44 @@ class Collector:
         self.counts: dict[str, int] = {}
         self._eager = {keys.clock, keys.leader_ref}
         self._pending: list[tuple[str, bytes]] = []
+        # Who may publish what (an open swarm: in a secure one the router's access control does
+        # it, and no process declares alive/<process>/<zid>): as the processes' input guard, the
+        # first session that holds the key's sender token is pinned; another session is taken
+        # only once the pinned one's token is gone (a restarted process).
+        self.holders: dict[str, set[str]] = {}  # process -> sessions holding alive/<process>/<zid>
+        self.pins: dict[str, str] = {}  # key -> the session whose messages are taken
+        self.foreign = 0  # samples ignored: not from their key's process
+        self.foreign_by_key: dict[str, int] = {}
+        self._senders: dict[str, tuple[str, ...]] = {}
+
+    def token(self, process: str, zid: str, alive: bool) -> None:
+        """``alive/<process>/<zid>`` appeared (alive) or went away."""
+        with self.lock:
+            h = self.holders.setdefault(process, set())
+            if alive:
+                h.add(zid)
+            else:
+                h.discard(zid)
+
+    def sender_ok(self, key: str, zid: str) -> bool:
+        """May this sample (from session ``zid``, "" when anonymous) enter the series? Counts it
+        when not. Before any token of the key's process is known, everything is taken."""
+        if zid and self.pins.get(key) == zid:  # the usual case, without the lock
+            return True
+        senders = self._senders.get(key)
+        if senders is None:
+            senders = self._senders[key] = expected_senders(self.keys, key)
+        with self.lock:
+            holders = set().union(*(self.holders.get(p, ()) for p in senders))
+            pin = self.pins.get(key)
+            if zid == pin or (not holders and pin is None):
+                return True
+            if zid in holders and (pin is None or pin not in holders):  # first, or a restart
+                self.pins[key] = zid
+                return True
+            self.foreign += 1
+            self.foreign_by_key[key] = self.foreign_by_key.get(key, 0) + 1
+            return False
 
     def poll(self, sub: Any) -> int:
         """Take every sample queued on ``sub`` (a subscriber with a channel handler); returns
@@ -75,14 +114,16 @@ class Collector:
         supervisor no Python thread wake-up each (they wait in zenoh's channel between polls)."""
         n = 0
         while (s := sub.try_recv()) is not None:
-            self.on_sample(str(s.key_expr), s.payload.to_bytes())
+            key = str(s.key_expr)
+            if self.sender_ok(key, sample_sender(s)):
+                self.on_sample(key, s.payload.to_bytes())
             n += 1
         return n
 
     def on_sample(self, key: str, payload: bytes) -> None:
-        """Take one sample. The clock, the leader's ref and diagnostics (what progress needs) are
-        decoded at once; the rest is queued and decoded by :meth:`series`, off the swarm's hot
-        path (this runs in a Zenoh callback on a machine the swarm's processes share)."""
+        """Take one sample (its sender checked). The clock, the leader's ref and diagnostics
+        (what progress needs) are decoded at once; the rest is queued and decoded by
+        :meth:`series`, after the flight (the swarm's processes share this machine's cores)."""
         if key in self._eager or "/diag/" in key:
             self._apply(key, payload)
         else:
@@ -188,6 +229,7 @@ class Supervisor:
         rt = os.environ.get("ZENOH_RUNTIME")  # the user's choice, unless it is a swarm process's own
         self.user_runtime = None if rt == bus.ZENOH_RUNTIME_DEFAULT else rt  # None: ours (spawn, run)
         self.children: dict[str, Child] = {}
+        self.collector: Collector | None = None
         self.stop = threading.Event()
         self.stop_reason = ""
         self.print_lock = threading.Lock()
@@ -332,7 +374,7 @@ class Supervisor:
             bus.router_config(listen, connect=a.router_connect or [], settings=settings), handle_signals=False
         )
         session = session_cm.__enter__()
-        collector = Collector(sc, self.keys)
+        collector = self.collector = Collector(sc, self.keys)
         self._bus_sub: Any = None
         subs = []
         try:
@@ -342,6 +384,7 @@ class Supervisor:
             self._bus_sub = session.declare_subscriber(self.keys.all, zenoh.handlers.FifoChannel(COLLECTOR_QUEUE))
             subs.append(self._bus_sub)
             subs.append(session.liveliness().declare_subscriber(self.keys.alive_all, self._on_liveliness, history=True))
+            subs.append(session.liveliness().declare_subscriber(self.keys.alive_all + "/*", self._on_sender_token, history=True))
             self.say(
                 f"swarm '{a.swarm}': router on {', '.join(listen)}; {sc.n} UAVs; "
                 f"{'realtime' if a.realtime else 'lockstep'}; scenario {sc.name}"
@@ -423,6 +466,12 @@ class Supervisor:
             self.alive.add(proc)
         else:
             self.alive.discard(proc)
+
+    def _on_sender_token(self, sample: Any) -> None:
+        """``alive/<process>/<zid>``: which session is which process (for the collector)."""
+        parts = str(sample.key_expr).rsplit("/", 2)
+        if len(parts) == 3 and self.collector is not None:
+            self.collector.token(parts[1], parts[2], str(sample.kind).endswith("PUT"))
 
     def _watch(self, collector: Collector) -> int:
         sc = self.sc
@@ -513,6 +562,10 @@ class Supervisor:
         res["diagnostics"] = collector.diag
         res["supervisor_zenoh_threads"] = bus.zenoh_threads()  # the router's (ZENOH_RUNTIME_ROUTER)
         res["decoder_rejects"] = collector.decoder.counters()
+        res["foreign_samples"] = dict(sorted(collector.foreign_by_key.items()))  # not in the series
+        if collector.foreign:
+            self.say(f"ignored {collector.foreign} messages from sessions that are not their key's process "
+                     f"(on {len(collector.foreign_by_key)} keys; results.json: foreign_samples)")
         if code == EXIT_PROCESS_FAILED:
             res["success"] = False
             res["failure"] = f"process {getattr(self, 'failed', '?')} died"

@@ -216,6 +216,51 @@ def test_supervisor_series_of_a_flight_that_never_started() -> None:
         assert res["success"] is False and res["goal_reached"] is False
 
 
+def test_supervisor_collector_takes_each_key_only_from_its_process() -> None:
+    """The series behind results.json: like the processes' input guard, the collector pins each
+    key to the first session holding its process's sender token, ignores (and counts) other
+    sessions and anonymous samples, and takes a new session once the pinned one's token is gone
+    (a restarted process). Before any token is known (a secure swarm has none), it takes all."""
+    from compose.supervisor import Collector
+
+    sc = load_scenario(EX1)
+    keys = wire.Keys("pins")
+    col = Collector(sc, keys)
+    st2, ref1 = keys.state(2), keys.ref(1)
+    assert col.sender_ok(st2, "X") and col.sender_ok(st2, "")  # no token known yet
+    col = Collector(sc, keys)
+    col.token("plant", "P", True)
+    col.token("agent:1", "A1", True)
+    col.token("agent:1", "SPOOF", True)  # a second session claiming to be agent:1
+    assert col.sender_ok(st2, "P") and col.sender_ok(ref1, "A1")  # the first one is pinned
+    assert not col.sender_ok(st2, "A1") and not col.sender_ok(st2, "") and not col.sender_ok(ref1, "SPOOF")
+    assert col.foreign == 3 and col.foreign_by_key == {st2: 2, ref1: 1}
+    col.token("agent:1", "A1", False)  # agent 1 restarted: its new session takes over
+    col.token("agent:1", "A1b", True)
+    assert col.sender_ok(ref1, "A1b") and not col.sender_ok(ref1, "A1") and col.pins[ref1] == "A1b"
+
+    # what poll() does with a foreign sample: nothing reaches the series
+    dt_ns = wire.t_ns(sc.timing.dt)
+    real = wire.encode(wire.State(t=5 * dt_ns, seq=6, q=np.array([1.0, 2.0, 3.0]), v=np.zeros(3), rpy=np.zeros(3), w=np.zeros(3)))
+    fake = wire.encode(wire.State(t=5 * dt_ns, seq=7, q=np.array([9.0, 9.0, 9.0]), v=np.zeros(3), rpy=np.zeros(3), w=np.zeros(3)))
+
+    class Sub:
+        def __init__(self, samples):
+            self.samples = list(samples)
+
+        def try_recv(self):
+            return self.samples.pop(0) if self.samples else None
+
+    def sample(key, data, zid):
+        s = FakeSample(data, zid)
+        s.key_expr = key
+        return s
+
+    assert col.poll(Sub([sample(st2, real, "P"), sample(st2, fake, "A1b")])) == 2
+    np.testing.assert_array_equal(col.series().q[5, 1], [1.0, 2.0, 3.0])
+    assert col.foreign_by_key[st2] == 3
+
+
 def test_foreign_sender_pinning_and_restart() -> None:
     p = _with_tokens(_proc())
     ref = K.ref(2)
@@ -401,12 +446,14 @@ def test_handle_sample_never_raises_counts_everything_and_lets_in_only_sane_stre
 # --------------------------------------------------------------------------- live flood
 
 # Every kind of garbage, by name. The ones marked (spoof) carry a real sender's source info, copied
-# from its last sample: the receiver must reject them for their time or seq alone. Everything the
+# from its last sample: the receiver must reject them for their time or seq alone; what of those the
 # supervisor's collector could decode is either the real content of its tick or beyond the mission's
-# end, so the recorded flight stays comparable with the simulator bit for bit.
+# end. "forged" is a plausible message of the current tick with other values, from the flooding
+# session: the processes and the collector must reject it for its sender alone, or the recorded
+# flight would differ from the simulator's.
 GARBAGE = (
     "random", "not_map", "version", "kind", "missing", "extra", "type", "length", "nan", "inf",
-    "negative", "t_range", "oversize", "huge", "foreign", "past", "future", "stale", "duplicate",
+    "negative", "t_range", "oversize", "huge", "foreign", "forged", "past", "future", "stale", "duplicate",
 )
 
 
@@ -500,6 +547,10 @@ def _flood_main(argv: list[str]) -> int:
         data, si, d = real
         if g == "foreign":  # the real message, from another session (which claims to be agent:1)
             return data, own
+        if g == "forged":  # the real message with other values, from another session
+            if vec:
+                return _pack({**d, "seq": d["seq"] + 1, vec: [x + 0.5 for x in d[vec]]}), own
+            return _pack({**d, "seq": d["seq"] + 1}), own
         if g == "past" and old is not None:
             return _pack({**old[2], "seq": SPOOF_SEQ}), si
         if g == "future":
@@ -606,6 +657,8 @@ def test_flooding_every_key_of_a_flying_swarm(tmp_path: Path) -> None:
     assert res["process_deaths"] == [] and all(rc == 0 for rc in res["processes"].values()), res["processes"]
     assert not _nan_paths(res), _nan_paths(res)
     _assert_equal_to_sim(scenario, out)  # not one garbage message got in, not one real one was lost
+    forged = res["foreign_samples"]  # what the supervisor's collector kept out of the series
+    assert set(forged) >= {k for k in sent["by_key"] if "/uav/" in k or k.endswith("/leader/ref")}, forged
     must = {"malformed", "oversize", "version", "kind", "missing_field", "extra_field", "type", "length", "nonfinite",
             "negative", "out_of_range", "foreign_sender", "past", "future", "stale", "duplicate"}
     diag = res["diagnostics"]
