@@ -5,17 +5,20 @@ From a recording (``zenswarm report FILE.mcap --out DIR``) the scenario comes fr
 recorded samples by the supervisor's :class:`compose.supervisor.Collector` (the same code that
 builds it live, so a lockstep recording gives the run's own series), and the results by
 :func:`zenswarm.metrics.compute_results` (so ``results.json`` matches the run's own on every field
-of :data:`zenswarm.metrics.RESULT_FIELDS`; ``wall_time_s`` is null, the recording does not know the
+of :data:`zenswarm.metrics.FLIGHT_FIELDS`; ``wall_time_s`` is null, the recording does not know the
 run's compute time). Figures (PNG, matplotlib Agg, no display needed), after the paper's Figs 4-8:
 
 ``trajectories_3d.png``  3D trajectories of the virtual leader and the UAVs, obstacles as cylinders
                          with hemispherical caps, start/goal markers (Fig. 4); beside it a top view
                          with formation snapshots and the leader's enclosing circle r_f.
 ``formation_errors.png`` generator formation errors q*_i - q0 - h_i and v*_i - v0, per axis and UAV,
-                         eqs (16)-(17) (Figs 5 and 7).
+                         eqs (16)-(17) (Figs 5 and 7): the paper's analysis.
+``formation_errors_vehicles.png`` the vehicles' formation errors q_i - q0 - h_i and v_i - v0: where
+                         the UAVs really are (the verdict's ``max_formation_error_m``).
 ``tracking_errors.png``  tracking errors q*_i - q_i and v*_i - v_i, eq. (28) (Figs 6 and 8).
-``clearance.png``        each UAV's distance to the nearest obstacle surface (capped cylinder), and
-                         the leader sphere's clearance d_obs(q0) against the threshold d0.
+``clearance.png``        each UAV's distance to the nearest obstacle surface (capped cylinder) against
+                         the vehicle radius (contact), and the leader sphere's clearance d_obs(q0)
+                         against the threshold d0.
 ``links.png``            messages per key in the recording (and how many the report's decoder
                          rejected), and the drop/reject/timeout counters each process reported in
                          its last ``diag`` message (recordings only).
@@ -40,6 +43,7 @@ import numpy as np
 from zenswarm import wire
 from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import RecordingError, ScenarioError, ZenswarmError
+from zenswarm.geometry import d_obs_many, obstacle_clearance_many
 from zenswarm.metrics import TimeSeries, compute_results
 
 __all__ = [
@@ -58,7 +62,14 @@ __all__ = [
 METADATA_NAME = "zenswarm"
 """Name of the MCAP metadata record the recorder writes (keys scenario_json, swarm, mode)."""
 
-FIGURES = ("trajectories_3d.png", "formation_errors.png", "tracking_errors.png", "clearance.png", "links.png")
+FIGURES = (
+    "trajectories_3d.png",
+    "formation_errors.png",
+    "formation_errors_vehicles.png",
+    "tracking_errors.png",
+    "clearance.png",
+    "links.png",
+)
 """Figures of a report from a recording (``links.png`` only from a recording)."""
 
 _DPI = 120
@@ -391,6 +402,21 @@ def plot_formation_errors(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
     )
 
 
+def plot_vehicle_formation_errors(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
+    """The vehicles' formation errors q_i - q0 - h_i and v_i - v0: where the UAVs really are
+    against their places in the formation (what the verdict's max_formation_error_m measures)."""
+    h = np.asarray(sc.offsets, dtype=float)
+    return _plot_error_grid(
+        ts.t,
+        ts.q - ts.q0[:, None, :] - h[None],
+        ts.v - ts.v0[:, None, :],
+        path,
+        f"{sc.name}: formation errors of the vehicles (measured states)",
+        r"$q_i - q_0 - h_i$",
+        r"$v_i - v_0$",
+    )
+
+
 def plot_tracking_errors(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
     """Tracking errors q*_i - q_i and v*_i - v_i (composite controller, eq. 28; paper Figs 6 and 8)."""
     return _plot_error_grid(
@@ -406,23 +432,15 @@ def plot_tracking_errors(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
 
 def leader_d_obs(q0: np.ndarray, sc: Scenario) -> np.ndarray:
     """min over obstacles of the sphere clearance d_obs(q0) = ||q0 - q_obs(q0)|| - r_o - r_f, (T,) m."""
-    from leader.aapf import d_obs
-
     out = np.full(len(q0), np.inf)
-    r_f = sc.r_f
-    for k in range(len(q0)):
-        if not np.all(np.isfinite(q0[k])):
-            out[k] = np.nan
-            continue
-        for ob in sc.obstacles:
-            out[k] = min(out[k], d_obs(q0[k], ob, r_f))
+    for ob in sc.obstacles:
+        out = np.fmin(out, d_obs_many(q0, ob, sc.r_f))
+    out[~np.isfinite(q0).all(axis=1)] = np.nan
     return out
 
 
 def uav_clearance(q: np.ndarray, sc: Scenario) -> np.ndarray:
     """Each UAV's distance to the nearest obstacle surface, (T, N) m (negative inside)."""
-    from leader.aapf import obstacle_clearance_many
-
     c = np.full(q.shape[:-1], np.inf)
     for ob in sc.obstacles:
         c = np.fmin(c, obstacle_clearance_many(q, ob))
@@ -442,7 +460,9 @@ def plot_clearance(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
         c = uav_clearance(ts.q, sc)
         for i in range(n):
             ax1.plot(ts.t, c[:, i], color=colors[i], lw=1.2, label=f"UAV {i + 1}")
-        ax1.axhline(0.0, color="tab:red", lw=1.0, ls="--", label="surface (collision)")
+        r = sc.vehicle_radius
+        ax1.axhline(r, color="tab:red", lw=1.0, ls="--", label=f"contact: clearance = vehicle radius {r:.4f} m")
+        ax1.axhline(0.0, color="0.5", lw=0.8, ls=":", label="surface")
         if np.isfinite(c).any():
             k, i = np.unravel_index(np.nanargmin(c), c.shape)
             ax1.plot(ts.t[k], c[k, i], "v", color="tab:red", ms=7)
@@ -561,14 +581,16 @@ def report_from_series(ts: TimeSeries, scenario: Scenario, out_dir: str | Path) 
     return [
         plot_trajectories(ts, scenario, out / "trajectories_3d.png"),
         plot_formation_errors(ts, scenario, out / "formation_errors.png"),
+        plot_vehicle_formation_errors(ts, scenario, out / "formation_errors_vehicles.png"),
         plot_tracking_errors(ts, scenario, out / "tracking_errors.png"),
         plot_clearance(ts, scenario, out / "clearance.png"),
     ]
 
 
-def results_from_flight(fl: Flight) -> dict[str, Any]:
-    """results.json of a recorded flight: compute_results plus the bus statistics."""
-    res = compute_results(fl.series, fl.scenario, wall_time_s=None)
+def results_from_flight(fl: Flight, full_time: bool = False) -> dict[str, Any]:
+    """results.json of a recorded flight: compute_results plus the bus statistics. The flight is
+    judged up to the tick its outcome was decided (as the run ended there) unless ``full_time``."""
+    res = compute_results(fl.series, fl.scenario, wall_time_s=None, early_end=not full_time)
     res["mode"] = fl.mode
     res["swarm"] = fl.swarm
     res["diagnostics"] = fl.diagnostics
@@ -577,14 +599,15 @@ def results_from_flight(fl: Flight) -> dict[str, Any]:
     return res
 
 
-def report_recording(path: str | Path, out_dir: str | Path) -> list[Path]:
-    """The full report of a recording: every figure of :data:`FIGURES` and ``results.json``."""
+def report_recording(path: str | Path, out_dir: str | Path, full_time: bool = False) -> list[Path]:
+    """The full report of a recording: every figure of :data:`FIGURES` and ``results.json``
+    (``full_time``: judge every recorded tick, as ``--full-time`` runs do)."""
     rec = load_recording(path)
     fl = flight_from_recording(rec)
     out = Path(out_dir)
     files = report_from_series(fl.series, fl.scenario, out)
     files.append(plot_links(fl, out / "links.png"))
-    res = results_from_flight(fl)
+    res = results_from_flight(fl, full_time=full_time)
     res["recording"] = str(rec.path)
     res["recording_truncated"] = rec.truncated
     rp = out / "results.json"
@@ -613,7 +636,7 @@ def _run_report(args: argparse.Namespace) -> int:
             raise ScenarioError("--scenario", f"{args.scenario} has {sc.n} UAVs but {args.series} has {ts.q.shape[1] if ts.q.ndim == 3 else '?'}")
         files = report_from_series(ts, sc, args.out)
     else:
-        rec_files = report_recording(args.recording, args.out)
+        rec_files = report_recording(args.recording, args.out, full_time=args.full_time)
         files = rec_files
     for f in files:
         print(f)
@@ -627,7 +650,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="flight report (figures like the paper's Figs 4-8, results.json) from a recording",
         description=(
             "Write the flight report of a recording into OUT: trajectories_3d.png, "
-            "formation_errors.png, tracking_errors.png, clearance.png, links.png and results.json "
+            "formation_errors.png (generator), formation_errors_vehicles.png, tracking_errors.png, clearance.png, "
+            "links.png and results.json "
             "(the same fields as `zenswarm sim`). Works from the MCAP file alone. With --series, "
             "plot a `zenswarm sim` time series instead (no links.png, no results.json)."
         ),
@@ -636,6 +660,12 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="output directory (created)")
     p.add_argument("--series", type=Path, metavar="NPZ", help="a timeseries.npz written by zenswarm sim or zenswarm up")
     p.add_argument("--scenario", type=Path, metavar="TOML", help="with --series: the scenario file of that run")
+    p.add_argument(
+        "--full-time",
+        action="store_true",
+        help="judge every recorded tick (for runs flown with --full-time); by default the flight is judged up to "
+        "the tick its outcome was decided, as the run itself ended there",
+    )
     p.set_defaults(func=_run_report, _parser=p)
 
 

@@ -32,9 +32,13 @@ from zenswarm.linkfaults import add_fault_args, fault_argv, plan_for
 from zenswarm.runtime import expected_senders, sample_sender
 
 from .policy import restart_policy
-from zenswarm.metrics import TimeSeries, compute_results
+from zenswarm import verdict
+from zenswarm.metrics import TimeSeries, add_failure, compute_results
 
 __all__ = ["add_parsers", "Collector", "Supervisor", "role_names"]
+
+LIVE_CHECK_S = 0.25
+"""Wall seconds between two looks at whether the flight's outcome is decided (early end)."""
 
 COLLECTOR_QUEUE = 4_000_000
 """Capacity of the supervisor's bus queue, in messages (drained every ~50 ms, so it never fills)."""
@@ -62,6 +66,7 @@ class Collector:
         self.sim_t_ns = -1
         self.ignored_clocks = 0  # decodable clocks beyond the mission's end (garbage), not taken
         self.leader_q: np.ndarray | None = None
+        self.leader_ticks = 0  # leader refs of ticks 0 .. leader_ticks - 1 may have arrived
         self.goal_tick: int | None = None
         self._goal = np.asarray(scenario.leader.goal, dtype=float)
         self._goal_tol = scenario.timing.goal_tolerance_m
@@ -69,6 +74,10 @@ class Collector:
         self.counts: dict[str, int] = {}
         self._eager = {keys.clock, keys.leader_ref}
         self._pending: list[tuple[str, bytes]] = []
+        # for the live verdict: each UAV's newest state and ref message, decoded only when asked
+        self._live_keys = {k: (kind, i) for i in range(1, scenario.n + 1) for kind, k in (("state", keys.state(i)), ("ref", keys.ref(i)))}
+        self._last: dict[tuple[str, int], bytes] = {}
+        self.got_state = np.zeros((self.T, scenario.n), dtype=bool)  # a state message of (tick, UAV) arrived
         # Who may publish what (an open swarm: in a secure one the router's access control does
         # it, and no process declares alive/<process>/<zid>): as the processes' input guard, the
         # first session that holds the key's sender token is pinned; another session is taken
@@ -128,6 +137,30 @@ class Collector:
             self._apply(key, payload)
         else:
             self._pending.append((key, payload))
+            live = self._live_keys.get(key)
+            if live is not None:
+                self._last[live] = payload
+
+    def complete_ticks(self, upto: int) -> int:
+        """How many ticks from 0, up to ``upto``, have every UAV's state (the rest were cut off
+        when the run was stopped)."""
+        self._drain()
+        missing = np.flatnonzero(~self.got_state[:upto].all(axis=1))
+        return int(missing[0]) if len(missing) else min(upto, self.T)
+
+    def latest(self, kind: str) -> dict[int, tuple[int, np.ndarray]]:
+        """UAV number -> (tick, q (3,)) of its newest ``state`` or ``ref`` message, decoded now:
+        what the live verdict needs, without decoding the whole flight."""
+        out: dict[int, tuple[int, np.ndarray]] = {}
+        for (k, i), payload in list(self._last.items()):
+            if k != kind:
+                continue
+            try:  # not through self.decoder: its counters are the flight's, counted once in series()
+                msg = wire.decode(kind, payload)
+            except Exception:  # noqa: BLE001 - garbage: the series' decoder counts it
+                continue
+            out[i] = ((msg.t + self.dt_ns // 2) // self.dt_ns, np.asarray(msg.q, dtype=float))
+        return out
 
     def _drain(self) -> None:
         pending, self._pending = self._pending, []
@@ -163,12 +196,14 @@ class Collector:
                 ts.q0[k] = msg.q
                 ts.v0[k] = msg.v
                 self.leader_q = msg.q
+                self.leader_ticks = max(self.leader_ticks, int(k) + 1)
                 if self.goal_tick is None and float(np.linalg.norm(msg.q - self._goal)) <= self._goal_tol:
                     self.goal_tick = int(k)
             elif kind == "ref" and idx is not None:
                 ts.qref[k, idx - 1] = msg.q
                 ts.vref[k, idx - 1] = msg.v
             elif kind == "state" and idx is not None:
+                self.got_state[k, idx - 1] = True
                 ts.q[k, idx - 1] = msg.q
                 ts.v[k, idx - 1] = msg.v
                 ts.rpy[k, idx - 1] = msg.rpy
@@ -239,7 +274,11 @@ class Supervisor:
         self.restart_at: dict[str, float] = {}
         self.restarts: dict[str, int] = {}
         self.deaths: list[dict] = []
-        self.ended_at_goal = False
+        self.upto = -1  # ticks to judge when the run ended early, decided; -1: ran its course
+        self.criteria = verdict.criteria_from_scenario(scenario)
+        self._stall_checked = 0
+        self._in_slots_since: int | None = None
+        self._deciding = False  # the live look saw the outcome decided; waiting for the exact tick
         if args.plant == "mavlink":
             args.realtime = True  # real vehicles (or their simulation over UDP) run on the wall clock
         self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n)
@@ -449,7 +488,7 @@ class Supervisor:
         try:
             from bridge.report import report_recording
 
-            written = report_recording(self.args.record, out / "report")
+            written = report_recording(self.args.record, out / "report", full_time=self.args.full_time)
         except ZenswarmError as e:
             self.say(f"report failed: {e}")
             return
@@ -473,9 +512,66 @@ class Supervisor:
         if len(parts) == 3 and self.collector is not None:
             self.collector.token(parts[1], parts[2], str(sample.kind).endswith("PUT"))
 
+    def _live_verdict(self, collector: Collector) -> str | None:
+        """Has the flight's outcome been decided (:mod:`zenswarm.verdict`)? Then say why, and set
+        ``self.upto`` (the ticks to judge). Cheap: the leader's series (decoded as it arrives) and
+        each UAV's newest state; the exact decision is taken again on the whole series after."""
+        c = self.criteria
+        q0 = collector.ts.q0
+        lead_known = collector.leader_ticks
+        if not self.args.full_time:
+            k = verdict.leader_stall_tick(q0, c, self._stall_checked, lead_known)
+            self._stall_checked = max(self._stall_checked, lead_known)
+            if k is not None:
+                self._deciding = True
+        if self._deciding:  # decided live: stop once the series holds the deciding tick
+            return self._decided_exactly(collector)
+        states, refs = collector.latest("state"), collector.latest("ref")
+        n = self.sc.n
+        if len(states) < n:
+            return None
+        kmin = min(states[i][0] for i in range(1, n + 1))
+        q = np.array([states[i][1] for i in range(1, n + 1)])
+        if not self.args.full_time and len(refs) == n:
+            qref = np.array([refs[i][1] for i in range(1, n + 1)])
+            if verdict.uav_decided(q, qref, c) is not None:
+                self._deciding = True
+                return self._decided_exactly(collector)
+        if self.args.stop_at_goal and collector.goal_tick is not None:
+            if not verdict.in_slots(q, c):
+                self._in_slots_since = None
+                return None
+            if self._in_slots_since is None:
+                self._in_slots_since = kmin
+            if kmin - self._in_slots_since + 1 >= c.settle_ticks:
+                ts = collector.series(kmin + 1, fill=self.args.realtime)  # the exact check
+                if len(ts.t) >= c.settle_ticks and verdict.in_slots(ts.q[-c.settle_ticks :], c):
+                    self.upto = kmin + 1
+                    return (
+                        f"goal reached at sim time {collector.goal_tick * c.dt:.2f} s and every UAV in its slot for "
+                        f"{c.settle_window_s:g} s at {kmin * c.dt:.2f} s; stopping (--stop-at-goal)"
+                    )
+        return None
+
+    def _decided_exactly(self, collector: Collector) -> str | None:
+        """The exact decision (:func:`zenswarm.verdict.decide_end`) on the ticks complete so far:
+        says why and sets ``self.upto`` when found; None while those ticks are still on the way."""
+        if self.args.realtime:  # skipped ticks hold the previous value, as in the results
+            ts = collector.series(int(max(collector.sim_t_ns, 0) // collector.dt_ns), fill=True)
+        else:
+            ts = collector.series(collector.complete_ticks(collector.T))
+        k = verdict.decide_end(ts.q0, ts.q, ts.qref, self.criteria)
+        if k is None:
+            return None
+        self.upto = int(round(ts.t[k] / self.criteria.dt)) + 1
+        why = verdict.judge(ts.t[: k + 1], ts.q0[: k + 1], ts.q[: k + 1], ts.qref[: k + 1], self.criteria).failures
+        first = next((f for f in why if f.cause in verdict.TERMINAL), None)
+        text = first.detail if first is not None else "the outcome is decided"
+        return f"at sim time {ts.t[k]:.2f} s {text}; ending the run (--full-time flies on)"
+
     def _watch(self, collector: Collector) -> int:
         sc = self.sc
-        last_print = 0.0
+        last_print = last_check = 0.0
         goal = np.asarray(sc.leader.goal, dtype=float)
         limit_ns = wire.t_ns(sc.timing.time_limit_s)
         wall0 = time.monotonic()
@@ -524,10 +620,12 @@ class Supervisor:
                     self.say(f"injecting SIGKILL into {role} at sim time {collector.sim_t_ns / 1e9:.2f} s (--kill)")
                     self.children[role].popen.kill()
                     del self.pending_kills[role]
-            if self.args.stop_at_goal and collector.goal_tick is not None:
-                self.say(f"goal reached at sim time {collector.goal_tick * sc.timing.dt:.2f} s; stopping (--stop-at-goal)")
-                self.ended_at_goal = True
-                return EXIT_OK
+            if now - last_check >= LIVE_CHECK_S:
+                last_check = now
+                why = self._live_verdict(collector)
+                if why:
+                    self.say(why)
+                    return EXIT_OK
             now = time.monotonic()
             if now - last_print >= self.args.progress_every and not self.args.quiet:
                 last_print = now
@@ -546,12 +644,17 @@ class Supervisor:
 
     def _finish(self, collector: Collector, code: int, out: Path) -> int:
         sc = self.sc
-        upto = None
-        if code != EXIT_OK or self.ended_at_goal:
-            upto = max(int(max(collector.sim_t_ns, 0) // collector.dt_ns), collector.goal_tick + 1 if self.ended_at_goal and self.args.realtime else 0)
         # realtime, or a process that was down: a tick without a message holds the previous value
-        ts = collector.series(upto, fill=self.args.realtime or bool(self.deaths))
-        res = compute_results(ts, sc, wall_time_s=None)
+        fill = self.args.realtime or bool(self.deaths)
+        upto: int | None = None  # the whole time limit
+        if code == EXIT_OK and self.upto >= 0:  # ended early, decided (or --stop-at-goal)
+            upto = self.upto
+        elif code != EXIT_OK:  # stopped: the ticks flown so far
+            upto = int(max(collector.sim_t_ns, 0) // collector.dt_ns)
+            if not fill:  # and only those whose every state arrived
+                upto = collector.complete_ticks(upto)
+        ts = collector.series(upto, fill=fill)
+        res = compute_results(ts, sc, wall_time_s=time.monotonic() - self.t_start, early_end=not self.args.full_time)
         res["mode"] = "realtime" if self.args.realtime else "lockstep"
         res["swarm"] = self.args.swarm
         res["processes"] = {name: c.returncode for name, c in self.children.items()}
@@ -566,18 +669,20 @@ class Supervisor:
         if collector.foreign:
             self.say(f"ignored {collector.foreign} messages from sessions that are not their key's process "
                      f"(on {len(collector.foreign_by_key)} keys; results.json: foreign_samples)")
+        t_end = res["sim_time_s"]
         if code == EXIT_PROCESS_FAILED:
-            res["success"] = False
-            res["failure"] = f"process {getattr(self, 'failed', '?')} died"
+            dead = getattr(self, "failed", "?")
+            how = next((d["how"] for d in reversed(self.deaths) if d["process"] == dead), "unknown")
+            add_failure(res, "process_died", f"process {dead} died ({how})", t_end, process=dead)
         elif code == EXIT_INTERRUPTED:
-            res["success"] = False
-            res["failure"] = f"interrupted ({self.stop_reason})"
+            add_failure(res, "interrupted", f"interrupted ({self.stop_reason}) at sim time {t_end:.2f} s", t_end)
         out.mkdir(parents=True, exist_ok=True)
         ts.save(str(out / "timeseries.npz"))
         (out / "results.json").write_text(json.dumps(res, indent=2, sort_keys=True, default=str) + "\n")
         from zenswarm.sim import summary_line
 
-        self.say(summary_line({**res, "wall_time_s": time.monotonic() - self.t_start}))
+        for line in summary_line(res).split("\n"):
+            self.say(line)
         self.say(f"wrote {out / 'results.json'} and {out / 'timeseries.npz'}")
         if self.args.record is not None and self.args.report:
             self._report(out)
@@ -732,7 +837,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--stop-at-goal",
         action="store_true",
-        help="end the mission as soon as the leader is within the goal tolerance (useful in realtime mode)",
+        help="end the run as soon as its success is decided: the leader reached the goal and every UAV has been "
+        "within mission.slot_tolerance_m of its slot for mission.settle_window_s (useful in realtime mode)",
+    )
+    p.add_argument(
+        "--full-time",
+        action="store_true",
+        help="fly the whole time limit even after the outcome is decided (by default a stalled leader or a "
+        "diverged UAV ends the run early; the verdict names the failure either way)",
     )
     p.add_argument("--progress-every", type=float, default=1.0, metavar="S", help="seconds between progress lines")
     p.add_argument("--quiet", action="store_true", help="no progress lines")

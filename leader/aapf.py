@@ -22,6 +22,8 @@ from typing import Protocol, Sequence
 
 import numpy as np
 
+from zenswarm.geometry import obstacle_clearance_many  # the vectorised twin of obstacle_clearance (re-exported)
+
 __all__ = [
     "ObstacleLike",
     "AapfParams",
@@ -352,17 +354,3 @@ def integrate_leader(
         remaining -= h
         n += 1
     return np.array([x, y, z]), LeaderStepInfo(n, False)
-
-
-def obstacle_clearance_many(p: np.ndarray, ob: ObstacleLike) -> np.ndarray:
-    """Vectorised :func:`obstacle_clearance` for points p of shape (..., 3); returns (...,) m."""
-    p = np.asarray(p, dtype=float)
-    xc, yc, zc = ob.center
-    top = zc + ob.height
-    rho = np.hypot(p[..., 0] - xc, p[..., 1] - yc)
-    z = p[..., 2]
-    above = np.sqrt(rho * rho + (z - top) ** 2) - ob.radius
-    side = rho - ob.radius
-    mid = np.where(side < 0, np.maximum(side, zc - z), side)
-    below = np.where(rho <= ob.radius, zc - z, np.hypot(rho - ob.radius, zc - z))
-    return np.where(z > top, above, np.where(z >= zc, mid, below))

@@ -31,6 +31,8 @@ PURE_MODULES = [
     "plant/failsafe.py",
     "bridge/frames.py",
     "zenswarm/metrics.py",
+    "zenswarm/verdict.py",
+    "zenswarm/geometry.py",
 ]
 ALLOWED_IMPORTS = {"numpy", "math", "dataclasses", "typing", "__future__", "leader", "agents", "plant", "zenswarm"}
 # zenswarm.config is allowed (types only); anything that touches I/O, the clock or the network is not.
@@ -52,8 +54,8 @@ def test_math_module_imports_numpy_only(rel: str) -> None:
                 assert mod not in {"bus", "wire", "cli", "sim", "process"}, f"{rel}: relative import of {node.module}"
                 continue
             names = [node.module.split(".")[0]]
-            if node.module.startswith("zenswarm") and node.module not in {"zenswarm.config", "zenswarm.errors"}:
-                pytest.fail(f"{rel} imports {node.module}: math modules may use zenswarm.config/errors only")
+            if node.module.startswith("zenswarm") and node.module not in {"zenswarm.config", "zenswarm.errors", "zenswarm.geometry"}:
+                pytest.fail(f"{rel} imports {node.module}: math modules may use zenswarm.config/errors/geometry only")
         else:
             if isinstance(node, ast.Name) and node.id in FORBIDDEN_NAMES:
                 pytest.fail(f"{rel} uses {node.id} (I/O or clock) at line {node.lineno}")
@@ -65,7 +67,7 @@ def test_math_module_imports_numpy_only(rel: str) -> None:
 def test_math_modules_load_no_io_libraries() -> None:
     code = (
         "import sys\n"
-        "import leader.aapf, agents.core, plant.quadrotor, plant.disturbance, zenswarm.metrics\n"
+        "import leader.aapf, agents.core, plant.quadrotor, plant.disturbance, zenswarm.metrics, zenswarm.verdict\n"
         "bad = [m for m in ('zenoh', 'mcap', 'pymavlink', 'msgpack', 'socket') if m in sys.modules]\n"
         "print(','.join(bad))\n"
     )

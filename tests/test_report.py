@@ -27,7 +27,7 @@ from zenswarm import wire
 from zenswarm.cli import main as cli_main
 from zenswarm.config import scenario_from_dict, scenario_to_dict
 from zenswarm.errors import RecordingError
-from zenswarm.metrics import RESULT_FIELDS, compute_results
+from zenswarm.metrics import FLIGHT_FIELDS, compute_results
 from zenswarm.sim import simulate
 
 EX1 = Path(__file__).resolve().parents[1] / "compose" / "scenarios" / "paper_example1.toml"
@@ -130,9 +130,10 @@ def test_report_writes_every_figure_and_the_runs_results(flight, recording, tmp_
     res = json.loads((out / "results.json").read_text())
     assert str(out / "results.json") in printed
     expected = compute_results(sim.series, sc)
-    for k in RESULT_FIELDS:
+    for k in FLIGHT_FIELDS:
         assert res[k] == expected[k], k
         assert res[k] == sim.results[k], k
+    assert res["schema_version"] == 2 and res["wall_time_s"] is None
     assert res["max_formation_error_m"] is not None
     assert res["mode"] == "lockstep" and res["swarm"] == SWARM
     # bus statistics: the garbage payload is counted against its key, diag counters are kept

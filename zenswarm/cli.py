@@ -29,8 +29,10 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
         description=(
             "Fly SCENARIO in one process, vectorised over UAVs, with the same discrete-time "
             "semantics as the distributed lockstep swarm. Writes OUT/results.json and "
-            "OUT/timeseries.npz. Exit status 0 when the mission succeeded (goal reached, no "
-            "collision, no NaN), 1 otherwise."
+            "OUT/timeseries.npz. Exit status 0 when the mission succeeded (the leader reached the "
+            "goal, every UAV ended at its slot, no contact with obstacles, the ground or each other, "
+            "every state finite), 1 otherwise (each failure named with its cause and time), 130 on "
+            "Ctrl-C (what was flown is judged and written)."
         ),
     )
     p.add_argument("scenario", type=Path, help="scenario TOML file, e.g. compose/scenarios/paper_example1.toml")
@@ -43,6 +45,12 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
         help="use the fixed-gain APF with K_rep = K instead of the adaptive gain (12), for comparison",
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument(
+        "--full-time",
+        action="store_true",
+        help="fly the whole time limit even after the outcome is decided (by default a stalled leader or a "
+        "diverged UAV ends the run early; the verdict names the failure either way)",
+    )
     from .linkfaults import add_fault_args
 
     add_fault_args(p)
@@ -60,7 +68,7 @@ def _run_sim(args: argparse.Namespace) -> int:
     sc = apply_overrides(load_scenario(args.scenario), no_eso=args.no_eso, fixed_gain=args.fixed_gain)
     if args.seed is not None:
         sc = replace(sc, seed=args.seed)
-    return run_sim_cli(sc, args.out, quiet=args.quiet, faults=plan_from_args(sc, args))
+    return run_sim_cli(sc, args.out, quiet=args.quiet, faults=plan_from_args(sc, args), full_time=args.full_time)
 
 
 def _add_scenario(sub: argparse._SubParsersAction) -> None:

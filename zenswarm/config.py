@@ -15,7 +15,10 @@ The sections and their meaning (see ``compose/scenarios/paper_example1.toml`` fo
 ``[generator]``  mu1, mu2 (eqs 16-17)
 ``[eso]``        beta = [beta1, beta2, beta3], enabled (eq. 27)
 ``[controller]`` kp (3,), kd (3,), yaw (eq. 28 and the inversion after it)
-``[vehicle]``    optional overrides of the Crazyflie 2.1 parameters (see :mod:`plant.params`)
+``[vehicle]``    optional overrides of the Crazyflie 2.1 parameters (see :mod:`plant.params`), and
+                 radius (the contact radius the verdict uses; default :data:`CRAZYFLIE_RADIUS_M`)
+``[mission]``    how the flight is judged (:mod:`zenswarm.verdict`): slot_tolerance_m,
+                 settle_window_s, stall_speed_m_s, stall_window_s, divergence_m
 ``[disturbance]`` wind, sine_amplitude, sine_freq_hz, gust_std, gust_tau_s (accelerations, m/s^2)
 """
 
@@ -41,6 +44,8 @@ __all__ = [
     "ControllerConfig",
     "VehicleConfig",
     "DisturbanceConfig",
+    "MissionConfig",
+    "CRAZYFLIE_RADIUS_M",
     "Scenario",
     "load_scenario",
     "scenario_from_dict",
@@ -132,14 +137,45 @@ class ControllerConfig:
     yaw: float = 0.0  # desired yaw psi_d, rad
 
 
+CRAZYFLIE_RADIUS_M = 0.0397 + 0.0231
+"""Contact radius of a Crazyflie 2.1, m: motor arm 0.0397 m plus propeller radius 0.0231 m
+(gym-pybullet-drones ``cf2x.urdf``: arm="0.0397", prop_radius="2.31348e-2"), i.e. the sphere that
+holds the propeller discs; the datasheet's footprint is 92 x 92 mm (motor to motor)."""
+
+
 @dataclass(frozen=True)
 class VehicleConfig:
-    """Optional overrides of :class:`plant.params.QuadParams`; ``None`` keeps the default."""
+    """Optional overrides of :class:`plant.params.QuadParams`; ``None`` keeps the default.
+
+    ``radius``: the vehicle's contact radius, m, used by the verdict (obstacle contact when a
+    UAV's clearance is below it, UAV-UAV contact below twice it); ``None``: a Crazyflie 2.1's.
+    """
 
     mass: float | None = None
     inertia: tuple[float, float, float] | None = None
     max_thrust: float | None = None
     max_tilt: float | None = None
+    radius: float | None = None
+
+
+@dataclass(frozen=True)
+class MissionConfig:
+    """How a flight is judged (:mod:`zenswarm.verdict`).
+
+    slot_tolerance_m: every UAV must end within this distance of its slot q0_goal + h_i, m ...
+    settle_window_s: ... for this long at the end of the flight, s.
+    stall_speed_m_s, stall_window_s: the leader is stalled (a local minimum of the AAPF) when it
+    moves less than stall_speed * stall_window over a window while away from the goal and
+    within d0 of an obstacle; the run then ends early.
+    divergence_m: a UAV farther than this from its reference q*_i no longer tracks it (it fell, or
+    was blown away): it has diverged, and the run ends early.
+    """
+
+    slot_tolerance_m: float = 0.10
+    settle_window_s: float = 3.0
+    stall_speed_m_s: float = 0.01
+    stall_window_s: float = 5.0
+    divergence_m: float = 5.0
 
 
 @dataclass(frozen=True)
@@ -180,6 +216,7 @@ class Scenario:
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     disturbance: DisturbanceConfig = field(default_factory=DisturbanceConfig)
+    mission: MissionConfig = field(default_factory=MissionConfig)
     description: str = ""
     seed: int = 0
     extra: dict[str, Any] = field(default_factory=dict, compare=False)
@@ -188,6 +225,11 @@ class Scenario:
     def n(self) -> int:
         """Number of follower UAVs N."""
         return len(self.offsets)
+
+    @property
+    def vehicle_radius(self) -> float:
+        """The UAVs' contact radius, m (``vehicle.radius`` or a Crazyflie 2.1's)."""
+        return CRAZYFLIE_RADIUS_M if self.vehicle.radius is None else self.vehicle.radius
 
     @property
     def r_f(self) -> float:
@@ -282,6 +324,7 @@ _SECTIONS = {
     "controller",
     "vehicle",
     "disturbance",
+    "mission",
 }
 
 # Sections that later subsystems own; they are parsed by those subsystems and kept verbatim in
@@ -379,7 +422,11 @@ def scenario_from_dict(d: dict[str, Any]) -> Scenario:
         inertia=tuple(_positive(f"vehicle.inertia[{k}]", v) for k, v in enumerate(_vec("vehicle.inertia", vh["inertia"]))) if "inertia" in vh else None,
         max_thrust=_positive("vehicle.max_thrust", vh["max_thrust"]) if "max_thrust" in vh else None,
         max_tilt=_positive("vehicle.max_tilt", vh["max_tilt"]) if "max_tilt" in vh else None,
+        radius=_positive("vehicle.radius", vh["radius"]) if "radius" in vh else None,
     )
+
+    ms = _check_keys("mission", d.get("mission", {}), {f.name for f in fields(MissionConfig)})
+    mission = MissionConfig(**{k: _positive(f"mission.{k}", v) for k, v in ms.items()})
 
     ds = _check_keys("disturbance", d.get("disturbance", {}), {f.name for f in fields(DisturbanceConfig)})
     disturbance = DisturbanceConfig(
@@ -411,6 +458,7 @@ def scenario_from_dict(d: dict[str, Any]) -> Scenario:
         controller=controller,
         vehicle=vehicle,
         disturbance=disturbance,
+        mission=mission,
         extra=extra,
     )
     validate(scen)
@@ -518,6 +566,7 @@ def scenario_to_dict(s: Scenario) -> dict[str, Any]:
         "eso": {"beta": list(s.eso.beta), "enabled": s.eso.enabled},
         "controller": {"kp": list(s.controller.kp), "kd": list(s.controller.kd), "yaw": s.controller.yaw},
         "disturbance": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(s.disturbance).items()},
+        "mission": dict(vars(s.mission)),
     }
     if veh:
         d["vehicle"] = veh

@@ -1,24 +1,24 @@
-"""Mission metrics from a flight's time series: the fields of ``results.json``.
+"""A flight's time series and the fields of ``results.json`` computed from it.
 
 Pure (numpy only). The in-process simulator, the distributed swarm and the flight report all
-compute their results with :func:`compute_results`, so the same flight gives the same JSON.
+compute their results with :func:`compute_results` (the verdict of :mod:`zenswarm.verdict`), so
+the same flight gives the same JSON.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from leader.aapf import obstacle_clearance_many
+from .verdict import criteria_from_scenario, judge
 
-__all__ = ["TimeSeries", "compute_results", "UAV_COLLISION_DISTANCE_M", "RESULT_FIELDS"]
+__all__ = ["TimeSeries", "compute_results", "add_failure", "RESULT_FIELDS", "FLIGHT_FIELDS", "RESULTS_SCHEMA_VERSION"]
 
-UAV_COLLISION_DISTANCE_M = 0.05
-"""Two UAV centres closer than this count as a collision (a Crazyflie 2.1 is 92 mm motor to motor;
-rotor discs of neighbours may overlap down to about this distance without the frames touching)."""
+RESULTS_SCHEMA_VERSION = 2
+"""Version of ``results.json``'s layout. 2: the verdict from the vehicles' states (``failures``,
+vehicle formation error, margins); 1 (unversioned): the leader's and the generator's."""
 
 RESULT_FIELDS = (
     "goal_reached",
@@ -26,9 +26,25 @@ RESULT_FIELDS = (
     "min_obstacle_clearance_m",
     "min_inter_uav_distance_m",
     "max_formation_error_m",
+    "max_generator_formation_error_m",
     "rms_tracking_error_m",
     "sim_time_s",
 )
+"""The headline figures of a flight."""
+
+FLIGHT_FIELDS = RESULT_FIELDS + (
+    "success",
+    "failures",
+    "final_leader_goal_distance_m",
+    "final_slot_errors_m",
+    "min_obstacle_margin_m",
+    "min_inter_uav_margin_m",
+    "min_altitude_m",
+    "finite",
+    "ended_early",
+)
+"""The fields two judgements of the same flight agree on (a run and its report, the simulator and
+the lockstep swarm); not the wall time nor the bus statistics."""
 
 
 @dataclass
@@ -84,76 +100,60 @@ class TimeSeries:
             return cls(**{f: np.array(z[f]) for f in cls.FIELDS})
 
 
-def _num(x: float) -> float | None:
-    """JSON-safe float: None for NaN/inf."""
-    return float(x) if math.isfinite(x) else None
+def compute_results(
+    ts: TimeSeries, scenario: Any, wall_time_s: float | None = None, early_end: bool = True
+) -> dict[str, Any]:
+    """The mission results of a flight: the verdict of :func:`zenswarm.verdict.judge` on the
+    UAVs' real states, as the JSON-ready fields of ``results.json`` (:data:`RESULTS_SCHEMA_VERSION`).
 
-
-def compute_results(ts: TimeSeries, scenario: Any, wall_time_s: float | None = None) -> dict[str, Any]:
-    """The mission results of a flight.
-
-    Fields: goal_reached (leader within timing.goal_tolerance_m of the goal at some tick),
-    time_to_goal_s (first such time, None if never), min_obstacle_clearance_m (every UAV position
-    against the real cylinder and cap surfaces), min_inter_uav_distance_m,
-    max_formation_error_m (max_i ||q*_i - q0 - h_i|| for t >= timing.settle_time_s),
-    rms_tracking_error_m (RMS over ticks and UAVs of ||q*_i - q_i||), sim_time_s, wall_time_s,
-    plus collision flags, ``finite`` (no NaN/inf anywhere) and ``success``.
+    With ``early_end`` the flight is judged up to the tick where its outcome was decided (a stalled
+    leader, a diverged UAV; :func:`zenswarm.verdict.decide_end`), as the run itself ends there;
+    ``early_end=False`` judges every tick (``--full-time``). ``wall_time_s`` is the run's wall
+    time (None when judged from a recording). See :data:`FLIGHT_FIELDS` for what two judgements
+    of the same flight must agree on.
     """
-    goal = np.asarray(scenario.leader.goal, dtype=float)
-    h = np.asarray(scenario.offsets, dtype=float)
-    tol = scenario.timing.goal_tolerance_m
-    T = len(ts.t)
-    finite = bool(all(np.all(np.isfinite(getattr(ts, f))) for f in TimeSeries.FIELDS))
-
-    dist = np.linalg.norm(ts.q0 - goal, axis=1)
-    reached = np.flatnonzero(dist <= tol)
-    goal_reached = bool(len(reached))
-    time_to_goal = float(ts.t[reached[0]]) if goal_reached else None
-
-    clear = math.inf
-    for ob in scenario.obstacles:
-        if T:
-            clear = min(clear, float(np.nanmin(obstacle_clearance_many(ts.q, ob))))
-    n = ts.q.shape[1] if T else scenario.n
-    if n > 1 and T:
-        diff = ts.q[:, :, None, :] - ts.q[:, None, :, :]
-        d = np.linalg.norm(diff, axis=-1)
-        iu = np.triu_indices(n, 1)
-        inter = float(np.nanmin(d[:, iu[0], iu[1]]))
-    else:
-        inter = math.inf
-
-    settle = ts.t >= scenario.timing.settle_time_s
-    if T and np.any(settle):
-        ferr = np.linalg.norm(ts.qref[settle] - ts.q0[settle][:, None, :] - h[None], axis=-1)
-        max_ferr = float(np.max(ferr))
-    else:
-        max_ferr = math.nan
-    if T:
-        terr = np.linalg.norm(ts.qref - ts.q, axis=-1)
-        rms = float(np.sqrt(np.mean(terr**2)))
-    else:
-        rms = math.nan
+    crit = criteria_from_scenario(scenario)
+    v = judge(ts.t, ts.q0, ts.q, ts.qref, crit, early_end=early_end, n_ticks=scenario.timing.n_ticks)
+    n = ts.q.shape[1] if ts.q.ndim == 3 and len(ts.t) else scenario.n
     dt = 1.0 / scenario.timing.control_rate_hz
-    sim_time = float(ts.t[-1] + dt) if T else 0.0
-
-    obstacle_collision = clear <= 0.0
-    uav_collision = inter < UAV_COLLISION_DISTANCE_M
+    causes = v.causes
     res: dict[str, Any] = {
+        "schema_version": RESULTS_SCHEMA_VERSION,
         "scenario": scenario.name,
         "n_uav": int(n),
-        "goal_reached": goal_reached,
-        "time_to_goal_s": time_to_goal,
-        "min_obstacle_clearance_m": _num(clear),
-        "min_inter_uav_distance_m": _num(inter),
-        "max_formation_error_m": _num(max_ferr),
-        "rms_tracking_error_m": _num(rms),
-        "final_leader_goal_distance_m": _num(float(dist[-1])) if T else None,
-        "obstacle_collision": bool(obstacle_collision),
-        "uav_collision": bool(uav_collision),
-        "finite": finite,
-        "sim_time_s": sim_time,
+        "success": v.success,
+        "failures": [f.to_json() for f in v.failures],
+        "goal_reached": v.goal_reached,
+        "time_to_goal_s": v.time_to_goal_s,
+        "final_leader_goal_distance_m": v.final_leader_goal_distance_m,
+        "max_formation_error_m": v.max_formation_error_m,
+        "max_generator_formation_error_m": v.max_generator_formation_error_m,
+        "rms_tracking_error_m": v.rms_tracking_error_m,
+        "final_slot_errors_m": v.final_slot_errors_m,
+        "max_final_slot_error_m": max((e for e in v.final_slot_errors_m if e is not None), default=None)
+        if all(e is not None for e in v.final_slot_errors_m)
+        else None,
+        "vehicle_radius_m": v.vehicle_radius_m,
+        "min_obstacle_clearance_m": v.min_obstacle_clearance_m,
+        "min_obstacle_margin_m": v.min_obstacle_margin_m,
+        "min_inter_uav_distance_m": v.min_inter_uav_distance_m,
+        "min_inter_uav_margin_m": v.min_inter_uav_margin_m,
+        "min_altitude_m": v.min_altitude_m,
+        "obstacle_collision": "collision_obstacle" in causes,
+        "uav_collision": "collision_uav" in causes,
+        "ground_collision": "collision_ground" in causes,
+        "finite": v.finite,
+        "leader_stall": v.stall,
+        "ended_early": v.ended_early,
+        "sim_time_s": float(v.end_tick * dt),
         "wall_time_s": wall_time_s,
     }
-    res["success"] = bool(goal_reached and not obstacle_collision and not uav_collision and finite)
     return res
+
+
+def add_failure(res: dict[str, Any], cause: str, detail: str, t_s: float | None = None, **more: Any) -> None:
+    """Add a failure the flight's states cannot show (``process_died``, ``interrupted``) to a
+    results dict, in place of the ``incomplete`` it explains; the run is then not a success."""
+    res["failures"] = [f for f in res["failures"] if f["cause"] != "incomplete"]
+    res["failures"].append({"cause": cause, "t_s": t_s, "detail": detail, "uavs": [], **more})
+    res["success"] = False

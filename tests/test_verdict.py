@@ -1,0 +1,373 @@
+"""The verdict against closed-form flights: contacts at known ticks, margins, slots, stalls,
+divergence, and the pair search against brute force (zenswarm.verdict, zenswarm.geometry)."""
+
+from __future__ import annotations
+
+import math
+import tracemalloc
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from zenswarm.geometry import close_pairs, d_obs_many, obstacle_clearance_many
+from zenswarm.verdict import CAUSES, Criteria, decide_end, judge
+
+DT = 0.01
+OB = SimpleNamespace(center=(5.0, 0.0, 0.0), radius=0.5, height=1.0)
+
+
+def crit(offsets, obstacles=(), goal=(10.0, 0.0, 1.0), **kw) -> Criteria:
+    base = dict(
+        goal=np.asarray(goal, dtype=float),
+        offsets=np.asarray(offsets, dtype=float),
+        obstacles=tuple(obstacles),
+        dt=DT,
+        goal_tolerance_m=0.05,
+        settle_time_s=1.0,
+        vehicle_radius_m=0.06,
+        slot_tolerance_m=0.1,
+        settle_window_s=0.5,
+        stall_speed_m_s=0.01,
+        stall_window_s=1.0,
+        divergence_m=5.0,
+        d0=0.3,
+        r_f=float(np.max(np.linalg.norm(np.asarray(offsets, dtype=float), axis=1))),
+    )
+    base.update(kw)
+    return Criteria(**base)
+
+
+def flight(T: int, offsets, goal=(10.0, 0.0, 1.0), start=(0.0, 0.0, 1.0), arrive_tick: int | None = None):
+    """A leader moving on a straight line from start to goal, arriving at ``arrive_tick`` and
+    holding; UAVs exactly at q0 + h_i, references equal to the positions."""
+    t = np.arange(T) * DT
+    s = np.clip(np.arange(T) / float(arrive_tick if arrive_tick else T // 2), 0.0, 1.0)
+    q0 = np.asarray(start, dtype=float) + s[:, None] * (np.asarray(goal, dtype=float) - np.asarray(start, dtype=float))
+    h = np.asarray(offsets, dtype=float)
+    q = q0[:, None, :] + h[None]
+    return t, q0, q.copy(), q.copy()
+
+
+H3 = [[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]
+
+
+def causes(v) -> list[str]:
+    return [f.cause for f in v.failures]
+
+
+def test_perfect_flight_succeeds_with_exact_figures() -> None:
+    t, q0, q, qref = flight(400, H3)
+    v = judge(t, q0, q, qref, crit(H3))
+    assert v.success and v.failures == []
+    assert v.goal_reached and v.time_to_goal_s == pytest.approx(2.0)
+    assert v.max_formation_error_m == 0.0 and v.rms_tracking_error_m == 0.0
+    assert v.min_inter_uav_distance_m == pytest.approx(1.0)
+    assert v.min_inter_uav_margin_m == pytest.approx(1.0 - 0.12)
+    assert v.min_obstacle_clearance_m is None  # no obstacle
+    assert v.final_slot_errors_m == [0.0, 0.0, 0.0]
+
+
+def test_vehicle_formation_error_is_not_the_generator_s() -> None:
+    t, q0, q, qref = flight(400, H3)
+    q[150:, 1, 2] -= 0.07  # UAV 2 sags 7 cm after 1.5 s; the generator's references do not
+    v = judge(t, q0, q, qref, crit(H3))
+    assert v.max_formation_error_m == pytest.approx(0.07)
+    assert v.max_generator_formation_error_m == 0.0
+    assert v.success  # 7 cm is inside the slot tolerance
+
+
+def test_uav_off_slot_names_the_uav_and_its_error() -> None:
+    t, q0, q, qref = flight(400, H3)
+    q[:, 2, 0] += 0.25  # UAV 3 a quarter metre behind its slot the whole flight (tracking fine)
+    qref[:, 2, 0] += 0.25
+    v = judge(t, q0, q, qref, crit(H3))
+    assert causes(v) == ["uav_off_slot"] and v.failures[0].uavs == (3,)
+    assert v.final_slot_errors_m[2] == pytest.approx(0.25)
+
+
+def test_ground_contact_after_take_off_only() -> None:
+    h = [[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+    t, q0, q, qref = flight(400, h)
+    q[:, 0, 2] = np.linspace(0.0, 1.0, 400)  # UAV 1 takes off from the ground: no contact
+    q[:, 1, 2] = 1.0
+    q[300:, 1, 2] = -0.01  # UAV 2 drops below the ground at tick 300
+    v = judge(t, q0, q, qref, crit(h, divergence_m=50.0), early_end=False)
+    ground = [f for f in v.failures if f.cause == "collision_ground"]
+    assert [(f.uavs, f.t_s) for f in ground] == [((2,), pytest.approx(3.0))]
+    assert v.min_altitude_m == pytest.approx(-0.01)
+
+
+def test_obstacle_contact_below_the_radius_and_margin() -> None:
+    h = [[0.0, 0.0, 0.0]]
+    t, q0, q, qref = flight(400, h, goal=(10.0, 0.0, 0.5), start=(0.0, 0.0, 0.5))
+    # pass beside the cylinder at y = 0.5 + 0.06 + 0.001: 1 mm outside the contact radius
+    q[:, 0, 1] = 0.5 + 0.061
+    q0[:, 1] = q[:, 0, 1]
+    qref[:] = q
+    c = crit(h, obstacles=[OB], goal=(10.0, 0.561, 0.5))
+    v = judge(t, q0, q, qref, c)
+    assert "collision_obstacle" not in causes(v)
+    assert v.min_obstacle_clearance_m == pytest.approx(0.061)
+    assert v.min_obstacle_margin_m == pytest.approx(0.001)
+    q[:, 0, 1] = 0.5 + 0.059  # 1 mm inside
+    v = judge(t, q0, q, qref, c)
+    f = [f for f in v.failures if f.cause == "collision_obstacle"]
+    assert len(f) == 1 and f[0].uavs == (1,) and f[0].obstacle == 0
+    # rho = hypot(x - 5, 0.559) < 0.56 only for |x - 5| < 0.0334; x(k) = 0.05 k: tick 100 alone
+    assert f[0].t_s == pytest.approx(1.0)
+
+
+def test_uav_contact_at_the_first_tick_below_twice_the_radius() -> None:
+    h = [[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+    t, q0, q, qref = flight(400, h)
+    gap = np.linspace(1.0, 0.0, 400)  # UAV 2 slides onto UAV 1
+    q[:, 1, 1] = q0[:, 1] + gap
+    qref[:] = q
+    v = judge(t, q0, q, qref, crit(h, divergence_m=50.0))
+    k = int(np.flatnonzero(gap < 0.12)[0])
+    f = [f for f in v.failures if f.cause == "collision_uav"]
+    assert [(x.uavs, x.t_s) for x in f] == [((1, 2), pytest.approx(k * DT))]
+    assert v.min_inter_uav_distance_m == pytest.approx(0.0)
+
+
+def test_leader_stall_near_an_obstacle_ends_the_run_there() -> None:
+    h = [[0.0, 0.0, 0.0]]
+    T = 1000
+    t = np.arange(T) * DT
+    q0 = np.zeros((T, 3))
+    q0[:, 0] = np.minimum(np.arange(T) * 0.02, 4.3)  # stops 0.2 m before the cylinder (d0 = 0.3)
+    q0[:, 2] = 0.5
+    q = q0[:, None, :].copy()
+    c = crit(h, obstacles=[OB], goal=(10.0, 0.0, 0.5))
+    stopped = int(np.flatnonzero(q0[:, 0] >= 4.3)[0])  # 215
+    k = decide_end(q0, q, q, c)
+    assert k == stopped + c.stall_ticks  # the first window that starts at the stop: moved 0 m < 0.01 m/s * 1 s
+    v = judge(t, q0, q, q, c)
+    assert causes(v) == ["leader_stalled"] and v.end_tick == k + 1
+    assert v.stall is not None and v.stall["obstacles_within_d0"] == [0]
+    assert v.stall["where"] == pytest.approx([4.3, 0.0, 0.5])
+    # the same leader stopping far from every obstacle is no AAPF minimum: flown on, a timeout
+    far = crit(h, obstacles=[SimpleNamespace(center=(50.0, 0.0, 0.0), radius=0.5, height=1.0)], goal=(10.0, 0.0, 0.5))
+    assert decide_end(q0, q, q, far) is None
+    assert causes(judge(t, q0, q, q, far)) == ["timeout"]
+
+
+def test_divergence_from_the_reference_and_non_finite_end_the_run() -> None:
+    t, q0, q, qref = flight(400, H3)
+    q[:, 1, 2] -= 0.5 * 9.81 * t**2  # UAV 2 falls freely; its reference stays
+    k = int(np.flatnonzero(0.5 * 9.81 * t**2 > 5.0)[0])
+    v = judge(t, q0, q, qref, crit(H3))
+    assert v.end_tick == k + 1
+    assert ("uav_diverged", (2,)) in [(f.cause, f.uavs) for f in v.failures]
+    full = judge(t, q0, q, qref, crit(H3), early_end=False)  # --full-time: named, not cut
+    assert full.end_tick == 400 and "uav_diverged" in causes(full)
+    t, q0, q, qref = flight(400, H3)
+    q[123:, 0] = np.nan
+    v = judge(t, q0, q, qref, crit(H3))
+    assert causes(v) == ["non_finite"] and v.failures[0].t_s == pytest.approx(1.23) and not v.finite
+
+
+def test_lagging_formation_is_off_slot_not_diverged() -> None:
+    """A formation whose references lag the leader (slow consensus) while the UAVs track them is
+    no divergence: it flies to the end and fails with uav_off_slot."""
+    t, q0, q, qref = flight(400, H3)
+    q[:, 1, 0] -= 8.0
+    qref[:, 1, 0] -= 8.0
+    v = judge(t, q0, q, qref, crit(H3))
+    assert v.end_tick == 400 and causes(v) == ["uav_off_slot"]
+
+
+def test_stopped_before_the_limit_is_incomplete_not_timeout() -> None:
+    t, q0, q, qref = flight(400, H3, arrive_tick=10_000)
+    v = judge(t[:100], q0[:100], q[:100], qref[:100], crit(H3), n_ticks=400)
+    assert causes(v) == ["incomplete"]
+    assert causes(judge(t, q0, q, qref, crit(H3), n_ticks=400)) == ["timeout"]
+    v = judge(t[:0], q0[:0], q[:0], qref[:0], crit(H3), n_ticks=400)
+    assert causes(v) == ["no_data"] and not v.success
+    assert set(causes(v)) <= set(CAUSES)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_close_pairs_equals_brute_force(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-3.0, 3.0, size=(300, 3)) * np.array([1.0, 1.0, 0.1 * seed])
+    cutoff = 0.4
+    ii, jj, dd = close_pairs(p, cutoff)
+    D = np.linalg.norm(p[:, None] - p[None], axis=2)
+    bi, bj = np.nonzero(np.triu(D < cutoff, 1))
+    assert sorted(zip(ii.tolist(), jj.tolist())) == sorted(zip(bi.tolist(), bj.tolist()))
+    np.testing.assert_allclose(np.sort(dd), np.sort(D[bi, bj]))
+    # unbounded cutoff: every pair
+    ii, _, _ = close_pairs(p[:40], math.inf)
+    assert len(ii) == 40 * 39 // 2
+
+
+def test_large_swarm_pairs_match_the_small_swarm_path_with_linear_memory() -> None:
+    """N above the all-pairs limit: per-tick sweep. Same minimum and contacts as brute force, and
+    peak memory far below a (T, N, N) array."""
+    rng = np.random.default_rng(3)
+    N, T = 400, 60
+    h = np.stack([np.arange(N) % 20 * 0.5, np.arange(N) // 20 * 0.5, np.zeros(N)], axis=1)
+    t, q0, q, qref = flight(T, h)
+    q += rng.normal(0.0, 0.05, size=q.shape)
+    qref[:] = q
+    c = crit(h, divergence_m=50.0, slot_tolerance_m=1.0)
+    tracemalloc.start()
+    v = judge(t, q0, q, qref, c)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < T * N * N * 8 / 40, peak  # a (T, N, N) float array would be 77 MB
+    D = np.linalg.norm(q[:, :, None] - q[:, None], axis=3)
+    iu = np.triu_indices(N, 1)
+    assert v.min_inter_uav_distance_m == pytest.approx(float(D[:, iu[0], iu[1]].min()), abs=1e-12)
+    first = {}
+    for k in range(T):
+        for i, j in zip(*np.nonzero(np.triu(D[k] < 0.12, 1))):
+            first.setdefault((int(i) + 1, int(j) + 1), k)
+    got = {f.uavs: round(f.t_s / DT) for f in v.failures if f.cause == "collision_uav" and f.uavs}
+    assert got == dict(sorted(first.items(), key=lambda x: x[1])[: len(got)])
+
+
+def test_geometry_against_closed_forms() -> None:
+    p = np.array([[5.0, 2.0, 0.5], [5.0, 0.0, 2.5], [5.0, 0.0, -1.0], [5.0, 0.2, 0.5]])
+    np.testing.assert_allclose(obstacle_clearance_many(p, OB), [1.5, 1.0, 1.0, -0.3])
+    # d_obs: horizontal beside the cylinder, from the cap's centre above it, minus r_o and r_f
+    np.testing.assert_allclose(d_obs_many(p[:2], OB, 0.25), [2.0 - 0.75, 1.5 - 0.75])
+
+
+# ============================================================================ the CLI, sim and up
+
+
+def _variant(tmp_path, name: str, **sections) -> "Path":
+    """paper_example1 with whole tables replaced or merged (``leader={...}`` merges)."""
+    import tomllib
+
+    from zenswarm.generate import to_toml
+
+    from swarmtest import SCENARIOS
+
+    d = tomllib.loads((SCENARIOS / "paper_example1.toml").read_text())
+    for k, v in sections.items():
+        if isinstance(v, dict):
+            d.setdefault(k, {}).update(v)
+        else:
+            d[k] = v
+    p = tmp_path / f"{name}.toml"
+    p.write_text(to_toml(d))
+    return p
+
+
+def bad_vehicles(tmp_path) -> dict[str, "Path"]:
+    """The issue's cases: no thrust (the UAVs fall), a gale (blown away), the goal straight
+    behind a tall obstacle (the AAPF's local minimum)."""
+    return {
+        "no_thrust": _variant(tmp_path, "no_thrust", vehicle={"max_thrust": 1e-6}),
+        "gale": _variant(tmp_path, "gale", disturbance={"wind": [50.0, 0.0, 0.0]}),
+        "behind": _variant(
+            tmp_path,
+            "behind",
+            leader={"start": [0.0, 0.0, 0.4], "goal": [2.4, 0.0, 0.4]},
+            obstacles=[{"center": [1.2, 0.0, 0.0], "radius": 0.2, "height": 1.5}],
+            formation={
+                "offsets": [[0.1, 0.0, 0.0], [-0.12, 0.25, 0.0], [-0.12, -0.25, 0.0]],
+                "initial_positions": [[0.1, 0.0, 0.4], [-0.12, 0.25, 0.4], [-0.12, -0.25, 0.4]],
+            },
+        ),
+    }
+
+
+EXPECTED = {
+    "no_thrust": ("collision_ground", "uav_diverged"),
+    "gale": ("uav_diverged",),
+    "behind": ("leader_stalled",),
+}
+
+
+@pytest.mark.parametrize("case", sorted(EXPECTED))
+def test_sim_names_what_happened_to_the_vehicles(case: str, tmp_path) -> None:
+    import json
+
+    from swarmtest import zenswarm
+
+    scen = bad_vehicles(tmp_path)[case]
+    out = tmp_path / "out"
+    cp = zenswarm("sim", str(scen), "--out", str(out), "--quiet", timeout=120)
+    assert cp.returncode == 1, cp.stdout
+    res = json.loads((out / "results.json").read_text())
+    got = {f["cause"] for f in res["failures"]}
+    assert set(EXPECTED[case]) <= got, res["failures"]
+    assert res["success"] is False and res["ended_early"] is True and res["schema_version"] == 2
+    first = "FAILED: " + "; ".join(
+        f"{f['cause']}" + (f" uav {f['uavs'][0]}" if len(f["uavs"]) == 1 else "") + f" at {f['t_s']:.2f} s" for f in res["failures"][:2]
+    )
+    assert first in cp.stdout, cp.stdout
+    if case == "behind":  # shortly after the stall, not at the 70 s limit
+        stall = res["leader_stall"]
+        assert stall["obstacles_within_d0"] == [0] and res["sim_time_s"] < 15.0
+        assert stall["where"][0] < 1.2 - 0.2  # in front of the obstacle
+
+
+def test_sim_full_time_flies_the_whole_limit_and_still_names_the_failure(tmp_path) -> None:
+    import json
+
+    from swarmtest import zenswarm
+
+    scen = bad_vehicles(tmp_path)["behind"]
+    cp = zenswarm("sim", str(scen), "--out", str(tmp_path / "o"), "--quiet", "--full-time", timeout=120)
+    assert cp.returncode == 1
+    res = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert res["sim_time_s"] == pytest.approx(70.0) and res["ended_early"] is False
+    assert [f["cause"] for f in res["failures"]] == ["leader_stalled"]
+
+
+def test_sim_ctrl_c_writes_what_was_flown(tmp_path) -> None:
+    import json
+    import signal
+
+    from swarmtest import start_zenswarm
+
+    scen = _variant(tmp_path, "long", timing={"time_limit_s": 3000.0})
+    out = tmp_path / "out"
+    p = start_zenswarm("sim", str(scen), "--out", str(out))
+    try:
+        assert p.stdout is not None
+        for line in p.stdout:  # progress goes to stderr, merged: wait for the flight to move
+            if "[sim] t=" in line and " 0.00/" not in line:
+                break
+        p.send_signal(signal.SIGINT)
+        rest, _ = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 130, rest
+    res = json.loads((out / "results.json").read_text())
+    assert res["success"] is False and [f["cause"] for f in res["failures"]] == ["interrupted"]
+    assert 0.0 < res["sim_time_s"] < 3000.0
+    assert (out / "timeseries.npz").stat().st_size > 0
+    assert "Traceback" not in rest
+
+
+@pytest.mark.parametrize("case", sorted(EXPECTED))
+def test_swarm_gives_the_simulator_s_verdict_and_ends_as_early(case: str, tmp_path) -> None:
+    """`zenswarm up` (lockstep) judges the same vehicles the same way: every flight field equal,
+    failures included, and the run ends at the same deciding tick."""
+    import json
+
+    from test_swarm import _up
+
+    from swarmtest import unique_swarm, zenswarm
+    from zenswarm.metrics import FLIGHT_FIELDS
+
+    scen = bad_vehicles(tmp_path)[case]
+    cp = zenswarm("sim", str(scen), "--out", str(tmp_path / "sim"), "--quiet", timeout=120)
+    assert cp.returncode == 1
+    ref = json.loads((tmp_path / "sim" / "results.json").read_text())
+    cp = _up(scen, tmp_path / "up", unique_swarm("v"), "--quiet-children", timeout=300)
+    assert cp.returncode == 1, cp.stdout[-3000:]
+    assert "ending the run" in cp.stdout
+    res = json.loads((tmp_path / "up" / "results.json").read_text())
+    for k in FLIGHT_FIELDS:
+        assert res[k] == ref[k], k
+    assert res["wall_time_s"] > 0

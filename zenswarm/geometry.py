@@ -1,0 +1,83 @@
+"""Obstacle and swarm geometry on arrays: clearances to the capped cylinders, the leader sphere's
+d_obs, and the nearest pair of a point set.
+
+Pure (numpy only). Obstacles are any objects with ``center`` (3,) = base centre c, ``radius`` r_o
+and ``height`` h_o: a vertical cylinder capped by an upper hemisphere (paper, Remark 1), e.g.
+:class:`zenswarm.config.Obstacle`. Positions are in metres, inertial ENU frame (z up). The scalar
+forms used inside the planner's loop are in :mod:`leader.aapf`; these are their vectorised twins
+for judging and plotting whole flights.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+__all__ = ["obstacle_clearance_many", "d_obs_many", "close_pairs"]
+
+
+def obstacle_clearance_many(p: np.ndarray, ob: Any) -> np.ndarray:
+    """Signed distance from points p (..., 3) to the real capped-cylinder surface, (...,) m.
+
+    Negative inside. The cylinder side for z_c <= z <= z_c + h_o, the hemispherical cap above,
+    and the base disc's rim below z_c (the same solid as :func:`leader.aapf.obstacle_clearance`).
+    """
+    p = np.asarray(p, dtype=float)
+    xc, yc, zc = ob.center
+    top = zc + ob.height
+    rho = np.hypot(p[..., 0] - xc, p[..., 1] - yc)
+    z = p[..., 2]
+    above = np.sqrt(rho * rho + (z - top) ** 2) - ob.radius
+    side = rho - ob.radius
+    mid = np.where(side < 0, np.maximum(side, zc - z), side)
+    below = np.where(rho <= ob.radius, zc - z, np.hypot(rho - ob.radius, zc - z))
+    return np.where(z > top, above, np.where(z >= zc, mid, below))
+
+
+def d_obs_many(q0: np.ndarray, ob: Any, r_f: float) -> np.ndarray:
+    """Sphere clearance d_obs(q0) = ||q0 - q_obs(q0)|| - r_o - r_f for q0 of shape (..., 3), m.
+
+    q_obs is the equivalent obstacle centre of eq. (10): [x_c, y_c, z0] beside the cylinder part,
+    c + [0, 0, h_o] above it. The AAPF's repulsion (eqs 11-13) acts where d_obs <= d0.
+    """
+    q0 = np.asarray(q0, dtype=float)
+    xc, yc, zc = ob.center
+    top = zc + ob.height
+    dx = q0[..., 0] - xc
+    dy = q0[..., 1] - yc
+    dz = np.where(q0[..., 2] <= top, 0.0, q0[..., 2] - top)
+    return np.sqrt(dx * dx + dy * dy + dz * dz) - ob.radius - r_f
+
+
+def close_pairs(p: np.ndarray, cutoff: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every pair of points closer than ``cutoff``: (i, j, distance) with i < j.
+
+    p: (N, 3) m, finite. A sweep along the axis of largest spread: points sorted on it are
+    compared with their s-th successor for s = 1, 2, ... while any such gap is below the cutoff,
+    so memory is O(N) and the work O(N * the largest number of points within ``cutoff`` along that
+    axis) instead of O(N^2). Returns three arrays of equal length (int, int, float).
+    """
+    n = len(p)
+    empty = (np.empty(0, dtype=np.intp), np.empty(0, dtype=np.intp), np.empty(0))
+    if n < 2 or not cutoff > 0:
+        return empty
+    axis = int(np.argmax(np.ptp(p, axis=0)))
+    order = np.argsort(p[:, axis], kind="stable")
+    ps = p[order]
+    xs = ps[:, axis]
+    ii, jj, dd = [], [], []
+    for s in range(1, n):
+        near = np.flatnonzero(xs[s:] - xs[:-s] < cutoff)
+        if len(near) == 0:
+            break
+        d = np.linalg.norm(ps[near + s] - ps[near], axis=1)
+        keep = d < cutoff
+        if np.any(keep):
+            a, b = order[near[keep]], order[near[keep] + s]
+            ii.append(np.minimum(a, b))
+            jj.append(np.maximum(a, b))
+            dd.append(d[keep])
+    if not ii:
+        return empty
+    return np.concatenate(ii), np.concatenate(jj), np.concatenate(dd)
