@@ -407,6 +407,9 @@ def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> Verif
             by_tick[m.topic][k] = msg  # the latest wins, as in the inbox
         timeline[m.topic].append((m.log_time, k, msg))
     res.problems += rec.problems
+    dropped = rec.dropped_note()
+    if dropped is not None:
+        res.notes.append(dropped)
     if decoder.rejected:
         res.notes.append(f"{decoder.rejected} recorded payloads of agent {agent}'s keys were rejected by the decoder")
     cmds = by_tick[cmd_key]
