@@ -383,6 +383,51 @@ def test_replay_filters_topics_and_window(tmp_path: Path) -> None:
     assert got == want and len(want) == 67
 
 
+def test_replay_rejects_a_window_or_filter_that_does_not_fit_the_recording(tmp_path: Path) -> None:
+    """--start beyond the recording, --end before --start, a negative time and a key filter that
+    matches nothing: exit 2 naming the flag and the recording's span, and nothing published."""
+    swarm = swarm_name()
+    keys = wire.Keys(swarm)
+    path = tmp_path / "span.mcap"
+    sink = McapSink(path, keys, metadata=build_metadata(swarm, "lockstep", None, "test"))
+    sink.start()
+    for k in range(300):  # 2.99 s of log time
+        sink.put(1_700_000_000_000_000_000 + k * 10_000_000, keys.clock, wire.encode(wire.Clock(t=k * 10_000_000, seq=k + 1)))
+    sink.close()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:-40])  # without summary: the span is found by reading
+    listen = tmp_path / "seen.mcap"
+    with router() as ep, processes() as procs, open_session(client_config([ep]), handle_signals=False) as s:
+        rec = start_recorder(procs, ep, swarm, listen, "--diag-interval", "0")
+        wait_alive(s, swarm)
+        for f in (path, cut):
+            for flags, flag, words in (
+                (["--start", "1000"], "--start", ["1000 s is beyond the end of the recording", "it spans 0 to 2.990 s"]),
+                (["--start", "5", "--end", "2"], "--end", ["2 s is before --start 5 s"]),
+                (["--start", "-5"], "--start", ["must be a number of seconds >= 0", "got -5"]),
+                (["--end", "nan"], "--end", ["must be a number of seconds >= 0"]),
+                (["--topics", f"swarm/{swarm}/uav/*/state"], "--topics", ["matches none of the keys recorded", keys.clock]),
+            ):
+                cli = subprocess.run(
+                    [sys.executable, "-m", "zenswarm", "replay", str(f), "--connect", ep, "--rate", "0", *flags],
+                    cwd=REPO, capture_output=True, text=True, timeout=60,
+                )  # fmt: skip
+                assert cli.returncode == 2, (flags, cli.stdout, cli.stderr)
+                assert cli.stderr.startswith(f"zenswarm: error: {flag}: "), cli.stderr
+                assert all(w in cli.stderr for w in words), (flags, cli.stderr)
+                assert "Traceback" not in cli.stderr
+        # a window that fits still plays
+        ok = subprocess.run(
+            [sys.executable, "-m", "zenswarm", "replay", str(path), "--connect", ep, "--rate", "0", "--start", "2.5", "--end", "99"],
+            cwd=REPO, capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert ok.returncode == 0 and "50 messages published" in ok.stderr, ok.stderr
+        time.sleep(0.3)
+        assert rec.stop() == 0, rec.output
+    got = [m for m in read_recording(listen).messages() if m.topic == keys.clock]
+    assert len(got) == 50  # only the good window reached the bus
+
+
 # --------------------------------------------------------------------------- (c) SIGKILL
 
 
