@@ -715,3 +715,49 @@ def test_sim_time_extraction() -> None:
     assert sim_time(msgpack.packb({"t": 5})) == 5
     for bad in (b"", b"\xc1", msgpack.packb([1, 2]), msgpack.packb({"t": -1}), msgpack.packb({"t": 1.5}), msgpack.packb({"x": 1})):
         assert sim_time(bad) is None
+
+
+# --------------------------------------------------------------------------- (f) the recorder dies mid-flight
+
+
+def test_recorder_killed_mid_flight_does_not_abort_the_flight(tmp_path: Path) -> None:
+    """`zenswarm up --record F --kill recorder@1.5s --report`: the flight flies to its time limit
+    (the plant is not stalled), the exit status is the mission's (0/1, never 3), the loss is said
+    and is in results.json, the recording reads up to the kill, and the report says it is partial."""
+    from swarmtest import read_results, scenario_variant, unique_swarm, zenswarm
+
+    scen = scenario_variant(tmp_path, time_limit_s=4.0, settle_time_s=1.0)
+    out, rec = tmp_path / "up", tmp_path / "flight.mcap"
+    swarm = unique_swarm("rk")
+    cp = zenswarm(
+        "up", str(scen), "--swarm", swarm, "--record", str(rec), "--kill", "recorder@1.5s", "--out", str(out),
+        "--report", "--quiet-children", timeout=240,
+    )  # fmt: skip
+    res = read_results(out)
+    assert cp.returncode in (0, 1) and cp.returncode == (0 if res["success"] else 1), cp.stdout
+    assert "recording lost: the recorder died (killed by SIGKILL) at sim time" in cp.stdout, cp.stdout
+    loss = res["recording_loss"]
+    assert loss["how"] == "killed by SIGKILL" and 1.5 <= loss["died_at_sim_time_s"] < 4.0, loss
+    assert res["sim_time_s"] == pytest.approx(4.0)  # flown to the end: nothing waited for the recorder
+    assert res["process_deaths"] == [] and res["processes"]["plant"] == 0 and res["processes"]["recorder"] == -9
+    assert "report: warning: the recorder died at sim time" in cp.stdout and "the report is partial" in cp.stdout
+    assert "report: warning: the report covers sim time 0 to" in cp.stdout, cp.stdout
+    assert (out / "report" / "results.json").exists()
+
+    r = read_recording(rec, strict=False)  # an MCAP cut by the kill, readable up to it
+    assert not r.complete
+    states = [m for m in r.messages() if m.topic == wire.Keys(swarm).state(1)]
+    assert states and r.scenario is not None
+    last_t = states[-1].publish_time / 1e9
+    assert 1.0 <= last_t <= loss["died_at_sim_time_s"] + 0.01, (last_t, loss)
+    fixed = tmp_path / "fixed.mcap"
+    assert recover(rec, fixed).messages > 0 and file_is_complete(fixed)
+
+
+def test_kill_recorder_without_record_is_bad_input(tmp_path: Path) -> None:
+    from swarmtest import scenario_variant, zenswarm
+
+    scen = scenario_variant(tmp_path, time_limit_s=1.0)
+    cp = zenswarm("up", str(scen), "--kill", "recorder@1s", "--out", str(tmp_path / "up"), timeout=60)
+    assert cp.returncode == 2 and "zenswarm: error: --kill: recorder@T needs --record" in cp.stdout, cp.stdout
+    assert not (tmp_path / "up" / "results.json").exists()
