@@ -312,19 +312,21 @@ class McapSink:
                     if item[0] is _META:
                         self._write_metadata(item[1])
                         continue
-                    if item[0] is _OVERSIZE:
+                    if item[0] is _OVERSIZE:  # counted only; then on to the periodic work below
                         _, key, size, lt = item
                         st.drop_oversize(key, size, payload_limit(keys, key))
-                        continue
-                    lt, key, payload = item
-                    limit = limits.get(key)
-                    if limit is None:
-                        limit = limits[key] = payload_limit(keys, key)
-                        if len(limits) > MAX_DROPPED_KEYS:
-                            limits.clear()
-                    if len(payload) > limit:
-                        st.drop_oversize(key, len(payload), limit)
-                        continue
+                        item = None
+                    else:
+                        lt, key, payload = item
+                        limit = limits.get(key)
+                        if limit is None:
+                            limit = limits[key] = payload_limit(keys, key)
+                            if len(limits) > MAX_DROPPED_KEYS:
+                                limits.clear()
+                        if len(payload) > limit:
+                            st.drop_oversize(key, len(payload), limit)
+                            item = None
+                if item is not None:
                     cid = channels.get(key)
                     if cid is None:
                         try:

@@ -761,3 +761,30 @@ def test_kill_recorder_without_record_is_bad_input(tmp_path: Path) -> None:
     cp = zenswarm("up", str(scen), "--kill", "recorder@1s", "--out", str(tmp_path / "up"), timeout=60)
     assert cp.returncode == 2 and "zenswarm: error: --kill: recorder@T needs --record" in cp.stdout, cp.stdout
     assert not (tmp_path / "up" / "results.json").exists()
+
+
+def test_a_flood_of_oversize_payloads_does_not_hold_back_the_flush(tmp_path: Path) -> None:
+    """While the writer works through a long run of oversize payloads, the samples before them are
+    still flushed every flush interval, and the counts reach the file while the flood goes on."""
+    swarm = swarm_name()
+    keys = wire.Keys(swarm)
+    path = tmp_path / "flood.mcap"
+    sink = McapSink(path, keys, flush_interval_s=0.02, metadata=build_metadata(swarm, "lockstep", None, "test"))
+    good = wire.encode(wire.Clock(t=0, seq=1))
+    sink.put(1_700_000_000_000_000_000, keys.clock, good)
+    n = 400_000
+    for _ in range(n):  # queued before the writer starts: it never finds the queue empty
+        sink.put_oversize(1_700_000_000_000_000_001, keys.state(1), wire.MAX_PAYLOAD + 1)
+    sink.start()
+    try:
+        time.sleep(0.15)
+        backlog = sink.backlog
+        r = read_recording(path, strict=False)
+        got = [m.payload for m in r.messages()]
+        dropped = r.dropped_oversize
+    finally:
+        sink.close()
+    assert backlog > 0, "the writer finished the flood before the check: raise n"
+    assert got == [good], "the sample before the flood is not in the file yet"
+    assert 0 < dropped[keys.state(1)]["count"] < n
+    assert read_recording(path).dropped_oversize[keys.state(1)]["count"] == n
