@@ -22,10 +22,18 @@ def _run_recover(args: argparse.Namespace) -> int:
     span = ""
     if st.first_log_time is not None and st.last_log_time is not None:
         span = f" spanning {(st.last_log_time - st.first_log_time) / 1e9:.3f} s"
+    if st.intact:
+        state = "complete, intact: nothing damaged"
+    elif st.source_complete:
+        state = "complete but damaged"
+    else:
+        state = "truncated: not closed cleanly"
     print(
-        f"recover: {args.src} ({'complete' if st.source_complete else 'incomplete'}) -> {args.out}: "
+        f"recover: {args.src} ({state}) -> {args.out}: "
         f"{st.messages} messages on {st.channels} channels{span}, {st.metadata} metadata records"
     )
+    for line in st.losses():
+        print(f"recover: lost: {line}")
     for p in st.problems:
         print(f"recover: source problem: {p}", file=sys.stderr)
     if args.json:
@@ -40,7 +48,11 @@ def _add_recover(sub: argparse._SubParsersAction) -> None:
         description=(
             "Read SRC leniently (everything written before a crash, skipping chunks that fail their "
             "CRC) and write DST as a complete MCAP file with summary and indexes: same messages, "
-            "channels and metadata. Lists the damage found on stderr."
+            "channels and metadata. Says whether the source was intact, and what is known about what "
+            "was lost (`recover: lost:` lines): messages missing by the recorder's per-key sequence "
+            "numbers, chunks skipped as corrupted and how many messages their indexes list, the bytes "
+            "of a cut or damaged tail, the last good log time; the number of messages a killed "
+            "recorder never wrote cannot be known and is not guessed. Lists the damage found on stderr."
         ),
     )
     p.add_argument("src", type=Path, help="damaged recording")

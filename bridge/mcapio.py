@@ -18,7 +18,13 @@ A zenswarm recording (written by :mod:`bridge.recorder`) is an MCAP file with
   ``scenario_json`` (json of :func:`zenswarm.config.scenario_to_dict`). The first is written
   right after the header; when the scenario comes from the leader's mission rather than
   ``--scenario``, a second one carrying ``scenario_json`` follows when it arrives. Readers merge
-  them in file order (:attr:`Recording.metadata`);
+  them in file order (:attr:`Recording.metadata`). When the recorder did not record oversize
+  payloads (over the decoders' size bound, :func:`bridge.recorder.payload_limit`), a further
+  ``zenswarm`` record carries ``dropped_oversize_json`` (:data:`DROPPED_OVERSIZE`: json of
+  key -> ``{"count", "bytes", "largest", "limit"}``, cumulative, rewritten while they change)
+  and ``payload_limit_bytes`` / ``mission_payload_limit_bytes``; for a file without summary,
+  records met while reading the messages are merged as they are met
+  (:attr:`Recording.dropped_oversize`, :meth:`Recording.notes`);
 * small zstd chunks closed at least every :data:`bridge.recorder.DEFAULT_FLUSH_INTERVAL_S`, and
   on a clean stop a summary section (statistics, channels, chunk and metadata indexes) + footer.
 
@@ -70,6 +76,7 @@ __all__ = [
     "MAGIC",
     "METADATA_NAME",
     "MESSAGE_ENCODING",
+    "DROPPED_OVERSIZE",
     "RecordedMessage",
     "Recording",
     "RecoverStats",
@@ -83,6 +90,12 @@ MAGIC = b"\x89MCAP0\r\n"
 METADATA_NAME = "zenswarm"
 """Name of the metadata record that describes a zenswarm recording."""
 MESSAGE_ENCODING = MessageEncoding.MessagePack  # "msgpack"
+DROPPED_OVERSIZE = "dropped_oversize_json"
+"""``zenswarm`` metadata value: the payloads the recorder did not record because they were over
+the decoders' size bound, json of key -> ``{"count", "bytes", "largest", "limit"}``."""
+RECORDER_LIBRARIES = ("zenswarm-recorder/", "zenswarm-recover/")
+"""Header ``library`` prefixes of files whose message ``sequence`` is the running count per
+channel (1, 2, ...), so a gap in it is a lost message."""
 
 MAX_CHUNK_UNCOMPRESSED = 1 << 30
 """A chunk claiming to decompress to more than this (bytes) is treated as corrupted."""
@@ -102,7 +115,21 @@ class RecordedMessage(NamedTuple):
 
 @dataclass
 class RecoverStats:
-    """What :func:`recover` did. ``problems`` lists the damage found in the source."""
+    """What :func:`recover` did, and what it can tell about what was lost.
+
+    ``problems`` lists the damage found in the source. ``source_complete``: the source ends with
+    a valid footer (and summary); ``intact``: complete and nothing found damaged. What is known
+    about losses: ``discarded_bytes`` of the source could not be read (from where the framing
+    broke, or the file was cut, to its end); ``lost_known`` messages are known to be lost: the
+    gaps in the recorder's per-key sequence numbers (``sequence_gaps``, key -> count; only for
+    files written by the zenswarm recorder) plus messages read on a channel whose definition was
+    lost; ``skipped_chunks`` lists each chunk skipped as corrupted with the log-time span and
+    (``messages``, from the message indexes that follow it, None if they are not there) how many
+    messages it held; ``cut_chunk`` the same for a chunk cut by the end of a truncated file.
+    ``tail_unknown``: the source is not complete, so the messages after ``last_log_time`` that
+    the recorder never wrote (or that were in the cut record) may be lost, and their number cannot
+    be known from the file.
+    """
 
     src: str
     dst: str
@@ -110,12 +137,56 @@ class RecoverStats:
     channels: int = 0
     metadata: int = 0
     source_complete: bool = False
+    intact: bool = False
     problems: list[str] = field(default_factory=list)
     first_log_time: int | None = None
     last_log_time: int | None = None
+    discarded_bytes: int = 0
+    lost_known: int = 0
+    sequence_gaps: dict[str, int] = field(default_factory=dict)
+    skipped_chunks: list[dict[str, Any]] = field(default_factory=list)
+    cut_chunk: dict[str, Any] | None = None
+    tail_unknown: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
+
+    def losses(self) -> list[str]:
+        """What is known about the messages lost, one sentence each ([] for an intact source)."""
+        out: list[str] = []
+        if self.lost_known:
+            by = ", ".join(f"{k}: {n}" for k, n in sorted(self.sequence_gaps.items()))
+            out.append(f"{self.lost_known} messages known lost" + (f" (per-key sequence gaps: {by})" if by else ""))
+        for c in self.skipped_chunks:
+            n = c.get("messages")
+            out.append(
+                f"chunk at offset {c['offset']} skipped as corrupted: "
+                + (f"{n} messages" if n is not None else "an unknown number of messages")
+                + f" logged over {_span(c)}"
+            )
+        if self.discarded_bytes:
+            where = "the damaged tail" if self.source_complete else "the cut tail"
+            out.append(f"{self.discarded_bytes} bytes of {where} could not be read")
+        if self.cut_chunk is not None:
+            out.append(
+                f"the cut record is a chunk of messages logged over {_span(self.cut_chunk)} "
+                "(their number is unknown: the chunk's message index was never written)"
+            )
+        if self.tail_unknown:
+            last = "no message could be read"
+            if self.last_log_time is not None:
+                last = f"the last good message was logged at {self.last_log_time} ns (Unix time)"
+                if self.first_log_time is not None:
+                    last += f", {(self.last_log_time - self.first_log_time) / 1e9:.3f} s after the first"
+            out.append(
+                f"the recording was not closed: messages received after the last chunk written out are not in "
+                f"the file, and how many cannot be known from it; {last}"
+            )
+        return out
+
+
+def _span(c: dict[str, Any]) -> str:
+    return f"{(c['message_end_time'] - c['message_start_time']) / 1e9:.3f} s from log time {c['message_start_time']} ns"
 
 
 # --------------------------------------------------------------------------- low level
@@ -232,6 +303,19 @@ def _read_tail(f: io.BufferedReader, size: int) -> tuple[Footer | None, str | No
     return footer, None
 
 
+def _cut_chunk_header(f: io.BufferedReader, offset: int, end: int) -> dict[str, Any] | None:
+    """The log-time span in the header of a chunk record at ``offset`` that the end of the file
+    cuts short (None if the record there is not a chunk or its header is cut too)."""
+    f.seek(offset)
+    head = f.read(9 + 16)
+    if len(head) < 25 or head[0] != Opcode.CHUNK or offset + 25 > end:
+        return None
+    start, stop = struct.unpack("<QQ", head[9:25])
+    if stop < start:
+        return None
+    return {"offset": offset, "message_start_time": start, "message_end_time": stop}
+
+
 def file_is_complete(path: str | os.PathLike[str]) -> bool:
     """True if ``path`` is an MCAP file that ends with a valid footer (and summary CRC)."""
     try:
@@ -279,8 +363,18 @@ class Recording:
         self.schemas: dict[int, Schema] = {}
         self.problems: list[str] = []
         self.skipped_messages = 0
+        self.damage_offset: int | None = None
+        """Where the framing broke or the file was cut while reading the messages (None: not met)."""
+        self.discarded_bytes = 0
+        """Bytes from :attr:`damage_offset` to the end of the data that could not be read."""
+        self.skipped_chunks: list[dict[str, Any]] = []
+        """Chunks skipped as corrupted: offset, log-time span and, from the message indexes that
+        follow them, how many messages they held (``messages``; None if no index follows)."""
+        self.cut_chunk: dict[str, Any] | None = None
+        """The chunk cut by the end of a truncated file, if its header could be read: offset, log-time span."""
         self._footer: Footer | None = None
         self._summary_start = 0
+        self._meta_offsets: set[int] = set()
 
     # ------------------------------------------------------------------ info
     @property
@@ -319,6 +413,55 @@ class Recording:
             return scenario_from_dict(d)
         except ScenarioError as e:
             raise RecordingError(f"{self.path}: recorded scenario is invalid: {e}") from None
+
+    @property
+    def dropped_oversize(self) -> dict[str, dict[str, int]]:
+        """Payloads the recorder did not record because they were over the decoders' size bound:
+        key -> ``{"count", "bytes", "largest", "limit"}`` ({} if none, or if the file predates the
+        count). For a file without summary, complete only after the messages were read."""
+        import json
+
+        text = self.info.get(DROPPED_OVERSIZE)
+        if not text:
+            return {}
+        try:
+            d = json.loads(text)
+        except ValueError:
+            return {}
+        return d if isinstance(d, dict) else {}
+
+    def notes(self) -> list[str]:
+        """What a reader of this recording should be told, one sentence each: that it is truncated
+        or damaged (and the report covers only what was read), and the oversize payloads the
+        recorder did not record. Call after reading the messages (the damage found while reading,
+        and the counts of a file without summary, are known only then)."""
+        out: list[str] = []
+        if not self.complete:
+            out.append(
+                f"the recording is incomplete ({self.summary_problem}): only what could be read from it is covered"
+                + (f" ({self.discarded_bytes} bytes at the end could not be read)" if self.discarded_bytes else "")
+            )
+        elif self.problems:
+            out.append(f"the recording is damaged ({'; '.join(self.problems)}): only what could be read from it is covered")
+        dropped = self.dropped_note()
+        if dropped is not None:
+            out.append(dropped)
+        return out
+
+    def dropped_note(self) -> str | None:
+        """How many payloads the recorder did not record, on which keys, and why (None if none)."""
+        dropped = self.dropped_oversize
+        if not dropped:
+            return None
+        n = sum(int(d.get("count", 0)) for d in dropped.values())
+        b = sum(int(d.get("bytes", 0)) for d in dropped.values())
+        per = ", ".join(f"{k}: {d.get('count')} (largest {d.get('largest')} bytes)" for k, d in sorted(dropped.items()))
+        lim = self.info.get("payload_limit_bytes", "?")
+        return (
+            f"the recorder did not record {n} payloads ({b} bytes) longer than the decoders' size bound "
+            f"({lim} bytes; on the mission key {self.info.get('mission_payload_limit_bytes', '?')}), which every "
+            f"zenswarm decoder rejects unread: {per}"
+        )
 
     @property
     def swarm(self) -> str | None:
@@ -365,13 +508,27 @@ class Recording:
         end = self._summary_start if (self.complete and self._summary_start) else self.size
         if self.complete and not self._summary_start:
             end = self.size - 8 - _FOOTER_LEN
+        self.skipped_chunks = []
+        skipped: dict[str, Any] | None = None  # the last chunk skipped, while its message indexes follow
         with open(self.path, "rb") as f:
             try:
                 for pos, opcode, rec in _walk(f, 8, end, complete=self.complete):
+                    if opcode == Opcode.MESSAGE_INDEX:
+                        if skipped is not None:
+                            skipped["messages"] = (skipped["messages"] or 0) + len(rec.records)
+                        continue
+                    skipped = None
                     if opcode == Opcode.CHUNK:
                         try:
                             inner = _chunk_records(rec, pos)
                         except _Damage as d:
+                            skipped = {
+                                "offset": pos,
+                                "message_start_time": rec.message_start_time,
+                                "message_end_time": rec.message_end_time,
+                                "messages": None,
+                            }
+                            self.skipped_chunks.append(skipped)
                             self._fail(d.text)
                             continue
                         for r in inner:
@@ -399,11 +556,20 @@ class Recording:
                         self.channels.setdefault(rec.id, rec)
                     elif opcode == Opcode.SCHEMA:
                         self.schemas.setdefault(rec.id, rec)
+                    elif opcode == Opcode.METADATA:
+                        if pos not in self._meta_offsets:  # one the opening did not reach (no summary)
+                            self._meta_offsets.add(pos)
+                            self.metadata_records.append(rec)
+                            self.metadata.setdefault(rec.name, {}).update(rec.metadata)
                     elif opcode == Opcode.DATA_END:
                         return
                     elif opcode == Opcode.FOOTER:
                         return
             except _Damage as d:
+                self.damage_offset = d.offset
+                self.discarded_bytes = max(0, end - d.offset)
+                if d.truncated:
+                    self.cut_chunk = _cut_chunk_header(f, d.offset, end)
                 self._fail(d.text)
                 return
             if not self.complete:
@@ -449,8 +615,9 @@ def _load_metadata(rec: Recording, f: io.BufferedReader, everything: bool) -> No
     if summary_mi and not everything:
         for mi in summary_mi:
             try:
-                for _, opcode, r in _walk(f, mi.offset, mi.offset + mi.length, complete=True):
+                for pos, opcode, r in _walk(f, mi.offset, mi.offset + mi.length, complete=True):
                     if opcode == Opcode.METADATA:
+                        rec._meta_offsets.add(pos)
                         rec.metadata_records.append(r)
                         rec.metadata.setdefault(r.name, {}).update(r.metadata)
             except _Damage as d:
@@ -458,8 +625,9 @@ def _load_metadata(rec: Recording, f: io.BufferedReader, everything: bool) -> No
         return
     end = rec._summary_start if rec._summary_start else rec.size
     try:
-        for _, opcode, r in _walk(f, 8, end, complete=rec.complete):
+        for pos, opcode, r in _walk(f, 8, end, complete=rec.complete):
             if opcode == Opcode.METADATA:
+                rec._meta_offsets.add(pos)
                 rec.metadata_records.append(r)
                 rec.metadata.setdefault(r.name, {}).update(r.metadata)
                 if r.name == METADATA_NAME and "scenario_json" in r.metadata and not everything:
@@ -546,7 +714,12 @@ def recover(
     with open(s, "rb") as f:
         rec.metadata_records.clear()
         rec.metadata.clear()
+        rec._meta_offsets.clear()
         _load_metadata(rec, f, everything=True)
+    library = rec.header.library if rec.header is not None else ""
+    counted = library.startswith(RECORDER_LIBRARIES)  # sequence = running count per channel
+    last_seq: dict[str, int] = {}
+    gaps: dict[str, int] = {}
     d.parent.mkdir(parents=True, exist_ok=True)
     tmp = d.with_name(d.name + ".partial")
     try:
@@ -572,6 +745,12 @@ def recover(
                     cid = w.register_channel(ch.topic, ch.message_encoding, sid, dict(ch.metadata))
                     channel_ids[ch.id] = cid
                 w.add_message(cid, msg.log_time, msg.data, msg.publish_time, msg.sequence)
+                if counted:
+                    prev = last_seq.get(ch.topic, 0)
+                    gap = (msg.sequence - prev - 1) & 0xFFFFFFFF
+                    if gap and gap < 0x80000000:  # (a sequence going back is not a loss)
+                        gaps[ch.topic] = gaps.get(ch.topic, 0) + gap
+                    last_seq[ch.topic] = msg.sequence
                 stats.messages += 1
                 if stats.first_log_time is None:
                     stats.first_log_time = msg.log_time
@@ -585,4 +764,11 @@ def recover(
     for p in rec.problems:
         if p not in stats.problems:
             stats.problems.append(p)
+    stats.intact = rec.complete and not stats.problems
+    stats.sequence_gaps = dict(sorted(gaps.items()))
+    stats.lost_known = sum(gaps.values()) + rec.skipped_messages
+    stats.discarded_bytes = rec.discarded_bytes
+    stats.skipped_chunks = list(rec.skipped_chunks)
+    stats.cut_chunk = rec.cut_chunk
+    stats.tail_unknown = not rec.complete
     return stats

@@ -10,7 +10,17 @@ Threads and crash safety
 ------------------------
 * The Zenoh callback only stamps the receive wall time and appends ``(log_time, key, payload)``
   to an unbounded ``queue.SimpleQueue``: no decoding, no I/O, no lock held across calls. Nothing
-  is ever dropped (memory is the bound; the peak backlog is reported).
+  the swarm's decoders could accept is ever dropped (memory is the bound; the peak backlog is
+  reported).
+* Oversize payloads are not recorded: a payload longer than the decoders' size bound for its
+  key (:func:`payload_limit`: ``wire.MAX_PAYLOAD`` = 64 KiB, ``wire.MAX_MISSION_PAYLOAD`` = 1 MiB
+  on the mission key) is one that every zenswarm decoder rejects unread, so the callback queues
+  only its key and size (not a copy of it), and the writer counts it per key: count, bytes,
+  largest. A flood of such payloads once wrote 1.76 GB of undecodable bytes into a recording.
+  The counts go into the ``zenswarm`` metadata record (value ``dropped_oversize_json``, see
+  :mod:`bridge.mcapio`), rewritten at most once a second while they change and at the end, and
+  into the ``diag/recorder`` counters (``dropped_oversize``); ``zenswarm report`` and
+  ``zenswarm verify`` say how many were dropped, on which keys, and why.
 * One writer thread owns the ``mcap.writer.Writer``: it registers a channel per new key, takes
   the sim time ``t`` out of the payload for ``publish_time`` (a msgpack map with an integer
   ``t``; anything else is counted as *undecodable* and still recorded, with
@@ -49,7 +59,7 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
@@ -57,7 +67,7 @@ import msgpack
 
 from zenswarm import __version__, bus, security, wire
 
-from .mcapio import MESSAGE_ENCODING, METADATA_NAME
+from .mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME
 
 __all__ = [
     "PROCESS_NAME",
@@ -65,6 +75,7 @@ __all__ = [
     "DEFAULT_CHUNK_SIZE",
     "RecorderStats",
     "McapSink",
+    "payload_limit",
     "sim_time",
     "build_metadata",
     "run",
@@ -79,9 +90,22 @@ DEFAULT_CHUNK_SIZE: Final = 1 << 20
 """Close a chunk earlier when its uncompressed records reach this many bytes."""
 DEFAULT_CONNECT_TIMEOUT_S: Final = 60.0
 """The recorder may start before the swarm's router: keep trying to reach it this long, s."""
+DROPPED_METADATA_INTERVAL_S: Final = 1.0
+"""Rewrite the oversize-drop counts into the file at most this often while they change, s."""
+MAX_DROPPED_KEYS: Final = 1024
+"""Distinct keys counted one by one in the oversize-drop counts; the rest under ``<other>``."""
 
 _STOP = object()
 _META = object()
+_OVERSIZE = object()
+
+
+def payload_limit(keys: wire.Keys, key: str) -> int:
+    """The decoders' size bound (bytes) for a payload on ``key``: :data:`zenswarm.wire.MAX_MISSION_PAYLOAD`
+    on the swarm's mission key, :data:`zenswarm.wire.MAX_PAYLOAD` on every other key (also keys
+    outside the swarm's layout, which no decoder reads at all). A longer payload is rejected by
+    every :class:`zenswarm.wire.Decoder` as ``oversize`` before it is unpacked."""
+    return wire.MAX_MISSION_PAYLOAD if key == keys.mission else wire.MAX_PAYLOAD
 
 
 def sim_time(payload: bytes) -> int | None:
@@ -142,6 +166,26 @@ class RecorderStats:
     first_log_time: int | None = None
     last_log_time: int | None = None
     last_sim_t: int = 0
+    dropped_oversize: int = 0
+    dropped_oversize_bytes: int = 0
+    dropped_by_key: dict[str, dict[str, int]] = field(default_factory=dict)
+    """key -> ``{"count", "bytes", "largest", "limit"}`` of the payloads not recorded (oversize)."""
+
+    def drop_oversize(self, key: str, size: int, limit: int) -> None:
+        """Count one payload of ``size`` bytes on ``key`` that was not recorded (over ``limit``)."""
+        self.dropped_oversize += 1
+        self.dropped_oversize_bytes += size
+        d = self.dropped_by_key.get(key)
+        if d is None:
+            if len(self.dropped_by_key) >= MAX_DROPPED_KEYS:
+                key = wire.Decoder.OTHER
+                d = self.dropped_by_key.get(key)
+            if d is None:
+                d = self.dropped_by_key[key] = {"count": 0, "bytes": 0, "largest": 0, "limit": limit}
+        d["count"] += 1
+        d["bytes"] += size
+        if size > d["largest"]:
+            d["largest"] = size
 
     def counters(self, backlog: int) -> dict[str, int]:
         """Counters for the recorder's own ``diag/recorder`` messages."""
@@ -150,6 +194,7 @@ class RecorderStats:
             "channels": self.channels,
             "payload_bytes": self.payload_bytes,
             "undecodable": self.undecodable,
+            "dropped_oversize": self.dropped_oversize,
             "flushes": self.flushes,
             "backlog": backlog,
             "peak_backlog": self.peak_backlog,
@@ -160,6 +205,12 @@ class RecorderStats:
             f"{self.messages} messages on {self.channels} channels, {self.payload_bytes} payload bytes, "
             f"{self.file_bytes} file bytes, {self.undecodable} undecodable, {self.flushes} flushes, "
             f"peak backlog {self.peak_backlog}"
+            + (
+                f"; {self.dropped_oversize} oversize payloads ({self.dropped_oversize_bytes} bytes) on "
+                f"{len(self.dropped_by_key)} keys not recorded (over the decoders' size bound)"
+                if self.dropped_oversize
+                else ""
+            )
         )
 
 
@@ -168,9 +219,10 @@ class McapSink:
 
     Usage: ``sink.start()``; ``sink.put(log_time, key, payload)`` (or, cheaper, from a hot
     callback, ``sink.put_item((log_time, key, payload))``) any number of times: thread safe,
-    never blocks, never drops; ``sink.set_metadata(values)`` to add a ``zenswarm`` metadata
-    record; ``sink.close()`` drains the queue and writes summary + footer. ``metadata`` is
-    written right after the header, before any message.
+    never blocks; ``sink.set_metadata(values)`` to add a ``zenswarm`` metadata record;
+    ``sink.close()`` drains the queue and writes summary + footer. ``metadata`` is written right
+    after the header, before any message. A payload over :func:`payload_limit` is counted, not
+    written (``sink.put_oversize(log_time, key, size)`` counts one without its bytes).
     """
 
     def __init__(
@@ -215,6 +267,10 @@ class McapSink:
         """Queue one sample: receive wall time (ns), key, payload."""
         self._q.put((log_time, key, payload))
 
+    def put_oversize(self, log_time: int, key: str, size: int) -> None:
+        """Count one payload of ``size`` bytes on ``key`` that is over its size bound (not written)."""
+        self._q.put((_OVERSIZE, key, size, log_time))
+
     def set_metadata(self, values: dict[str, str]) -> None:
         """Queue another ``zenswarm`` metadata record (readers merge them in file order)."""
         self._q.put((_META, values))
@@ -240,6 +296,9 @@ class McapSink:
         next_flush = mono() + interval
         dirty = False
         last_lt = 0
+        limits: dict[str, int] = {}
+        dropped_written = 0  # st.dropped_oversize when the counts were last written
+        next_dropped = 0.0
         try:
             while True:
                 wait = next_flush - mono()
@@ -253,7 +312,21 @@ class McapSink:
                     if item[0] is _META:
                         self._write_metadata(item[1])
                         continue
-                    lt, key, payload = item
+                    if item[0] is _OVERSIZE:  # counted only; then on to the periodic work below
+                        _, key, size, lt = item
+                        st.drop_oversize(key, size, payload_limit(keys, key))
+                        item = None
+                    else:
+                        lt, key, payload = item
+                        limit = limits.get(key)
+                        if limit is None:
+                            limit = limits[key] = payload_limit(keys, key)
+                            if len(limits) > MAX_DROPPED_KEYS:
+                                limits.clear()
+                        if len(payload) > limit:
+                            st.drop_oversize(key, len(payload), limit)
+                            item = None
+                if item is not None:
                     cid = channels.get(key)
                     if cid is None:
                         try:
@@ -282,6 +355,11 @@ class McapSink:
                         st.first_log_time = lt
                     st.last_log_time = lt
                     dirty = True
+                if st.dropped_oversize != dropped_written and mono() >= next_dropped:
+                    dropped_written = st.dropped_oversize
+                    next_dropped = mono() + DROPPED_METADATA_INTERVAL_S
+                    self._write_metadata(self._dropped_metadata())
+                    dirty = False  # _write_metadata flushed
                 if mono() >= next_flush:
                     backlog = q.qsize()
                     if backlog > st.peak_backlog:
@@ -292,10 +370,21 @@ class McapSink:
                         dirty = False
                     next_flush = mono() + interval
             # _STOP is queued after the session is closed, so every sample precedes it (FIFO)
+            if st.dropped_oversize != dropped_written:
+                self._write_metadata(self._dropped_metadata())
         except BaseException as e:  # noqa: BLE001 - report, and still try to finish the file
             self.error = e
         finally:
             self._finish()
+
+    def _dropped_metadata(self) -> dict[str, str]:
+        """The ``zenswarm`` metadata values that carry the oversize-drop counts (cumulative)."""
+        st = self.stats
+        return {
+            DROPPED_OVERSIZE: json.dumps(st.dropped_by_key, sort_keys=True),
+            "payload_limit_bytes": str(wire.MAX_PAYLOAD),
+            "mission_payload_limit_bytes": str(wire.MAX_MISSION_PAYLOAD),
+        }
 
     def _write_metadata(self, values: dict[str, str]) -> None:
         self._writer.add_metadata(METADATA_NAME, values)
@@ -419,9 +508,20 @@ def run(args: argparse.Namespace) -> int:
         sink.start()
         put_item = sink.put_item
         now_ns = time.time_ns
+        small = wire.MAX_PAYLOAD  # the bound of every key but the mission's (payload_limit)
+        mission_key, mission_limit = keys.mission, wire.MAX_MISSION_PAYLOAD
 
         def on_sample(sample: Any) -> None:  # the whole callback: stamp, copy, enqueue
-            put_item((now_ns(), str(sample.key_expr), sample.payload.to_bytes()))
+            payload = sample.payload
+            n = len(payload)
+            if n > small:  # no decoder reads it: count it without copying it (payload_limit)
+                key = str(sample.key_expr)
+                if key != mission_key or n > mission_limit:
+                    put_item((_OVERSIZE, key, n, now_ns()))
+                    return
+                put_item((now_ns(), key, payload.to_bytes()))
+                return
+            put_item((now_ns(), str(sample.key_expr), payload.to_bytes()))
 
         sub = session.declare_subscriber(keys.all, on_sample)
         token = bus.declare_alive(session, keys, PROCESS_NAME)  # only now: the subscriber is in place
@@ -523,7 +623,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "channel per key, message encoding msgpack, log_time = receive wall time, publish_time = "
             "the sender's sim time, the scenario in a metadata record. Crash-safe: chunks are closed "
             "and flushed to the OS at least every --flush-interval seconds; `zenswarm recover` rewrites "
-            "a file cut by a crash. Stops cleanly on SIGINT/SIGTERM or after --duration."
+            "a file cut by a crash. Stops cleanly on SIGINT/SIGTERM or after --duration. A payload over the "
+            "decoders' size bound (64 KiB; 1 MiB on the mission key) is not written: it is counted per key, "
+            "and the counts are stored in the file's metadata (dropped_oversize_json)."
         ),
     )
     p.add_argument("--swarm", default="default", help="swarm name: records swarm/<name>/** (default: default)")

@@ -32,6 +32,7 @@ from .mcapio import Recording, read_recording
 
 __all__ = [
     "ReplayStats",
+    "check_window",
     "replay",
     "Difference",
     "VerifyResult",
@@ -102,6 +103,53 @@ def _topic_filter(expr: str | None) -> Callable[[str], bool] | None:
     return match
 
 
+def _span_and_topics(rec: Recording, path: str | Path) -> tuple[float | None, list[str]]:
+    """The recording's span in seconds (last minus first log time; None if it holds no message)
+    and its recorded topics: from the summary of a complete file, else by reading it once."""
+    st = rec.statistics
+    if rec.complete and st is not None:
+        span = (st.message_end_time - st.message_start_time) / 1e9 if st.message_count else None
+        return span, rec.topics()
+    first: int | None = None
+    last = 0
+    topics: set[str] = set()
+    for m in read_recording(path, strict=False).messages():
+        if first is None:
+            first = m.log_time
+        last = m.log_time
+        topics.add(m.topic)
+    return (None if first is None else (last - first) / 1e9), sorted(topics)
+
+
+def check_window(
+    rec: Recording, path: str | Path, start_s: float | None, end_s: float | None, topics: str | None
+) -> float | None:
+    """Bad ``--start``/``--end``/``--topics`` for this recording raise :class:`ScenarioError`
+    naming the flag and the recording's actual span (exit 2 from the CLI, before anything is
+    published): a negative or non-finite time, ``--end`` before ``--start``, ``--start`` beyond
+    the last message, a key expression that matches none of the recorded keys. Returns the span (s)."""
+    import math
+
+    for flag, v in (("--start", start_s), ("--end", end_s)):
+        if v is not None and not (math.isfinite(v) and v >= 0):
+            raise ScenarioError(flag, f"must be a number of seconds >= 0 after the first recorded message, got {v:g}")
+    if start_s is not None and end_s is not None and end_s < start_s:
+        raise ScenarioError("--end", f"{end_s:g} s is before --start {start_s:g} s")
+    match = _topic_filter(topics)
+    if start_s is None and end_s is None and match is None:
+        return None
+    span, recorded = _span_and_topics(rec, path)
+    where = "it holds no message" if span is None else f"it spans 0 to {span:.3f} s from its first message"
+    if start_s is not None and (span is None or start_s > span):
+        raise ScenarioError("--start", f"{start_s:g} s is beyond the end of the recording {path}: {where}")
+    if match is not None and not any(match(t) for t in recorded):
+        shown = ", ".join(recorded[:8]) + (f", ... ({len(recorded)} keys)" if len(recorded) > 8 else "")
+        raise ScenarioError(
+            "--topics", f"{topics!r} matches none of the keys recorded in {path} ({shown or 'none'}); nothing to replay"
+        )
+    return span
+
+
 def replay(
     path: str | Path,
     *,
@@ -123,7 +171,9 @@ def replay(
     seconds from the first recorded message. topics: zenoh key expression matched against the
     recorded topics. swarm: replay under ``swarm/<swarm>/`` instead of the recorded prefix.
     loop: start over at the end until ``stop`` is set. Before the first put, waits up to
-    ``wait_subscribers_s`` for a subscriber to match (puts before that would be lost).
+    ``wait_subscribers_s`` for a subscriber to match (puts before that would be lost). A window
+    or filter that does not fit the recording raises :class:`ScenarioError` first
+    (:func:`check_window`).
     """
     import zenoh
 
@@ -137,6 +187,7 @@ def replay(
     stop = stop or threading.Event()
     stats = ReplayStats()
     rec = read_recording(path, strict=False)
+    check_window(rec, path, start_s, end_s, topics)
     stats.problems += rec.problems
     total_s = None
     if rec.statistics is not None and rec.statistics.message_count:
@@ -407,6 +458,9 @@ def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> Verif
             by_tick[m.topic][k] = msg  # the latest wins, as in the inbox
         timeline[m.topic].append((m.log_time, k, msg))
     res.problems += rec.problems
+    dropped = rec.dropped_note()
+    if dropped is not None:
+        res.notes.append(dropped)
     if decoder.rejected:
         res.notes.append(f"{decoder.rejected} recorded payloads of agent {agent}'s keys were rejected by the decoder")
     cmds = by_tick[cmd_key]
@@ -590,7 +644,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         description=(
             "Republish the payloads recorded in FILE, byte for byte, with their original timing "
             "(log-time deltas / --rate), optionally under another swarm name and filtered by a key "
-            "expression. Progress goes to stderr. With --verify, no Zenoh: rebuild agent I's "
+            "expression. Progress goes to stderr. A window outside the recording (--start beyond its "
+            "last message, --end before --start, a negative time) or a --topics that matches no recorded "
+            "key is bad input: exit 2, naming the flag and the recording's span, before anything is "
+            "published. With --verify, no Zenoh: rebuild agent I's "
             "controller from the recorded scenario, feed it its recorded inputs tick by tick as in "
             "lockstep, and check its commands and references bit for bit; exit 1 and name the first "
             "difference otherwise."
@@ -601,9 +658,18 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="Zenoh router (repeatable; default tcp/127.0.0.1:7447)")
     p.add_argument("--rate", type=float, default=1.0, metavar="R", help="playback speed factor; 0 = as fast as possible (default 1)")
     p.add_argument("--loop", action="store_true", help="start over at the end, until interrupted")
-    p.add_argument("--topics", metavar="KEYEXPR", help="replay only recorded topics that intersect this key expression")
-    p.add_argument("--start", type=float, metavar="S", help="start S seconds after the first recorded message")
-    p.add_argument("--end", type=float, metavar="S", help="stop S seconds after the first recorded message")
+    p.add_argument(
+        "--topics",
+        metavar="KEYEXPR",
+        help="replay only recorded topics that intersect this key expression (exit 2 if it matches none)",
+    )
+    p.add_argument(
+        "--start",
+        type=float,
+        metavar="S",
+        help="start S seconds after the first recorded message (0 <= S <= the recording's span, else exit 2)",
+    )
+    p.add_argument("--end", type=float, metavar="S", help="stop S seconds after the first recorded message (>= --start)")
     p.add_argument(
         "--wait-subscribers",
         type=float,

@@ -36,7 +36,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -97,7 +97,8 @@ class Recording:
     metadata: the ``zenswarm`` metadata record(s), merged; scenario from its ``scenario_json``;
     swarm and mode (``lockstep``, ``realtime``; anything else counts as lockstep) from it too.
     truncated: the damage met while reading (file cut short, chunk failing its CRC), None for a
-    complete, intact file.
+    complete, intact file. notes: what a reader must be told (:meth:`bridge.mcapio.Recording.notes`:
+    truncated or damaged, oversize payloads the recorder did not record).
     """
 
     path: Path
@@ -108,6 +109,7 @@ class Recording:
     messages: list[RecordedMessage]
     truncated: str | None = None
     other_metadata: list[tuple[str, dict[str, str]]] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
     @property
     def realtime(self) -> bool:
@@ -146,7 +148,7 @@ def load_recording(path: str | Path) -> Recording:
         raise RecordingError(f"{p}: {e}") from None
     mode = meta.get("mode") or "lockstep"
     others = [(name, dict(d)) for name, d in r.metadata.items() if name != METADATA_NAME]
-    return Recording(p, dict(meta), scenario, swarm, mode, messages, "; ".join(problems) or None, others)
+    return Recording(p, dict(meta), scenario, swarm, mode, messages, "; ".join(problems) or None, others, r.notes())
 
 
 def _guess_swarm(messages: Sequence[RecordedMessage]) -> str | None:
@@ -599,11 +601,22 @@ def results_from_flight(fl: Flight, full_time: bool = False) -> dict[str, Any]:
     return res
 
 
-def report_recording(path: str | Path, out_dir: str | Path, full_time: bool = False) -> list[Path]:
-    """The full report of a recording: every figure of :data:`FIGURES` and ``results.json``
-    (``full_time``: judge every recorded tick, as ``--full-time`` runs do)."""
+def report_recording(
+    path: str | Path, out_dir: str | Path, full_time: bool = False, warn: Callable[[str], None] | None = None
+) -> list[Path]:
+    """The full report of a recording: every figure of :data:`FIGURES` and ``results.json``.
+
+    full_time: judge every recorded tick, as ``--full-time`` runs do. warn: called with each
+    thing the reader must know (:attr:`Recording.notes`): a truncated or damaged recording (then
+    also which sim time the report covers), payloads not recorded."""
     rec = load_recording(path)
     fl = flight_from_recording(rec)
+    if warn is not None:
+        for note in rec.notes:
+            warn(note)
+        if rec.truncated:
+            sc = rec.scenario
+            warn(f"the report covers sim time 0 to {len(fl.series.t) * sc.timing.dt:.2f} s of the {sc.timing.time_limit_s:g} s time limit")
     out = Path(out_dir)
     files = report_from_series(fl.series, fl.scenario, out)
     files.append(plot_links(fl, out / "links.png"))
@@ -636,8 +649,12 @@ def _run_report(args: argparse.Namespace) -> int:
             raise ScenarioError("--scenario", f"{args.scenario} has {sc.n} UAVs but {args.series} has {ts.q.shape[1] if ts.q.ndim == 3 else '?'}")
         files = report_from_series(ts, sc, args.out)
     else:
-        rec_files = report_recording(args.recording, args.out, full_time=args.full_time)
-        files = rec_files
+        import sys
+
+        def warn(text: str) -> None:
+            print(f"report: warning: {args.recording}: {text}", file=sys.stderr, flush=True)
+
+        files = report_recording(args.recording, args.out, full_time=args.full_time, warn=warn)
     for f in files:
         print(f)
     return 0
@@ -651,9 +668,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         description=(
             "Write the flight report of a recording into OUT: trajectories_3d.png, "
             "formation_errors.png (generator), formation_errors_vehicles.png, tracking_errors.png, clearance.png, "
-            "links.png and results.json "
-            "(the same fields as `zenswarm sim`). Works from the MCAP file alone. With --series, "
-            "plot a `zenswarm sim` time series instead (no links.png, no results.json)."
+            "links.png and results.json (the same fields as `zenswarm sim`). Works from the MCAP file alone; a "
+            "truncated or damaged recording is reported from what can be read, with a warning on stderr (also for "
+            "payloads the recorder did not record). With --series, plot a `zenswarm sim` time series instead (no "
+            "links.png, no results.json)."
         ),
     )
     p.add_argument("recording", nargs="?", type=Path, metavar="FILE", help="MCAP recording (zenswarm up --record / zenswarm record)")

@@ -279,6 +279,7 @@ class Supervisor:
         self._stall_checked = 0
         self._in_slots_since: int | None = None
         self._deciding = False  # the live look saw the outcome decided; waiting for the exact tick
+        self.recording_loss: dict | None = None  # the recorder died mid-flight (_recorder_died)
         if args.plant == "mavlink":
             args.realtime = True  # real vehicles (or their simulation over UDP) run on the wall clock
         self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n)
@@ -368,7 +369,7 @@ class Supervisor:
             if rec.popen.poll() is None:
                 time.sleep(0.3)
             self._terminate([rec], 60.0)
-            for line in rec.lines[-1:]:
+            for line in rec.lines[-1:] if self.recording_loss is None else ():
                 self.say(line)
 
     def _terminate(self, children: list, grace_s: float) -> None:
@@ -484,11 +485,18 @@ class Supervisor:
         return [r for r in names if r not in external]
 
     def _report(self, out: Path) -> None:
-        """Flight report from the recording alone (``--report``)."""
+        """Flight report from the recording alone (``--report``); partial if the recorder died."""
+        if self.recording_loss is not None:
+            self.say(
+                f"report: warning: the recorder died at sim time {self.recording_loss['died_at_sim_time_s']:.2f} s: "
+                "the report is partial, from what was recorded before"
+            )
         try:
             from bridge.report import report_recording
 
-            written = report_recording(self.args.record, out / "report", full_time=self.args.full_time)
+            written = report_recording(
+                self.args.record, out / "report", full_time=self.args.full_time, warn=lambda text: self.say(f"report: warning: {text}")
+            )
         except ZenswarmError as e:
             self.say(f"report failed: {e}")
             return
@@ -569,6 +577,20 @@ class Supervisor:
         text = first.detail if first is not None else "the outcome is decided"
         return f"at sim time {ts.t[k]:.2f} s {text}; ending the run (--full-time flies on)"
 
+    def _recorder_died(self, child: Child, rc: int, collector: Collector) -> None:
+        """The recorder is not a vehicle: its death does not end the flight. The loss is said
+        now and goes into results.json (``recording_loss``); the file keeps what was written
+        (chunks are flushed every 0.25 s; ``zenswarm recover`` closes it). The plant waited for
+        the recorder only before tick 0, so nothing waits for it now."""
+        how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
+        t = max(collector.sim_t_ns, 0) / 1e9
+        self.recording_loss = {"died_at_sim_time_s": t, "how": how, "recording": str(self.args.record)}
+        tail = "; last output: " + " | ".join(child.lines[-3:]) if child.lines else ""
+        self.say(
+            f"recording lost: the recorder died ({how}) at sim time {t:.2f} s; the flight goes on unrecorded, "
+            f"{self.args.record} holds what was written before (results.json: recording_loss){tail}"
+        )
+
     def _watch(self, collector: Collector) -> int:
         sc = self.sc
         last_print = last_check = 0.0
@@ -598,6 +620,9 @@ class Supervisor:
                     continue
                 if c.returncode is None:
                     c.returncode = rc
+                    if c.name == "recorder":  # any exit before the end is a loss, never a failure
+                        self._recorder_died(c, rc, collector)
+                        continue
                     if rc != 0:
                         how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
                         tail = "; last output: " + " | ".join(c.lines[-3:]) if c.lines else ""
@@ -661,6 +686,8 @@ class Supervisor:
         res["process_deaths"] = self.deaths
         if self.args.record is not None:
             res["recording"] = str(self.args.record)
+            if self.recording_loss is not None:
+                res["recording_loss"] = self.recording_loss
         res["restarts"] = self.restarts
         res["diagnostics"] = collector.diag
         res["supervisor_zenoh_threads"] = bus.zenoh_threads()  # the router's (ZENOH_RUNTIME_ROUTER)
@@ -694,6 +721,8 @@ class Supervisor:
 def _run_up(args: argparse.Namespace) -> int:
     sc = load_scenario(args.scenario)
     plan_for(sc, args.link_delay, args.link_jitter, args.link_loss, args.partition, args.seed)  # bad flags: exit 2 now
+    if args.record is None and any(role == "recorder" for role, _ in args.kill or []):
+        raise ScenarioError("--kill", "recorder@T needs --record FILE.mcap: without it no recorder is started")
     if args.only:
         return _run_only(args)
     sup = Supervisor(args, sc)
@@ -731,7 +760,7 @@ def _parse_kill(text: str) -> tuple[str, float]:
     try:
         wire.validate_process(role)
     except ZenswarmError:
-        raise argparse.ArgumentTypeError(f"{text!r}: unknown process {role!r} (plant, leader, agent:<i>)") from None
+        raise argparse.ArgumentTypeError(f"{text!r}: unknown process {role!r} (plant, leader, agent:<i>, recorder)") from None
     w = when.strip()
     scale = 1.0
     for suffix, f in (("ms", 1e-3), ("s", 1.0)):
@@ -780,7 +809,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--record",
         type=Path,
         metavar="FILE.mcap",
-        help="record every message of the swarm to this MCAP file (a recorder process started first, stopped last)",
+        help="record every message of the swarm to this MCAP file (a recorder process started first, stopped last; "
+        "if it dies, the flight goes on and the loss is reported)",
     )
     p.add_argument(
         "--report",
@@ -827,7 +857,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         action="append",
         type=_parse_kill,
         metavar="ROLE@T",
-        help="inject a SIGKILL into ROLE when sim time reaches T, e.g. agent:2@10s (repeatable; for tests and demos)",
+        help="inject a SIGKILL into ROLE when sim time reaches T, e.g. agent:2@10s or recorder@5s (repeatable; for "
+        "tests and demos). The recorder is not a vehicle: its death is reported (results.json: recording_loss), "
+        "the flight goes on",
     )
     p.add_argument(
         "--restart",

@@ -235,6 +235,88 @@ def test_record_synthetic_traffic_every_payload_in_order(tmp_path: Path) -> None
     assert r.metadata[METADATA_NAME]["scenario_json"]
 
 
+def test_oversize_payloads_are_counted_per_key_not_recorded(tmp_path: Path) -> None:
+    """A payload over the decoders' size bound is not written (a flood once filled 1.76 GB with
+    them): the recorder counts it per key, and the counts are in the file's metadata."""
+    swarm = swarm_name()
+    keys = wire.Keys(swarm)
+    scenario = scenario_to_dict(load_scenario(EX1))
+    out = tmp_path / "flood.mcap"
+    big = b"\x00" * (wire.MAX_PAYLOAD + 1)  # one byte over: every decoder rejects it unread
+    huge = b"\x01" * (3 * wire.MAX_PAYLOAD)
+    mission = wire.encode(wire.Mission(t=0, seq=1, scenario={**scenario, "pad": "x" * (2 * wire.MAX_PAYLOAD)}))
+    assert wire.MAX_PAYLOAD < len(mission) <= wire.MAX_MISSION_PAYLOAD  # over 64 KiB, fine on the mission key
+    good = [wire.encode(wire.Clock(t=k * 10_000_000, seq=k + 1)) for k in range(50)]
+    with router() as ep, processes() as procs, open_session(client_config([ep]), handle_signals=False) as s:
+        rec = start_recorder(procs, ep, swarm, out, "--scenario", EX1, "--diag-interval", "0.2")
+        wait_alive(s, swarm)
+        pub_state, pub_cmd = publisher(s, keys.state(1)), publisher(s, keys.cmd(2))
+        pub_clock, pub_mission = publisher(s, keys.clock), publisher(s, keys.mission)
+        for k in range(50):
+            pub_clock.put(good[k])
+            if k % 2 == 0:
+                pub_state.put(big)  # 25
+            if k % 10 == 0:
+                pub_cmd.put(huge)  # 5
+        pub_mission.put(mission)
+        pub_mission.put(mission + b"\x00" * wire.MAX_MISSION_PAYLOAD)  # over the mission's own bound
+        wait_recorded(s, swarm, 51)
+        time.sleep(0.3)
+        assert rec.stop() == 0, rec.output
+    assert "31 oversize payloads" in rec.output and "not recorded" in rec.output, rec.output
+
+    r = read_recording(out)
+    msgs = [m for m in r.messages() if m.topic != keys.diag("recorder")]
+    assert [m.payload for m in msgs if m.topic == keys.clock] == good
+    assert [m.payload for m in msgs if m.topic == keys.mission] == [mission]
+    assert {m.topic for m in msgs} == {keys.clock, keys.mission}  # no oversize payload in the file
+    assert max(len(m.payload) for m in r.messages()) <= wire.MAX_MISSION_PAYLOAD
+    assert r.dropped_oversize == {
+        keys.state(1): {"count": 25, "bytes": 25 * len(big), "largest": len(big), "limit": wire.MAX_PAYLOAD},
+        keys.cmd(2): {"count": 5, "bytes": 5 * len(huge), "largest": len(huge), "limit": wire.MAX_PAYLOAD},
+        keys.mission: {
+            "count": 1,
+            "bytes": len(mission) + wire.MAX_MISSION_PAYLOAD,
+            "largest": len(mission) + wire.MAX_MISSION_PAYLOAD,
+            "limit": wire.MAX_MISSION_PAYLOAD,
+        },
+    }
+    assert r.info["payload_limit_bytes"] == str(wire.MAX_PAYLOAD)
+    note = r.dropped_note()
+    assert note is not None and "did not record 31 payloads" in note and f"{keys.state(1)}: 25" in note
+    # the recorder's own diag counters say it too
+    last = [wire.decode("diag", m.payload) for m in r.messages() if m.topic == keys.diag("recorder")][-1]
+    assert last.counters["dropped_oversize"] == 31
+    assert r.scenario == scenario  # the first metadata record is not overridden by the counts
+
+
+def test_oversize_counts_survive_a_truncated_file(tmp_path: Path) -> None:
+    """In a file without summary the counts are found while the messages are read."""
+    swarm = swarm_name()
+    keys = wire.Keys(swarm)
+    path = tmp_path / "sink.mcap"
+    sink = McapSink(path, keys, chunk_size=4096, metadata=build_metadata(swarm, "lockstep", scenario_to_dict(load_scenario(EX1)), "test"))
+    sink.start()
+    for k in range(200):
+        sink.put(1_700_000_000_000_000_000 + k, keys.clock, wire.encode(wire.Clock(t=k, seq=k + 1)))
+        if k % 20 == 0:
+            sink.put(1_700_000_000_000_000_000 + k, keys.ref(3), b"\x02" * (wire.MAX_PAYLOAD + 7))
+    sink.put_oversize(1_700_000_000_000_001_000, keys.ref(3), 10**9)  # as the callback queues it: size only
+    sink.close()
+    assert sink.error is None and sink.stats.dropped_oversize == 11 and sink.stats.messages == 200
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) - 40])  # the summary and footer are gone
+    r = read_recording(cut, strict=False)
+    assert not r.complete
+    assert len(list(r.messages())) == 200
+    assert r.dropped_oversize == {
+        keys.ref(3): {"count": 11, "bytes": 10 * (wire.MAX_PAYLOAD + 7) + 10**9, "largest": 10**9, "limit": wire.MAX_PAYLOAD}
+    }
+    notes = r.notes()
+    assert any("incomplete" in n and "truncated" in n for n in notes) and any("did not record 11 payloads" in n for n in notes)
+
+
 # --------------------------------------------------------------------------- (b) replay
 
 
@@ -301,6 +383,51 @@ def test_replay_filters_topics_and_window(tmp_path: Path) -> None:
     assert got == want and len(want) == 67
 
 
+def test_replay_rejects_a_window_or_filter_that_does_not_fit_the_recording(tmp_path: Path) -> None:
+    """--start beyond the recording, --end before --start, a negative time and a key filter that
+    matches nothing: exit 2 naming the flag and the recording's span, and nothing published."""
+    swarm = swarm_name()
+    keys = wire.Keys(swarm)
+    path = tmp_path / "span.mcap"
+    sink = McapSink(path, keys, metadata=build_metadata(swarm, "lockstep", None, "test"))
+    sink.start()
+    for k in range(300):  # 2.99 s of log time
+        sink.put(1_700_000_000_000_000_000 + k * 10_000_000, keys.clock, wire.encode(wire.Clock(t=k * 10_000_000, seq=k + 1)))
+    sink.close()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:-40])  # without summary: the span is found by reading
+    listen = tmp_path / "seen.mcap"
+    with router() as ep, processes() as procs, open_session(client_config([ep]), handle_signals=False) as s:
+        rec = start_recorder(procs, ep, swarm, listen, "--diag-interval", "0")
+        wait_alive(s, swarm)
+        for f in (path, cut):
+            for flags, flag, words in (
+                (["--start", "1000"], "--start", ["1000 s is beyond the end of the recording", "it spans 0 to 2.990 s"]),
+                (["--start", "5", "--end", "2"], "--end", ["2 s is before --start 5 s"]),
+                (["--start", "-5"], "--start", ["must be a number of seconds >= 0", "got -5"]),
+                (["--end", "nan"], "--end", ["must be a number of seconds >= 0"]),
+                (["--topics", f"swarm/{swarm}/uav/*/state"], "--topics", ["matches none of the keys recorded", keys.clock]),
+            ):
+                cli = subprocess.run(
+                    [sys.executable, "-m", "zenswarm", "replay", str(f), "--connect", ep, "--rate", "0", *flags],
+                    cwd=REPO, capture_output=True, text=True, timeout=60,
+                )  # fmt: skip
+                assert cli.returncode == 2, (flags, cli.stdout, cli.stderr)
+                assert cli.stderr.startswith(f"zenswarm: error: {flag}: "), cli.stderr
+                assert all(w in cli.stderr for w in words), (flags, cli.stderr)
+                assert "Traceback" not in cli.stderr
+        # a window that fits still plays
+        ok = subprocess.run(
+            [sys.executable, "-m", "zenswarm", "replay", str(path), "--connect", ep, "--rate", "0", "--start", "2.5", "--end", "99"],
+            cwd=REPO, capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert ok.returncode == 0 and "50 messages published" in ok.stderr, ok.stderr
+        time.sleep(0.3)
+        assert rec.stop() == 0, rec.output
+    got = [m for m in read_recording(listen).messages() if m.topic == keys.clock]
+    assert len(got) == 50  # only the good window reached the bus
+
+
 # --------------------------------------------------------------------------- (c) SIGKILL
 
 
@@ -345,6 +472,7 @@ def test_sigkill_file_reads_up_to_one_second_before_and_recovers(tmp_path: Path)
     )
     assert cli.returncode == 0, cli.stderr
     assert "truncated" in cli.stderr
+    assert "(truncated: not closed cleanly)" in cli.stdout and "cannot be known" in cli.stdout, cli.stdout
     assert file_is_complete(fixed)
     r2 = read_recording(fixed)  # strict: complete, with summary
     assert r2.statistics is not None and r2.statistics.message_count >= len(got)
@@ -394,6 +522,13 @@ def test_truncated_file_error_and_recover(tmp_path: Path) -> None:
         fixed = tmp_path / f"fixed{cut}.mcap"
         st = recover(trunc, fixed)
         assert st.messages == len(got) and not st.source_complete and st.problems
+        # what can be known: the unread tail, the last good time; not how many were never written
+        assert not st.intact and st.tail_unknown and st.lost_known == 0 and not st.sequence_gaps
+        assert st.last_log_time == got[-1][1]
+        assert any("cannot be known" in x for x in st.losses())
+        if cut < len(data) - 1000:  # cut inside the messages (not in the summary)
+            assert r.damage_offset is not None and 0 < st.discarded_bytes == cut - r.damage_offset
+            assert any(f"{st.discarded_bytes} bytes of the cut tail could not be read" in x for x in st.losses())
         r2 = read_recording(fixed)
         assert list(r2.messages()) == got
         assert r2.scenario == scenario and r2.statistics is not None and r2.statistics.message_count == len(got)
@@ -434,6 +569,24 @@ def test_corrupted_chunk_error_and_recover(tmp_path: Path) -> None:
     assert rec[: len(before)] == before  # what precedes the bad chunk
     assert rec == [m for m in expected if m not in lost]  # and, framing intact, what follows it
     assert 0 < len(lost) < 600
+    # the loss is known exactly: the per-key sequence gaps and the skipped chunk's message indexes
+    assert not st.intact and not st.tail_unknown and st.discarded_bytes == 0
+    assert st.lost_known == len(lost)
+    assert st.sequence_gaps == {k: sum(1 for m in lost if m[0] == k) for k in {m[0] for m in lost}}
+    assert [(c["offset"], c["messages"]) for c in st.skipped_chunks] == [(bad.chunk_start_offset, len(lost))]
+
+    cli = subprocess.run(
+        [sys.executable, "-m", "zenswarm", "recover", str(broken), "--out", str(tmp_path / "fixed2.mcap")],
+        cwd=REPO, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert cli.returncode == 0, cli.stderr
+    assert "(complete but damaged)" in cli.stdout and "(complete)" not in cli.stdout, cli.stdout
+    assert f"recover: lost: {len(lost)} messages known lost (per-key sequence gaps: " in cli.stdout, cli.stdout
+    cli = subprocess.run(
+        [sys.executable, "-m", "zenswarm", "recover", str(whole), "--out", str(tmp_path / "fixed3.mcap")],
+        cwd=REPO, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert cli.returncode == 0 and "(complete, intact: nothing damaged)" in cli.stdout and "lost" not in cli.stdout, cli.stdout
 
 
 def test_corrupted_summary_is_reported(tmp_path: Path) -> None:
@@ -562,3 +715,76 @@ def test_sim_time_extraction() -> None:
     assert sim_time(msgpack.packb({"t": 5})) == 5
     for bad in (b"", b"\xc1", msgpack.packb([1, 2]), msgpack.packb({"t": -1}), msgpack.packb({"t": 1.5}), msgpack.packb({"x": 1})):
         assert sim_time(bad) is None
+
+
+# --------------------------------------------------------------------------- (f) the recorder dies mid-flight
+
+
+def test_recorder_killed_mid_flight_does_not_abort_the_flight(tmp_path: Path) -> None:
+    """`zenswarm up --record F --kill recorder@1.5s --report`: the flight flies to its time limit
+    (the plant is not stalled), the exit status is the mission's (0/1, never 3), the loss is said
+    and is in results.json, the recording reads up to the kill, and the report says it is partial."""
+    from swarmtest import read_results, scenario_variant, unique_swarm, zenswarm
+
+    scen = scenario_variant(tmp_path, time_limit_s=4.0, settle_time_s=1.0)
+    out, rec = tmp_path / "up", tmp_path / "flight.mcap"
+    swarm = unique_swarm("rk")
+    cp = zenswarm(
+        "up", str(scen), "--swarm", swarm, "--record", str(rec), "--kill", "recorder@1.5s", "--out", str(out),
+        "--report", "--quiet-children", timeout=240,
+    )  # fmt: skip
+    res = read_results(out)
+    assert cp.returncode in (0, 1) and cp.returncode == (0 if res["success"] else 1), cp.stdout
+    assert "recording lost: the recorder died (killed by SIGKILL) at sim time" in cp.stdout, cp.stdout
+    loss = res["recording_loss"]
+    assert loss["how"] == "killed by SIGKILL" and 1.5 <= loss["died_at_sim_time_s"] < 4.0, loss
+    assert res["sim_time_s"] == pytest.approx(4.0)  # flown to the end: nothing waited for the recorder
+    assert res["process_deaths"] == [] and res["processes"]["plant"] == 0 and res["processes"]["recorder"] == -9
+    assert "report: warning: the recorder died at sim time" in cp.stdout and "the report is partial" in cp.stdout
+    assert "report: warning: the report covers sim time 0 to" in cp.stdout, cp.stdout
+    assert (out / "report" / "results.json").exists()
+
+    r = read_recording(rec, strict=False)  # an MCAP cut by the kill, readable up to it
+    assert not r.complete
+    states = [m for m in r.messages() if m.topic == wire.Keys(swarm).state(1)]
+    assert states and r.scenario is not None
+    last_t = states[-1].publish_time / 1e9
+    assert 1.0 <= last_t <= loss["died_at_sim_time_s"] + 0.01, (last_t, loss)
+    fixed = tmp_path / "fixed.mcap"
+    assert recover(rec, fixed).messages > 0 and file_is_complete(fixed)
+
+
+def test_kill_recorder_without_record_is_bad_input(tmp_path: Path) -> None:
+    from swarmtest import scenario_variant, zenswarm
+
+    scen = scenario_variant(tmp_path, time_limit_s=1.0)
+    cp = zenswarm("up", str(scen), "--kill", "recorder@1s", "--out", str(tmp_path / "up"), timeout=60)
+    assert cp.returncode == 2 and "zenswarm: error: --kill: recorder@T needs --record" in cp.stdout, cp.stdout
+    assert not (tmp_path / "up" / "results.json").exists()
+
+
+def test_a_flood_of_oversize_payloads_does_not_hold_back_the_flush(tmp_path: Path) -> None:
+    """While the writer works through a long run of oversize payloads, the samples before them are
+    still flushed every flush interval, and the counts reach the file while the flood goes on."""
+    swarm = swarm_name()
+    keys = wire.Keys(swarm)
+    path = tmp_path / "flood.mcap"
+    sink = McapSink(path, keys, flush_interval_s=0.02, metadata=build_metadata(swarm, "lockstep", None, "test"))
+    good = wire.encode(wire.Clock(t=0, seq=1))
+    sink.put(1_700_000_000_000_000_000, keys.clock, good)
+    n = 400_000
+    for _ in range(n):  # queued before the writer starts: it never finds the queue empty
+        sink.put_oversize(1_700_000_000_000_000_001, keys.state(1), wire.MAX_PAYLOAD + 1)
+    sink.start()
+    try:
+        time.sleep(0.15)
+        backlog = sink.backlog
+        r = read_recording(path, strict=False)
+        got = [m.payload for m in r.messages()]
+        dropped = r.dropped_oversize
+    finally:
+        sink.close()
+    assert backlog > 0, "the writer finished the flood before the check: raise n"
+    assert got == [good], "the sample before the flood is not in the file yet"
+    assert 0 < dropped[keys.state(1)]["count"] < n
+    assert read_recording(path).dropped_oversize[keys.state(1)]["count"] == n

@@ -79,8 +79,11 @@ def _samples(sc, series):
     return out
 
 
-def write_recording(path: Path, sc, series, *, metadata: bool = True, chunk_size: int = 1 << 20) -> int:
-    """Write a recording of ``series`` as the recorder does; returns the number of messages."""
+def write_recording(
+    path: Path, sc, series, *, metadata: bool = True, chunk_size: int = 1 << 20, extra_metadata: dict | None = None
+) -> int:
+    """Write a recording of ``series`` as the recorder does; returns the number of messages.
+    extra_metadata: more values for the ``zenswarm`` record."""
     samples = _samples(sc, series)
     with open(path, "wb") as f:
         w = Writer(f, chunk_size=chunk_size)
@@ -88,7 +91,7 @@ def write_recording(path: Path, sc, series, *, metadata: bool = True, chunk_size
         if metadata:
             w.add_metadata(
                 "zenswarm",
-                {"scenario_json": json.dumps(scenario_to_dict(sc)), "swarm": SWARM, "mode": "lockstep"},
+                {"scenario_json": json.dumps(scenario_to_dict(sc)), "swarm": SWARM, "mode": "lockstep", **(extra_metadata or {})},
             )
         channels: dict[str, int] = {}
         for n, (key, t, payload) in enumerate(samples):
@@ -120,7 +123,9 @@ def test_report_writes_every_figure_and_the_runs_results(flight, recording, tmp_
     path, _ = recording
     out = tmp_path / "report"
     assert cli_main(["report", str(path), "--out", str(out)]) == 0
-    printed = capsys.readouterr().out.split()
+    captured = capsys.readouterr()
+    printed = captured.out.split()
+    assert "warning" not in captured.err  # a complete, intact recording
     for name in report.FIGURES:
         f = out / name
         assert str(f) in printed
@@ -282,3 +287,36 @@ def test_truncated_recording_reports_what_it_holds(flight, tmp_path):
     assert res["sim_time_s"] == pytest.approx(T * sc.timing.dt)
     files = report.plot_links(fl, tmp_path / "links.png"), report.plot_clearance(fl.series, sc, tmp_path / "c.png")
     assert all(f.stat().st_size > 20_000 for f in files)
+
+
+def test_report_cli_warns_on_a_truncated_recording(flight, tmp_path):
+    """`zenswarm report` on a file cut short (the recorder was killed): exit 0, figures from what
+    was read, and a warning on stderr that says so and which sim time the report covers; payloads
+    the recorder did not record (oversize) are named too."""
+    import subprocess
+    import sys
+
+    sc, sim = flight
+    p = tmp_path / "cut.mcap"
+    dropped = {f"swarm/{SWARM}/uav/1/state": {"count": 4, "bytes": 400000, "largest": 100000, "limit": 65536}}
+    write_recording(
+        p, sc, sim.series, chunk_size=16 * 1024,
+        extra_metadata={"dropped_oversize_json": json.dumps(dropped), "payload_limit_bytes": "65536"},
+    )  # fmt: skip
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    out = tmp_path / "report"
+    cli = subprocess.run(
+        [sys.executable, "-m", "zenswarm", "report", str(p), "--out", str(out)],
+        cwd=EX1.parents[2], capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert cli.returncode == 0, cli.stderr
+    err = cli.stderr
+    assert f"report: warning: {p}: the recording is incomplete (" in err and "truncated" in err, err
+    assert "only what could be read from it is covered" in err
+    T = len(report.flight_from_recording(report.load_recording(p)).series.t)
+    assert 0 < T < len(sim.series.t)
+    assert f"the report covers sim time 0 to {T * sc.timing.dt:.2f} s of the {sc.timing.time_limit_s:g} s time limit" in err, err
+    assert "did not record 4 payloads (400000 bytes)" in err and f"swarm/{SWARM}/uav/1/state: 4" in err, err
+    assert "Traceback" not in err
+    assert all((out / f).exists() for f in report.FIGURES)
