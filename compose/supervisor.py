@@ -506,11 +506,17 @@ class Supervisor:
         if len(parts) == 3 and self.collector is not None:
             self.collector.token(parts[1], parts[2], str(sample.kind).endswith("PUT"))
 
+    @staticmethod
+    def _token_names(role: str) -> tuple[str, ...]:
+        """The processes whose token stands for ``role``: an external plant may be the MAVLink
+        bridge run by hand (``zenswarm bridge mavlink``), which announces itself as ``bridge``."""
+        return ("plant", "bridge") if role == "plant" else (role,)
+
     def _role_ended_normally(self, role: str, collector: Collector) -> bool:
         """A role's token went away: did it end its part of the flight? Yes if its last
         diagnostics say ``finished``, or if the plant's clock already reached the time limit (the
         flight is over: the others leave once the plant is gone)."""
-        if collector.diag.get(role, {}).get("finished") is True:
+        if any(collector.diag.get(p, {}).get("finished") is True for p in self._token_names(role)):
             return True
         return collector.sim_t_ns >= wire.t_ns(self.sc.timing.time_limit_s)
 
@@ -521,10 +527,11 @@ class Supervisor:
         ``--external-timeout`` too. Returns the exit code, or None while all is well."""
         a = self.args
         for role in self.external_roles():
-            if role in self.alive:
+            names = self._token_names(role)
+            if any(p in self.alive for p in names):
                 continue
             t = max(collector.sim_t_ns, 0) / 1e9
-            if role not in self.seen:
+            if not any(p in self.seen for p in names):
                 if now - since < a.external_timeout:
                     continue
                 self.say(f"external role {role} never announced itself within {a.external_timeout:g} s "
@@ -533,7 +540,7 @@ class Supervisor:
                 self.deaths.append({"process": role, "how": f"never announced itself within {a.external_timeout:g} s", "sim_time_s": t})
                 self.failed = role
                 return EXIT_PROCESS_FAILED
-            gone = self.gone_at.get(role)
+            gone = max((g for p in names if (g := self.gone_at.get(p)) is not None), default=None)
             if gone is None or now - gone[0] < EXTERNAL_GONE_GRACE_S or self._role_ended_normally(role, collector):
                 continue
             t = gone[1] / 1e9
@@ -553,7 +560,8 @@ class Supervisor:
             for name, c in self.children.items()
         ]
         for role in self.external_roles():
-            state = "up" if role in self.alive else ("gone" if role in self.seen else "waiting")
+            names = self._token_names(role)
+            state = "up" if any(p in self.alive for p in names) else ("gone" if any(p in self.seen for p in names) else "waiting")
             out.append(f"{role}:{state}(external)")
         return " ".join(out)
 

@@ -185,3 +185,63 @@ def test_bad_external_flags_exit_2_before_starting(tmp_path: Path) -> None:
     assert "--external-timeout" in bad_timeout.stdout and "positive" in bad_timeout.stdout, bad_timeout.stdout
     assert "Traceback" not in bad_role.stdout + bad_timeout.stdout
     assert not out.exists()
+
+
+def test_external_watch_logic_without_processes(tmp_path: Path) -> None:
+    """The supervisor's view of external roles, from liveliness events alone (no swarm): waiting,
+    up, a short absence, a death, a normal end; an external plant may be the MAVLink bridge run
+    by hand (it announces itself as ``bridge``)."""
+    from types import SimpleNamespace
+
+    from compose.supervisor import EXIT_PROCESS_FAILED, EXTERNAL_GONE_GRACE_S, Collector, Supervisor
+    from zenswarm import wire
+    from zenswarm.cli import build_parser
+    from zenswarm.config import load_scenario
+
+    scenario = scenario_variant(tmp_path, time_limit_s=2.0)
+    sc = load_scenario(scenario)
+
+    def supervisor(*extra: str) -> tuple[Supervisor, Collector]:
+        args = build_parser().parse_args(["up", str(scenario), "--swarm", "u", *extra])
+        sup = Supervisor(args, sc)
+        sup.connect_endpoints = ["tcp/127.0.0.1:7447"]
+        sup.collector = Collector(sc, sup.keys)
+        return sup, sup.collector
+
+    def token(sup: Supervisor, process: str, up: bool) -> None:
+        kind = "SampleKind.PUT" if up else "SampleKind.DELETE"
+        sup._on_liveliness(SimpleNamespace(key_expr=wire.Keys("u").alive(process), kind=kind))
+
+    sup, col = supervisor("--external", "plant", "--external", "agent:2", "--external-timeout", "5")
+    assert sup.external_roles() == ["plant", "agent:2"] and "agent:2" not in sup.roles()
+    t0 = 1000.0
+    assert sup._watch_external(col, t0 + 4.9, t0) is None
+    assert sup._health().endswith("plant:waiting(external) agent:2:waiting(external)")
+    token(sup, "bridge", True)  # the bridge in the plant's place
+    token(sup, "agent:2", True)
+    assert sup._watch_external(col, t0 + 6, t0) is None
+    assert sup._health().endswith("plant:up(external) agent:2:up(external)")
+    col.sim_t_ns = wire.t_ns(1.0)
+    token(sup, "agent:2", False)
+    now = sup.gone_at["agent:2"][0]
+    assert sup._watch_external(col, now + EXTERNAL_GONE_GRACE_S / 2, t0) is None  # within the grace
+    assert "agent:2:gone(external)" in sup._health()
+    assert sup._watch_external(col, now + EXTERNAL_GONE_GRACE_S + 0.01, t0) == EXIT_PROCESS_FAILED
+    assert sup.deaths == [{"process": "agent:2", "how": "liveliness token gone (external)", "sim_time_s": 1.0}]
+
+    # a normal end: finished diagnostics, or the clock at the time limit
+    sup, col = supervisor("--external", "agent:2")
+    token(sup, "agent:2", True)
+    col.diag["agent:2"] = {"finished": True}
+    token(sup, "agent:2", False)
+    assert sup._watch_external(col, time.monotonic() + 10, t0) is None
+    sup, col = supervisor("--external", "plant")
+    token(sup, "plant", True)
+    col.sim_t_ns = wire.t_ns(sc.timing.time_limit_s)
+    token(sup, "plant", False)
+    assert sup._watch_external(col, time.monotonic() + 10, t0) is None and sup.deaths == []
+
+    # never announced
+    sup, col = supervisor("--external", "leader", "--external-timeout", "2")
+    assert sup._watch_external(col, t0 + 2.5, t0) == EXIT_PROCESS_FAILED
+    assert sup.deaths[0]["process"] == "leader" and "never announced" in sup.deaths[0]["how"]
