@@ -45,6 +45,15 @@ COLLECTOR_QUEUE = 4_000_000
 
 EXIT_OK, EXIT_MISSION_FAILED, EXIT_BAD_INPUT, EXIT_PROCESS_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
+DEFAULT_EXTERNAL_TIMEOUT_S = 60.0
+"""``--external-timeout``: how long an external role may take to announce itself (the plant
+waits as long for the processes it needs before its first tick)."""
+
+EXTERNAL_GONE_GRACE_S = 0.5
+"""An external role's liveliness token must stay gone this long before the role counts as dead:
+its final diagnostics (``finished``), sent just before a normal exit, reach the collector's queue
+first but are read on the watch loop's next poll."""
+
 
 def role_names(n: int) -> list[str]:
     """Process names of a swarm of n UAVs, in start order."""
@@ -78,10 +87,11 @@ class Collector:
         self._live_keys = {k: (kind, i) for i in range(1, scenario.n + 1) for kind, k in (("state", keys.state(i)), ("ref", keys.ref(i)))}
         self._last: dict[tuple[str, int], bytes] = {}
         self.got_state = np.zeros((self.T, scenario.n), dtype=bool)  # a state message of (tick, UAV) arrived
-        # Who may publish what (an open swarm: in a secure one the router's access control does
-        # it, and no process declares alive/<process>/<zid>): as the processes' input guard, the
-        # first session that holds the key's sender token is pinned; another session is taken
-        # only once the pinned one's token is gone (a restarted process).
+        # Who may publish what (open and secure swarms; in a secure one the router also admits
+        # each key, and alive/<process>/<zid>, from its process's credentials only): as the
+        # processes' input guard, the first session that holds the key's sender token is pinned;
+        # another session (also one with the same credentials) is taken only once the pinned
+        # one's token is gone (a restarted process).
         self.holders: dict[str, set[str]] = {}  # process -> sessions holding alive/<process>/<zid>
         self.pins: dict[str, str] = {}  # key -> the session whose messages are taken
         self.foreign = 0  # samples ignored: not from their key's process
@@ -269,6 +279,8 @@ class Supervisor:
         self.stop_reason = ""
         self.print_lock = threading.Lock()
         self.alive: set[str] = set()
+        self.seen: set[str] = set()  # processes whose token appeared at least once
+        self.gone_at: dict[str, tuple[float, int]] = {}  # process -> when its token went away (monotonic s, sim ns)
         self.pending_kills: dict[str, int] = {role: wire.t_ns(t) for role, t in (args.kill or [])}
         self.policy = restart_policy(scenario.extra.get("restart"), force=args.restart)
         self.restart_at: dict[str, float] = {}
@@ -476,13 +488,30 @@ class Supervisor:
         self.say(f"secure mode: {'mutual TLS' if a.tls else 'user/password'} authentication, access control from the graph")
         return security.router_security_config(self.keys_dir, self.sc, a.swarm, auth=auth), listen
 
-    def roles(self) -> list[str]:
-        """The processes this supervisor starts, in start order (``--external`` ones excluded)."""
+    def all_roles(self) -> list[str]:
+        """Every role of this swarm (whoever starts it), in start order."""
         names = role_names(self.sc.n)
         if self.args.plant == "mavlink":
             names = ["vehicles", "bridge"] + names[1:]
+        return names
+
+    def roles(self) -> list[str]:
+        """The processes this supervisor starts, in start order (``--external`` ones excluded)."""
         external = set(self.args.external or [])
-        return [r for r in names if r not in external]
+        return [r for r in self.all_roles() if r not in external]
+
+    def external_roles(self) -> list[str]:
+        """The ``--external`` roles this supervisor watches through their liveliness tokens (the
+        simulated MAVLink vehicles have no Zenoh session: they cannot be watched)."""
+        external = set(self.args.external or [])
+        return [r for r in self.all_roles() if r in external and r != "vehicles"]
+
+    def check_external(self) -> None:
+        """Bad ``--external`` roles: exit 2 before anything starts."""
+        names = self.all_roles()
+        for r in self.args.external or []:
+            if r not in names:
+                raise ScenarioError("--external", f"unknown role {r!r} for this swarm: expected one of {', '.join(names)}")
 
     def _report(self, out: Path) -> None:
         """Flight report from the recording alone (``--report``); partial if the recorder died."""
@@ -511,8 +540,12 @@ class Supervisor:
             return
         if str(sample.kind).endswith("PUT"):
             self.alive.add(proc)
+            self.seen.add(proc)
+            self.gone_at.pop(proc, None)
         else:
             self.alive.discard(proc)
+            sim_t = self.collector.sim_t_ns if self.collector is not None else -1
+            self.gone_at[proc] = (time.monotonic(), max(sim_t, 0))
 
     def _on_sender_token(self, sample: Any) -> None:
         """``alive/<process>/<zid>``: which session is which process (for the collector)."""
@@ -591,6 +624,65 @@ class Supervisor:
             f"{self.args.record} holds what was written before (results.json: recording_loss){tail}"
         )
 
+    @staticmethod
+    def _token_names(role: str) -> tuple[str, ...]:
+        """The processes whose token stands for ``role``: an external plant may be the MAVLink
+        bridge run by hand (``zenswarm bridge mavlink``), which announces itself as ``bridge``."""
+        return ("plant", "bridge") if role == "plant" else (role,)
+
+    def _role_ended_normally(self, role: str, collector: Collector) -> bool:
+        """A role's token went away: did it end its part of the flight? Yes if its last
+        diagnostics say ``finished``, or if the plant's clock already reached the time limit (the
+        flight is over: the others leave once the plant is gone)."""
+        if any(collector.diag.get(p, {}).get("finished") is True for p in self._token_names(role)):
+            return True
+        return collector.sim_t_ns >= wire.t_ns(self.sc.timing.time_limit_s)
+
+    def _watch_external(self, collector: Collector, now: float, since: float) -> int | None:
+        """``--external`` roles, known only through their liveliness tokens: one whose token
+        went away before it finished is a process that died (exit 3; this supervisor did not
+        start it, so it cannot restart it), one that never announced itself within
+        ``--external-timeout`` too. Returns the exit code, or None while all is well."""
+        a = self.args
+        for role in self.external_roles():
+            names = self._token_names(role)
+            if any(p in self.alive for p in names):
+                continue
+            t = max(collector.sim_t_ns, 0) / 1e9
+            if not any(p in self.seen for p in names):
+                if now - since < a.external_timeout:
+                    continue
+                self.say(f"external role {role} never announced itself within {a.external_timeout:g} s "
+                         f"(--external-timeout); start it with `zenswarm up SCENARIO --only {role} --swarm {a.swarm} "
+                         f"--connect {self.connect_endpoints[0]}`; aborting")
+                self.deaths.append({"process": role, "how": f"never announced itself within {a.external_timeout:g} s", "sim_time_s": t})
+                self.failed = role
+                return EXIT_PROCESS_FAILED
+            gone = max((g for p in names if (g := self.gone_at.get(p)) is not None), default=None)
+            if gone is None or now - gone[0] < EXTERNAL_GONE_GRACE_S or self._role_ended_normally(role, collector):
+                continue
+            t = gone[1] / 1e9
+            self.say(f"process {role} died (external: its liveliness token went away) at sim time {t:.2f} s")
+            self.deaths.append({"process": role, "how": "liveliness token gone (external)", "sim_time_s": t})
+            if self.policy.enabled and self.policy.allows(role):
+                self.say(f"{role} is external: this supervisor did not start it and cannot restart it; aborting the mission")
+            self.failed = role
+            return EXIT_PROCESS_FAILED
+        return None
+
+    def _health(self) -> str:
+        """The roles' states for the progress line: ours (up, starting, exit N) and the external
+        ones (waiting until their token appears, up, gone)."""
+        out = [
+            f"{name}:{'up' if name in self.alive else ('exit ' + str(c.returncode) if c.returncode is not None else 'starting')}"
+            for name, c in self.children.items()
+        ]
+        for role in self.external_roles():
+            names = self._token_names(role)
+            state = "up" if any(p in self.alive for p in names) else ("gone" if any(p in self.seen for p in names) else "waiting")
+            out.append(f"{role}:{state}(external)")
+        return " ".join(out)
+
     def _watch(self, collector: Collector) -> int:
         sc = self.sc
         last_print = last_check = 0.0
@@ -638,6 +730,9 @@ class Supervisor:
                             self.say(f"{c.name}: restart limit ({self.policy.max_restarts}) reached; aborting the mission")
                         self.failed = c.name
                         return EXIT_PROCESS_FAILED
+            code = self._watch_external(collector, now, wall0)
+            if code is not None:
+                return code
             if done:
                 return EXIT_OK
             for role, at_ns in list(self.pending_kills.items()):
@@ -658,10 +753,7 @@ class Supervisor:
                 lq = collector.leader_q
                 dist = f"{np.linalg.norm(lq - goal):.3f} m" if lq is not None else "-"
                 el = now - wall0
-                health = " ".join(
-                    f"{name}:{'up' if name in self.alive else ('exit ' + str(c.returncode) if c.returncode is not None else 'starting')}"
-                    for name, c in self.children.items()
-                )
+                health = self._health()
                 self.say(
                     f"t={t:6.2f}/{sc.timing.time_limit_s:g} s  {t / el if el > 0 else 0:5.1f}x  leader->goal {dist}  {health}"
                 )
@@ -726,6 +818,7 @@ def _run_up(args: argparse.Namespace) -> int:
     if args.only:
         return _run_only(args)
     sup = Supervisor(args, sc)
+    sup.check_external()
     sup.t_start = time.monotonic()
     return sup.run()
 
@@ -750,6 +843,17 @@ def _run_only(args: argparse.Namespace) -> int:
     if args.keys is not None:
         argv += ["--keys", str(args.keys)] + (["--tls"] if args.tls else [])
     return cli_main(argv)
+
+
+def _positive_seconds(text: str) -> float:
+    """A duration in seconds > 0 (argparse turns the error into a usage error, exit 2)."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected seconds, e.g. 60") from None
+    if not 0 < x < float("inf"):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a positive number of seconds")
+    return x
 
 
 def _parse_kill(text: str) -> tuple[str, float]:
@@ -803,7 +907,17 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--external",
         action="append",
         metavar="ROLE",
-        help="a role started elsewhere (e.g. another host or network namespace with --only); not spawned here",
+        help="a role started elsewhere (e.g. another host or network namespace with --only); not spawned here, "
+        "watched through its liveliness token: if it goes away before the role finished, the swarm stops with "
+        "exit 3, as for a process of ours that died (an external role cannot be restarted from here)",
+    )
+    p.add_argument(
+        "--external-timeout",
+        type=_positive_seconds,
+        default=DEFAULT_EXTERNAL_TIMEOUT_S,
+        metavar="S",
+        help=f"seconds an --external role may take to announce itself before the swarm gives up with exit 3 "
+        f"(default {DEFAULT_EXTERNAL_TIMEOUT_S:g}); progress lines show it as waiting meanwhile",
     )
     p.add_argument(
         "--record",

@@ -303,15 +303,24 @@ def test_reconnected_sender_keeps_its_pin_and_may_jump() -> None:
     assert _feed(p, ref, _msg("ref", 3000, 5), "A2") is not None
 
 
-def test_secure_mode_trusts_the_router_and_accepts_a_restart() -> None:
-    p = _proc(keys=Path("/nonexistent"))
-    assert not p.check_sender
+def test_secure_mode_pins_senders_too_and_accepts_a_restart() -> None:
+    """Secure mode (--keys): the router admits only agent 2's credentials on its keys, but a second
+    session with those credentials is still foreign while the first holds agent 2's token; a
+    restart (the first token gone, the new session holding it) is taken with a fresh stream."""
+    p = _with_tokens(_proc(keys=Path("/nonexistent")))
+    assert p.check_sender
     ref = K.ref(2)
     assert _feed(p, ref, _msg("ref", 0, 1), "A2") is not None
     assert _feed(p, ref, _msg("ref", 1, 2), "A2") is not None
     assert _feed(p, ref, _msg("ref", 1, 3), "A2") is None  # duplicate
+    p.guard.token("agent:2", "A2copy", True)  # a second copy of agent 2, same credentials
+    assert _feed(p, ref, _msg("ref", 2, 1), "A2copy") is None
+    assert _diag(p)["rejected@uav/2/ref.foreign_sender"] == 1
+    p.guard.token("agent:2", "A2", False)
+    p.guard.token("agent:2", "A2copy", False)
+    p.guard.token("agent:2", "A2new", True)
     assert _feed(p, ref, _msg("ref", 200, 1), "A2new") is not None  # restarted: seq 1 again
-    assert _diag(p)["rejected.foreign_sender"] == 0
+    assert _diag(p)["rejected.foreign_sender"] == 1
 
 
 def test_lockstep_window_is_the_fault_horizon() -> None:

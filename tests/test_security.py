@@ -529,22 +529,39 @@ def test_acl_follows_the_graph(ex1):
         assert _allowed(acl, p, "declare_subscriber", "ingress") == row
         assert _allowed(acl, p, "put", "egress") == row
         assert _allowed(acl, p, "put", "ingress") == {k.ref(i), k.cmd(i), k.diag(p)}
-        assert _allowed(acl, p, "liveliness_token", "ingress") == {k.alive(p)}
+        # its token and its session's (alive/<p>/<zid>: the receivers pin its keys to it)
+        assert _allowed(acl, p, "liveliness_token", "ingress") == {k.alive(p), k.alive(p) + "/*"}
         assert _allowed(acl, p, "declare_queryable", "ingress") == set()
+        # it watches the processes it waits for, and the sender tokens of its inputs
+        deps = ["plant"] + [f"agent:{j + 1}" for j in A.neighbours(i - 1)] + (["leader"] if A.pinning[i - 1] > 0 else [])
+        watch = {k.alive(d) for d in deps} | {k.alive(d) + "/*" for d in deps + ["bridge"]}
+        assert _allowed(acl, p, "declare_liveliness_subscriber", "ingress") == watch
+        assert _allowed(acl, p, "liveliness_query", "ingress") == watch
+        assert _allowed(acl, p, "liveliness_token", "egress") == watch
     # the contract for paper example 1 (2 - 1 - 3, leader pinned to 1), spelled out
     assert _allowed(acl, "agent:2", "declare_subscriber", "ingress") == {k.state(2), k.ref(1)}
     assert _allowed(acl, "agent:1", "declare_subscriber", "ingress") == {k.state(1), k.ref(2), k.ref(3), k.leader_ref}
     for p in ("plant", "bridge"):
         assert _allowed(acl, p, "put", "ingress") == {"swarm/g/uav/*/state", k.clock, k.diag(p)}
-        assert _allowed(acl, p, "liveliness_query", "ingress") == {k.alive_all}
+        agents_zid = {k.alive(f"agent:{i}") + "/*" for i in range(1, ex1.n + 1)}
+        assert _allowed(acl, p, "liveliness_query", "ingress") == {k.alive_all} | agents_zid
+        assert _allowed(acl, p, "liveliness_token", "ingress") == {k.alive(p), k.alive(p) + "/*"}
     assert _allowed(acl, "plant", "declare_subscriber", "ingress") == {"swarm/g/uav/*/cmd"}
     assert _allowed(acl, "bridge", "declare_subscriber", "ingress") == {"swarm/g/uav/*/cmd", "swarm/g/uav/*/ref"}
     assert _allowed(acl, "leader", "put", "ingress") == {k.leader_ref, k.diag("leader")}
     assert _allowed(acl, "leader", "declare_queryable", "ingress") == {k.mission}
     assert _allowed(acl, "leader", "declare_subscriber", "ingress") == {k.clock}
+    # the leader keeps its token until the plant is gone, so it must see the plant's token (and
+    # the clock's senders' session tokens), and nothing else
+    leader_watch = {k.alive("plant"), k.alive("plant") + "/*", k.alive("bridge") + "/*"}
+    assert _allowed(acl, "leader", "declare_liveliness_subscriber", "ingress") == leader_watch
+    assert _allowed(acl, "leader", "liveliness_query", "ingress") == leader_watch
+    assert _allowed(acl, "leader", "liveliness_token", "egress") == leader_watch
+    assert _allowed(acl, "leader", "liveliness_token", "ingress") == {k.alive("leader"), k.alive("leader") + "/*"}
     for p in ("recorder", "supervisor"):
         assert _allowed(acl, p, "declare_subscriber", "ingress") == {k.all}
         assert _allowed(acl, p, "put", "ingress") == {k.diag(p)}
+        assert _allowed(acl, p, "liveliness_token", "ingress") == {k.alive(p)}
     assert {s["id"]: s["usernames"] for s in acl["subjects"]}["g.agent-2"] == ["agent-2@g"]
     tls = acl_rules(ex1, "g", auth="tls")
     assert {s["id"]: s["cert_common_names"] for s in tls["subjects"]}["g.agent-2"] == ["agent:2"]
@@ -700,3 +717,46 @@ def test_liveliness_and_mission_only_from_their_owners(spawn, tmp_path, ex1):
     assert {s["key"] for s in recorder.got()} == honest
     assert {s["key"] for s in router.got()} == honest  # the supervisor's liveliness view
     assert set(plant.send(op="alive_get", key=k.alive_all, timeout=1.0)["keys"]) == honest
+
+
+def test_session_tokens_only_from_their_owners_and_seen_by_their_receivers(spawn, tmp_path, ex1):
+    """alive/<p>/<zid> (which session is process p; the input guard pins each key to it): only p's
+    credentials may declare it, and exactly the processes that receive p's messages see it. The
+    leader sees the plant's token (it stays until the plant is gone: without it, it lingered
+    30 s after every secure flight)."""
+    swarm = "zid"
+    k = wire.Keys(swarm)
+    m = generate_credentials(ex1, tmp_path / "k", swarm)
+    router = start_router(spawn, m, ex1, swarm, "usrpwd", alive_sub=f"{k.prefix}/alive/*/*")
+    plant, leader, a1, a2, a3 = join(spawn, router, m.root, "usrpwd", "plant", "leader", "agent:1", "agent:2", "agent:3")
+    leader.send(op="alive_sub", key=k.alive("plant"))
+    leader.send(op="alive_sub", key=k.alive("plant") + "/*")
+    plant.send(op="alive_sub", key=k.alive("agent:2") + "/*")
+    plant.send(op="alive_sub", key=k.alive("agent:3") + "/*")
+    a1.send(op="alive_sub", key=k.alive("agent:2") + "/*")  # UAV 2 is agent 1's neighbour
+    a2.send(op="alive_sub", key=k.alive("agent:3") + "/*")  # UAV 3 is not agent 2's
+    a2.send(op="alive_sub", key=k.alive("leader"))  # agent 2 is not pinned: it does not wait for the leader
+    plant.send(op="token", key=k.alive("plant"))
+    plant.send(op="token", key=k.alive("plant") + "/zp")
+    leader.send(op="token", key=k.alive("leader"))
+    a2.send(op="token", key=k.alive("agent:2") + "/z2")
+    a3.send(op="token", key=k.alive("agent:3") + "/z3")
+    a2.send(op="token", key=k.alive("agent:3") + "/forged")  # another agent's session token
+    a2.send(op="token", key=k.alive("plant") + "/forged")  # the plant's
+    a1.send(op="token", key=k.alive("agent:3") + "/forged1")
+    # controls: allowed tokens reach their watchers through the same router
+    leader.wait_for(key=k.alive("plant"))
+    leader.wait_for(key=k.alive("plant") + "/zp")
+    plant.wait_for(key=k.alive("agent:2") + "/z2")
+    a1.wait_for(key=k.alive("agent:2") + "/z2")
+    router.wait_for(key=k.alive("agent:2") + "/z2")
+    plant.wait_for(key=k.alive("agent:3") + "/z3")
+    time.sleep(DENY_WAIT_S)
+    assert {s["key"] for s in leader.got()} == {k.alive("plant"), k.alive("plant") + "/zp"}
+    assert {s["key"] for s in plant.got()} == {k.alive("agent:2") + "/z2", k.alive("agent:3") + "/z3"}, \
+        "a forged session token reached the plant"
+    assert {s["key"] for s in a1.got()} == {k.alive("agent:2") + "/z2"}
+    # (a session shows its own tokens to its own subscribers without the router: agent 2 sees the
+    # token it forged itself, and nothing from the others)
+    assert {s["key"] for s in a2.got()} == {k.alive("agent:3") + "/forged"}, "agent 2 watched tokens outside its graph row"
+    assert {s["key"] for s in router.got()} == {k.alive("plant") + "/zp", k.alive("agent:2") + "/z2", k.alive("agent:3") + "/z3"}

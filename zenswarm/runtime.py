@@ -13,16 +13,19 @@ Each reject is counted per key and per reason (:data:`GUARD_REASONS` beside the 
 :data:`zenswarm.wire.REASONS`) and shows up in the process's diag counters as ``rejected``,
 ``rejected.<reason>`` and ``rejected@<key>.<reason>`` (``<key>`` without ``swarm/<name>/``).
 
-Sender identity (open swarms). :meth:`SwarmProcess.publish` stamps every sample with the
+Sender identity. :meth:`SwarmProcess.publish` stamps every sample with the
 publisher's ``zenoh.SourceInfo`` (zenoh 1.10 does not fill it in by itself: ``Sample.source_info``
 is None unless the publisher sets it), and :meth:`SwarmProcess.announce` declares, beside the
 process's token ``alive/<process>``, a second liveliness token ``alive/<process>/<zid>`` that
 ties the process name to its session id. A receiver pins, per key, the session id of the sender
 it accepts; samples from any other session are ``foreign_sender`` unless the pinned session's
 token is gone and the new one holds the expected sender's token (a restarted process). The ids are
-not authenticated (any client can forge a ``SourceInfo``): this guards against mistakes (a process
-started with the wrong ``--id``, a stray tool), not an attacker; secure mode (``--keys``) relies
-on the router's access control instead and skips the check.
+not authenticated (any client can forge a ``SourceInfo``). In an open swarm this guards against
+mistakes (a process started with the wrong ``--id``, a stray tool), not an attacker. In secure mode
+(``--keys``) the router's access control already admits only the right process to each key, and
+to the sender token ``alive/<process>/*``; the same pinning then also turns away a second session
+that presents that process's credentials (a copy started twice, stolen keys), unless it forges
+the first session's id in its ``SourceInfo`` as well.
 """
 
 from __future__ import annotations
@@ -243,8 +246,9 @@ class InputGuard:
        token and the new one does (or nobody does yet): a restarted process, accepted again with a
        fresh stream. Before anything is pinned, a session is rejected if others hold the expected
        sender's token and it does not. Tokens are reported with :meth:`token`. Without
-       ``check_sender`` (secure mode: the router's access control admits only the right process)
-       a new session on a key is that process restarted: a fresh stream, no reject.
+       ``check_sender`` (for a receiver that trusts whoever may publish on the key; swarm
+       processes always check) a new session on a key is that process restarted: a fresh
+       stream, no reject.
     3. ``stale``: seq not greater than the newest accepted on this key (repeated or older seq).
     4. ``duplicate``: a tick this key already delivered (the last 64 kept).
     5. ``past``: older than this key's newest tick, or (lockstep, once ticking) older than
@@ -384,7 +388,7 @@ class InputGuard:
                     else:
                         return "foreign_sender"
             elif st.pin is not None and zid != st.pin:
-                repin = True  # secure mode: only the process itself may publish here; a new session is its restart
+                repin = True  # no sender check: a new session is the process restarted
             fresh = repin or st.pin is None
             last_tick = None if fresh else st.last_tick
             if not fresh and st.last_seq is not None and seq <= st.last_seq:
@@ -522,8 +526,9 @@ class SwarmProcess:
         self._links: dict[str, tuple[str, str, str]] = {}
         self._alive: dict[str, bool] = {}
         self._alive_subs: list[Any] = []
-        # input hardening (see the module docstring): sender pinning only in an open swarm
-        self.check_sender = getattr(args, "keys", None) is None
+        # input hardening (see the module docstring): sender pinning, open or secure swarm (the
+        # secure router admits alive/<process>/<zid> from the process's own credentials only)
+        self.check_sender = True
         self._guard: InputGuard | None = None
         self._watched_senders: set[str] = set()
         self._zid_token = None
@@ -772,8 +777,8 @@ class SwarmProcess:
         pub.put(wire.encode(msg), source_info=si)
 
     def announce(self) -> None:
-        """Declare this process's liveliness token: all its subscriptions are in place. In an
-        open swarm also ``alive/<process>/<zid>``: which session is this process."""
+        """Declare this process's liveliness token: all its subscriptions are in place. Also
+        ``alive/<process>/<zid>``: which session is this process (the receivers pin to it)."""
         if self.check_sender and self._zid_token is None:
             self._zid_token = self.session.liveliness().declare_token(f"{self.keys.alive(self.name)}/{self.session.zid()}")
         self._token = self.session.liveliness().declare_token(self.keys.alive(self.name))

@@ -578,6 +578,13 @@ def _grants(process: str, sc: Scenario, k: wire.Keys) -> list[tuple[tuple[str, .
     *include* the declared expression, so a rule on the process's own keys would hide the plant's
     ``uav/*/cmd`` and the recorder's ``swarm/<name>/**`` and the puts would be dropped at the
     publisher (observed with 1.10.2).
+
+    Liveliness: every process declares ``alive/<self>``; the swarm's processes (not the recorder
+    and the supervisor) also ``alive/<self>/<zid>``, which session is this process: the receivers'
+    input guard pins each key to the session holding its sender's token, so a second session with
+    the same credentials is a foreign sender. Each watches exactly the tokens it follows:
+    ``alive/<p>`` of the processes it waits for or outlives (the leader: the plant, whose exit
+    ends the flight) and ``alive/<p>/*`` of its inputs' senders.
     """
     P = k.prefix
     own_alive = k.alive(process)
@@ -591,6 +598,18 @@ def _grants(process: str, sc: Scenario, k: wire.Keys) -> list[tuple[tuple[str, .
         (("liveliness_query", "declare_liveliness_subscriber"), "ingress", [k.alive_all]),
         (("liveliness_token",), "egress", [k.alive_all]),
     ]
+    agents = [wire.agent(j) for j in range(1, sc.n + 1)]
+
+    def watching(tokens: list[str]) -> list[tuple[tuple[str, ...], str, list[str]]]:
+        # a liveliness subscriber with history also queries: both need the tokens sent back
+        return [
+            (("liveliness_query", "declare_liveliness_subscriber"), "ingress", tokens),
+            (("liveliness_token",), "egress", tokens),
+        ]
+
+    def sender_tokens(names: list[str]) -> list[str]:
+        return [k.alive(p) + "/*" for p in names]
+
     i = wire.process_uav(process)
     if i is not None:  # agent i: its graph row, nothing more
         if i > sc.n:
@@ -599,20 +618,18 @@ def _grants(process: str, sc: Scenario, k: wire.Keys) -> list[tuple[tuple[str, .
         sub += [k.state(i)] + [k.ref(j + 1) for j in sc.graph.neighbours(i - 1)]
         if sc.graph.pinning[i - 1] > 0:
             sub.append(k.leader_ref)
-        # an agent watches the liveliness of the processes it waits for (not to wait on the dead)
-        deps = ["plant"] + [f"agent:{j + 1}" for j in sc.graph.neighbours(i - 1)]
-        deps += ["leader"] if sc.graph.pinning[i - 1] > 0 else []
-        watch = [k.alive(p) for p in deps]
-        extra += query_mission + [
-            (("liveliness_query", "declare_liveliness_subscriber"), "ingress", watch),
-            (("liveliness_token",), "egress", watch),
-        ]
+        # an agent watches the liveliness of the processes it waits for (not to wait on the dead),
+        # and the sender tokens of its inputs (its state comes from the plant or the bridge)
+        nbrs = [wire.agent(j + 1) for j in sc.graph.neighbours(i - 1)]
+        lead = ["leader"] if sc.graph.pinning[i - 1] > 0 else []
+        watch = [k.alive(p) for p in ["plant"] + nbrs + lead] + sender_tokens(["plant", "bridge"] + nbrs + lead)
+        extra += query_mission + watching(watch)
     elif process in ("plant", "bridge"):
         pub += [f"{P}/uav/*/state", k.clock]
         sub += [f"{P}/uav/*/cmd"]
         if process == "bridge":  # the MAVLink bridge forwards commands, or references as position setpoints
             sub += [f"{P}/uav/*/ref"]
-        extra += query_mission + liveliness_watch
+        extra += query_mission + liveliness_watch + watching(sender_tokens(agents))
     elif process == "leader":
         pub += [k.leader_ref]
         sub += [k.clock]
@@ -620,7 +637,9 @@ def _grants(process: str, sc: Scenario, k: wire.Keys) -> list[tuple[tuple[str, .
             (("declare_queryable", "reply"), "ingress", [k.mission]),
             (("query",), "egress", [k.mission]),
         ]
-        extra += query_mission
+        # it keeps its token until the plant is gone (the end of a lockstep flight), and follows
+        # who sends the clock
+        extra += query_mission + watching([k.alive("plant")] + sender_tokens(["plant", "bridge"]))
     elif process in ("recorder", "supervisor"):
         sub += [k.all]
         extra += query_mission + [
@@ -632,7 +651,8 @@ def _grants(process: str, sc: Scenario, k: wire.Keys) -> list[tuple[tuple[str, .
     grants: list[tuple[tuple[str, ...], str, list[str]]] = [
         (("put",), "ingress", pub),
         (("declare_subscriber",), "egress", [k.all]),
-        (("liveliness_token",), "ingress", [own_alive]),
+        # its token, and (a swarm process, not the observers) its session's: alive/<self>/<zid>
+        (("liveliness_token",), "ingress", [own_alive] + ([] if process in ("recorder", "supervisor") else [own_alive + "/*"])),
     ]
     if sub:
         grants += [(("declare_subscriber",), "ingress", sub), (("put",), "egress", sub)]
@@ -652,13 +672,17 @@ def acl_rules(
     :func:`username`) or by TLS certificate common name = process name (``auth="tls"``); a
     session that matches no subject can do nothing. Per role (``P = swarm/<name>``; every process
     may also put ``P/diag/<self>``, declare its liveliness token ``P/alive/<self>`` and query
-    ``P/mission``):
+    ``P/mission``; the swarm's processes (not the recorder and the supervisor) also declare their
+    session's token ``P/alive/<self>/<zid>`` and liveliness-subscribe ``P/alive/<p>/*`` of the
+    processes p that send them their inputs):
 
     * ``agent:<i>``: put ``uav/<i>/ref``, ``uav/<i>/cmd``; subscribe ``uav/<i>/state``,
       ``uav/<j>/ref`` for its neighbours j (a_ij > 0) and ``leader/ref`` if pinned (b_i > 0);
+      liveliness-subscribe ``alive/<p>`` of the plant, its neighbours and (if pinned) the leader;
     * ``plant``, ``bridge``: put ``uav/*/state``, ``clock``; subscribe ``uav/*/cmd`` (the
       bridge also ``uav/*/ref``, for position setpoints); liveliness query/subscribe ``alive/*``;
     * ``leader``: put ``leader/ref``; subscribe ``clock``; queryable and replies on ``mission``;
+      liveliness-subscribe ``alive/plant`` (it keeps its token until the plant is gone);
     * ``recorder``, ``supervisor``: subscribe and liveliness-subscribe ``P/**`` (read only).
 
     ``processes`` restricts the policy to some processes (default: all of :func:`process_names`).
