@@ -153,7 +153,8 @@ def compute_results(
 
 def add_failure(res: dict[str, Any], cause: str, detail: str, t_s: float | None = None, **more: Any) -> None:
     """Add a failure the flight's states cannot show (``process_died``, ``interrupted``) to a
-    results dict, in place of the ``incomplete`` it explains; the run is then not a success."""
-    res["failures"] = [f for f in res["failures"] if f["cause"] != "incomplete"]
+    results dict, in place of the ``incomplete`` or ``no_data`` it explains; the run is then not a
+    success."""
+    res["failures"] = [f for f in res["failures"] if f["cause"] not in ("incomplete", "no_data")]
     res["failures"].append({"cause": cause, "t_s": t_s, "detail": detail, "uavs": [], **more})
     res["success"] = False
