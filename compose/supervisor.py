@@ -26,15 +26,17 @@ import numpy as np
 import zenoh
 
 from zenswarm import bus, security, wire
+from zenswarm.argtypes import positive_float
 from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.linkfaults import add_fault_args, fault_argv, plan_for
+from zenswarm.paths import check_output_dir, check_output_file
 from zenswarm.runtime import expected_senders, sample_sender
 
 from .policy import restart_policy
 from zenswarm.metrics import TimeSeries, compute_results
 
-__all__ = ["add_parsers", "Collector", "Supervisor", "role_names"]
+__all__ = ["add_parsers", "Collector", "Supervisor", "role_names", "swarm_roles", "check_up_args"]
 
 COLLECTOR_QUEUE = 4_000_000
 """Capacity of the supervisor's bus queue, in messages (drained every ~50 ms, so it never fills)."""
@@ -45,6 +47,14 @@ EXIT_OK, EXIT_MISSION_FAILED, EXIT_BAD_INPUT, EXIT_PROCESS_FAILED, EXIT_INTERRUP
 def role_names(n: int) -> list[str]:
     """Process names of a swarm of n UAVs, in start order."""
     return ["plant", "leader"] + [f"agent:{i}" for i in range(1, n + 1)]
+
+
+def swarm_roles(n: int, plant: str = "sim") -> list[str]:
+    """The roles ``zenswarm up --plant PLANT`` runs for n UAVs, in start order (the recorder,
+    started first with ``--record``, aside): with ``mavlink`` the simulated vehicles and the
+    bridge take the plant's place."""
+    names = role_names(n)
+    return ["vehicles", "bridge"] + names[1:] if plant == "mavlink" else names
 
 
 class Collector:
@@ -438,9 +448,7 @@ class Supervisor:
 
     def roles(self) -> list[str]:
         """The processes this supervisor starts, in start order (``--external`` ones excluded)."""
-        names = role_names(self.sc.n)
-        if self.args.plant == "mavlink":
-            names = ["vehicles", "bridge"] + names[1:]
+        names = swarm_roles(self.sc.n, self.args.plant)
         external = set(self.args.external or [])
         return [r for r in names if r not in external]
 
@@ -586,9 +594,42 @@ class Supervisor:
         return EXIT_OK if res["success"] else EXIT_MISSION_FAILED
 
 
+def check_up_args(args: argparse.Namespace, sc: Scenario) -> None:
+    """Every flag of ``zenswarm up`` that names something (a role, an endpoint, an output path)
+    is checked against ``sc`` before anything starts: :class:`ScenarioError` naming the flag,
+    exit status 2, no process started and nothing lost."""
+    bus.check_endpoint_syntax(args.listen or [], "--listen", listen=True)
+    bus.check_endpoint_syntax(args.connect or [], "--connect")
+    bus.check_endpoint_syntax(args.router_connect or [], "--router-connect")
+    if args.only:
+        if args.only not in role_names(sc.n):
+            raise ScenarioError("--only", f"unknown role {args.only!r}: this swarm's roles are {', '.join(role_names(sc.n))}")
+        return  # one role here: nothing else is started, nothing written
+    names = swarm_roles(sc.n, args.plant)
+    external = list(args.external or [])
+    for r in external:
+        if r not in names:
+            raise ScenarioError("--external", f"unknown role {r!r}: this swarm's roles are {', '.join(names)}")
+    started = [r for r in names if r not in external] + (["recorder"] if args.record is not None else [])
+    for role, t in args.kill or []:
+        if role in started:
+            continue
+        if role in external:
+            why = "is --external, not started here"
+        elif role == "recorder":
+            why = "runs only with --record"
+        else:
+            why = f"is not a process of this swarm ({sc.n} UAVs)"
+        raise ScenarioError("--kill", f"{role}@{t:g}s: {role} {why}; processes started here: {', '.join(started)}")
+    check_output_dir(args.out, "--out")
+    if args.record is not None:
+        check_output_file(args.record, "--record")
+
+
 def _run_up(args: argparse.Namespace) -> int:
     sc = load_scenario(args.scenario)
     plan_for(sc, args.link_delay, args.link_jitter, args.link_loss, args.partition, args.seed)  # bad flags: exit 2 now
+    check_up_args(args, sc)
     if args.only:
         return _run_only(args)
     sup = Supervisor(args, sc)
@@ -716,7 +757,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         metavar="ROLE",
         help="run a single role here (plant, leader, agent:<i>) against a router elsewhere (--connect)",
     )
-    p.add_argument("--lockstep-timeout", type=float, default=5.0, metavar="S", help="lockstep input wait before a drop (default 5 s)")
+    p.add_argument(
+        "--lockstep-timeout",
+        type=positive_float,
+        default=5.0,
+        metavar="S",
+        help="lockstep input wait (wall seconds, > 0) before a drop (default 5 s)",
+    )
     p.add_argument(
         "--kill",
         action="append",

@@ -906,6 +906,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_keys(args: argparse.Namespace) -> int:
+    from .paths import check_output_dir
+
+    check_output_dir(args.out, "--out")
     m = generate_credentials(
         args.scenario, args.out, args.swarm, router_hosts=args.router_host, days=args.days, force=args.force
     )
