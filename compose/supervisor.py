@@ -437,12 +437,34 @@ class Supervisor:
             why = "secure mode" if (a.secure or a.tls or a.keys is not None) else "secure mode (the default when the router is not on loopback only)"
             raise security.CredentialsError(f"{why}: {e}") from None
         if a.keys is not None:
+            # the user's own credentials: checked, never rewritten
             self.keys_dir = a.keys
+            try:
+                why = security.manifest_mismatch(security.load_manifest(a.keys), self.sc, a.swarm)
+            except security.CredentialsError as e:
+                raise ScenarioError("--keys", str(e)) from None
+            if why:
+                raise ScenarioError(
+                    "--keys",
+                    f"the credentials in {a.keys} {why}; generate matching ones with "
+                    f"`zenswarm keys SCENARIO --swarm {a.swarm} --out DIR` (see docs/security.md)",
+                )
         else:
+            # generated for this OUT: reused while they fit this swarm, else generated again
             self.keys_dir = out / "keys"
-            if not (self.keys_dir / "manifest.json").exists():
-                security.generate_credentials(self.sc, self.keys_dir, a.swarm)
-                self.say(f"generated credentials for this run in {self.keys_dir}")
+            check_output_dir(self.keys_dir, "--out")
+            why = None
+            if (self.keys_dir / security.MANIFEST_FILE).exists():
+                try:
+                    why = security.manifest_mismatch(security.load_manifest(self.keys_dir), self.sc, a.swarm, all_files=True)
+                except security.CredentialsError as e:
+                    why = f"are unreadable ({e})"
+            if why is not None or not (self.keys_dir / security.MANIFEST_FILE).exists():
+                security.generate_credentials(self.sc, self.keys_dir, a.swarm, force=True)
+                if why is None:
+                    self.say(f"generated credentials for this run in {self.keys_dir}")
+                else:
+                    self.say(f"regenerated the credentials in {self.keys_dir}: the previous ones {why}")
         self.say(f"secure mode: {'mutual TLS' if a.tls else 'user/password'} authentication, access control from the graph")
         return security.router_security_config(self.keys_dir, self.sc, a.swarm, auth=auth), listen
 

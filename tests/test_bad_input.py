@@ -40,10 +40,10 @@ def _bad(r, *needles: str) -> None:
         assert n in r.stdout, f"{n!r} not in {r.stdout!r}"
 
 
-def _up_refused(tmp: Path, *args: str, needles: tuple[str, ...], scenario: Path = EX1) -> None:
+def _up_refused(tmp: Path, *args: str, needles: tuple[str, ...], scenario: Path = EX1, swarm: str | None = None) -> None:
     """``zenswarm up`` refuses at once: exit 2 naming what is wrong, no process of the swarm
     left (none started), nothing written to OUT."""
-    swarm = unique_swarm("bad")
+    swarm = swarm or unique_swarm("bad")
     out = tmp / f"out_{swarm}"
     t0 = time.monotonic()
     r = zenswarm("up", str(scenario), "--swarm", swarm, "--out", str(out), "--quiet", *args, timeout=60)
@@ -226,3 +226,88 @@ def test_endpoint_syntax_accepts_what_zenoh_dials() -> None:
     with pytest.raises(ScenarioError) as ei:
         bus.check_endpoint_syntax(["tcp/0.0.0.0:0"], "--connect")
     assert ei.value.field == "--connect"
+
+
+# ----------------------------------------------------------------------------- 4. credentials of another swarm
+
+
+def _keys(tmp: Path, scenario: Path, swarm: str, name: str) -> Path:
+    out = tmp / name
+    r = zenswarm("keys", str(scenario), "--out", str(out), "--swarm", swarm, timeout=60)
+    assert r.returncode == 0, r.stdout
+    return out
+
+
+def _four_uavs(tmp: Path) -> Path:
+    p = tmp / "four.toml"
+    r = zenswarm("scenario", "generate", "--n", "4", "--out", str(p), timeout=60)
+    assert r.returncode == 0, r.stdout
+    return p
+
+
+def test_keys_flag_of_another_swarm_or_size_is_refused_and_kept(tmp_path: Path) -> None:
+    """--keys are the user's: never rewritten; not matching the swarm or the scenario -> exit 2."""
+    swarm = unique_swarm("beta")
+    other_swarm = _keys(tmp_path, EX1, "alpha", "k_alpha")
+    four = _keys(tmp_path, _four_uavs(tmp_path), swarm, "k_four")
+    manifests = {d: (d / "manifest.json").read_bytes() for d in (other_swarm, four)}
+    _up_refused(tmp_path, "--keys", str(other_swarm), needles=("--keys", "swarm 'alpha'", "zenswarm keys"))
+    _up_refused(tmp_path, "--keys", str(four), needles=("--keys", "4 UAVs", "the 3 of scenario 'paper_example1'"), swarm=swarm)
+    _up_refused(tmp_path, "--keys", str(tmp_path / "none"), needles=("--keys", "no manifest"))
+    assert {d: (d / "manifest.json").read_bytes() for d in manifests} == manifests
+
+
+def _security_of(out: Path, swarm: str, *extra: str):
+    """Supervisor._security for `up EX1 --secure --out OUT --swarm SWARM` (no process started)."""
+    from compose.supervisor import Supervisor
+    from zenswarm.cli import build_parser
+    from zenswarm.config import load_scenario
+
+    args = build_parser().parse_args(["up", str(EX1), "--secure", "--out", str(out), "--swarm", swarm, "--quiet", *extra])
+    sup = Supervisor(args, load_scenario(EX1))
+    sup._security(["tcp/127.0.0.1:7447"], out)
+    return sup
+
+
+def test_generated_keys_are_reused_while_they_fit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    _security_of(out, "gamma")
+    assert "generated credentials for this run" in capsys.readouterr().out
+    before = (out / "keys" / "manifest.json").read_bytes()
+    _security_of(out, "gamma")
+    assert "generated" not in capsys.readouterr().out
+    assert (out / "keys" / "manifest.json").read_bytes() == before
+    _security_of(out, "delta")  # the same OUT for another swarm: generated again, and said so
+    said = capsys.readouterr().out
+    assert "regenerated the credentials" in said and "swarm 'gamma', not 'delta'" in said
+    assert '"swarm": "delta"' in (out / "keys" / "manifest.json").read_text()
+    (out / "keys" / "router" / "usrpwd.txt").unlink()  # a damaged tree is generated again too
+    _security_of(out, "delta")
+    assert "is missing" in capsys.readouterr().out and (out / "keys" / "router" / "usrpwd.txt").is_file()
+
+
+def test_keys_in_place_of_the_keys_directory(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keys").write_text("not a directory")
+    with pytest.raises(ScenarioError) as ei:
+        _security_of(out, "eps")
+    assert ei.value.field == "--out" and "keys" in ei.value.message
+
+
+def test_up_regenerates_keys_left_in_out_by_another_swarm(tmp_path: Path) -> None:
+    """A reused --out whose OUT/keys were generated for a 4-UAV scenario: the run generates this
+    scenario's, says so, and flies."""
+    import shutil
+
+    scenario = _variant(tmp_path, "short", lambda d: d["timing"].update(time_limit_s=0.3, settle_time_s=0.1))
+    out = tmp_path / "out"
+    out.mkdir()
+    swarm = unique_swarm("rk")
+    shutil.copytree(_keys(tmp_path, _four_uavs(tmp_path), swarm, "k_four"), out / "keys")
+    r = zenswarm("up", str(scenario), "--secure", "--swarm", swarm, "--out", str(out), "--quiet", "--quiet-children", timeout=180)
+    assert r.returncode in (0, 1), r.stdout[-3000:]  # 0.3 s: the goal is not reached, the flight completes
+    assert "regenerated the credentials" in r.stdout and "4 UAVs" in r.stdout, r.stdout[-3000:]
+    assert f'"swarm": "{swarm}"' in (out / "keys" / "manifest.json").read_text()
+    assert not (out / "keys" / "agent-4").exists()
+    assert (out / "results.json").exists() and processes_mentioning(swarm) == []
