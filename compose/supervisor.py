@@ -732,7 +732,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--external",
         action="append",
         metavar="ROLE",
-        help="a role started elsewhere (e.g. another host or network namespace with --only); not spawned here",
+        help="a role started elsewhere (e.g. another host or network namespace with --only); not spawned here. "
+        "One of plant, leader, agent:1..N (vehicles, bridge with --plant mavlink)",
     )
     p.add_argument(
         "--record",
@@ -791,7 +792,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         action="append",
         type=_parse_kill,
         metavar="ROLE@T",
-        help="inject a SIGKILL into ROLE when sim time reaches T, e.g. agent:2@10s (repeatable; for tests and demos)",
+        help="inject a SIGKILL into ROLE when sim time reaches T, e.g. agent:2@10s; ROLE must be a process started "
+        "here (plant, leader, agent:1..N, the recorder with --record; not --external ones) (repeatable; for tests and demos)",
     )
     p.add_argument(
         "--restart",

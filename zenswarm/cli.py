@@ -18,8 +18,8 @@ Quick start:
   zenswarm sim compose/scenarios/paper_example1.toml --out runs/sim1
   zenswarm up  compose/scenarios/paper_example1.toml --out runs/ex1
 
-Exit codes: 0 success, 1 mission failed, 2 bad input (the message names the field or file),
-3 a swarm process failed.
+Exit codes: 0 success, 1 mission failed, 2 bad input (the message names the field, flag or file;
+checked before any work starts, output paths included), 3 a swarm process failed, 130 interrupted.
 """
 
 

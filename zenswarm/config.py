@@ -17,6 +17,12 @@ The sections and their meaning (see ``compose/scenarios/paper_example1.toml`` fo
 ``[controller]`` kp (3,), kd (3,), yaw (eq. 28 and the inversion after it)
 ``[vehicle]``    optional overrides of the Crazyflie 2.1 parameters (see :mod:`plant.params`)
 ``[disturbance]`` wind, sine_amplitude, sine_freq_hz, gust_std, gust_tau_s (accelerations, m/s^2)
+
+Bounds, so that a valid scenario can be run (``zenswarm scenario check``, ``sim`` and ``up``
+agree, all three load through here): ``scenario.seed`` in [0, 2**63 - 1]; at most
+:data:`MAX_CONTROL_TICKS` (10 million) control ticks and at least one; at most
+:data:`MAX_SUBSTEPS` (1000) physics sub-steps per tick; control rate at most 1 MHz; at most
+:data:`MAX_UAV_TICKS` (50 million) UAV-ticks; the sim time within the wire's 10 days.
 """
 
 from __future__ import annotations
