@@ -16,8 +16,11 @@ __all__ = ["add_parsers"]
 
 
 def _run_recover(args: argparse.Namespace) -> int:
+    from zenswarm.paths import check_output_file
+
     from .mcapio import recover
 
+    check_output_file(args.out, "--out")
     st = recover(args.src, args.out)
     span = ""
     if st.first_log_time is not None and st.last_log_time is not None:

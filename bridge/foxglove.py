@@ -705,6 +705,9 @@ def export_foxglove(recording: str | Path, out: str | Path, *, scene_hz: float =
 
 
 def _run_export(args: argparse.Namespace) -> int:
+    from zenswarm.paths import check_output_file
+
+    check_output_file(args.out, "--out")
     s = export_foxglove(args.foxglove, args.out, scene_hz=args.scene_hz, trail_s=args.trail_s)
     skipped = ", ".join(f"{n} {why}" for why, n in sorted(s.skipped.items())) or "none"
     print(

@@ -66,6 +66,7 @@ from typing import Any, Final
 import msgpack
 
 from zenswarm import __version__, bus, security, wire
+from zenswarm.paths import check_output_file
 
 from .mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME
 
@@ -476,7 +477,7 @@ def run(args: argparse.Namespace) -> int:
     if args.scenario is not None:
         scenario = scenario_to_dict(load_scenario(args.scenario))
     connect = args.connect or ["tcp/127.0.0.1:7447"]
-    out: Path = args.out
+    out: Path = check_output_file(args.out, "--out")  # before joining: exit 2, nothing recorded in vain
     conf = bus.client_config(
         connect,
         connect_timeout_s=args.connect_timeout,

@@ -45,6 +45,7 @@ from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import RecordingError, ScenarioError, ZenswarmError
 from zenswarm.geometry import d_obs_many, obstacle_clearance_many
 from zenswarm.metrics import TimeSeries, compute_results
+from zenswarm.paths import check_output_dir
 
 __all__ = [
     "METADATA_NAME",
@@ -635,6 +636,7 @@ def report_recording(
 def _run_report(args: argparse.Namespace) -> int:
     if (args.recording is None) == (args.series is None):
         args._parser.error("give either a recording FILE or --series NPZ --scenario TOML")
+    check_output_dir(args.out, "--out")
     if args.series is not None:
         if args.scenario is None:
             args._parser.error("--series needs --scenario (the scenario the series was flown with)")

@@ -26,16 +26,18 @@ import numpy as np
 import zenoh
 
 from zenswarm import bus, security, wire
+from zenswarm.argtypes import positive_float
 from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.linkfaults import add_fault_args, fault_argv, plan_for
+from zenswarm.paths import check_output_dir, check_output_file
 from zenswarm.runtime import expected_senders, sample_sender
 
 from .policy import restart_policy
 from zenswarm import verdict
 from zenswarm.metrics import TimeSeries, add_failure, compute_results
 
-__all__ = ["add_parsers", "Collector", "Supervisor", "role_names"]
+__all__ = ["add_parsers", "Collector", "Supervisor", "role_names", "swarm_roles", "check_up_args"]
 
 LIVE_CHECK_S = 0.25
 """Wall seconds between two looks at whether the flight's outcome is decided (early end)."""
@@ -58,6 +60,14 @@ first but are read on the watch loop's next poll."""
 def role_names(n: int) -> list[str]:
     """Process names of a swarm of n UAVs, in start order."""
     return ["plant", "leader"] + [f"agent:{i}" for i in range(1, n + 1)]
+
+
+def swarm_roles(n: int, plant: str = "sim") -> list[str]:
+    """The roles ``zenswarm up --plant PLANT`` runs for n UAVs, in start order (the recorder,
+    started first with ``--record``, aside): with ``mavlink`` the simulated vehicles and the
+    bridge take the plant's place."""
+    names = role_names(n)
+    return ["vehicles", "bridge"] + names[1:] if plant == "mavlink" else names
 
 
 class Collector:
@@ -479,21 +489,40 @@ class Supervisor:
             why = "secure mode" if (a.secure or a.tls or a.keys is not None) else "secure mode (the default when the router is not on loopback only)"
             raise security.CredentialsError(f"{why}: {e}") from None
         if a.keys is not None:
+            # the user's own credentials: checked, never rewritten
             self.keys_dir = a.keys
+            try:
+                why = security.manifest_mismatch(security.load_manifest(a.keys), self.sc, a.swarm)
+            except security.CredentialsError as e:
+                raise ScenarioError("--keys", str(e)) from None
+            if why:
+                raise ScenarioError(
+                    "--keys",
+                    f"the credentials in {a.keys} {why}; generate matching ones with "
+                    f"`zenswarm keys SCENARIO --swarm {a.swarm} --out DIR` (see docs/security.md)",
+                )
         else:
+            # generated for this OUT: reused while they fit this swarm, else generated again
             self.keys_dir = out / "keys"
-            if not (self.keys_dir / "manifest.json").exists():
-                security.generate_credentials(self.sc, self.keys_dir, a.swarm)
-                self.say(f"generated credentials for this run in {self.keys_dir}")
+            check_output_dir(self.keys_dir, "--out")
+            why = None
+            if (self.keys_dir / security.MANIFEST_FILE).exists():
+                try:
+                    why = security.manifest_mismatch(security.load_manifest(self.keys_dir), self.sc, a.swarm, all_files=True)
+                except security.CredentialsError as e:
+                    why = f"are unreadable ({e})"
+            if why is not None or not (self.keys_dir / security.MANIFEST_FILE).exists():
+                security.generate_credentials(self.sc, self.keys_dir, a.swarm, force=True)
+                if why is None:
+                    self.say(f"generated credentials for this run in {self.keys_dir}")
+                else:
+                    self.say(f"regenerated the credentials in {self.keys_dir}: the previous ones {why}")
         self.say(f"secure mode: {'mutual TLS' if a.tls else 'user/password'} authentication, access control from the graph")
         return security.router_security_config(self.keys_dir, self.sc, a.swarm, auth=auth), listen
 
     def all_roles(self) -> list[str]:
         """Every role of this swarm (whoever starts it), in start order."""
-        names = role_names(self.sc.n)
-        if self.args.plant == "mavlink":
-            names = ["vehicles", "bridge"] + names[1:]
-        return names
+        return swarm_roles(self.sc.n, self.args.plant)
 
     def roles(self) -> list[str]:
         """The processes this supervisor starts, in start order (``--external`` ones excluded)."""
@@ -505,13 +534,6 @@ class Supervisor:
         simulated MAVLink vehicles have no Zenoh session: they cannot be watched)."""
         external = set(self.args.external or [])
         return [r for r in self.all_roles() if r in external and r != "vehicles"]
-
-    def check_external(self) -> None:
-        """Bad ``--external`` roles: exit 2 before anything starts."""
-        names = self.all_roles()
-        for r in self.args.external or []:
-            if r not in names:
-                raise ScenarioError("--external", f"unknown role {r!r} for this swarm: expected one of {', '.join(names)}")
 
     def _report(self, out: Path) -> None:
         """Flight report from the recording alone (``--report``); partial if the recorder died."""
@@ -810,15 +832,45 @@ class Supervisor:
         return EXIT_OK if res["success"] else EXIT_MISSION_FAILED
 
 
+def check_up_args(args: argparse.Namespace, sc: Scenario) -> None:
+    """Every flag of ``zenswarm up`` that names something (a role, an endpoint, an output path)
+    is checked against ``sc`` before anything starts: :class:`ScenarioError` naming the flag,
+    exit status 2, no process started and nothing lost."""
+    bus.check_endpoint_syntax(args.listen or [], "--listen", listen=True)
+    bus.check_endpoint_syntax(args.connect or [], "--connect")
+    bus.check_endpoint_syntax(args.router_connect or [], "--router-connect")
+    if args.only:
+        if args.only not in role_names(sc.n):
+            raise ScenarioError("--only", f"unknown role {args.only!r}: this swarm's roles are {', '.join(role_names(sc.n))}")
+        return  # one role here: nothing else is started, nothing written
+    names = swarm_roles(sc.n, args.plant)
+    external = list(args.external or [])
+    for r in external:
+        if r not in names:
+            raise ScenarioError("--external", f"unknown role {r!r}: this swarm's roles are {', '.join(names)}")
+    started = [r for r in names if r not in external] + (["recorder"] if args.record is not None else [])
+    for role, t in args.kill or []:
+        if role in started:
+            continue
+        if role in external:
+            why = "is --external, not started here"
+        elif role == "recorder":
+            why = "runs only with --record"
+        else:
+            why = f"is not a process of this swarm ({sc.n} UAVs)"
+        raise ScenarioError("--kill", f"{role}@{t:g}s: {role} {why}; processes started here: {', '.join(started)}")
+    check_output_dir(args.out, "--out")
+    if args.record is not None:
+        check_output_file(args.record, "--record")
+
+
 def _run_up(args: argparse.Namespace) -> int:
     sc = load_scenario(args.scenario)
     plan_for(sc, args.link_delay, args.link_jitter, args.link_loss, args.partition, args.seed)  # bad flags: exit 2 now
-    if args.record is None and any(role == "recorder" for role, _ in args.kill or []):
-        raise ScenarioError("--kill", "recorder@T needs --record FILE.mcap: without it no recorder is started")
+    check_up_args(args, sc)
     if args.only:
         return _run_only(args)
     sup = Supervisor(args, sc)
-    sup.check_external()
     sup.t_start = time.monotonic()
     return sup.run()
 
@@ -907,9 +959,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--external",
         action="append",
         metavar="ROLE",
-        help="a role started elsewhere (e.g. another host or network namespace with --only); not spawned here, "
-        "watched through its liveliness token: if it goes away before the role finished, the swarm stops with "
-        "exit 3, as for a process of ours that died (an external role cannot be restarted from here)",
+        help="a role started elsewhere (e.g. another host or network namespace with --only); not spawned here: "
+        "one of plant, leader, agent:1..N (vehicles, bridge with --plant mavlink). Watched through its liveliness "
+        "token: if it goes away before the role finished, the swarm stops with exit 3, as for a process of ours "
+        "that died (an external role cannot be restarted from here)",
     )
     p.add_argument(
         "--external-timeout",
@@ -965,15 +1018,22 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         metavar="ROLE",
         help="run a single role here (plant, leader, agent:<i>) against a router elsewhere (--connect)",
     )
-    p.add_argument("--lockstep-timeout", type=float, default=5.0, metavar="S", help="lockstep input wait before a drop (default 5 s)")
+    p.add_argument(
+        "--lockstep-timeout",
+        type=positive_float,
+        default=5.0,
+        metavar="S",
+        help="lockstep input wait (wall seconds, > 0) before a drop (default 5 s)",
+    )
     p.add_argument(
         "--kill",
         action="append",
         type=_parse_kill,
         metavar="ROLE@T",
-        help="inject a SIGKILL into ROLE when sim time reaches T, e.g. agent:2@10s or recorder@5s (repeatable; for "
-        "tests and demos). The recorder is not a vehicle: its death is reported (results.json: recording_loss), "
-        "the flight goes on",
+        help="inject a SIGKILL into ROLE when sim time reaches T, e.g. agent:2@10s; ROLE must be a process started "
+        "here (plant, leader, agent:1..N, the recorder with --record; not --external ones) (repeatable; for tests "
+        "and demos). The recorder is not a vehicle: its death is reported (results.json: recording_loss), the "
+        "flight goes on",
     )
     p.add_argument(
         "--restart",

@@ -230,6 +230,9 @@ REJECTIONS: list[tuple[str, Mutator, str, tuple[str, ...]]] = [
     ("integer too large for a float", _set("leader/k_att", 10**400), "leader.k_att", ("finite", "too large")),
     ("string adaptive", _set("leader/adaptive", "yes"), "leader.adaptive", ("true or false",)),
     ("negative seed", _set("scenario/seed", -1), "scenario.seed", ("non-negative integer",)),
+    ("seed of 2**80", _set("scenario/seed", 2**80), "scenario.seed", ("<= 2**63 - 1", str(2**80))),
+    ("seed of 2**63", _set("scenario/seed", 2**63), "scenario.seed", ("<= 2**63 - 1",)),
+    ("float seed", _set("scenario/seed", 1.5), "scenario.seed", ("non-negative integer",)),
     ("empty name", _set("scenario/name", ""), "scenario.name", ("non-empty",)),
     # graph
     ("asymmetric adjacency", _set("graph/adjacency", [[0.0, 1.0, 1.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]),
@@ -252,6 +255,19 @@ REJECTIONS: list[tuple[str, Mutator, str, tuple[str, ...]]] = [
     ("physics rate slower than control", _set("timing/physics_rate_hz", 50.0), "timing.physics_rate_hz",
      ("whole multiple",)),
     ("control rate zero", _set("timing/control_rate_hz", 0.0), "timing.control_rate_hz", ("> 0",)),
+    # bounds: a valid scenario must be runnable (time_limit_s = 1e12 tried to allocate 728 TiB)
+    ("absurd time limit", _set("timing/time_limit_s", 1e12), "timing.time_limit_s",
+     ("1e+14 control ticks", "at most 10,000,000", "100000 s")),
+    ("time limit of inf ticks", lambda d: d["timing"].update(time_limit_s=1e300, control_rate_hz=1e300, physics_rate_hz=1e300),
+     "timing.control_rate_hz", ("<= 1e+06",)),
+    ("one tick too many", _set("timing/time_limit_s", 100_000.01), "timing.time_limit_s", ("at most 10,000,000",)),
+    ("less than one tick", _set("timing/time_limit_s", 0.001), "timing.time_limit_s", ("less than one control tick",)),
+    ("too many sub-steps", _set("timing/physics_rate_hz", 100.0 * 1001), "timing.physics_rate_hz",
+     ("at most 1000 physics sub-steps", "1001")),
+    ("control rate too fast", lambda d: d["timing"].update(control_rate_hz=2e6, physics_rate_hz=2e6),
+     "timing.control_rate_hz", ("<= 1e+06",)),
+    ("sim time beyond the wire's 10 days", lambda d: d["timing"].update(control_rate_hz=1.0, physics_rate_hz=100.0,
+     time_limit_s=900_000.0), "timing.time_limit_s", ("10 days",)),
     # start or goal inside an obstacle inflated by r_f (obstacle 1: base centre (1.00, 0.45, 0), r_o 0.14, h_o 0.4)
     ("start inside inflated cylinder", _set("leader/start", [1.00 + 0.14 + 0.2, 0.45, 0.2]), "leader.start",
      ("obstacles[0]", "r_f=0.277")),
@@ -270,6 +286,32 @@ def test_rejects(mutate: Mutator, field: str, needles: tuple[str, ...]) -> None:
     d = base()
     mutate(d)
     reject(d, field, *needles)
+
+
+def test_bounds_accept_their_edges() -> None:
+    """The largest seed, exactly MAX_CONTROL_TICKS ticks, MAX_SUBSTEPS sub-steps and one tick are valid."""
+    from zenswarm.config import MAX_CONTROL_TICKS, MAX_SEED, MAX_SUBSTEPS
+
+    d = base()
+    d["scenario"]["seed"] = MAX_SEED
+    d["timing"].update(time_limit_s=MAX_CONTROL_TICKS / 100.0, physics_rate_hz=100.0 * MAX_SUBSTEPS)
+    s = scenario_from_dict(d)
+    assert (s.seed, s.timing.n_ticks, s.timing.substeps) == (MAX_SEED, MAX_CONTROL_TICKS, MAX_SUBSTEPS)
+    d["timing"].update(time_limit_s=0.01)
+    assert scenario_from_dict(d).timing.n_ticks == 1
+
+
+def test_uav_ticks_bound_scales_with_n() -> None:
+    """3 UAVs x 10 M ticks fit; the message for a larger product names the time that would fit."""
+    from zenswarm.config import MAX_UAV_TICKS
+
+    d = base()
+    d["timing"]["time_limit_s"] = 99_000.0  # 9.9 M ticks x 3 UAVs < 50 M
+    assert scenario_from_dict(d).timing.n_ticks * 3 <= MAX_UAV_TICKS
+    d["formation"]["offsets"] = [[0.1 * i, 0.0, 0.0] for i in range(6)]
+    d["formation"]["initial_positions"] = [[0.1 * i, 0.0, 0.4] for i in range(6)]
+    d["graph"] = {"adjacency": [[0.0] * 6] * 6, "pinning": [1.0] * 6}
+    reject(d, "timing.time_limit_s", "6 UAVs", "50,000,000 UAV-ticks", "at most 83333.3 s")
 
 
 def test_rejection_is_a_zenswarm_error() -> None:

@@ -204,6 +204,7 @@ def test_names_time_limit_and_gains() -> None:
         dict(n=3, spacing=0.0),
         dict(n=3, spacing=math.nan),
         dict(n=3, seed=-1),
+        dict(n=3, seed=2**63),
         dict(n=3, n_obstacles=-1),
     ],
 )
@@ -335,10 +336,15 @@ def test_cli_defaults_and_errors(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert args.func(args) == 2
     assert "cannot place" in capsys.readouterr().err and not bad.exists()
 
-    # missing directory: exit 2, no traceback
+    # missing directories are created, as for every other output file
     args = _parser().parse_args(["generate", "--out", str(tmp_path / "no" / "such" / "dir.toml")])
-    assert args.func(args) == 2
-    assert "cannot write" in capsys.readouterr().err
+    assert args.func(args) == 0
+    assert load_scenario(tmp_path / "no" / "such" / "dir.toml").n == 3
+    # a file where a directory is needed: exit 2 naming --out, nothing written
+    from zenswarm import cli
+
+    assert cli.main(["scenario", "generate", "--out", str(out / "x.toml")]) == 2
+    assert "--out" in capsys.readouterr().err
 
     for argv in (["generate"], ["generate", "--n", "0", "--out", "x"], ["generate", "--shape", "blob", "--out", "x"],
                  ["generate", "--spacing", "-1", "--out", "x"], ["generate", "--obstacles", "-2", "--out", "x"]):

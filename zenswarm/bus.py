@@ -46,7 +46,7 @@ from typing import Any, Final
 
 import zenoh
 
-from .errors import ZenswarmError
+from .errors import ScenarioError, ZenswarmError
 from .wire import InvalidKeyError, Keys, validate_process
 
 __all__ = [
@@ -60,6 +60,7 @@ __all__ = [
     "free_port",
     "free_udp_block",
     "tcp_endpoint",
+    "check_endpoint_syntax",
     "apply_settings",
     "router_config",
     "client_config",
@@ -161,6 +162,42 @@ def free_udp_block(n: int, host: str = "127.0.0.1") -> int:
 def tcp_endpoint(port: int, host: str = "127.0.0.1") -> str:
     """Zenoh locator ``tcp/<host>:<port>``."""
     return f"tcp/{host}:{port}"
+
+
+_IP_PROTOCOLS: Final = ("tcp", "udp", "tls", "quic", "ws")
+_OTHER_PROTOCOLS: Final = ("unixsock-stream", "unixpipe", "vsock", "serial")
+
+
+def check_endpoint_syntax(endpoints: Sequence[str], flag: str, *, listen: bool = False) -> list[str]:
+    """Check zenoh endpoints given on the command line before anything starts; returns them.
+
+    Each must be ``<protocol>/<address>[?<metadata>][#<config>]`` with a protocol zenoh knows;
+    for ``tcp``, ``udp``, ``tls``, ``quic`` and ``ws`` the address is ``<host>:<port>`` with a
+    port in 1..65535 (0, any free port, only where ``listen``). zenoh itself parses only the
+    outline and would fail later, in each process. Raises :class:`ScenarioError` naming
+    ``flag`` and the endpoint. (Whether the host resolves and answers is not checked here.)
+    """
+    out = []
+    for e in endpoints:
+        ep = str(e)
+        proto, sep, rest = ep.partition("/")
+        addr = rest.split("#", 1)[0].split("?", 1)[0]
+        example = "e.g. tcp/127.0.0.1:7447"
+        if not sep or not addr:
+            raise ScenarioError(flag, f"{ep!r} is not a zenoh endpoint: expected <protocol>/<address>, {example}")
+        if proto not in _IP_PROTOCOLS + _OTHER_PROTOCOLS:
+            raise ScenarioError(flag, f"{ep!r}: unknown protocol {proto!r} (expected one of {', '.join(_IP_PROTOCOLS)}, ...), {example}")
+        if proto in _IP_PROTOCOLS:
+            host, colon, port = addr.rpartition(":")
+            lo = 0 if listen else 1
+            if not colon or not host.strip("[]") or not port.isdigit() or not lo <= int(port) <= 65535:
+                raise ScenarioError(flag, f"{ep!r}: expected {proto}/<host>:<port> with a port in {lo}..65535, {example}")
+        try:
+            zenoh.Config().insert_json5("connect/endpoints", json.dumps([ep]))
+        except Exception as x:  # zenoh raises ZError
+            raise ScenarioError(flag, f"{ep!r} is not a zenoh endpoint: {str(x).split(' at ', 1)[0]}") from None
+        out.append(ep)
+    return out
 
 
 def apply_settings(conf: zenoh.Config, settings: Mapping[str, Any]) -> zenoh.Config:

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+from .argtypes import positive_float
 from .errors import ZenswarmError
 
 EPILOG = """\
@@ -17,8 +18,8 @@ Quick start:
   zenswarm sim compose/scenarios/paper_example1.toml --out runs/sim1
   zenswarm up  compose/scenarios/paper_example1.toml --out runs/ex1
 
-Exit codes: 0 success, 1 mission failed, 2 bad input (the message names the field or file),
-3 a swarm process failed.
+Exit codes: 0 success, 1 mission failed, 2 bad input (the message names the field, flag or file;
+checked before any work starts, output paths included), 3 a swarm process failed, 130 interrupted.
 """
 
 
@@ -40,7 +41,7 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-eso", action="store_true", help="disable the ESO disturbance compensation (d_hat = 0 in eq. 28)")
     p.add_argument(
         "--fixed-gain",
-        type=float,
+        type=positive_float,
         metavar="K",
         help="use the fixed-gain APF with K_rep = K instead of the adaptive gain (12), for comparison",
     )
@@ -64,11 +65,14 @@ def _run_sim(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from .linkfaults import plan_from_args
+    from .paths import check_output_dir
 
     sc = apply_overrides(load_scenario(args.scenario), no_eso=args.no_eso, fixed_gain=args.fixed_gain)
     if args.seed is not None:
         sc = replace(sc, seed=args.seed)
-    return run_sim_cli(sc, args.out, quiet=args.quiet, faults=plan_from_args(sc, args), full_time=args.full_time)
+    faults = plan_from_args(sc, args)
+    check_output_dir(args.out, "--out")  # before the flight: a run must not be lost at the end
+    return run_sim_cli(sc, args.out, quiet=args.quiet, faults=faults, full_time=args.full_time)
 
 
 def _add_scenario(sub: argparse._SubParsersAction) -> None:

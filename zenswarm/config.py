@@ -20,6 +20,12 @@ The sections and their meaning (see ``compose/scenarios/paper_example1.toml`` fo
 ``[mission]``    how the flight is judged (:mod:`zenswarm.verdict`): slot_tolerance_m,
                  settle_window_s, stall_speed_m_s, stall_window_s, divergence_m
 ``[disturbance]`` wind, sine_amplitude, sine_freq_hz, gust_std, gust_tau_s (accelerations, m/s^2)
+
+Bounds, so that a valid scenario can be run (``zenswarm scenario check``, ``sim`` and ``up``
+agree, all three load through here): ``scenario.seed`` in [0, 2**63 - 1]; at most
+:data:`MAX_CONTROL_TICKS` (10 million) control ticks and at least one; at most
+:data:`MAX_SUBSTEPS` (1000) physics sub-steps per tick; control rate at most 1 MHz; at most
+:data:`MAX_UAV_TICKS` (50 million) UAV-ticks; the sim time within the wire's 10 days.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from .errors import ScenarioError
+from .wire import MAX_T_NS
 
 __all__ = [
     "Obstacle",
@@ -51,7 +58,35 @@ __all__ = [
     "scenario_from_dict",
     "scenario_to_dict",
     "formation_radius",
+    "MAX_SEED",
+    "MAX_CONTROL_TICKS",
+    "MAX_SUBSTEPS",
+    "MAX_CONTROL_RATE_HZ",
+    "MAX_UAV_TICKS",
+    "check_seed",
+    "seed_arg",
 ]
+
+# ----------------------------------------------------------------------------- bounds
+# Bounds that keep a valid scenario runnable: every one of them is checked on load, so
+# `zenswarm scenario check`, `zenswarm sim` and `zenswarm up` agree on what is valid.
+
+MAX_SEED = 2**63 - 1
+"""Largest ``scenario.seed`` (and ``--seed``): the seed travels in the mission message and the
+recording's metadata as a signed 64-bit integer."""
+
+MAX_CONTROL_TICKS = 10_000_000
+"""Most control ticks in a mission (``time_limit_s * control_rate_hz``): 27.8 h at 100 Hz."""
+
+MAX_SUBSTEPS = 1000
+"""Most physics sub-steps per control tick (``physics_rate_hz / control_rate_hz``)."""
+
+MAX_CONTROL_RATE_HZ = 1e6
+"""Fastest control rate: a tick of at least 1 us (sim time travels as integer nanoseconds)."""
+
+MAX_UAV_TICKS = 50_000_000
+"""Most UAV-ticks (``N * ticks``): the flight's time series, about 180 bytes per UAV and tick,
+is held in memory (9 GB at this bound)."""
 
 
 @dataclass(frozen=True)
@@ -252,6 +287,32 @@ def formation_radius(offsets: Any) -> float:
 # ----------------------------------------------------------------------------- parsing helpers
 
 
+def check_seed(value: Any, field: str = "scenario.seed") -> int:
+    """``value`` as a seed: an integer in [0, :data:`MAX_SEED`]; else :class:`ScenarioError`
+    naming ``field`` (``scenario.seed``, ``--seed``). The one check of every seed zenswarm takes."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ScenarioError(field, f"expected a non-negative integer, got {value!r}")
+    v = int(value)
+    if not 0 <= v <= MAX_SEED:
+        raise ScenarioError(field, f"expected a non-negative integer <= 2**63 - 1 ({MAX_SEED}), got {v}")
+    return v
+
+
+def seed_arg(text: str) -> int:
+    """argparse ``type`` of ``--seed`` flags: :func:`check_seed` of an integer literal (a usage
+    error, exit status 2, otherwise)."""
+    import argparse
+
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
+    try:
+        return check_seed(v, "--seed")
+    except ScenarioError as e:
+        raise argparse.ArgumentTypeError(e.message) from None
+
+
 def _finite(path: str, x: Any) -> float:
     if isinstance(x, bool) or not isinstance(x, (int, float)):
         raise ScenarioError(path, f"expected a number, got {type(x).__name__} {x!r}")
@@ -343,9 +404,7 @@ def scenario_from_dict(d: dict[str, Any]) -> Scenario:
     desc = sc.get("description", "")
     if not isinstance(desc, str):
         raise ScenarioError("scenario.description", "expected a string")
-    seed = sc.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ScenarioError("scenario.seed", f"expected a non-negative integer, got {seed!r}")
+    seed = check_seed(sc.get("seed", 0), "scenario.seed")
 
     t = _check_keys(
         "timing",
@@ -465,14 +524,54 @@ def scenario_from_dict(d: dict[str, Any]) -> Scenario:
     return scen
 
 
-def validate(s: Scenario) -> None:
-    """Cross-field checks; raises :class:`ScenarioError` naming the field."""
-    ratio = s.timing.physics_rate_hz / s.timing.control_rate_hz
+def _validate_timing(s: Scenario) -> None:
+    """The rates and the time limit fit the bounds above (a run that could not allocate or whose
+    sim time would not fit the wire is refused on load, naming the field)."""
+    tm = s.timing
+    check_seed(s.seed, "scenario.seed")
+    if tm.control_rate_hz > MAX_CONTROL_RATE_HZ:
+        raise ScenarioError("timing.control_rate_hz", f"must be <= {MAX_CONTROL_RATE_HZ:g} Hz, got {tm.control_rate_hz:g}")
+    ratio = tm.physics_rate_hz / tm.control_rate_hz
     if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
         raise ScenarioError(
             "timing.physics_rate_hz",
-            f"must be a whole multiple of timing.control_rate_hz ({s.timing.physics_rate_hz} / {s.timing.control_rate_hz} = {ratio})",
+            f"must be a whole multiple of timing.control_rate_hz ({tm.physics_rate_hz} / {tm.control_rate_hz} = {ratio})",
         )
+    if round(ratio) > MAX_SUBSTEPS:
+        raise ScenarioError(
+            "timing.physics_rate_hz",
+            f"at most {MAX_SUBSTEPS} physics sub-steps per control tick, got {tm.physics_rate_hz:g} / "
+            f"{tm.control_rate_hz:g} = {round(ratio)}",
+        )
+    ticks = tm.time_limit_s * tm.control_rate_hz  # a float: never an absurd int or array first
+    if ticks > MAX_CONTROL_TICKS:
+        raise ScenarioError(
+            "timing.time_limit_s",
+            f"{tm.time_limit_s:g} s at {tm.control_rate_hz:g} Hz is {ticks:.3g} control ticks; at most "
+            f"{MAX_CONTROL_TICKS:,} ({MAX_CONTROL_TICKS / tm.control_rate_hz:g} s at this rate)",
+        )
+    if tm.n_ticks < 1:
+        raise ScenarioError(
+            "timing.time_limit_s", f"{tm.time_limit_s:g} s is less than one control tick ({tm.dt:g} s)"
+        )
+    if tm.n_ticks * s.n > MAX_UAV_TICKS:
+        raise ScenarioError(
+            "timing.time_limit_s",
+            f"{s.n} UAVs x {tm.n_ticks:,} ticks is more than {MAX_UAV_TICKS:,} UAV-ticks (the flight's time series "
+            f"is held in memory); at most {MAX_UAV_TICKS // s.n / tm.control_rate_hz:g} s with {s.n} UAVs at this rate",
+        )
+    # the leader publishes a few ticks ahead of the plant; every sim time must fit the wire's bound
+    if (tm.n_ticks + 16) * tm.dt > MAX_T_NS / 1e9:
+        raise ScenarioError(
+            "timing.time_limit_s",
+            f"{tm.time_limit_s:g} s of sim time (plus 16 ticks of {tm.dt:g} s) exceeds the wire's bound of "
+            f"{MAX_T_NS / 1e9:g} s (10 days)",
+        )
+
+
+def validate(s: Scenario) -> None:
+    """Cross-field checks; raises :class:`ScenarioError` naming the field."""
+    _validate_timing(s)
     if s.leader.k_rep_max < s.leader.k_rep_min:
         raise ScenarioError("leader.k_rep_max", f"must be >= leader.k_rep_min ({s.leader.k_rep_max} < {s.leader.k_rep_min})")
 
@@ -522,7 +621,7 @@ def _validate_extra(s: Scenario) -> None:
     if "faults" in s.extra:
         from .faults import plan_from_scenario
 
-        plan_from_scenario(s.extra["faults"], s.seed)
+        plan_from_scenario(s.extra["faults"], s.seed, s.n)
     if "failsafe" in s.extra:
         from plant.failsafe import failsafe_config
 

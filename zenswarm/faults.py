@@ -127,6 +127,7 @@ __all__ = [
     "parse_loss",
     "plan_from_cli",
     "plan_from_scenario",
+    "check_exists",
     "agent_links",
     "plant_links",
 ]
@@ -267,6 +268,17 @@ def _parse_target(text: str) -> str:
         return parse_process(text)
     except ValueError as e:
         raise ValueError(f"invalid partition target {text!r}: {e}") from None
+
+
+def check_exists(path: str, target: str, n: int | None) -> None:
+    """Raise :class:`ScenarioError` naming ``path`` when ``target`` (a process, a link
+    ``src->dst`` or a glob) names an agent beyond the scenario's ``n`` UAVs; ``n=None``: no check."""
+    if n is None:
+        return
+    for part in target.split("->"):
+        m = _PROC_RE.match(part.strip())
+        if m and m.group(2) is not None and not 1 <= int(m.group(2)) <= n:
+            raise ScenarioError(path, f"{part.strip()} does not exist: the scenario has {n} UAVs (agent:1 to agent:{n})")
 
 
 def _parse_end(text: str) -> float:
@@ -961,12 +973,14 @@ def plan_from_cli(
     partitions: Iterable[str] = (),
     seed: int = 0,
     base: FaultPlan | None = None,
+    n: int | None = None,
 ) -> FaultPlan:
     """The whole-swarm shortcuts ``--link-delay 50ms --link-jitter 10ms --link-loss 0.2
     --partition agent:2@10s-13s`` as a plan.
 
     Given values replace the fields of ``base.default`` (a plan from the scenario; its per-link
     entries and partitions are kept); partitions are added. ``seed`` replaces ``base.seed``.
+    ``n``, if given, is the number of UAVs: a partition of ``agent:<i>`` with i > n is refused.
     Raises :class:`ScenarioError` whose field is the flag (``--link-loss``).
     """
     base = base if base is not None else FaultPlan(seed=seed)
@@ -993,6 +1007,7 @@ def plan_from_cli(
             parts.append(parse_partition(text))
         except ValueError as e:
             raise ScenarioError("--partition", str(e)) from None
+        check_exists("--partition", parts[-1].process_or_link, n)
     default = LinkFaultSpec(delay, jitter, loss, d.burst, d.partitions)
     return FaultPlan(default, dict(base.per_link), seed, tuple(parts))
 
@@ -1080,7 +1095,7 @@ def _endpoint_field(path: str, x: Any) -> str:
         raise ScenarioError(path, str(e)) from None
 
 
-def plan_from_scenario(section: Mapping[str, Any] | None, seed: int) -> FaultPlan:
+def plan_from_scenario(section: Mapping[str, Any] | None, seed: int, n_uavs: int | None = None) -> FaultPlan:
     """Build a plan from a scenario's ``[faults]`` table (``None`` or ``{}``: no faults).
 
     Keys (all optional): ``delay``, ``jitter`` (duration strings), ``loss`` (probability),
@@ -1089,8 +1104,9 @@ def plan_from_scenario(section: Mapping[str, Any] | None, seed: int) -> FaultPla
     end}``), and ``[[faults.links]]`` entries with ``src``, ``dst`` (process names or globs,
     default ``*``), ``kind`` (``ref``, ``leader``, ``state``, ``cmd`` or ``*``) and any of
     ``delay``, ``jitter``, ``loss``, ``burst`` (``false`` to turn an inherited burst off); omitted
-    fields inherit the ``[faults]`` values; later entries win. Raises :class:`ScenarioError`
-    naming the field, e.g. ``faults.links[0].loss``.
+    fields inherit the ``[faults]`` values; later entries win. ``n_uavs``, if given, is the number
+    of UAVs: naming ``agent:<i>`` with i > n is refused. Raises :class:`ScenarioError` naming the
+    field, e.g. ``faults.links[0].loss``.
     """
     if section is None:
         return FaultPlan(seed=seed)
@@ -1104,6 +1120,8 @@ def plan_from_scenario(section: Mapping[str, Any] | None, seed: int) -> FaultPla
         if not isinstance(t["partitions"], list):
             raise ScenarioError("faults.partitions", f"expected a list, got {type(t['partitions']).__name__}")
         parts = [_partition_field(f"faults.partitions[{i}]", p) for i, p in enumerate(t["partitions"])]
+        for i, part in enumerate(parts):
+            check_exists(f"faults.partitions[{i}]", part.process_or_link, n_uavs)
     default = LinkFaultSpec(delay, jitter, loss, burst)
     per: dict[tuple[str, str, str], LinkFaultSpec] = {}
     links = t.get("links", [])
@@ -1114,6 +1132,8 @@ def plan_from_scenario(section: Mapping[str, Any] | None, seed: int) -> FaultPla
         e = _table(p, entry, _LINK_KEYS)
         src = _endpoint_field(f"{p}.src", e.get("src", "*"))
         dst = _endpoint_field(f"{p}.dst", e.get("dst", "*"))
+        check_exists(f"{p}.src", src, n_uavs)
+        check_exists(f"{p}.dst", dst, n_uavs)
         kind = e.get("kind", "*")
         if not isinstance(kind, str) or (kind not in KINDS and kind != "*"):
             raise ScenarioError(f"{p}.kind", f"unknown kind {kind!r} (allowed: {', '.join(KINDS)}, *)")

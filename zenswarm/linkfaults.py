@@ -22,7 +22,7 @@ import heapq
 import itertools
 from typing import Any, Callable
 
-from .config import Scenario
+from .config import Scenario, seed_arg
 from .faults import FaultPlan, FaultState, LinkInbox, plan_from_cli, plan_from_scenario
 
 __all__ = ["Box", "plan_for", "plan_from_args", "add_fault_args", "fault_argv", "DelayLine", "box_counters"]
@@ -63,8 +63,8 @@ def plan_for(
     """
     seed = scenario.seed if seed is None else int(seed)
     section = scenario.extra.get("faults")
-    base = plan_from_scenario(section, seed) if section is not None else FaultPlan(seed=seed)
-    plan = plan_from_cli(link_delay, link_jitter, link_loss, list(partitions or ()), seed=seed, base=base)
+    base = plan_from_scenario(section, seed, scenario.n) if section is not None else FaultPlan(seed=seed)
+    plan = plan_from_cli(link_delay, link_jitter, link_loss, list(partitions or ()), seed=seed, base=base, n=scenario.n)
     return plan if plan.active else None
 
 
@@ -81,7 +81,12 @@ def add_fault_args(p: argparse.ArgumentParser) -> None:
         metavar="WHO@T1-T2",
         help="cut every link of a process (agent:2@10s-13s) or one directed link (agent:1->agent:2@1s-2s); repeatable",
     )
-    g.add_argument("--seed", type=int, default=None, help="seed of disturbances and fault decisions (default: the scenario's)")
+    g.add_argument(
+        "--seed",
+        type=seed_arg,
+        default=None,
+        help="seed of disturbances and fault decisions, 0 to 2**63-1 (default: the scenario's)",
+    )
 
 
 def plan_from_args(scenario: Scenario, args: argparse.Namespace) -> FaultPlan | None:

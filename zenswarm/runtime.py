@@ -43,6 +43,7 @@ from typing import Any, Callable
 import zenoh
 
 from . import bus, security, wire
+from .argtypes import positive_float
 from .config import Scenario, load_scenario, scenario_from_dict
 from .errors import ScenarioError, ZenswarmError
 
@@ -489,7 +490,7 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
     add_fault_args(p)
     p.add_argument(
         "--lockstep-timeout",
-        type=float,
+        type=positive_float,
         default=DEFAULT_LOCKSTEP_TIMEOUT_S,
         metavar="S",
         help=f"lockstep: wall seconds to wait for an input before it counts as a drop (default {DEFAULT_LOCKSTEP_TIMEOUT_S})",

@@ -60,6 +60,7 @@ __all__ = [
     "username",
     "generate_credentials",
     "load_manifest",
+    "manifest_mismatch",
     "load_credentials",
     "process_dir",
     "acl_rules",
@@ -222,6 +223,38 @@ def load_manifest(out_dir: str | Path) -> Manifest:
         raise CredentialsError(f"no manifest at {path}: run `zenswarm keys SCENARIO --out {out_dir}`") from None
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
         raise CredentialsError(f"{path}: unreadable manifest: {e}") from None
+
+
+def manifest_mismatch(m: Manifest, scenario: Scenario, swarm: str, *, all_files: bool = False) -> str | None:
+    """Why the credentials of ``m`` cannot serve ``swarm`` flying ``scenario`` (a phrase such as
+    "are for swarm 'a', not 'b'"), or None when they can.
+
+    They can when they are for that swarm, hold every process of a swarm of ``scenario.n`` UAVs
+    and have not expired. The scenario's name does not matter: the access rules are generated
+    from the scenario at run time, the credentials only name the processes. ``all_files``: every
+    file of the manifest must also be present (a tree generated for this run, not one process's
+    copy on another host).
+    """
+    if m.swarm != swarm:
+        return f"are for swarm {m.swarm!r}, not {swarm!r}"
+    have = {p.process for p in m.processes}
+    missing = [p for p in process_names(scenario.n) if p not in have]
+    if m.n != scenario.n or missing:
+        return (f"are for {m.n} UAVs (scenario {m.scenario!r}), not the {scenario.n} of scenario {scenario.name!r}"
+                + (f" (no credentials for {', '.join(missing)})" if missing else ""))
+    try:
+        expires = _dt.datetime.fromisoformat(m.not_after)
+    except (TypeError, ValueError):
+        return f"have an unreadable expiry date {m.not_after!r}"
+    if expires.tzinfo is None:
+        expires = expires.replace(tzinfo=_dt.timezone.utc)
+    if expires <= _dt.datetime.now(_dt.timezone.utc):
+        return f"expired on {m.not_after}"
+    if all_files:
+        gone = [f for f in m.files() if not f.is_file()]
+        if gone:
+            return f"are incomplete ({gone[0]} is missing)"
+    return None
 
 
 # --------------------------------------------------------------------------- files
@@ -930,6 +963,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_keys(args: argparse.Namespace) -> int:
+    from .paths import check_output_dir
+
+    check_output_dir(args.out, "--out")
     m = generate_credentials(
         args.scenario, args.out, args.swarm, router_hosts=args.router_host, days=args.days, force=args.force
     )
