@@ -709,7 +709,6 @@ class Supervisor:
         sc = self.sc
         last_print = last_check = 0.0
         goal = np.asarray(sc.leader.goal, dtype=float)
-        limit_ns = wire.t_ns(sc.timing.time_limit_s)
         wall0 = time.monotonic()
         while True:
             collector.poll(self._bus_sub)
@@ -897,17 +896,6 @@ def _run_only(args: argparse.Namespace) -> int:
     return cli_main(argv)
 
 
-def _positive_seconds(text: str) -> float:
-    """A duration in seconds > 0 (argparse turns the error into a usage error, exit 2)."""
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected seconds, e.g. 60") from None
-    if not 0 < x < float("inf"):
-        raise argparse.ArgumentTypeError(f"{text!r}: must be a positive number of seconds")
-    return x
-
-
 def _parse_kill(text: str) -> tuple[str, float]:
     """``agent:2@10s`` -> ("agent:2", 10.0); argparse turns ValueError into a usage error."""
     role, sep, when = text.partition("@")
@@ -966,7 +954,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--external-timeout",
-        type=_positive_seconds,
+        type=positive_float,
         default=DEFAULT_EXTERNAL_TIMEOUT_S,
         metavar="S",
         help=f"seconds an --external role may take to announce itself before the swarm gives up with exit 3 "

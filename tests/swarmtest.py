@@ -80,6 +80,21 @@ def start_zenswarm(*args: str, **kw: Any) -> subprocess.Popen:
     )
 
 
+def stop_swarm(procs: list, swarm: str, port: int | None = None) -> None:
+    """End a test's swarm: kill the given processes (``subprocess.Popen`` or None) if still
+    running and every process of ``swarm``; fail if any was left behind or the router port
+    stays bound."""
+    for p in procs:
+        if p is not None and p.poll() is None:
+            p.kill()
+            p.wait()
+    leftovers = processes_mentioning(f"--swarm {swarm}")
+    kill_mentioning(f"--swarm {swarm}")
+    assert not leftovers, f"processes left behind: {leftovers}"
+    if port is not None:
+        assert wait_port_free(port), f"router port {port} still bound"
+
+
 def read_results(out: Path) -> dict:
     return json.loads((out / "results.json").read_text())
 

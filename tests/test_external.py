@@ -19,13 +19,11 @@ from pathlib import Path
 from zenswarm.bus import free_port
 
 from swarmtest import (
-    kill_mentioning,
-    processes_mentioning,
     read_results,
     scenario_variant,
     start_zenswarm,
+    stop_swarm,
     unique_swarm,
-    wait_port_free,
     zenswarm,
 )
 
@@ -66,17 +64,6 @@ class Lines:
         self._t.join(timeout=5)
 
 
-def _stop(procs: list[subprocess.Popen | None], swarm: str, port: int) -> None:
-    for p in procs:
-        if p is not None and p.poll() is None:
-            p.kill()
-            p.wait()
-    leftovers = processes_mentioning(f"--swarm {swarm}")
-    kill_mentioning(f"--swarm {swarm}")
-    assert not leftovers, f"processes left behind: {leftovers}"
-    assert wait_port_free(port), f"router port {port} still bound"
-
-
 def test_external_plant_killed_ends_the_swarm_with_exit_3(tmp_path: Path) -> None:
     """The plant runs outside the supervisor (`up --only plant`) and is SIGKILLed mid-flight: the
     supervisor names it, records the death and exits 3 within seconds (it froze forever before,
@@ -102,7 +89,7 @@ def test_external_plant_killed_ends_the_swarm_with_exit_3(tmp_path: Path) -> Non
         t_exit = time.monotonic()
         lines.join()
     finally:
-        _stop([sup, plant], swarm, port)
+        stop_swarm([sup, plant], swarm, port)
     log = lines.text()
     assert sup.returncode == 3, log
     died = lines.first(r"process plant died \(external: its liveliness token went away\) at sim time [\d.]+ s")
@@ -110,7 +97,8 @@ def test_external_plant_killed_ends_the_swarm_with_exit_3(tmp_path: Path) -> Non
     assert died[0] - t_kill < 5.0, f"noticed {died[0] - t_kill:.1f} s after the kill\n{log}"
     assert t_exit - t_kill < 15.0, log
     res = read_results(out)
-    assert res["success"] is False and "plant" in res["failure"]
+    assert res["success"] is False
+    assert [(f["cause"], f.get("process")) for f in res["failures"]] == [("process_died", "plant")], res["failures"]
     [death] = res["process_deaths"]
     assert death["process"] == "plant" and "liveliness" in death["how"] and 1.0 <= death["sim_time_s"] < 30.0, death
 
@@ -128,7 +116,7 @@ def test_external_role_that_never_appears_is_given_up_on(tmp_path: Path) -> None
                       "--external", "agent:3", "--external-timeout", "4", "--progress-every", "0.5", "--quiet-children",
                       timeout=120)
     finally:
-        _stop([], swarm, port)
+        stop_swarm([], swarm, port)
     elapsed = time.monotonic() - t0
     assert cp.returncode == 3, cp.stdout[-3000:]
     assert "agent:3:waiting(external)" in cp.stdout, cp.stdout[-3000:]
@@ -157,7 +145,7 @@ def test_external_plant_that_finishes_is_not_a_death(tmp_path: Path) -> None:
         p_out = plant.communicate(timeout=120)[0]
         s_out = sup.communicate(timeout=120)[0]
     finally:
-        _stop([sup, plant], swarm, port)
+        stop_swarm([sup, plant], swarm, port)
     assert plant.returncode == 0, p_out[-2000:]
     assert sup.returncode in (0, 1), s_out[-3000:]  # 3 s cannot reach the goal: exit 1 is fine
     assert "died" not in s_out, s_out[-3000:]
@@ -175,9 +163,7 @@ def test_bad_external_flags_exit_2_before_starting(tmp_path: Path) -> None:
         bad_timeout = zenswarm("up", str(scenario), "--out", str(out), "--swarm", swarm, "--external", "plant",
                                "--external-timeout", "0", timeout=60)
     finally:
-        leftovers = processes_mentioning(f"--swarm {swarm}")
-        kill_mentioning(f"--swarm {swarm}")
-    assert not leftovers
+        stop_swarm([], swarm)
     assert bad_role.returncode == 2, bad_role.stdout
     assert "zenswarm: error: --external: unknown role 'agent:9'" in bad_role.stdout, bad_role.stdout
     assert "plant, leader, agent:1, agent:2, agent:3" in bad_role.stdout

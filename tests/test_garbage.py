@@ -33,7 +33,14 @@ from zenswarm import wire
 from zenswarm.config import load_scenario
 from zenswarm.runtime import GUARD_REASONS, MAX_ABS_VALUE, Lockstep, SwarmProcess, expected_senders
 
-from swarmtest import SCENARIOS, kill_mentioning, processes_mentioning, read_results, scenario_variant, start_zenswarm, unique_swarm
+from swarmtest import (
+    SCENARIOS,
+    read_results,
+    scenario_variant,
+    start_zenswarm,
+    stop_swarm,
+    unique_swarm,
+)
 
 EX1 = SCENARIOS / "paper_example1.toml"
 DT_NS = 10_000_000  # paper example 1: 100 Hz
@@ -628,8 +635,6 @@ def test_flooding_every_key_of_a_flying_swarm(tmp_path: Path) -> None:
 
     from zenswarm.bus import free_port
 
-    from swarmtest import wait_port_free
-
     scenario = scenario_variant(tmp_path, time_limit_s=46.0)  # the goal is reached at 44.9 s
     sc = load_scenario(scenario)
     swarm = unique_swarm("g")
@@ -648,14 +653,7 @@ def test_flooding_every_key_of_a_flying_swarm(tmp_path: Path) -> None:
         f_out = flood.communicate(timeout=150)[0]
         s_out = sup.communicate(timeout=150)[0]
     finally:
-        for p in (sup, flood):
-            if p is not None and p.poll() is None:
-                p.kill()
-                p.wait()
-        leftovers = processes_mentioning(f"--swarm {swarm}")
-        kill_mentioning(f"--swarm {swarm}")
-    assert not leftovers, f"processes left behind: {leftovers}"
-    assert wait_port_free(port)
+        stop_swarm([sup, flood], swarm, port)
     assert flood.returncode == 0, f_out[-3000:]
     assert "flood: sent" in f_out, f_out[-2000:]
     sent = json.loads(f_out.split("flood: sent ", 1)[1].splitlines()[0])

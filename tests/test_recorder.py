@@ -759,7 +759,7 @@ def test_kill_recorder_without_record_is_bad_input(tmp_path: Path) -> None:
 
     scen = scenario_variant(tmp_path, time_limit_s=1.0)
     cp = zenswarm("up", str(scen), "--kill", "recorder@1s", "--out", str(tmp_path / "up"), timeout=60)
-    assert cp.returncode == 2 and "zenswarm: error: --kill: recorder@T needs --record" in cp.stdout, cp.stdout
+    assert cp.returncode == 2 and "zenswarm: error: --kill: recorder@1s: recorder runs only with --record" in cp.stdout, cp.stdout
     assert not (tmp_path / "up" / "results.json").exists()
 
 

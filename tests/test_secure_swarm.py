@@ -16,13 +16,11 @@ from zenswarm.metrics import TimeSeries
 
 from swarmtest import (
     SCENARIOS,
-    kill_mentioning,
-    processes_mentioning,
     read_results,
     scenario_variant,
     start_zenswarm,
+    stop_swarm,
     unique_swarm,
-    wait_port_free,
 )
 from test_swarm import _assert_equal_to_sim, _up
 
@@ -88,17 +86,11 @@ def test_secure_leader_leaves_with_the_plant(tmp_path: Path) -> None:
             lines.append((time.monotonic(), line.rstrip()))
         sup.wait(timeout=120)
     finally:
-        if sup.poll() is None:
-            sup.kill()
-            sup.wait()
-        leftovers = processes_mentioning(f"--swarm {swarm}")
-        kill_mentioning(f"--swarm {swarm}")
+        stop_swarm([sup], swarm, port)
     log = "\n".join(text for _, text in lines[-20:])
-    assert not leftovers, f"processes left behind: {leftovers}"
-    assert wait_port_free(port)
     assert sup.returncode in (0, 1), log  # 2 s cannot reach the goal: exit 1 is fine
     assert any("secure mode: user/password" in text for _, text in lines), log
-    t_end = next(t for t, text in lines if "paper_example1:" in text and "wall" in text)  # the summary
+    t_end = next(t for t, text in lines if "[supervisor]" in text and " wall " in text)  # the summary's last line
     # the first progress line after the plant's exit (none if everything left within 0.1 s)
     t_plant = next((t for t, text in lines if "plant:exit 0" in text), t_end)
     assert t_end - t_plant < 8.0, f"the swarm ended {t_end - t_plant:.1f} s after the plant's exit:\n{log}"
@@ -192,14 +184,7 @@ def test_second_session_with_an_agents_credentials_is_a_foreign_sender(tmp_path:
         f_out = forge.communicate(timeout=150)[0]
         s_out = sup.communicate(timeout=150)[0]
     finally:
-        for p in (sup, forge):
-            if p is not None and p.poll() is None:
-                p.kill()
-                p.wait()
-        leftovers = processes_mentioning(f"--swarm {swarm}")
-        kill_mentioning(f"--swarm {swarm}")
-    assert not leftovers, f"processes left behind: {leftovers}"
-    assert wait_port_free(port)
+        stop_swarm([sup, forge], swarm, port)
     assert forge.returncode == 0 and "forge: sent" in f_out, f_out[-2000:]
     assert sup.returncode in (0, 1), s_out[-3000:]
     res = read_results(out)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import tracemalloc
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -239,7 +240,7 @@ def test_geometry_against_closed_forms() -> None:
 # ============================================================================ the CLI, sim and up
 
 
-def _variant(tmp_path, name: str, **sections) -> "Path":
+def _variant(tmp_path, name: str, **sections) -> Path:
     """paper_example1 with whole tables replaced or merged (``leader={...}`` merges)."""
     import tomllib
 
@@ -258,7 +259,7 @@ def _variant(tmp_path, name: str, **sections) -> "Path":
     return p
 
 
-def bad_vehicles(tmp_path) -> dict[str, "Path"]:
+def bad_vehicles(tmp_path) -> dict[str, Path]:
     """The issue's cases: no thrust (the UAVs fall), a gale (blown away), the goal straight
     behind a tall obstacle (the AAPF's local minimum)."""
     return {

@@ -44,6 +44,7 @@ import numpy as np
 
 from leader.aapf import obstacle_clearance
 
+from .argtypes import positive_float
 from .config import Obstacle, check_seed, scenario_from_dict, seed_arg
 from .errors import ScenarioError, ZenswarmError
 from .paths import check_output_file
@@ -541,16 +542,6 @@ def _nonneg_int(s: str) -> int:
     return v
 
 
-def _positive_float(s: str) -> float:
-    try:
-        v = float(s)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
-    if not (v > 0 and math.isfinite(v)):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {s}")
-    return v
-
-
 def add_parser(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") -> argparse.ArgumentParser:
     """Register ``generate`` under the ``scenario`` command's sub-parsers; returns the parser.
 
@@ -596,14 +587,14 @@ def add_parser(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]"
     )
     p.add_argument(
         "--spacing",
-        type=_positive_float,
+        type=positive_float,
         default=0.3,
         metavar="METRES",
         help="distance between neighbouring UAVs in the formation, m (default: 0.3)",
     )
     p.add_argument(
         "--time-limit",
-        type=_positive_float,
+        type=positive_float,
         default=None,
         metavar="SECONDS",
         help="mission time limit, s (default: from the start-goal distance, at least 70 s)",
