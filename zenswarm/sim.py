@@ -61,7 +61,7 @@ class SimResult:
 
 ProgressFn = Callable[[int, int, float], None]
 
-DECIDE_EVERY = 10
+DECIDE_EVERY = 50
 """Ticks between two checks of :func:`zenswarm.verdict.decide_end` (the run ends after the tick it
 names: checking in blocks costs less and ends at the same tick)."""
 
