@@ -49,7 +49,7 @@ def run_once(scen: Path, out: Path, full_time: bool) -> dict:
         "sim_time_s": res.get("sim_time_s"),
         "success": res.get("success"),
         "causes": sorted({f["cause"] for f in res.get("failures", [])}),
-        "output_tail": text.strip().splitlines()[-3:],
+        "summary": [ln for ln in text.strip().splitlines() if not ln.startswith("wrote ")][-3:],  # no temp paths
     }
 
 
