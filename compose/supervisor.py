@@ -693,10 +693,10 @@ class Supervisor:
         return None
 
     def _health(self) -> str:
-        """The roles' states for the progress line: ours (up, starting, exit N) and the external
+        """The roles' states for the progress line: ours (up, starting, leaving, exit N) and the external
         ones (waiting until their token appears, up, gone)."""
         out = [
-            f"{name}:{'up' if name in self.alive else ('exit ' + str(c.returncode) if c.returncode is not None else 'starting')}"
+            f"{name}:{'up' if name in self.alive else ('exit ' + str(c.returncode) if c.returncode is not None else ('leaving' if name in self.seen else 'starting'))}"
             for name, c in self.children.items()
         ]
         for role in self.external_roles():
