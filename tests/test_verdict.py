@@ -353,7 +353,8 @@ def test_sim_ctrl_c_writes_what_was_flown(tmp_path) -> None:
 @pytest.mark.parametrize("case", sorted(EXPECTED))
 def test_swarm_gives_the_simulator_s_verdict_and_ends_as_early(case: str, tmp_path) -> None:
     """`zenswarm up` (lockstep) judges the same vehicles the same way: every flight field equal,
-    failures included, and the run ends at the same deciding tick."""
+    failures included, and the run ends at the same deciding tick; so does `zenswarm report` from
+    the run's recording (which holds ticks past the decision: the swarm stops a moment later)."""
     import json
 
     from test_swarm import _up
@@ -365,10 +366,13 @@ def test_swarm_gives_the_simulator_s_verdict_and_ends_as_early(case: str, tmp_pa
     cp = zenswarm("sim", str(scen), "--out", str(tmp_path / "sim"), "--quiet", timeout=120)
     assert cp.returncode == 1
     ref = json.loads((tmp_path / "sim" / "results.json").read_text())
-    cp = _up(scen, tmp_path / "up", unique_swarm("v"), "--quiet-children", timeout=300)
+    up = tmp_path / "up"
+    cp = _up(scen, up, unique_swarm("v"), "--quiet-children", "--record", str(up / "f.mcap"), "--report", timeout=300)
     assert cp.returncode == 1, cp.stdout[-3000:]
     assert "ending the run" in cp.stdout
-    res = json.loads((tmp_path / "up" / "results.json").read_text())
+    res = json.loads((up / "results.json").read_text())
+    rep = json.loads((up / "report" / "results.json").read_text())  # judged again from the recording
     for k in FLIGHT_FIELDS:
         assert res[k] == ref[k], k
-    assert res["wall_time_s"] > 0
+        assert rep[k] == ref[k], k
+    assert res["wall_time_s"] > 0 and rep["wall_time_s"] is None
