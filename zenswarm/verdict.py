@@ -30,7 +30,7 @@ of the AAPF away from the goal (``leader_stalled``), and a UAV that no longer tr
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -154,16 +154,6 @@ class Failure:
             d["where"] = [float(x) for x in self.where]
         return d
 
-    def short(self) -> str:
-        """``collision_ground uav 2 at 3.41 s``: for the summary line."""
-        who = ""
-        if len(self.uavs) == 1:
-            who = f" uav {self.uavs[0]}"
-        elif self.uavs:
-            who = f" uavs {','.join(str(u) for u in self.uavs)}"
-        when = f" at {self.t_s:.2f} s" if self.t_s is not None else ""
-        return f"{self.cause}{who}{when}"
-
 
 @dataclass
 class Verdict:
@@ -187,7 +177,6 @@ class Verdict:
     vehicle_radius_m: float
     finite: bool
     stall: dict[str, Any] | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
 
     @property
     def min_obstacle_margin_m(self) -> float | None:
@@ -207,11 +196,6 @@ class Verdict:
 
 
 # ============================================================================ early end
-
-
-def _finite_rows(a: np.ndarray) -> np.ndarray:
-    """(T,) True where every element of a (T, ...) array is finite."""
-    return np.isfinite(a.reshape(len(a), -1)).all(axis=1)
 
 
 def _stalled(q0: np.ndarray, k0: int, k1: int, c: Criteria) -> int | None:
