@@ -2,7 +2,7 @@
 
 :class:`AgentCore` holds exactly what UAV i holds in the distributed swarm: its generator state
 (q*_i, v*_i), its ESO estimate and its row of the graph. It performs steps 2-6 of a control tick
-as documented in :mod:`zenswarm.sim`, in the same order and with the same functions, so a
+as documented in :mod:`zenswarm.compose.sim`, in the same order and with the same functions, so a
 lockstep swarm reproduces the in-process simulator.
 """
 

@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from plant.params import QuadParams
+from zenswarm.params import QuadParams
 from zenswarm import wire
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters, plan_from_args

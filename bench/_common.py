@@ -196,11 +196,11 @@ def scenario_facts(path: Path) -> dict[str, Any]:
 
 # --------------------------------------------------------------------------- simulator worker
 def run_sim_worker(scenario: Path, keep_openblas: bool = False, timeout_s: float = 1800.0) -> dict[str, Any]:
-    """Run ``zenswarm.sim.simulate`` on ``scenario`` in a fresh interpreter; return its timings."""
+    """Run ``zenswarm.compose.sim.simulate`` on ``scenario`` in a fresh interpreter; return its timings."""
     code = (
         "import json, sys, time\n"
         "from zenswarm.config import load_scenario\n"
-        "from zenswarm.sim import simulate\n"
+        "from zenswarm.compose.sim import simulate\n"
         "sc = load_scenario(sys.argv[1])\n"
         "c0 = time.process_time(); w0 = time.perf_counter()\n"
         "r = simulate(sc)\n"

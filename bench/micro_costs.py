@@ -47,11 +47,11 @@ def bench(fn, calls: int) -> float:
 def cases(tmpdir: Path):
     import numpy as np
 
-    from agents.core import AgentCore, AgentRow
-    from agents.generator import generator_rates_all
-    from leader.aapf import AapfParams, integrate_leader
-    from plant.params import QuadParams
-    from plant.quadrotor import initial_state, step
+    from zenswarm.agents.core import AgentCore, AgentRow
+    from zenswarm.agents.generator import generator_rates_all
+    from zenswarm.leader.aapf import AapfParams, integrate_leader
+    from zenswarm.params import QuadParams
+    from zenswarm.plant.quadrotor import initial_state, step
     from zenswarm import wire
     from zenswarm.config import load_scenario
 

@@ -27,7 +27,7 @@ import msgpack
 import numpy as np
 import zenoh
 
-from bridge.mcapio import read_recording
+from zenswarm.bridge.mcapio import read_recording
 from zenswarm import bus, wire
 
 

@@ -1,4 +1,4 @@
-"""Speed of the in-process simulator (``zenswarm.sim.simulate``): wall time and x real time.
+"""Speed of the in-process simulator (``zenswarm.compose.sim.simulate``): wall time and x real time.
 
 Each run is a fresh interpreter that loads the scenario and times ``simulate(scenario)`` alone
 (``time.perf_counter`` around the call: no imports, no scenario parsing, no output files); it
@@ -40,7 +40,7 @@ def profile(scenario: Path, top: int) -> None:
     import pstats
 
     from zenswarm.config import load_scenario
-    from zenswarm.sim import simulate
+    from zenswarm.compose.sim import simulate
 
     sc = load_scenario(scenario)
     pr = cProfile.Profile()

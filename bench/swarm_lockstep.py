@@ -5,7 +5,7 @@ Each run starts, as a child process,
     zenswarm up SCEN --out DIR --quiet --quiet-children --swarm <unique> --listen tcp/127.0.0.1:<free port>
 
 (router inside the supervisor, plant, leader and one agent process per UAV, all on loopback)
-and, interleaved with it, the in-process simulator (``zenswarm.sim.simulate``, timed as in
+and, interleaved with it, the in-process simulator (``zenswarm.compose.sim.simulate``, timed as in
 bench/sim_speed.py) on the very same scenario file. Median of ``--runs``.
 
 How the flight is timed: the plant is the lockstep clock, and its diagnostics in

@@ -586,7 +586,7 @@ def export_foxglove(recording: str | Path, out: str | Path, *, scene_hz: float =
     ``out`` and renamed into place when complete. Raises RecordingError for an unusable input."""
     from mcap.writer import Writer
 
-    from bridge.report import flight_from_recording, load_recording
+    from zenswarm.bridge.report import flight_from_recording, load_recording
 
     if not scene_hz > 0 or not math.isfinite(scene_hz):
         raise ZenswarmError(f"--scene-hz must be a positive number, got {scene_hz}")

@@ -423,8 +423,8 @@ def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> Verif
     first difference. strict: refuse a damaged file (default: verify what is readable and list
     the damage in ``problems``).
     """
-    from agents.core import AgentCore, AgentRow
-    from plant.params import QuadParams
+    from zenswarm.agents.core import AgentCore, AgentRow
+    from zenswarm.params import QuadParams
 
     rec = read_recording(path, strict=strict)
     sc = rec.load_scenario()

@@ -125,7 +125,7 @@ def load_recording(path: str | Path) -> Recording:
     Raises :class:`RecordingError` naming the file when it is missing, not an MCAP file, has no
     ``zenswarm`` metadata record, or its scenario is missing or invalid.
     """
-    from bridge import mcapio
+    from zenswarm.bridge import mcapio
 
     p = Path(path)
     r = mcapio.read_recording(p, strict=False)
@@ -196,7 +196,7 @@ def flight_from_recording(rec: Recording) -> Flight:
     run); realtime recordings are forward-filled over gaps, exactly as ``zenswarm up --realtime``
     does. Raises RecordingError when no sample of the swarm is in the file.
     """
-    from compose.supervisor import Collector
+    from zenswarm.collector import Collector
 
     keys = wire.Keys(rec.swarm)
     col = Collector(rec.scenario, keys)
@@ -690,14 +690,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Stand-alone entry (``python -m bridge.report ...``) until the CLI wires it."""
+    """Stand-alone entry (``python -m zenswarm.bridge.report ...``) until the CLI wires it."""
     import sys
 
     parser = argparse.ArgumentParser(prog="zenswarm")
     sub = parser.add_subparsers(dest="command", required=True)
     add_parsers(sub)
     try:
-        from bridge import foxglove
+        from zenswarm.bridge import foxglove
     except ImportError:  # pragma: no cover
         pass
     else:

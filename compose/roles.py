@@ -6,10 +6,10 @@ import argparse
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
-    from agents.process import add_parser as add_agent
-    from leader.process import add_parser as add_leader
-    from plant.mavlink_vehicle import add_parsers as add_vehicles
-    from plant.process import add_parser as add_plant
+    from zenswarm.agents.process import add_parser as add_agent
+    from zenswarm.leader.process import add_parser as add_leader
+    from zenswarm.plant.mavlink_vehicle import add_parsers as add_vehicles
+    from zenswarm.plant.process import add_parser as add_plant
 
     add_plant(sub)
     add_vehicles(sub)

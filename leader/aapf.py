@@ -22,7 +22,7 @@ from typing import Protocol, Sequence
 
 import numpy as np
 
-from zenswarm.geometry import obstacle_clearance_many  # the vectorised twin of obstacle_clearance (re-exported)
+from zenswarm.geometry import obstacle_clearance, obstacle_clearance_many  # re-exported: the solid's distance
 
 __all__ = [
     "ObstacleLike",
@@ -166,29 +166,6 @@ def d_obs(q0: np.ndarray, ob: ObstacleLike, r_f: float) -> float:
     """Sphere-to-obstacle clearance d_obs(q0) = ||q0 - q_obs(q0)|| - r_o - r_f, m (section AAPF)."""
     r, _ = obstacle_distance(q0, ob)
     return r - ob.radius - r_f
-
-
-def obstacle_clearance(p: np.ndarray, ob: ObstacleLike) -> float:
-    """Signed distance from a point p (3,) to the real capped-cylinder surface, m (negative inside).
-
-    Unlike :func:`d_obs` this measures against the true solid: the cylinder side for
-    z_c <= z <= z_c + h_o, the hemispherical cap above, and the base disc's rim below z_c.
-    """
-    xc, yc, zc = ob.center
-    top = zc + ob.height
-    rho = math.hypot(p[0] - xc, p[1] - yc)
-    z = p[2]
-    if z > top:
-        return math.sqrt(rho * rho + (z - top) ** 2) - ob.radius
-    if z >= zc:
-        side = rho - ob.radius
-        if side < 0:  # inside the cylinder part: nearest boundary is the side or the base
-            return max(side, zc - z)
-        return side
-    below = zc - z
-    if rho <= ob.radius:
-        return below
-    return math.hypot(rho - ob.radius, below)
 
 
 def clearance_gradient(q0: np.ndarray, ob: ObstacleLike) -> np.ndarray:

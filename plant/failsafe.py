@@ -14,47 +14,14 @@ from typing import Any
 
 import numpy as np
 
-from agents.controller import invert_thrust_attitude
-from zenswarm.errors import ScenarioError
+from zenswarm.inversion import invert_thrust_attitude
+from zenswarm.config import FailsafeConfig, failsafe_config  # re-exported: the [failsafe] table
 
 __all__ = ["FailsafeConfig", "FailsafeMode", "failsafe_config", "mode_for_age", "hold_command"]
 
 NOMINAL, HOVER, LAND, LANDED = 0, 1, 2, 3
 FailsafeMode = int
 MODE_NAMES = {NOMINAL: "nominal", HOVER: "hover", LAND: "land", LANDED: "landed"}
-
-
-@dataclass(frozen=True)
-class FailsafeConfig:
-    """hover_after_s < land_after_s, s of sim time without a fresh command; land_speed m/s;
-    hold gains kp (1/s^2), kd (1/s); ground_z m (motors off below it while landing)."""
-
-    hover_after_s: float = 0.5
-    land_after_s: float = 5.0
-    land_speed: float = 0.3
-    kp: float = 4.0
-    kd: float = 3.0
-    ground_z: float = 0.03
-
-
-def failsafe_config(section: dict[str, Any] | None) -> FailsafeConfig:
-    """Parse the scenario's ``[failsafe]`` table (``Scenario.extra``); errors name the field."""
-    if section is None:
-        return FailsafeConfig()
-    allowed = set(FailsafeConfig.__dataclass_fields__)
-    vals: dict[str, float] = {}
-    for k, v in section.items():
-        if k not in allowed:
-            raise ScenarioError(f"failsafe.{k}", f"unknown key (allowed: {', '.join(sorted(allowed))})")
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-            raise ScenarioError(f"failsafe.{k}", f"expected a finite number, got {v!r}")
-        if k != "ground_z" and v <= 0:
-            raise ScenarioError(f"failsafe.{k}", f"must be > 0, got {v}")
-        vals[k] = float(v)
-    cfg = FailsafeConfig(**vals)
-    if cfg.land_after_s <= cfg.hover_after_s:
-        raise ScenarioError("failsafe.land_after_s", f"must be > failsafe.hover_after_s ({cfg.land_after_s} <= {cfg.hover_after_s})")
-    return cfg
 
 
 def mode_for_age(age_s: float, current: FailsafeMode, cfg: FailsafeConfig) -> FailsafeMode:

@@ -36,7 +36,7 @@ traffic of one vehicle both ways for a while (physics goes on); ``mode_override`
 accept mode requests but keep reporting (and flying) another mode.
 
 ``zenswarm mavlink-vehicle SCENARIO --base-port P`` (or ``zenswarm plant --mavlink --scenario
-SCENARIO --base-port P``, or ``python -m plant.mavlink_vehicle``) runs the fleet until
+SCENARIO --base-port P``) runs the fleet until
 SIGTERM/SIGINT. Importing this module sets ``MAVLINK20=1`` (see bridge.mavlink).
 """
 
@@ -54,28 +54,29 @@ from typing import Any
 
 import numpy as np
 
-from bridge import frames
-from bridge.mavlink import (
+from zenswarm import frames
+from zenswarm.autopilot import (
     AP_COPTER_MODES,
     PX4_AUTO_SUB,
     PX4_HOLD,
     PX4_LAND,
     PX4_MAIN,
     PX4_OFFBOARD,
+    load_mavutil,
     mavlink_settings,
-    mavutil,
     mode_name,
     px4_custom_mode,
     px4_decode,
 )
 
 from .disturbance import DisturbanceModel
-from .params import QuadParams
+from zenswarm.params import QuadParams
 from .quadrotor import PlantState, initial_state, step
 
+mavutil = load_mavutil()
 mavlink = mavutil.mavlink
 
-__all__ = ["VehicleOptions", "SimVehicle", "MavlinkFleet", "run_fleet", "add_vehicle_args", "main", "add_parsers"]
+__all__ = ["VehicleOptions", "SimVehicle", "MavlinkFleet", "run_fleet", "add_vehicle_args", "add_parsers"]
 
 _FORCE_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that forces (dis)arming
 
@@ -796,13 +797,3 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     _configure(p)
 
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m plant.mavlink_vehicle SCENARIO --base-port P``."""
-    from zenswarm.cli import run_standalone
-
-    return run_standalone("python -m plant.mavlink_vehicle", __doc__, _configure, argv, "mavlink-vehicle")
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

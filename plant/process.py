@@ -27,7 +27,7 @@ from zenswarm.runtime import CLOCK_EVERY_TICKS, Lockstep, LoopStats, SwarmProces
 
 from .disturbance import DisturbanceModel
 from .failsafe import FailsafeState, failsafe_config
-from .params import QuadParams
+from zenswarm.params import QuadParams
 from .quadrotor import initial_state, step_held
 
 __all__ = ["main", "add_parser"]

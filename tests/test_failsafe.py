@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from compose.policy import RestartPolicy, restart_policy
-from plant.failsafe import HOVER, LAND, LANDED, NOMINAL, FailsafeConfig, FailsafeState, failsafe_config, hold_command, mode_for_age
-from plant.params import QuadParams
-from plant.quadrotor import initial_state, step
+from zenswarm.policy import RestartPolicy, restart_policy
+from zenswarm.plant.failsafe import HOVER, LAND, LANDED, NOMINAL, FailsafeConfig, FailsafeState, failsafe_config, hold_command, mode_for_age
+from zenswarm.params import QuadParams
+from zenswarm.plant.quadrotor import initial_state, step
 from zenswarm.errors import ScenarioError
 
 

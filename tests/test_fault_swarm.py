@@ -16,7 +16,7 @@ import pytest
 from zenswarm.config import load_scenario
 from zenswarm.linkfaults import plan_for
 from zenswarm.metrics import FLIGHT_FIELDS, TimeSeries
-from zenswarm.sim import simulate
+from zenswarm.compose.sim import simulate
 
 from swarmtest import SCENARIOS, read_results, unique_swarm
 from test_swarm import _up
@@ -127,7 +127,7 @@ def test_sigkill_of_agent2_restarts_and_completes(tmp_path: Path) -> None:
     assert any("nominal -> hover" in ln for ln in fs) and any("-> nominal" in ln for ln in fs), fs
     json.dumps(res)
     # the recording shows the failsafe interval: the plant's diag says UAV 2 hovered, then nominal
-    from bridge.mcapio import read_recording
+    from zenswarm.bridge.mcapio import read_recording
     from zenswarm import wire
 
     marks = []

@@ -192,7 +192,7 @@ def test_unreadable_and_exploding_samples_are_counted_not_raised() -> None:
 def test_supervisor_progress_ignores_clocks_beyond_the_mission() -> None:
     """The supervisor's collector takes its sim time (progress, --kill, the end of the series)
     from clocks: a decodable clock past the mission's end is garbage and must not move it."""
-    from compose.supervisor import Collector
+    from zenswarm.collector import Collector
 
     sc = load_scenario(EX1)
     keys = wire.Keys("progress")
@@ -211,7 +211,7 @@ def test_supervisor_series_of_a_flight_that_never_started() -> None:
     """A process that dies before the first tick leaves the collector with nothing: the series
     up to tick 0 is empty, filled or not, and the results say the mission failed (the
     supervisor once crashed here on the fill, losing results.json)."""
-    from compose.supervisor import Collector
+    from zenswarm.collector import Collector
     from zenswarm.metrics import compute_results
 
     sc = load_scenario(EX1)
@@ -228,7 +228,7 @@ def test_supervisor_collector_takes_each_key_only_from_its_process() -> None:
     key to the first session holding its process's sender token, ignores (and counts) other
     sessions and anonymous samples, and takes a new session once the pinned one's token is gone
     (a restarted process). Before any token is known (a secure swarm has none), it takes all."""
-    from compose.supervisor import Collector
+    from zenswarm.collector import Collector
 
     sc = load_scenario(EX1)
     keys = wire.Keys("pins")

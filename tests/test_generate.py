@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from leader.aapf import d_obs, obstacle_clearance
+from zenswarm.leader.aapf import d_obs, obstacle_clearance
 from zenswarm import generate
 from zenswarm.config import load_scenario, scenario_from_dict, scenario_to_dict
 from zenswarm.errors import ScenarioError
@@ -341,7 +341,7 @@ def test_cli_defaults_and_errors(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert args.func(args) == 0
     assert load_scenario(tmp_path / "no" / "such" / "dir.toml").n == 3
     # a file where a directory is needed: exit 2 naming --out, nothing written
-    from zenswarm import cli
+    from zenswarm.compose import cli
 
     assert cli.main(["scenario", "generate", "--out", str(out / "x.toml")]) == 2
     assert "--out" in capsys.readouterr().err
@@ -362,7 +362,7 @@ def test_cli_help_mentions_units_and_defaults() -> None:
 
 def test_wired_under_the_scenario_command(tmp_path: Path) -> None:
     """``zenswarm scenario generate`` through the real CLI entry point."""
-    from zenswarm import cli
+    from zenswarm.compose import cli
 
     out = tmp_path / "c.toml"
     assert cli.main(["scenario", "generate", "--n", "4", "--obstacles", "1", "--out", str(out)]) == 0

@@ -26,8 +26,8 @@ import pytest
 
 from zenswarm.bus import free_udp_block as bus_free_udp_block
 
-from bridge import frames
-from bridge.mavlink import (
+from zenswarm import frames
+from zenswarm.bridge.mavlink import (
     AP_COPTER_MODES,
     PX4_HOLD,
     PX4_LAND,
@@ -41,9 +41,9 @@ from bridge.mavlink import (
     px4_custom_mode,
     px4_decode,
 )
-from plant.mavlink_vehicle import MavlinkFleet, VehicleOptions
-from plant.params import QuadParams
-from plant.quadrotor import rotation_matrix
+from zenswarm.plant.mavlink_vehicle import MavlinkFleet, VehicleOptions
+from zenswarm.params import QuadParams
+from zenswarm.plant.quadrotor import rotation_matrix
 from zenswarm import wire
 from zenswarm.bus import client_config, free_port, open_session, router_config, tcp_endpoint
 from zenswarm.config import load_scenario, scenario_from_dict
@@ -576,7 +576,7 @@ class Flight:
         self.fleet.set_mode_override(2, PX4_POSCTL)  # vehicle 3: a mode the bridge did not ask for
         self.fleet.start()
         self.bridge = Proc(
-            [sys.executable, "-m", "bridge.mavlink", str(path), "--swarm", self.swarm, "--connect", self.ep, "--no-wait-alive"]
+            [sys.executable, "-m", "zenswarm.bridge.mavlink", str(path), "--swarm", self.swarm, "--connect", self.ep, "--no-wait-alive"]
         )
         self.cmd_pub = self.client.declare_publisher(self.keys.cmd(1))
 

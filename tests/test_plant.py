@@ -11,9 +11,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from plant.disturbance import DisturbanceModel
-from plant.params import THRUST_TO_WEIGHT, QuadParams
-from plant.quadrotor import (
+from zenswarm.plant.disturbance import DisturbanceModel
+from zenswarm.params import THRUST_TO_WEIGHT, QuadParams
+from zenswarm.plant.quadrotor import (
     SCALAR_MAX_N,
     PlantState,
     euler_rate_matrix,

@@ -21,14 +21,14 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from bridge import foxglove as fx
-from bridge import report
+from zenswarm.bridge import foxglove as fx
+from zenswarm.bridge import report
 from zenswarm import wire
-from zenswarm.cli import main as cli_main
+from zenswarm.compose.cli import main as cli_main
 from zenswarm.config import scenario_from_dict, scenario_to_dict
 from zenswarm.errors import RecordingError
 from zenswarm.metrics import FLIGHT_FIELDS, compute_results
-from zenswarm.sim import simulate
+from zenswarm.compose.sim import simulate
 
 EX1 = Path(__file__).resolve().parents[1] / "compose" / "scenarios" / "paper_example1.toml"
 SWARM = "demo"

@@ -10,7 +10,7 @@ import pytest
 
 from zenswarm.config import DisturbanceConfig, load_scenario
 from zenswarm.metrics import TimeSeries
-from zenswarm.sim import simulate
+from zenswarm.compose.sim import simulate
 
 SCEN = Path(__file__).resolve().parents[1] / "compose" / "scenarios"
 
@@ -50,7 +50,7 @@ def test_formation_error_decreases_after_settle_time(runs: dict, ex: str) -> Non
 
 def test_leader_avoids_obstacles_with_the_enclosing_sphere(runs: dict) -> None:
     """AAPF: the formation-enclosing sphere around q0 stays clear of every obstacle (d_obs > 0)."""
-    from leader.aapf import d_obs
+    from zenswarm.leader.aapf import d_obs
 
     sc = load_scenario(SCEN / "paper_example1.toml")
     ts = runs["paper_example1"].series

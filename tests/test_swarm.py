@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.core import AgentRow
-from agents.process import subscriptions
+from zenswarm.agents.core import AgentRow
+from zenswarm.agents.process import subscriptions
 from zenswarm import wire
 from zenswarm.bus import free_port
 from zenswarm.config import load_scenario
 from zenswarm.metrics import FLIGHT_FIELDS, TimeSeries
-from zenswarm.sim import simulate
+from zenswarm.compose.sim import simulate
 
 from swarmtest import (
     SCENARIOS,

@@ -1,5 +1,5 @@
 import sys
 
-from .cli import main
+from zenswarm.compose.cli import main
 
 sys.exit(main())

@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from .errors import ScenarioError
+from .geometry import obstacle_clearance
 from .wire import MAX_T_NS
 
 __all__ = [
@@ -54,6 +55,8 @@ __all__ = [
     "MissionConfig",
     "CRAZYFLIE_RADIUS_M",
     "Scenario",
+    "FailsafeConfig",
+    "failsafe_config",
     "load_scenario",
     "scenario_from_dict",
     "scenario_to_dict",
@@ -601,7 +604,7 @@ def validate(s: Scenario) -> None:
         )
 
     # Start and goal must be outside every obstacle inflated by r_f (cylinder + cap surfaces).
-    from leader.aapf import obstacle_clearance  # local import: leader depends on this module's types
+
 
     r_f = s.r_f
     for key, p in (("leader.start", s.leader.start), ("leader.goal", s.leader.goal)):
@@ -623,13 +626,44 @@ def _validate_extra(s: Scenario) -> None:
 
         plan_from_scenario(s.extra["faults"], s.seed, s.n)
     if "failsafe" in s.extra:
-        from plant.failsafe import failsafe_config
-
         failsafe_config(s.extra["failsafe"])
     if "restart" in s.extra:
-        from compose.policy import restart_policy
+        from .policy import restart_policy
 
         restart_policy(s.extra["restart"])
+
+
+@dataclass(frozen=True)
+class FailsafeConfig:
+    """hover_after_s < land_after_s, s of sim time without a fresh command; land_speed m/s;
+    hold gains kp (1/s^2), kd (1/s); ground_z m (motors off below it while landing)."""
+
+    hover_after_s: float = 0.5
+    land_after_s: float = 5.0
+    land_speed: float = 0.3
+    kp: float = 4.0
+    kd: float = 3.0
+    ground_z: float = 0.03
+
+
+def failsafe_config(section: dict[str, Any] | None) -> FailsafeConfig:
+    """Parse the scenario's ``[failsafe]`` table (``Scenario.extra``); errors name the field."""
+    if section is None:
+        return FailsafeConfig()
+    allowed = set(FailsafeConfig.__dataclass_fields__)
+    vals: dict[str, float] = {}
+    for k, v in section.items():
+        if k not in allowed:
+            raise ScenarioError(f"failsafe.{k}", f"unknown key (allowed: {', '.join(sorted(allowed))})")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise ScenarioError(f"failsafe.{k}", f"expected a finite number, got {v!r}")
+        if k != "ground_z" and v <= 0:
+            raise ScenarioError(f"failsafe.{k}", f"must be > 0, got {v}")
+        vals[k] = float(v)
+    cfg = FailsafeConfig(**vals)
+    if cfg.land_after_s <= cfg.hover_after_s:
+        raise ScenarioError("failsafe.land_after_s", f"must be > failsafe.hover_after_s ({cfg.land_after_s} <= {cfg.hover_after_s})")
+    return cfg
 
 
 def load_scenario(path: str | Path) -> Scenario:

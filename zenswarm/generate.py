@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from leader.aapf import obstacle_clearance
+from zenswarm.geometry import obstacle_clearance
 
 from .argtypes import positive_float
 from .config import Obstacle, check_seed, scenario_from_dict, seed_arg
@@ -253,7 +253,7 @@ def pinning_vector(adjacency: np.ndarray, pinning: str = "first", rng: np.random
 
 
 def _clearance(p: np.ndarray, center: np.ndarray, radius: float, height: float) -> float:
-    """Signed distance from p (3,) to a capped cylinder's surface, m (leader.aapf.obstacle_clearance)."""
+    """Signed distance from p (3,) to a capped cylinder's surface, m (zenswarm.geometry.obstacle_clearance)."""
     return float(obstacle_clearance(p, Obstacle(center=tuple(center), radius=radius, height=height)))
 
 

@@ -3,25 +3,49 @@ d_obs, and the nearest pair of a point set.
 
 Pure (numpy only). Obstacles are any objects with ``center`` (3,) = base centre c, ``radius`` r_o
 and ``height`` h_o: a vertical cylinder capped by an upper hemisphere (paper, Remark 1), e.g.
-:class:`zenswarm.config.Obstacle`. Positions are in metres, inertial ENU frame (z up). The scalar
-forms used inside the planner's loop are in :mod:`leader.aapf`; these are their vectorised twins
-for judging and plotting whole flights.
+:class:`zenswarm.config.Obstacle`. Positions are in metres, inertial ENU frame (z up). :func:`obstacle_clearance`
+is the scalar form used by the scenario's checks and the planner; the ``_many`` functions are
+vectorised twins for judging and plotting whole flights.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
-__all__ = ["obstacle_clearance_many", "d_obs_many", "close_pairs"]
+__all__ = ["obstacle_clearance", "obstacle_clearance_many", "d_obs_many", "close_pairs"]
+
+
+def obstacle_clearance(p: np.ndarray, ob: Any) -> float:
+    """Signed distance from a point p (3,) to the real capped-cylinder surface, m (negative inside).
+
+    Unlike :func:`d_obs` this measures against the true solid: the cylinder side for
+    z_c <= z <= z_c + h_o, the hemispherical cap above, and the base disc's rim below z_c.
+    """
+    xc, yc, zc = ob.center
+    top = zc + ob.height
+    rho = math.hypot(p[0] - xc, p[1] - yc)
+    z = p[2]
+    if z > top:
+        return math.sqrt(rho * rho + (z - top) ** 2) - ob.radius
+    if z >= zc:
+        side = rho - ob.radius
+        if side < 0:  # inside the cylinder part: nearest boundary is the side or the base
+            return max(side, zc - z)
+        return side
+    below = zc - z
+    if rho <= ob.radius:
+        return below
+    return math.hypot(rho - ob.radius, below)
 
 
 def obstacle_clearance_many(p: np.ndarray, ob: Any) -> np.ndarray:
     """Signed distance from points p (..., 3) to the real capped-cylinder surface, (...,) m.
 
     Negative inside. The cylinder side for z_c <= z <= z_c + h_o, the hemispherical cap above,
-    and the base disc's rim below z_c (the same solid as :func:`leader.aapf.obstacle_clearance`).
+    and the base disc's rim below z_c (the same solid as :func:`obstacle_clearance`).
     """
     p = np.asarray(p, dtype=float)
     xc, yc, zc = ob.center

@@ -34,21 +34,21 @@ from typing import Callable
 
 import numpy as np
 
-from agents.controller import composite_control, invert_thrust_attitude
-from agents.core import AgentCore, AgentRow
-from agents.eso import eso_step
-from agents.generator import euler_step, generator_rates_all
-from leader.aapf import AapfParams, integrate_leader, total_force
-from plant.disturbance import DisturbanceModel
-from plant.failsafe import FailsafeState, failsafe_config
-from plant.params import QuadParams
-from plant.quadrotor import initial_state, step_held
+from zenswarm.agents.controller import composite_control, invert_thrust_attitude
+from zenswarm.agents.core import AgentCore, AgentRow
+from zenswarm.agents.eso import eso_step
+from zenswarm.agents.generator import euler_step, generator_rates_all
+from zenswarm.leader.aapf import AapfParams, integrate_leader, total_force
+from zenswarm.plant.disturbance import DisturbanceModel
+from zenswarm.plant.failsafe import FailsafeState, failsafe_config
+from zenswarm.params import QuadParams
+from zenswarm.plant.quadrotor import initial_state, step_held
 
-from .config import Scenario
-from .faults import FaultPlan, FaultState
-from .linkfaults import Box, box_counters
-from .metrics import TimeSeries, add_failure, compute_results
-from .verdict import criteria_from_scenario, decide_end
+from zenswarm.config import Scenario
+from zenswarm.faults import FaultPlan, FaultState
+from zenswarm.linkfaults import Box, box_counters
+from zenswarm.metrics import TimeSeries, add_failure, compute_results
+from zenswarm.verdict import criteria_from_scenario, decide_end
 
 __all__ = ["simulate", "SimResult", "run_sim_cli"]
 

@@ -10,8 +10,8 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from .argtypes import positive_float
-from .errors import ZenswarmError
+from zenswarm.argtypes import positive_float
+from zenswarm.errors import ZenswarmError
 
 EPILOG = """\
 Quick start:
@@ -52,20 +52,20 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
         help="fly the whole time limit even after the outcome is decided (by default a stalled leader or a "
         "diverged UAV ends the run early; the verdict names the failure either way)",
     )
-    from .linkfaults import add_fault_args
+    from zenswarm.linkfaults import add_fault_args
 
     add_fault_args(p)
     p.set_defaults(func=_run_sim)
 
 
 def _run_sim(args: argparse.Namespace) -> int:
-    from .config import load_scenario
-    from .sim import apply_overrides, run_sim_cli
+    from zenswarm.config import load_scenario
+    from zenswarm.compose.sim import apply_overrides, run_sim_cli
 
     from dataclasses import replace
 
-    from .linkfaults import plan_from_args
-    from .paths import check_output_dir
+    from zenswarm.linkfaults import plan_from_args
+    from zenswarm.paths import check_output_dir
 
     sc = apply_overrides(load_scenario(args.scenario), no_eso=args.no_eso, fixed_gain=args.fixed_gain)
     if args.seed is not None:
@@ -86,14 +86,14 @@ def _add_scenario(sub: argparse._SubParsersAction) -> None:
     c.add_argument("scenario", type=Path)
     c.set_defaults(func=_run_check)
     try:
-        from . import generate
+        from zenswarm import generate
     except ImportError:  # pragma: no cover - generate is part of the package
         return
     generate.add_parser(ssub)
 
 
 def _run_check(args: argparse.Namespace) -> int:
-    from .config import load_scenario
+    from zenswarm.config import load_scenario
 
     s = load_scenario(args.scenario)
     print(
@@ -118,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_sim(sub)
     _add_scenario(sub)
-    for modname in ("compose.supervisor", "compose.roles", "bridge.cli", "zenswarm.security"):
+    for modname in ("zenswarm.compose.supervisor", "zenswarm.compose.roles", "zenswarm.bridge.cli", "zenswarm.security"):
         try:
             mod = __import__(modname, fromlist=["add_parsers"])
         except ImportError as e:
@@ -143,7 +143,7 @@ def run_standalone(prog: str, doc: str | None, configure, argv: Sequence[str] | 
 
 
 # The swarm's own processes start with only what they need (a restarted agent rejoins sooner).
-_ROLE_MODULES = {"agent": "agents.process", "leader": "leader.process", "plant": "plant.process"}
+_ROLE_MODULES = {"agent": "zenswarm.agents.process", "leader": "zenswarm.leader.process", "plant": "zenswarm.plant.process"}
 
 
 def _role_parser(role: str) -> argparse.ArgumentParser:

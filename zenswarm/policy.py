@@ -1,4 +1,7 @@
-"""Supervisor policies from the scenario (pure): the ``[restart]`` backoff."""
+"""Supervisor policies from the scenario (pure): the ``[restart]`` backoff.
+
+In the base layer because the scenario's loader validates the table (the supervisor in
+``compose/`` applies it)."""
 
 from __future__ import annotations
 

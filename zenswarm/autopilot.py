@@ -1,0 +1,369 @@
+"""What a zenswarm process needs to know about PX4 and ArduPilot, without speaking MAVLink.
+
+The flight-mode tables of both autopilots (HEARTBEAT ``custom_mode`` numbers, as the vehicles
+report them and as MAV_CMD_DO_SET_MODE asks for them) and the scenario's ``[mavlink]`` table
+(:func:`mavlink_settings`). Both the MAVLink bridge (``bridge/mavlink.py``) and the simulated
+MAVLink vehicles (``plant/mavlink_vehicle.py``) use them, so they live in the base layer.
+Standard library only; :func:`load_mavutil` imports pymavlink when called.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+from zenswarm.config import Scenario
+from zenswarm.errors import ScenarioError
+
+__all__ = [
+    "PX4_MAIN",
+    "PX4_AUTO_SUB",
+    "AP_COPTER_MODES",
+    "px4_custom_mode",
+    "px4_decode",
+    "PX4_OFFBOARD",
+    "PX4_HOLD",
+    "PX4_LAND",
+    "PX4_POSCTL",
+    "mode_name",
+    "mode_request_params",
+    "autopilot_name",
+    "MavlinkSettings",
+    "mavlink_settings",
+    "load_mavutil",
+]
+
+
+def load_mavutil() -> Any:
+    """pymavlink's ``mavutil``, speaking MAVLink 2: sets ``MAVLINK20=1`` in the environment before
+    the import (PX4 and ArduPilot both speak MAVLink 2), so every connection of the process does."""
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink import mavutil as mu
+
+    if getattr(mu.mavlink, "WIRE_PROTOCOL_VERSION", "1.0") != "2.0":
+        mu.set_dialect(mu.current_dialect)
+    return mu
+
+# --------------------------------------------------------------------------- MAVLink modes
+
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+"""``MAV_AUTOPILOT`` of ArduPilot in HEARTBEAT.autopilot (MAVLink common.xml)."""
+
+MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
+"""``MAV_MODE_FLAG`` bit saying ``custom_mode`` is meaningful (MAVLink common.xml)."""
+
+PX4_MAIN: dict[str, int] = {
+    "MANUAL": 1,
+    "ALTCTL": 2,
+    "POSCTL": 3,
+    "AUTO": 4,
+    "ACRO": 5,
+    "OFFBOARD": 6,
+    "STABILIZED": 7,
+    "RATTITUDE": 8,
+}
+"""PX4 custom main modes (``PX4_CUSTOM_MAIN_MODE`` in PX4's ``px4_custom_mode.h``)."""
+
+PX4_AUTO_SUB: dict[str, int] = {"READY": 1, "TAKEOFF": 2, "LOITER": 3, "MISSION": 4, "RTL": 5, "LAND": 6}
+"""PX4 sub modes of main mode AUTO (``PX4_CUSTOM_SUB_MODE_AUTO``)."""
+
+AP_COPTER_MODES: dict[str, int] = {
+    "STABILIZE": 0,
+    "ALT_HOLD": 2,
+    "AUTO": 3,
+    "GUIDED": 4,
+    "LOITER": 5,
+    "RTL": 6,
+    "LAND": 9,
+    "POSHOLD": 16,
+    "BRAKE": 17,
+    "GUIDED_NOGPS": 20,
+}
+"""ArduCopter flight mode numbers (HEARTBEAT.custom_mode, DO_SET_MODE param2)."""
+
+
+def px4_custom_mode(main: int, sub: int = 0) -> int:
+    """PX4 HEARTBEAT.custom_mode for (main, sub): the union ``{uint16 reserved; uint8 main_mode;
+    uint8 sub_mode}`` read as a little-endian uint32: ``main << 16 | sub << 24``."""
+    return ((int(main) & 0xFF) << 16) | ((int(sub) & 0xFF) << 24)
+
+
+def px4_decode(custom_mode: int) -> tuple[int, int]:
+    """(main_mode, sub_mode) of a PX4 custom_mode."""
+    return (int(custom_mode) >> 16) & 0xFF, (int(custom_mode) >> 24) & 0xFF
+
+
+PX4_OFFBOARD = px4_custom_mode(PX4_MAIN["OFFBOARD"])
+PX4_HOLD = px4_custom_mode(PX4_MAIN["AUTO"], PX4_AUTO_SUB["LOITER"])
+PX4_LAND = px4_custom_mode(PX4_MAIN["AUTO"], PX4_AUTO_SUB["LAND"])
+PX4_POSCTL = px4_custom_mode(PX4_MAIN["POSCTL"])
+
+_PX4_MAIN_NAME = {v: k for k, v in PX4_MAIN.items()}
+_PX4_SUB_NAME = {v: k for k, v in PX4_AUTO_SUB.items()}
+_AP_NAME = {v: k for k, v in AP_COPTER_MODES.items()}
+
+
+def autopilot_name(mav_autopilot: int) -> str:
+    """'px4' for MAV_AUTOPILOT_PX4, 'ardupilot' for MAV_AUTOPILOT_ARDUPILOTMEGA, else 'px4'
+    (a generic autopilot is driven like PX4)."""
+    return "ardupilot" if int(mav_autopilot) == MAV_AUTOPILOT_ARDUPILOTMEGA else "px4"
+
+
+def mode_name(autopilot: str, custom_mode: int | None) -> str:
+    """Readable mode, e.g. ``OFFBOARD``, ``AUTO.LOITER``, ``GUIDED_NOGPS``, ``?(1234)``."""
+    if custom_mode is None:
+        return "unknown"
+    if autopilot == "ardupilot":
+        return _AP_NAME.get(int(custom_mode), f"?({custom_mode})")
+    main, sub = px4_decode(custom_mode)
+    name = _PX4_MAIN_NAME.get(main)
+    if name is None:
+        return f"?({custom_mode})"
+    if main == PX4_MAIN["AUTO"]:
+        return f"AUTO.{_PX4_SUB_NAME.get(sub, str(sub))}"
+    return name
+
+
+def mode_request_params(autopilot: str, custom_mode: int) -> tuple[float, float, float]:
+    """(param1, param2, param3) of MAV_CMD_DO_SET_MODE for ``custom_mode``: param1 =
+    MAV_MODE_FLAG_CUSTOM_MODE_ENABLED; PX4: param2 = main mode, param3 = sub mode; ArduPilot:
+    param2 = mode number."""
+    flag = float(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED)
+    if autopilot == "ardupilot":
+        return flag, float(custom_mode), 0.0
+    main, sub = px4_decode(custom_mode)
+    return flag, float(main), float(sub)
+
+
+def _same_mode(autopilot: str, a: int | None, b: int | None) -> bool:
+    if a is None or b is None:
+        return False
+    if autopilot == "ardupilot":
+        return int(a) == int(b)
+    ma, sa = px4_decode(a)
+    mb, sb = px4_decode(b)
+    if ma != mb:
+        return False
+    return ma != PX4_MAIN["AUTO"] or sa == sb  # the sub mode matters only for AUTO
+
+
+# --------------------------------------------------------------------------- settings
+
+_MAV_KEYS: dict[str, str] = {
+    "connections": "list of pymavlink connection strings, one per UAV (default udpout:HOST:BASE_PORT+i-1)",
+    "sysids": "list of MAVLink system ids, one per UAV (default 1..N)",
+    "origins": "list of [x, y, z], m ENU: where each vehicle's local NED origin is in the swarm frame (default 0)",
+    "host": "host of the simulated vehicles (default 127.0.0.1)",
+    "base_port": "UDP port of vehicle 1; vehicle i on base_port + i - 1 (default 14540)",
+    "autopilot": "px4 | ardupilot | auto (bridge: from the vehicle's heartbeat; default auto)",
+    "setpoint": "attitude (SET_ATTITUDE_TARGET from uav/<i>/cmd) | position (SET_POSITION_TARGET_LOCAL_NED from uav/<i>/ref)",
+    "rate_hz": "minimum setpoint rate, Hz, >= 20 (default max(20, control rate))",
+    "hover_throttle": "normalised throttle at which the vehicle hovers, (0, 1) (default: thrust / max_thrust)",
+    "takeoff": "fly to the scenario's initial positions before the mission (default true)",
+    "takeoff_tolerance_m": "takeoff done within this distance, m (default 0.08)",
+    "takeoff_timeout_s": "give up a takeoff after this long, s (default 30)",
+    "link_timeout_s": "a vehicle silent this long is unhealthy, s (default 1.0)",
+    "stream_s": "setpoints streamed before asking for the offboard mode, s (default 1.0)",
+    "cmd_timeout_s": "an agent command older than this is replaced by a position hold, s (default 0.5)",
+    "land_timeout_s": "wait at most this long for the vehicles to land and disarm, s (default 15)",
+    "start_timeout_s": "start the mission clock after this long even if some UAV is not ready, s (default 60)",
+    "reengage": "after a link loss, ask a still-armed vehicle for the offboard mode again (default true)",
+    "source_system": "the bridge's MAVLink system id (default 245)",
+    "telemetry_hz": "LOCAL_POSITION_NED and ATTITUDE rate, Hz: the simulated vehicles send at it, the bridge asks real ones for it (default 50)",
+    "request_telemetry": "ask each vehicle for telemetry_hz with MAV_CMD_SET_MESSAGE_INTERVAL on connect and after a link loss (default true)",
+    "offboard_loss_s": "simulated vehicle: no setpoint this long -> hold (PX4 COM_OF_LOSS_T, whose default is also 1 s), s (default 1.0)",
+    "failsafe_land_s": "simulated vehicle: hold this long after the loss, then land, s (default 5)",
+    "ground_z": "simulated vehicle: ground height, m ENU (default 0)",
+}
+
+
+@dataclass(frozen=True)
+class MavlinkSettings:
+    """Validated ``[mavlink]`` table plus command-line overrides (see ``_MAV_KEYS`` for units)."""
+
+    n: int
+    connections: tuple[str, ...]
+    sysids: tuple[int, ...]
+    origins: tuple[tuple[float, float, float], ...]
+    host: str = "127.0.0.1"
+    base_port: int = 14540
+    autopilot: str = "auto"
+    setpoint: str = "attitude"
+    rate_hz: float = 20.0
+    hover_throttle: float | None = None
+    takeoff: bool = True
+    takeoff_tolerance_m: float = 0.08
+    takeoff_timeout_s: float = 30.0
+    link_timeout_s: float = 1.0
+    stream_s: float = 1.0
+    cmd_timeout_s: float = 0.5
+    land_timeout_s: float = 15.0
+    start_timeout_s: float = 60.0
+    reengage: bool = True
+    source_system: int = 245
+    telemetry_hz: float = 50.0
+    request_telemetry: bool = True
+    offboard_loss_s: float = 1.0
+    failsafe_land_s: float = 5.0
+    ground_z: float = 0.0
+
+
+def _num(fieldname: str, x: Any, lo: float | None = None, hi: float | None = None, *, strict_lo: bool = False) -> float:
+    if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+        raise ScenarioError(fieldname, f"expected a finite number, got {x!r}")
+    x = float(x)
+    if lo is not None and (x <= lo if strict_lo else x < lo):
+        raise ScenarioError(fieldname, f"must be {'>' if strict_lo else '>='} {lo:g}, got {x:g}")
+    if hi is not None and x > hi:
+        raise ScenarioError(fieldname, f"must be <= {hi:g}, got {x:g}")
+    return x
+
+
+def _int(fieldname: str, x: Any, lo: int, hi: int) -> int:
+    if isinstance(x, bool) or not isinstance(x, int) or not lo <= x <= hi:
+        raise ScenarioError(fieldname, f"expected an integer in {lo}..{hi}, got {x!r}")
+    return int(x)
+
+
+def _bool(fieldname: str, x: Any) -> bool:
+    if not isinstance(x, bool):
+        raise ScenarioError(fieldname, f"expected true or false, got {x!r}")
+    return x
+
+
+def _choice(fieldname: str, x: Any, options: tuple[str, ...]) -> str:
+    if x not in options:
+        raise ScenarioError(fieldname, f"expected one of {', '.join(options)}, got {x!r}")
+    return str(x)
+
+
+_URL_SCHEMES = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:")
+
+
+def _check_url(fieldname: str, url: Any) -> str:
+    """A pymavlink connection string for a live link (not a log file): udpin:, udpout:, udp:,
+    udpbcast:, tcp:, tcpin: HOST:PORT, or a serial device (``/dev/...`` or ``COMn``, optionally
+    ``,BAUD``)."""
+    if not isinstance(url, str) or not url:
+        raise ScenarioError(fieldname, f"expected a connection string, got {url!r}")
+    if url.startswith(_URL_SCHEMES):
+        host, sep, port = url.split(":", 1)[1].rpartition(":")
+        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise ScenarioError(fieldname, f"expected SCHEME:HOST:PORT, got {url!r}")
+        return url
+    dev = url.split(",", 1)[0]
+    if dev.startswith("/dev/") or (dev.upper().startswith("COM") and dev[3:].isdigit()):
+        return url
+    raise ScenarioError(
+        fieldname, f"{url!r} is not a live MAVLink link: use udpin:/udpout:/tcp:HOST:PORT or a serial device /dev/...[,BAUD]"
+    )
+
+
+def mavlink_settings(sc: Scenario, cli: dict[str, Any] | None = None) -> MavlinkSettings:
+    """The scenario's ``[mavlink]`` table, validated, with command-line overrides applied.
+
+    cli: optional overrides with the same keys as the table (None values are ignored), plus
+    ``conn`` ({uav: url}) and ``sysid`` ({uav: id}) for single UAVs. Errors are
+    :class:`ScenarioError` naming the field (``mavlink.<key>`` or the flag). Keys of the table:
+
+    """
+    raw = sc.extra.get("mavlink", {})
+    if not isinstance(raw, dict):
+        raise ScenarioError("mavlink", "expected a table")
+    for k in raw:
+        if k not in _MAV_KEYS:
+            raise ScenarioError(f"mavlink.{k}", f"unknown key; expected one of {', '.join(sorted(_MAV_KEYS))}")
+    d = dict(raw)
+    cli = dict(cli or {})
+    conn_over: dict[int, str] = cli.pop("conn", None) or {}
+    sysid_over: dict[int, int] = cli.pop("sysid", None) or {}
+    for k, v in cli.items():
+        if k not in _MAV_KEYS:
+            raise ScenarioError(f"--{k}", "unknown setting")
+        if v is not None:
+            d[k] = v
+    n = sc.n
+    f = lambda k: f"mavlink.{k}"  # noqa: E731
+
+    host = d.get("host", "127.0.0.1")
+    if not isinstance(host, str) or not host:
+        raise ScenarioError(f("host"), f"expected a host name or address, got {host!r}")
+    base_port = _int(f("base_port"), d.get("base_port", 14540), 1, 65535 - n + 1)
+
+    conns = d.get("connections")
+    if conns is None:
+        conns = [f"udpout:{host}:{base_port + i}" for i in range(n)]
+    if not isinstance(conns, list) or len(conns) != n or not all(isinstance(c, str) and c for c in conns):
+        raise ScenarioError(f("connections"), f"expected a list of {n} connection strings (one per UAV)")
+    conns = list(conns)
+    for k, url in enumerate(conns):
+        _check_url(f"mavlink.connections[{k}]", url)
+    for i, url in conn_over.items():
+        if not 1 <= i <= n:
+            raise ScenarioError("--conn", f"UAV {i} is not in 1..{n}")
+        conns[i - 1] = _check_url("--conn", url)
+
+    sysids = d.get("sysids", list(range(1, n + 1)))
+    if not isinstance(sysids, list) or len(sysids) != n:
+        raise ScenarioError(f("sysids"), f"expected a list of {n} system ids")
+    sysids = [_int(f"mavlink.sysids[{k}]", s, 1, 254) for k, s in enumerate(sysids)]
+    for i, s in sysid_over.items():
+        if not 1 <= i <= n:
+            raise ScenarioError("--sysid", f"UAV {i} is not in 1..{n}")
+        sysids[i - 1] = _int("--sysid", s, 1, 254)
+    seen: dict[tuple[str, int], int] = {}
+    for i, (c, s) in enumerate(zip(conns, sysids)):
+        if (c, s) in seen:
+            raise ScenarioError(f("sysids"), f"UAV {seen[(c, s)] + 1} and UAV {i + 1} share connection {c!r} and system id {s}")
+        seen[(c, s)] = i
+
+    origins = d.get("origins", [[0.0, 0.0, 0.0]] * n)
+    if not isinstance(origins, list) or len(origins) != n:
+        raise ScenarioError(f("origins"), f"expected a list of {n} [x, y, z] points, m ENU")
+    org = []
+    for k, o in enumerate(origins):
+        if not isinstance(o, list) or len(o) != 3:
+            raise ScenarioError(f"mavlink.origins[{k}]", "expected [x, y, z], m ENU")
+        org.append(tuple(_num(f"mavlink.origins[{k}]", x) for x in o))
+
+    ctrl_hz = sc.timing.control_rate_hz
+    rate = _num(f("rate_hz"), d.get("rate_hz", max(20.0, ctrl_hz)), 20.0)
+    hover = d.get("hover_throttle")
+    if hover is not None:
+        hover = _num(f("hover_throttle"), hover, 0.0, 1.0, strict_lo=True)
+        if hover >= 1.0:
+            raise ScenarioError(f("hover_throttle"), "must be < 1")
+    return MavlinkSettings(
+        n=n,
+        connections=tuple(conns),
+        sysids=tuple(sysids),
+        origins=tuple(org),  # type: ignore[arg-type]
+        host=host,
+        base_port=base_port,
+        autopilot=_choice(f("autopilot"), d.get("autopilot", "auto"), ("auto", "px4", "ardupilot")),
+        setpoint=_choice(f("setpoint"), d.get("setpoint", "attitude"), ("attitude", "position")),
+        rate_hz=rate,
+        hover_throttle=hover,
+        takeoff=_bool(f("takeoff"), d.get("takeoff", True)),
+        takeoff_tolerance_m=_num(f("takeoff_tolerance_m"), d.get("takeoff_tolerance_m", 0.08), 0.0, strict_lo=True),
+        takeoff_timeout_s=_num(f("takeoff_timeout_s"), d.get("takeoff_timeout_s", 30.0), 0.0, strict_lo=True),
+        link_timeout_s=_num(f("link_timeout_s"), d.get("link_timeout_s", 1.0), 0.0, strict_lo=True),
+        stream_s=_num(f("stream_s"), d.get("stream_s", 1.0), 0.0),
+        cmd_timeout_s=_num(f("cmd_timeout_s"), d.get("cmd_timeout_s", 0.5), 0.0, strict_lo=True),
+        land_timeout_s=_num(f("land_timeout_s"), d.get("land_timeout_s", 15.0), 0.0),
+        start_timeout_s=_num(f("start_timeout_s"), d.get("start_timeout_s", 60.0), 0.0),
+        reengage=_bool(f("reengage"), d.get("reengage", True)),
+        source_system=_int(f("source_system"), d.get("source_system", 245), 1, 255),
+        telemetry_hz=_num(f("telemetry_hz"), d.get("telemetry_hz", 50.0), 0.0, 1000.0, strict_lo=True),
+        request_telemetry=_bool(f("request_telemetry"), d.get("request_telemetry", True)),
+        offboard_loss_s=_num(f("offboard_loss_s"), d.get("offboard_loss_s", 1.0), 0.0, strict_lo=True),
+        failsafe_land_s=_num(f("failsafe_land_s"), d.get("failsafe_land_s", 5.0), 0.0),
+        ground_z=_num(f("ground_z"), d.get("ground_z", 0.0)),
+    )
+
+
+mavlink_settings.__doc__ = (mavlink_settings.__doc__ or "") + "".join(
+    f"    ``{k}``: {v}\n" for k, v in _MAV_KEYS.items()
+)

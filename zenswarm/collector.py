@@ -1,0 +1,210 @@
+"""The flight's time series assembled from the swarm bus: what ``zenswarm up`` judges and what a
+report of a recording reads.
+
+:class:`Collector` takes every sample of the swarm's key space (its sender checked as the
+processes' input guard does), decodes the clock, the leader's reference and diagnostics at once
+and the rest after the flight, and fills a :class:`zenswarm.metrics.TimeSeries` indexed by tick
+(the same one the in-process simulator writes), so ``results.json`` is computed by the same code
+for both.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import numpy as np
+
+from zenswarm import wire
+from zenswarm.config import Scenario
+from zenswarm.errors import ZenswarmError
+from zenswarm.metrics import TimeSeries
+from zenswarm.runtime import expected_senders, sample_sender
+
+__all__ = ["Collector"]
+
+
+class Collector:
+    """Assembles the flight's time series from the bus (callback on the supervisor's session)."""
+
+    def __init__(self, scenario: Scenario, keys: wire.Keys) -> None:
+        self.sc = scenario
+        self.keys = keys
+        self.T = scenario.timing.n_ticks
+        self.ts = TimeSeries.allocate(self.T, scenario.n)
+        self.ts.t[:] = np.arange(self.T) * scenario.timing.dt
+        self.dt_ns = wire.t_ns(scenario.timing.dt)
+        self.decoder = wire.Decoder()
+        self.lock = threading.Lock()
+        self.sim_t_ns = -1
+        self.ignored_clocks = 0  # decodable clocks beyond the mission's end (garbage), not taken
+        self.leader_q: np.ndarray | None = None
+        self.leader_ticks = 0  # leader refs of ticks 0 .. leader_ticks - 1 may have arrived
+        self.goal_tick: int | None = None
+        self._goal = np.asarray(scenario.leader.goal, dtype=float)
+        self._goal_tol = scenario.timing.goal_tolerance_m
+        self.diag: dict[str, dict] = {}
+        self.counts: dict[str, int] = {}
+        self._eager = {keys.clock, keys.leader_ref}
+        self._pending: list[tuple[str, bytes]] = []
+        # for the live verdict: each UAV's newest state and ref message, decoded only when asked
+        self._live_keys = {k: (kind, i) for i in range(1, scenario.n + 1) for kind, k in (("state", keys.state(i)), ("ref", keys.ref(i)))}
+        self._last: dict[tuple[str, int], bytes] = {}
+        self.got_state = np.zeros((self.T, scenario.n), dtype=bool)  # a state message of (tick, UAV) arrived
+        # Who may publish what (open and secure swarms; in a secure one the router also admits
+        # each key, and alive/<process>/<zid>, from its process's credentials only): as the
+        # processes' input guard, the first session that holds the key's sender token is pinned;
+        # another session (also one with the same credentials) is taken only once the pinned
+        # one's token is gone (a restarted process).
+        self.holders: dict[str, set[str]] = {}  # process -> sessions holding alive/<process>/<zid>
+        self.pins: dict[str, str] = {}  # key -> the session whose messages are taken
+        self.foreign = 0  # samples ignored: not from their key's process
+        self.foreign_by_key: dict[str, int] = {}
+        self._senders: dict[str, tuple[str, ...]] = {}
+
+    def token(self, process: str, zid: str, alive: bool) -> None:
+        """``alive/<process>/<zid>`` appeared (alive) or went away."""
+        with self.lock:
+            h = self.holders.setdefault(process, set())
+            if alive:
+                h.add(zid)
+            else:
+                h.discard(zid)
+
+    def sender_ok(self, key: str, zid: str) -> bool:
+        """May this sample (from session ``zid``, "" when anonymous) enter the series? Counts it
+        when not. Before any token of the key's process is known, everything is taken."""
+        if zid and self.pins.get(key) == zid:  # the usual case, without the lock
+            return True
+        senders = self._senders.get(key)
+        if senders is None:
+            senders = self._senders[key] = expected_senders(self.keys, key)
+        with self.lock:
+            holders = set().union(*(self.holders.get(p, ()) for p in senders))
+            pin = self.pins.get(key)
+            if zid == pin or (not holders and pin is None):
+                return True
+            if zid in holders and (pin is None or pin not in holders):  # first, or a restart
+                self.pins[key] = zid
+                return True
+            self.foreign += 1
+            self.foreign_by_key[key] = self.foreign_by_key.get(key, 0) + 1
+            return False
+
+    def poll(self, sub: Any) -> int:
+        """Take every sample queued on ``sub`` (a subscriber with a channel handler); returns
+        how many. Called from the supervisor's own loop, so the swarm's messages cost the
+        supervisor no Python thread wake-up each (they wait in zenoh's channel between polls)."""
+        n = 0
+        while (s := sub.try_recv()) is not None:
+            key = str(s.key_expr)
+            if self.sender_ok(key, sample_sender(s)):
+                self.on_sample(key, s.payload.to_bytes())
+            n += 1
+        return n
+
+    def on_sample(self, key: str, payload: bytes) -> None:
+        """Take one sample (its sender checked). The clock, the leader's ref and diagnostics
+        (what progress needs) are decoded at once; the rest is queued and decoded by
+        :meth:`series`, after the flight (the swarm's processes share this machine's cores)."""
+        if key in self._eager or "/diag/" in key:
+            self._apply(key, payload)
+        else:
+            self._pending.append((key, payload))
+            live = self._live_keys.get(key)
+            if live is not None:
+                self._last[live] = payload
+
+    def complete_ticks(self, upto: int) -> int:
+        """How many ticks from 0, up to ``upto``, have every UAV's state (the rest were cut off
+        when the run was stopped)."""
+        self._drain()
+        missing = np.flatnonzero(~self.got_state[:upto].all(axis=1))
+        return int(missing[0]) if len(missing) else min(upto, self.T)
+
+    def latest(self, kind: str) -> dict[int, tuple[int, np.ndarray]]:
+        """UAV number -> (tick, q (3,)) of its newest ``state`` or ``ref`` message, decoded now:
+        what the live verdict needs, without decoding the whole flight."""
+        out: dict[int, tuple[int, np.ndarray]] = {}
+        for (k, i), payload in list(self._last.items()):
+            if k != kind:
+                continue
+            try:  # not through self.decoder: its counters are the flight's, counted once in series()
+                msg = wire.decode(kind, payload)
+            except Exception:  # noqa: BLE001 - garbage: the series' decoder counts it
+                continue
+            out[i] = ((msg.t + self.dt_ns // 2) // self.dt_ns, np.asarray(msg.q, dtype=float))
+        return out
+
+    def _drain(self) -> None:
+        pending, self._pending = self._pending, []
+        for key, payload in pending:
+            self._apply(key, payload)
+
+    def _apply(self, key: str, payload: bytes) -> None:
+        try:
+            kind, idx, proc = self.keys.parse(key)
+        except ZenswarmError:
+            return
+        self.counts[kind] = self.counts.get(kind, 0) + 1
+        msg = self.decoder.decode(key, "ref" if kind == "leader_ref" else kind, payload)
+        if msg is None:
+            return
+        if kind == "diag":
+            self.diag[msg.process] = {**msg.counters, **{k: v for k, v in msg.info.items() if isinstance(v, (int, float, bool, str))}}
+            return
+        if kind == "mission":
+            return
+        k = (msg.t + self.dt_ns // 2) // self.dt_ns
+        with self.lock:
+            if kind == "clock":
+                if 0 <= k <= self.T:  # a clock past the mission's end is garbage: progress must not jump
+                    self.sim_t_ns = max(self.sim_t_ns, msg.t)
+                else:
+                    self.ignored_clocks += 1
+                return
+            if not 0 <= k < self.T:
+                return
+            ts = self.ts
+            if kind == "leader_ref":
+                ts.q0[k] = msg.q
+                ts.v0[k] = msg.v
+                self.leader_q = msg.q
+                self.leader_ticks = max(self.leader_ticks, int(k) + 1)
+                if self.goal_tick is None and float(np.linalg.norm(msg.q - self._goal)) <= self._goal_tol:
+                    self.goal_tick = int(k)
+            elif kind == "ref" and idx is not None:
+                ts.qref[k, idx - 1] = msg.q
+                ts.vref[k, idx - 1] = msg.v
+            elif kind == "state" and idx is not None:
+                self.got_state[k, idx - 1] = True
+                ts.q[k, idx - 1] = msg.q
+                ts.v[k, idx - 1] = msg.v
+                ts.rpy[k, idx - 1] = msg.rpy
+            elif kind == "cmd" and idx is not None:
+                ts.u[k, idx - 1] = msg.u
+                ts.thrust[k, idx - 1] = msg.thrust
+                ts.d_hat[k, idx - 1] = msg.d_hat
+
+    def series(self, upto_tick: int | None = None, fill: bool = False) -> TimeSeries:
+        """The collected series up to ``upto_tick``; ``fill`` forward-fills gaps (realtime)."""
+        self._drain()
+        with self.lock:
+            T = self.T if upto_tick is None else max(0, min(self.T, upto_tick))
+            ts = self.ts.truncated(T)
+            ts = TimeSeries(**{f: np.array(getattr(ts, f)) for f in TimeSeries.FIELDS})
+        if fill and len(ts.t):
+            # realtime: a tick a process skipped holds its previous value (latest value wins);
+            # ticks before every process produced its first value are dropped.
+            first = 0
+            for f in TimeSeries.FIELDS:
+                a = getattr(ts, f)
+                for k in range(1, len(a)):
+                    bad = np.isnan(a[k])
+                    if np.any(bad):
+                        a[k][bad] = a[k - 1][bad]
+                rows = np.isnan(a.reshape(len(a), -1)).any(axis=1)
+                if np.any(rows):
+                    first = max(first, int(np.flatnonzero(rows)[-1]) + 1)
+            ts = TimeSeries(**{f: getattr(ts, f)[first:] for f in TimeSeries.FIELDS})
+        return ts
