@@ -576,7 +576,7 @@ class Flight:
         self.fleet.set_mode_override(2, PX4_POSCTL)  # vehicle 3: a mode the bridge did not ask for
         self.fleet.start()
         self.bridge = Proc(
-            [sys.executable, "-m", "zenswarm.bridge.mavlink", str(path), "--swarm", self.swarm, "--connect", self.ep, "--no-wait-alive"]
+            [sys.executable, "-m", "zenswarm", "bridge", "mavlink", str(path), "--swarm", self.swarm, "--connect", self.ep, "--no-wait-alive"]
         )
         self.cmd_pub = self.client.declare_publisher(self.keys.cmd(1))
 
