@@ -1,0 +1,50 @@
+"""The installed layout: one ``zenswarm`` namespace, nothing else in site-packages.
+
+The repository keeps agents/ leader/ plant/ bridge/ compose/ at the top level; they install as
+``zenswarm.agents`` ... ``zenswarm.compose`` (pyproject ``package-dir``). Run from a directory
+outside the repository, so only what the installation provides can be imported.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+ROLES_AND_EDGES = ("agents", "leader", "plant", "bridge", "compose")
+
+
+def _run(code: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True, timeout=60)
+
+
+@pytest.mark.parametrize("name", ROLES_AND_EDGES)
+def test_old_top_level_names_are_not_installed(name: str, tmp_path: Path) -> None:
+    out = _run(f"import {name}", tmp_path)
+    assert out.returncode != 0 and "ModuleNotFoundError" in out.stderr, f"`import {name}` worked outside the repo"
+
+
+def test_namespace_packages_come_from_the_repository_folders(tmp_path: Path) -> None:
+    code = "import importlib\n" + "".join(
+        f"print(importlib.import_module('zenswarm.{n}').__file__)\n" for n in ROLES_AND_EDGES
+    )
+    out = _run(code, tmp_path)
+    assert out.returncode == 0, out.stderr
+    files = [Path(line) for line in out.stdout.split()]
+    assert [f.parent.name for f in files] == list(ROLES_AND_EDGES)
+
+
+def test_package_dir_maps_every_folder() -> None:
+    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert cfg["package-dir"] == {"zenswarm": "zenswarm", **{f"zenswarm.{n}": n for n in ROLES_AND_EDGES}}
+    assert sorted(cfg["packages"]) == sorted(cfg["package-dir"])
+
+
+def test_builtin_scenarios_ship_with_the_package(tmp_path: Path) -> None:
+    out = _run("import zenswarm.compose as c, pathlib; print(pathlib.Path(c.__file__).parent / 'scenarios')", tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert (Path(out.stdout.strip()) / "paper_example1.toml").is_file()
