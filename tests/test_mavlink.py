@@ -355,6 +355,7 @@ def test_vehicle_offboard_loss_failsafe(one_vehicle):
     assert veh.counters["failsafe_hold"] == 1 and veh.counters["failsafe_land"] == 1
 
 
+@pytest.mark.swarm
 def test_plant_mavlink_flag_runs_the_simulated_vehicles():
     """`zenswarm plant --mavlink --scenario S --base-port P` runs the scenario's quadrotors as
     MAVLink vehicles: vehicle i answers on UDP P+i-1 with system id i; it stops by itself after

@@ -289,6 +289,7 @@ def test_truncated_recording_reports_what_it_holds(flight, tmp_path):
     assert all(f.stat().st_size > 20_000 for f in files)
 
 
+@pytest.mark.swarm
 def test_report_cli_warns_on_a_truncated_recording(flight, tmp_path):
     """`zenswarm report` on a file cut short (the recorder was killed): exit 0, figures from what
     was read, and a warning on stderr that says so and which sim time the report covers; payloads

@@ -286,6 +286,7 @@ EXPECTED = {
 
 
 @pytest.mark.parametrize("case", sorted(EXPECTED))
+@pytest.mark.swarm
 def test_sim_names_what_happened_to_the_vehicles(case: str, tmp_path) -> None:
     import json
 
@@ -309,6 +310,7 @@ def test_sim_names_what_happened_to_the_vehicles(case: str, tmp_path) -> None:
         assert stall["where"][0] < 1.2 - 0.2  # in front of the obstacle
 
 
+@pytest.mark.swarm
 def test_sim_full_time_flies_the_whole_limit_and_still_names_the_failure(tmp_path) -> None:
     import json
 
@@ -322,6 +324,7 @@ def test_sim_full_time_flies_the_whole_limit_and_still_names_the_failure(tmp_pat
     assert [f["cause"] for f in res["failures"]] == ["leader_stalled"]
 
 
+@pytest.mark.swarm
 def test_sim_ctrl_c_writes_what_was_flown(tmp_path) -> None:
     import json
     import signal
@@ -351,6 +354,7 @@ def test_sim_ctrl_c_writes_what_was_flown(tmp_path) -> None:
 
 
 @pytest.mark.parametrize("case", sorted(EXPECTED))
+@pytest.mark.swarm
 def test_swarm_gives_the_simulator_s_verdict_and_ends_as_early(case: str, tmp_path) -> None:
     """`zenswarm up` (lockstep) judges the same vehicles the same way: every flight field equal,
     failures included, and the run ends at the same deciding tick; so does `zenswarm report` from
