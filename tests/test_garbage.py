@@ -422,6 +422,7 @@ _sample = st.sampled_from(SUBS).flatmap(
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(samples=st.lists(_sample, max_size=60), ticking=st.booleans())
+@pytest.mark.slow
 def test_handle_sample_never_raises_counts_everything_and_lets_in_only_sane_streams(samples: list, ticking: bool) -> None:
     p = _with_tokens(_proc())
     got: dict[str, list[tuple[int, Any]]] = {}

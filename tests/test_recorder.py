@@ -506,6 +506,7 @@ def test_missing_and_foreign_files_name_the_file(tmp_path: Path) -> None:
         recover(foreign, tmp_path / "out.mcap")
 
 
+@pytest.mark.slow
 def test_truncated_file_error_and_recover(tmp_path: Path) -> None:
     swarm = swarm_name()
     scenario = scenario_to_dict(load_scenario(EX1))
@@ -776,6 +777,7 @@ def test_kill_recorder_without_record_is_bad_input(tmp_path: Path) -> None:
     assert not (tmp_path / "up" / "results.json").exists()
 
 
+@pytest.mark.slow
 def test_a_flood_of_oversize_payloads_does_not_hold_back_the_flush(tmp_path: Path) -> None:
     """While the writer works through a long run of oversize payloads, the samples before them are
     still flushed every flush interval, and the counts reach the file while the flood goes on."""

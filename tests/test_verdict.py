@@ -204,6 +204,7 @@ def test_close_pairs_equals_brute_force(seed: int) -> None:
     assert len(ii) == 40 * 39 // 2
 
 
+@pytest.mark.slow
 def test_large_swarm_pairs_match_the_small_swarm_path_with_linear_memory() -> None:
     """N above the all-pairs limit: per-tick sweep. Same minimum and contacts as brute force, and
     peak memory far below a (T, N, N) array."""
