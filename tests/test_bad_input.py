@@ -58,6 +58,7 @@ def _up_refused(tmp: Path, *args: str, needles: tuple[str, ...], scenario: Path 
 # ----------------------------------------------------------------------------- 1. scenario bounds
 
 
+@pytest.mark.swarm
 def test_absurd_time_limit_is_refused_by_check_sim_and_up(tmp_path: Path) -> None:
     """time_limit_s = 1e12 tried to allocate 728 TiB in sim; now all three refuse it on load."""
     sc = _variant(tmp_path, "long", lambda d: d["timing"].update(time_limit_s=1e12))
@@ -67,11 +68,13 @@ def test_absurd_time_limit_is_refused_by_check_sim_and_up(tmp_path: Path) -> Non
     _up_refused(tmp_path, needles=("timing.time_limit_s",), scenario=sc)
 
 
+@pytest.mark.swarm
 def test_too_many_substeps_is_refused(tmp_path: Path) -> None:
     sc = _variant(tmp_path, "substeps", lambda d: d["timing"].update(physics_rate_hz=1e7))
     _bad(zenswarm("scenario", "check", str(sc), timeout=60), "timing.physics_rate_hz", "at most 1000 physics sub-steps")
 
 
+@pytest.mark.swarm
 def test_seed_beyond_64_bits_is_refused_by_check_sim_and_up(tmp_path: Path) -> None:
     """A 2**80 seed passed check and sim but killed up's leader (the mission message carries the
     seed as a 64-bit integer): the bound is now one check, applied everywhere."""
@@ -85,11 +88,13 @@ def test_seed_beyond_64_bits_is_refused_by_check_sim_and_up(tmp_path: Path) -> N
 
 
 @pytest.mark.parametrize("seed", ["-1", str(2**63), str(2**80), "seven"])
+@pytest.mark.swarm
 def test_bad_seed_flag_is_a_usage_error(tmp_path: Path, seed: str) -> None:
     _bad(zenswarm("sim", str(EX1), "--out", str(tmp_path / "sim"), "--seed", seed, timeout=60), "--seed")
     assert not (tmp_path / "sim").exists()
 
 
+@pytest.mark.swarm
 def test_bad_seed_flag_of_up_and_generate(tmp_path: Path) -> None:
     _up_refused(tmp_path, "--seed", "-1", needles=("argument --seed",))
     _bad(zenswarm("scenario", "generate", "--n", "3", "--seed", str(2**63), "--out", str(tmp_path / "g.toml"), timeout=60), "--seed")
@@ -105,6 +110,7 @@ def _bad_paths(tmp: Path) -> dict[str, Path]:
 
 
 @pytest.mark.parametrize("kind", ["file", "proc", "under_file"])
+@pytest.mark.swarm
 def test_output_directory_flags(tmp_path: Path, kind: str) -> None:
     """--out of sim, keys and report needs a directory that can be written."""
     bad = _bad_paths(tmp_path)[kind]
@@ -114,6 +120,7 @@ def test_output_directory_flags(tmp_path: Path, kind: str) -> None:
 
 
 @pytest.mark.parametrize("kind", ["dir", "proc", "under_file"])
+@pytest.mark.swarm
 def test_output_file_flags(tmp_path: Path, kind: str) -> None:
     """--out of recover, export, record and scenario generate needs a file that can be written."""
     bad = _bad_paths(tmp_path)[kind]
@@ -128,6 +135,7 @@ def test_output_file_flags(tmp_path: Path, kind: str) -> None:
 
 
 @pytest.mark.parametrize("kind", ["file", "proc", "under_file"])
+@pytest.mark.swarm
 def test_up_out_is_checked_before_the_flight(tmp_path: Path, kind: str) -> None:
     """`up --out /proc/x` flew the whole mission and then died with a traceback."""
     bad = _bad_paths(tmp_path)[kind]
@@ -140,6 +148,7 @@ def test_up_out_is_checked_before_the_flight(tmp_path: Path, kind: str) -> None:
 
 
 @pytest.mark.parametrize("kind", ["dir", "proc", "under_file"])
+@pytest.mark.swarm
 def test_up_record_is_checked_before_the_flight(tmp_path: Path, kind: str) -> None:
     bad = _bad_paths(tmp_path)[kind]
     _up_refused(tmp_path, "--record", str(bad), needles=("--record", str(bad)))
@@ -185,6 +194,7 @@ def test_path_checks_create_nothing_and_accept_new_paths(tmp_path: Path) -> None
     ],
     ids=lambda v: " ".join(v) if isinstance(v, tuple) and v and v[0].startswith("--") else None,
 )
+@pytest.mark.swarm
 def test_up_flags_naming_what_does_not_exist(tmp_path: Path, args: tuple[str, ...], needles: tuple[str, ...]) -> None:
     _up_refused(tmp_path, *args, needles=needles)
 
@@ -198,6 +208,7 @@ def test_up_flags_naming_what_does_not_exist(tmp_path: Path, args: tuple[str, ..
         (("--partition", "agent:9@1s-2s"), ("--partition", "agent:9 does not exist")),
     ],
 )
+@pytest.mark.swarm
 def test_sim_flags(tmp_path: Path, args: tuple[str, ...], needles: tuple[str, ...]) -> None:
     _bad(zenswarm("sim", str(EX1), "--out", str(tmp_path / "sim"), *args, timeout=60), *needles)
     assert not (tmp_path / "sim").exists()
@@ -245,6 +256,7 @@ def _four_uavs(tmp: Path) -> Path:
     return p
 
 
+@pytest.mark.swarm
 def test_keys_flag_of_another_swarm_or_size_is_refused_and_kept(tmp_path: Path) -> None:
     """--keys are the user's: never rewritten; not matching the swarm or the scenario -> exit 2."""
     swarm = unique_swarm("beta")
@@ -295,6 +307,7 @@ def test_keys_in_place_of_the_keys_directory(tmp_path: Path) -> None:
     assert ei.value.field == "--out" and "keys" in ei.value.message
 
 
+@pytest.mark.swarm
 def test_up_regenerates_keys_left_in_out_by_another_swarm(tmp_path: Path) -> None:
     """A reused --out whose OUT/keys were generated for a 4-UAV scenario: the run generates this
     scenario's, says so, and flies."""

@@ -198,6 +198,7 @@ def test_configs() -> None:
         client_config(["tcp/127.0.0.1:2"], settings={"no/such/key": 1})
 
 
+@pytest.mark.swarm
 def test_client_fails_fast_without_router_and_waits_for_a_late_one() -> None:
     ep = tcp_endpoint(free_port())
     t0 = time.monotonic()
@@ -226,6 +227,7 @@ def test_client_fails_fast_without_router_and_waits_for_a_late_one() -> None:
 # --------------------------------------------------------------------------- pub/sub across processes
 
 
+@pytest.mark.swarm
 def test_two_client_processes_exchange_messages() -> None:
     swarm = swarm_name()
     n = 40
@@ -244,6 +246,7 @@ def test_two_client_processes_exchange_messages() -> None:
     assert res["rejects"] == {key: 1}
 
 
+@pytest.mark.swarm
 def test_two_routers_with_the_same_swarm_name_are_isolated() -> None:
     swarm = swarm_name()
     with router() as ep_a, router() as ep_b, children() as kids:
@@ -263,6 +266,7 @@ def test_two_routers_with_the_same_swarm_name_are_isolated() -> None:
 # --------------------------------------------------------------------------- liveliness and exit
 
 
+@pytest.mark.swarm
 def test_liveliness_token_of_killed_process_goes_within_2s() -> None:
     swarm = swarm_name()
     keys = wire.Keys(swarm)
@@ -282,6 +286,7 @@ def test_liveliness_token_of_killed_process_goes_within_2s() -> None:
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+@pytest.mark.swarm
 def test_signal_closes_session_and_exits_cleanly(sig: signal.Signals) -> None:
     """A process in open_session with a Python-callback subscriber exits 0 on SIGTERM/SIGINT
     (default SIGTERM would kill it, and falling off the end would hang)."""
@@ -298,6 +303,7 @@ def test_signal_closes_session_and_exits_cleanly(sig: signal.Signals) -> None:
             assert watch.wait_for("leader", alive=False, timeout=2.0)
 
 
+@pytest.mark.swarm
 def test_blocked_recv_and_forgotten_close_do_not_hang() -> None:
     blocked = """
     import sys, zenoh
@@ -352,6 +358,7 @@ with bus.open_session(bus.client_config([sys.argv[1]]), handle_signals=False) as
 """
 
 
+@pytest.mark.swarm
 def test_swarm_runtime_runs_zenoh_and_callbacks_on_one_thread() -> None:
     """A swarm process (bus.use_swarm_runtime + bus.direct_callback): zenoh has a single thread
     (no rx/tx/net/acc threads), every sample reaches the callback on it, in order, and that
@@ -409,6 +416,7 @@ with bus.open_session(bus.client_config([sys.argv[1]]), handle_signals=False) as
 """
 
 
+@pytest.mark.swarm
 def test_a_blocked_put_does_not_hold_the_gil() -> None:
     """Realtime loops put from the main thread while zenoh's only thread runs subscriber
     callbacks (bus.direct_callback). A put that waits for queue space must release the GIL:
@@ -443,6 +451,7 @@ def test_a_blocked_put_does_not_hold_the_gil() -> None:
     assert got[0] == n, f"received {got[0]} of {n}"
 
 
+@pytest.mark.swarm
 def test_use_swarm_runtime_keeps_what_the_user_set(monkeypatch: pytest.MonkeyPatch) -> None:
     # setenv first, so that monkeypatch restores the variable as it was (use_swarm_runtime sets
     # os.environ itself, which monkeypatch would not undo: a later `zenswarm up` in this process

@@ -27,6 +27,8 @@ from swarmtest import (
     zenswarm,
 )
 
+import pytest
+
 
 class Lines:
     """Reads a process's output on a thread, each line with its arrival time (monotonic s)."""
@@ -64,6 +66,7 @@ class Lines:
         self._t.join(timeout=5)
 
 
+@pytest.mark.swarm
 def test_external_plant_killed_ends_the_swarm_with_exit_3(tmp_path: Path) -> None:
     """The plant runs outside the supervisor (`up --only plant`) and is SIGKILLed mid-flight: the
     supervisor names it, records the death and exits 3 within seconds (it froze forever before,
@@ -103,6 +106,7 @@ def test_external_plant_killed_ends_the_swarm_with_exit_3(tmp_path: Path) -> Non
     assert death["process"] == "plant" and "liveliness" in death["how"] and 1.0 <= death["sim_time_s"] < 30.0, death
 
 
+@pytest.mark.swarm
 def test_external_role_that_never_appears_is_given_up_on(tmp_path: Path) -> None:
     """`--external agent:3` never started: progress shows it waiting, and after
     `--external-timeout` the supervisor says so, naming the role and how to start it, and exits 3."""
@@ -129,6 +133,7 @@ def test_external_role_that_never_appears_is_given_up_on(tmp_path: Path) -> None
     assert "never announced" in res["process_deaths"][0]["how"]
 
 
+@pytest.mark.swarm
 def test_external_plant_that_finishes_is_not_a_death(tmp_path: Path) -> None:
     """The external plant's token also goes away when it finishes: that is the end of the flight,
     not a death. The run ends normally and equals the in-process simulator."""
@@ -154,6 +159,7 @@ def test_external_plant_that_finishes_is_not_a_death(tmp_path: Path) -> None:
     _assert_equal_to_sim(scenario, out)
 
 
+@pytest.mark.swarm
 def test_bad_external_flags_exit_2_before_starting(tmp_path: Path) -> None:
     scenario = scenario_variant(tmp_path, time_limit_s=1.0)
     swarm = unique_swarm("b")

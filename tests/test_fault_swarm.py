@@ -21,6 +21,8 @@ from zenswarm.compose.sim import simulate
 from swarmtest import SCENARIOS, read_results, unique_swarm
 from test_swarm import _up
 
+pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
+
 EX1 = SCENARIOS / "paper_example1.toml"
 
 

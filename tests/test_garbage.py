@@ -42,6 +42,8 @@ from swarmtest import (
     unique_swarm,
 )
 
+import pytest
+
 EX1 = SCENARIOS / "paper_example1.toml"
 DT_NS = 10_000_000  # paper example 1: 100 Hz
 SPOOF_SEQ = 2**62  # a seq above any real one: the spoofs below are rejected for their time, not their seq
@@ -420,6 +422,7 @@ _sample = st.sampled_from(SUBS).flatmap(
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(samples=st.lists(_sample, max_size=60), ticking=st.booleans())
+@pytest.mark.slow
 def test_handle_sample_never_raises_counts_everything_and_lets_in_only_sane_streams(samples: list, ticking: bool) -> None:
     p = _with_tokens(_proc())
     got: dict[str, list[tuple[int, Any]]] = {}
@@ -626,6 +629,7 @@ def _nan_paths(obj: Any, path: str = "") -> list[str]:
     return []
 
 
+@pytest.mark.swarm
 def test_flooding_every_key_of_a_flying_swarm(tmp_path: Path) -> None:
     """While paper example 1 flies (lockstep) another process floods every key the swarm's
     processes subscribe to (and the mission key) with every kind of garbage for 3 s (the flight

@@ -92,6 +92,7 @@ def check_scenario(d: dict[str, Any], n: int, spacing: float, shape: str) -> Non
 
 
 @pytest.mark.parametrize(("shape", "topology", "pinning"), list(itertools.product(SHAPES, TOPOLOGIES, PINNINGS)))
+@pytest.mark.slow
 def test_every_combination_is_valid(shape: str, topology: str, pinning: str) -> None:
     for n in NS:
         for seed in SEEDS:

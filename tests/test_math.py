@@ -136,6 +136,7 @@ def test_generator_rates_match_matrix_form() -> None:
     np.testing.assert_array_equal(dv3, dv[3])
 
 
+@pytest.mark.slow
 def test_generator_converges_to_leader_plus_offsets_with_constant_v0() -> None:
     """Prop. 1: with constant v0, q*_i - q0 - h_i -> 0 and v*_i -> v0 (exponentially)."""
     A = np.array([[0, 1, 1], [1, 0, 0], [1, 0, 0]], float)

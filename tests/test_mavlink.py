@@ -284,6 +284,7 @@ def one_vehicle():
     assert fleet.error is None
 
 
+@pytest.mark.slow
 def test_vehicle_acks_arm_and_mode_and_refuses_offboard_without_setpoints(one_vehicle):
     fleet, gcs = one_vehicle
     hb = gcs.recv("HEARTBEAT", 2.0)
@@ -310,6 +311,7 @@ def test_vehicle_acks_arm_and_mode_and_refuses_offboard_without_setpoints(one_ve
     assert fleet.vehicles[0].armed
 
 
+@pytest.mark.slow
 def test_vehicle_telemetry_rate(one_vehicle):
     """LOCAL_POSITION_NED and ATTITUDE each at >= 40 Hz over 2 s (nominal 50 Hz)."""
     fleet, gcs = one_vehicle
@@ -328,6 +330,7 @@ def test_vehicle_telemetry_rate(one_vehicle):
     assert (lp.x, lp.y, lp.z) == pytest.approx((2.0, 1.0, 0.0), abs=1e-6)
 
 
+@pytest.mark.slow
 def test_vehicle_offboard_loss_failsafe(one_vehicle):
     """Setpoints stop: HOLD after 0.5 s (reported within ~1 heartbeat), LAND after 1 s more,
     then disarmed on the ground."""
@@ -355,6 +358,7 @@ def test_vehicle_offboard_loss_failsafe(one_vehicle):
     assert veh.counters["failsafe_hold"] == 1 and veh.counters["failsafe_land"] == 1
 
 
+@pytest.mark.swarm
 def test_plant_mavlink_flag_runs_the_simulated_vehicles():
     """`zenswarm plant --mavlink --scenario S --base-port P` runs the scenario's quadrotors as
     MAVLink vehicles: vehicle i answers on UDP P+i-1 with system id i; it stops by itself after
@@ -464,6 +468,7 @@ def test_bridge_asks_each_vehicle_for_its_telemetry_rate():
         b.close()
 
 
+@pytest.mark.slow
 def test_bridge_position_setpoints_on_ardupilot_vehicles_in_process():
     """setpoint = "position" against ArduCopter-flavoured vehicles: the bridge reads the
     autopilot from the heartbeat, asks for GUIDED (4), arms, forwards uav/<i>/ref as
@@ -621,6 +626,7 @@ def _ready(f: Flight) -> bool:
     return f.uav(1).get("phase") == "ready" and f.uav(2).get("phase") == "ready" and f.uav(3).get("phase") == "refused"
 
 
+@pytest.mark.swarm
 def test_bridge_arms_takes_off_and_publishes_enu_state(flight):
     f = flight
     try:
@@ -654,6 +660,7 @@ def test_bridge_arms_takes_off_and_publishes_enu_state(flight):
     assert f.fleet.vehicles[0].counters.get("setpoints", 0) > 50
 
 
+@pytest.mark.swarm
 def test_bridge_refuses_to_arm_vehicle_in_unrequested_mode(flight):
     f = flight
     wait_until(lambda: _ready(f), 20.0, "UAV 3 refused")
@@ -666,6 +673,7 @@ def test_bridge_refuses_to_arm_vehicle_in_unrequested_mode(flight):
     assert f.n_states[3] == 0  # and publishes no state for it
 
 
+@pytest.mark.swarm
 def test_silent_vehicle_marked_unhealthy_then_recovers(flight):
     f = flight
     wait_until(lambda: _ready(f), 20.0, "UAVs ready")
@@ -690,6 +698,7 @@ def test_silent_vehicle_marked_unhealthy_then_recovers(flight):
     assert f.fleet.state.q[1, 2] > 0.25  # still flying
 
 
+@pytest.mark.swarm
 def test_bridge_lands_and_disarms_on_sigterm(flight):
     f = flight
     wait_until(lambda: _ready(f), 20.0, "UAVs ready")

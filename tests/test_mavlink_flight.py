@@ -28,6 +28,10 @@ from swarmtest import (
 
 from zenswarm.bus import free_udp_block
 
+import pytest
+
+pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
+
 N_UAV = 3  # paper example 1
 
 

@@ -35,6 +35,8 @@ from zenswarm.metrics import TimeSeries
 
 from swarmtest import ROOT, kill_mentioning, processes_mentioning, read_results, scenario_variant, unique_swarm, wait_port_free
 
+pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
+
 CUT_AT_S = 6.0  # sim time at which agent 2's link goes down
 CUT_FOR_S = 3.0  # wall seconds it stays down
 LOCKSTEP_TIMEOUT_S = 0.5

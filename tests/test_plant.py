@@ -377,6 +377,7 @@ def test_deterministic_and_copy_is_independent():
     assert np.abs(b0.v).max() == 0.0
 
 
+@pytest.mark.slow
 def test_scales_to_32_rows_independent():
     """Each row of an N = 32 run equals an N = 1 run with the same inputs (to 1e-12)."""
     rng = np.random.default_rng(6)

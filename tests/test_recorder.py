@@ -192,6 +192,7 @@ def fake_recording(path: Path, swarm: str, n: int, scenario: dict, chunk_size: i
 # --------------------------------------------------------------------------- (a) record
 
 
+@pytest.mark.swarm
 def test_record_synthetic_traffic_every_payload_in_order(tmp_path: Path) -> None:
     swarm = swarm_name()
     scenario = scenario_to_dict(load_scenario(EX1))
@@ -235,6 +236,7 @@ def test_record_synthetic_traffic_every_payload_in_order(tmp_path: Path) -> None
     assert r.metadata[METADATA_NAME]["scenario_json"]
 
 
+@pytest.mark.swarm
 def test_oversize_payloads_are_counted_per_key_not_recorded(tmp_path: Path) -> None:
     """A payload over the decoders' size bound is not written (a flood once filled 1.76 GB with
     them): the recorder counts it per key, and the counts are in the file's metadata."""
@@ -320,6 +322,7 @@ def test_oversize_counts_survive_a_truncated_file(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------- (b) replay
 
 
+@pytest.mark.swarm
 def test_record_replay_record_gives_the_same_payloads(tmp_path: Path) -> None:
     a, b = swarm_name(), swarm_name()
     scenario = scenario_to_dict(load_scenario(EX1))
@@ -360,6 +363,7 @@ def test_record_replay_record_gives_the_same_payloads(tmp_path: Path) -> None:
     assert abs(span2 - span1) < 0.25 * span1 + 0.05, (span1, span2)
 
 
+@pytest.mark.swarm
 def test_replay_filters_topics_and_window(tmp_path: Path) -> None:
     a, b = swarm_name(), swarm_name()
     path = tmp_path / "fake.mcap"
@@ -383,6 +387,7 @@ def test_replay_filters_topics_and_window(tmp_path: Path) -> None:
     assert got == want and len(want) == 67
 
 
+@pytest.mark.swarm
 def test_replay_rejects_a_window_or_filter_that_does_not_fit_the_recording(tmp_path: Path) -> None:
     """--start beyond the recording, --end before --start, a negative time and a key filter that
     matches nothing: exit 2 naming the flag and the recording's span, and nothing published."""
@@ -431,6 +436,7 @@ def test_replay_rejects_a_window_or_filter_that_does_not_fit_the_recording(tmp_p
 # --------------------------------------------------------------------------- (c) SIGKILL
 
 
+@pytest.mark.swarm
 def test_sigkill_file_reads_up_to_one_second_before_and_recovers(tmp_path: Path) -> None:
     swarm = swarm_name()
     out, fixed = tmp_path / "killed.mcap", tmp_path / "fixed.mcap"
@@ -500,6 +506,7 @@ def test_missing_and_foreign_files_name_the_file(tmp_path: Path) -> None:
         recover(foreign, tmp_path / "out.mcap")
 
 
+@pytest.mark.slow
 def test_truncated_file_error_and_recover(tmp_path: Path) -> None:
     swarm = swarm_name()
     scenario = scenario_to_dict(load_scenario(EX1))
@@ -534,6 +541,7 @@ def test_truncated_file_error_and_recover(tmp_path: Path) -> None:
         assert r2.scenario == scenario and r2.statistics is not None and r2.statistics.message_count == len(got)
 
 
+@pytest.mark.swarm
 def test_corrupted_chunk_error_and_recover(tmp_path: Path) -> None:
     from mcap.reader import make_reader
 
@@ -662,6 +670,7 @@ def verify_cli(path: Path, agent: str) -> subprocess.CompletedProcess:
     )  # fmt: skip
 
 
+@pytest.mark.swarm
 def test_replay_verify_lockstep_recording_and_tampered_copy(tmp_path: Path) -> None:
     swarm = swarm_name()
     scen_path = short_scenario(tmp_path, 3.0)
@@ -692,6 +701,7 @@ def test_replay_verify_lockstep_recording_and_tampered_copy(tmp_path: Path) -> N
     assert verify_agent(tampered, 1).ok  # the others are untouched
 
 
+@pytest.mark.swarm
 def test_replay_verify_replays_link_faults(tmp_path: Path) -> None:
     """With the scenario's [faults] (loss, delay, jitter) the agents' inputs go through their
     receive boxes; verify rebuilds the same boxes and still reproduces every bit."""
@@ -720,6 +730,7 @@ def test_sim_time_extraction() -> None:
 # --------------------------------------------------------------------------- (f) the recorder dies mid-flight
 
 
+@pytest.mark.swarm
 def test_recorder_killed_mid_flight_does_not_abort_the_flight(tmp_path: Path) -> None:
     """`zenswarm up --record F --kill recorder@1.5s --report`: the flight flies to its time limit
     (the plant is not stalled), the exit status is the mission's (0/1, never 3), the loss is said
@@ -756,6 +767,7 @@ def test_recorder_killed_mid_flight_does_not_abort_the_flight(tmp_path: Path) ->
     assert recover(rec, fixed).messages > 0 and file_is_complete(fixed)
 
 
+@pytest.mark.swarm
 def test_kill_recorder_without_record_is_bad_input(tmp_path: Path) -> None:
     from swarmtest import scenario_variant, zenswarm
 
@@ -765,6 +777,7 @@ def test_kill_recorder_without_record_is_bad_input(tmp_path: Path) -> None:
     assert not (tmp_path / "up" / "results.json").exists()
 
 
+@pytest.mark.slow
 def test_a_flood_of_oversize_payloads_does_not_hold_back_the_flush(tmp_path: Path) -> None:
     """While the writer works through a long run of oversize payloads, the samples before them are
     still flushed every flush interval, and the counts reach the file while the flood goes on."""

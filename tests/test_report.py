@@ -118,6 +118,7 @@ def recording(flight, tmp_path_factory):
     return p, n
 
 
+@pytest.mark.slow
 def test_report_writes_every_figure_and_the_runs_results(flight, recording, tmp_path, capsys):
     sc, sim = flight
     path, _ = recording
@@ -147,6 +148,7 @@ def test_report_writes_every_figure_and_the_runs_results(flight, recording, tmp_
     assert res["message_counts"][f"swarm/{SWARM}/uav/2/ref"] == len(sim.series.t) + 1
 
 
+@pytest.mark.slow
 def test_flight_from_recording_equals_the_simulated_series(flight, recording):
     sc, sim = flight
     fl = report.flight_from_recording(report.load_recording(recording[0]))
@@ -154,6 +156,7 @@ def test_flight_from_recording_equals_the_simulated_series(flight, recording):
         np.testing.assert_array_equal(getattr(fl.series, f), getattr(sim.series, f), err_msg=f)
 
 
+@pytest.mark.slow
 def test_report_from_series(flight, tmp_path, capsys):
     sc, sim = flight
     run = tmp_path / "run"
@@ -193,6 +196,7 @@ def _toml(d: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+@pytest.mark.slow
 def test_export_foxglove_validates_against_its_schemas(flight, recording, tmp_path, capsys):
     sc, sim = flight
     path, n_written = recording
@@ -254,6 +258,7 @@ def test_wire_schemas_reject_what_the_decoder_rejects():
         assert not v.is_valid(bad), bad
 
 
+@pytest.mark.slow
 def test_no_metadata_is_a_recording_error(flight, tmp_path):
     sc, sim = flight
     p = tmp_path / "bare.mcap"
@@ -271,6 +276,7 @@ def test_no_metadata_is_a_recording_error(flight, tmp_path):
         report.load_recording(tmp_path / "missing.mcap")
 
 
+@pytest.mark.slow
 def test_truncated_recording_reports_what_it_holds(flight, tmp_path):
     sc, sim = flight
     p = tmp_path / "cut.mcap"
@@ -289,6 +295,7 @@ def test_truncated_recording_reports_what_it_holds(flight, tmp_path):
     assert all(f.stat().st_size > 20_000 for f in files)
 
 
+@pytest.mark.swarm
 def test_report_cli_warns_on_a_truncated_recording(flight, tmp_path):
     """`zenswarm report` on a file cut short (the recorder was killed): exit 0, figures from what
     was read, and a warning on stderr that says so and which sim time the report covers; payloads

@@ -12,6 +12,8 @@ from zenswarm.config import DisturbanceConfig, load_scenario
 from zenswarm.metrics import TimeSeries
 from zenswarm.compose.sim import simulate
 
+pytestmark = pytest.mark.slow  # flies whole simulated missions: tens of seconds
+
 SCEN = Path(__file__).resolve().parents[1] / "compose" / "scenarios"
 
 

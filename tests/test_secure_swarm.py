@@ -24,6 +24,9 @@ from swarmtest import (
 )
 from test_swarm import _assert_equal_to_sim, _up
 
+import pytest
+pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
+
 
 def test_secure_example1_reaches_goal_and_equals_open_run(tmp_path: Path) -> None:
     """User/password + ACL: example 1 reaches the goal; the trajectory equals the open run's

@@ -403,6 +403,7 @@ def test_generate_credentials_layout_and_permissions(tmp_path, ex1):
     assert len(passwords) == len(m.processes)
 
 
+@pytest.mark.swarm
 def test_certificates_chain_to_the_swarm_ca(tmp_path, ex1):
     from cryptography import x509
     from cryptography.hazmat.primitives.asymmetric import ec
@@ -459,6 +460,7 @@ def test_cli_keys_prints_and_refuses_overwrite(tmp_path, capsys):
     assert forced.func(forced) == 0
 
 
+@pytest.mark.swarm
 def test_client_config_from_a_copied_process_directory(tmp_path, ex1):
     import shutil
 
@@ -567,6 +569,7 @@ def test_acl_follows_the_graph(ex1):
     assert {s["id"]: s["cert_common_names"] for s in tls["subjects"]}["g.agent-2"] == ["agent:2"]
 
 
+@pytest.mark.swarm
 def test_router_config_is_accepted_by_zenoh(tmp_path, ex1):
     import zenoh
 
@@ -582,6 +585,7 @@ def test_router_config_is_accepted_by_zenoh(tmp_path, ex1):
 # =========================================================================== a real router
 
 
+@pytest.mark.swarm
 def test_usrpwd_refuses_sessions_without_valid_credentials(spawn, tmp_path, ex1):
     m = generate_credentials(ex1, tmp_path / "k", "auth1")
     other = generate_credentials(ex1, tmp_path / "other", "auth1")  # same swarm and user names, other passwords
@@ -602,6 +606,7 @@ def test_usrpwd_refuses_sessions_without_valid_credentials(spawn, tmp_path, ex1)
         assert not opened(w), f"a session with {what} was opened"
 
 
+@pytest.mark.swarm
 def test_mtls_refuses_certificates_from_another_ca(spawn, tmp_path, ex1):
     m = generate_credentials(ex1, tmp_path / "k", "auth2")
     foreign = generate_credentials(ex1, tmp_path / "foreign", "auth2")  # same common names, another CA
@@ -623,6 +628,7 @@ def test_mtls_refuses_certificates_from_another_ca(spawn, tmp_path, ex1):
 
 
 @pytest.mark.parametrize("auth", ["usrpwd", "tls"])
+@pytest.mark.swarm
 def test_agent_cannot_publish_or_subscribe_outside_its_graph_row(spawn, tmp_path, ex1, auth):
     swarm = f"row-{auth}"
     k = wire.Keys(swarm)
@@ -667,6 +673,7 @@ def test_agent_cannot_publish_or_subscribe_outside_its_graph_row(spawn, tmp_path
     assert {s["payload"] for s in a2.got(sub=k.all)} <= allowed_here, "agent 2 read the whole swarm"
 
 
+@pytest.mark.swarm
 def test_plant_states_reach_only_their_own_agent(spawn, tmp_path, ex1):
     swarm = "states"
     k = wire.Keys(swarm)
@@ -694,6 +701,7 @@ def test_plant_states_reach_only_their_own_agent(spawn, tmp_path, ex1):
         assert got == {(k.state(i), f"state{i}")}, f"agent {i} received {sorted(got)}"
 
 
+@pytest.mark.swarm
 def test_liveliness_and_mission_only_from_their_owners(spawn, tmp_path, ex1):
     swarm = "alive"
     k = wire.Keys(swarm)
@@ -719,6 +727,7 @@ def test_liveliness_and_mission_only_from_their_owners(spawn, tmp_path, ex1):
     assert set(plant.send(op="alive_get", key=k.alive_all, timeout=1.0)["keys"]) == honest
 
 
+@pytest.mark.swarm
 def test_session_tokens_only_from_their_owners_and_seen_by_their_receivers(spawn, tmp_path, ex1):
     """alive/<p>/<zid> (which session is process p; the input guard pins each key to it): only p's
     credentials may declare it, and exactly the processes that receive p's messages see it. The

@@ -33,6 +33,8 @@ from swarmtest import (
     zenswarm,
 )
 
+pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
+
 
 def _up(scenario: Path, out: Path, swarm: str, *extra: str, timeout: float = 400.0):
     port = free_port()

@@ -204,6 +204,7 @@ def test_close_pairs_equals_brute_force(seed: int) -> None:
     assert len(ii) == 40 * 39 // 2
 
 
+@pytest.mark.slow
 def test_large_swarm_pairs_match_the_small_swarm_path_with_linear_memory() -> None:
     """N above the all-pairs limit: per-tick sweep. Same minimum and contacts as brute force, and
     peak memory far below a (T, N, N) array."""
@@ -286,6 +287,7 @@ EXPECTED = {
 
 
 @pytest.mark.parametrize("case", sorted(EXPECTED))
+@pytest.mark.swarm
 def test_sim_names_what_happened_to_the_vehicles(case: str, tmp_path) -> None:
     import json
 
@@ -309,6 +311,7 @@ def test_sim_names_what_happened_to_the_vehicles(case: str, tmp_path) -> None:
         assert stall["where"][0] < 1.2 - 0.2  # in front of the obstacle
 
 
+@pytest.mark.swarm
 def test_sim_full_time_flies_the_whole_limit_and_still_names_the_failure(tmp_path) -> None:
     import json
 
@@ -322,6 +325,7 @@ def test_sim_full_time_flies_the_whole_limit_and_still_names_the_failure(tmp_pat
     assert [f["cause"] for f in res["failures"]] == ["leader_stalled"]
 
 
+@pytest.mark.swarm
 def test_sim_ctrl_c_writes_what_was_flown(tmp_path) -> None:
     import json
     import signal
@@ -351,6 +355,7 @@ def test_sim_ctrl_c_writes_what_was_flown(tmp_path) -> None:
 
 
 @pytest.mark.parametrize("case", sorted(EXPECTED))
+@pytest.mark.swarm
 def test_swarm_gives_the_simulator_s_verdict_and_ends_as_early(case: str, tmp_path) -> None:
     """`zenswarm up` (lockstep) judges the same vehicles the same way: every flight field equal,
     failures included, and the run ends at the same deciding tick; so does `zenswarm report` from

@@ -446,6 +446,7 @@ messages = st.one_of(
 
 @settings(max_examples=200, deadline=None)
 @given(messages)
+@pytest.mark.slow
 def test_property_round_trip(msg: w.Message) -> None:
     back = w.decode(msg.kind, w.encode(msg))
     _assert_bit_equal(msg, back)
@@ -479,6 +480,7 @@ _near_valid = st.builds(
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(_msgpack_obj | _near_valid, st.sampled_from(w.KINDS))
+@pytest.mark.slow
 def test_property_random_msgpack_never_raise(obj: Any, kind: str) -> None:
     d = w.Decoder()
     out = d.decode("swarm/s/y", kind, msgpack.packb(obj, use_bin_type=True))
