@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .controller import composite_control, invert_thrust_attitude
-from .eso import eso_step
-from .generator import generator_rates
+from zenswarm.agents.controller import composite_control, invert_thrust_attitude
+from zenswarm.agents.eso import eso_step
+from zenswarm.agents.generator import generator_rates
 
 __all__ = ["AgentRow", "AgentCommand", "AgentCore"]
 
@@ -45,7 +45,7 @@ class AgentRow:
     dt: float
 
     @classmethod
-    def from_scenario(cls, scenario, i: int, mass: float, g: float) -> "AgentRow":
+    def from_scenario(cls, scenario, i: int, mass: float, g: float) -> AgentRow:
         A = np.asarray(scenario.graph.adjacency, dtype=float)
         h = np.asarray(scenario.offsets, dtype=float)
         nbr = tuple(int(j) for j in np.flatnonzero(A[i]))

@@ -106,7 +106,7 @@ class AapfParams:
         )
 
     @classmethod
-    def from_scenario(cls, scenario) -> "AapfParams":
+    def from_scenario(cls, scenario) -> AapfParams:
         """Build from a :class:`zenswarm.config.Scenario`."""
         ld = scenario.leader
         return cls(

@@ -184,7 +184,7 @@ class PlantState:
         """Number of UAVs N."""
         return self.q.shape[0]
 
-    def copy(self) -> "PlantState":
+    def copy(self) -> PlantState:
         """A deep copy (own arrays; scratch buffers are not shared)."""
         return PlantState(
             q=self.q.copy(),

@@ -13,7 +13,7 @@ import re
 import socket
 from pathlib import Path
 
-from zenswarm.bus import free_port
+from zenswarm.bus import free_port, free_udp_block
 
 from swarmtest import (
     SCENARIOS,
@@ -25,8 +25,6 @@ from swarmtest import (
     wait_port_free,
     zenswarm,
 )
-
-from zenswarm.bus import free_udp_block
 
 N_UAV = 3  # paper example 1
 

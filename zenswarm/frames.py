@@ -292,7 +292,9 @@ class ThrustMap:
                 raise ValueError(f"ThrustMap.hover_throttle must be in (0, 1), got {h!r}")
             ht = self.hover_thrust
             if not (isinstance(ht, (int, float)) and math.isfinite(ht) and ht > 0):
-                raise ValueError(f"ThrustMap.hover_thrust must be a positive finite number of newtons when hover_throttle is set, got {ht!r}")
+                raise ValueError(
+                    f"ThrustMap.hover_thrust must be a positive finite number of newtons when hover_throttle is set, got {ht!r}"
+                )
 
     @property
     def slope(self) -> float:

@@ -141,7 +141,7 @@ class QuadParams:
         return self.mass * self.g
 
     @classmethod
-    def from_vehicle(cls, vehicle: "VehicleConfig | None") -> "QuadParams":
+    def from_vehicle(cls, vehicle: VehicleConfig | None) -> QuadParams:
         """Defaults with the scenario's ``[vehicle]`` overrides applied.
 
         ``None`` fields keep the default. If ``mass`` is overridden and ``max_thrust`` is not,
@@ -162,7 +162,7 @@ class QuadParams:
         else:
             max_thrust = p.max_thrust
         max_tilt = p.max_tilt if vehicle.max_tilt is None else float(vehicle.max_tilt)
-        js = tuple(n / d for n, d in zip(inertia, p.inertia))
+        js = tuple(n / d for n, d in zip(inertia, p.inertia, strict=True))
         ts = max_thrust / p.max_thrust
         return replace(
             p,
@@ -170,8 +170,8 @@ class QuadParams:
             inertia=inertia,  # type: ignore[arg-type]
             max_thrust=max_thrust,
             max_tilt=max_tilt,
-            rate_kp=tuple(k * s for k, s in zip(p.rate_kp, js)),  # type: ignore[arg-type]
-            rate_ki=tuple(k * s for k, s in zip(p.rate_ki, js)),  # type: ignore[arg-type]
-            rate_kd=tuple(k * s for k, s in zip(p.rate_kd, js)),  # type: ignore[arg-type]
+            rate_kp=tuple(k * s for k, s in zip(p.rate_kp, js, strict=True)),  # type: ignore[arg-type]
+            rate_ki=tuple(k * s for k, s in zip(p.rate_ki, js, strict=True)),  # type: ignore[arg-type]
+            rate_kd=tuple(k * s for k, s in zip(p.rate_kd, js, strict=True)),  # type: ignore[arg-type]
             max_torque=tuple(t * ts for t in p.max_torque),  # type: ignore[arg-type]
         )

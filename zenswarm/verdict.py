@@ -502,22 +502,33 @@ def judge(
             )
         )
     for i, (k, zk) in sorted(ground_first.items(), key=lambda x: x[1][0]):
-        failures.append(Failure("collision_ground", float(t[k]), f"UAV {i + 1} went below the ground (z = {zk:.3f} m) after take-off", (i + 1,)))
+        failures.append(
+            Failure("collision_ground", float(t[k]), f"UAV {i + 1} went below the ground (z = {zk:.3f} m) after take-off", (i + 1,))
+        )
     pairs = sorted(pair_first.items(), key=lambda x: x[1][0])
     for (i, j), (k, d) in pairs[:MAX_LISTED_PAIRS]:
         failures.append(
-            Failure("collision_uav", float(t[k]), f"UAVs {i + 1} and {j + 1} came {d:.3f} m apart (contact below {2 * r:.4f} m)", (i + 1, j + 1))
+            Failure(
+                "collision_uav", float(t[k]), f"UAVs {i + 1} and {j + 1} came {d:.3f} m apart (contact below {2 * r:.4f} m)", (i + 1, j + 1)
+            )
         )
     if len(pairs) > MAX_LISTED_PAIRS:
-        failures.append(Failure("collision_uav", float(t[pairs[MAX_LISTED_PAIRS][1][0]]), f"{len(pairs) - MAX_LISTED_PAIRS} more UAV pairs came into contact"))
+        t_more = float(t[pairs[MAX_LISTED_PAIRS][1][0]])
+        failures.append(Failure("collision_uav", t_more, f"{len(pairs) - MAX_LISTED_PAIRS} more UAV pairs came into contact"))
     if T and not (early_end and stop is not None):  # the flight ran its course: did it get there?
         if not goal_reached and stall_info is None:
             d_end = float(dist_goal[-1])
             if T >= n_ticks:
-                failures.append(Failure("timeout", t_end, f"the virtual leader did not reach the goal by the time limit ({d_end:.3f} m from it)"))
+                failures.append(
+                    Failure("timeout", t_end, f"the virtual leader did not reach the goal by the time limit ({d_end:.3f} m from it)")
+                )
             else:
                 failures.append(
-                    Failure("incomplete", t_end, f"the flight stopped at {t_end:.2f} s, before the time limit, with the leader {d_end:.3f} m from the goal")
+                    Failure(
+                        "incomplete",
+                        t_end,
+                        f"the flight stopped at {t_end:.2f} s, before the time limit, with the leader {d_end:.3f} m from the goal",
+                    )
                 )
         elif goal_reached:
             for i, e_i in enumerate(slot_err):
@@ -527,7 +538,8 @@ def judge(
                         Failure(
                             "uav_off_slot",
                             t_end,
-                            f"UAV {i + 1} was {how} from its slot goal + h_{i + 1} in the last {W * c.dt:g} s (tolerance {c.slot_tolerance_m:g} m)",
+                            f"UAV {i + 1} was {how} from its slot goal + h_{i + 1} in the last {W * c.dt:g} s "
+                            f"(tolerance {c.slot_tolerance_m:g} m)",
                             (i + 1,),
                             where=tuple(float(x) for x in q[T - 1, i]) if np.isfinite(q[T - 1, i]).all() else None,
                         )
