@@ -72,7 +72,10 @@ class TimeSeries:
 
     @classmethod
     def allocate(cls, T: int, n: int) -> TimeSeries:
-        nan3 = lambda: np.full((T, n, 3), np.nan)  # noqa: E731
+
+        def nan3() -> np.ndarray:
+            return np.full((T, n, 3), np.nan)
+
         return cls(
             t=np.full(T, np.nan),
             q0=np.full((T, 3), np.nan),

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 if TYPE_CHECKING:  # pragma: no cover
     from zenswarm.config import VehicleConfig
@@ -106,9 +106,9 @@ class QuadParams:
     max_tilt: float = 0.6  # rad, ours (~34 deg)
     g: float = G
     att_kp: tuple[float, float, float] = (_ATT_KP, _ATT_KP, _ATT_KP)  # 1/s, ours
-    rate_kp: tuple[float, float, float] = tuple(_RATE_BW * j for j in _INERTIA)  # N m s/rad, ours
-    rate_ki: tuple[float, float, float] = tuple(_RATE_KI_N * j for j in _INERTIA)  # N m/rad, ours
-    rate_kd: tuple[float, float, float] = tuple(_RATE_KD_N * j for j in _INERTIA)  # N m s^2/rad, ours
+    rate_kp: tuple[float, float, float] = cast("tuple[float, float, float]", tuple(_RATE_BW * j for j in _INERTIA))  # N m s/rad, ours
+    rate_ki: tuple[float, float, float] = cast("tuple[float, float, float]", tuple(_RATE_KI_N * j for j in _INERTIA))  # N m/rad, ours
+    rate_kd: tuple[float, float, float] = cast("tuple[float, float, float]", tuple(_RATE_KD_N * j for j in _INERTIA))  # N m s^2/rad, ours
     max_rate: float = 10.0  # rad/s (~570 deg/s), ours
     max_torque: tuple[float, float, float] = _MAX_TORQUE  # N m, gym-pybullet-drones cf2x
 
