@@ -31,6 +31,6 @@ def composite_control(
     the ESO is disabled). kp, kd: (3,) diagonals of K_p (1/s^2) and K_d (1/s).
     Returns the virtual control u (same shape as q), m/s^2.
     """
-    u = kp * (q_ref - q) + kd * (v_ref - v) + vdot_ref - d_hat
+    u: np.ndarray = kp * (q_ref - q) + kd * (v_ref - v) + vdot_ref - d_hat
     u[..., 2] += g
     return u

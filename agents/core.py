@@ -9,12 +9,16 @@ lockstep swarm reproduces the in-process simulator.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
-from .controller import composite_control, invert_thrust_attitude
-from .eso import eso_step
-from .generator import generator_rates
+from zenswarm.agents.controller import composite_control, invert_thrust_attitude
+from zenswarm.agents.eso import eso_step
+from zenswarm.agents.generator import generator_rates
+
+if TYPE_CHECKING:  # pragma: no cover
+    from zenswarm.config import Scenario
 
 __all__ = ["AgentRow", "AgentCommand", "AgentCore"]
 
@@ -45,7 +49,7 @@ class AgentRow:
     dt: float
 
     @classmethod
-    def from_scenario(cls, scenario, i: int, mass: float, g: float) -> "AgentRow":
+    def from_scenario(cls, scenario: Scenario, i: int, mass: float, g: float) -> AgentRow:
         A = np.asarray(scenario.graph.adjacency, dtype=float)
         h = np.asarray(scenario.offsets, dtype=float)
         nbr = tuple(int(j) for j in np.flatnonzero(A[i]))
@@ -58,7 +62,7 @@ class AgentRow:
             b=float(scenario.graph.pinning[i]),
             mu1=scenario.generator.mu1,
             mu2=scenario.generator.mu2,
-            beta=tuple(scenario.eso.beta),
+            beta=cast("tuple[float, float, float]", tuple(scenario.eso.beta)),
             eso_enabled=scenario.eso.enabled,
             kp=np.asarray(scenario.controller.kp, dtype=float),
             kd=np.asarray(scenario.controller.kd, dtype=float),
@@ -92,7 +96,9 @@ class AgentCore:
         self.row = row
         self.q_ref: np.ndarray | None = None
         self.v_ref: np.ndarray | None = None
-        self.q_hat = self.v_hat = self.d_hat = None
+        self.q_hat: np.ndarray | None = None
+        self.v_hat: np.ndarray | None = None
+        self.d_hat: np.ndarray | None = None
 
     @property
     def initialised(self) -> bool:
@@ -119,6 +125,7 @@ class AgentCore:
         Depends on the references only (own q*_i, v*_i and the neighbours' / leader's), not on
         the measured state: the agent process computes them as soon as its neighbours'
         references of tick k are in, before the plant's state(k) arrives (see :meth:`tick`)."""
+        assert self.q_ref is not None and self.v_ref is not None, "reset() first"
         r = self.row
         weights, h_nbr = r.weights, r.h_nbr
         if present is not None and len(present) != len(r.neighbours):
@@ -130,6 +137,7 @@ class AgentCore:
         """Steps 4-5: the composite control (28) from the measured state (q, v: (3,) m, m/s)
         and the generator's v*' = ``dv`` (3,) m/s^2, then thrust/attitude inversion. Changes no
         state: call :meth:`advance` with the result to finish the tick."""
+        assert self.q_ref is not None and self.v_ref is not None and self.d_hat is not None, "reset() first"
         r = self.row
         d_used = self.d_hat if r.eso_enabled else np.zeros(3)
         u = composite_control(self.q_ref, self.v_ref, dv, q_meas, v_meas, d_used, r.kp, r.kd, r.g)
@@ -138,6 +146,8 @@ class AgentCore:
 
     def advance(self, q_meas: np.ndarray, u: np.ndarray, dq: np.ndarray, dv: np.ndarray) -> None:
         """Step 6: ESO (27) and generator to k+1 with the tick's control ``u`` and rates."""
+        assert self.q_hat is not None and self.v_hat is not None and self.d_hat is not None, "reset() first"
+        assert self.q_ref is not None and self.v_ref is not None, "reset() first"
         r = self.row
         self.q_hat, self.v_hat, self.d_hat = eso_step(self.q_hat, self.v_hat, self.d_hat, q_meas, u, r.beta, r.dt, r.g)
         self.q_ref = self.q_ref + r.dt * dq

@@ -89,7 +89,8 @@ def euler_step(q: np.ndarray, v: np.ndarray, dq: np.ndarray, dv: np.ndarray, dt:
 def graph_matrix(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     """M = L + B for adjacency A (N, N) and pinning b (N,) (section Graph theory notions)."""
     A = np.asarray(A, dtype=float)
-    return np.diag(A.sum(axis=1)) - A + np.diag(np.asarray(b, dtype=float))
+    M: np.ndarray = np.diag(A.sum(axis=1)) - A + np.diag(np.asarray(b, dtype=float))
+    return M
 
 
 def error_matrix(M: np.ndarray, mu1: float, mu2: float) -> np.ndarray:

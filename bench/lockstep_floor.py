@@ -34,12 +34,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import _common as C  # noqa: E402
+import _common as C
 
 PAYLOAD = b"x" * 120
 
 
-def _config(mode: str, router: str, own_port: int):  # noqa: ANN202
+def _config(mode: str, router: str, own_port: int):
     from zenswarm import bus
 
     if mode == "client":
@@ -59,11 +59,11 @@ def run_agent(a: argparse.Namespace) -> None:
         ref = s.declare_publisher(f"floor/ref/{i}")
         got = [0]
 
-        def on_state(_sample) -> None:  # noqa: ANN001
+        def on_state(_sample) -> None:
             cmd.put(PAYLOAD)
             ref.put(PAYLOAD)
 
-        def on_ref(_sample) -> None:  # noqa: ANN001
+        def on_ref(_sample) -> None:
             got[0] += 1
 
         subs = [s.declare_subscriber(f"floor/state/{i}", bus.direct_callback(on_state))]
@@ -82,7 +82,7 @@ def run_plant(a: argparse.Namespace) -> None:
         got = [0]
         done = threading.Event()
 
-        def on_cmd(_sample) -> None:  # noqa: ANN001
+        def on_cmd(_sample) -> None:
             with lock:
                 got[0] += 1
                 if got[0] == a.n:
@@ -204,7 +204,8 @@ def main() -> int:
           + ", ".join(f"{m} {v:.0f} us per round" for m, v in summary.items() if v is not None))
     if a.json is not None:
         a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps({"benchmark": "lockstep_floor", "command": " ".join(["python", "bench/lockstep_floor.py", *sys.argv[1:]]),
+        command = " ".join(["python", "bench/lockstep_floor.py", *sys.argv[1:]])
+        a.json.write_text(json.dumps({"benchmark": "lockstep_floor", "command": command,
                                       "machine": info, "n": a.n, "rounds": a.rounds, "runs_us": runs, "median_us": summary},
                                      indent=2, sort_keys=True) + "\n")
     return 0

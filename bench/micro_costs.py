@@ -32,7 +32,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import _common as C  # noqa: E402
+import _common as C
 
 
 def bench(fn, calls: int) -> float:
@@ -47,13 +47,13 @@ def bench(fn, calls: int) -> float:
 def cases(tmpdir: Path):
     import numpy as np
 
+    from zenswarm import wire
     from zenswarm.agents.core import AgentCore, AgentRow
     from zenswarm.agents.generator import generator_rates_all
+    from zenswarm.config import load_scenario
     from zenswarm.leader.aapf import AapfParams, integrate_leader
     from zenswarm.params import QuadParams
     from zenswarm.plant.quadrotor import initial_state, step
-    from zenswarm import wire
-    from zenswarm.config import load_scenario
 
     ex1 = load_scenario(C.PAPER["example1"])
     params = QuadParams.from_vehicle(ex1.vehicle)

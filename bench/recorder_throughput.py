@@ -27,8 +27,8 @@ import msgpack
 import numpy as np
 import zenoh
 
-from zenswarm.bridge.mcapio import read_recording
 from zenswarm import bus, wire
+from zenswarm.bridge.mcapio import read_recording
 
 
 def _payloads(n_uav: int) -> list[tuple[str, bytes]]:

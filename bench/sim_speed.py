@@ -30,7 +30,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import _common as C  # noqa: E402
+import _common as C
 
 DEFAULT_SCENARIOS = ["example1", "example2", "gen3", "gen8", "gen16", "gen32"]
 
@@ -39,8 +39,8 @@ def profile(scenario: Path, top: int) -> None:
     import cProfile
     import pstats
 
-    from zenswarm.config import load_scenario
     from zenswarm.compose.sim import simulate
+    from zenswarm.config import load_scenario
 
     sc = load_scenario(scenario)
     pr = cProfile.Profile()

@@ -46,7 +46,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import _common as C  # noqa: E402
+import _common as C
 
 DEFAULT_SCENARIOS = ["example1", "example2", "gen3", "gen8", "gen16", "gen32"]
 STAMPS = Path(__file__).resolve().parent / "stamps"

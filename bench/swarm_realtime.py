@@ -47,7 +47,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import _common as C  # noqa: E402
+import _common as C
 
 STAMPS = Path(__file__).resolve().parent / "stamps"
 
@@ -295,8 +295,8 @@ def main(argv: list[str] | None = None) -> int:
                             for k in ("missed_pct", "missed", "loop_ticks", "jitter_mean_ms", "jitter_max_ms")} for g in groups}
     summary["in_flight_missed"] = {g: med(m["in_flight_missed"].get(g, {}).get("pct") for m in runs) for g in groups}
     classes = list(runs[0]["latency_ms"]) if runs else []
-    summary["latency_ms"] = {c: {k: med(m["latency_ms"][c][k] for m in runs) for k in ("n", "p50", "p90", "p99", "p99.9", "max", "over_1ms_pct")}
-                             for c in classes}
+    stats = ("n", "p50", "p90", "p99", "p99.9", "max", "over_1ms_pct")
+    summary["latency_ms"] = {c: {k: med(m["latency_ms"][c][k] for m in runs) for k in stats} for c in classes}
     summary["period_jitter_ms"] = {g: {k: med(m["period_jitter_ms"][g][k] for m in runs) for k in ("p50", "p99", "max")}
                                    for g in ("plant", "leader", "agents")}
     summary["flight_cores_total"] = med(m.get("flight_cores_total") for m in runs)
@@ -315,13 +315,15 @@ def main(argv: list[str] | None = None) -> int:
             summary["cpu_ratio_swarm_over_sim"] = summary["flight_cores_total"] / summary["sim_cores_for_real_time"]
 
     print()
-    print(f"realtime swarm, {facts['n_uav']} UAVs at {facts['control_rate_hz']:g} Hz, {facts['sim_time_s']:g} s of flight; median of {len(runs)} runs")
+    print(f"realtime swarm, {facts['n_uav']} UAVs at {facts['control_rate_hz']:g} Hz, {facts['sim_time_s']:g} s of flight; "
+          f"median of {len(runs)} runs")
     rows = []
     for g in groups:
         s = summary["loops"][g]
         rows.append([g, s["loop_ticks"], s["missed"], f"{C.fmt(s['missed_pct'], 3)} %", f"{C.fmt(summary['in_flight_missed'].get(g), 3)} %",
                      s["jitter_mean_ms"], s["jitter_max_ms"], C.fmt(summary["period_jitter_ms"].get(g, {}).get("p99"), 2)])
-    rows.append(["all", "", "", f"{C.fmt(summary['missed_pct_all'], 3)} %", f"{C.fmt(summary['in_flight_missed_pct_all'], 3)} %", "", "", ""])
+    rows.append(["all", "", "", f"{C.fmt(summary['missed_pct_all'], 3)} %", f"{C.fmt(summary['in_flight_missed_pct_all'], 3)} %",
+                 "", "", ""])
     print(C.table(["loops", "loop ticks", "missed", "missed %", "missed % in flight", "jitter mean ms", "jitter max ms",
                    "period |dT-10ms| p99 ms"], rows))
     print()

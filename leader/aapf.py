@@ -18,11 +18,14 @@ no step moves the leader by more than ``STEP_FRACTION`` of its current clearance
 from __future__ import annotations
 
 import math
-from typing import Protocol, Sequence
+from typing import TYPE_CHECKING, Protocol, Sequence
 
 import numpy as np
 
 from zenswarm.geometry import obstacle_clearance, obstacle_clearance_many  # re-exported: the solid's distance
+
+if TYPE_CHECKING:  # pragma: no cover
+    from zenswarm.config import Scenario
 
 __all__ = [
     "ObstacleLike",
@@ -57,9 +60,15 @@ MAX_SUBSTEPS = 20_000
 
 
 class ObstacleLike(Protocol):
-    center: Sequence[float]
-    radius: float
-    height: float
+    """A capped cylinder (read-only): ``center`` (3,) m, ``radius`` r_o m, ``height`` h_o m,
+    e.g. :class:`zenswarm.config.Obstacle`."""
+
+    @property
+    def center(self) -> Sequence[float]: ...
+    @property
+    def radius(self) -> float: ...
+    @property
+    def height(self) -> float: ...
 
 
 class AapfParams:
@@ -106,7 +115,7 @@ class AapfParams:
         )
 
     @classmethod
-    def from_scenario(cls, scenario) -> "AapfParams":
+    def from_scenario(cls, scenario: Scenario) -> AapfParams:
         """Build from a :class:`zenswarm.config.Scenario`."""
         ld = scenario.leader
         return cls(
@@ -125,7 +134,8 @@ class AapfParams:
 
 def attractive_force(q0: np.ndarray, goal: np.ndarray, k_att: float) -> np.ndarray:
     """Gamma_att = -K_att (q0 - q_goal), eq. (9). q0, goal: (3,) m. Returns (3,) m/s."""
-    return -k_att * (np.asarray(q0, dtype=float) - np.asarray(goal, dtype=float))
+    f: np.ndarray = -k_att * (np.asarray(q0, dtype=float) - np.asarray(goal, dtype=float))
+    return f
 
 
 def equivalent_center(q0: np.ndarray, ob: ObstacleLike) -> np.ndarray:

@@ -52,7 +52,7 @@ class DisturbanceModel:
         first) and when ``attitude_std > 0`` (one (N, 3) draw per sample, second).
     """
 
-    def __init__(self, cfg: "DisturbanceConfig", n: int, rng: np.random.Generator) -> None:
+    def __init__(self, cfg: DisturbanceConfig, n: int, rng: np.random.Generator) -> None:
         if n < 1:
             raise ValueError(f"n must be >= 1, got {n}")
         self.cfg = cfg
@@ -86,7 +86,7 @@ class DisturbanceModel:
         """Gust state back to 0 (the generator is not rewound)."""
         self._gust[...] = 0.0
 
-    def sampler(self, t: float, dt: float) -> "Callable[[int], tuple[np.ndarray, np.ndarray]] | None":
+    def sampler(self, t: float, dt: float) -> Callable[[int], tuple[np.ndarray, np.ndarray]] | None:
         """The disturbance argument of :func:`plant.quadrotor.step_held` for the sub-steps of dt
         from t: ``j -> self.sample(t + j * dt, dt)``; None when the configuration is inactive
         (no disturbance, and the generator is not touched, as with :meth:`sample`)."""

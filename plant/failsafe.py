@@ -9,13 +9,10 @@ The timeouts are the scenario's ``[failsafe]`` fields.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
 import numpy as np
 
-from zenswarm.inversion import invert_thrust_attitude
 from zenswarm.config import FailsafeConfig, failsafe_config  # re-exported: the [failsafe] table
+from zenswarm.inversion import invert_thrust_attitude
 
 __all__ = ["FailsafeConfig", "FailsafeMode", "failsafe_config", "mode_for_age", "hold_command"]
 

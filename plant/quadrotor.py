@@ -69,7 +69,8 @@ def wrap_angle(a: Any) -> np.ndarray:
     bit-exactly; within one rounding of +-pi the result may be off the interval by an ulp.
     """
     a = np.asarray(a, dtype=float)
-    return a - _TWO_PI * np.ceil(a * (1.0 / _TWO_PI) - 0.5)
+    w: np.ndarray = a - _TWO_PI * np.ceil(a * (1.0 / _TWO_PI) - 0.5)
+    return w
 
 
 def rotation_matrix(rpy: Any) -> np.ndarray:
@@ -182,9 +183,10 @@ class PlantState:
     @property
     def n(self) -> int:
         """Number of UAVs N."""
-        return self.q.shape[0]
+        n: int = self.q.shape[0]
+        return n
 
-    def copy(self) -> "PlantState":
+    def copy(self) -> PlantState:
         """A deep copy (own arrays; scratch buffers are not shared)."""
         return PlantState(
             q=self.q.copy(),
@@ -205,7 +207,10 @@ def initial_state(q0: Any) -> PlantState:
     if q.ndim != 2 or q.shape[1] != 3:
         raise ValueError(f"q0 must have shape (N, 3), got {q.shape}")
     n = q.shape[0]
-    z = lambda: np.zeros((n, 3))  # noqa: E731
+
+    def z() -> np.ndarray:
+        return np.zeros((n, 3))
+
     return PlantState(q=q, v=z(), rpy=z(), w=z(), rate_int=z(), rate_err_prev=z())
 
 
@@ -217,7 +222,10 @@ class _Compiled:
         self.params = p
         self.dt = dt
         self.n = n
-        full = lambda x: np.ascontiguousarray(np.broadcast_to(np.asarray(x, dtype=float), (n, 3)))  # noqa: E731
+
+        def full(x: Any) -> np.ndarray:
+            return np.ascontiguousarray(np.broadcast_to(np.asarray(x, dtype=float), (n, 3)))
+
         J = np.asarray(p.inertia, dtype=float)
         kp = np.asarray(p.rate_kp, dtype=float)
         ki = np.asarray(p.rate_ki, dtype=float)
@@ -283,7 +291,10 @@ class _Compiled:
             self.inv_two_pi, self.half, self.Fb,
         )
         # the same constants as Python floats, per axis, for _step_held_scalar
-        row = lambda a: tuple(float(x) for x in a[0])  # noqa: E731
+
+        def row(a: np.ndarray) -> tuple[float, ...]:
+            return tuple(float(x) for x in a[0])
+
         self.scalars = (
             row(self.cmd_lo), row(self.cmd_hi), row(self.att_kp), row(self.rate_hi), row(self.int_hi),
             row(self.k_e), row(self.k_prev), row(self.ki), row(self.tau_hi), row(self.jinv_dt),
@@ -504,12 +515,12 @@ def step_held(
         step(state, thrust_cmd, rpy_cmd, params, dt, d_p, d_a)
 
 
-def _rows(x: Any, n: int, shape: tuple[int, ...]) -> list:
+def _rows(x: Any, n: int, shape: tuple[int, ...]) -> list[Any]:
     return np.broadcast_to(np.asarray(x, dtype=float), shape).tolist() if x is not None else [None] * n
 
 
 def _step_held_scalar(
-    state: PlantState, c: _Compiled, thrust_cmd: Any, rpy_cmd: Any, nsub: int, samples: list | None
+    state: PlantState, c: _Compiled, thrust_cmd: Any, rpy_cmd: Any, nsub: int, samples: list[Any] | None
 ) -> None:
     """:func:`step_held` on Python floats, UAV by UAV: every operation of :func:`step`, in its
     order (``fmax(a, b)`` = ``a if a >= b else b`` as numpy's for a non-NaN bound, ``%`` as

@@ -14,12 +14,13 @@ from pathlib import Path
 
 import pytest
 
-from swarmtest import SCENARIOS, processes_mentioning, unique_swarm, zenswarm
 from zenswarm import bus
 from zenswarm.config import MAX_SEED, scenario_from_dict
 from zenswarm.errors import ScenarioError
 from zenswarm.generate import to_toml
 from zenswarm.paths import check_output_dir, check_output_file
+
+from swarmtest import SCENARIOS, processes_mentioning, unique_swarm, zenswarm
 
 EX1 = SCENARIOS / "paper_example1.toml"
 
@@ -271,8 +272,8 @@ def test_keys_flag_of_another_swarm_or_size_is_refused_and_kept(tmp_path: Path) 
 
 def _security_of(out: Path, swarm: str, *extra: str):
     """Supervisor._security for `up EX1 --secure --out OUT --swarm SWARM` (no process started)."""
-    from zenswarm.compose.supervisor import Supervisor
     from zenswarm.compose.cli import build_parser
+    from zenswarm.compose.supervisor import Supervisor
     from zenswarm.config import load_scenario
 
     args = build_parser().parse_args(["up", str(EX1), "--secure", "--out", str(out), "--swarm", swarm, "--quiet", *extra])

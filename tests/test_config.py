@@ -9,8 +9,9 @@ from __future__ import annotations
 import copy
 import math
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -425,7 +426,7 @@ def test_with_changes_revalidates() -> None:
 
 def test_scenario_is_frozen() -> None:
     s: Scenario = load_scenario(EX1)
-    with pytest.raises(Exception):
+    with pytest.raises(Exception):  # noqa: B017 - whichever error the frozen type raises
         s.name = "x"  # type: ignore[misc]
     # the parsed document is not retained by reference
     d = base()

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from zenswarm.compose.sim import simulate
 from zenswarm.config import load_scenario
 from zenswarm.linkfaults import plan_for
 from zenswarm.metrics import FLIGHT_FIELDS, TimeSeries
-from zenswarm.compose.sim import simulate
 
 from swarmtest import SCENARIOS, read_results, unique_swarm
 from test_swarm import _up
@@ -129,8 +129,8 @@ def test_sigkill_of_agent2_restarts_and_completes(tmp_path: Path) -> None:
     assert any("nominal -> hover" in ln for ln in fs) and any("-> nominal" in ln for ln in fs), fs
     json.dumps(res)
     # the recording shows the failsafe interval: the plant's diag says UAV 2 hovered, then nominal
-    from zenswarm.bridge.mcapio import read_recording
     from zenswarm import wire
+    from zenswarm.bridge.mcapio import read_recording
 
     marks = []
     for m in read_recording(rec).messages(lambda topic: topic.endswith("/diag/plant")):

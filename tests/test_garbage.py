@@ -635,9 +635,9 @@ def test_flooding_every_key_of_a_flying_swarm(tmp_path: Path) -> None:
     processes subscribe to (and the mission key) with every kind of garbage for 3 s (the flight
     itself lasts about 7 s). The mission reaches the goal exactly as the in-process simulator
     flies it, no process dies, and each process counted rejects for each reason on its own keys."""
-    from test_swarm import _assert_equal_to_sim
-
     from zenswarm.bus import free_port
+
+    from test_swarm import _assert_equal_to_sim
 
     scenario = scenario_variant(tmp_path, time_limit_s=46.0)  # the goal is reached at 44.9 s
     sc = load_scenario(scenario)

@@ -12,7 +12,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from zenswarm.leader.aapf import d_obs, obstacle_clearance
 from zenswarm import generate
 from zenswarm.config import load_scenario, scenario_from_dict, scenario_to_dict
 from zenswarm.errors import ScenarioError
@@ -27,6 +26,7 @@ from zenswarm.generate import (
     generate_scenario,
     to_toml,
 )
+from zenswarm.leader.aapf import d_obs, obstacle_clearance
 
 NS = (3, 8, 16, 32)
 SEEDS = range(4)

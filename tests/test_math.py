@@ -15,8 +15,8 @@ import pytest
 from zenswarm.agents.controller import composite_control, invert_thrust_attitude, virtual_control_from_attitude
 from zenswarm.agents.eso import bandwidth_gains, eso_matrix, eso_step
 from zenswarm.agents.generator import error_matrix, generator_rates, generator_rates_all, graph_matrix
-from zenswarm.leader import aapf
 from zenswarm.config import Obstacle
+from zenswarm.leader import aapf
 
 ROOT = Path(__file__).resolve().parents[1]
 PURE_MODULES = [
@@ -66,7 +66,9 @@ def test_math_module_imports_numpy_only(rel: str) -> None:
                 continue
             names = [node.module.split(".")[0]]
             if node.module.startswith("zenswarm") and node.module not in ALLOWED_ZENSWARM:
-                pytest.fail(f"{rel} imports {node.module}: math modules may use other math modules and zenswarm.config/errors/geometry only")
+                pytest.fail(
+                    f"{rel} imports {node.module}: math modules may use other math modules and zenswarm.config/errors/geometry only"
+                )
         else:
             if isinstance(node, ast.Name) and node.id in FORBIDDEN_NAMES:
                 pytest.fail(f"{rel} uses {node.id} (I/O or clock) at line {node.lineno}")
@@ -346,7 +348,12 @@ def test_adaptive_gain_endpoints_and_linearity() -> None:
 def test_force_finite_at_and_inside_boundary() -> None:
     """d_obs <= 0 (sphere touching or inside): finite force pointing out of the obstacle."""
     p = _params()
-    for q in [np.array([1.0 + 0.14 + 0.2773, 0.45, 0.2]), np.array([1.0 + 0.2, 0.45, 0.2]), np.array([1.0, 0.45, 0.2]), np.array([1.0, 0.45, 0.4])]:
+    for q in [
+        np.array([1.0 + 0.14 + 0.2773, 0.45, 0.2]),
+        np.array([1.0 + 0.2, 0.45, 0.2]),
+        np.array([1.0, 0.45, 0.2]),
+        np.array([1.0, 0.45, 0.4]),
+    ]:
         f = aapf.repulsive_force(q, p)
         assert np.all(np.isfinite(f))
         r, n = aapf.obstacle_distance(q, OB)

@@ -18,15 +18,14 @@ import sys
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import pytest
 
-from zenswarm.bus import free_udp_block as bus_free_udp_block
-
-from zenswarm import frames
+from zenswarm import frames, wire
 from zenswarm.bridge.mavlink import (
     AP_COPTER_MODES,
     PX4_HOLD,
@@ -41,13 +40,13 @@ from zenswarm.bridge.mavlink import (
     px4_custom_mode,
     px4_decode,
 )
-from zenswarm.plant.mavlink_vehicle import MavlinkFleet, VehicleOptions
-from zenswarm.params import QuadParams
-from zenswarm.plant.quadrotor import rotation_matrix
-from zenswarm import wire
 from zenswarm.bus import client_config, free_port, open_session, router_config, tcp_endpoint
+from zenswarm.bus import free_udp_block as bus_free_udp_block
 from zenswarm.config import load_scenario, scenario_from_dict
 from zenswarm.errors import ScenarioError
+from zenswarm.params import QuadParams
+from zenswarm.plant.mavlink_vehicle import MavlinkFleet, VehicleOptions
+from zenswarm.plant.quadrotor import rotation_matrix
 
 REPO = Path(__file__).resolve().parents[1]
 EX1 = REPO / "compose" / "scenarios" / "paper_example1.toml"
@@ -581,7 +580,8 @@ class Flight:
         self.fleet.set_mode_override(2, PX4_POSCTL)  # vehicle 3: a mode the bridge did not ask for
         self.fleet.start()
         self.bridge = Proc(
-            [sys.executable, "-m", "zenswarm", "bridge", "mavlink", str(path), "--swarm", self.swarm, "--connect", self.ep, "--no-wait-alive"]
+            [sys.executable, "-m", "zenswarm", "bridge", "mavlink", str(path),
+             "--swarm", self.swarm, "--connect", self.ep, "--no-wait-alive"]
         )
         self.cmd_pub = self.client.declare_publisher(self.keys.cmd(1))
 

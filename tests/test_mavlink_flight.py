@@ -13,7 +13,9 @@ import re
 import socket
 from pathlib import Path
 
-from zenswarm.bus import free_port
+import pytest
+
+from zenswarm.bus import free_port, free_udp_block
 
 from swarmtest import (
     SCENARIOS,
@@ -25,10 +27,6 @@ from swarmtest import (
     wait_port_free,
     zenswarm,
 )
-
-from zenswarm.bus import free_udp_block
-
-import pytest
 
 pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
 

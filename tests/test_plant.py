@@ -11,8 +11,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from zenswarm.plant.disturbance import DisturbanceModel
+from zenswarm.config import DisturbanceConfig, VehicleConfig
 from zenswarm.params import THRUST_TO_WEIGHT, QuadParams
+from zenswarm.plant.disturbance import DisturbanceModel
 from zenswarm.plant.quadrotor import (
     SCALAR_MAX_N,
     PlantState,
@@ -23,7 +24,6 @@ from zenswarm.plant.quadrotor import (
     step_held,
     wrap_angle,
 )
-from zenswarm.config import DisturbanceConfig, VehicleConfig
 
 DT = 1e-3
 P = QuadParams()

@@ -17,18 +17,17 @@ from pathlib import Path
 import jsonschema
 import numpy as np
 import pytest
-
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
+from zenswarm import wire
 from zenswarm.bridge import foxglove as fx
 from zenswarm.bridge import report
-from zenswarm import wire
 from zenswarm.compose.cli import main as cli_main
+from zenswarm.compose.sim import simulate
 from zenswarm.config import scenario_from_dict, scenario_to_dict
 from zenswarm.errors import RecordingError
 from zenswarm.metrics import FLIGHT_FIELDS, compute_results
-from zenswarm.compose.sim import simulate
 
 EX1 = Path(__file__).resolve().parents[1] / "compose" / "scenarios" / "paper_example1.toml"
 SWARM = "demo"

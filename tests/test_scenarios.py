@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from zenswarm.compose.sim import simulate
 from zenswarm.config import DisturbanceConfig, load_scenario
 from zenswarm.metrics import TimeSeries
-from zenswarm.compose.sim import simulate
 
 pytestmark = pytest.mark.slow  # flies whole simulated missions: tens of seconds
 

@@ -72,7 +72,9 @@ def _worker_router(args: dict[str, Any]) -> int:
         if args.get("alive_sub"):
             held.append(
                 session.liveliness().declare_subscriber(
-                    args["alive_sub"], lambda s: emit(ev="sample", sub="router-alive", key=str(s.key_expr), payload=str(s.kind)), history=True
+                    args["alive_sub"],
+                    lambda s: emit(ev="sample", sub="router-alive", key=str(s.key_expr), payload=str(s.kind)),
+                    history=True,
                 )
             )
         emit(ev="ready")
@@ -129,7 +131,9 @@ def _worker_client(args: dict[str, Any]) -> int:
                 if pub is None:
                     pub = pubs[key] = session.declare_publisher(key, reliability=zenoh.Reliability.RELIABLE)
 
-                def run(pub: Any = pub, n: int = cmd.get("count", 100), period: float = cmd.get("period", 0.05), payload: str = cmd["payload"]) -> None:
+                def run(
+                    pub: Any = pub, n: int = cmd.get("count", 100), period: float = cmd.get("period", 0.05), payload: str = cmd["payload"]
+                ) -> None:
                     for _ in range(n):
                         if stop.is_set():
                             return
@@ -217,7 +221,7 @@ class Worker:
 
     def __init__(self, mode: str, args: dict[str, Any], name: str) -> None:
         self.name = name
-        self.events: "queue.Queue[dict[str, Any]]" = queue.Queue()
+        self.events: queue.Queue[dict[str, Any]] = queue.Queue()
         self.samples: list[dict[str, Any]] = []
         self._lock = threading.Lock()
         self.proc = subprocess.Popen(
@@ -507,7 +511,11 @@ def test_process_flags(tmp_path, ex1):
 
 def _allowed(acl: dict[str, Any], process: str, message: str, flow: str) -> set[str]:
     sid = {p["subjects"][0]: p for p in acl["policies"]}
-    subj = next(s for s in acl["subjects"] if process in s.get("cert_common_names", []) or any(u.startswith(process.replace(":", "-") + "@") for u in s.get("usernames", [])))
+    subj = next(
+        s
+        for s in acl["subjects"]
+        if process in s.get("cert_common_names", []) or any(u.startswith(process.replace(":", "-") + "@") for u in s.get("usernames", []))
+    )
     rules = {r["id"]: r for r in acl["rules"]}
     out: set[str] = set()
     for rid in sid[subj["id"]]["rules"]:

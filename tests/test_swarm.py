@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from zenswarm import wire
 from zenswarm.agents.core import AgentRow
 from zenswarm.agents.process import subscriptions
-from zenswarm import wire
 from zenswarm.bus import free_port
+from zenswarm.compose.sim import simulate
 from zenswarm.config import load_scenario
 from zenswarm.metrics import FLIGHT_FIELDS, TimeSeries
-from zenswarm.compose.sim import simulate
 
 from swarmtest import (
     SCENARIOS,
@@ -258,7 +258,14 @@ def test_record_and_report_match_the_run(tmp_path: Path) -> None:
     rep = json.loads((out / "report" / "results.json").read_text())
     for k in FLIGHT_FIELDS:
         assert rep[k] == run[k], k
-    for png in ("trajectories_3d.png", "formation_errors.png", "formation_errors_vehicles.png", "tracking_errors.png", "clearance.png", "links.png"):
+    for png in (
+        "trajectories_3d.png",
+        "formation_errors.png",
+        "formation_errors_vehicles.png",
+        "tracking_errors.png",
+        "clearance.png",
+        "links.png",
+    ):
         assert (out / "report" / png).stat().st_size > 10_000, png
     v = zenswarm("verify", str(rec), "--agent", "all", timeout=120)
     assert v.returncode == 0, v.stdout

@@ -362,10 +362,10 @@ def test_swarm_gives_the_simulator_s_verdict_and_ends_as_early(case: str, tmp_pa
     the run's recording (which holds ticks past the decision: the swarm stops a moment later)."""
     import json
 
-    from test_swarm import _up
+    from zenswarm.metrics import FLIGHT_FIELDS
 
     from swarmtest import unique_swarm, zenswarm
-    from zenswarm.metrics import FLIGHT_FIELDS
+    from test_swarm import _up
 
     scen = bad_vehicles(tmp_path)[case]
     cp = zenswarm("sim", str(scen), "--out", str(tmp_path / "sim"), "--quiet", timeout=120)

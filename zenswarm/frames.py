@@ -79,7 +79,8 @@ def _vec3(x: Any, name: str) -> np.ndarray:
 def wrap_pi(a: Any) -> np.ndarray:
     """Wrap angles to (-pi, pi], rad (same formula as :func:`plant.quadrotor.wrap_angle`)."""
     a = np.asarray(a, dtype=float)
-    return _PI - np.remainder(_PI - a, _TWO_PI)
+    w: np.ndarray = _PI - np.remainder(_PI - a, _TWO_PI)
+    return w
 
 
 # --------------------------------------------------------------------------- vectors
@@ -292,7 +293,9 @@ class ThrustMap:
                 raise ValueError(f"ThrustMap.hover_throttle must be in (0, 1), got {h!r}")
             ht = self.hover_thrust
             if not (isinstance(ht, (int, float)) and math.isfinite(ht) and ht > 0):
-                raise ValueError(f"ThrustMap.hover_thrust must be a positive finite number of newtons when hover_throttle is set, got {ht!r}")
+                raise ValueError(
+                    f"ThrustMap.hover_thrust must be a positive finite number of newtons when hover_throttle is set, got {ht!r}"
+                )
 
     @property
     def slope(self) -> float:

@@ -24,21 +24,25 @@ def obstacle_clearance(p: np.ndarray, ob: Any) -> float:
     Unlike :func:`d_obs` this measures against the true solid: the cylinder side for
     z_c <= z <= z_c + h_o, the hemispherical cap above, and the base disc's rim below z_c.
     """
+    xc: float
+    yc: float
+    zc: float
     xc, yc, zc = ob.center
-    top = zc + ob.height
+    r_o: float = ob.radius
+    top: float = zc + ob.height
     rho = math.hypot(p[0] - xc, p[1] - yc)
-    z = p[2]
+    z: float = p[2]
     if z > top:
-        return math.sqrt(rho * rho + (z - top) ** 2) - ob.radius
+        return math.sqrt(rho * rho + (z - top) ** 2) - r_o
     if z >= zc:
-        side = rho - ob.radius
+        side: float = rho - r_o
         if side < 0:  # inside the cylinder part: nearest boundary is the side or the base
             return max(side, zc - z)
         return side
-    below = zc - z
-    if rho <= ob.radius:
+    below: float = zc - z
+    if rho <= r_o:
         return below
-    return math.hypot(rho - ob.radius, below)
+    return math.hypot(rho - r_o, below)
 
 
 def obstacle_clearance_many(p: np.ndarray, ob: Any) -> np.ndarray:
@@ -56,7 +60,8 @@ def obstacle_clearance_many(p: np.ndarray, ob: Any) -> np.ndarray:
     side = rho - ob.radius
     mid = np.where(side < 0, np.maximum(side, zc - z), side)
     below = np.where(rho <= ob.radius, zc - z, np.hypot(rho - ob.radius, zc - z))
-    return np.where(z > top, above, np.where(z >= zc, mid, below))
+    out: np.ndarray = np.where(z > top, above, np.where(z >= zc, mid, below))
+    return out
 
 
 def d_obs_many(q0: np.ndarray, ob: Any, r_f: float) -> np.ndarray:
@@ -71,7 +76,8 @@ def d_obs_many(q0: np.ndarray, ob: Any, r_f: float) -> np.ndarray:
     dx = q0[..., 0] - xc
     dy = q0[..., 1] - yc
     dz = np.where(q0[..., 2] <= top, 0.0, q0[..., 2] - top)
-    return np.sqrt(dx * dx + dy * dy + dz * dz) - ob.radius - r_f
+    d: np.ndarray = np.sqrt(dx * dx + dy * dy + dz * dz) - ob.radius - r_f
+    return d
 
 
 def close_pairs(p: np.ndarray, cutoff: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -17,7 +17,7 @@ __all__ = ["invert_thrust_attitude", "virtual_control_from_attitude"]
 
 def invert_thrust_attitude(
     u: np.ndarray, mass: float, yaw: float = 0.0, min_uz: float = 0.1
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray | np.float64, np.ndarray | np.float64, np.ndarray | np.float64]:
     """Total thrust and desired roll/pitch from u (after eq. 28).
 
     F = m ||u||, phi_d = arcsin(m/F (u_x sin psi_d - u_y cos psi_d)),
@@ -31,6 +31,11 @@ def invert_thrust_attitude(
     u = np.asarray(u, dtype=float)
     if u.shape == (3,):
         return _invert_one(u, mass, yaw, min_uz)
+    return _invert_many(u, mass, yaw, min_uz)
+
+
+def _invert_many(u: np.ndarray, mass: float, yaw: float, min_uz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`invert_thrust_attitude` of stacked u (..., 3), m/s^2 (float)."""
     ux = u[..., 0]
     uy = u[..., 1]
     uz = np.maximum(u[..., 2], min_uz)
@@ -52,7 +57,7 @@ def _invert_one(u: np.ndarray, mass: float, yaw: float, min_uz: float) -> tuple[
         uz = min_uz
     norm = math.sqrt(ux * ux + uy * uy + uz * uz)
     if norm == 0.0:  # only with min_uz <= 0: numpy's 0/0 and x/0, with its warnings
-        F, phi, theta = invert_thrust_attitude(u[None, :], mass, yaw, min_uz)
+        F, phi, theta = _invert_many(u[None, :], mass, yaw, min_uz)
         return F[0], phi[0], theta[0]
     s, c = math.sin(yaw), math.cos(yaw)
     a = (ux * s - uy * c) / norm

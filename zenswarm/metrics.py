@@ -71,8 +71,11 @@ class TimeSeries:
     FIELDS = ("t", "q0", "v0", "qref", "vref", "q", "v", "rpy", "u", "thrust", "d_hat")
 
     @classmethod
-    def allocate(cls, T: int, n: int) -> "TimeSeries":
-        nan3 = lambda: np.full((T, n, 3), np.nan)  # noqa: E731
+    def allocate(cls, T: int, n: int) -> TimeSeries:
+
+        def nan3() -> np.ndarray:
+            return np.full((T, n, 3), np.nan)
+
         return cls(
             t=np.full(T, np.nan),
             q0=np.full((T, 3), np.nan),
@@ -87,7 +90,7 @@ class TimeSeries:
             d_hat=nan3(),
         )
 
-    def truncated(self, T: int) -> "TimeSeries":
+    def truncated(self, T: int) -> TimeSeries:
         return TimeSeries(**{f: getattr(self, f)[:T] for f in self.FIELDS})
 
     def save(self, path: str) -> None:
@@ -95,7 +98,7 @@ class TimeSeries:
         np.savez_compressed(path, **{f: getattr(self, f) for f in self.FIELDS})
 
     @classmethod
-    def load(cls, path: str) -> "TimeSeries":
+    def load(cls, path: str) -> TimeSeries:
         with np.load(path) as z:
             return cls(**{f: np.array(z[f]) for f in cls.FIELDS})
 

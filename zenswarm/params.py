@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 if TYPE_CHECKING:  # pragma: no cover
     from zenswarm.config import VehicleConfig
@@ -106,9 +106,9 @@ class QuadParams:
     max_tilt: float = 0.6  # rad, ours (~34 deg)
     g: float = G
     att_kp: tuple[float, float, float] = (_ATT_KP, _ATT_KP, _ATT_KP)  # 1/s, ours
-    rate_kp: tuple[float, float, float] = tuple(_RATE_BW * j for j in _INERTIA)  # N m s/rad, ours
-    rate_ki: tuple[float, float, float] = tuple(_RATE_KI_N * j for j in _INERTIA)  # N m/rad, ours
-    rate_kd: tuple[float, float, float] = tuple(_RATE_KD_N * j for j in _INERTIA)  # N m s^2/rad, ours
+    rate_kp: tuple[float, float, float] = cast("tuple[float, float, float]", tuple(_RATE_BW * j for j in _INERTIA))  # N m s/rad, ours
+    rate_ki: tuple[float, float, float] = cast("tuple[float, float, float]", tuple(_RATE_KI_N * j for j in _INERTIA))  # N m/rad, ours
+    rate_kd: tuple[float, float, float] = cast("tuple[float, float, float]", tuple(_RATE_KD_N * j for j in _INERTIA))  # N m s^2/rad, ours
     max_rate: float = 10.0  # rad/s (~570 deg/s), ours
     max_torque: tuple[float, float, float] = _MAX_TORQUE  # N m, gym-pybullet-drones cf2x
 
@@ -141,7 +141,7 @@ class QuadParams:
         return self.mass * self.g
 
     @classmethod
-    def from_vehicle(cls, vehicle: "VehicleConfig | None") -> "QuadParams":
+    def from_vehicle(cls, vehicle: VehicleConfig | None) -> QuadParams:
         """Defaults with the scenario's ``[vehicle]`` overrides applied.
 
         ``None`` fields keep the default. If ``mass`` is overridden and ``max_thrust`` is not,
@@ -162,7 +162,7 @@ class QuadParams:
         else:
             max_thrust = p.max_thrust
         max_tilt = p.max_tilt if vehicle.max_tilt is None else float(vehicle.max_tilt)
-        js = tuple(n / d for n, d in zip(inertia, p.inertia))
+        js = tuple(n / d for n, d in zip(inertia, p.inertia, strict=True))
         ts = max_thrust / p.max_thrust
         return replace(
             p,
@@ -170,8 +170,8 @@ class QuadParams:
             inertia=inertia,  # type: ignore[arg-type]
             max_thrust=max_thrust,
             max_tilt=max_tilt,
-            rate_kp=tuple(k * s for k, s in zip(p.rate_kp, js)),  # type: ignore[arg-type]
-            rate_ki=tuple(k * s for k, s in zip(p.rate_ki, js)),  # type: ignore[arg-type]
-            rate_kd=tuple(k * s for k, s in zip(p.rate_kd, js)),  # type: ignore[arg-type]
+            rate_kp=tuple(k * s for k, s in zip(p.rate_kp, js, strict=True)),  # type: ignore[arg-type]
+            rate_ki=tuple(k * s for k, s in zip(p.rate_ki, js, strict=True)),  # type: ignore[arg-type]
+            rate_kd=tuple(k * s for k, s in zip(p.rate_kd, js, strict=True)),  # type: ignore[arg-type]
             max_torque=tuple(t * ts for t in p.max_torque),  # type: ignore[arg-type]
         )

@@ -6,6 +6,7 @@ In the base layer because the scenario's loader validates the table (the supervi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from zenswarm.errors import ScenarioError
 
@@ -34,13 +35,13 @@ class RestartPolicy:
         return min(self.initial_delay_s * self.factor**n_done, self.max_delay_s)
 
 
-def restart_policy(section: dict | None, force: bool = False) -> RestartPolicy:
+def restart_policy(section: dict[str, Any] | None, force: bool = False) -> RestartPolicy:
     """The scenario's ``[restart]`` table (enabled, initial_delay_s, factor, max_delay_s,
     max_restarts); ``force`` (``--restart``) enables it. Errors name the field."""
     if section is None:
         return RestartPolicy(enabled=force)
     allowed = {"enabled", "initial_delay_s", "factor", "max_delay_s", "max_restarts"}
-    vals: dict = {}
+    vals: dict[str, Any] = {}
     for k, v in section.items():
         if k not in allowed:
             raise ScenarioError(f"restart.{k}", f"unknown key (allowed: {', '.join(sorted(allowed))})")

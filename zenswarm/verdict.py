@@ -241,6 +241,11 @@ def in_slots(q: np.ndarray, c: Criteria) -> bool:
     return bool(np.all(np.isfinite(e)) and np.all(e <= c.slot_tolerance_m))
 
 
+def _point(a: Any) -> tuple[float, float, float]:
+    """A (3,) point, m, as a tuple of Python floats."""
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
 def _diverged(q: np.ndarray, qref: np.ndarray, k0: int, k1: int, c: Criteria) -> tuple[int, int, str] | None:
     """First (tick, uav index, cause) in [k0, k1) where a UAV's state is not finite or it is
     farther than ``divergence_m`` from its reference q*_i (it no longer tracks: it fell, or was
@@ -394,7 +399,7 @@ def judge(
                 if np.any(np.isfinite(cl)):
                     clear_min = min(clear_min, float(np.nanmin(cl)))
                 hit = cl < r
-            for i in np.flatnonzero(hit.any(axis=0)):
+            for i in np.flatnonzero(hit.any(axis=0)).tolist():
                 k = int(np.argmax(hit[:, i]))
                 if int(i) not in clear_first or clear_first[int(i)][0] > a + k:
                     clear_first[int(i)] = (a + k, o, float(cl[k, i]))
@@ -406,7 +411,7 @@ def judge(
                 alt_min = min(alt_min, float(np.min(z[up & fin_q])))
             below = up & (z < 0.0)
         airborne = up[-1] if len(up) else airborne
-        for i in np.flatnonzero(below.any(axis=0)):
+        for i in np.flatnonzero(below.any(axis=0)).tolist():
             if int(i) not in ground_first:
                 k = int(np.flatnonzero(below[:, i])[0])
                 ground_first[int(i)] = (a + k, float(z[k, i]))
@@ -439,7 +444,7 @@ def judge(
     t_end = float(t[-1]) if T else 0.0
 
     # ---- name the failures, in time order within each cause
-    stall_info = None
+    stall_info: dict[str, Any] | None = None
     if stop is not None:
         qs_stop = q[stop]
         div = _diverged(q, qref, stop, stop + 1, c)
@@ -448,14 +453,14 @@ def judge(
             if cause == "non_finite":
                 failures.append(Failure("non_finite", float(t[k]) if k < T else None, f"UAV {i + 1}'s state is not finite", (i + 1,)))
             else:
-                e_i = float(np.linalg.norm(qs_stop[i] - qref[stop, i]))
+                e_i: float | None = float(np.linalg.norm(qs_stop[i] - qref[stop, i]))
                 failures.append(
                     Failure(
                         "uav_diverged",
                         float(t[k]) if k < T else None,
                         f"UAV {i + 1} is {e_i:.2f} m from its reference q*_{i + 1} (divergence at {c.divergence_m:g} m)",
                         (i + 1,),
-                        where=tuple(float(x) for x in qs_stop[i]),
+                        where=_point(qs_stop[i]),
                     )
                 )
         if _stalled(q0, stop, stop + 1, c) == stop:
@@ -477,7 +482,7 @@ def judge(
                     f"the virtual leader moved {moved:.3f} m in {c.stall_window_s:g} s at "
                     f"({where[0]:.2f}, {where[1]:.2f}, {where[2]:.2f}), {stall_info['goal_distance_m']:.2f} m from the goal, "
                     f"obstacles within d0={c.d0:g} m: {within} (a local minimum of the AAPF)",
-                    where=tuple(float(x) for x in where),
+                    where=_point(where),
                 )
             )
     if T and not finite and not any(f.cause == "non_finite" for f in failures):
@@ -490,34 +495,45 @@ def judge(
         else:
             k = int(np.flatnonzero(~np.isfinite(q0).all(axis=1))[0])
             failures.append(Failure("non_finite", float(t[k]), "the virtual leader's state is not finite"))
-    for i, (k, o, cl) in sorted(clear_first.items(), key=lambda x: x[1][0]):
+    for i, (k, o, cl_k) in sorted(clear_first.items(), key=lambda x: x[1][0]):
         failures.append(
             Failure(
                 "collision_obstacle",
                 float(t[k]),
-                f"UAV {i + 1} came within {cl:.3f} m of obstacle {o}'s surface (vehicle radius {r:.4f} m)",
+                f"UAV {i + 1} came within {cl_k:.3f} m of obstacle {o}'s surface (vehicle radius {r:.4f} m)",
                 (i + 1,),
                 obstacle=o,
-                where=tuple(float(x) for x in q[k, i]),
+                where=_point(q[k, i]),
             )
         )
     for i, (k, zk) in sorted(ground_first.items(), key=lambda x: x[1][0]):
-        failures.append(Failure("collision_ground", float(t[k]), f"UAV {i + 1} went below the ground (z = {zk:.3f} m) after take-off", (i + 1,)))
+        failures.append(
+            Failure("collision_ground", float(t[k]), f"UAV {i + 1} went below the ground (z = {zk:.3f} m) after take-off", (i + 1,))
+        )
     pairs = sorted(pair_first.items(), key=lambda x: x[1][0])
     for (i, j), (k, d) in pairs[:MAX_LISTED_PAIRS]:
         failures.append(
-            Failure("collision_uav", float(t[k]), f"UAVs {i + 1} and {j + 1} came {d:.3f} m apart (contact below {2 * r:.4f} m)", (i + 1, j + 1))
+            Failure(
+                "collision_uav", float(t[k]), f"UAVs {i + 1} and {j + 1} came {d:.3f} m apart (contact below {2 * r:.4f} m)", (i + 1, j + 1)
+            )
         )
     if len(pairs) > MAX_LISTED_PAIRS:
-        failures.append(Failure("collision_uav", float(t[pairs[MAX_LISTED_PAIRS][1][0]]), f"{len(pairs) - MAX_LISTED_PAIRS} more UAV pairs came into contact"))
+        t_more = float(t[pairs[MAX_LISTED_PAIRS][1][0]])
+        failures.append(Failure("collision_uav", t_more, f"{len(pairs) - MAX_LISTED_PAIRS} more UAV pairs came into contact"))
     if T and not (early_end and stop is not None):  # the flight ran its course: did it get there?
         if not goal_reached and stall_info is None:
             d_end = float(dist_goal[-1])
             if T >= n_ticks:
-                failures.append(Failure("timeout", t_end, f"the virtual leader did not reach the goal by the time limit ({d_end:.3f} m from it)"))
+                failures.append(
+                    Failure("timeout", t_end, f"the virtual leader did not reach the goal by the time limit ({d_end:.3f} m from it)")
+                )
             else:
                 failures.append(
-                    Failure("incomplete", t_end, f"the flight stopped at {t_end:.2f} s, before the time limit, with the leader {d_end:.3f} m from the goal")
+                    Failure(
+                        "incomplete",
+                        t_end,
+                        f"the flight stopped at {t_end:.2f} s, before the time limit, with the leader {d_end:.3f} m from the goal",
+                    )
                 )
         elif goal_reached:
             for i, e_i in enumerate(slot_err):
@@ -527,9 +543,10 @@ def judge(
                         Failure(
                             "uav_off_slot",
                             t_end,
-                            f"UAV {i + 1} was {how} from its slot goal + h_{i + 1} in the last {W * c.dt:g} s (tolerance {c.slot_tolerance_m:g} m)",
+                            f"UAV {i + 1} was {how} from its slot goal + h_{i + 1} in the last {W * c.dt:g} s "
+                            f"(tolerance {c.slot_tolerance_m:g} m)",
                             (i + 1,),
-                            where=tuple(float(x) for x in q[T - 1, i]) if np.isfinite(q[T - 1, i]).all() else None,
+                            where=_point(q[T - 1, i]) if np.isfinite(q[T - 1, i]).all() else None,
                         )
                     )
     if T == 0:

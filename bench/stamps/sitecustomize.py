@@ -7,8 +7,9 @@ two wrappers, and nothing else changes (no source file of the project is touched
 
 * ``SwarmProcess.publish`` and ``wire.encode``: the ``CLOCK_MONOTONIC`` time (``time.monotonic_ns``,
   system-wide on Linux, so comparable across processes) when ``publish`` has encoded a message,
-  i.e. right before its ``put``, by (key, seq) (the original ``publish`` runs unchanged); and, for ``Diag`` messages, the loop counters they carry (loop_ticks,
-  missed_deadlines) so the in-flight share of missed deadlines can be separated from start-up.
+  i.e. right before its ``put``, by (key, seq) (the original ``publish`` runs unchanged); and, for
+  ``Diag`` messages, the loop counters they carry (loop_ticks, missed_deadlines) so the in-flight
+  share of missed deadlines can be separated from start-up.
 * ``wire.Decoder.decode``: the time a sample reached the receiving process's Zenoh callback,
   taken on entry to the decoder (the first thing the subscriber callback does), by (key, seq).
 
@@ -51,7 +52,7 @@ def _install(role: str, out_dir: str) -> None:
     orig_encode = wire.encode
     current = threading.local()
 
-    def encode(msg):  # noqa: ANN001 - wire.encode; stamps right after encoding, i.e. just before put
+    def encode(msg):  # wire.encode; stamps right after encoding, i.e. just before put
         data = orig_encode(msg)
         key = getattr(current, "key", None)
         if key is not None:
@@ -65,7 +66,7 @@ def _install(role: str, out_dir: str) -> None:
                 diags.append((t, info.get("loop_ticks"), info.get("missed_deadlines"), info.get("jitter_mean_ms")))
         return data
 
-    def publish(self, key, msg):  # noqa: ANN001 - wraps SwarmProcess.publish (which encodes, then puts)
+    def publish(self, key, msg):  # wraps SwarmProcess.publish (which encodes, then puts)
         current.key = key
         try:
             return orig_publish(self, key, msg)
@@ -74,7 +75,7 @@ def _install(role: str, out_dir: str) -> None:
 
     orig_decode = wire.Decoder.decode
 
-    def decode(self, key, kind, payload):  # noqa: ANN001
+    def decode(self, key, kind, payload):
         t = mono()
         msg = orig_decode(self, key, kind, payload)
         if msg is not None and kind != "diag":
