@@ -136,7 +136,7 @@ class SpecPlant:
                     "rpy": rpy[i].tolist(), "w": [0.0, 0.0, 0.0],
                 })
 
-        def take(sample) -> None:  # noqa: ANN001
+        def take(sample) -> None:
             key = str(sample.key_expr)
             try:
                 i = int(key.split("/")[-2])

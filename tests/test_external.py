@@ -16,6 +16,8 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
+
 from zenswarm.bus import free_port
 
 from swarmtest import (
@@ -26,8 +28,6 @@ from swarmtest import (
     unique_swarm,
     zenswarm,
 )
-
-import pytest
 
 
 class Lines:

@@ -26,6 +26,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -41,8 +42,6 @@ from swarmtest import (
     stop_swarm,
     unique_swarm,
 )
-
-import pytest
 
 EX1 = SCENARIOS / "paper_example1.toml"
 DT_NS = 10_000_000  # paper example 1: 100 Hz

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from swarmtest import ROOT, SCENARIOS, read_results, start_zenswarm, stop_swarm, unique_swarm
-
 from zenswarm.bus import free_port
+
+from swarmtest import ROOT, SCENARIOS, read_results, start_zenswarm, stop_swarm, unique_swarm
 
 SPEC_PLANT = Path(__file__).with_name("spec_plant.py")
 

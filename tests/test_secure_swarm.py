@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from zenswarm.metrics import TimeSeries
 
@@ -24,7 +25,6 @@ from swarmtest import (
 )
 from test_swarm import _assert_equal_to_sim, _up
 
-import pytest
 pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
 
 
