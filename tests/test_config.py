@@ -434,3 +434,60 @@ def test_scenario_is_frozen() -> None:
     d2 = copy.deepcopy(d)
     d["leader"]["goal"][0] = 99.0
     assert s2 == scenario_from_dict(d2)
+
+
+# ----------------------------------------------------------------------------- subsystem tables (schema)
+
+
+@pytest.mark.parametrize(
+    ("section", "table", "field", "needles"),
+    [
+        ("network", {"port": 7447}, "network", ("unknown key", "mavlink")),  # no such section
+        ("mavlink", {"base_prot": 14540}, "mavlink.base_prot", ("unknown key", "base_port")),  # misspelt key
+        ("mavlink", {"rate_hz": 10.0}, "mavlink.rate_hz", (">= 20", "10.0")),
+        ("mavlink", {"setpoint": "rates"}, "mavlink.setpoint", ("attitude", "position", "rates")),
+        ("mavlink", {"sysids": [1, 2]}, "mavlink.sysids", ("3 system ids", "got 2")),
+        ("mavlink", {"takeoff": 1}, "mavlink.takeoff", ("true or false",)),
+        ("faults", {"loss": 1.5}, "faults.loss", ("<= 1.0", "1.5")),
+        ("faults", {"links": [{"dst": "agent:2", "delay": "5 parsecs"}]}, "faults.links[0].delay", ("5 parsecs",)),
+        ("faults", {"links": [{"dst": "agent:9"}]}, "faults.links[0].dst", ("agent:9",)),
+        ("failsafe", {"land_speed": -0.3}, "failsafe.land_speed", ("> 0", "-0.3")),
+        ("failsafe", {"hover_after_s": 6.0}, "failsafe.land_after_s", ("hover_after_s",)),
+        ("failsafe", {"kp": math.nan}, "failsafe.kp", ("finite", "nan")),
+        ("restart", {"factor": 0.5}, "restart.factor", (">= 1", "0.5")),
+        ("restart", {"max_restarts": True}, "restart.max_restarts", ("integer", "bool")),
+        ("restart", {"enabeld": True}, "restart.enabeld", ("unknown key", "enabled")),
+    ],
+    ids=lambda v: v if isinstance(v, str) else None,
+)
+def test_subsystem_tables_are_checked_on_load(section: str, table: dict[str, Any], field: str, needles: tuple[str, ...]) -> None:
+    d = base()
+    d[section] = table
+    reject(d, field, *needles)
+
+
+def test_subsystem_tables_are_typed_and_round_trip() -> None:
+    d = base()
+    d["mavlink"] = {"base_port": 15000, "setpoint": "position"}
+    d["restart"] = {"max_restarts": 5}
+    d["failsafe"] = {"land_speed": 0.5}
+    s = scenario_from_dict(d)
+    assert s.mavlink is not None and s.mavlink.base_port == 15000 and s.mavlink.setpoint == "position"
+    assert s.restart is not None and s.restart.enabled and s.restart.max_restarts == 5
+    assert s.failsafe is not None and s.failsafe.land_speed == 0.5 and s.failsafe.hover_after_s == 0.5
+    assert s.faults is None
+    back = scenario_to_dict(s)
+    assert (back["mavlink"], back["restart"], back["failsafe"]) == (d["mavlink"], d["restart"], d["failsafe"])
+    assert scenario_from_dict(back) == s
+
+
+def test_unknown_section_in_a_file_exits_2(tmp_path: Path) -> None:
+    """`zenswarm scenario check` refuses a file with an unknown [network] section (exit 2)."""
+    from zenswarm.compose.cli import main
+
+    p = tmp_path / "net.toml"
+    p.write_text(EX1.read_text() + "\n[network]\nport = 7447\n")
+    with pytest.raises(ScenarioError) as ei:
+        load_scenario(p)
+    assert ei.value.field == "network"
+    assert main(["scenario", "check", str(p)]) == 2
