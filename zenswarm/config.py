@@ -1,4 +1,9 @@
-"""Scenario configuration: one TOML file loaded into frozen dataclasses and validated on load.
+"""Scenario configuration: one TOML file loaded into a frozen :class:`Scenario` and validated on load.
+
+The format is declared once, as typed msgspec Structs, in :mod:`zenswarm.schema` (re-exported
+here): the schema rejects unknown sections and keys and checks types and ranges; this module adds
+the checks that need the whole scenario (graph Lemma 1, start/goal clearance, run-size bounds, the
+subsystems' tables against N).
 
 Every error is a :class:`zenswarm.errors.ScenarioError` whose ``field`` names the offending key as
 a dotted path (``leader.goal``, ``graph.adjacency``, ``obstacles[1].radius``). Units are SI
@@ -20,6 +25,12 @@ The sections and their meaning (see ``compose/scenarios/paper_example1.toml`` fo
 ``[mission]``    how the flight is judged (:mod:`zenswarm.verdict`): slot_tolerance_m,
                  settle_window_s, stall_speed_m_s, stall_window_s, divergence_m
 ``[disturbance]`` wind, sine_amplitude, sine_freq_hz, gust_std, gust_tau_s (accelerations, m/s^2)
+``[faults]``     link faults (``Scenario.faults``, :func:`zenswarm.faults.plan_from_scenario`)
+``[failsafe]``   the plant's command-loss failsafe (``Scenario.failsafe``, :func:`failsafe_config`)
+``[restart]``    the supervisor's restart backoff (``Scenario.restart``, :func:`zenswarm.policy.restart_policy`)
+``[mavlink]``    MAVLink bridge and vehicles (``Scenario.mavlink``, :func:`zenswarm.autopilot.mavlink_settings`)
+
+Any other section or key is an error naming it.
 
 Bounds, so that a valid scenario can be run (``zenswarm scenario check``, ``sim`` and ``up``
 agree, all three load through here): ``scenario.seed`` in [0, 2**63 - 1]; at most
