@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from msgspec.structs import replace as replace_table
 
 from zenswarm.agents.controller import composite_control, invert_thrust_attitude
 from zenswarm.agents.core import AgentCore, AgentRow
@@ -125,7 +126,7 @@ def simulate(
         nb_box = [[Box(fstate, f"agent:{j + 1}", f"agent:{i + 1}", "ref", dt) for j in r.neighbours] for i, r in enumerate(rows)]
         ld_box = [Box(fstate, "leader", f"agent:{i + 1}", "leader", dt) if r.pinned else None for i, r in enumerate(rows)]
         cmd_box = [Box(fstate, f"agent:{i + 1}", "plant", "cmd", dt) for i in range(n)]
-        failsafe = FailsafeState(n, failsafe_config(scenario.extra.get("failsafe")))
+        failsafe = FailsafeState(n, failsafe_config(scenario.failsafe))
 
     crit = criteria_from_scenario(scenario)
     flown = 0  # ticks whose samples are complete in ts
@@ -269,9 +270,9 @@ def write_outputs(out: Path, series: TimeSeries, results: dict) -> None:
 def apply_overrides(scenario: Scenario, no_eso: bool = False, fixed_gain: float | None = None) -> Scenario:
     """Scenario copy with the CLI's comparison switches applied."""
     if no_eso:
-        scenario = replace(scenario, eso=replace(scenario.eso, enabled=False))
+        scenario = replace(scenario, eso=replace_table(scenario.eso, enabled=False))
     if fixed_gain is not None:
-        scenario = replace(scenario, leader=replace(scenario.leader, adaptive=False, k_rep_fixed=float(fixed_gain)))
+        scenario = replace(scenario, leader=replace_table(scenario.leader, adaptive=False, k_rep_fixed=float(fixed_gain)))
     return scenario
 
 

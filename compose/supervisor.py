@@ -107,7 +107,7 @@ class Supervisor:
         self.seen: set[str] = set()  # processes whose token appeared at least once
         self.gone_at: dict[str, tuple[float, int]] = {}  # process -> when its token went away (monotonic s, sim ns)
         self.pending_kills: dict[str, int] = {role: wire.t_ns(t) for role, t in (args.kill or [])}
-        self.policy = restart_policy(scenario.extra.get("restart"), force=args.restart)
+        self.policy = restart_policy(scenario.restart, force=args.restart)
         self.restart_at: dict[str, float] = {}
         self.restarts: dict[str, int] = {}
         self.deaths: list[dict] = []

@@ -47,7 +47,7 @@ def _run(proc: SwarmProcess) -> int:
     rng = np.random.default_rng(sc.seed)
     dist = DisturbanceModel(sc.disturbance, n, rng)
     plant = initial_state(np.asarray(sc.initial_positions, dtype=float))
-    failsafe = FailsafeState(n, failsafe_config(sc.extra.get("failsafe")))
+    failsafe = FailsafeState(n, failsafe_config(sc.failsafe))
     thrust = np.full(n, params.mass * params.g)
     rpy_cmd = np.zeros((n, 3))
     rpy_cmd[:, 2] = yaw

@@ -13,6 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -24,6 +25,7 @@ from zenswarm.config import (
     scenario_to_dict,
 )
 from zenswarm.errors import ScenarioError, ZenswarmError
+from zenswarm.schema import FaultsTable
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "compose" / "scenarios"
 EX1 = SCENARIOS / "paper_example1.toml"
@@ -132,7 +134,7 @@ def test_round_trip_with_every_optional_section() -> None:
     assert s.disturbance.active
     s2 = scenario_from_dict(scenario_to_dict(s))
     assert s2 == s
-    assert s2.extra == {"faults": {"loss": 0.1}}
+    assert s2.faults == FaultsTable(loss=0.1) and scenario_to_dict(s2)["faults"] == {"loss": 0.1}
 
 
 def test_defaults_when_optional_sections_are_absent() -> None:
@@ -202,16 +204,16 @@ REJECTIONS: list[tuple[str, Mutator, str, tuple[str, ...]]] = [
     ("obstacle radius zero", _set("obstacles/1/radius", 0.0), "obstacles[1].radius", ("> 0",)),
     ("time limit negative", _set("timing/time_limit_s", -1.0), "timing.time_limit_s", ("> 0",)),
     # vectors and matrices of the wrong length
-    ("offsets row short", _set("formation/offsets/1", [-0.12, 0.25]), "formation.offsets[1]", ("3 numbers", "got 2")),
-    ("offsets row long", _set("formation/offsets/2", [0.0, 0.0, 0.0, 0.0]), "formation.offsets[2]", ("3 numbers", "got 4")),
-    ("goal short", _set("leader/goal", [2.4, 1.4]), "leader.goal", ("3 numbers", "got 2")),
-    ("goal not a list", _set("leader/goal", "far away"), "leader.goal", ("list of 3 numbers", "str")),
-    ("eso beta length", _set("eso/beta", [15.0, 75.0]), "eso.beta", ("3 numbers",)),
+    ("offsets row short", _set("formation/offsets/1", [-0.12, 0.25]), "formation.offsets[1]", ("length 3", "got 2")),
+    ("offsets row long", _set("formation/offsets/2", [0.0, 0.0, 0.0, 0.0]), "formation.offsets[2]", ("length 3", "got 4")),
+    ("goal short", _set("leader/goal", [2.4, 1.4]), "leader.goal", ("length 3", "got 2")),
+    ("goal not a list", _set("leader/goal", "far away"), "leader.goal", ("expected a list", "str", "far away")),
+    ("eso beta length", _set("eso/beta", [15.0, 75.0]), "eso.beta", ("length 3",)),
     ("too few initial positions", _set("formation/initial_positions", [[0.0, 0.0, 0.4], [0.0, 0.2, 0.4]]),
      "formation.initial_positions", ("3 rows", "got 2")),
     ("too many initial positions", _set("formation/initial_positions", [[0.0, 0.0, 0.4]] * 4),
      "formation.initial_positions", ("3 rows", "got 4")),
-    ("pinning length", _set("graph/pinning", [1.0, 0.0]), "graph.pinning", ("3 numbers", "got 2")),
+    ("pinning length", _set("graph/pinning", [1.0, 0.0]), "graph.pinning", ("length 3", "got 2")),
     ("adjacency rows", _set("graph/adjacency", [[0.0, 1.0, 1.0], [1.0, 0.0, 0.0]]), "graph.adjacency", ("3 rows",)),
     ("no UAVs", lambda d: d["formation"].update(offsets=[], initial_positions=[]), "formation.offsets", ("at least one",)),
     # unknown and missing keys
@@ -233,8 +235,8 @@ REJECTIONS: list[tuple[str, Mutator, str, tuple[str, ...]]] = [
     ("negative seed", _set("scenario/seed", -1), "scenario.seed", ("non-negative integer",)),
     ("seed of 2**80", _set("scenario/seed", 2**80), "scenario.seed", ("<= 2**63 - 1", str(2**80))),
     ("seed of 2**63", _set("scenario/seed", 2**63), "scenario.seed", ("<= 2**63 - 1",)),
-    ("float seed", _set("scenario/seed", 1.5), "scenario.seed", ("non-negative integer",)),
-    ("empty name", _set("scenario/name", ""), "scenario.name", ("non-empty",)),
+    ("float seed", _set("scenario/seed", 1.5), "scenario.seed", ("expected an integer", "float", "1.5")),
+    ("empty name", _set("scenario/name", ""), "scenario.name", ("length >= 1",)),
     # graph
     ("asymmetric adjacency", _set("graph/adjacency", [[0.0, 1.0, 1.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]),
      "graph.adjacency", ("symmetric", "a[0][1]=1.0", "a[1][0]=0.0")),
@@ -418,9 +420,8 @@ def test_not_utf8(tmp_path: Path) -> None:
 
 def test_with_changes_revalidates() -> None:
     s = load_scenario(EX1)
-    bad_leader = type(s.leader)(**{**vars(s.leader), "k_rep_max": 0.01})
     with pytest.raises(ScenarioError) as ei:
-        s.with_changes(leader=bad_leader)
+        s.with_changes(leader=msgspec.structs.replace(s.leader, k_rep_max=0.01))
     assert ei.value.field == "leader.k_rep_max"
 
 
@@ -434,3 +435,60 @@ def test_scenario_is_frozen() -> None:
     d2 = copy.deepcopy(d)
     d["leader"]["goal"][0] = 99.0
     assert s2 == scenario_from_dict(d2)
+
+
+# ----------------------------------------------------------------------------- subsystem tables (schema)
+
+
+@pytest.mark.parametrize(
+    ("section", "table", "field", "needles"),
+    [
+        ("network", {"port": 7447}, "network", ("unknown key", "mavlink")),  # no such section
+        ("mavlink", {"base_prot": 14540}, "mavlink.base_prot", ("unknown key", "base_port")),  # misspelt key
+        ("mavlink", {"rate_hz": 10.0}, "mavlink.rate_hz", (">= 20", "10.0")),
+        ("mavlink", {"setpoint": "rates"}, "mavlink.setpoint", ("attitude", "position", "rates")),
+        ("mavlink", {"sysids": [1, 2]}, "mavlink.sysids", ("3 system ids", "got 2")),
+        ("mavlink", {"takeoff": 1}, "mavlink.takeoff", ("true or false",)),
+        ("faults", {"loss": 1.5}, "faults.loss", ("<= 1.0", "1.5")),
+        ("faults", {"links": [{"dst": "agent:2", "delay": "5 parsecs"}]}, "faults.links[0].delay", ("5 parsecs",)),
+        ("faults", {"links": [{"dst": "agent:9"}]}, "faults.links[0].dst", ("agent:9",)),
+        ("failsafe", {"land_speed": -0.3}, "failsafe.land_speed", ("> 0", "-0.3")),
+        ("failsafe", {"hover_after_s": 6.0}, "failsafe.land_after_s", ("hover_after_s",)),
+        ("failsafe", {"kp": math.nan}, "failsafe.kp", ("finite", "nan")),
+        ("restart", {"factor": 0.5}, "restart.factor", (">= 1", "0.5")),
+        ("restart", {"max_restarts": True}, "restart.max_restarts", ("integer", "bool")),
+        ("restart", {"enabeld": True}, "restart.enabeld", ("unknown key", "enabled")),
+    ],
+    ids=lambda v: v if isinstance(v, str) else None,
+)
+def test_subsystem_tables_are_checked_on_load(section: str, table: dict[str, Any], field: str, needles: tuple[str, ...]) -> None:
+    d = base()
+    d[section] = table
+    reject(d, field, *needles)
+
+
+def test_subsystem_tables_are_typed_and_round_trip() -> None:
+    d = base()
+    d["mavlink"] = {"base_port": 15000, "setpoint": "position"}
+    d["restart"] = {"max_restarts": 5}
+    d["failsafe"] = {"land_speed": 0.5}
+    s = scenario_from_dict(d)
+    assert s.mavlink is not None and s.mavlink.base_port == 15000 and s.mavlink.setpoint == "position"
+    assert s.restart is not None and s.restart.enabled and s.restart.max_restarts == 5
+    assert s.failsafe is not None and s.failsafe.land_speed == 0.5 and s.failsafe.hover_after_s == 0.5
+    assert s.faults is None
+    back = scenario_to_dict(s)
+    assert (back["mavlink"], back["restart"], back["failsafe"]) == (d["mavlink"], d["restart"], d["failsafe"])
+    assert scenario_from_dict(back) == s
+
+
+def test_unknown_section_in_a_file_exits_2(tmp_path: Path) -> None:
+    """`zenswarm scenario check` refuses a file with an unknown [network] section (exit 2)."""
+    from zenswarm.compose.cli import main
+
+    p = tmp_path / "net.toml"
+    p.write_text(EX1.read_text() + "\n[network]\nport = 7447\n")
+    with pytest.raises(ScenarioError) as ei:
+        load_scenario(p)
+    assert ei.value.field == "network"
+    assert main(["scenario", "check", str(p)]) == 2

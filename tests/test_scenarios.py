@@ -6,6 +6,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from msgspec.structs import replace as replace_table
 import pytest
 
 from zenswarm.compose.sim import simulate
@@ -64,7 +65,7 @@ def _windy(no_eso: bool) -> dict:
     sc = load_scenario(SCEN / "paper_example1.toml")
     sc = replace(sc, disturbance=DisturbanceConfig(wind=(0.8, -0.6, 0.5)))
     if no_eso:
-        sc = replace(sc, eso=replace(sc.eso, enabled=False))
+        sc = replace(sc, eso=replace_table(sc.eso, enabled=False))
     return simulate(sc).results
 
 
@@ -84,8 +85,8 @@ def test_adaptive_gain_chatters_less_than_fixed_gain() -> None:
     """The paper's claim (Remark 4): with the adaptive gain the leader's velocity varies less near
     the avoidance boundary than with a fixed gain of 1.0 (total variation of v0)."""
     sc = load_scenario(SCEN / "paper_example1.toml")
-    short = replace(sc, timing=replace(sc.timing, time_limit_s=30.0))
+    short = replace(sc, timing=replace_table(sc.timing, time_limit_s=30.0))
     ada = simulate(short).series
-    fixed = simulate(replace(short, leader=replace(short.leader, adaptive=False, k_rep_fixed=1.0))).series
+    fixed = simulate(replace(short, leader=replace_table(short.leader, adaptive=False, k_rep_fixed=1.0))).series
     tv = lambda ts: float(np.sum(np.linalg.norm(np.diff(ts.v0, axis=0), axis=1)))  # noqa: E731
     assert tv(fixed) > 2.0 * tv(ada), (tv(fixed), tv(ada))

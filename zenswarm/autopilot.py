@@ -9,13 +9,13 @@ Standard library only; :func:`load_mavutil` imports pymavlink when called.
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass
 from typing import Any
 
 from zenswarm.config import Scenario
 from zenswarm.errors import ScenarioError
+from zenswarm.schema import MavlinkTable, convert, to_builtins
 
 __all__ = [
     "PX4_MAIN",
@@ -210,33 +210,10 @@ class MavlinkSettings:
     ground_z: float = 0.0
 
 
-def _num(fieldname: str, x: Any, lo: float | None = None, hi: float | None = None, *, strict_lo: bool = False) -> float:
-    if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
-        raise ScenarioError(fieldname, f"expected a finite number, got {x!r}")
-    x = float(x)
-    if lo is not None and (x <= lo if strict_lo else x < lo):
-        raise ScenarioError(fieldname, f"must be {'>' if strict_lo else '>='} {lo:g}, got {x:g}")
-    if hi is not None and x > hi:
-        raise ScenarioError(fieldname, f"must be <= {hi:g}, got {x:g}")
-    return x
-
-
 def _int(fieldname: str, x: Any, lo: int, hi: int) -> int:
     if isinstance(x, bool) or not isinstance(x, int) or not lo <= x <= hi:
         raise ScenarioError(fieldname, f"expected an integer in {lo}..{hi}, got {x!r}")
     return int(x)
-
-
-def _bool(fieldname: str, x: Any) -> bool:
-    if not isinstance(x, bool):
-        raise ScenarioError(fieldname, f"expected true or false, got {x!r}")
-    return x
-
-
-def _choice(fieldname: str, x: Any, options: tuple[str, ...]) -> str:
-    if x not in options:
-        raise ScenarioError(fieldname, f"expected one of {', '.join(options)}, got {x!r}")
-    return str(x)
 
 
 _URL_SCHEMES = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:")
@@ -261,106 +238,78 @@ def _check_url(fieldname: str, url: Any) -> str:
     )
 
 
+def _per_uav(t: MavlinkTable, name: str, n: int, what: str) -> None:
+    v = getattr(t, name)
+    if v is not None and len(v) != n:
+        raise ScenarioError(f"mavlink.{name}", f"expected a list of {n} {what} (one per UAV), got {len(v)}")
+
+
+def _table_with(sc: Scenario, cli: dict[str, Any]) -> MavlinkTable:
+    """The scenario's ``[mavlink]`` table with the command-line overrides (None values ignored)
+    applied, validated by the schema; the per-UAV lists have N entries."""
+    t = sc.mavlink or MavlinkTable()
+    over = {k: v for k, v in cli.items() if v is not None}
+    for k in over:
+        if k not in _MAV_KEYS:
+            raise ScenarioError(f"--{k}", "unknown setting")
+    if over:
+        t = convert({**to_builtins(t, omit_defaults=True), **over}, MavlinkTable, "mavlink")
+    n = sc.n
+    if t.base_port > 65535 - n + 1:
+        raise ScenarioError("mavlink.base_port", f"expected an integer in 1..{65535 - n + 1} ({n} UAVs), got {t.base_port}")
+    _per_uav(t, "connections", n, "connection strings")
+    _per_uav(t, "sysids", n, "system ids")
+    _per_uav(t, "origins", n, "[x, y, z] points, m ENU")
+    return t
+
+
+def _override(flag: str, values: list[Any], over: dict[int, Any], check: Any) -> None:
+    """Replace values[i - 1] by check(flag, over[i]) for each UAV i of ``over`` (1-based)."""
+    for i, v in over.items():
+        if not 1 <= i <= len(values):
+            raise ScenarioError(flag, f"UAV {i} is not in 1..{len(values)}")
+        values[i - 1] = check(flag, v)
+
+
+def _links(t: MavlinkTable, n: int, conn_over: dict[int, str], sysid_over: dict[int, int]) -> tuple[list[str], list[int]]:
+    """Connection string and system id of each UAV; a (connection, id) pair names one vehicle."""
+    conns = list(t.connections or [f"udpout:{t.host}:{t.base_port + i}" for i in range(n)])
+    for k, url in enumerate(conns):
+        _check_url(f"mavlink.connections[{k}]", url)
+    _override("--conn", conns, conn_over, _check_url)
+    sysids = list(t.sysids or range(1, n + 1))
+    _override("--sysid", sysids, sysid_over, lambda f, s: _int(f, s, 1, 254))
+    seen: dict[tuple[str, int], int] = {}
+    for i, (c, s) in enumerate(zip(conns, sysids)):
+        if (c, s) in seen:
+            raise ScenarioError("mavlink.sysids", f"UAV {seen[(c, s)] + 1} and UAV {i + 1} share connection {c!r} and system id {s}")
+        seen[(c, s)] = i
+    return conns, sysids
+
+
 def mavlink_settings(sc: Scenario, cli: dict[str, Any] | None = None) -> MavlinkSettings:
-    """The scenario's ``[mavlink]`` table, validated, with command-line overrides applied.
+    """The scenario's ``[mavlink]`` table (``Scenario.mavlink``, typed by
+    :class:`zenswarm.schema.MavlinkTable`), with command-line overrides applied.
 
     cli: optional overrides with the same keys as the table (None values are ignored), plus
     ``conn`` ({uav: url}) and ``sysid`` ({uav: id}) for single UAVs. Errors are
     :class:`ScenarioError` naming the field (``mavlink.<key>`` or the flag). Keys of the table:
 
     """
-    raw = sc.extra.get("mavlink", {})
-    if not isinstance(raw, dict):
-        raise ScenarioError("mavlink", "expected a table")
-    for k in raw:
-        if k not in _MAV_KEYS:
-            raise ScenarioError(f"mavlink.{k}", f"unknown key; expected one of {', '.join(sorted(_MAV_KEYS))}")
-    d = dict(raw)
     cli = dict(cli or {})
     conn_over: dict[int, str] = cli.pop("conn", None) or {}
     sysid_over: dict[int, int] = cli.pop("sysid", None) or {}
-    for k, v in cli.items():
-        if k not in _MAV_KEYS:
-            raise ScenarioError(f"--{k}", "unknown setting")
-        if v is not None:
-            d[k] = v
+    t = _table_with(sc, cli)
     n = sc.n
-    f = lambda k: f"mavlink.{k}"  # noqa: E731
-
-    host = d.get("host", "127.0.0.1")
-    if not isinstance(host, str) or not host:
-        raise ScenarioError(f("host"), f"expected a host name or address, got {host!r}")
-    base_port = _int(f("base_port"), d.get("base_port", 14540), 1, 65535 - n + 1)
-
-    conns = d.get("connections")
-    if conns is None:
-        conns = [f"udpout:{host}:{base_port + i}" for i in range(n)]
-    if not isinstance(conns, list) or len(conns) != n or not all(isinstance(c, str) and c for c in conns):
-        raise ScenarioError(f("connections"), f"expected a list of {n} connection strings (one per UAV)")
-    conns = list(conns)
-    for k, url in enumerate(conns):
-        _check_url(f"mavlink.connections[{k}]", url)
-    for i, url in conn_over.items():
-        if not 1 <= i <= n:
-            raise ScenarioError("--conn", f"UAV {i} is not in 1..{n}")
-        conns[i - 1] = _check_url("--conn", url)
-
-    sysids = d.get("sysids", list(range(1, n + 1)))
-    if not isinstance(sysids, list) or len(sysids) != n:
-        raise ScenarioError(f("sysids"), f"expected a list of {n} system ids")
-    sysids = [_int(f"mavlink.sysids[{k}]", s, 1, 254) for k, s in enumerate(sysids)]
-    for i, s in sysid_over.items():
-        if not 1 <= i <= n:
-            raise ScenarioError("--sysid", f"UAV {i} is not in 1..{n}")
-        sysids[i - 1] = _int("--sysid", s, 1, 254)
-    seen: dict[tuple[str, int], int] = {}
-    for i, (c, s) in enumerate(zip(conns, sysids)):
-        if (c, s) in seen:
-            raise ScenarioError(f("sysids"), f"UAV {seen[(c, s)] + 1} and UAV {i + 1} share connection {c!r} and system id {s}")
-        seen[(c, s)] = i
-
-    origins = d.get("origins", [[0.0, 0.0, 0.0]] * n)
-    if not isinstance(origins, list) or len(origins) != n:
-        raise ScenarioError(f("origins"), f"expected a list of {n} [x, y, z] points, m ENU")
-    org = []
-    for k, o in enumerate(origins):
-        if not isinstance(o, list) or len(o) != 3:
-            raise ScenarioError(f"mavlink.origins[{k}]", "expected [x, y, z], m ENU")
-        org.append(tuple(_num(f"mavlink.origins[{k}]", x) for x in o))
-
-    ctrl_hz = sc.timing.control_rate_hz
-    rate = _num(f("rate_hz"), d.get("rate_hz", max(20.0, ctrl_hz)), 20.0)
-    hover = d.get("hover_throttle")
-    if hover is not None:
-        hover = _num(f("hover_throttle"), hover, 0.0, 1.0, strict_lo=True)
-        if hover >= 1.0:
-            raise ScenarioError(f("hover_throttle"), "must be < 1")
+    conns, sysids = _links(t, n, conn_over, sysid_over)
+    plain = {k: getattr(t, k) for k in _MAV_KEYS if k not in ("connections", "sysids", "origins", "rate_hz")}
     return MavlinkSettings(
         n=n,
         connections=tuple(conns),
         sysids=tuple(sysids),
-        origins=tuple(org),  # type: ignore[arg-type]
-        host=host,
-        base_port=base_port,
-        autopilot=_choice(f("autopilot"), d.get("autopilot", "auto"), ("auto", "px4", "ardupilot")),
-        setpoint=_choice(f("setpoint"), d.get("setpoint", "attitude"), ("attitude", "position")),
-        rate_hz=rate,
-        hover_throttle=hover,
-        takeoff=_bool(f("takeoff"), d.get("takeoff", True)),
-        takeoff_tolerance_m=_num(f("takeoff_tolerance_m"), d.get("takeoff_tolerance_m", 0.08), 0.0, strict_lo=True),
-        takeoff_timeout_s=_num(f("takeoff_timeout_s"), d.get("takeoff_timeout_s", 30.0), 0.0, strict_lo=True),
-        link_timeout_s=_num(f("link_timeout_s"), d.get("link_timeout_s", 1.0), 0.0, strict_lo=True),
-        stream_s=_num(f("stream_s"), d.get("stream_s", 1.0), 0.0),
-        cmd_timeout_s=_num(f("cmd_timeout_s"), d.get("cmd_timeout_s", 0.5), 0.0, strict_lo=True),
-        land_timeout_s=_num(f("land_timeout_s"), d.get("land_timeout_s", 15.0), 0.0),
-        start_timeout_s=_num(f("start_timeout_s"), d.get("start_timeout_s", 60.0), 0.0),
-        reengage=_bool(f("reengage"), d.get("reengage", True)),
-        source_system=_int(f("source_system"), d.get("source_system", 245), 1, 255),
-        telemetry_hz=_num(f("telemetry_hz"), d.get("telemetry_hz", 50.0), 0.0, 1000.0, strict_lo=True),
-        request_telemetry=_bool(f("request_telemetry"), d.get("request_telemetry", True)),
-        offboard_loss_s=_num(f("offboard_loss_s"), d.get("offboard_loss_s", 1.0), 0.0, strict_lo=True),
-        failsafe_land_s=_num(f("failsafe_land_s"), d.get("failsafe_land_s", 5.0), 0.0),
-        ground_z=_num(f("ground_z"), d.get("ground_z", 0.0)),
+        origins=tuple(t.origins or [(0.0, 0.0, 0.0)] * n),
+        rate_hz=t.rate_hz if t.rate_hz is not None else max(20.0, sc.timing.control_rate_hz),
+        **plain,
     )
 
 

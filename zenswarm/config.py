@@ -1,4 +1,9 @@
-"""Scenario configuration: one TOML file loaded into frozen dataclasses and validated on load.
+"""Scenario configuration: one TOML file loaded into a frozen :class:`Scenario` and validated on load.
+
+The format is declared once, as typed msgspec Structs, in :mod:`zenswarm.schema` (re-exported
+here): the schema rejects unknown sections and keys and checks types and ranges; this module adds
+the checks that need the whole scenario (graph Lemma 1, start/goal clearance, run-size bounds, the
+subsystems' tables against N).
 
 Every error is a :class:`zenswarm.errors.ScenarioError` whose ``field`` names the offending key as
 a dotted path (``leader.goal``, ``graph.adjacency``, ``obstacles[1].radius``). Units are SI
@@ -20,6 +25,12 @@ The sections and their meaning (see ``compose/scenarios/paper_example1.toml`` fo
 ``[mission]``    how the flight is judged (:mod:`zenswarm.verdict`): slot_tolerance_m,
                  settle_window_s, stall_speed_m_s, stall_window_s, divergence_m
 ``[disturbance]`` wind, sine_amplitude, sine_freq_hz, gust_std, gust_tau_s (accelerations, m/s^2)
+``[faults]``     link faults (``Scenario.faults``, :func:`zenswarm.faults.plan_from_scenario`)
+``[failsafe]``   the plant's command-loss failsafe (``Scenario.failsafe``, :func:`failsafe_config`)
+``[restart]``    the supervisor's restart backoff (``Scenario.restart``, :func:`zenswarm.policy.restart_policy`)
+``[mavlink]``    MAVLink bridge and vehicles (``Scenario.mavlink``, :func:`zenswarm.autopilot.mavlink_settings`)
+
+Any other section or key is an error naming it.
 
 Bounds, so that a valid scenario can be run (``zenswarm scenario check``, ``sim`` and ``up``
 agree, all three load through here): ``scenario.seed`` in [0, 2**63 - 1]; at most
@@ -30,9 +41,8 @@ agree, all three load through here): ``scenario.seed`` in [0, 2**63 - 1]; at mos
 
 from __future__ import annotations
 
-import math
 import tomllib
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +50,27 @@ import numpy as np
 
 from .errors import ScenarioError
 from .geometry import obstacle_clearance
+from .schema import (
+    MAX_SEED,
+    ControllerConfig,
+    DisturbanceConfig,
+    EsoConfig,
+    FailsafeConfig,
+    FaultsTable,
+    GeneratorConfig,
+    GraphConfig,
+    LeaderConfig,
+    MavlinkTable,
+    MissionConfig,
+    Obstacle,
+    RestartTable,
+    ScenarioFile,
+    Timing,
+    VehicleConfig,
+    check_seed,
+    convert,
+    to_builtins,
+)
 from .wire import MAX_T_NS
 
 __all__ = [
@@ -74,10 +105,6 @@ __all__ = [
 # Bounds that keep a valid scenario runnable: every one of them is checked on load, so
 # `zenswarm scenario check`, `zenswarm sim` and `zenswarm up` agree on what is valid.
 
-MAX_SEED = 2**63 - 1
-"""Largest ``scenario.seed`` (and ``--seed``): the seed travels in the mission message and the
-recording's metadata as a signed 64-bit integer."""
-
 MAX_CONTROL_TICKS = 10_000_000
 """Most control ticks in a mission (``time_limit_s * control_rate_hz``): 27.8 h at 100 Hz."""
 
@@ -92,152 +119,10 @@ MAX_UAV_TICKS = 50_000_000
 is held in memory (9 GB at this bound)."""
 
 
-@dataclass(frozen=True)
-class Obstacle:
-    """Vertical cylinder capped by an upper hemisphere (paper, Remark 1).
-
-    center: (3,) m, centre of the cylinder base c = [x_c, y_c, z_c]; radius r_o > 0 m;
-    height h_o > 0 m (cylinder part; the cap adds r_o above it).
-    """
-
-    center: tuple[float, float, float]
-    radius: float
-    height: float
-
-
-@dataclass(frozen=True)
-class Timing:
-    control_rate_hz: float = 100.0
-    physics_rate_hz: float = 1000.0
-    time_limit_s: float = 70.0
-    settle_time_s: float = 30.0
-    goal_tolerance_m: float = 0.05
-
-    @property
-    def dt(self) -> float:
-        """Outer-loop (control) period, s."""
-        return 1.0 / self.control_rate_hz
-
-    @property
-    def substeps(self) -> int:
-        """Physics sub-steps per control tick (integer by validation)."""
-        return int(round(self.physics_rate_hz / self.control_rate_hz))
-
-    @property
-    def n_ticks(self) -> int:
-        """Number of control ticks in the time limit."""
-        return int(round(self.time_limit_s * self.control_rate_hz))
-
-
-@dataclass(frozen=True)
-class LeaderConfig:
-    """Virtual leader and AAPF parameters, eqs 8-15."""
-
-    start: tuple[float, float, float]
-    goal: tuple[float, float, float]
-    k_att: float
-    k_rep_min: float
-    k_rep_max: float
-    d0: float
-    adaptive: bool = True
-    k_rep_fixed: float = 1.0
-    speed_limit: float = 0.0  # m/s; 0 means off (fidelity to the paper)
-
-
-@dataclass(frozen=True)
-class GraphConfig:
-    """Communication graph among followers: adjacency A (N, N), pinning b (N,)."""
-
-    adjacency: tuple[tuple[float, ...], ...]
-    pinning: tuple[float, ...]
-
-    def neighbours(self, i: int) -> list[int]:
-        """0-based indices j with a_ij > 0 for 0-based agent index i."""
-        return [j for j, a in enumerate(self.adjacency[i]) if a > 0]
-
-
-@dataclass(frozen=True)
-class GeneratorConfig:
-    mu1: float = 0.1
-    mu2: float = 2.0
-
-
-@dataclass(frozen=True)
-class EsoConfig:
-    beta: tuple[float, float, float] = (15.0, 75.0, 125.0)
-    enabled: bool = True
-
-
-@dataclass(frozen=True)
-class ControllerConfig:
-    kp: tuple[float, float, float] = (4.5, 4.5, 5.4)
-    kd: tuple[float, float, float] = (5.0, 5.0, 3.0)
-    yaw: float = 0.0  # desired yaw psi_d, rad
-
-
 CRAZYFLIE_RADIUS_M = 0.0397 + 0.0231
 """Contact radius of a Crazyflie 2.1, m: motor arm 0.0397 m plus propeller radius 0.0231 m
 (gym-pybullet-drones ``cf2x.urdf``: arm="0.0397", prop_radius="2.31348e-2"), i.e. the sphere that
 holds the propeller discs; the datasheet's footprint is 92 x 92 mm (motor to motor)."""
-
-
-@dataclass(frozen=True)
-class VehicleConfig:
-    """Optional overrides of :class:`plant.params.QuadParams`; ``None`` keeps the default.
-
-    ``radius``: the vehicle's contact radius, m, used by the verdict (obstacle contact when a
-    UAV's clearance is below it, UAV-UAV contact below twice it); ``None``: a Crazyflie 2.1's.
-    """
-
-    mass: float | None = None
-    inertia: tuple[float, float, float] | None = None
-    max_thrust: float | None = None
-    max_tilt: float | None = None
-    radius: float | None = None
-
-
-@dataclass(frozen=True)
-class MissionConfig:
-    """How a flight is judged (:mod:`zenswarm.verdict`).
-
-    slot_tolerance_m: every UAV must end within this distance of its slot q0_goal + h_i, m ...
-    settle_window_s: ... for this long at the end of the flight, s.
-    stall_speed_m_s, stall_window_s: the leader is stalled (a local minimum of the AAPF) when it
-    moves less than stall_speed * stall_window over a window while away from the goal and
-    within d0 of an obstacle; the run then ends early.
-    divergence_m: a UAV farther than this from its reference q*_i no longer tracks it (it fell, or
-    was blown away): it has diverged, and the run ends early.
-    """
-
-    slot_tolerance_m: float = 0.10
-    settle_window_s: float = 3.0
-    stall_speed_m_s: float = 0.01
-    stall_window_s: float = 5.0
-    divergence_m: float = 5.0
-
-
-@dataclass(frozen=True)
-class DisturbanceConfig:
-    """Lumped translational disturbance d_p (eq. 1) as an acceleration, m/s^2, ENU.
-
-    d_p(t) = wind + sine_amplitude * sin(2 pi sine_freq_hz t) + gust(t), where gust is a
-    first-order Gauss-Markov process with stationary std ``gust_std`` and time constant
-    ``gust_tau_s``, driven by the scenario's seeded generator. ``attitude_std`` adds white
-    torque noise d_a as an angular acceleration, rad/s^2.
-    """
-
-    wind: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    sine_amplitude: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    sine_freq_hz: float = 0.0
-    gust_std: float = 0.0
-    gust_tau_s: float = 1.0
-    attitude_std: float = 0.0
-
-    @property
-    def active(self) -> bool:
-        return bool(
-            any(self.wind) or any(self.sine_amplitude) or self.gust_std > 0 or self.attitude_std > 0
-        )
 
 
 @dataclass(frozen=True)
@@ -257,7 +142,10 @@ class Scenario:
     mission: MissionConfig = field(default_factory=MissionConfig)
     description: str = ""
     seed: int = 0
-    extra: dict[str, Any] = field(default_factory=dict, compare=False)
+    faults: FaultsTable | None = None
+    failsafe: FailsafeConfig | None = None
+    restart: RestartTable | None = None
+    mavlink: MavlinkTable | None = None
 
     @property
     def n(self) -> int:
@@ -287,18 +175,7 @@ def formation_radius(offsets: Any) -> float:
     return float(np.max(np.linalg.norm(h, axis=1))) if len(h) else 0.0
 
 
-# ----------------------------------------------------------------------------- parsing helpers
-
-
-def check_seed(value: Any, field: str = "scenario.seed") -> int:
-    """``value`` as a seed: an integer in [0, :data:`MAX_SEED`]; else :class:`ScenarioError`
-    naming ``field`` (``scenario.seed``, ``--seed``). The one check of every seed zenswarm takes."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ScenarioError(field, f"expected a non-negative integer, got {value!r}")
-    v = int(value)
-    if not 0 <= v <= MAX_SEED:
-        raise ScenarioError(field, f"expected a non-negative integer <= 2**63 - 1 ({MAX_SEED}), got {v}")
-    return v
+# ----------------------------------------------------------------------------- parsing
 
 
 def seed_arg(text: str) -> int:
@@ -316,212 +193,30 @@ def seed_arg(text: str) -> int:
         raise argparse.ArgumentTypeError(e.message) from None
 
 
-def _finite(path: str, x: Any) -> float:
-    if isinstance(x, bool) or not isinstance(x, (int, float)):
-        raise ScenarioError(path, f"expected a number, got {type(x).__name__} {x!r}")
-    try:
-        v = float(x)
-    except OverflowError:  # TOML integers are unbounded in tomllib; float(10**400) overflows
-        raise ScenarioError(path, f"must be finite, got an integer too large for a float ({len(str(x))} digits)") from None
-    if not math.isfinite(v):
-        raise ScenarioError(path, f"must be finite, got {x!r}")
-    return v
-
-
-def _positive(path: str, x: Any) -> float:
-    v = _finite(path, x)
-    if v <= 0:
-        raise ScenarioError(path, f"must be > 0, got {v}")
-    return v
-
-
-def _nonneg(path: str, x: Any) -> float:
-    v = _finite(path, x)
-    if v < 0:
-        raise ScenarioError(path, f"must be >= 0, got {v}")
-    return v
-
-
-def _vec(path: str, x: Any, n: int = 3) -> tuple[float, ...]:
-    if not isinstance(x, (list, tuple)):
-        raise ScenarioError(path, f"expected a list of {n} numbers, got {type(x).__name__}")
-    if len(x) != n:
-        raise ScenarioError(path, f"expected {n} numbers, got {len(x)}")
-    return tuple(_finite(f"{path}[{k}]", v) for k, v in enumerate(x))
-
-
-def _matrix(path: str, x: Any, rows: int | None, cols: int) -> tuple[tuple[float, ...], ...]:
-    if not isinstance(x, (list, tuple)):
-        raise ScenarioError(path, f"expected a list of rows, got {type(x).__name__}")
-    if rows is not None and len(x) != rows:
-        raise ScenarioError(path, f"expected {rows} rows, got {len(x)}")
-    return tuple(_vec(f"{path}[{r}]", row, cols) for r, row in enumerate(x))
-
-
-def _bool(path: str, x: Any) -> bool:
-    if not isinstance(x, bool):
-        raise ScenarioError(path, f"expected true or false, got {x!r}")
-    return x
-
-
-def _check_keys(path: str, table: Any, allowed: set[str], required: set[str] = frozenset()) -> dict:
-    if not isinstance(table, dict):
-        raise ScenarioError(path, f"expected a table, got {type(table).__name__}")
-    for k in table:
-        if k not in allowed:
-            raise ScenarioError(f"{path}.{k}" if path else k, f"unknown key (allowed: {', '.join(sorted(allowed))})")
-    for k in required:
-        if k not in table:
-            raise ScenarioError(f"{path}.{k}" if path else k, "missing required key")
-    return table
-
-
-_SECTIONS = {
-    "scenario",
-    "timing",
-    "leader",
-    "obstacles",
-    "formation",
-    "graph",
-    "generator",
-    "eso",
-    "controller",
-    "vehicle",
-    "disturbance",
-    "mission",
-}
-
-# Sections that later subsystems own; they are parsed by those subsystems and kept verbatim in
-# ``Scenario.extra`` (still validated there). Registered here so unknown keys stay an error.
-EXTRA_SECTIONS: set[str] = {"faults", "failsafe", "restart", "mavlink", "network"}
-
-
 def scenario_from_dict(d: dict[str, Any]) -> Scenario:
-    """Build and validate a :class:`Scenario` from a parsed TOML document."""
-    _check_keys("", d, _SECTIONS | EXTRA_SECTIONS, {"leader", "obstacles", "formation", "graph"})
-
-    sc = _check_keys("scenario", d.get("scenario", {}), {"name", "description", "seed"})
-    name = sc.get("name", "scenario")
-    if not isinstance(name, str) or not name:
-        raise ScenarioError("scenario.name", "expected a non-empty string")
-    desc = sc.get("description", "")
-    if not isinstance(desc, str):
-        raise ScenarioError("scenario.description", "expected a string")
-    seed = check_seed(sc.get("seed", 0), "scenario.seed")
-
-    t = _check_keys(
-        "timing",
-        d.get("timing", {}),
-        {f.name for f in fields(Timing)},
-    )
-    timing = Timing(**{k: _positive(f"timing.{k}", v) for k, v in t.items()})
-
-    ld = _check_keys(
-        "leader",
-        d["leader"],
-        {f.name for f in fields(LeaderConfig)},
-        {"start", "goal", "k_att", "k_rep_min", "k_rep_max", "d0"},
-    )
-    leader = LeaderConfig(
-        start=_vec("leader.start", ld["start"]),
-        goal=_vec("leader.goal", ld["goal"]),
-        k_att=_positive("leader.k_att", ld["k_att"]),
-        k_rep_min=_positive("leader.k_rep_min", ld["k_rep_min"]),
-        k_rep_max=_positive("leader.k_rep_max", ld["k_rep_max"]),
-        d0=_positive("leader.d0", ld["d0"]),
-        adaptive=_bool("leader.adaptive", ld.get("adaptive", True)),
-        k_rep_fixed=_positive("leader.k_rep_fixed", ld.get("k_rep_fixed", 1.0)),
-        speed_limit=_nonneg("leader.speed_limit", ld.get("speed_limit", 0.0)),
-    )
-
-    obs_raw = d["obstacles"]
-    if not isinstance(obs_raw, list):
-        raise ScenarioError("obstacles", "expected an array of tables ([[obstacles]])")
-    obstacles = []
-    for k, o in enumerate(obs_raw):
-        p = f"obstacles[{k}]"
-        _check_keys(p, o, {"center", "radius", "height"}, {"center", "radius", "height"})
-        obstacles.append(
-            Obstacle(
-                center=_vec(f"{p}.center", o["center"]),
-                radius=_positive(f"{p}.radius", o["radius"]),
-                height=_positive(f"{p}.height", o["height"]),
-            )
-        )
-
-    fm = _check_keys("formation", d["formation"], {"offsets", "initial_positions"}, {"offsets", "initial_positions"})
-    offsets = _matrix("formation.offsets", fm["offsets"], None, 3)
-    n = len(offsets)
-    if n == 0:
-        raise ScenarioError("formation.offsets", "at least one UAV is required")
-    initial = _matrix("formation.initial_positions", fm["initial_positions"], n, 3)
-
-    gr = _check_keys("graph", d["graph"], {"adjacency", "pinning"}, {"adjacency", "pinning"})
-    graph = GraphConfig(
-        adjacency=_matrix("graph.adjacency", gr["adjacency"], n, n),
-        pinning=_vec("graph.pinning", gr["pinning"], n),
-    )
-
-    g = _check_keys("generator", d.get("generator", {}), {"mu1", "mu2"})
-    generator = GeneratorConfig(**{k: _positive(f"generator.{k}", v) for k, v in g.items()})
-
-    e = _check_keys("eso", d.get("eso", {}), {"beta", "enabled"})
-    eso = EsoConfig(
-        beta=tuple(_positive(f"eso.beta[{k}]", v) for k, v in enumerate(_vec("eso.beta", e.get("beta", [15.0, 75.0, 125.0])))),
-        enabled=_bool("eso.enabled", e.get("enabled", True)),
-    )
-
-    c = _check_keys("controller", d.get("controller", {}), {"kp", "kd", "yaw"})
-    controller = ControllerConfig(
-        kp=tuple(_positive(f"controller.kp[{k}]", v) for k, v in enumerate(_vec("controller.kp", c.get("kp", [4.5, 4.5, 5.4])))),
-        kd=tuple(_positive(f"controller.kd[{k}]", v) for k, v in enumerate(_vec("controller.kd", c.get("kd", [5.0, 5.0, 3.0])))),
-        yaw=_finite("controller.yaw", c.get("yaw", 0.0)),
-    )
-
-    vh = _check_keys("vehicle", d.get("vehicle", {}), {f.name for f in fields(VehicleConfig)})
-    vehicle = VehicleConfig(
-        mass=_positive("vehicle.mass", vh["mass"]) if "mass" in vh else None,
-        inertia=tuple(_positive(f"vehicle.inertia[{k}]", v) for k, v in enumerate(_vec("vehicle.inertia", vh["inertia"]))) if "inertia" in vh else None,
-        max_thrust=_positive("vehicle.max_thrust", vh["max_thrust"]) if "max_thrust" in vh else None,
-        max_tilt=_positive("vehicle.max_tilt", vh["max_tilt"]) if "max_tilt" in vh else None,
-        radius=_positive("vehicle.radius", vh["radius"]) if "radius" in vh else None,
-    )
-
-    ms = _check_keys("mission", d.get("mission", {}), {f.name for f in fields(MissionConfig)})
-    mission = MissionConfig(**{k: _positive(f"mission.{k}", v) for k, v in ms.items()})
-
-    ds = _check_keys("disturbance", d.get("disturbance", {}), {f.name for f in fields(DisturbanceConfig)})
-    disturbance = DisturbanceConfig(
-        wind=_vec("disturbance.wind", ds.get("wind", [0.0, 0.0, 0.0])),
-        sine_amplitude=_vec("disturbance.sine_amplitude", ds.get("sine_amplitude", [0.0, 0.0, 0.0])),
-        sine_freq_hz=_nonneg("disturbance.sine_freq_hz", ds.get("sine_freq_hz", 0.0)),
-        gust_std=_nonneg("disturbance.gust_std", ds.get("gust_std", 0.0)),
-        gust_tau_s=_positive("disturbance.gust_tau_s", ds.get("gust_tau_s", 1.0)),
-        attitude_std=_nonneg("disturbance.attitude_std", ds.get("attitude_std", 0.0)),
-    )
-
-    extra = {k: d[k] for k in EXTRA_SECTIONS if k in d}
-    for k, v in extra.items():
-        if not isinstance(v, dict):
-            raise ScenarioError(k, f"expected a table, got {type(v).__name__}")
-
+    """Build and validate a :class:`Scenario` from a parsed TOML document (the schema of
+    :mod:`zenswarm.schema`, then the cross-field checks of :func:`validate`)."""
+    doc = convert(d, ScenarioFile)
     scen = Scenario(
-        name=name,
-        description=desc,
-        seed=seed,
-        timing=timing,
-        leader=leader,
-        obstacles=tuple(obstacles),
-        offsets=offsets,
-        initial_positions=initial,
-        graph=graph,
-        generator=generator,
-        eso=eso,
-        controller=controller,
-        vehicle=vehicle,
-        disturbance=disturbance,
-        mission=mission,
-        extra=extra,
+        name=doc.scenario.name,
+        description=doc.scenario.description,
+        seed=doc.scenario.seed,
+        timing=doc.timing,
+        leader=doc.leader,
+        obstacles=doc.obstacles,
+        offsets=doc.formation.offsets,
+        initial_positions=doc.formation.initial_positions,
+        graph=doc.graph,
+        generator=doc.generator,
+        eso=doc.eso,
+        controller=doc.controller,
+        vehicle=doc.vehicle,
+        disturbance=doc.disturbance,
+        mission=doc.mission,
+        faults=doc.faults,
+        failsafe=doc.failsafe,
+        restart=doc.restart,
+        mavlink=doc.mavlink,
     )
     validate(scen)
     return scen
@@ -620,50 +315,26 @@ def validate(s: Scenario) -> None:
 
 
 def _validate_extra(s: Scenario) -> None:
-    """Sections owned by subsystems are validated on load too, so errors show up at once."""
-    if "faults" in s.extra:
+    """The subsystems' tables are checked against the scenario on load too (durations and process
+    names of ``[faults]``, the per-UAV lists of ``[mavlink]``), so errors show up at once."""
+    if s.faults is not None:
         from .faults import plan_from_scenario
 
-        plan_from_scenario(s.extra["faults"], s.seed, s.n)
-    if "failsafe" in s.extra:
-        failsafe_config(s.extra["failsafe"])
-    if "restart" in s.extra:
-        from .policy import restart_policy
+        plan_from_scenario(s.faults, s.seed, s.n)
+    if s.mavlink is not None:
+        from .autopilot import mavlink_settings
 
-        restart_policy(s.extra["restart"])
+        mavlink_settings(s)
 
 
-@dataclass(frozen=True)
-class FailsafeConfig:
-    """hover_after_s < land_after_s, s of sim time without a fresh command; land_speed m/s;
-    hold gains kp (1/s^2), kd (1/s); ground_z m (motors off below it while landing)."""
-
-    hover_after_s: float = 0.5
-    land_after_s: float = 5.0
-    land_speed: float = 0.3
-    kp: float = 4.0
-    kd: float = 3.0
-    ground_z: float = 0.03
-
-
-def failsafe_config(section: dict[str, Any] | None) -> FailsafeConfig:
-    """Parse the scenario's ``[failsafe]`` table (``Scenario.extra``); errors name the field."""
+def failsafe_config(section: FailsafeConfig | dict[str, Any] | None) -> FailsafeConfig:
+    """The scenario's ``[failsafe]`` table (``Scenario.failsafe``, or a dict validated by the
+    schema; None: the defaults); errors name the field."""
     if section is None:
         return FailsafeConfig()
-    allowed = set(FailsafeConfig.__dataclass_fields__)
-    vals: dict[str, float] = {}
-    for k, v in section.items():
-        if k not in allowed:
-            raise ScenarioError(f"failsafe.{k}", f"unknown key (allowed: {', '.join(sorted(allowed))})")
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-            raise ScenarioError(f"failsafe.{k}", f"expected a finite number, got {v!r}")
-        if k != "ground_z" and v <= 0:
-            raise ScenarioError(f"failsafe.{k}", f"must be > 0, got {v}")
-        vals[k] = float(v)
-    cfg = FailsafeConfig(**vals)
-    if cfg.land_after_s <= cfg.hover_after_s:
-        raise ScenarioError("failsafe.land_after_s", f"must be > failsafe.hover_after_s ({cfg.land_after_s} <= {cfg.hover_after_s})")
-    return cfg
+    if isinstance(section, FailsafeConfig):
+        return section
+    return convert(section, FailsafeConfig, "failsafe")
 
 
 def load_scenario(path: str | Path) -> Scenario:
@@ -686,22 +357,26 @@ def load_scenario(path: str | Path) -> Scenario:
 
 
 def scenario_to_dict(s: Scenario) -> dict[str, Any]:
-    """The inverse of :func:`scenario_from_dict` (for the mission message and MCAP metadata)."""
-    veh = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(s.vehicle).items() if v is not None}
+    """The inverse of :func:`scenario_from_dict` (for the mission message and MCAP metadata):
+    every key of the flight's tables; of ``[vehicle]`` and the subsystems' tables only the keys set."""
     d: dict[str, Any] = {
         "scenario": {"name": s.name, "description": s.description, "seed": s.seed},
-        "timing": dict(vars(s.timing)),
-        "leader": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(s.leader).items()},
-        "obstacles": [{"center": list(o.center), "radius": o.radius, "height": o.height} for o in s.obstacles],
+        "timing": to_builtins(s.timing),
+        "leader": to_builtins(s.leader),
+        "obstacles": [to_builtins(o) for o in s.obstacles],
         "formation": {"offsets": [list(h) for h in s.offsets], "initial_positions": [list(q) for q in s.initial_positions]},
-        "graph": {"adjacency": [list(r) for r in s.graph.adjacency], "pinning": list(s.graph.pinning)},
-        "generator": dict(vars(s.generator)),
-        "eso": {"beta": list(s.eso.beta), "enabled": s.eso.enabled},
-        "controller": {"kp": list(s.controller.kp), "kd": list(s.controller.kd), "yaw": s.controller.yaw},
-        "disturbance": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(s.disturbance).items()},
-        "mission": dict(vars(s.mission)),
+        "graph": to_builtins(s.graph),
+        "generator": to_builtins(s.generator),
+        "eso": to_builtins(s.eso),
+        "controller": to_builtins(s.controller),
+        "disturbance": to_builtins(s.disturbance),
+        "mission": to_builtins(s.mission),
     }
+    veh = {k: v for k, v in to_builtins(s.vehicle).items() if v is not None}
     if veh:
         d["vehicle"] = veh
-    d.update({k: v for k, v in s.extra.items()})
+    for name in ("faults", "failsafe", "restart", "mavlink"):
+        table = getattr(s, name)
+        if table is not None:
+            d[name] = to_builtins(table, omit_defaults=True)
     return d

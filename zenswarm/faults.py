@@ -105,6 +105,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from .errors import ScenarioError
+from .schema import BurstTable, FaultsTable, LinkFaultsTable, PartitionTable, convert
 
 __all__ = [
     "KINDS",
@@ -1012,21 +1013,6 @@ def plan_from_cli(
     return FaultPlan(default, dict(base.per_link), seed, tuple(parts))
 
 
-_FAULT_KEYS = {"delay", "jitter", "loss", "burst", "partitions", "links"}
-_LINK_KEYS = {"src", "dst", "kind", "delay", "jitter", "loss", "burst"}
-_BURST_KEYS = {"p_good_to_bad", "p_bad_to_good", "loss_good", "loss_bad"}
-_PART_KEYS = {"target", "start", "end"}
-
-
-def _table(path: str, x: Any, allowed: set[str]) -> dict:
-    if not isinstance(x, dict):
-        raise ScenarioError(path, f"expected a table, got {type(x).__name__}")
-    for k in x:
-        if k not in allowed:
-            raise ScenarioError(f"{path}.{k}", f"unknown key (allowed: {', '.join(sorted(allowed))})")
-    return x
-
-
 def _duration_field(path: str, x: Any) -> float:
     if isinstance(x, (int, float)) and not isinstance(x, bool) and x == 0:
         return 0.0
@@ -1038,55 +1024,38 @@ def _duration_field(path: str, x: Any) -> float:
         raise ScenarioError(path, str(e)) from None
 
 
-def _prob_field(path: str, x: Any) -> float:
-    if isinstance(x, bool) or not isinstance(x, (int, float)):
-        raise ScenarioError(path, f"expected a probability in [0, 1], got {x!r}")
-    if not (0.0 <= float(x) <= 1.0):
-        raise ScenarioError(path, f"must be in [0, 1], got {x!r}")
-    return float(x)
-
-
-def _burst_field(path: str, x: Any) -> GilbertElliott | None:
+def _burst_field(path: str, x: BurstTable | bool) -> GilbertElliott | None:
     if x is False:
         return None
-    t = _table(path, x, _BURST_KEYS)
-    for req in ("p_good_to_bad", "p_bad_to_good"):
-        if req not in t:
-            raise ScenarioError(f"{path}.{req}", "missing required key")
-    vals = {k: _prob_field(f"{path}.{k}", v) for k, v in t.items()}
-    if vals["p_good_to_bad"] + vals["p_bad_to_good"] <= 0.0:
-        raise ScenarioError(f"{path}.p_bad_to_good", "p_good_to_bad and p_bad_to_good cannot both be 0")
-    return GilbertElliott(**vals)
+    if not isinstance(x, BurstTable):
+        raise ScenarioError(path, f"expected a table or false, got {x!r}")
+    return GilbertElliott(x.p_good_to_bad, x.p_bad_to_good, x.loss_good, x.loss_bad)
 
 
-def _partition_field(path: str, x: Any) -> Partition:
+def _partition_field(path: str, x: str | PartitionTable) -> Partition:
     if isinstance(x, str):
         try:
             return parse_partition(x)
         except ValueError as e:
             raise ScenarioError(path, str(e)) from None
-    t = _table(path, x, _PART_KEYS)
-    for req in _PART_KEYS:
-        if req not in t:
-            raise ScenarioError(f"{path}.{req}", "missing required key")
     try:
-        target = _parse_target(t["target"])
+        target = _parse_target(x.target)
     except ValueError as e:
         raise ScenarioError(f"{path}.target", str(e)) from None
-    t0 = _duration_field(f"{path}.start", t["start"])
-    if isinstance(t["end"], str) and t["end"].strip() in ("inf", "end"):
+    t0 = _duration_field(f"{path}.start", x.start)
+    if isinstance(x.end, str) and x.end.strip() in ("inf", "end"):
         t1 = math.inf
     else:
-        t1 = _duration_field(f"{path}.end", t["end"])
+        t1 = _duration_field(f"{path}.end", x.end)
     if not t1 > t0:
-        raise ScenarioError(f"{path}.end", f"must be after start ({t['end']!r} <= {t['start']!r})")
+        raise ScenarioError(f"{path}.end", f"must be after start ({x.end!r} <= {x.start!r})")
     return Partition(target, t0, t1)
 
 
-def _endpoint_field(path: str, x: Any) -> str:
-    if not isinstance(x, str) or not x.strip():
-        raise ScenarioError(path, f"expected a process name or glob (plant, leader, agent:<i>, agent:*, *), got {x!r}")
+def _endpoint_field(path: str, x: str) -> str:
     x = x.strip()
+    if not x:
+        raise ScenarioError(path, f"expected a process name or glob (plant, leader, agent:<i>, agent:*, *), got {x!r}")
     if any(c in x for c in "*?["):
         return x
     try:
@@ -1095,8 +1064,38 @@ def _endpoint_field(path: str, x: Any) -> str:
         raise ScenarioError(path, str(e)) from None
 
 
-def plan_from_scenario(section: Mapping[str, Any] | None, seed: int, n_uavs: int | None = None) -> FaultPlan:
-    """Build a plan from a scenario's ``[faults]`` table (``None`` or ``{}``: no faults).
+def _link_key(p: str, e: LinkFaultsTable, n_uavs: int | None) -> tuple[str, str, str]:
+    """(src, dst, kind) of a ``[[faults.links]]`` entry at path ``p``, checked."""
+    src = _endpoint_field(f"{p}.src", e.src)
+    dst = _endpoint_field(f"{p}.dst", e.dst)
+    check_exists(f"{p}.src", src, n_uavs)
+    check_exists(f"{p}.dst", dst, n_uavs)
+    kind = e.kind
+    if kind not in KINDS and kind != "*":
+        raise ScenarioError(f"{p}.kind", f"unknown kind {kind!r} (allowed: {', '.join(KINDS)}, *)")
+    if kind != "*":
+        want = _KIND_ROLES[kind]
+        for name, ep, role in (("src", src, want[0]), ("dst", dst, want[1])):
+            if not any(c in ep for c in "*?[") and _role(ep) != role:
+                raise ScenarioError(f"{p}.{name}", f"a {kind!r} link goes {want[0]} -> {want[1]}; {ep!r} is not a {role}")
+    if src == dst and not any(c in src for c in "*?["):
+        raise ScenarioError(f"{p}.dst", f"a link needs two different processes, got {src!r} twice")
+    return src, dst, kind
+
+
+def _spec(p: str, e: FaultsTable | LinkFaultsTable, inherit: LinkFaultSpec) -> LinkFaultSpec:
+    """The link spec of table ``e`` at path ``p``; keys it does not set come from ``inherit``."""
+    return LinkFaultSpec(
+        inherit.delay_s if e.delay is None else _duration_field(f"{p}.delay", e.delay),
+        inherit.jitter_s if e.jitter is None else _duration_field(f"{p}.jitter", e.jitter),
+        inherit.loss if e.loss is None else float(e.loss),
+        inherit.burst if e.burst is None else _burst_field(f"{p}.burst", e.burst),
+    )
+
+
+def plan_from_scenario(section: FaultsTable | Mapping[str, Any] | None, seed: int, n_uavs: int | None = None) -> FaultPlan:
+    """Build a plan from a scenario's ``[faults]`` table (``Scenario.faults``, or a dict validated
+    by the schema, :class:`zenswarm.schema.FaultsTable`; ``None`` or ``{}``: no faults).
 
     Keys (all optional): ``delay``, ``jitter`` (duration strings), ``loss`` (probability),
     ``burst`` (table: ``p_good_to_bad``, ``p_bad_to_good`` required, ``loss_good`` = 0,
@@ -1110,47 +1109,15 @@ def plan_from_scenario(section: Mapping[str, Any] | None, seed: int, n_uavs: int
     """
     if section is None:
         return FaultPlan(seed=seed)
-    t = _table("faults", section, _FAULT_KEYS)
-    delay = _duration_field("faults.delay", t["delay"]) if "delay" in t else 0.0
-    jitter = _duration_field("faults.jitter", t["jitter"]) if "jitter" in t else 0.0
-    loss = _prob_field("faults.loss", t["loss"]) if "loss" in t else 0.0
-    burst = _burst_field("faults.burst", t["burst"]) if "burst" in t else None
-    parts: list[Partition] = []
-    if "partitions" in t:
-        if not isinstance(t["partitions"], list):
-            raise ScenarioError("faults.partitions", f"expected a list, got {type(t['partitions']).__name__}")
-        parts = [_partition_field(f"faults.partitions[{i}]", p) for i, p in enumerate(t["partitions"])]
-        for i, part in enumerate(parts):
-            check_exists(f"faults.partitions[{i}]", part.process_or_link, n_uavs)
-    default = LinkFaultSpec(delay, jitter, loss, burst)
+    t = section if isinstance(section, FaultsTable) else convert(section, FaultsTable, "faults")
+    parts = [_partition_field(f"faults.partitions[{i}]", p) for i, p in enumerate(t.partitions)]
+    for i, part in enumerate(parts):
+        check_exists(f"faults.partitions[{i}]", part.process_or_link, n_uavs)
+    default = _spec("faults", t, LinkFaultSpec(0.0, 0.0, 0.0, None))
     per: dict[tuple[str, str, str], LinkFaultSpec] = {}
-    links = t.get("links", [])
-    if not isinstance(links, list):
-        raise ScenarioError("faults.links", "expected an array of tables ([[faults.links]])")
-    for n, entry in enumerate(links):
+    for n, entry in enumerate(t.links):
         p = f"faults.links[{n}]"
-        e = _table(p, entry, _LINK_KEYS)
-        src = _endpoint_field(f"{p}.src", e.get("src", "*"))
-        dst = _endpoint_field(f"{p}.dst", e.get("dst", "*"))
-        check_exists(f"{p}.src", src, n_uavs)
-        check_exists(f"{p}.dst", dst, n_uavs)
-        kind = e.get("kind", "*")
-        if not isinstance(kind, str) or (kind not in KINDS and kind != "*"):
-            raise ScenarioError(f"{p}.kind", f"unknown kind {kind!r} (allowed: {', '.join(KINDS)}, *)")
-        if kind != "*":
-            want = _KIND_ROLES[kind]
-            for name, ep, role in (("src", src, want[0]), ("dst", dst, want[1])):
-                if not any(c in ep for c in "*?[") and _role(ep) != role:
-                    raise ScenarioError(f"{p}.{name}", f"a {kind!r} link goes {want[0]} -> {want[1]}; {ep!r} is not a {role}")
-        if src == dst and not any(c in src for c in "*?["):
-            raise ScenarioError(f"{p}.dst", f"a link needs two different processes, got {src!r} twice")
-        spec = LinkFaultSpec(
-            _duration_field(f"{p}.delay", e["delay"]) if "delay" in e else delay,
-            _duration_field(f"{p}.jitter", e["jitter"]) if "jitter" in e else jitter,
-            _prob_field(f"{p}.loss", e["loss"]) if "loss" in e else loss,
-            _burst_field(f"{p}.burst", e["burst"]) if "burst" in e else burst,
-        )
-        key = (src, dst, kind)
+        key = _link_key(p, entry, n_uavs)
         per.pop(key, None)
-        per[key] = spec
+        per[key] = _spec(p, entry, default)
     return FaultPlan(default, per, seed, tuple(parts))

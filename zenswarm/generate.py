@@ -313,6 +313,24 @@ def _place_obstacles(
 # ----------------------------------------------------------------------------- scenario
 
 
+def _check_args(n: int, shape: str, topology: str, pinning: str, n_obstacles: int, seed: int) -> None:
+    """ValueError naming the bad argument of :func:`generate_scenario`."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"n must be an integer >= 1, got {n!r}")
+    try:
+        check_seed(seed, "seed")
+    except ScenarioError as e:
+        raise ValueError(f"seed must be {e.message.removeprefix('expected ')}") from None
+    if isinstance(n_obstacles, bool) or not isinstance(n_obstacles, int) or n_obstacles < 0:
+        raise ValueError(f"n_obstacles must be an integer >= 0, got {n_obstacles!r}")
+    if shape not in SHAPES:
+        raise ValueError(f"unknown shape {shape!r} (choose from {', '.join(SHAPES)})")
+    if topology not in TOPOLOGIES:
+        raise ValueError(f"unknown topology {topology!r} (choose from {', '.join(TOPOLOGIES)})")
+    if pinning not in PINNINGS:
+        raise ValueError(f"unknown pinning {pinning!r} (choose from {', '.join(PINNINGS)})")
+
+
 def generate_scenario(
     n: int,
     shape: str = "circle",
@@ -339,20 +357,7 @@ def generate_scenario(
     The result is checked by building it with :func:`zenswarm.config.scenario_from_dict`, so it
     is always valid; ValueError for bad arguments, ScenarioError when the obstacles do not fit.
     """
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"n must be an integer >= 1, got {n!r}")
-    try:
-        check_seed(seed, "seed")
-    except ScenarioError as e:
-        raise ValueError(f"seed must be {e.message.removeprefix('expected ')}") from None
-    if isinstance(n_obstacles, bool) or not isinstance(n_obstacles, int) or n_obstacles < 0:
-        raise ValueError(f"n_obstacles must be an integer >= 0, got {n_obstacles!r}")
-    if shape not in SHAPES:
-        raise ValueError(f"unknown shape {shape!r} (choose from {', '.join(SHAPES)})")
-    if topology not in TOPOLOGIES:
-        raise ValueError(f"unknown topology {topology!r} (choose from {', '.join(TOPOLOGIES)})")
-    if pinning not in PINNINGS:
-        raise ValueError(f"unknown pinning {pinning!r} (choose from {', '.join(PINNINGS)})")
+    _check_args(n, shape, topology, pinning, n_obstacles, seed)
 
     rng_jitter, rng_pin, rng_obs = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
 
@@ -460,19 +465,24 @@ def _is_table_array(v: Any) -> bool:
     return isinstance(v, list) and len(v) > 0 and all(isinstance(x, dict) for x in v)
 
 
+def _number(v: Any) -> str:
+    """A TOML integer or float (nan, inf, -inf; else the shortest round-trip form)."""
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    x = float(v)
+    if math.isnan(x):
+        return "nan"
+    if math.isinf(x):
+        return "inf" if x > 0 else "-inf"
+    return repr(x)  # shortest round-trip form; always has '.', 'e', or is handled above
+
+
 def _value(v: Any, indent: str = "") -> str:
     """One TOML value. Lists of lists are written one row per line."""
     if isinstance(v, bool):
         return "true" if v else "false"
-    if isinstance(v, (int, np.integer)):
-        return str(int(v))
-    if isinstance(v, (float, np.floating)):
-        x = float(v)
-        if math.isnan(x):
-            return "nan"
-        if math.isinf(x):
-            return "inf" if x > 0 else "-inf"
-        return repr(x)  # shortest round-trip form; always has '.', 'e', or is handled above
+    if isinstance(v, (int, np.integer, float, np.floating)):
+        return _number(v)
     if isinstance(v, str):
         return _string(v)
     if isinstance(v, dict):

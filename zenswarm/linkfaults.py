@@ -62,8 +62,7 @@ def plan_for(
     Raises :class:`zenswarm.errors.ScenarioError` naming the field or flag.
     """
     seed = scenario.seed if seed is None else int(seed)
-    section = scenario.extra.get("faults")
-    base = plan_from_scenario(section, seed, scenario.n) if section is not None else FaultPlan(seed=seed)
+    base = plan_from_scenario(scenario.faults, seed, scenario.n)
     plan = plan_from_cli(link_delay, link_jitter, link_loss, list(partitions or ()), seed=seed, base=base, n=scenario.n)
     return plan if plan.active else None
 

@@ -6,9 +6,10 @@ In the base layer because the scenario's loader validates the table (the supervi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from collections.abc import Mapping
 from typing import Any
 
-from zenswarm.errors import ScenarioError
+from zenswarm.schema import RestartTable, convert
 
 __all__ = ["RestartPolicy", "restart_policy"]
 
@@ -35,26 +36,12 @@ class RestartPolicy:
         return min(self.initial_delay_s * self.factor**n_done, self.max_delay_s)
 
 
-def restart_policy(section: dict[str, Any] | None, force: bool = False) -> RestartPolicy:
-    """The scenario's ``[restart]`` table (enabled, initial_delay_s, factor, max_delay_s,
-    max_restarts); ``force`` (``--restart``) enables it. Errors name the field."""
+def restart_policy(section: RestartTable | Mapping[str, Any] | None, force: bool = False) -> RestartPolicy:
+    """The scenario's ``[restart]`` table (``Scenario.restart``, or a dict validated by the schema,
+    :class:`zenswarm.schema.RestartTable`: enabled, initial_delay_s, factor, max_delay_s,
+    max_restarts; a present table is enabled unless it says ``enabled = false``); ``force``
+    (``--restart``) enables it. Errors name the field."""
     if section is None:
         return RestartPolicy(enabled=force)
-    allowed = {"enabled", "initial_delay_s", "factor", "max_delay_s", "max_restarts"}
-    vals: dict[str, Any] = {}
-    for k, v in section.items():
-        if k not in allowed:
-            raise ScenarioError(f"restart.{k}", f"unknown key (allowed: {', '.join(sorted(allowed))})")
-        if k == "enabled":
-            if not isinstance(v, bool):
-                raise ScenarioError("restart.enabled", f"expected true or false, got {v!r}")
-        elif k == "max_restarts":
-            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise ScenarioError("restart.max_restarts", f"expected an integer >= 0, got {v!r}")
-        elif isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0 or v == float("inf"):
-            raise ScenarioError(f"restart.{k}", f"expected a finite number > 0, got {v!r}")
-        elif k == "factor" and v < 1:
-            raise ScenarioError("restart.factor", f"must be >= 1, got {v}")
-        vals[k] = v
-    pol = RestartPolicy(**{"enabled": True, **vals})
-    return RestartPolicy(**{**pol.__dict__, "enabled": pol.enabled or force})
+    t = section if isinstance(section, RestartTable) else convert(section, RestartTable, "restart")
+    return RestartPolicy(t.enabled or force, t.initial_delay_s, t.factor, t.max_delay_s, t.max_restarts)
