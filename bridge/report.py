@@ -690,18 +690,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Stand-alone entry (``python -m zenswarm.bridge.report ...``) until the CLI wires it."""
+    """Stand-alone entry (``python -m zenswarm.bridge.report ...``): the ``report`` command only
+    (``zenswarm`` wires ``report`` and ``export`` through :mod:`zenswarm.bridge.cli`; this module
+    does not import :mod:`zenswarm.bridge.foxglove`, which imports it)."""
     import sys
 
     parser = argparse.ArgumentParser(prog="zenswarm")
     sub = parser.add_subparsers(dest="command", required=True)
     add_parsers(sub)
-    try:
-        from zenswarm.bridge import foxglove
-    except ImportError:  # pragma: no cover
-        pass
-    else:
-        foxglove.add_parsers(sub)
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
