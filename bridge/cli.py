@@ -75,7 +75,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     from . import mavlink
 
     mavlink.add_parsers(sub)
-    for modname in ("bridge.report", "bridge.foxglove"):
+    for modname in ("zenswarm.bridge.report", "zenswarm.bridge.foxglove"):
         try:
             mod = __import__(modname, fromlist=["add_parser"])
         except ImportError as e:

@@ -565,6 +565,10 @@ class ExportSummary:
     skipped: dict[str, int] = field(default_factory=dict)
     time_base_ns: int = 0
 
+    def skip(self, why: str) -> None:
+        """Count one recorded message not exported, and why."""
+        self.skipped[why] = self.skipped.get(why, 0) + 1
+
 
 def _dumps(obj: Any) -> bytes:
     return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
@@ -581,6 +585,123 @@ def _compression():
         return CompressionType.LZ4
 
 
+def _json_items(rec: Any, keys: wire.Keys, summary: ExportSummary) -> tuple[list[tuple[int, int, str, str, bytes]], int]:
+    """The recorded messages as JSON: ``(sim t ns, file order, topic, kind, json)`` (what cannot
+    be exported is counted in ``summary.skipped``), and the time base, ns: the first received
+    message's receive time minus its sim time (0 without messages)."""
+    items: list[tuple[int, int, str, str, bytes]] = []  # (sim t, order, topic, kind, json)
+    first_rx: tuple[int, int] | None = None  # (receive time, sim t) of the first message received
+    for order, m in enumerate(rec.messages):
+        if m.encoding != "msgpack":
+            summary.skip("not msgpack")
+            continue
+        try:
+            key_kind, _, _ = keys.parse(m.topic)
+        except wire.InvalidKeyError:
+            summary.skip("not a key of the swarm")
+            continue
+        kind = wire.message_kind(key_kind)
+        if kind is None:
+            summary.skip("liveliness token")
+            continue
+        try:
+            data = wire_to_json(kind, m.data)
+        except wire.WireDecodeError as e:
+            summary.skip(f"rejected by the decoder ({e.reason})")
+            continue
+        t_sim = int(json.loads(data)["t"])
+        items.append((t_sim, order, m.topic, kind, data))
+        if first_rx is None or m.log_time < first_rx[0]:
+            first_rx = (m.log_time, t_sim)
+    base = max(0, first_rx[0] - first_rx[1]) if first_rx is not None else 0
+    return items, base
+
+
+class _JsonOut:
+    """The export's MCAP writer: JSON channels registered at first use (one JSON Schema per
+    title), per-channel sequence numbers from 0, log time = publish time = ``base`` + sim time."""
+
+    def __init__(self, w: Any, base: int) -> None:
+        self.w = w
+        self.base = base
+        self.schema_ids: dict[str, int] = {}
+        self.channel_ids: dict[str, int] = {}
+        self.seqs: dict[int, int] = {}
+
+    def schema(self, schema: dict[str, Any]) -> int:
+        sid = self.schema_ids.get(schema["title"])
+        if sid is None:
+            sid = self.w.register_schema(schema["title"], "jsonschema", _dumps(schema))
+            self.schema_ids[schema["title"]] = sid
+        return sid
+
+    def channel(self, topic: str, schema: dict[str, Any]) -> int:
+        cid = self.channel_ids.get(topic)
+        if cid is None:
+            cid = self.w.register_channel(topic, "json", self.schema(schema))
+            self.channel_ids[topic] = cid
+        return cid
+
+    def put(self, cid: int, t_sim: int, data: bytes) -> None:
+        s = self.seqs.get(cid, 0)
+        self.seqs[cid] = s + 1
+        self.w.add_message(cid, log_time=self.base + t_sim, data=data, publish_time=self.base + t_sim, sequence=s)
+
+
+@dataclass
+class _Scene:
+    """The 3D scene's frames: ``frames`` = (sim t ns, tick) every ``stride`` ticks of ``ts``."""
+
+    ts: Any
+    sc: Any
+    frames: list[tuple[int, int]]
+    stride: int
+    trail_ticks: int
+    colors: list
+    scene_cid: int
+    tf_cid: int
+
+    def put(self, out: _JsonOut, j: int) -> None:
+        """Write frame j on /scene and /tf."""
+        ts_ns, k = self.frames[j]
+        stamp = out.base + ts_ns
+        out.put(self.scene_cid, ts_ns, _dumps(scene_update(self.ts, self.sc, k, stamp, self.trail_ticks, self.stride, self.colors)))
+        out.put(self.tf_cid, ts_ns, _dumps(frame_transforms(self.ts, k, stamp)))
+
+
+def _scene(ts: Any, sc: Any, out: _JsonOut, scene_hz: float, trail_s: float) -> _Scene | None:
+    """The scene of the flight series ``ts`` (None without one); registers /scene and /tf."""
+    if ts is None or not len(ts.t):
+        return None
+    dt = sc.timing.dt
+    stride = max(1, int(round(1.0 / (scene_hz * dt))))
+    frames = [(wire.t_ns(float(ts.t[k])), k) for k in range(0, len(ts.t), stride)]
+    colors = _palette(ts.q.shape[1])
+    scene_cid = out.channel(SCENE_TOPIC, SCENE_UPDATE_SCHEMA)
+    tf_cid = out.channel(TF_TOPIC, FRAME_TRANSFORMS_SCHEMA)
+    return _Scene(ts, sc, frames, stride, int(round(trail_s / dt)), colors, scene_cid, tf_cid)
+
+
+def _write_messages(out: _JsonOut, items: list[tuple[int, int, str, str, bytes]], scene: _Scene | None, summary: ExportSummary) -> None:
+    """The recorded messages in sim-time order (file order among equal times), each scene frame
+    before the messages of a later sim time."""
+    frames = scene.frames if scene is not None else []
+    j = 0
+    for t_sim, _, topic, kind, data in items:
+        while j < len(frames) and frames[j][0] <= t_sim:
+            scene.put(out, j)  # type: ignore[union-attr]
+            summary.scene_frames += 1
+            j += 1
+        out.put(out.channel(topic, wire_json_schema(kind)), t_sim, data)
+        summary.topics[topic] = summary.topics.get(topic, 0) + 1
+        summary.messages += 1
+    for jj in range(j, len(frames)):
+        scene.put(out, jj)  # type: ignore[union-attr]
+        summary.scene_frames += 1
+    if summary.scene_frames:
+        summary.topics[SCENE_TOPIC] = summary.topics[TF_TOPIC] = summary.scene_frames
+
+
 def export_foxglove(recording: str | Path, out: str | Path, *, scene_hz: float = 20.0, trail_s: float = 10.0) -> ExportSummary:
     """Export a recording for Foxglove (see the module docstring). The file is written next to
     ``out`` and renamed into place when complete. Raises RecordingError for an unusable input."""
@@ -593,44 +714,16 @@ def export_foxglove(recording: str | Path, out: str | Path, *, scene_hz: float =
     if not trail_s >= 0 or not math.isfinite(trail_s):
         raise ZenswarmError(f"--trail-s must be >= 0, got {trail_s}")
     rec = load_recording(recording)
-    sc = rec.scenario
     out = Path(out)
     summary = ExportSummary(out)
-    keys = wire.Keys(rec.swarm)
 
     # 1. recorded messages -> JSON, each at base + its sim time
-    items: list[tuple[int, int, str, str, bytes]] = []  # (sim t, order, topic, kind, json)
-    first_rx: tuple[int, int] | None = None  # (receive time, sim t) of the first message received
-    for order, m in enumerate(rec.messages):
-        if m.encoding != "msgpack":
-            summary.skipped["not msgpack"] = summary.skipped.get("not msgpack", 0) + 1
-            continue
-        try:
-            key_kind, _, _ = keys.parse(m.topic)
-        except wire.InvalidKeyError:
-            summary.skipped["not a key of the swarm"] = summary.skipped.get("not a key of the swarm", 0) + 1
-            continue
-        kind = wire.message_kind(key_kind)
-        if kind is None:
-            summary.skipped["liveliness token"] = summary.skipped.get("liveliness token", 0) + 1
-            continue
-        try:
-            data = wire_to_json(kind, m.data)
-        except wire.WireDecodeError as e:
-            r = f"rejected by the decoder ({e.reason})"
-            summary.skipped[r] = summary.skipped.get(r, 0) + 1
-            continue
-        t_sim = int(json.loads(data)["t"])
-        items.append((t_sim, order, m.topic, kind, data))
-        if first_rx is None or m.log_time < first_rx[0]:
-            first_rx = (m.log_time, t_sim)
-    base = max(0, first_rx[0] - first_rx[1]) if first_rx is not None else 0
+    items, base = _json_items(rec, wire.Keys(rec.swarm), summary)
     summary.time_base_ns = base
 
     # 2. the scene, from the same series the report uses
     try:
-        fl = flight_from_recording(rec)
-        ts = fl.series
+        ts = flight_from_recording(rec).series
     except RecordingError:
         ts = None
     tmp = out.with_name(out.name + ".part")
@@ -638,56 +731,11 @@ def export_foxglove(recording: str | Path, out: str | Path, *, scene_hz: float =
     with open(tmp, "wb") as f:
         w = Writer(f, compression=_compression(), chunk_size=4 * 1024 * 1024)
         w.start(profile="", library="zenswarm export --foxglove")
-        schema_ids: dict[str, int] = {}
-        channel_ids: dict[str, int] = {}
-
-        def channel(topic: str, schema: dict[str, Any]) -> int:
-            cid = channel_ids.get(topic)
-            if cid is None:
-                sid = schema_ids.get(schema["title"])
-                if sid is None:
-                    sid = w.register_schema(schema["title"], "jsonschema", _dumps(schema))
-                    schema_ids[schema["title"]] = sid
-                cid = w.register_channel(topic, "json", sid)
-                channel_ids[topic] = cid
-            return cid
-
+        jo = _JsonOut(w, base)
         for kind in wire.KINDS:  # schemas of every kind, even those not in this recording
-            schema_ids[_KIND_TITLES[kind]] = w.register_schema(_KIND_TITLES[kind], "jsonschema", _dumps(wire_json_schema(kind)))
+            jo.schema_ids[_KIND_TITLES[kind]] = w.register_schema(_KIND_TITLES[kind], "jsonschema", _dumps(wire_json_schema(kind)))
         items.sort(key=lambda it: (it[0], it[1]))
-        scene: list[tuple[int, int]] = []
-        if ts is not None and len(ts.t):
-            dt = sc.timing.dt
-            stride = max(1, int(round(1.0 / (scene_hz * dt))))
-            trail_ticks = int(round(trail_s / dt))
-            scene = [(wire.t_ns(float(ts.t[k])), k) for k in range(0, len(ts.t), stride)]
-            colors = _palette(ts.q.shape[1])
-            scene_cid = channel(SCENE_TOPIC, SCENE_UPDATE_SCHEMA)
-            tf_cid = channel(TF_TOPIC, FRAME_TRANSFORMS_SCHEMA)
-        seqs: dict[int, int] = {}
-
-        def put(cid: int, t_sim: int, data: bytes) -> None:
-            s = seqs.get(cid, 0)
-            seqs[cid] = s + 1
-            w.add_message(cid, log_time=base + t_sim, data=data, publish_time=base + t_sim, sequence=s)
-
-        j = 0
-        for t_sim, _, topic, kind, data in items:
-            while j < len(scene) and scene[j][0] <= t_sim:
-                ts_ns, k = scene[j]
-                put(scene_cid, ts_ns, _dumps(scene_update(ts, sc, k, base + ts_ns, trail_ticks, stride, colors)))
-                put(tf_cid, ts_ns, _dumps(frame_transforms(ts, k, base + ts_ns)))
-                summary.scene_frames += 1
-                j += 1
-            put(channel(topic, wire_json_schema(kind)), t_sim, data)
-            summary.topics[topic] = summary.topics.get(topic, 0) + 1
-            summary.messages += 1
-        for ts_ns, k in scene[j:]:
-            put(scene_cid, ts_ns, _dumps(scene_update(ts, sc, k, base + ts_ns, trail_ticks, stride, colors)))
-            put(tf_cid, ts_ns, _dumps(frame_transforms(ts, k, base + ts_ns)))
-            summary.scene_frames += 1
-        if summary.scene_frames:
-            summary.topics[SCENE_TOPIC] = summary.topics[TF_TOPIC] = summary.scene_frames
+        _write_messages(jo, items, _scene(ts, rec.scenario, jo, scene_hz, trail_s), summary)
         w.add_metadata("zenswarm", dict(rec.metadata))
         w.add_metadata(
             "zenswarm_export",

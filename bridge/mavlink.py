@@ -59,7 +59,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 
@@ -355,54 +355,80 @@ class Bridge:
         if link is None:
             self._count("mav_other_system")
             return
-        t = link.tel
-        if mtype == "HEARTBEAT":
-            if m.get_srcComponent() != mavlink.MAV_COMP_ID_AUTOPILOT1 or m.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
-                self._count("mav_unhandled")  # another component of that system (camera, GCS...)
-                return
-            t.hb_rx = now
-            t.hb_count += 1
-            t.armed = bool(m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-            t.custom_mode = int(m.custom_mode)
-            t.autopilot = autopilot_name(m.autopilot)
-            if self.s.autopilot == "auto":
-                link.autopilot = t.autopilot
-        elif mtype == "LOCAL_POSITION_NED":
-            if not _finite(m.x, m.y, m.z, m.vx, m.vy, m.vz):
-                self._count("mav_malformed")
-                return
-            t.pos_ned = np.array([m.x, m.y, m.z])
-            t.vel_ned = np.array([m.vx, m.vy, m.vz])
-            t.pos_rx = now
-        elif mtype == "ATTITUDE":
-            if not _finite(m.roll, m.pitch, m.yaw, m.rollspeed, m.pitchspeed, m.yawspeed):
-                self._count("mav_malformed")
-                return
-            t.rpy_ned = np.array([m.roll, m.pitch, m.yaw])
-            t.rates_frd = np.array([m.rollspeed, m.pitchspeed, m.yawspeed])
-            t.att_rx = now
-        elif mtype == "ATTITUDE_QUATERNION":
-            try:
-                rpy = frames.quat_to_euler([m.q1, m.q2, m.q3, m.q4])
-            except ValueError:
-                self._count("mav_malformed")
-                return
-            if not _finite(m.rollspeed, m.pitchspeed, m.yawspeed):
-                self._count("mav_malformed")
-                return
-            t.rpy_ned = rpy
-            t.rates_frd = np.array([m.rollspeed, m.pitchspeed, m.yawspeed])
-            t.att_rx = now
-        elif mtype == "COMMAND_ACK":
-            if m.target_system not in (0, self.s.source_system):
-                self._count("mav_unhandled")
-                return
-            link.acks.append((now, int(m.command), int(m.result)))
-            del link.acks[:-16]
-        else:
-            self._count("mav_unhandled")
-        t.last_rx = now
+        rx = self._RX.get(mtype)
+        if rx is None:
+            self._count("mav_unhandled")  # a valid message the bridge has no use for: still a sign of life
+        elif not rx(self, link, m, now):
+            return  # ignored (counted by the handler): not a sign of life
+        link.tel.last_rx = now
         self._count("mav_rx")
+
+    # Each receive handler stores one message in the link's telemetry and returns True, or counts
+    # why it ignored it and returns False.
+    def _rx_heartbeat(self, link: UavLink, m: Any, now: float) -> bool:
+        if m.get_srcComponent() != mavlink.MAV_COMP_ID_AUTOPILOT1 or m.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
+            self._count("mav_unhandled")  # another component of that system (camera, GCS...)
+            return False
+        t = link.tel
+        t.hb_rx = now
+        t.hb_count += 1
+        t.armed = bool(m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        t.custom_mode = int(m.custom_mode)
+        t.autopilot = autopilot_name(m.autopilot)
+        if self.s.autopilot == "auto":
+            link.autopilot = t.autopilot
+        return True
+
+    def _rx_local_position(self, link: UavLink, m: Any, now: float) -> bool:
+        if not _finite(m.x, m.y, m.z, m.vx, m.vy, m.vz):
+            self._count("mav_malformed")
+            return False
+        t = link.tel
+        t.pos_ned = np.array([m.x, m.y, m.z])
+        t.vel_ned = np.array([m.vx, m.vy, m.vz])
+        t.pos_rx = now
+        return True
+
+    def _rx_attitude(self, link: UavLink, m: Any, now: float) -> bool:
+        if not _finite(m.roll, m.pitch, m.yaw, m.rollspeed, m.pitchspeed, m.yawspeed):
+            self._count("mav_malformed")
+            return False
+        t = link.tel
+        t.rpy_ned = np.array([m.roll, m.pitch, m.yaw])
+        t.rates_frd = np.array([m.rollspeed, m.pitchspeed, m.yawspeed])
+        t.att_rx = now
+        return True
+
+    def _rx_attitude_quaternion(self, link: UavLink, m: Any, now: float) -> bool:
+        try:
+            rpy = frames.quat_to_euler([m.q1, m.q2, m.q3, m.q4])
+        except ValueError:
+            self._count("mav_malformed")
+            return False
+        if not _finite(m.rollspeed, m.pitchspeed, m.yawspeed):
+            self._count("mav_malformed")
+            return False
+        t = link.tel
+        t.rpy_ned = rpy
+        t.rates_frd = np.array([m.rollspeed, m.pitchspeed, m.yawspeed])
+        t.att_rx = now
+        return True
+
+    def _rx_command_ack(self, link: UavLink, m: Any, now: float) -> bool:
+        if m.target_system not in (0, self.s.source_system):
+            self._count("mav_unhandled")
+            return False
+        link.acks.append((now, int(m.command), int(m.result)))
+        del link.acks[:-16]
+        return True
+
+    _RX: ClassVar[dict[str, Callable[[Bridge, UavLink, Any, float], bool]]] = {
+        "HEARTBEAT": _rx_heartbeat,
+        "LOCAL_POSITION_NED": _rx_local_position,
+        "ATTITUDE": _rx_attitude,
+        "ATTITUDE_QUATERNION": _rx_attitude_quaternion,
+        "COMMAND_ACK": _rx_command_ack,
+    }
 
     def _update_health(self, link: UavLink, now: float) -> None:
         ok = (now - link.tel.last_rx) <= self.s.link_timeout_s
@@ -469,140 +495,176 @@ class Bridge:
             self._advance(link, now)
 
     def _advance(self, link: UavLink, now: float) -> None:
-        t = link.tel
-        if link.phase in (REFUSED, RELEASED, GROUNDED, DONE, LANDING):
-            return
         if not link.healthy:
             return  # keep the phase; setpoints keep streaming (the uplink may still work)
-        if link.phase == CONNECTING:
-            if t.hb_count:
-                link.wanted_mode = self._offboard_mode(link)
-                self._request_telemetry(link)
-                self._set_phase(link, STREAM, now, "")
-                self.log(
-                    f"bridge: uav {link.uav}: vehicle sysid {link.sysid} ({link.autopilot}) on {link.endpoint.url}, "
-                    f"mode {mode_name(link.autopilot, t.custom_mode)}, {'armed' if t.armed else 'disarmed'}"
+        step = self._PHASE_STEPS.get(link.phase)  # none for REFUSED, RELEASED, GROUNDED, LANDING, DONE
+        if step is not None:
+            step(self, link, now)
+
+    def _step_connecting(self, link: UavLink, now: float) -> None:
+        """CONNECTING -> STREAM at the vehicle's first heartbeat."""
+        t = link.tel
+        if not t.hb_count:
+            return
+        link.wanted_mode = self._offboard_mode(link)
+        self._request_telemetry(link)
+        self._set_phase(link, STREAM, now, "")
+        self.log(
+            f"bridge: uav {link.uav}: vehicle sysid {link.sysid} ({link.autopilot}) on {link.endpoint.url}, "
+            f"mode {mode_name(link.autopilot, t.custom_mode)}, {'armed' if t.armed else 'disarmed'}"
+        )
+
+    def _step_stream(self, link: UavLink, now: float) -> None:
+        """STREAM -> MODE after ``stream_s`` of setpoints (a position hold needs a position)."""
+        if link.tel.pos_ned is None and self._needs_position(link):
+            return  # a position hold needs the vehicle's position first
+        if now - link.phase_t >= self.s.stream_s:
+            self._to_mode(link, now)
+
+    def _to_mode(self, link: UavLink, now: float, reason: str | None = None) -> None:
+        link.mode_attempts = 0
+        link.mismatch = 0
+        link.mode_req_t = -math.inf
+        self._set_phase(link, MODE, now, reason)
+
+    def _step_mode(self, link: UavLink, now: float) -> None:
+        """MODE -> ARM once a heartbeat after the request reports the mode; REFUSED if the vehicle
+        accepts but keeps reporting another mode, or after ``_MODE_ATTEMPTS`` requests."""
+        t = link.tel
+        if _same_mode(link.autopilot, t.custom_mode, link.wanted_mode) and t.hb_rx > link.mode_req_t:
+            link.arm_attempts = 0
+            link.arm_req_t = -math.inf
+            self._set_phase(link, ARM, now)
+            return
+        acc = self._ack(link, mavlink.MAV_CMD_DO_SET_MODE, link.mode_req_t)
+        if acc == mavlink.MAV_RESULT_ACCEPTED and link.last_hb_seen != t.hb_count and t.hb_rx > self._ack_time(link):
+            link.last_hb_seen = t.hb_count
+            link.mismatch += 1  # accepted, but a later heartbeat reports another mode
+            if link.mismatch >= _MISMATCH_HEARTBEATS:
+                self._refuse(
+                    link,
+                    now,
+                    f"vehicle reports mode {mode_name(link.autopilot, t.custom_mode)} after accepting "
+                    f"{mode_name(link.autopilot, link.wanted_mode)}; not arming",
                 )
+                return
+        if now - link.mode_req_t < _MODE_RETRY_S:
             return
-        if link.phase in (READY, TAKEOFF):
-            if t.hb_rx <= link.recovered_t:
-                return  # judge the mode only from a heartbeat sent after the link came back
-            if not _same_mode(link.autopilot, t.custom_mode, link.wanted_mode):
-                now_mode = mode_name(link.autopilot, t.custom_mode)
-                if link.was_lost and t.armed and self.s.reengage:
-                    self._count("reengage")
-                    link.mode_attempts = 0
-                    link.mismatch = 0
-                    link.mode_req_t = -math.inf
-                    link.hold_ned = None
-                    self._set_phase(link, MODE, now, f"vehicle in {now_mode} after a link loss; re-engaging")
-                elif link.was_lost and not t.armed:
-                    self._set_phase(link, GROUNDED, now, f"vehicle in {now_mode} and disarmed after a link loss; not re-arming")
-                else:
-                    self._count("released")
-                    self._set_phase(link, RELEASED, now, f"vehicle switched to {now_mode} (pilot or failsafe); no longer commanded")
-                return
-            link.was_lost = False
-            if not t.armed:
-                self._set_phase(link, GROUNDED, now, "vehicle disarmed")
-                return
-        if link.phase == STREAM:
-            if t.pos_ned is None and self._needs_position(link):
-                return  # a position hold needs the vehicle's position first
-            if now - link.phase_t >= self.s.stream_s:
-                link.mode_attempts = 0
-                link.mismatch = 0
-                link.mode_req_t = -math.inf
-                self._set_phase(link, MODE, now)
+        if acc is not None and acc != mavlink.MAV_RESULT_ACCEPTED:
+            self._count("mode_rejected")
+        if link.mode_attempts >= _MODE_ATTEMPTS:
+            self._refuse(link, now, f"mode {mode_name(link.autopilot, link.wanted_mode)} not reached after {link.mode_attempts} requests")
             return
-        if link.phase == MODE:
-            if _same_mode(link.autopilot, t.custom_mode, link.wanted_mode) and t.hb_rx > link.mode_req_t:
-                link.arm_attempts = 0
-                link.arm_req_t = -math.inf
-                self._set_phase(link, ARM, now)
-                return
-            acc = self._ack(link, mavlink.MAV_CMD_DO_SET_MODE, link.mode_req_t)
-            if acc == mavlink.MAV_RESULT_ACCEPTED and link.last_hb_seen != t.hb_count and t.hb_rx > self._ack_time(link):
-                link.last_hb_seen = t.hb_count
-                link.mismatch += 1  # accepted, but a later heartbeat reports another mode
-                if link.mismatch >= _MISMATCH_HEARTBEATS:
-                    self._refuse(
-                        link,
-                        now,
-                        f"vehicle reports mode {mode_name(link.autopilot, t.custom_mode)} after accepting "
-                        f"{mode_name(link.autopilot, link.wanted_mode)}; not arming",
-                    )
-                    return
-            if now - link.mode_req_t >= _MODE_RETRY_S:
-                if acc is not None and acc != mavlink.MAV_RESULT_ACCEPTED:
-                    self._count("mode_rejected")
-                if link.mode_attempts >= _MODE_ATTEMPTS:
-                    self._refuse(
-                        link, now, f"mode {mode_name(link.autopilot, link.wanted_mode)} not reached after {link.mode_attempts} requests"
-                    )
-                    return
-                link.mode_attempts += 1
-                self._request_mode(link, link.wanted_mode, now)  # type: ignore[arg-type]
-                link.last_hb_seen = t.hb_count
+        link.mode_attempts += 1
+        self._request_mode(link, link.wanted_mode, now)  # type: ignore[arg-type]
+        link.last_hb_seen = t.hb_count
+
+    def _step_arm(self, link: UavLink, now: float) -> None:
+        """ARM -> TAKEOFF or READY once a heartbeat reports armed; never arms a vehicle in a mode
+        the bridge did not ask for (back to MODE); REFUSED after ``_ARM_ATTEMPTS`` requests."""
+        t = link.tel
+        if not _same_mode(link.autopilot, t.custom_mode, link.wanted_mode):
+            # never arm a vehicle that reports a mode we did not ask for
+            self._count("arm_withheld")
+            link.mode_req_t = -math.inf
+            self._set_phase(link, MODE, now, f"vehicle reports {mode_name(link.autopilot, t.custom_mode)} before arming")
             return
-        if link.phase == ARM:
-            if not _same_mode(link.autopilot, t.custom_mode, link.wanted_mode):
-                # never arm a vehicle that reports a mode we did not ask for
-                self._count("arm_withheld")
-                link.mode_req_t = -math.inf
-                self._set_phase(link, MODE, now, f"vehicle reports {mode_name(link.autopilot, t.custom_mode)} before arming")
-                return
-            if t.armed and t.hb_rx > link.phase_t:
-                link.was_lost = False
-                if link.engaged_once:
-                    self._set_phase(link, READY, now, "re-engaged")
-                elif not link.armed_by_us:
-                    # already armed (and in our mode) when we met it, e.g. the bridge restarted in
-                    # flight: adopt it where it is, no takeoff; it is ours to land at the end
-                    link.engaged_once = True
-                    link.armed_by_us = True
-                    self._set_phase(link, READY, now, "vehicle already armed; adopted in place")
-                elif self.s.takeoff:
-                    link.takeoff_sent = False
-                    self._set_phase(link, TAKEOFF, now, "")
-                else:
-                    link.engaged_once = True
-                    self._set_phase(link, READY, now, "")
-                return
-            if link.engaged_once and not t.armed and t.hb_rx > link.phase_t:
-                self._set_phase(link, GROUNDED, now, "vehicle disarmed while re-engaging; not re-arming")
-                return
-            if now - link.arm_req_t >= _ARM_RETRY_S and not (link.engaged_once or t.armed):
-                if link.arm_attempts >= _ARM_ATTEMPTS:
-                    self._refuse(link, now, f"vehicle did not arm after {link.arm_attempts} requests")
-                    return
-                link.arm_attempts += 1
-                self._command(link, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
-                link.arm_req_t = now
-                link.armed_by_us = True
-                self._count("arm_requests")
+        if t.armed and t.hb_rx > link.phase_t:
+            self._armed(link, now)
             return
-        if link.phase == TAKEOFF:
-            if link.autopilot == "ardupilot" and not link.takeoff_sent:
-                alt = float(-self._takeoff_ned(link)[2])
-                self._command(link, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, alt)
-                link.takeoff_sent = True
-            if t.pos_ned is not None:
-                err = float(np.linalg.norm(t.pos_ned - self._takeoff_ned(link)))
-                speed = float(np.linalg.norm(t.vel_ned)) if t.vel_ned is not None else 0.0
-                if err <= self.s.takeoff_tolerance_m and speed <= 0.2:
-                    link.engaged_once = True
-                    self._set_phase(link, READY, now, "")
-                    link.hold_ned = self._takeoff_ned(link)  # hold there until the agent commands
-                    link.hold_yaw_ned = self.yaw_ned
-                    return
-            if now - link.phase_t > self.s.takeoff_timeout_s:
+        if link.engaged_once and not t.armed and t.hb_rx > link.phase_t:
+            self._set_phase(link, GROUNDED, now, "vehicle disarmed while re-engaging; not re-arming")
+            return
+        if now - link.arm_req_t >= _ARM_RETRY_S and not (link.engaged_once or t.armed):
+            if link.arm_attempts >= _ARM_ATTEMPTS:
+                self._refuse(link, now, f"vehicle did not arm after {link.arm_attempts} requests")
+                return
+            link.arm_attempts += 1
+            self._command(link, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+            link.arm_req_t = now
+            link.armed_by_us = True
+            self._count("arm_requests")
+
+    def _armed(self, link: UavLink, now: float) -> None:
+        """The vehicle reports armed in the wanted mode: where the ARM phase goes next."""
+        link.was_lost = False
+        if link.engaged_once:
+            self._set_phase(link, READY, now, "re-engaged")
+        elif not link.armed_by_us:
+            # already armed (and in our mode) when we met it, e.g. the bridge restarted in
+            # flight: adopt it where it is, no takeoff; it is ours to land at the end
+            link.engaged_once = True
+            link.armed_by_us = True
+            self._set_phase(link, READY, now, "vehicle already armed; adopted in place")
+        elif self.s.takeoff:
+            link.takeoff_sent = False
+            self._set_phase(link, TAKEOFF, now, "")
+        else:
+            link.engaged_once = True
+            self._set_phase(link, READY, now, "")
+
+    def _still_engaged(self, link: UavLink, now: float) -> bool:
+        """READY/TAKEOFF: False (and the phase moved to MODE, GROUNDED or RELEASED) if the vehicle
+        left the wanted mode or disarmed, or if no heartbeat came since the link recovered."""
+        t = link.tel
+        if t.hb_rx <= link.recovered_t:
+            return False  # judge the mode only from a heartbeat sent after the link came back
+        if not _same_mode(link.autopilot, t.custom_mode, link.wanted_mode):
+            now_mode = mode_name(link.autopilot, t.custom_mode)
+            if link.was_lost and t.armed and self.s.reengage:
+                self._count("reengage")
+                link.hold_ned = None
+                self._to_mode(link, now, f"vehicle in {now_mode} after a link loss; re-engaging")
+            elif link.was_lost and not t.armed:
+                self._set_phase(link, GROUNDED, now, f"vehicle in {now_mode} and disarmed after a link loss; not re-arming")
+            else:
+                self._count("released")
+                self._set_phase(link, RELEASED, now, f"vehicle switched to {now_mode} (pilot or failsafe); no longer commanded")
+            return False
+        link.was_lost = False
+        if not t.armed:
+            self._set_phase(link, GROUNDED, now, "vehicle disarmed")
+            return False
+        return True
+
+    def _step_ready(self, link: UavLink, now: float) -> None:
+        self._still_engaged(link, now)
+
+    def _step_takeoff(self, link: UavLink, now: float) -> None:
+        """TAKEOFF -> READY within ``takeoff_tolerance_m`` of the initial position and slower than
+        0.2 m/s, or after ``takeoff_timeout_s`` (ArduPilot: after MAV_CMD_NAV_TAKEOFF)."""
+        if not self._still_engaged(link, now):
+            return
+        t = link.tel
+        if link.autopilot == "ardupilot" and not link.takeoff_sent:
+            alt = float(-self._takeoff_ned(link)[2])
+            self._command(link, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, alt)
+            link.takeoff_sent = True
+        if t.pos_ned is not None:
+            err = float(np.linalg.norm(t.pos_ned - self._takeoff_ned(link)))
+            speed = float(np.linalg.norm(t.vel_ned)) if t.vel_ned is not None else 0.0
+            if err <= self.s.takeoff_tolerance_m and speed <= 0.2:
                 link.engaged_once = True
-                self._set_phase(
-                    link, READY, now,
-                    f"takeoff not within {self.s.takeoff_tolerance_m:g} m after {self.s.takeoff_timeout_s:g} s; flying anyway",
-                )
-            return
+                self._set_phase(link, READY, now, "")
+                link.hold_ned = self._takeoff_ned(link)  # hold there until the agent commands
+                link.hold_yaw_ned = self.yaw_ned
+                return
+        if now - link.phase_t > self.s.takeoff_timeout_s:
+            link.engaged_once = True
+            self._set_phase(
+                link, READY, now,
+                f"takeoff not within {self.s.takeoff_tolerance_m:g} m after {self.s.takeoff_timeout_s:g} s; flying anyway",
+            )
+
+    # one step of each pending phase (and READY); the other phases do not move by themselves
+    _PHASE_STEPS: ClassVar[dict[str, Callable[[Bridge, UavLink, float], None]]] = {
+        CONNECTING: _step_connecting,
+        STREAM: _step_stream,
+        MODE: _step_mode,
+        ARM: _step_arm,
+        TAKEOFF: _step_takeoff,
+        READY: _step_ready,
+    }
 
     def note_stall(self, gap_s: float) -> None:
         """The bridge's own loop stopped for ``gap_s`` seconds (overloaded host, suspended
@@ -807,20 +869,12 @@ class Bridge:
 # --------------------------------------------------------------------------- process
 
 
-def _run(proc: Any) -> int:
-    from zenswarm import wire
-    from zenswarm.runtime import LoopStats
-
+def _make_bridge(proc: Any, settings: MavlinkSettings) -> Bridge:
+    """Subscribe to the agents' commands (or references) through the link-fault delay line and
+    build the :class:`Bridge` that reads them."""
     sc = proc.scenario
-    args = proc.args
-    settings = mavlink_settings(sc, _cli_overrides(args))
-    keys = proc.keys
     n = sc.n
-    dt = sc.timing.dt
-    dt_ns = wire.t_ns(dt)
-    n_ticks = sc.timing.n_ticks
-    sub = max(1, math.ceil(settings.rate_hz / sc.timing.control_rate_hz - 1e-9))
-    period = dt / sub
+    keys = proc.keys
     cmd_keys = [keys.cmd(i + 1) for i in range(n)]
     ref_keys = [keys.ref(i + 1) for i in range(n)]
     inbox = proc.inbox
@@ -839,12 +893,12 @@ def _run(proc: Any) -> int:
     from zenswarm.linkfaults import plan_from_args
 
     in_keys = cmd_keys if settings.setpoint == "attitude" else ref_keys
-    plan = plan_from_args(sc, args)
+    plan = plan_from_args(sc, proc.args)
     if plan is not None:
         proc.use_delay_line(FaultState(plan), {key: (f"agent:{i + 1}", "plant", "cmd") for i, key in enumerate(in_keys)})
     for key in in_keys:
         proc.subscribe(key, "cmd" if settings.setpoint == "attitude" else "ref")
-    bridge = Bridge(
+    return Bridge(
         settings,
         sc,
         proc.counters,
@@ -852,113 +906,181 @@ def _run(proc: Any) -> int:
         get_ref=lambda i: latest(ref_keys[i - 1]),
         log=proc.log,
     )
-    proc.announce()
-    proc.log(
-        f"bridge: {n} UAV(s), setpoint={settings.setpoint}, {1 / period:g} Hz setpoints, "
-        + ", ".join(f"uav {i + 1}: sysid {settings.sysids[i]} @ {settings.connections[i]}" for i in range(n))
-    )
-    stats = LoopStats(period)
-    code = 0
-    k_tick = 0  # control tick of the mission clock last published
-    t0 = math.inf  # time.monotonic() of mission time 0
-    seq = 0
-    started = False
-    finished = False
-    start_deadline = time.monotonic() + settings.start_timeout_s
-    next_diag = 0.0
-    waited_alive = getattr(args, "no_wait_alive", False)
-    try:
-        next_t = time.monotonic()
-        last = next_t
+
+
+class _BridgeLoop:
+    """The bridge process's loop: pre-mission phases, the mission clock, setpoint pacing, diag,
+    then landing. ``code`` is the process's exit code (3: no UAV ready, or a process missing)."""
+
+    def __init__(self, proc: Any, bridge: Bridge, settings: MavlinkSettings) -> None:
+        from zenswarm import wire
+        from zenswarm.runtime import LoopStats
+
+        sc = proc.scenario
+        self.proc = proc
+        self.bridge = bridge
+        self.settings = settings
+        self.n = sc.n
+        self.dt = sc.timing.dt
+        self.dt_ns = wire.t_ns(self.dt)
+        self.n_ticks = sc.timing.n_ticks
+        sub = max(1, math.ceil(settings.rate_hz / sc.timing.control_rate_hz - 1e-9))
+        self.period = self.dt / sub  # s between loop iterations (setpoints)
+        self.stats = LoopStats(self.period)
+        self.code = 0
+        self.k_tick = 0  # control tick of the mission clock last published
+        self.t0 = math.inf  # time.monotonic() of mission time 0
+        self.seq = 0
+        self.started = False
+        self.finished = False
+        self.start_deadline = time.monotonic() + settings.start_timeout_s
+        self.next_diag = 0.0
+        self.waited_alive = getattr(proc.args, "no_wait_alive", False)
+        self.next_t = time.monotonic()  # when the next loop iteration is due
+        self.last = self.next_t  # when the last one ran (stall detection)
+
+    def fly(self) -> None:
+        """Until the mission ends, the process is asked to stop, or the start fails."""
+        proc, bridge = self.proc, self.bridge
+        self.next_t = time.monotonic()
+        self.last = self.next_t
         while not proc.stop.is_set():
             now = time.monotonic()
-            bridge.note_stall(now - last)
-            last = now
+            bridge.note_stall(now - self.last)
+            self.last = now
             proc.release_delayed()
             bridge.poll(now)
             bridge.advance(now)
-            if not started and (bridge.settled or now >= start_deadline):
-                if not bridge.ready:
-                    proc.log("bridge: no UAV is ready: " + "; ".join(f"uav {lk.uav}: {lk.phase} {lk.reason}" for lk in bridge.links))
-                    code = 3
+            if not self.started and (bridge.settled or now >= self.start_deadline):
+                started_at = self._start(now)
+                if started_at is None:
                     break
-                if not waited_alive:
-                    others = ["leader"] + [f"agent:{i + 1}" for i in range(n)] + list(getattr(args, "expect", None) or [])
-                    missing = proc.wait_for_alive(others, timeout_s=60.0)
-                    waited_alive = True
-                    if missing and not proc.stop.is_set():
-                        proc.log(f"bridge: these processes never announced themselves: {', '.join(missing)}")
-                        code = 3
-                        break
-                    next_t = time.monotonic()
-                    now = last = next_t
-                started = True
-                t0 = now
-                k_tick = -1
-                proc.log(f"bridge: mission clock started with UAV(s) {[lk.uav for lk in bridge.ready]}")
-            # Mission time is wall time since the start: the tick due now is published (once), and
-            # ticks the loop missed (an overloaded host) are skipped, never caught up in a burst.
-            # Every stream derived from the clock (the leader's and agents' refs, the commands)
-            # then advances with the wall clock, as the receivers' input guards expect.
-            # The tick is taken from the clock right before publishing: a message sent late for its
-            # tick would look, to the receivers, like the stream slowing down and then jumping.
-            k_due = min(n_ticks, int((time.monotonic() - t0) / dt + 1e-9)) if started else -1
-            if k_due > k_tick:
-                if k_due > k_tick + 1:
-                    proc.counters["ticks_skipped"] += k_due - k_tick - 1
-                k_tick = k_due
-                t = k_tick * dt_ns
-                seq += 1
-                proc.publish(keys.clock, wire.Clock(t=t, seq=seq))
-                for link in bridge.ready:
-                    st = bridge.state_enu(link, now)
-                    if st is not None:
-                        q, v, rpy, w = st
-                        proc.publish(keys.state(link.uav), wire.State(t=t, seq=seq, q=q, v=v, rpy=rpy, w=w))
-                        proc.counters["states_published"] += 1
-                inbox.forget_before(k_tick - 2)
-                if k_tick >= n_ticks:
-                    finished = True
-                    break
+                now = started_at
+            if self._publish_tick(now):
+                break
             bridge.send(now)
-            if now >= next_diag or bridge.changed:
-                next_diag = now + 1.0
-                bridge.changed = False
-                proc.publish_diag(max(k_tick, 0) * dt_ns, {**bridge.info(now), **stats.as_dict(), "started": started})
-            next_t += period
-            now = time.monotonic()
-            if now < next_t:
-                time.sleep(next_t - now)
-            elif now - next_t > period:
-                # more than a period behind: start again from now (no burst of back-to-back setpoints)
-                stats.record(now - next_t)
-                next_t = now
-                proc.counters["loop_resync"] += 1
-                continue
-            stats.record(time.monotonic() - next_t)
-        # land and disarm whatever we armed: end of mission, SIGTERM/SIGINT, or an error above
-        why = "mission finished" if finished else ("stop requested" if proc.stop.is_set() else "bridge stopping")
+            self._diag(now, {"started": self.started}, with_stats=True)
+            self._pace()
+
+    def _start(self, now: float) -> float | None:
+        """Start the mission clock (after waiting for the other processes' liveliness); the start
+        time, or None (``code`` = 3) if no UAV is ready or a process never announced itself."""
+        proc, bridge = self.proc, self.bridge
+        if not bridge.ready:
+            proc.log("bridge: no UAV is ready: " + "; ".join(f"uav {lk.uav}: {lk.phase} {lk.reason}" for lk in bridge.links))
+            self.code = 3
+            return None
+        if not self.waited_alive:
+            others = ["leader"] + [f"agent:{i + 1}" for i in range(self.n)] + list(getattr(proc.args, "expect", None) or [])
+            missing = proc.wait_for_alive(others, timeout_s=60.0)
+            self.waited_alive = True
+            if missing and not proc.stop.is_set():
+                proc.log(f"bridge: these processes never announced themselves: {', '.join(missing)}")
+                self.code = 3
+                return None
+            self.next_t = time.monotonic()
+            now = self.last = self.next_t
+        self.started = True
+        self.t0 = now
+        self.k_tick = -1
+        proc.log(f"bridge: mission clock started with UAV(s) {[lk.uav for lk in bridge.ready]}")
+        return now
+
+    def _publish_tick(self, now: float) -> bool:
+        """Publish the clock and the ready UAVs' states if a control tick is due; True at the
+        mission's last tick (``finished``)."""
+        from zenswarm import wire
+
+        if not self.started:
+            return False
+        proc = self.proc
+        # Mission time is wall time since the start: the tick due now is published (once), and
+        # ticks the loop missed (an overloaded host) are skipped, never caught up in a burst.
+        # Every stream derived from the clock (the leader's and agents' refs, the commands)
+        # then advances with the wall clock, as the receivers' input guards expect.
+        # The tick is taken from the clock right before publishing: a message sent late for its
+        # tick would look, to the receivers, like the stream slowing down and then jumping.
+        k_due = min(self.n_ticks, int((time.monotonic() - self.t0) / self.dt + 1e-9))
+        if k_due <= self.k_tick:
+            return False
+        if k_due > self.k_tick + 1:
+            proc.counters["ticks_skipped"] += k_due - self.k_tick - 1
+        self.k_tick = k_due
+        t = self.k_tick * self.dt_ns
+        self.seq += 1
+        seq = self.seq
+        proc.publish(proc.keys.clock, wire.Clock(t=t, seq=seq))
+        for link in self.bridge.ready:
+            st = self.bridge.state_enu(link, now)
+            if st is not None:
+                q, v, rpy, w = st
+                proc.publish(proc.keys.state(link.uav), wire.State(t=t, seq=seq, q=q, v=v, rpy=rpy, w=w))
+                proc.counters["states_published"] += 1
+        proc.inbox.forget_before(self.k_tick - 2)
+        if self.k_tick >= self.n_ticks:
+            self.finished = True
+        return self.finished
+
+    def _diag(self, now: float, extra: dict[str, Any], with_stats: bool = False) -> None:
+        """``diag/bridge`` once a second, and at once after a phase or health change."""
+        bridge = self.bridge
+        if now >= self.next_diag or bridge.changed:
+            self.next_diag = now + 1.0
+            bridge.changed = False
+            stats = self.stats.as_dict() if with_stats else {}
+            self.proc.publish_diag(max(self.k_tick, 0) * self.dt_ns, {**bridge.info(now), **stats, **extra})
+
+    def _pace(self) -> None:
+        """Sleep until the next iteration is due; more than a period behind: start again from
+        now (no burst of back-to-back setpoints)."""
+        self.next_t += self.period
+        now = time.monotonic()
+        if now < self.next_t:
+            time.sleep(self.next_t - now)
+        elif now - self.next_t > self.period:
+            self.stats.record(now - self.next_t)
+            self.next_t = now
+            self.proc.counters["loop_resync"] += 1
+            return
+        self.stats.record(time.monotonic() - self.next_t)
+
+    def land(self) -> None:
+        """Land and disarm whatever the bridge armed: end of mission, SIGTERM/SIGINT, or an error."""
+        proc, bridge = self.proc, self.bridge
+        why = "mission finished" if self.finished else ("stop requested" if proc.stop.is_set() else "bridge stopping")
         bridge.begin_landing(time.monotonic(), why)
-        deadline = time.monotonic() + settings.land_timeout_s
+        deadline = time.monotonic() + self.settings.land_timeout_s
         while time.monotonic() < deadline:
             now = time.monotonic()
             bridge.poll(now)
             bridge.send(now)
             if bridge.land_step(now):
                 break
-            if now >= next_diag or bridge.changed:
-                next_diag = now + 1.0
-                bridge.changed = False
-                proc.publish_diag(max(k_tick, 0) * dt_ns, {**bridge.info(now), "landing": True})
+            self._diag(now, {"landing": True})
             time.sleep(0.02)
         else:
             bridge.give_up_landing(time.monotonic())
         now = time.monotonic()
-        proc.publish_diag(max(k_tick, 0) * dt_ns, {**bridge.info(now), **stats.as_dict(), "finished": finished})
+        proc.publish_diag(max(self.k_tick, 0) * self.dt_ns, {**bridge.info(now), **self.stats.as_dict(), "finished": self.finished})
         proc.log("bridge: done: " + "; ".join(f"uav {lk.uav}: {lk.phase} {lk.reason}" for lk in bridge.links))
+
+
+def _run(proc: Any) -> int:
+    settings = mavlink_settings(proc.scenario, _cli_overrides(proc.args))
+    bridge = _make_bridge(proc, settings)
+    proc.announce()
+    n = proc.scenario.n
+    loop = _BridgeLoop(proc, bridge, settings)
+    proc.log(
+        f"bridge: {n} UAV(s), setpoint={settings.setpoint}, {1 / loop.period:g} Hz setpoints, "
+        + ", ".join(f"uav {i + 1}: sysid {settings.sysids[i]} @ {settings.connections[i]}" for i in range(n))
+    )
+    try:
+        loop.fly()
+        loop.land()
     finally:
         bridge.close()
-    return code
+    return loop.code
 
 
 def _cli_overrides(args: argparse.Namespace) -> dict[str, Any]:

@@ -45,7 +45,7 @@ import struct
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, NamedTuple
+from typing import Any, Callable, Generator, Iterator, NamedTuple
 
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
@@ -519,52 +519,13 @@ class Recording:
                         continue
                     skipped = None
                     if opcode == Opcode.CHUNK:
-                        try:
-                            inner = _chunk_records(rec, pos)
-                        except _Damage as d:
-                            skipped = {
-                                "offset": pos,
-                                "message_start_time": rec.message_start_time,
-                                "message_end_time": rec.message_end_time,
-                                "messages": None,
-                            }
-                            self.skipped_chunks.append(skipped)
-                            self._fail(d.text)
-                            continue
-                        for r in inner:
-                            if isinstance(r, Message):
-                                ch = self.channels.get(r.channel_id)
-                                if ch is None:
-                                    self.skipped_messages += 1
-                                    self._fail(f"message on unknown channel id {r.channel_id} in chunk at offset {pos}")
-                                    continue
-                                if topics is None or topics(ch.topic):
-                                    yield ch, r
-                            elif isinstance(r, Channel):
-                                self.channels.setdefault(r.id, r)
-                            elif isinstance(r, Schema):
-                                self.schemas.setdefault(r.id, r)
+                        skipped = yield from self._chunk_messages(rec, pos, topics)
                     elif opcode == Opcode.MESSAGE:
-                        ch = self.channels.get(rec.channel_id)
-                        if ch is None:
-                            self.skipped_messages += 1
-                            self._fail(f"message on unknown channel id {rec.channel_id} at offset {pos}")
-                            continue
-                        if topics is None or topics(ch.topic):
-                            yield ch, rec
-                    elif opcode == Opcode.CHANNEL:
-                        self.channels.setdefault(rec.id, rec)
-                    elif opcode == Opcode.SCHEMA:
-                        self.schemas.setdefault(rec.id, rec)
-                    elif opcode == Opcode.METADATA:
-                        if pos not in self._meta_offsets:  # one the opening did not reach (no summary)
-                            self._meta_offsets.add(pos)
-                            self.metadata_records.append(rec)
-                            self.metadata.setdefault(rec.name, {}).update(rec.metadata)
-                    elif opcode == Opcode.DATA_END:
+                        yield from self._selected(rec, f"at offset {pos}", topics)
+                    elif opcode in (Opcode.DATA_END, Opcode.FOOTER):
                         return
-                    elif opcode == Opcode.FOOTER:
-                        return
+                    else:
+                        self._note_record(pos, opcode, rec)
             except _Damage as d:
                 self.damage_offset = d.offset
                 self.discarded_bytes = max(0, end - d.offset)
@@ -575,6 +536,57 @@ class Recording:
             if not self.complete:
                 # walked to the end of a file without summary: nothing was cut mid-record
                 self._fail(f"file ends after {self.size} bytes without a data-end record, summary or footer (truncated)")
+
+    def _chunk_messages(
+        self, chunk: Any, pos: int, topics: Callable[[str], bool] | None
+    ) -> Generator[tuple[Channel, Message], None, dict[str, Any] | None]:
+        """The selected messages of the chunk at offset ``pos`` (its channels and schemas noted);
+        returns the :attr:`skipped_chunks` entry if the chunk is damaged (lenient), else None."""
+        try:
+            inner = _chunk_records(chunk, pos)
+        except _Damage as d:
+            skipped: dict[str, Any] = {
+                "offset": pos,
+                "message_start_time": chunk.message_start_time,
+                "message_end_time": chunk.message_end_time,
+                "messages": None,
+            }
+            self.skipped_chunks.append(skipped)
+            self._fail(d.text)
+            return skipped
+        for r in inner:
+            if isinstance(r, Message):
+                yield from self._selected(r, f"in chunk at offset {pos}", topics)
+            elif isinstance(r, Channel):
+                self.channels.setdefault(r.id, r)
+            elif isinstance(r, Schema):
+                self.schemas.setdefault(r.id, r)
+        return None
+
+    def _selected(self, m: Message, where: str, topics: Callable[[str], bool] | None) -> Iterator[tuple[Channel, Message]]:
+        """``(channel, m)`` if its topic is selected; nothing (counted, noted) if its channel is unknown."""
+        ch = self.channels.get(m.channel_id)
+        if ch is None:
+            self.skipped_messages += 1
+            self._fail(f"message on unknown channel id {m.channel_id} {where}")
+            return
+        if topics is None or topics(ch.topic):
+            yield ch, m
+
+    def _note_record(self, pos: int, opcode: int, rec: Any) -> None:
+        """A channel, schema or metadata record met in the data section (others are ignored)."""
+        if opcode == Opcode.CHANNEL:
+            self.channels.setdefault(rec.id, rec)
+        elif opcode == Opcode.SCHEMA:
+            self.schemas.setdefault(rec.id, rec)
+        elif opcode == Opcode.METADATA and pos not in self._meta_offsets:  # one the opening did not reach (no summary)
+            self._add_metadata(pos, rec)
+
+    def _add_metadata(self, pos: int, rec: Metadata) -> None:
+        """Note the metadata record at offset ``pos`` (records of one name are merged in file order)."""
+        self._meta_offsets.add(pos)
+        self.metadata_records.append(rec)
+        self.metadata.setdefault(rec.name, {}).update(rec.metadata)
 
     def messages(self, topics: Callable[[str], bool] | None = None) -> Iterator[RecordedMessage]:
         """``RecordedMessage(topic, log_time, publish_time, payload)`` in log-time order (file
@@ -589,21 +601,7 @@ def _load_metadata(rec: Recording, f: io.BufferedReader, everything: bool) -> No
     """Fill rec.header and rec.metadata. Complete files: via the summary's metadata indexes;
     otherwise by walking the records (chunks are not decompressed) until a ``zenswarm`` record
     with the scenario is found, or to the end when ``everything``."""
-    summary_mi: list[MetadataIndex] = []
-    if rec.complete and rec._summary_start:
-        end = rec.size - 8 - _FOOTER_LEN
-        try:
-            for _, opcode, r in _walk(f, rec._summary_start, end, complete=True):
-                if opcode == Opcode.STATISTICS:
-                    rec.statistics = r
-                elif opcode == Opcode.CHANNEL:
-                    rec.channels.setdefault(r.id, r)
-                elif opcode == Opcode.SCHEMA:
-                    rec.schemas.setdefault(r.id, r)
-                elif opcode == Opcode.METADATA_INDEX:
-                    summary_mi.append(r)
-        except _Damage as d:
-            raise RecordingError(f"{rec.path}: summary section is damaged: {d.text}") from None
+    summary_mi = _load_summary(rec, f) if rec.complete and rec._summary_start else []
     # header
     try:
         first = next(_walk(f, 8, rec.size, complete=rec.complete), None)
@@ -617,19 +615,41 @@ def _load_metadata(rec: Recording, f: io.BufferedReader, everything: bool) -> No
             try:
                 for pos, opcode, r in _walk(f, mi.offset, mi.offset + mi.length, complete=True):
                     if opcode == Opcode.METADATA:
-                        rec._meta_offsets.add(pos)
-                        rec.metadata_records.append(r)
-                        rec.metadata.setdefault(r.name, {}).update(r.metadata)
+                        rec._add_metadata(pos, r)
             except _Damage as d:
                 raise RecordingError(f"{rec.path}: metadata record is damaged: {d.text}") from None
         return
+    _scan_metadata(rec, f, everything)
+
+
+def _load_summary(rec: Recording, f: io.BufferedReader) -> list[MetadataIndex]:
+    """Read a complete file's summary section: statistics, channels, schemas; its metadata indexes."""
+    summary_mi: list[MetadataIndex] = []
+    end = rec.size - 8 - _FOOTER_LEN
+    try:
+        for _, opcode, r in _walk(f, rec._summary_start, end, complete=True):
+            if opcode == Opcode.STATISTICS:
+                rec.statistics = r
+            elif opcode == Opcode.CHANNEL:
+                rec.channels.setdefault(r.id, r)
+            elif opcode == Opcode.SCHEMA:
+                rec.schemas.setdefault(r.id, r)
+            elif opcode == Opcode.METADATA_INDEX:
+                summary_mi.append(r)
+    except _Damage as d:
+        raise RecordingError(f"{rec.path}: summary section is damaged: {d.text}") from None
+    return summary_mi
+
+
+def _scan_metadata(rec: Recording, f: io.BufferedReader, everything: bool) -> None:
+    """Walk the data section for metadata records (chunks are not decompressed): until the
+    ``zenswarm`` record with the scenario, or to the end when ``everything``. Damage stops the
+    walk silently: it is reported (strict: raised) when the messages are read."""
     end = rec._summary_start if rec._summary_start else rec.size
     try:
         for pos, opcode, r in _walk(f, 8, end, complete=rec.complete):
             if opcode == Opcode.METADATA:
-                rec._meta_offsets.add(pos)
-                rec.metadata_records.append(r)
-                rec.metadata.setdefault(r.name, {}).update(r.metadata)
+                rec._add_metadata(pos, r)
                 if r.name == METADATA_NAME and "scenario_json" in r.metadata and not everything:
                     return
             elif opcode in (Opcode.DATA_END, Opcode.FOOTER):
@@ -687,6 +707,48 @@ def read_recording(path: str | os.PathLike[str], *, strict: bool = True) -> Reco
 # --------------------------------------------------------------------------- recover
 
 
+class _SequenceGaps:
+    """Per-topic gaps in the recorder's running sequence numbers (messages known to be lost)."""
+
+    def __init__(self) -> None:
+        self.last: dict[str, int] = {}
+        self.gaps: dict[str, int] = {}
+
+    def see(self, topic: str, sequence: int) -> None:
+        prev = self.last.get(topic, 0)
+        gap = (sequence - prev - 1) & 0xFFFFFFFF
+        if gap and gap < 0x80000000:  # (a sequence going back is not a loss)
+            self.gaps[topic] = self.gaps.get(topic, 0) + gap
+        self.last[topic] = sequence
+
+
+def _copy_messages(rec: Recording, w: Any, stats: RecoverStats, gaps: _SequenceGaps | None) -> None:
+    """Write every readable message of ``rec`` to the writer ``w`` (channels and schemas
+    registered at first use), counting them in ``stats`` and their sequence gaps in ``gaps``."""
+    schema_ids: dict[int, int] = {}
+    channel_ids: dict[int, int] = {}
+    for ch, msg in rec.raw_messages():
+        cid = channel_ids.get(ch.id)
+        if cid is None:
+            sid = 0
+            if ch.schema_id:
+                sid = schema_ids.get(ch.schema_id, 0)
+                sc = rec.schemas.get(ch.schema_id)
+                if not sid and sc is not None:
+                    sid = w.register_schema(sc.name, sc.encoding, sc.data)
+                    schema_ids[ch.schema_id] = sid
+            cid = w.register_channel(ch.topic, ch.message_encoding, sid, dict(ch.metadata))
+            channel_ids[ch.id] = cid
+        w.add_message(cid, msg.log_time, msg.data, msg.publish_time, msg.sequence)
+        if gaps is not None:
+            gaps.see(ch.topic, msg.sequence)
+        stats.messages += 1
+        if stats.first_log_time is None:
+            stats.first_log_time = msg.log_time
+        stats.last_log_time = msg.log_time
+    stats.channels = len(channel_ids)
+
+
 def recover(
     src: str | os.PathLike[str],
     dst: str | os.PathLike[str],
@@ -718,8 +780,7 @@ def recover(
         _load_metadata(rec, f, everything=True)
     library = rec.header.library if rec.header is not None else ""
     counted = library.startswith(RECORDER_LIBRARIES)  # sequence = running count per channel
-    last_seq: dict[str, int] = {}
-    gaps: dict[str, int] = {}
+    gaps = _SequenceGaps()
     d.parent.mkdir(parents=True, exist_ok=True)
     tmp = d.with_name(d.name + ".partial")
     try:
@@ -730,32 +791,7 @@ def recover(
             for m in rec.metadata_records:
                 w.add_metadata(m.name, dict(m.metadata))
                 stats.metadata += 1
-            schema_ids: dict[int, int] = {}
-            channel_ids: dict[int, int] = {}
-            for ch, msg in rec.raw_messages():
-                cid = channel_ids.get(ch.id)
-                if cid is None:
-                    sid = 0
-                    if ch.schema_id:
-                        sid = schema_ids.get(ch.schema_id, 0)
-                        sc = rec.schemas.get(ch.schema_id)
-                        if not sid and sc is not None:
-                            sid = w.register_schema(sc.name, sc.encoding, sc.data)
-                            schema_ids[ch.schema_id] = sid
-                    cid = w.register_channel(ch.topic, ch.message_encoding, sid, dict(ch.metadata))
-                    channel_ids[ch.id] = cid
-                w.add_message(cid, msg.log_time, msg.data, msg.publish_time, msg.sequence)
-                if counted:
-                    prev = last_seq.get(ch.topic, 0)
-                    gap = (msg.sequence - prev - 1) & 0xFFFFFFFF
-                    if gap and gap < 0x80000000:  # (a sequence going back is not a loss)
-                        gaps[ch.topic] = gaps.get(ch.topic, 0) + gap
-                    last_seq[ch.topic] = msg.sequence
-                stats.messages += 1
-                if stats.first_log_time is None:
-                    stats.first_log_time = msg.log_time
-                stats.last_log_time = msg.log_time
-            stats.channels = len(channel_ids)
+            _copy_messages(rec, w, stats, gaps if counted else None)
             w.finish()
         os.replace(tmp, d)
     finally:
@@ -765,8 +801,8 @@ def recover(
         if p not in stats.problems:
             stats.problems.append(p)
     stats.intact = rec.complete and not stats.problems
-    stats.sequence_gaps = dict(sorted(gaps.items()))
-    stats.lost_known = sum(gaps.values()) + rec.skipped_messages
+    stats.sequence_gaps = dict(sorted(gaps.gaps.items()))
+    stats.lost_known = sum(gaps.gaps.values()) + rec.skipped_messages
     stats.discarded_bytes = rec.discarded_bytes
     stats.skipped_chunks = list(rec.skipped_chunks)
     stats.cut_chunk = rec.cut_chunk

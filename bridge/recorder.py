@@ -215,6 +215,20 @@ class RecorderStats:
         )
 
 
+@dataclass
+class _WriterState:
+    """What the writer thread keeps between samples (that thread only); times time.monotonic() s."""
+
+    next_flush: float  # the next periodic flush
+    channels: dict[str, int] = field(default_factory=dict)  # key -> channel id
+    seqs: dict[int, int] = field(default_factory=dict)  # channel id -> last sequence number
+    limits: dict[str, int] = field(default_factory=dict)  # key -> payload size bound, bytes (a cache)
+    last_lt: int = 0  # last log time written, ns
+    dirty: bool = False  # messages written since the last flush
+    dropped_written: int = 0  # stats.dropped_oversize when the counts were last written
+    next_dropped: float = 0.0  # the oversize counts are written at most this often
+
+
 class McapSink:
     """Owns the MCAP writer and its thread. ``put`` is called from the Zenoh callback.
 
@@ -286,97 +300,111 @@ class McapSink:
 
     # ------------------------------------------------------------------ writer thread
     def _run(self) -> None:
-        w = self._writer
-        q = self._q
+        ws = _WriterState(next_flush=time.monotonic() + self.flush_interval_s)
         st = self.stats
-        channels: dict[str, int] = {}
-        seqs: dict[int, int] = {}
-        keys = self.keys
-        mono = time.monotonic
-        interval = self.flush_interval_s
-        next_flush = mono() + interval
-        dirty = False
-        last_lt = 0
-        limits: dict[str, int] = {}
-        dropped_written = 0  # st.dropped_oversize when the counts were last written
-        next_dropped = 0.0
         try:
             while True:
-                wait = next_flush - mono()
-                try:
-                    item = q.get(timeout=wait) if wait > 0 else q.get_nowait()
-                except queue.Empty:
-                    item = None
+                item = self._next_item(ws)
                 if item is _STOP:
                     break
-                if item is not None:
-                    if item[0] is _META:
-                        self._write_metadata(item[1])
-                        continue
-                    if item[0] is _OVERSIZE:  # counted only; then on to the periodic work below
-                        _, key, size, lt = item
-                        st.drop_oversize(key, size, payload_limit(keys, key))
-                        item = None
-                    else:
-                        lt, key, payload = item
-                        limit = limits.get(key)
-                        if limit is None:
-                            limit = limits[key] = payload_limit(keys, key)
-                            if len(limits) > MAX_DROPPED_KEYS:
-                                limits.clear()
-                        if len(payload) > limit:
-                            st.drop_oversize(key, len(payload), limit)
-                            item = None
-                if item is not None:
-                    cid = channels.get(key)
-                    if cid is None:
-                        try:
-                            kind = keys.parse(key)[0]
-                        except wire.InvalidKeyError:
-                            kind = ""
-                        cid = w.register_channel(key, MESSAGE_ENCODING, 0, {"kind": kind})
-                        channels[key] = cid
-                        seqs[cid] = 0
-                        st.channels += 1
-                    if lt < last_lt:
-                        lt = last_lt  # keep log times non-decreasing in file order (clock steps)
-                    last_lt = lt
-                    t = sim_time(payload)
-                    if t is None:
-                        st.undecodable += 1
-                        t = lt
-                    elif t > st.last_sim_t:
-                        st.last_sim_t = t
-                    s = (seqs[cid] + 1) & 0xFFFFFFFF
-                    seqs[cid] = s
-                    w.add_message(cid, lt, payload, t, s)
-                    st.messages += 1
-                    st.payload_bytes += len(payload)
-                    if st.first_log_time is None:
-                        st.first_log_time = lt
-                    st.last_log_time = lt
-                    dirty = True
-                if st.dropped_oversize != dropped_written and mono() >= next_dropped:
-                    dropped_written = st.dropped_oversize
-                    next_dropped = mono() + DROPPED_METADATA_INTERVAL_S
-                    self._write_metadata(self._dropped_metadata())
-                    dirty = False  # _write_metadata flushed
-                if mono() >= next_flush:
-                    backlog = q.qsize()
-                    if backlog > st.peak_backlog:
-                        st.peak_backlog = backlog
-                    if dirty:
-                        w.flush()  # closes the open chunk, writes it and flushes to the OS
-                        st.flushes += 1
-                        dirty = False
-                    next_flush = mono() + interval
+                if item is not None and item[0] is _META:
+                    self._write_metadata(item[1])
+                    continue
+                sample = self._admit(item, ws) if item is not None else None
+                if sample is not None:
+                    self._write_sample(ws, *sample)
+                self._periodic(ws)
             # _STOP is queued after the session is closed, so every sample precedes it (FIFO)
-            if st.dropped_oversize != dropped_written:
+            if st.dropped_oversize != ws.dropped_written:
                 self._write_metadata(self._dropped_metadata())
         except BaseException as e:  # noqa: BLE001 - report, and still try to finish the file
             self.error = e
         finally:
             self._finish()
+
+    def _next_item(self, ws: _WriterState) -> Any:
+        """The next queued item, or None when the next periodic flush is due first."""
+        wait = ws.next_flush - time.monotonic()
+        try:
+            return self._q.get(timeout=wait) if wait > 0 else self._q.get_nowait()
+        except queue.Empty:
+            return None
+
+    def _admit(self, item: tuple[Any, ...], ws: _WriterState) -> tuple[int, str, bytes] | None:
+        """A queued sample ``(log_time, key, payload)`` to write, or None if it is over its key's
+        size bound (counted in the stats, not written)."""
+        if item[0] is _OVERSIZE:  # counted only
+            _, key, size, _lt = item
+            self.stats.drop_oversize(key, size, payload_limit(self.keys, key))
+            return None
+        lt, key, payload = item
+        limit = ws.limits.get(key)
+        if limit is None:
+            limit = ws.limits[key] = payload_limit(self.keys, key)
+            if len(ws.limits) > MAX_DROPPED_KEYS:
+                ws.limits.clear()
+        if len(payload) > limit:
+            self.stats.drop_oversize(key, len(payload), limit)
+            return None
+        return lt, key, payload
+
+    def _channel(self, ws: _WriterState, key: str) -> int:
+        """The channel id of ``key``, registered at its first sample."""
+        cid = ws.channels.get(key)
+        if cid is None:
+            try:
+                kind = self.keys.parse(key)[0]
+            except wire.InvalidKeyError:
+                kind = ""
+            cid = self._writer.register_channel(key, MESSAGE_ENCODING, 0, {"kind": kind})
+            ws.channels[key] = cid
+            ws.seqs[cid] = 0
+            self.stats.channels += 1
+        return cid
+
+    def _write_sample(self, ws: _WriterState, lt: int, key: str, payload: bytes) -> None:
+        """Write one message: log time = receive time (never decreasing in file order), publish
+        time = the sender's sim time (or the log time if undecodable), per-channel sequence."""
+        st = self.stats
+        cid = self._channel(ws, key)
+        if lt < ws.last_lt:
+            lt = ws.last_lt  # keep log times non-decreasing in file order (clock steps)
+        ws.last_lt = lt
+        t = sim_time(payload)
+        if t is None:
+            st.undecodable += 1
+            t = lt
+        elif t > st.last_sim_t:
+            st.last_sim_t = t
+        s = (ws.seqs[cid] + 1) & 0xFFFFFFFF
+        ws.seqs[cid] = s
+        self._writer.add_message(cid, lt, payload, t, s)
+        st.messages += 1
+        st.payload_bytes += len(payload)
+        if st.first_log_time is None:
+            st.first_log_time = lt
+        st.last_log_time = lt
+        ws.dirty = True
+
+    def _periodic(self, ws: _WriterState) -> None:
+        """The oversize-drop counts (at most every DROPPED_METADATA_INTERVAL_S) and the periodic
+        flush: close the open chunk, write it and flush it to the OS."""
+        st = self.stats
+        mono = time.monotonic
+        if st.dropped_oversize != ws.dropped_written and mono() >= ws.next_dropped:
+            ws.dropped_written = st.dropped_oversize
+            ws.next_dropped = mono() + DROPPED_METADATA_INTERVAL_S
+            self._write_metadata(self._dropped_metadata())
+            ws.dirty = False  # _write_metadata flushed
+        if mono() >= ws.next_flush:
+            backlog = self._q.qsize()
+            if backlog > st.peak_backlog:
+                st.peak_backlog = backlog
+            if ws.dirty:
+                self._writer.flush()  # closes the open chunk, writes it and flushes to the OS
+                st.flushes += 1
+                ws.dirty = False
+            ws.next_flush = mono() + self.flush_interval_s
 
     def _dropped_metadata(self) -> dict[str, str]:
         """The ``zenswarm`` metadata values that carry the oversize-drop counts (cumulative)."""
@@ -454,19 +482,84 @@ def _fetch_mission(session: Any, keys: wire.Keys, stop: threading.Event, on_scen
                 pass
 
 
+class _Stop:
+    """The recorder's stop request: an event, and why it was set (the last line of the log)."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.why = "stopped"
+
+    def on_signal(self, signum: int, frame: Any) -> None:
+        self.why = f"received {signal.Signals(signum).name}"
+        self.event.set()
+
+
+def _undeclare(*entities: Any) -> None:
+    """Undeclare Zenoh entities, best effort (on shutdown)."""
+    for e in entities:
+        try:
+            e.undeclare()
+        except Exception:  # noqa: BLE001 - best effort on shutdown
+            pass
+
+
+def _subscribe_all(session: Any, keys: wire.Keys, sink: McapSink) -> Any:
+    """Subscribe to every key of the swarm; each sample goes to ``sink`` (over-size ones counted only)."""
+    put_item = sink.put_item
+    now_ns = time.time_ns
+    small = wire.MAX_PAYLOAD  # the bound of every key but the mission's (payload_limit)
+    mission_key, mission_limit = keys.mission, wire.MAX_MISSION_PAYLOAD
+
+    def on_sample(sample: Any) -> None:  # the whole callback: stamp, copy, enqueue
+        payload = sample.payload
+        n = len(payload)
+        if n > small:  # no decoder reads it: count it without copying it (payload_limit)
+            key = str(sample.key_expr)
+            if key != mission_key or n > mission_limit:
+                put_item((_OVERSIZE, key, n, now_ns()))
+                return
+            put_item((now_ns(), key, payload.to_bytes()))
+            return
+        put_item((now_ns(), str(sample.key_expr), payload.to_bytes()))
+
+    return session.declare_subscriber(keys.all, on_sample)
+
+
+def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: wire.Keys, sink: McapSink, out: Path) -> None:
+    """Until a stop request, ``--duration`` or a writer failure (``stop.why``), publishing the
+    recorder's counters on diag/recorder every ``--diag-interval`` s."""
+    deadline = None if args.duration is None else time.monotonic() + args.duration
+    diag_pub = session.declare_publisher(keys.diag(PROCESS_NAME)) if args.diag_interval > 0 else None
+    diag_seq = 0
+    next_diag = time.monotonic() + (args.diag_interval if diag_pub is not None else 1e18)
+    while not stop.event.is_set():
+        now = time.monotonic()
+        left = min(0.2, next_diag - now)
+        if deadline is not None:
+            left = min(left, deadline - now)
+            if left <= 0:
+                stop.why = f"duration of {args.duration:g} s reached"
+                break
+        if left > 0:
+            stop.event.wait(left)
+        if sink.error is not None:
+            stop.why = f"writer failed: {sink.error!r}"
+            break
+        if diag_pub is not None and time.monotonic() >= next_diag:
+            diag_seq += 1
+            next_diag += args.diag_interval
+            st = sink.stats
+            diag = wire.Diag(t=st.last_sim_t, seq=diag_seq, process=PROCESS_NAME, counters=st.counters(sink.backlog), info={"file": str(out)})
+            diag_pub.put(wire.encode(diag))
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the recorder until SIGTERM/SIGINT or ``--duration``. Exit code 0 on a clean stop."""
     from zenswarm.config import load_scenario, scenario_to_dict
 
-    stop = threading.Event()
-    why = ["stopped"]
-
-    def on_signal(signum: int, frame: Any) -> None:
-        why[0] = f"received {signal.Signals(signum).name}"
-        stop.set()
-
+    stop = _Stop()
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, on_signal)
+        signal.signal(sig, stop.on_signal)
 
     def log(text: str) -> None:
         print(text, flush=True)
@@ -507,29 +600,13 @@ def run(args: argparse.Namespace) -> int:
             metadata=build_metadata(args.swarm, mode, scenario, source, fault_args),
         )
         sink.start()
-        put_item = sink.put_item
-        now_ns = time.time_ns
-        small = wire.MAX_PAYLOAD  # the bound of every key but the mission's (payload_limit)
-        mission_key, mission_limit = keys.mission, wire.MAX_MISSION_PAYLOAD
-
-        def on_sample(sample: Any) -> None:  # the whole callback: stamp, copy, enqueue
-            payload = sample.payload
-            n = len(payload)
-            if n > small:  # no decoder reads it: count it without copying it (payload_limit)
-                key = str(sample.key_expr)
-                if key != mission_key or n > mission_limit:
-                    put_item((_OVERSIZE, key, n, now_ns()))
-                    return
-                put_item((now_ns(), key, payload.to_bytes()))
-                return
-            put_item((now_ns(), str(sample.key_expr), payload.to_bytes()))
-
-        sub = session.declare_subscriber(keys.all, on_sample)
+        sub = _subscribe_all(session, keys, sink)
         token = bus.declare_alive(session, keys, PROCESS_NAME)  # only now: the subscriber is in place
         if scenario is None:
+            the_sink = sink
             fetcher = threading.Thread(
                 target=_fetch_mission,
-                args=(session, keys, stop, lambda d: sink.set_metadata(build_metadata(args.swarm, mode, d, "mission", fault_args)), log),
+                args=(session, keys, stop.event, lambda d: the_sink.set_metadata(build_metadata(args.swarm, mode, d, "mission", fault_args)), log),
                 name="mission-fetch",
                 daemon=True,
             )
@@ -538,56 +615,18 @@ def run(args: argparse.Namespace) -> int:
             f"recorder: recording {keys.all} from {', '.join(connect)} to {out} "
             f"(chunks flushed every {args.flush_interval:g} s; {mode})"
         )
-        deadline = None if args.duration is None else time.monotonic() + args.duration
-        diag_pub = session.declare_publisher(keys.diag(PROCESS_NAME)) if args.diag_interval > 0 else None
-        diag_seq = 0
-        next_diag = time.monotonic() + (args.diag_interval if diag_pub is not None else 1e18)
-        while not stop.is_set():
-            now = time.monotonic()
-            left = min(0.2, next_diag - now)
-            if deadline is not None:
-                left = min(left, deadline - now)
-                if left <= 0:
-                    why[0] = f"duration of {args.duration:g} s reached"
-                    break
-            if left > 0:
-                stop.wait(left)
-            if sink.error is not None:
-                why[0] = f"writer failed: {sink.error!r}"
-                break
-            if diag_pub is not None and time.monotonic() >= next_diag:
-                diag_seq += 1
-                next_diag += args.diag_interval
-                st = sink.stats
-                diag_pub.put(
-                    wire.encode(
-                        wire.Diag(
-                            t=st.last_sim_t,
-                            seq=diag_seq,
-                            process=PROCESS_NAME,
-                            counters=st.counters(sink.backlog),
-                            info={"file": str(out)},
-                        )
-                    )
-                )
-        stop.set()
-        try:
-            token.undeclare()
-        except Exception:  # noqa: BLE001 - best effort on shutdown
-            pass
-        try:
-            sub.undeclare()
-        except Exception:  # noqa: BLE001
-            pass
+        _wait_and_report(args, stop, session, keys, sink, out)
+        stop.event.set()
+        _undeclare(token, sub)
         if fetcher is not None:
             fetcher.join(timeout=3.0)
     finally:
-        stop.set()
+        stop.event.set()
         session_cm.__exit__(None, None, None)  # closes the session: no callback runs after this
         if sink is not None:
             sink.close()
     st = sink.stats
-    log(f"recorder: {why[0]}; wrote {out}: {st.line()}")
+    log(f"recorder: {stop.why}; wrote {out}: {st.line()}")
     if sink.error is not None:
         print(f"recorder: error: writing {out} failed: {sink.error!r}", file=sys.stderr, flush=True)
         return 3

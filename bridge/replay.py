@@ -121,13 +121,8 @@ def _span_and_topics(rec: Recording, path: str | Path) -> tuple[float | None, li
     return (None if first is None else (last - first) / 1e9), sorted(topics)
 
 
-def check_window(
-    rec: Recording, path: str | Path, start_s: float | None, end_s: float | None, topics: str | None
-) -> float | None:
-    """Bad ``--start``/``--end``/``--topics`` for this recording raise :class:`ScenarioError`
-    naming the flag and the recording's actual span (exit 2 from the CLI, before anything is
-    published): a negative or non-finite time, ``--end`` before ``--start``, ``--start`` beyond
-    the last message, a key expression that matches none of the recorded keys. Returns the span (s)."""
+def _check_window_flags(start_s: float | None, end_s: float | None) -> None:
+    """``--start``/``--end`` on their own: finite, >= 0, end not before start (ScenarioError)."""
     import math
 
     for flag, v in (("--start", start_s), ("--end", end_s)):
@@ -135,6 +130,16 @@ def check_window(
             raise ScenarioError(flag, f"must be a number of seconds >= 0 after the first recorded message, got {v:g}")
     if start_s is not None and end_s is not None and end_s < start_s:
         raise ScenarioError("--end", f"{end_s:g} s is before --start {start_s:g} s")
+
+
+def check_window(
+    rec: Recording, path: str | Path, start_s: float | None, end_s: float | None, topics: str | None
+) -> float | None:
+    """Bad ``--start``/``--end``/``--topics`` for this recording raise :class:`ScenarioError`
+    naming the flag and the recording's actual span (exit 2 from the CLI, before anything is
+    published): a negative or non-finite time, ``--end`` before ``--start``, ``--start`` beyond
+    the last message, a key expression that matches none of the recorded keys. Returns the span (s)."""
+    _check_window_flags(start_s, end_s)
     match = _topic_filter(topics)
     if start_s is None and end_s is None and match is None:
         return None
@@ -148,6 +153,122 @@ def check_window(
             "--topics", f"{topics!r} matches none of the keys recorded in {path} ({shown or 'none'}); nothing to replay"
         )
     return span
+
+
+class _Player:
+    """One replay's publishing side: a publisher per (rewritten) key, declared at first use,
+    pacing at ``rate`` (0 = as fast as possible), progress lines; counts in ``stats``.
+    Times: ``time.monotonic()`` s; log times ns."""
+
+    def __init__(
+        self,
+        session: Any,
+        rec: Recording,
+        *,
+        swarm: str | None,
+        rate: float,
+        match: Callable[[str], bool] | None,
+        stop: threading.Event,
+        stats: ReplayStats,
+        progress: Callable[[str], None] | None,
+        wait_subscribers_s: float,
+        wall0: float,
+    ) -> None:
+        self.session = session
+        self.rec = rec
+        self.swarm = swarm
+        self.rate = rate
+        self.match = match
+        self.stop = stop
+        self.stats = stats
+        self.progress = progress
+        self.wait_subscribers_s = wait_subscribers_s
+        self.wall0 = wall0
+        self.total_s: float | None = None  # the recording's span, s (complete files), for progress
+        if rec.statistics is not None and rec.statistics.message_count:
+            self.total_s = (rec.statistics.message_end_time - rec.statistics.message_start_time) / 1e9
+        self.pubs: dict[str, Any] = {}
+        self.rewritten: dict[str, str] = {}
+        self.waited = False
+        self.last_progress = time.monotonic()
+
+    def play_once(self, path: str | Path, t_lo: int | None, t_hi: int | None) -> bool:
+        """Publish the recording once, within [t_lo, t_hi] ns from its first message; False if
+        it holds no message."""
+        stats = self.stats
+        file_t0: int | None = None
+        play_t0: int | None = None
+        wall_t0 = 0.0
+        orig: str | None = None
+        for m in read_recording(path, strict=False).messages():
+            if self.stop.is_set():
+                break
+            if file_t0 is None:
+                file_t0 = m.log_time
+                orig = _original_swarm(self.rec, m.topic)
+            rel = m.log_time - file_t0
+            if t_lo is not None and rel < t_lo:
+                continue
+            if t_hi is not None and rel > t_hi:
+                break
+            if self.match is not None and not self.match(m.topic):
+                stats.skipped += 1
+                continue
+            pub = self._publisher(m.topic, orig)
+            if play_t0 is None:
+                play_t0 = m.log_time
+                wall_t0 = time.monotonic()
+            if self.rate > 0:
+                self._wait_until(wall_t0 + (m.log_time - play_t0) / 1e9 / self.rate)
+            pub.put(m.payload)
+            stats.published += 1
+            stats.span_s = max(stats.span_s, (m.log_time - play_t0) / 1e9)
+            self._report(rel)
+        return file_t0 is not None
+
+    def _publisher(self, topic: str, orig: str | None) -> Any:
+        """The publisher of ``topic`` under the replay's swarm; before the first put, waits for a
+        subscriber to match (puts before that would be lost)."""
+        import zenoh
+
+        from zenswarm import bus
+
+        key = self.rewritten.get(topic)
+        if key is None:
+            key = self.rewritten[topic] = rewrite_topic(topic, orig, self.swarm)
+        pub = self.pubs.get(key)
+        if pub is None:
+            pub = self.pubs[key] = self.session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE
+            )
+            if not self.waited:
+                self.waited = True
+                if not bus.wait_matching(pub, timeout=self.wait_subscribers_s) and self.progress:
+                    self.progress(f"replay: no subscriber on {key} after {self.wait_subscribers_s:g} s; publishing anyway")
+        return pub
+
+    def _wait_until(self, target: float) -> None:
+        """Sleep until ``target`` (or a stop); note how late it was."""
+        while True:
+            now = time.monotonic()
+            if now >= target or self.stop.is_set():
+                break
+            time.sleep(min(target - now, 0.1))
+        lag = time.monotonic() - target
+        if lag > self.stats.max_lag_s:
+            self.stats.max_lag_s = lag
+
+    def _report(self, rel: int) -> None:
+        """A progress line every PROGRESS_EVERY_S (``rel``: ns since the first message)."""
+        now = time.monotonic()
+        if self.progress is not None and now - self.last_progress >= PROGRESS_EVERY_S:
+            self.last_progress = now
+            stats = self.stats
+            of = f"/{self.total_s:.1f}" if self.total_s is not None else ""
+            self.progress(
+                f"replay: loop {stats.loops}  t={rel / 1e9:.1f}{of} s  {stats.published} published  "
+                f"{stats.published / max(now - self.wall0, 1e-9):.0f} msg/s"
+            )
 
 
 def replay(
@@ -175,8 +296,6 @@ def replay(
     or filter that does not fit the recording raises :class:`ScenarioError` first
     (:func:`check_window`).
     """
-    import zenoh
-
     from zenswarm import bus
 
     if rate < 0:
@@ -189,74 +308,17 @@ def replay(
     rec = read_recording(path, strict=False)
     check_window(rec, path, start_s, end_s, topics)
     stats.problems += rec.problems
-    total_s = None
-    if rec.statistics is not None and rec.statistics.message_count:
-        total_s = (rec.statistics.message_end_time - rec.statistics.message_start_time) / 1e9
     t_lo = None if start_s is None else round(start_s * 1e9)
     t_hi = None if end_s is None else round(end_s * 1e9)
     wall0 = time.monotonic()
     with bus.open_session(bus.client_config(connect), handle_signals=False) as session:
-        pubs: dict[str, Any] = {}
-        rewritten: dict[str, str] = {}
-        waited = False
-        last_progress = time.monotonic()
+        player = _Player(
+            session, rec, swarm=swarm, rate=rate, match=match, stop=stop, stats=stats, progress=progress,
+            wait_subscribers_s=wait_subscribers_s, wall0=wall0,
+        )
         while not stop.is_set():
             stats.loops += 1
-            file_t0: int | None = None
-            play_t0: int | None = None
-            wall_t0 = 0.0
-            orig: str | None = None
-            for m in read_recording(path, strict=False).messages():
-                if stop.is_set():
-                    break
-                if file_t0 is None:
-                    file_t0 = m.log_time
-                    orig = _original_swarm(rec, m.topic)
-                rel = m.log_time - file_t0
-                if t_lo is not None and rel < t_lo:
-                    continue
-                if t_hi is not None and rel > t_hi:
-                    break
-                if match is not None and not match(m.topic):
-                    stats.skipped += 1
-                    continue
-                key = rewritten.get(m.topic)
-                if key is None:
-                    key = rewritten[m.topic] = rewrite_topic(m.topic, orig, swarm)
-                pub = pubs.get(key)
-                if pub is None:
-                    pub = pubs[key] = session.declare_publisher(
-                        key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE
-                    )
-                    if not waited:
-                        waited = True
-                        if not bus.wait_matching(pub, timeout=wait_subscribers_s) and progress:
-                            progress(f"replay: no subscriber on {key} after {wait_subscribers_s:g} s; publishing anyway")
-                if play_t0 is None:
-                    play_t0 = m.log_time
-                    wall_t0 = time.monotonic()
-                if rate > 0:
-                    target = wall_t0 + (m.log_time - play_t0) / 1e9 / rate
-                    while True:
-                        now = time.monotonic()
-                        if now >= target or stop.is_set():
-                            break
-                        time.sleep(min(target - now, 0.1))
-                    lag = time.monotonic() - target
-                    if lag > stats.max_lag_s:
-                        stats.max_lag_s = lag
-                pub.put(m.payload)
-                stats.published += 1
-                stats.span_s = max(stats.span_s, (m.log_time - play_t0) / 1e9)
-                now = time.monotonic()
-                if progress is not None and now - last_progress >= PROGRESS_EVERY_S:
-                    last_progress = now
-                    of = f"/{total_s:.1f}" if total_s is not None else ""
-                    progress(
-                        f"replay: loop {stats.loops}  t={rel / 1e9:.1f}{of} s  {stats.published} published  "
-                        f"{stats.published / max(now - wall0, 1e-9):.0f} msg/s"
-                    )
-            if file_t0 is None:
+            if not player.play_once(path, t_lo, t_hi):
                 stats.stopped_by = "empty recording"
                 break
             if not loop:

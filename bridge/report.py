@@ -502,6 +502,61 @@ def _short_key(topic: str, swarm: str | None) -> str:
     return topic[len(prefix) :] if prefix and topic.startswith(prefix) else topic
 
 
+def _fault_counters(fl: Flight) -> list[tuple[str, float]]:
+    """``(label, count)`` of every fault counter of the processes' last diag messages (see
+    :func:`plot_links`), then the report decoder's rejects per key."""
+    faults: list[tuple[str, float]] = []
+    for proc in sorted(fl.diagnostics, key=_proc_order):
+        for name, val in sorted(fl.diagnostics[proc].items()):
+            if isinstance(val, (int, float)) and _FAULT_RE.search(name):
+                faults.append((f"{proc}: {name}", float(val)))
+    for key, nrej in sorted(fl.decoder_rejects.items()):
+        faults.append((f"report decoder: {_short_key(key, fl.swarm)}", float(nrej)))
+    return faults
+
+
+def _plot_key_counts(ax: Any, fl: Flight, keys: list[str]) -> None:
+    """Messages recorded per key (red: some rejected by the report's decoder)."""
+    y = np.arange(len(keys))
+    counts = np.array([fl.message_counts[k] for k in keys], dtype=float)
+    rej = np.array([fl.decoder_rejects.get(k, 0) for k in keys], dtype=float)
+    ax.barh(y, counts, color=["tab:red" if r else "tab:blue" for r in rej])
+    ax.set_yticks(y, [_short_key(k, fl.swarm) for k in keys], fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("messages recorded")
+    ax.set_xlim(0, max(1.0, float(counts.max(initial=0.0))) * 1.3)
+    nrej = int(rej.sum())
+    ax.set_title(
+        f"messages per key: {int(counts.sum())} recorded" + (f", {nrej} rejected by the decoder (red)" if nrej else ", none rejected"),
+        fontsize=10,
+    )
+    for yy, c, r in zip(y, counts, rej):
+        text = f"{int(c)}" + (f"  ({int(r)} rejected)" if r else "")
+        ax.annotate(text, (c, yy), xytext=(2, 0), textcoords="offset points", va="center", fontsize=7, color="tab:red" if r else "black")
+    ax.grid(True, axis="x", alpha=0.3)
+
+
+def _plot_fault_counters(ax: Any, faults: list[tuple[str, float]]) -> None:
+    """The fault counters as bars (red: nonzero)."""
+    if faults:
+        yf = np.arange(len(faults))
+        vals = np.array([v for _, v in faults])
+        ax.barh(yf, vals, color=["tab:red" if v > 0 else "0.7" for v in vals])
+        ax.set_yticks(yf, [lab for lab, _ in faults], fontsize=8)
+        ax.invert_yaxis()
+        for yy, v in zip(yf, vals):
+            ax.annotate(f"{v:g}", (v, yy), xytext=(2, 0), textcoords="offset points", va="center", fontsize=7)
+        ax.set_xlim(0, max(1.0, float(vals.max()) * 1.15))
+        nz = int(np.count_nonzero(vals))
+        ax.set_title(f"drop / reject / timeout counters ({nz} of {len(vals)} nonzero)", fontsize=10)
+    else:
+        ax.text(0.5, 0.5, "no diag messages with drop/reject counters\nin this recording", ha="center", va="center", transform=ax.transAxes)
+        ax.set_title("drop / reject / timeout counters", fontsize=10)
+        ax.set_yticks([])
+    ax.set_xlabel("count (last diag message of each process)")
+    ax.grid(True, axis="x", alpha=0.3)
+
+
 def plot_links(fl: Flight, path: Path) -> Path:
     """Messages per key, the report decoder's rejects per key, and each process's fault counters.
 
@@ -510,50 +565,12 @@ def plot_links(fl: Flight, path: Path) -> Path:
     names the link or key) show up as their own bars.
     """
     keys = sorted(fl.message_counts, key=lambda k: (_short_key(k, fl.swarm).split("/")[0], _key_order(k), k))
-    faults: list[tuple[str, float]] = []
-    for proc in sorted(fl.diagnostics, key=_proc_order):
-        for name, val in sorted(fl.diagnostics[proc].items()):
-            if isinstance(val, (int, float)) and _FAULT_RE.search(name):
-                faults.append((f"{proc}: {name}", float(val)))
-    for key, nrej in sorted(fl.decoder_rejects.items()):
-        faults.append((f"report decoder: {_short_key(key, fl.swarm)}", float(nrej)))
+    faults = _fault_counters(fl)
     nrows = max(len(keys), len(faults), 1)
     fig = _figure((13.0, max(4.0, 0.24 * nrows + 1.6)), layout="constrained")
     ax1, ax2 = fig.subplots(1, 2)
-    y = np.arange(len(keys))
-    counts = np.array([fl.message_counts[k] for k in keys], dtype=float)
-    rej = np.array([fl.decoder_rejects.get(k, 0) for k in keys], dtype=float)
-    ax1.barh(y, counts, color=["tab:red" if r else "tab:blue" for r in rej])
-    ax1.set_yticks(y, [_short_key(k, fl.swarm) for k in keys], fontsize=8)
-    ax1.invert_yaxis()
-    ax1.set_xlabel("messages recorded")
-    ax1.set_xlim(0, max(1.0, float(counts.max(initial=0.0))) * 1.3)
-    nrej = int(rej.sum())
-    ax1.set_title(
-        f"messages per key: {int(counts.sum())} recorded" + (f", {nrej} rejected by the decoder (red)" if nrej else ", none rejected"),
-        fontsize=10,
-    )
-    for yy, c, r in zip(y, counts, rej):
-        text = f"{int(c)}" + (f"  ({int(r)} rejected)" if r else "")
-        ax1.annotate(text, (c, yy), xytext=(2, 0), textcoords="offset points", va="center", fontsize=7, color="tab:red" if r else "black")
-    ax1.grid(True, axis="x", alpha=0.3)
-    if faults:
-        yf = np.arange(len(faults))
-        vals = np.array([v for _, v in faults])
-        ax2.barh(yf, vals, color=["tab:red" if v > 0 else "0.7" for v in vals])
-        ax2.set_yticks(yf, [lab for lab, _ in faults], fontsize=8)
-        ax2.invert_yaxis()
-        for yy, v in zip(yf, vals):
-            ax2.annotate(f"{v:g}", (v, yy), xytext=(2, 0), textcoords="offset points", va="center", fontsize=7)
-        ax2.set_xlim(0, max(1.0, float(vals.max()) * 1.15))
-        nz = int(np.count_nonzero(vals))
-        ax2.set_title(f"drop / reject / timeout counters ({nz} of {len(vals)} nonzero)", fontsize=10)
-    else:
-        ax2.text(0.5, 0.5, "no diag messages with drop/reject counters\nin this recording", ha="center", va="center", transform=ax2.transAxes)
-        ax2.set_title("drop / reject / timeout counters", fontsize=10)
-        ax2.set_yticks([])
-    ax2.set_xlabel("count (last diag message of each process)")
-    ax2.grid(True, axis="x", alpha=0.3)
+    _plot_key_counts(ax1, fl, keys)
+    _plot_fault_counters(ax2, faults)
     fig.suptitle(f"bus traffic of swarm '{fl.swarm}' ({fl.mode})")
     fig.savefig(path, dpi=_DPI)
     return path
@@ -690,18 +707,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Stand-alone entry (``python -m zenswarm.bridge.report ...``) until the CLI wires it."""
+    """Stand-alone entry (``python -m zenswarm.bridge.report ...``): the ``report`` command only
+    (``zenswarm`` wires ``report`` and ``export`` through :mod:`zenswarm.bridge.cli`; this module
+    does not import :mod:`zenswarm.bridge.foxglove`, which imports it)."""
     import sys
 
     parser = argparse.ArgumentParser(prog="zenswarm")
     sub = parser.add_subparsers(dest="command", required=True)
     add_parsers(sub)
-    try:
-        from zenswarm.bridge import foxglove
-    except ImportError:  # pragma: no cover
-        pass
-    else:
-        foxglove.add_parsers(sub)
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)

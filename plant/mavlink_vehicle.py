@@ -287,30 +287,37 @@ class SimVehicle:
             self._ack(m, self._arm(p[0] == 1, int(p[1]) == _FORCE_MAGIC if math.isfinite(p[1]) else False, now, q, yaw))
         elif m.command == mavlink.MAV_CMD_DO_SET_MODE:
             self._count("mode_requests")
-            if not (math.isfinite(p[0]) and int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED) or not all(
-                math.isfinite(x) for x in p[1:3]
-            ):
-                self._ack(m, mavlink.MAV_RESULT_UNSUPPORTED)
-                return
-            if self.opts.autopilot == "ardupilot":
-                cm = int(p[1])
-            else:
-                cm = px4_custom_mode(int(p[1]), int(p[2]))
-            self._ack(m, self._set_mode(cm, now, q, yaw))
+            self._ack(m, self._cmd_set_mode(p, now, q, yaw))
         elif m.command == mavlink.MAV_CMD_NAV_TAKEOFF and self.opts.autopilot == "ardupilot":
-            alt = p[6]
-            if not (self.armed and self.kind() == OFFBOARD and math.isfinite(alt) and alt > 0):
-                self._ack(m, mavlink.MAV_RESULT_DENIED)
-                return
-            self.pos_ned = frames.enu_to_ned([q[0], q[1], self.opts.ground_z + alt])
-            self.vel_ned = np.zeros(3)
-            self.pos_use, self.vel_use, self.yaw_ned = True, True, None
-            self.sp_kind = "position"
-            self.last_sp = now
-            self._ack(m, mavlink.MAV_RESULT_ACCEPTED)
+            self._ack(m, self._cmd_takeoff(p[6], now, q))
         else:
             self._count("unsupported_commands")
             self._ack(m, mavlink.MAV_RESULT_UNSUPPORTED)
+
+    def _cmd_set_mode(self, p: tuple[float, ...], now: float, q: np.ndarray, yaw: float) -> int:
+        """MAV_CMD_DO_SET_MODE (params: base mode with CUSTOM_MODE_ENABLED, custom (main) mode,
+        PX4 sub mode); the MAV_RESULT."""
+        if not (math.isfinite(p[0]) and int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED) or not all(
+            math.isfinite(x) for x in p[1:3]
+        ):
+            return mavlink.MAV_RESULT_UNSUPPORTED
+        if self.opts.autopilot == "ardupilot":
+            cm = int(p[1])
+        else:
+            cm = px4_custom_mode(int(p[1]), int(p[2]))
+        return self._set_mode(cm, now, q, yaw)
+
+    def _cmd_takeoff(self, alt: float, now: float, q: np.ndarray) -> int:
+        """ArduPilot MAV_CMD_NAV_TAKEOFF to ``alt`` m above the ground (armed, in GUIDED); the
+        MAV_RESULT."""
+        if not (self.armed and self.kind() == OFFBOARD and math.isfinite(alt) and alt > 0):
+            return mavlink.MAV_RESULT_DENIED
+        self.pos_ned = frames.enu_to_ned([q[0], q[1], self.opts.ground_z + alt])
+        self.vel_ned = np.zeros(3)
+        self.pos_use, self.vel_use, self.yaw_ned = True, True, None
+        self.sp_kind = "position"
+        self.last_sp = now
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _arm(self, arm: bool, force: bool, now: float, q: np.ndarray, yaw: float) -> int:
         if arm:
@@ -388,6 +395,25 @@ class SimVehicle:
     def update(self, now: float, q: np.ndarray, v: np.ndarray, rpy: np.ndarray) -> tuple[float, np.ndarray]:
         """Mode logic (failsafe, auto-disarm) and this period's command to the onboard attitude
         controller: (thrust F, N; attitude setpoint [phi, theta, psi], rad, ENU)."""
+        k = self._mode_logic(now, q, rpy)
+        if not self.armed:
+            return 0.0, np.array([0.0, 0.0, rpy[2]])
+        if k == OFFBOARD and self.sp_kind == "attitude":
+            return float(self.tmap.to_newtons(self.att_thrust)), frames.quat_ned_to_attitude(self.att_q)
+        if k == OFFBOARD and self.sp_kind == "position":
+            p_ref = frames.ned_to_enu(self.pos_ned) if self.pos_ned is not None else None
+            yaw = rpy[2] if self.yaw_ned is None else float(frames.euler_ned_to_enu([0.0, 0.0, self.yaw_ned])[2])
+            return self._pd(q, v, p_ref, frames.ned_to_enu(self.vel_ned), yaw)
+        if self.hold_enu is None:
+            self.hold_enu, self.hold_yaw = q.copy(), float(rpy[2])
+        if k == LAND:
+            p_ref = np.array([self.hold_enu[0], self.hold_enu[1], math.nan])
+            return self._pd(q, v, p_ref, np.array([0.0, 0.0, -self.opts.land_speed]), self.hold_yaw)
+        return self._pd(q, v, self.hold_enu, np.zeros(3), self.hold_yaw)  # HOLD (and unknown modes)
+
+    def _mode_logic(self, now: float, q: np.ndarray, rpy: np.ndarray) -> str | None:
+        """The autopilot's own mode changes this period (forced mode, offboard-loss failsafe:
+        hold then land, auto-disarm after landing); the mode kind it flies in."""
         if self.mode_override is not None and self.custom_mode != self.mode_override:
             self._enter(self.mode_override, q, rpy[2])
         k = self.kind()
@@ -404,21 +430,7 @@ class SimVehicle:
         if k == LAND and self.armed and self.on_ground and now - self.ground_since >= self.opts.disarm_after_land_s:
             self.armed = False  # landed: auto-disarm (PX4 COM_DISARM_LAND)
             self._count("auto_disarmed")
-        level = np.array([0.0, 0.0, rpy[2]])
-        if not self.armed:
-            return 0.0, level
-        if k == OFFBOARD and self.sp_kind == "attitude":
-            return float(self.tmap.to_newtons(self.att_thrust)), frames.quat_ned_to_attitude(self.att_q)
-        if k == OFFBOARD and self.sp_kind == "position":
-            p_ref = frames.ned_to_enu(self.pos_ned) if self.pos_ned is not None else None
-            yaw = rpy[2] if self.yaw_ned is None else float(frames.euler_ned_to_enu([0.0, 0.0, self.yaw_ned])[2])
-            return self._pd(q, v, p_ref, frames.ned_to_enu(self.vel_ned), yaw)
-        if self.hold_enu is None:
-            self.hold_enu, self.hold_yaw = q.copy(), float(rpy[2])
-        if k == LAND:
-            p_ref = np.array([self.hold_enu[0], self.hold_enu[1], math.nan])
-            return self._pd(q, v, p_ref, np.array([0.0, 0.0, -self.opts.land_speed]), self.hold_yaw)
-        return self._pd(q, v, self.hold_enu, np.zeros(3), self.hold_yaw)  # HOLD (and unknown modes)
+        return k
 
     def _pd(self, q: np.ndarray, v: np.ndarray, p_ref: np.ndarray | None, v_ref: np.ndarray, yaw: float) -> tuple[float, np.ndarray]:
         """The vehicle's position loop: a = Kp (p* - p) + Kd (v* - v) (a NaN axis of p* is not
