@@ -67,7 +67,6 @@ __all__ = [
     "MAX_CONTROL_RATE_HZ",
     "MAX_UAV_TICKS",
     "check_seed",
-    "seed_arg",
 ]
 
 # ----------------------------------------------------------------------------- bounds
@@ -299,21 +298,6 @@ def check_seed(value: Any, field: str = "scenario.seed") -> int:
     if not 0 <= v <= MAX_SEED:
         raise ScenarioError(field, f"expected a non-negative integer <= 2**63 - 1 ({MAX_SEED}), got {v}")
     return v
-
-
-def seed_arg(text: str) -> int:
-    """argparse ``type`` of ``--seed`` flags: :func:`check_seed` of an integer literal (a usage
-    error, exit status 2, otherwise)."""
-    import argparse
-
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
-    try:
-        return check_seed(v, "--seed")
-    except ScenarioError as e:
-        raise argparse.ArgumentTypeError(e.message) from None
 
 
 def _finite(path: str, x: Any) -> float:
