@@ -1,6 +1,6 @@
 """One-way latency of the swarm bus: put -> subscriber delivery, client -> router -> client.
 
-A router (``python -m zenswarm.bus``) and, per variant, one subscriber and one publisher
+A router (``python -m zenswarm.compose.router``) and, per variant, one subscriber and one publisher
 process, all on loopback. The publisher stamps each ~100-byte payload with
 ``time.monotonic_ns()`` (CLOCK_MONOTONIC is system-wide on Linux, so stamps compare across
 processes); the subscriber subtracts it from its own clock when the sample reaches Python.
@@ -166,7 +166,7 @@ def run_all(args: argparse.Namespace) -> None:
     """Start a router, run every variant ``rounds`` times in shuffled order, print pooled figures."""
     port = free_port()
     ep = tcp_endpoint(port)
-    router_argv = [sys.executable, "-m", "zenswarm.bus", "--listen", ep]
+    router_argv = [sys.executable, "-m", "zenswarm.compose.router", "--listen", ep]
     settings = _settings(args)
     if args.lowlatency:
         settings.update({"transport/unicast/lowlatency": True, "transport/unicast/qos/enabled": False})

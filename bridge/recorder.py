@@ -68,6 +68,7 @@ import msgpack
 from zenswarm import __version__, bus, security, wire
 from zenswarm.paths import check_output_file
 
+from .args import add_fault_args, add_security_args, client_security, link_faults
 from .mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME
 
 __all__ = [
@@ -577,7 +578,7 @@ def run(args: argparse.Namespace) -> int:
         # retry quickly while the swarm's router is not up yet
         settings={
             "connect/retry": {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2},
-            **security.client_fragments_from_args(PROCESS_NAME, args),
+            **security.client_fragments(PROCESS_NAME, client_security(args), connect=args.connect or (), swarm=args.swarm),
         },
     )
     try:
@@ -589,7 +590,7 @@ def run(args: argparse.Namespace) -> int:
     sink: McapSink | None = None
     fetcher: threading.Thread | None = None
     source = f"file:{args.scenario}" if scenario is not None else "pending: asking the leader's mission"
-    fault_args = _fault_argv(args)
+    fault_args = link_faults(args).argv()
     try:
         sink = McapSink(
             out,
@@ -631,14 +632,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"recorder: error: writing {out} failed: {sink.error!r}", file=sys.stderr, flush=True)
         return 3
     return 0
-
-
-def _fault_argv(args: argparse.Namespace) -> list[str]:
-    try:
-        from zenswarm.linkfaults import fault_argv
-    except ImportError:  # pragma: no cover - built without link faults
-        return []
-    return fault_argv(args)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -703,7 +696,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--chunk-size", type=int, default=DEFAULT_CHUNK_SIZE, metavar="BYTES", help="close a chunk at this size (default 1 MiB)"
     )
     p.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd", help="chunk compression (default zstd)")
-    security.add_security_args(p)
+    add_security_args(p)
     p.add_argument(
         "--diag-interval",
         type=float,
@@ -711,10 +704,5 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="S",
         help="publish the recorder's counters on diag/recorder every S seconds (recorded too; 0 = never; default 1)",
     )
-    try:
-        from zenswarm.linkfaults import add_fault_args
-    except ImportError:  # pragma: no cover - built without link faults
-        pass
-    else:
-        add_fault_args(p)  # not applied here: stored in the metadata for `replay --verify`
+    add_fault_args(p)  # not applied here: stored in the metadata for `replay --verify`
     p.set_defaults(func=main)

@@ -452,14 +452,12 @@ def _fault_plan(rec: Recording, sc: Any) -> Any:
     flags the recorder was given (metadata ``fault_args``). None when no fault was active."""
     import json
 
-    try:
-        from zenswarm.linkfaults import add_fault_args, plan_from_args
-    except ImportError:  # pragma: no cover - built without link faults
-        return None
+    from .args import add_fault_args, link_faults
+
     p = argparse.ArgumentParser(add_help=False)
     add_fault_args(p)
     words = json.loads(rec.info.get("fault_args", "[]"))
-    return plan_from_args(sc, p.parse_args(words))
+    return link_faults(p.parse_args(words)).plan(sc)
 
 
 def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> VerifyResult:

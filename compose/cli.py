@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from zenswarm.argtypes import positive_float
+from zenswarm.bridge.args import add_fault_args, link_faults, positive_float
 from zenswarm.errors import ZenswarmError
 
 EPILOG = """\
@@ -52,8 +52,6 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
         help="fly the whole time limit even after the outcome is decided (by default a stalled leader or a "
         "diverged UAV ends the run early; the verdict names the failure either way)",
     )
-    from zenswarm.linkfaults import add_fault_args
-
     add_fault_args(p)
     p.set_defaults(func=_run_sim)
 
@@ -64,13 +62,12 @@ def _run_sim(args: argparse.Namespace) -> int:
 
     from dataclasses import replace
 
-    from zenswarm.linkfaults import plan_from_args
     from zenswarm.paths import check_output_dir
 
     sc = apply_overrides(load_scenario(args.scenario), no_eso=args.no_eso, fixed_gain=args.fixed_gain)
     if args.seed is not None:
         sc = replace(sc, seed=args.seed)
-    faults = plan_from_args(sc, args)
+    faults = link_faults(args).plan(sc)
     check_output_dir(args.out, "--out")  # before the flight: a run must not be lost at the end
     return run_sim_cli(sc, args.out, quiet=args.quiet, faults=faults, full_time=args.full_time)
 
@@ -85,11 +82,9 @@ def _add_scenario(sub: argparse._SubParsersAction) -> None:
     )
     c.add_argument("scenario", type=Path)
     c.set_defaults(func=_run_check)
-    try:
-        from zenswarm import generate
-    except ImportError:  # pragma: no cover - generate is part of the package
-        return
-    generate.add_parser(ssub)
+    from zenswarm.compose.scenario_generate import add_parser as add_generate
+
+    add_generate(ssub)
 
 
 def _run_check(args: argparse.Namespace) -> int:
@@ -118,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_sim(sub)
     _add_scenario(sub)
-    for modname in ("zenswarm.compose.supervisor", "zenswarm.compose.roles", "zenswarm.bridge.cli", "zenswarm.security"):
+    for modname in ("zenswarm.compose.supervisor", "zenswarm.compose.roles", "zenswarm.bridge.cli", "zenswarm.compose.keys"):
         try:
             mod = __import__(modname, fromlist=["add_parsers"])
         except ImportError as e:

@@ -18,7 +18,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -26,10 +26,10 @@ import numpy as np
 import zenoh
 
 from zenswarm import bus, security, wire
-from zenswarm.argtypes import positive_float
+from zenswarm.bridge.args import add_fault_args, link_faults, positive_float
 from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import ScenarioError, ZenswarmError
-from zenswarm.linkfaults import add_fault_args, fault_argv, plan_for
+from zenswarm.linkfaults import LinkFaults
 from zenswarm.paths import check_output_dir, check_output_file
 from zenswarm.runtime import expected_senders, sample_sender
 
@@ -38,7 +38,7 @@ from zenswarm import verdict
 from zenswarm.collector import Collector
 from zenswarm.metrics import TimeSeries, add_failure, compute_results
 
-__all__ = ["add_parsers", "Supervisor", "role_names", "swarm_roles", "check_up_args"]
+__all__ = ["add_parsers", "UpOptions", "up_options", "Supervisor", "role_names", "swarm_roles", "check_up_args"]
 
 LIVE_CHECK_S = 0.25
 """Wall seconds between two looks at whether the flight's outcome is decided (early end)."""
@@ -79,6 +79,73 @@ def _pdeathsig() -> None:  # runs in the child between fork and exec
         pass
 
 
+@dataclass(frozen=True)
+class UpOptions:
+    """What ``zenswarm up`` was asked for: its flags, typed (built from the command line by
+    :func:`up_options`; the flags' help says what each means). Durations in wall seconds."""
+
+    scenario: Path
+    swarm: str = "default"
+    out: Path = Path("runs/up")
+    realtime: bool = False
+    plant: str = "sim"
+    mavlink_base_port: int | None = None
+    external: tuple[str, ...] = ()
+    external_timeout: float = DEFAULT_EXTERNAL_TIMEOUT_S
+    record: Path | None = None
+    report: bool = False
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    router_connect: tuple[str, ...] = ()
+    secure: bool = False
+    tls: bool = False
+    keys: Path | None = None
+    insecure: bool = False
+    only: str | None = None
+    lockstep_timeout: float = 5.0
+    kill: tuple[tuple[str, float], ...] = ()  # (process, sim time s)
+    restart: bool = False
+    stop_at_goal: bool = False
+    full_time: bool = False
+    progress_every: float = 1.0
+    quiet: bool = False
+    quiet_children: bool = False
+    faults: LinkFaults = field(default_factory=LinkFaults)
+
+
+def up_options(args: argparse.Namespace) -> UpOptions:
+    """The flags of ``zenswarm up`` (:func:`add_parsers`) as :class:`UpOptions`."""
+    return UpOptions(
+        scenario=args.scenario,
+        swarm=args.swarm,
+        out=args.out,
+        realtime=args.realtime,
+        plant=args.plant,
+        mavlink_base_port=args.mavlink_base_port,
+        external=tuple(args.external or ()),
+        external_timeout=args.external_timeout,
+        record=args.record,
+        report=args.report,
+        listen=tuple(args.listen or ()),
+        connect=tuple(args.connect or ()),
+        router_connect=tuple(args.router_connect or ()),
+        secure=args.secure,
+        tls=args.tls,
+        keys=args.keys,
+        insecure=args.insecure,
+        only=args.only,
+        lockstep_timeout=args.lockstep_timeout,
+        kill=tuple(args.kill or ()),
+        restart=args.restart,
+        stop_at_goal=args.stop_at_goal,
+        full_time=args.full_time,
+        progress_every=args.progress_every,
+        quiet=args.quiet,
+        quiet_children=args.quiet_children,
+        faults=link_faults(args),
+    )
+
+
 @dataclass
 class Child:
     name: str
@@ -92,7 +159,9 @@ class Child:
 class Supervisor:
     """Starts and watches one swarm. ``run()`` returns the exit code."""
 
-    def __init__(self, args: argparse.Namespace, scenario: Scenario) -> None:
+    def __init__(self, args: UpOptions, scenario: Scenario) -> None:
+        if args.plant == "mavlink":
+            args = replace(args, realtime=True)  # real vehicles (or their simulation over UDP) run on the wall clock
         self.args = args
         self.sc = scenario
         self.keys = wire.Keys(args.swarm)
@@ -106,7 +175,7 @@ class Supervisor:
         self.alive: set[str] = set()
         self.seen: set[str] = set()  # processes whose token appeared at least once
         self.gone_at: dict[str, tuple[float, int]] = {}  # process -> when its token went away (monotonic s, sim ns)
-        self.pending_kills: dict[str, int] = {role: wire.t_ns(t) for role, t in (args.kill or [])}
+        self.pending_kills: dict[str, int] = {role: wire.t_ns(t) for role, t in (args.kill or ())}
         self.policy = restart_policy(scenario.restart, force=args.restart)
         self.restart_at: dict[str, float] = {}
         self.restarts: dict[str, int] = {}
@@ -117,8 +186,6 @@ class Supervisor:
         self._in_slots_since: int | None = None
         self._deciding = False  # the live look saw the outcome decided; waiting for the exact tick
         self.recording_loss: dict | None = None  # the recorder died mid-flight (_recorder_died)
-        if args.plant == "mavlink":
-            args.realtime = True  # real vehicles (or their simulation over UDP) run on the wall clock
         self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n)
 
     # ------------------------------------------------------------------ output
@@ -138,38 +205,56 @@ class Supervisor:
 
     # ------------------------------------------------------------------ processes
     def child_argv(self, role: str) -> list[str]:
-        a = self.args
+        """The command line of ``role`` (a swarm role or ``recorder``), this interpreter's."""
         argv = [sys.executable, "-m", "zenswarm"]
         if role == "recorder":
-            argv += ["record", "--swarm", a.swarm, "--out", str(a.record), "--scenario", str(a.scenario)]
-            argv += [w for ep in self.connect_endpoints for w in ("--connect", ep)]
-            if a.realtime:
-                argv.append("--realtime")
-            if self.keys_dir is not None:
-                argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
-            return argv + fault_argv(a)
+            return argv + self._recorder_argv()
         if role == "vehicles":  # simulated MAVLink vehicles (no Zenoh): the bridge talks to them over UDP
+            a = self.args
             return argv + ["mavlink-vehicle", str(a.scenario), "--base-port", str(self.mav_base_port), "--telemetry-hz", "100"]
         if role == "bridge":
-            argv += ["bridge", "mavlink", str(a.scenario), "--base-port", str(self.mav_base_port), "--swarm", a.swarm]
-            argv += [w for ep in self.connect_endpoints for w in ("--connect", ep)]
-            if self.keys_dir is not None:
-                argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
-            return argv + fault_argv(a) + (["--expect", "recorder"] if a.record is not None else [])
-        if role == "plant" and a.record is not None:
-            argv += ["plant", "--expect", "recorder"]
-        elif role.startswith("agent:"):
-            argv += ["agent", "--id", role.split(":", 1)[1]]
-        elif role != "plant" or a.record is None:
-            argv += [role]
-        argv += ["--scenario", str(a.scenario), "--swarm", a.swarm, "--lockstep-timeout", str(a.lockstep_timeout)]
-        for ep in self.connect_endpoints:
-            argv += ["--connect", ep]
+            return argv + self._bridge_argv()
+        return argv + self._role_argv(role)
+
+    def _join_words(self) -> list[str]:
+        """``--connect`` each endpoint, then ``--keys DIR [--tls]`` in secure mode."""
+        words = [w for ep in self.connect_endpoints for w in ("--connect", ep)]
+        if self.keys_dir is not None:
+            words += ["--keys", str(self.keys_dir)] + (["--tls"] if self.args.tls else [])
+        return words
+
+    def _recorder_argv(self) -> list[str]:
+        a = self.args
+        argv = ["record", "--swarm", a.swarm, "--out", str(a.record), "--scenario", str(a.scenario)]
+        argv += [w for ep in self.connect_endpoints for w in ("--connect", ep)]
         if a.realtime:
             argv.append("--realtime")
         if self.keys_dir is not None:
             argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
-        return argv + fault_argv(a)
+        return argv + a.faults.argv()
+
+    def _bridge_argv(self) -> list[str]:
+        a = self.args
+        argv = ["bridge", "mavlink", str(a.scenario), "--base-port", str(self.mav_base_port), "--swarm", a.swarm]
+        argv += self._join_words()
+        return argv + a.faults.argv() + (["--expect", "recorder"] if a.record is not None else [])
+
+    def _role_argv(self, role: str) -> list[str]:
+        """plant, leader, agent:<i>: the plant waits for the recorder with ``--record``."""
+        a = self.args
+        if role == "plant" and a.record is not None:
+            argv = ["plant", "--expect", "recorder"]
+        elif role.startswith("agent:"):
+            argv = ["agent", "--id", role.split(":", 1)[1]]
+        else:
+            argv = [role]
+        argv += ["--scenario", str(a.scenario), "--swarm", a.swarm, "--lockstep-timeout", str(a.lockstep_timeout)]
+        argv += [w for ep in self.connect_endpoints for w in ("--connect", ep)]
+        if a.realtime:
+            argv.append("--realtime")
+        if self.keys_dir is not None:
+            argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
+        return argv + a.faults.argv()
 
     def spawn(self, role: str) -> Child:
         env = dict(os.environ)
@@ -238,9 +323,9 @@ class Supervisor:
         a = self.args
         sc = self.sc
         out: Path = a.out
-        listen = a.listen or [f"tcp/127.0.0.1:{bus.free_port()}"]
+        listen = list(a.listen) or [f"tcp/127.0.0.1:{bus.free_port()}"]
         settings, listen = self._security(listen, out)
-        self.connect_endpoints = a.connect or [ep for ep in listen]
+        self.connect_endpoints = list(a.connect) or list(listen)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
 
@@ -248,7 +333,7 @@ class Supervisor:
         if self.user_runtime is None:
             os.environ["ZENOH_RUNTIME"] = bus.ZENOH_RUNTIME_ROUTER
         session_cm = bus.open_session(
-            bus.router_config(listen, connect=a.router_connect or [], settings=settings), handle_signals=False
+            bus.router_config(listen, connect=list(a.router_connect), settings=settings), handle_signals=False
         )
         session = session_cm.__enter__()
         collector = self.collector = Collector(sc, self.keys)
@@ -289,8 +374,8 @@ class Supervisor:
         a = self.args
         self.keys_dir = None
         open_net = not all(security.is_loopback_endpoint(e) for e in listen)
-        secure = a.secure or a.tls or a.keys is not None or (open_net and not a.insecure)
-        if not secure:
+        asked = a.secure or a.tls or a.keys is not None
+        if not (asked or (open_net and not a.insecure)):
             if open_net:
                 self.say("WARNING: --insecure on a non-loopback address: anyone who reaches the router can command the swarm")
             return {}, listen
@@ -299,41 +384,51 @@ class Supervisor:
             listen = [security.tls_endpoint(e) for e in listen]
         # before anything starts: the processes would each die on such an endpoint
         try:
-            security.check_endpoints([*listen, *(a.connect or [])], auth)
+            security.check_endpoints([*listen, *a.connect], auth)
         except security.CredentialsError as e:
-            why = "secure mode" if (a.secure or a.tls or a.keys is not None) else "secure mode (the default when the router is not on loopback only)"
+            why = "secure mode" if asked else "secure mode (the default when the router is not on loopback only)"
             raise security.CredentialsError(f"{why}: {e}") from None
         if a.keys is not None:
-            # the user's own credentials: checked, never rewritten
-            self.keys_dir = a.keys
-            try:
-                why = security.manifest_mismatch(security.load_manifest(a.keys), self.sc, a.swarm)
-            except security.CredentialsError as e:
-                raise ScenarioError("--keys", str(e)) from None
-            if why:
-                raise ScenarioError(
-                    "--keys",
-                    f"the credentials in {a.keys} {why}; generate matching ones with "
-                    f"`zenswarm keys SCENARIO --swarm {a.swarm} --out DIR` (see docs/security.md)",
-                )
+            self.keys_dir = self._user_keys(a.keys)
         else:
-            # generated for this OUT: reused while they fit this swarm, else generated again
-            self.keys_dir = out / "keys"
-            check_output_dir(self.keys_dir, "--out")
-            why = None
-            if (self.keys_dir / security.MANIFEST_FILE).exists():
-                try:
-                    why = security.manifest_mismatch(security.load_manifest(self.keys_dir), self.sc, a.swarm, all_files=True)
-                except security.CredentialsError as e:
-                    why = f"are unreadable ({e})"
-            if why is not None or not (self.keys_dir / security.MANIFEST_FILE).exists():
-                security.generate_credentials(self.sc, self.keys_dir, a.swarm, force=True)
-                if why is None:
-                    self.say(f"generated credentials for this run in {self.keys_dir}")
-                else:
-                    self.say(f"regenerated the credentials in {self.keys_dir}: the previous ones {why}")
+            self.keys_dir = self._run_keys(out / "keys")
         self.say(f"secure mode: {'mutual TLS' if a.tls else 'user/password'} authentication, access control from the graph")
         return security.router_security_config(self.keys_dir, self.sc, a.swarm, auth=auth), listen
+
+    def _user_keys(self, keys: Path) -> Path:
+        """``--keys DIR``: the user's own credentials, checked against this swarm, never rewritten."""
+        swarm = self.args.swarm
+        try:
+            why = security.manifest_mismatch(security.load_manifest(keys), self.sc, swarm)
+        except security.CredentialsError as e:
+            raise ScenarioError("--keys", str(e)) from None
+        if why:
+            raise ScenarioError(
+                "--keys",
+                f"the credentials in {keys} {why}; generate matching ones with "
+                f"`zenswarm keys SCENARIO --swarm {swarm} --out DIR` (see docs/security.md)",
+            )
+        return keys
+
+    def _run_keys(self, keys_dir: Path) -> Path:
+        """Credentials generated for this OUT (``OUT/keys``): reused while they fit this swarm,
+        else generated again (and said so)."""
+        swarm = self.args.swarm
+        check_output_dir(keys_dir, "--out")
+        manifest = keys_dir / security.MANIFEST_FILE
+        why = None
+        if manifest.exists():
+            try:
+                why = security.manifest_mismatch(security.load_manifest(keys_dir), self.sc, swarm, all_files=True)
+            except security.CredentialsError as e:
+                why = f"are unreadable ({e})"
+        if why is not None or not manifest.exists():
+            security.generate_credentials(self.sc, keys_dir, swarm, force=True)
+            if why is None:
+                self.say(f"generated credentials for this run in {keys_dir}")
+            else:
+                self.say(f"regenerated the credentials in {keys_dir}: the previous ones {why}")
+        return keys_dir
 
     def all_roles(self) -> list[str]:
         """Every role of this swarm (whoever starts it), in start order."""
@@ -341,13 +436,13 @@ class Supervisor:
 
     def roles(self) -> list[str]:
         """The processes this supervisor starts, in start order (``--external`` ones excluded)."""
-        external = set(self.args.external or [])
+        external = set(self.args.external)
         return [r for r in self.all_roles() if r not in external]
 
     def external_roles(self) -> list[str]:
         """The ``--external`` roles this supervisor watches through their liveliness tokens (the
         simulated MAVLink vehicles have no Zenoh session: they cannot be watched)."""
-        external = set(self.args.external or [])
+        external = set(self.args.external)
         return [r for r in self.all_roles() if r in external and r != "vehicles"]
 
     def _report(self, out: Path) -> None:
@@ -416,20 +511,30 @@ class Supervisor:
                 self._deciding = True
                 return self._decided_exactly(collector)
         if self.args.stop_at_goal and collector.goal_tick is not None:
-            if not verdict.in_slots(q, c):
-                self._in_slots_since = None
-                return None
-            if self._in_slots_since is None:
-                self._in_slots_since = kmin
-            if kmin - self._in_slots_since + 1 >= c.settle_ticks:
-                ts = collector.series(kmin + 1, fill=self.args.realtime)  # the exact check
-                if len(ts.t) >= c.settle_ticks and verdict.in_slots(ts.q[-c.settle_ticks :], c):
-                    self.upto = kmin + 1
-                    return (
-                        f"goal reached at sim time {collector.goal_tick * c.dt:.2f} s and every UAV in its slot for "
-                        f"{c.settle_window_s:g} s at {kmin * c.dt:.2f} s; stopping (--stop-at-goal)"
-                    )
+            return self._settled_at_goal(collector, q, kmin)
         return None
+
+    def _settled_at_goal(self, collector: Collector, q: np.ndarray, kmin: int) -> str | None:
+        """``--stop-at-goal`` once the goal is reached: every UAV in its slot (``q`` (N, 3) m, the
+        newest states, the oldest of tick ``kmin``) for the settle window? Then say so and set
+        ``self.upto``."""
+        c = self.criteria
+        if not verdict.in_slots(q, c):
+            self._in_slots_since = None
+            return None
+        if self._in_slots_since is None:
+            self._in_slots_since = kmin
+        if kmin - self._in_slots_since + 1 < c.settle_ticks:
+            return None
+        ts = collector.series(kmin + 1, fill=self.args.realtime)  # the exact check
+        if not (len(ts.t) >= c.settle_ticks and verdict.in_slots(ts.q[-c.settle_ticks :], c)):
+            return None
+        self.upto = kmin + 1
+        goal_tick = collector.goal_tick if collector.goal_tick is not None else kmin
+        return (
+            f"goal reached at sim time {goal_tick * c.dt:.2f} s and every UAV in its slot for "
+            f"{c.settle_window_s:g} s at {kmin * c.dt:.2f} s; stopping (--stop-at-goal)"
+        )
 
     def _decided_exactly(self, collector: Collector) -> str | None:
         """The exact decision (:func:`zenswarm.verdict.decide_end`) on the ticks complete so far:
@@ -521,61 +626,23 @@ class Supervisor:
         return " ".join(out)
 
     def _watch(self, collector: Collector) -> int:
-        sc = self.sc
+        """Watch the flight until it ends; returns the exit code so far (see :meth:`_finish`)."""
         last_print = last_check = 0.0
-        goal = np.asarray(sc.leader.goal, dtype=float)
         wall0 = time.monotonic()
         while True:
             collector.poll(self._bus_sub)
             if self.stop.is_set():
                 self.say(f"stopping: {self.stop_reason}")
                 return EXIT_INTERRUPTED
-            done = True
             now = time.monotonic()
-            for c in list(self.children.values()):
-                if c.name in self.restart_at:
-                    done = False
-                    if now >= self.restart_at[c.name]:
-                        del self.restart_at[c.name]
-                        self.restarts[c.name] = self.restarts.get(c.name, 0) + 1
-                        self.say(f"restarting {c.name} (restart {self.restarts[c.name]} of {self.policy.max_restarts})")
-                        self.spawn(c.name)
-                    continue
-                rc = c.popen.poll()
-                if rc is None:
-                    if c.name not in ("recorder", "vehicles"):  # both are stopped once the rest is done
-                        done = False
-                    continue
-                if c.returncode is None:
-                    c.returncode = rc
-                    if c.name == "recorder":  # any exit before the end is a loss, never a failure
-                        self._recorder_died(c, rc, collector)
-                        continue
-                    if rc != 0:
-                        how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
-                        tail = "; last output: " + " | ".join(c.lines[-3:]) if c.lines else ""
-                        self.say(f"process {c.name} died ({how}) at sim time {max(collector.sim_t_ns, 0) / 1e9:.2f} s{tail}")
-                        self.deaths.append({"process": c.name, "how": how, "sim_time_s": max(collector.sim_t_ns, 0) / 1e9})
-                        delay = self.policy.delay(self.restarts.get(c.name, 0)) if self.policy.allows(c.name) else None
-                        if delay is not None:
-                            self.restart_at[c.name] = now + delay
-                            self.say(f"{c.name} will be restarted in {delay:.2f} s")
-                            done = False
-                            continue
-                        if self.policy.enabled and self.policy.allows(c.name):
-                            self.say(f"{c.name}: restart limit ({self.policy.max_restarts}) reached; aborting the mission")
-                        self.failed = c.name
-                        return EXIT_PROCESS_FAILED
-            code = self._watch_external(collector, now, wall0)
+            done, code = self._check_children(collector, now)
+            if code is None:
+                code = self._watch_external(collector, now, wall0)
             if code is not None:
                 return code
             if done:
                 return EXIT_OK
-            for role, at_ns in list(self.pending_kills.items()):
-                if collector.sim_t_ns >= at_ns and role in self.children and self.children[role].popen.poll() is None:
-                    self.say(f"injecting SIGKILL into {role} at sim time {collector.sim_t_ns / 1e9:.2f} s (--kill)")
-                    self.children[role].popen.kill()
-                    del self.pending_kills[role]
+            self._inject_kills(collector)
             if now - last_check >= LIVE_CHECK_S:
                 last_check = now
                 why = self._live_verdict(collector)
@@ -585,52 +652,98 @@ class Supervisor:
             now = time.monotonic()
             if now - last_print >= self.args.progress_every and not self.args.quiet:
                 last_print = now
-                t = max(collector.sim_t_ns, 0) / 1e9
-                lq = collector.leader_q
-                dist = f"{np.linalg.norm(lq - goal):.3f} m" if lq is not None else "-"
-                el = now - wall0
-                health = self._health()
-                self.say(
-                    f"t={t:6.2f}/{sc.timing.time_limit_s:g} s  {t / el if el > 0 else 0:5.1f}x  leader->goal {dist}  {health}"
-                )
+                self._progress(collector, now - wall0)
             time.sleep(0.05)
 
+    def _check_children(self, collector: Collector, now: float) -> tuple[bool, int | None]:
+        """One look at the processes started here (restarting those due): (all done, exit code
+        if one died for good, else None). The recorder and the vehicles never keep the run going."""
+        done = True
+        for c in list(self.children.values()):
+            if c.name in self.restart_at:
+                done = False
+                self._restart_if_due(c, now)
+                continue
+            rc = c.popen.poll()
+            if rc is None:
+                if c.name not in ("recorder", "vehicles"):  # both are stopped once the rest is done
+                    done = False
+                continue
+            if c.returncode is not None:
+                continue
+            c.returncode = rc
+            if c.name == "recorder":  # any exit before the end is a loss, never a failure
+                self._recorder_died(c, rc, collector)
+                continue
+            if rc != 0:
+                code = self._child_died(c, rc, collector, now)
+                if code is not None:
+                    return done, code
+                done = False
+        return done, None
+
+    def _restart_if_due(self, c: Child, now: float) -> None:
+        if now >= self.restart_at[c.name]:
+            del self.restart_at[c.name]
+            self.restarts[c.name] = self.restarts.get(c.name, 0) + 1
+            self.say(f"restarting {c.name} (restart {self.restarts[c.name]} of {self.policy.max_restarts})")
+            self.spawn(c.name)
+
+    def _child_died(self, c: Child, rc: int, collector: Collector, now: float) -> int | None:
+        """A process of ours exited with status ``rc`` != 0: schedule its restart (None) when the
+        policy allows, else the exit code (3)."""
+        how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
+        tail = "; last output: " + " | ".join(c.lines[-3:]) if c.lines else ""
+        self.say(f"process {c.name} died ({how}) at sim time {max(collector.sim_t_ns, 0) / 1e9:.2f} s{tail}")
+        self.deaths.append({"process": c.name, "how": how, "sim_time_s": max(collector.sim_t_ns, 0) / 1e9})
+        delay = self.policy.delay(self.restarts.get(c.name, 0)) if self.policy.allows(c.name) else None
+        if delay is not None:
+            self.restart_at[c.name] = now + delay
+            self.say(f"{c.name} will be restarted in {delay:.2f} s")
+            return None
+        if self.policy.enabled and self.policy.allows(c.name):
+            self.say(f"{c.name}: restart limit ({self.policy.max_restarts}) reached; aborting the mission")
+        self.failed = c.name
+        return EXIT_PROCESS_FAILED
+
+    def _inject_kills(self, collector: Collector) -> None:
+        """``--kill ROLE@T``: SIGKILL each role whose time has come (sim time)."""
+        for role, at_ns in list(self.pending_kills.items()):
+            if collector.sim_t_ns >= at_ns and role in self.children and self.children[role].popen.poll() is None:
+                self.say(f"injecting SIGKILL into {role} at sim time {collector.sim_t_ns / 1e9:.2f} s (--kill)")
+                self.children[role].popen.kill()
+                del self.pending_kills[role]
+
+    def _progress(self, collector: Collector, el: float) -> None:
+        """The progress line: sim time, speed-up over ``el`` wall seconds, leader to goal, health."""
+        sc = self.sc
+        t = max(collector.sim_t_ns, 0) / 1e9
+        lq = collector.leader_q
+        goal = np.asarray(sc.leader.goal, dtype=float)
+        dist = f"{np.linalg.norm(lq - goal):.3f} m" if lq is not None else "-"
+        health = self._health()
+        self.say(f"t={t:6.2f}/{sc.timing.time_limit_s:g} s  {t / el if el > 0 else 0:5.1f}x  leader->goal {dist}  {health}")
+
+    def _judged_ticks(self, collector: Collector, code: int, fill: bool) -> int | None:
+        """How many ticks the results judge: None for the whole time limit."""
+        if code == EXIT_OK:
+            return self.upto if self.upto >= 0 else None  # ended early, decided (or --stop-at-goal)
+        upto = int(max(collector.sim_t_ns, 0) // collector.dt_ns)  # stopped: the ticks flown so far
+        return upto if fill else collector.complete_ticks(upto)  # and only those whose every state arrived
+
     def _finish(self, collector: Collector, code: int, out: Path) -> int:
+        """Judge the flight, write OUT/results.json and OUT/timeseries.npz (and the report with
+        ``--report``); the exit code: ``code`` if not 0, else 0 or 1 by the verdict."""
         sc = self.sc
         # realtime, or a process that was down: a tick without a message holds the previous value
         fill = self.args.realtime or bool(self.deaths)
-        upto: int | None = None  # the whole time limit
-        if code == EXIT_OK and self.upto >= 0:  # ended early, decided (or --stop-at-goal)
-            upto = self.upto
-        elif code != EXIT_OK:  # stopped: the ticks flown so far
-            upto = int(max(collector.sim_t_ns, 0) // collector.dt_ns)
-            if not fill:  # and only those whose every state arrived
-                upto = collector.complete_ticks(upto)
-        ts = collector.series(upto, fill=fill)
+        ts = collector.series(self._judged_ticks(collector, code, fill), fill=fill)
         res = compute_results(ts, sc, wall_time_s=time.monotonic() - self.t_start, early_end=not self.args.full_time)
-        res["mode"] = "realtime" if self.args.realtime else "lockstep"
-        res["swarm"] = self.args.swarm
-        res["processes"] = {name: c.returncode for name, c in self.children.items()}
-        res["process_deaths"] = self.deaths
-        if self.args.record is not None:
-            res["recording"] = str(self.args.record)
-            if self.recording_loss is not None:
-                res["recording_loss"] = self.recording_loss
-        res["restarts"] = self.restarts
-        res["diagnostics"] = collector.diag
-        res["supervisor_zenoh_threads"] = bus.zenoh_threads()  # the router's (ZENOH_RUNTIME_ROUTER)
-        res["decoder_rejects"] = collector.decoder.counters()
-        res["foreign_samples"] = dict(sorted(collector.foreign_by_key.items()))  # not in the series
+        self._add_run_facts(res, collector)
         if collector.foreign:
             self.say(f"ignored {collector.foreign} messages from sessions that are not their key's process "
                      f"(on {len(collector.foreign_by_key)} keys; results.json: foreign_samples)")
-        t_end = res["sim_time_s"]
-        if code == EXIT_PROCESS_FAILED:
-            dead = getattr(self, "failed", "?")
-            how = next((d["how"] for d in reversed(self.deaths) if d["process"] == dead), "unknown")
-            add_failure(res, "process_died", f"process {dead} died ({how})", t_end, process=dead)
-        elif code == EXIT_INTERRUPTED:
-            add_failure(res, "interrupted", f"interrupted ({self.stop_reason}) at sim time {t_end:.2f} s", t_end)
+        self._add_stop_failure(res, code)
         out.mkdir(parents=True, exist_ok=True)
         ts.save(str(out / "timeseries.npz"))
         (out / "results.json").write_text(json.dumps(res, indent=2, sort_keys=True, default=str) + "\n")
@@ -645,25 +758,59 @@ class Supervisor:
             return code
         return EXIT_OK if res["success"] else EXIT_MISSION_FAILED
 
+    def _add_run_facts(self, res: dict[str, Any], collector: Collector) -> None:
+        """What results.json says of the run beside the verdict: mode, processes, recording, diagnostics."""
+        res["mode"] = "realtime" if self.args.realtime else "lockstep"
+        res["swarm"] = self.args.swarm
+        res["processes"] = {name: c.returncode for name, c in self.children.items()}
+        res["process_deaths"] = self.deaths
+        if self.args.record is not None:
+            res["recording"] = str(self.args.record)
+            if self.recording_loss is not None:
+                res["recording_loss"] = self.recording_loss
+        res["restarts"] = self.restarts
+        res["diagnostics"] = collector.diag
+        res["supervisor_zenoh_threads"] = bus.zenoh_threads()  # the router's (ZENOH_RUNTIME_ROUTER)
+        res["decoder_rejects"] = collector.decoder.counters()
+        res["foreign_samples"] = dict(sorted(collector.foreign_by_key.items()))  # not in the series
 
-def check_up_args(args: argparse.Namespace, sc: Scenario) -> None:
+    def _add_stop_failure(self, res: dict[str, Any], code: int) -> None:
+        """A run stopped by a dead process (3) or a signal (130) fails for that reason too."""
+        t_end = res["sim_time_s"]
+        if code == EXIT_PROCESS_FAILED:
+            dead = getattr(self, "failed", "?")
+            how = next((d["how"] for d in reversed(self.deaths) if d["process"] == dead), "unknown")
+            add_failure(res, "process_died", f"process {dead} died ({how})", t_end, process=dead)
+        elif code == EXIT_INTERRUPTED:
+            add_failure(res, "interrupted", f"interrupted ({self.stop_reason}) at sim time {t_end:.2f} s", t_end)
+
+
+def check_up_args(args: UpOptions, sc: Scenario) -> None:
     """Every flag of ``zenswarm up`` that names something (a role, an endpoint, an output path)
     is checked against ``sc`` before anything starts: :class:`ScenarioError` naming the flag,
     exit status 2, no process started and nothing lost."""
-    bus.check_endpoint_syntax(args.listen or [], "--listen", listen=True)
-    bus.check_endpoint_syntax(args.connect or [], "--connect")
-    bus.check_endpoint_syntax(args.router_connect or [], "--router-connect")
+    bus.check_endpoint_syntax(list(args.listen), "--listen", listen=True)
+    bus.check_endpoint_syntax(list(args.connect), "--connect")
+    bus.check_endpoint_syntax(list(args.router_connect), "--router-connect")
     if args.only:
         if args.only not in role_names(sc.n):
             raise ScenarioError("--only", f"unknown role {args.only!r}: this swarm's roles are {', '.join(role_names(sc.n))}")
         return  # one role here: nothing else is started, nothing written
     names = swarm_roles(sc.n, args.plant)
-    external = list(args.external or [])
-    for r in external:
+    for r in args.external:
         if r not in names:
             raise ScenarioError("--external", f"unknown role {r!r}: this swarm's roles are {', '.join(names)}")
+    _check_kills(args, sc, names)
+    check_output_dir(args.out, "--out")
+    if args.record is not None:
+        check_output_file(args.record, "--record")
+
+
+def _check_kills(args: UpOptions, sc: Scenario, names: list[str]) -> None:
+    """``--kill ROLE@T``: ROLE must be a process started here."""
+    external = list(args.external)
     started = [r for r in names if r not in external] + (["recorder"] if args.record is not None else [])
-    for role, t in args.kill or []:
+    for role, t in args.kill:
         if role in started:
             continue
         if role in external:
@@ -673,14 +820,12 @@ def check_up_args(args: argparse.Namespace, sc: Scenario) -> None:
         else:
             why = f"is not a process of this swarm ({sc.n} UAVs)"
         raise ScenarioError("--kill", f"{role}@{t:g}s: {role} {why}; processes started here: {', '.join(started)}")
-    check_output_dir(args.out, "--out")
-    if args.record is not None:
-        check_output_file(args.record, "--record")
 
 
-def _run_up(args: argparse.Namespace) -> int:
+def _run_up(ns: argparse.Namespace) -> int:
+    args = up_options(ns)
     sc = load_scenario(args.scenario)
-    plan_for(sc, args.link_delay, args.link_jitter, args.link_loss, args.partition, args.seed)  # bad flags: exit 2 now
+    args.faults.plan(sc)  # bad flags: exit 2 now
     check_up_args(args, sc)
     if args.only:
         return _run_only(args)
@@ -689,11 +834,11 @@ def _run_up(args: argparse.Namespace) -> int:
     return sup.run()
 
 
-def _run_only(args: argparse.Namespace) -> int:
+def _run_only(args: UpOptions) -> int:
     """``--only ROLE``: run one role of a swarm in this process, against a remote router."""
     from zenswarm.compose.cli import main as cli_main
 
-    role = args.only
+    role = args.only or ""
     argv: list[str]
     if role.startswith("agent:"):
         argv = ["agent", "--id", role.split(":", 1)[1]]

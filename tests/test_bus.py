@@ -465,3 +465,25 @@ def test_use_swarm_runtime_keeps_what_the_user_set(monkeypatch: pytest.MonkeyPat
     assert os.environ["ZENOH_RUNTIME"] == "(app: (worker_threads: 3))"
     # the router keeps its sending runtime apart (see ZENOH_RUNTIME_ROUTER's docstring)
     assert "tx: (handover" not in ZENOH_RUNTIME_ROUTER and "tx: (handover: app)" in ZENOH_RUNTIME_DEFAULT
+
+
+def test_router_command_serves_until_sigterm_and_refuses_a_bad_setting() -> None:
+    """``python -m zenswarm.compose.router``: ``ready <zid> <endpoint>`` once listening, a client
+    can join, SIGTERM ends it with status 0; a bad ``--set`` is exit status 1 naming it."""
+    ep = tcp_endpoint(free_port())
+    cmd = [sys.executable, "-m", "zenswarm.compose.router", "--listen", ep, "--set", "adminspace/enabled=true"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout is not None
+        line = p.stdout.readline().split()
+        assert line[0] == "ready" and line[-1] == ep, line
+        with open_session(client_config([ep], connect_timeout_s=5.0), handle_signals=False) as s:
+            assert s.zid() is not None
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(timeout=10) == 0
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    bad = subprocess.run([*cmd[:-2], "--set", "adminspace/enabled"], capture_output=True, text=True, timeout=30)
+    assert bad.returncode == 1 and "--set 'adminspace/enabled': expected PATH=JSON" in bad.stderr, bad.stderr

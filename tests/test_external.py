@@ -185,6 +185,8 @@ def test_external_watch_logic_without_processes(tmp_path: Path) -> None:
     by hand (it announces itself as ``bridge``)."""
     from types import SimpleNamespace
 
+    from zenswarm.collector import Collector
+    from zenswarm.compose.supervisor import EXIT_PROCESS_FAILED, EXTERNAL_GONE_GRACE_S, Supervisor, up_options
     from zenswarm import wire
     from zenswarm.collector import Collector
     from zenswarm.compose.cli import build_parser
@@ -196,7 +198,7 @@ def test_external_watch_logic_without_processes(tmp_path: Path) -> None:
 
     def supervisor(*extra: str) -> tuple[Supervisor, Collector]:
         args = build_parser().parse_args(["up", str(scenario), "--swarm", "u", *extra])
-        sup = Supervisor(args, sc)
+        sup = Supervisor(up_options(args), sc)
         sup.connect_endpoints = ["tcp/127.0.0.1:7447"]
         sup.collector = Collector(sc, sup.keys)
         return sup, sup.collector

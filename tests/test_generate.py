@@ -289,9 +289,11 @@ else:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from zenswarm.compose.scenario_generate import add_parser
+
     ap = argparse.ArgumentParser(prog="zenswarm scenario")
     sub = ap.add_subparsers(dest="cmd", required=True)
-    generate.add_parser(sub)
+    add_parser(sub)
     return ap
 
 

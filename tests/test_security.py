@@ -448,8 +448,10 @@ def test_refuses_to_overwrite_without_force(tmp_path, ex1):
 def test_cli_keys_prints_and_refuses_overwrite(tmp_path, capsys):
     import argparse
 
+    from zenswarm.compose.keys import add_parsers
+
     parser = argparse.ArgumentParser(prog="zenswarm")
-    security.add_parsers(parser.add_subparsers(dest="command"))
+    add_parsers(parser.add_subparsers(dest="command"))
     out = tmp_path / "keys"
     args = parser.parse_args(["keys", str(EX1), "--out", str(out), "--swarm", "cli", "--router-host", "192.168.1.10"])
     assert args.func(args) == 0
@@ -487,12 +489,17 @@ def test_client_config_from_a_copied_process_directory(tmp_path, ex1):
 def test_process_flags(tmp_path, ex1):
     import argparse
 
+    from zenswarm.bridge.args import add_security_args, client_security
+
     m = generate_credentials(ex1, tmp_path / "k", "demo")
     p = argparse.ArgumentParser()
     p.add_argument("--swarm", default="default")
     p.add_argument("--connect", action="append")
-    security.add_security_args(p)
-    frags = security.client_fragments_from_args
+    add_security_args(p)
+
+    def frags(process: str, a: argparse.Namespace) -> dict:
+        return security.client_fragments(process, client_security(a), connect=a.connect or (), swarm=a.swarm)
+
     assert frags("agent:1", p.parse_args([])) == {}  # an open swarm
     a = p.parse_args(["--swarm", "demo", "--keys", str(m.root), "--connect", "tcp/127.0.0.1:7447"])
     assert frags("agent:1", a)["transport/auth/usrpwd/user"] == "agent-1@demo"

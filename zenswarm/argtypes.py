@@ -1,21 +1,19 @@
-"""argparse ``type=`` functions shared by the commands: a bad value is a usage error (exit 2)
-naming the flag, before any work. The seed's is :func:`zenswarm.config.seed_arg`."""
+"""TRANSITIONAL (issue 14): the flag helpers that :mod:`zenswarm.runtime` and the role processes
+still import from the base, re-exported from their home at the edge, :mod:`zenswarm.bridge.args`.
+
+Nothing below the edges should see argparse; this module (and the ``add_fault_args`` /
+``add_security_args`` wrappers of :mod:`zenswarm.linkfaults` and :mod:`zenswarm.security`) goes
+once runtime.py and the roles take typed options. pyproject's import contracts name the imports
+that still point upwards because of it (``ignore_imports``, marked TRANSITIONAL).
+"""
 
 from __future__ import annotations
 
-import argparse
-import math
+from zenswarm.bridge.args import (
+    add_fault_args,
+    add_security_args,
+    positive_float,
+    seed_arg,
+)
 
-__all__ = ["positive_float"]
-
-
-def positive_float(text: str) -> float:
-    """A finite number > 0 (``--fixed-gain``, ``--lockstep-timeout``, ``--external-timeout``,
-    ``scenario generate --spacing``): 0, negatives, nan and inf are refused."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0 (positive), got {text!r}")
-    return v
+__all__ = ["positive_float", "seed_arg", "add_fault_args", "add_security_args"]

@@ -3,7 +3,7 @@
 This is where messages cross the network; payloads are built and checked by :mod:`zenswarm.wire`.
 
 Topology: one router per swarm (``mode: router``, possibly inside a Python process, see
-``python -m zenswarm.bus``) and every swarm process a client of it. Multicast scouting and
+``python -m zenswarm.compose.router``) and every swarm process a client of it. Multicast scouting and
 gossip are off everywhere, so a session only ever talks to the endpoints it was given: two
 swarms on different router ports never see each other, even with the same swarm name.
 
@@ -30,14 +30,12 @@ Exiting cleanly (observed with eclipse-zenoh 1.10.2; ``tests/test_bus.py`` check
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import ctypes
 import json
 import os
 import signal
 import socket
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -70,7 +68,7 @@ __all__ = [
     "declare_alive",
     "AliveWatcher",
     "wait_matching",
-    "main",
+    "serve_router",
 ]
 
 ZENOH_RUNTIME_DEFAULT: Final = "(rx: (handover: app), tx: (handover: app), net: (handover: app), acc: (handover: app), app: (worker_threads: 1))"
@@ -493,37 +491,12 @@ def wait_matching(publisher: zenoh.Publisher, timeout: float = 5.0, poll_s: floa
 # --------------------------------------------------------------------------- router process
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m zenswarm.bus --listen tcp/127.0.0.1:7447 [--set PATH=JSON ...]``: run a swarm
-    router until SIGTERM/SIGINT (exit 0). Prints one line ``ready <zid> <endpoints...>`` once
-    listening; exit 1 with a message on stderr if it cannot start."""
-    parser = argparse.ArgumentParser(prog="python -m zenswarm.bus", description="Run a zenswarm Zenoh router.")
-    parser.add_argument("--listen", action="append", required=True, help="endpoint, e.g. tcp/127.0.0.1:7447")
-    parser.add_argument("--connect", action="append", default=[], help="another router to link to")
-    parser.add_argument(
-        "--set", action="append", default=[], metavar="PATH=JSON", help="config setting, e.g. adminspace/enabled=true"
-    )
-    args = parser.parse_args(argv)
-    try:
-        settings = {}
-        for item in args.set:
-            path, sep, value = item.partition("=")
-            if not sep:
-                raise BusError(f"--set {item!r}: expected PATH=JSON")
-            try:
-                settings[path] = json.loads(value)
-            except json.JSONDecodeError as e:
-                raise BusError(f"--set {item!r}: {e}") from None
-        with open_session(router_config(args.listen, connect=args.connect, settings=settings)) as session:
-            print("ready", session.zid(), *args.listen, flush=True)
-            while True:  # bounded by a signal: Shutdown ends it
-                signal.pause()
-    except Shutdown:
-        return 0
-    except BusError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+def serve_router(listen: Sequence[str], connect: Sequence[str] = (), settings: Mapping[str, Any] | None = None) -> None:
+    """Run a swarm router listening on ``listen`` (linked to the routers ``connect``, with extra
+    config ``settings`` {path: value}) until SIGTERM/SIGINT, which raise :class:`Shutdown`.
+    Prints one line ``ready <zid> <endpoints...>`` once listening; :class:`BusError` if it cannot
+    start. The command is ``python -m zenswarm.compose.router``."""
+    with open_session(router_config(list(listen), connect=list(connect), settings=settings or {})) as session:
+        print("ready", session.zid(), *listen, flush=True)
+        while True:  # bounded by a signal: Shutdown ends it
+            signal.pause()

@@ -98,7 +98,6 @@ __all__ = [
     "MAX_CONTROL_RATE_HZ",
     "MAX_UAV_TICKS",
     "check_seed",
-    "seed_arg",
 ]
 
 # ----------------------------------------------------------------------------- bounds
@@ -178,19 +177,6 @@ def formation_radius(offsets: Any) -> float:
 # ----------------------------------------------------------------------------- parsing
 
 
-def seed_arg(text: str) -> int:
-    """argparse ``type`` of ``--seed`` flags: :func:`check_seed` of an integer literal (a usage
-    error, exit status 2, otherwise)."""
-    import argparse
-
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
-    try:
-        return check_seed(v, "--seed")
-    except ScenarioError as e:
-        raise argparse.ArgumentTypeError(e.message) from None
 
 
 def scenario_from_dict(d: dict[str, Any]) -> Scenario:

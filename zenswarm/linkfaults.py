@@ -17,15 +17,15 @@ Realtime: the same decision per (link, tick of the message) on receipt; a kept m
 
 from __future__ import annotations
 
-import argparse
 import heapq
 import itertools
+from dataclasses import dataclass
 from typing import Any, Callable
 
-from .config import Scenario, seed_arg
+from .config import Scenario
 from .faults import FaultPlan, FaultState, LinkInbox, plan_from_cli, plan_from_scenario
 
-__all__ = ["Box", "plan_for", "plan_from_args", "add_fault_args", "fault_argv", "DelayLine", "box_counters"]
+__all__ = ["Box", "LinkFaults", "plan_for", "plan_from_args", "add_fault_args", "DelayLine", "box_counters"]
 
 
 class Box(LinkInbox):
@@ -67,50 +67,60 @@ def plan_for(
     return plan if plan.active else None
 
 
-def add_fault_args(p: argparse.ArgumentParser) -> None:
-    """The whole-swarm fault shortcuts (also valid in a scenario's [faults] table)."""
-    g = p.add_argument_group("link faults (applied where messages are received; see docs/faults.md)")
-    g.add_argument("--link-delay", metavar="DUR", help="fixed delay on every link, e.g. 50ms")
-    g.add_argument("--link-jitter", metavar="DUR", help="uniform jitter +-DUR on every link's delay, e.g. 10ms")
-    g.add_argument("--link-loss", metavar="P", help="independent loss probability on every link, e.g. 0.2 or 20%%")
-    g.add_argument(
-        "--partition",
-        action="append",
-        default=[],
-        metavar="WHO@T1-T2",
-        help="cut every link of a process (agent:2@10s-13s) or one directed link (agent:1->agent:2@1s-2s); repeatable",
-    )
-    g.add_argument(
-        "--seed",
-        type=seed_arg,
-        default=None,
-        help="seed of disturbances and fault decisions, 0 to 2**63-1 (default: the scenario's)",
-    )
+@dataclass(frozen=True)
+class LinkFaults:
+    """The whole-swarm fault shortcuts of a run, as given on the command line (``--link-delay``,
+    ``--link-jitter``, ``--link-loss``, ``--partition``, ``--seed``; the edges parse them, see
+    :mod:`zenswarm.bridge.args`). Texts are checked by :meth:`plan` (``ScenarioError`` naming
+    the flag); ``seed`` None means the scenario's."""
+
+    link_delay: str | None = None
+    link_jitter: str | None = None
+    link_loss: str | None = None
+    partitions: tuple[str, ...] = ()
+    seed: int | None = None
+
+    def plan(self, scenario: Scenario) -> FaultPlan | None:
+        """The fault plan of a run of ``scenario`` with these shortcuts (:func:`plan_for`)."""
+        return plan_for(scenario, self.link_delay, self.link_jitter, self.link_loss, self.partitions, self.seed)
+
+    def argv(self) -> list[str]:
+        """These shortcuts as command-line words (the supervisor passes them on to its processes;
+        the recorder stores them for ``replay --verify``)."""
+        out: list[str] = []
+        for flag, v in (("--link-delay", self.link_delay), ("--link-jitter", self.link_jitter), ("--link-loss", self.link_loss)):
+            if v is not None:
+                out += [flag, str(v)]
+        for part in self.partitions:
+            out += ["--partition", part]
+        if self.seed is not None:
+            out += ["--seed", str(self.seed)]
+        return out
 
 
-def plan_from_args(scenario: Scenario, args: argparse.Namespace) -> FaultPlan | None:
-    return plan_for(
-        scenario,
-        getattr(args, "link_delay", None),
-        getattr(args, "link_jitter", None),
-        getattr(args, "link_loss", None),
-        getattr(args, "partition", None) or (),
-        getattr(args, "seed", None),
-    )
+# TRANSITIONAL (issue 14): zenswarm.runtime and the role processes (agents/, leader/, plant/,
+# bridge/mavlink.py) still parse their own flags; once they take typed options, delete these two
+# and zenswarm/argtypes.py. Everything else uses LinkFaults and zenswarm.bridge.args.
 
 
-def fault_argv(args: argparse.Namespace) -> list[str]:
-    """The fault flags of ``args`` as command-line words (the supervisor passes them on)."""
-    out: list[str] = []
-    for flag, name in (("--link-delay", "link_delay"), ("--link-jitter", "link_jitter"), ("--link-loss", "link_loss")):
-        v = getattr(args, name, None)
-        if v is not None:
-            out += [flag, str(v)]
-    for part in getattr(args, "partition", None) or ():
-        out += ["--partition", part]
-    if getattr(args, "seed", None) is not None:
-        out += ["--seed", str(args.seed)]
-    return out
+def add_fault_args(p: Any) -> None:
+    """TRANSITIONAL: the fault flags for :func:`zenswarm.runtime.add_common_args` (the edges use
+    :func:`zenswarm.bridge.args.add_fault_args`)."""
+    from .argtypes import add_fault_args as add
+
+    add(p)
+
+
+def plan_from_args(scenario: Scenario, options: Any) -> FaultPlan | None:
+    """TRANSITIONAL: :meth:`LinkFaults.plan` of the fault fields of ``options`` (any object with
+    ``link_delay``, ``link_jitter``, ``link_loss``, ``partition``, ``seed`` attributes)."""
+    return LinkFaults(
+        getattr(options, "link_delay", None),
+        getattr(options, "link_jitter", None),
+        getattr(options, "link_loss", None),
+        tuple(getattr(options, "partition", None) or ()),
+        getattr(options, "seed", None),
+    ).plan(scenario)
 
 
 def box_counters(boxes: dict[str, Box]) -> dict[str, int]:

@@ -33,13 +33,11 @@ fragments ({config path: value}) and :func:`apply_config` to insert them into a 
 
 from __future__ import annotations
 
-import argparse
 import datetime as _dt
 import ipaddress
 import json
 import os
 import secrets
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Literal, Mapping
@@ -70,9 +68,10 @@ __all__ = [
     "tls_endpoint",
     "check_endpoints",
     "is_loopback_endpoint",
+    "ClientSecurity",
+    "client_fragments",
     "add_security_args",
     "client_fragments_from_args",
-    "add_parsers",
 ]
 
 AuthMode = Literal["usrpwd", "tls"]
@@ -479,16 +478,29 @@ def generate_credentials(
     swarm = wire.validate_swarm_name(swarm)
     if not isinstance(days, int) or days < 1:
         raise CredentialsError(f"days: expected an integer >= 1, got {days!r}")
-    hosts = tuple(dict.fromkeys([*DEFAULT_ROUTER_HOSTS, *[str(h).strip() for h in router_hosts if str(h).strip()]]))
-    for h in hosts:
-        if any(c in h for c in " /:") and not _is_ip(h):
-            raise CredentialsError(f"router host {h!r}: expected a DNS name or an IP address")
+    hosts = _router_hosts(router_hosts)
     root = Path(out_dir).resolve()
     now = _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0)
     not_before = now - _dt.timedelta(hours=1)  # tolerate small clock skew between hosts
     not_after = now + _dt.timedelta(days=days)
     plan = _plan(root, swarm, sc, hosts, not_after.isoformat())
+    _clear_previous(root, plan, force)
+    _write_credentials(plan, swarm, hosts, not_before, not_after)
+    return plan
 
+
+def _router_hosts(router_hosts: Iterable[str]) -> tuple[str, ...]:
+    """The router certificate's names: the defaults, then ``router_hosts`` (stripped, no
+    duplicates); :class:`CredentialsError` for one that is neither a DNS name nor an IP address."""
+    hosts = tuple(dict.fromkeys([*DEFAULT_ROUTER_HOSTS, *[str(h).strip() for h in router_hosts if str(h).strip()]]))
+    for h in hosts:
+        if any(c in h for c in " /:") and not _is_ip(h):
+            raise CredentialsError(f"router host {h!r}: expected a DNS name or an IP address")
+    return hosts
+
+
+def _clear_previous(root: Path, plan: Manifest, force: bool) -> None:
+    """Refuse to overwrite credentials under ``root`` unless ``force``; then remove them."""
     existing = [p for p in plan.files() if p.exists()]
     if (root / MANIFEST_FILE).exists() or existing:
         if not force:
@@ -496,6 +508,13 @@ def generate_credentials(
             raise CredentialsError(f"{what} already exists: refusing to overwrite credentials (use --force)")
         _remove_previous(root, existing)
 
+
+def _write_credentials(
+    plan: Manifest, swarm: str, hosts: tuple[str, ...], not_before: _dt.datetime, not_after: _dt.datetime
+) -> None:
+    """Write every file of ``plan``: the CA, then per process its password, key and certificate
+    (the router's with ``hosts`` as subjectAltNames), the router's user:password file, the manifest."""
+    root = plan.root
     _mkdir(root)
     for d in {plan.ca_cert.parent, plan.usrpwd_file.parent, *(p.dir for p in plan.processes)}:
         _mkdir(d)
@@ -519,7 +538,6 @@ def generate_credentials(
         _write(p.ca_cert, ca_pem, _PUB_MODE)
     _write(plan.usrpwd_file, "".join(lines).encode(), _KEY_MODE)
     _write(root / MANIFEST_FILE, (json.dumps(plan.to_dict(), indent=2) + "\n").encode(), _PUB_MODE)
-    return plan
 
 
 def _is_ip(h: str) -> bool:
@@ -893,32 +911,51 @@ def is_loopback_endpoint(endpoint: str) -> bool:
         return False
 
 
-def add_security_args(p: argparse.ArgumentParser) -> None:
-    """``--keys DIR`` and ``--tls``: the flags a swarm process takes to join a secured router
-    (see :func:`client_fragments_from_args`)."""
-    p.add_argument(
-        "--keys",
-        type=Path,
-        default=None,
-        metavar="DIR",
-        help="credentials written by `zenswarm keys` (the whole tree, or just this process's directory); "
-        "joins the router with this process's user and password",
-    )
-    p.add_argument("--tls", action="store_true", help="with --keys: authenticate by mutual TLS instead (tls/ endpoints)")
+@dataclass(frozen=True)
+class ClientSecurity:
+    """How a swarm process joins its router: ``keys`` the credentials written by
+    ``zenswarm keys`` (the whole tree or this process's directory; None: an open swarm), ``tls``
+    mutual TLS instead of user/password (``--keys DIR``, ``--tls``; parsed at the edges by
+    :mod:`zenswarm.bridge.args`)."""
+
+    keys: Path | None = None
+    tls: bool = False
 
 
-def client_fragments_from_args(process: str, args: argparse.Namespace) -> dict[str, Any]:
-    """Config fragments for ``process`` from the flags of :func:`add_security_args` (and
-    ``--swarm``, ``--connect`` when present); ``{}`` without ``--keys`` (an open swarm)."""
-    keys = getattr(args, "keys", None)
-    if keys is None:
-        if getattr(args, "tls", False):
+def client_fragments(
+    process: str, sec: ClientSecurity, *, connect: Iterable[str] = (), swarm: str | None = None
+) -> dict[str, Any]:
+    """Config fragments for ``process`` joining with ``sec`` through the router endpoints
+    ``connect`` (checked against the auth mode) as a process of ``swarm``; ``{}`` without keys
+    (an open swarm). :class:`CredentialsError` naming the flag (``--tls``) otherwise."""
+    if sec.keys is None:
+        if sec.tls:
             raise CredentialsError("--tls needs --keys DIR")
         return {}
-    auth: AuthMode = "tls" if getattr(args, "tls", False) else "usrpwd"
-    if getattr(args, "connect", None):
-        check_endpoints(args.connect, auth)
-    return client_security_config(process, keys, auth=auth, swarm=getattr(args, "swarm", None))
+    auth: AuthMode = "tls" if sec.tls else "usrpwd"
+    endpoints = list(connect)
+    if endpoints:
+        check_endpoints(endpoints, auth)
+    return client_security_config(process, sec.keys, auth=auth, swarm=swarm)
+
+
+# TRANSITIONAL (issue 14): zenswarm.runtime still builds its parser from the base; once it takes
+# typed options, delete these two (the edges use zenswarm.bridge.args and client_fragments).
+
+
+def add_security_args(p: Any) -> None:
+    """TRANSITIONAL: ``--keys DIR`` and ``--tls`` for :func:`zenswarm.runtime.add_common_args`
+    (the edges use :func:`zenswarm.bridge.args.add_security_args`)."""
+    from .argtypes import add_security_args as add
+
+    add(p)
+
+
+def client_fragments_from_args(process: str, options: Any) -> dict[str, Any]:
+    """TRANSITIONAL: :func:`client_fragments` of the ``keys``, ``tls``, ``connect`` and ``swarm``
+    attributes of ``options``."""
+    sec = ClientSecurity(getattr(options, "keys", None), bool(getattr(options, "tls", False)))
+    return client_fragments(process, sec, connect=getattr(options, "connect", None) or (), swarm=getattr(options, "swarm", None))
 
 
 def tls_endpoint(endpoint: str) -> str:
@@ -927,56 +964,3 @@ def tls_endpoint(endpoint: str) -> str:
     if not sep or proto not in ("tcp", "tls"):
         raise CredentialsError(f"endpoint {endpoint!r}: expected tcp/<host>:<port> or tls/<host>:<port>")
     return f"tls/{rest}"
-
-
-# --------------------------------------------------------------------------- CLI
-
-
-def add_parsers(sub: argparse._SubParsersAction) -> None:
-    """Add ``zenswarm keys``."""
-    p = sub.add_parser(
-        "keys",
-        help="generate credentials for an authenticated swarm (users, passwords, CA, certificates)",
-        description=(
-            "Generate credentials for every process of SCENARIO (plant, leader, agent:1..N, "
-            "recorder, bridge, supervisor): a user name and random password each (for "
-            "`zenswarm up --secure`), and a CA with one certificate and key each (mutual TLS, "
-            "`--secure --tls`). Keys and passwords are written 0600. Copy OUT/<process>/ to the "
-            "host that runs that process; OUT/router/ and OUT/supervisor/ to the router's host; "
-            "keep OUT/ca/ca-key.pem off the swarm. See docs/security.md."
-        ),
-    )
-    p.add_argument("scenario", type=Path, help="scenario TOML file (its graph sets the access rules' shape)")
-    p.add_argument("--out", type=Path, required=True, help="output directory")
-    p.add_argument("--swarm", default="default", help="swarm name (key prefix swarm/<name>); default: default")
-    p.add_argument(
-        "--router-host",
-        action="append",
-        default=[],
-        metavar="HOST",
-        help="a DNS name or IP address other hosts use to reach the router (repeatable); "
-        "localhost, 127.0.0.1 and ::1 are always included",
-    )
-    p.add_argument("--days", type=int, default=DEFAULT_DAYS, help=f"certificate validity in days (default {DEFAULT_DAYS})")
-    p.add_argument("--force", action="store_true", help="replace existing credentials in OUT")
-    p.set_defaults(func=_run_keys)
-
-
-def _run_keys(args: argparse.Namespace) -> int:
-    from .paths import check_output_dir
-
-    check_output_dir(args.out, "--out")
-    m = generate_credentials(
-        args.scenario, args.out, args.swarm, router_hosts=args.router_host, days=args.days, force=args.force
-    )
-    rel = lambda p: os.path.relpath(p, Path.cwd())  # noqa: E731
-    print(f"credentials for swarm '{m.swarm}' (scenario {m.scenario}, {m.n} UAVs) in {rel(m.root)}:")
-    print(f"  {rel(m.ca_cert)}  CA certificate (valid until {m.not_after})")
-    print(f"  {rel(m.ca_key)}  CA private key (0600): keep it off the swarm's hosts")
-    print(f"  {rel(m.usrpwd_file)}  user:password dictionary (0600): router host only")
-    for p in m.processes:
-        extra = f"  router names: {', '.join(m.router_hosts)}" if p.process == ROUTER_PROCESS else ""
-        print(f"  {rel(p.dir)}/  {p.process:<11} user {p.user}; credentials.json, key.pem (0600), cert.pem, ca.pem{extra}")
-    print(f"  {rel(m.root / MANIFEST_FILE)}  manifest (no secrets)")
-    sys.stdout.flush()
-    return 0

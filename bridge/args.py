@@ -1,0 +1,90 @@
+"""Command-line flags shared by the edges (``bridge/`` and ``compose/``), and the typed values
+they parse into. Nothing below the edges sees argparse: the base and the roles take
+:class:`zenswarm.linkfaults.LinkFaults`, :class:`zenswarm.security.ClientSecurity`, plain values.
+
+A bad value is a usage error naming the flag (exit status 2), before any work starts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from zenswarm.config import check_seed
+from zenswarm.errors import ScenarioError
+from zenswarm.linkfaults import LinkFaults
+from zenswarm.security import ClientSecurity
+
+__all__ = ["positive_float", "seed_arg", "add_fault_args", "link_faults", "add_security_args", "client_security"]
+
+
+def positive_float(text: str) -> float:
+    """argparse ``type`` of a finite number > 0 (``--fixed-gain``, ``--lockstep-timeout``,
+    ``--external-timeout``, ``scenario generate --spacing``): 0, negatives, nan and inf are refused."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0 (positive), got {text!r}")
+    return v
+
+
+def seed_arg(text: str) -> int:
+    """argparse ``type`` of ``--seed`` flags: :func:`zenswarm.config.check_seed` of an integer
+    literal (a usage error, exit status 2, otherwise)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
+    try:
+        return check_seed(v, "--seed")
+    except ScenarioError as e:
+        raise argparse.ArgumentTypeError(e.message) from None
+
+
+def add_fault_args(p: argparse.ArgumentParser) -> None:
+    """The whole-swarm fault shortcuts (also valid in a scenario's [faults] table); read them
+    back with :func:`link_faults`."""
+    g = p.add_argument_group("link faults (applied where messages are received; see docs/faults.md)")
+    g.add_argument("--link-delay", metavar="DUR", help="fixed delay on every link, e.g. 50ms")
+    g.add_argument("--link-jitter", metavar="DUR", help="uniform jitter +-DUR on every link's delay, e.g. 10ms")
+    g.add_argument("--link-loss", metavar="P", help="independent loss probability on every link, e.g. 0.2 or 20%%")
+    g.add_argument(
+        "--partition",
+        action="append",
+        default=[],
+        metavar="WHO@T1-T2",
+        help="cut every link of a process (agent:2@10s-13s) or one directed link (agent:1->agent:2@1s-2s); repeatable",
+    )
+    g.add_argument(
+        "--seed",
+        type=seed_arg,
+        default=None,
+        help="seed of disturbances and fault decisions, 0 to 2**63-1 (default: the scenario's)",
+    )
+
+
+def link_faults(args: argparse.Namespace) -> LinkFaults:
+    """The flags of :func:`add_fault_args` as a typed value."""
+    return LinkFaults(args.link_delay, args.link_jitter, args.link_loss, tuple(args.partition or ()), args.seed)
+
+
+def add_security_args(p: argparse.ArgumentParser) -> None:
+    """``--keys DIR`` and ``--tls``: the flags a swarm process takes to join a secured router;
+    read them back with :func:`client_security`."""
+    p.add_argument(
+        "--keys",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="credentials written by `zenswarm keys` (the whole tree, or just this process's directory); "
+        "joins the router with this process's user and password",
+    )
+    p.add_argument("--tls", action="store_true", help="with --keys: authenticate by mutual TLS instead (tls/ endpoints)")
+
+
+def client_security(args: argparse.Namespace) -> ClientSecurity:
+    """The flags of :func:`add_security_args` as a typed value."""
+    return ClientSecurity(keys=args.keys, tls=bool(args.tls))
