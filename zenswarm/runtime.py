@@ -30,25 +30,26 @@ the first session's id in its ``SourceInfo`` as well.
 
 from __future__ import annotations
 
-import argparse
 import signal
 import sys
 import threading
 import time
 from collections import defaultdict, deque
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import zenoh
 
 from . import bus, security, wire
-from .argtypes import positive_float
 from .config import Scenario, load_scenario, scenario_from_dict
 from .errors import ScenarioError, ZenswarmError
 
-__all__ = ["Inbox", "SwarmProcess", "add_common_args", "LoopStats", "InputGuard", "GUARD_REASONS", "sample_sender",
-           "expected_senders"]
+if TYPE_CHECKING:
+    from .faults import FaultPlan
+
+__all__ = ["Inbox", "SwarmProcess", "ProcessOptions", "run_process", "LoopStats", "WallClock", "sleep_until",
+           "InputGuard", "GUARD_REASONS", "sample_sender", "expected_senders"]
 
 # Lockstep: a missing input is waited for this long (wall clock) before it counts as a drop.
 DEFAULT_LOCKSTEP_TIMEOUT_S = 5.0
@@ -161,6 +162,49 @@ class LoopStats:
             "jitter_max_ms": 1e3 * self.max_jitter_s,
             "jitter_mean_ms": 1e3 * self._sum_jitter / self.ticks if self.ticks else 0.0,
         }
+
+
+def sleep_until(deadline: float, stop: threading.Event | None = None, slice_s: float = float("inf")) -> None:
+    """Sleep until ``time.monotonic()`` reaches ``deadline`` (s); at once if it has. With ``stop``,
+    sleep in slices of at most ``slice_s`` and return early once it is set."""
+    while True:
+        left = deadline - time.monotonic()
+        if left <= 0 or (stop is not None and stop.is_set()):
+            return
+        time.sleep(min(left, slice_s))
+
+
+class WallClock:
+    """A fixed-rate loop on the wall clock (``time.monotonic``): the one every realtime loop uses.
+
+    :meth:`wait` sleeps until the next deadline, records the lateness in :attr:`stats`
+    (:class:`LoopStats`) and moves the deadline one ``period_s`` on. The first deadline is now, or
+    one period from now with ``first_wait`` (a loop that works first, then waits). A late loop
+    catches up (deadlines stay on the grid) unless ``catch_up`` is False: then the next deadline is
+    one period after the wait ended (pacing: never faster than real time, never in a burst)::
+
+        clock = WallClock(dt, proc.stop)
+        while clock.wait():
+            ...  # one period's work
+    """
+
+    def __init__(self, period_s: float, stop: threading.Event | None = None, *, first_wait: bool = False,
+                 catch_up: bool = True) -> None:
+        self.period = period_s
+        self.stop = stop
+        self.catch_up = catch_up
+        self.stats = LoopStats(period_s)
+        self.next = time.monotonic() + (period_s if first_wait else 0.0)
+
+    def wait(self) -> bool:
+        """Sleep until the next deadline; False (at once) if ``stop`` is set."""
+        if self.stop is not None and self.stop.is_set():
+            return False
+        sleep_until(self.next)
+        now = time.monotonic()
+        self.stats.record(now - self.next)
+        self.next = self.next + self.period if self.catch_up else now + self.period
+        return True
 
 
 def sample_sender(sample: Any) -> str:
@@ -472,29 +516,72 @@ class _KeyedDecoder(wire.Decoder):
         self._reject(key, reason, text)
 
 
-def add_common_args(p: argparse.ArgumentParser) -> None:
-    """The flags every swarm process takes."""
-    p.add_argument("--scenario", type=Path, help="scenario TOML; if omitted, fetched from the leader's mission key")
-    p.add_argument("--swarm", default="default", help="swarm name: the key prefix swarm/<name> (default: default)")
-    p.add_argument(
-        "--connect",
-        action="append",
-        default=None,
-        metavar="ENDPOINT",
-        help="Zenoh router endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; default tcp/127.0.0.1:7447)",
-    )
-    p.add_argument("--realtime", action="store_true", help="run on the wall clock (latest value wins) instead of lockstep")
-    security.add_security_args(p)
-    from .linkfaults import add_fault_args
+@dataclass(frozen=True)
+class ProcessOptions:
+    """What every swarm process is started with (the common flags, typed; the command line is
+    turned into these at the edge, :mod:`zenswarm.compose.roles`).
 
-    add_fault_args(p)
-    p.add_argument(
-        "--lockstep-timeout",
-        type=positive_float,
-        default=DEFAULT_LOCKSTEP_TIMEOUT_S,
-        metavar="S",
-        help=f"lockstep: wall seconds to wait for an input before it counts as a drop (default {DEFAULT_LOCKSTEP_TIMEOUT_S})",
-    )
+    scenario: scenario TOML (None: fetched from the leader's mission key). swarm: key prefix
+    ``swarm/<swarm>``. connect: Zenoh router endpoints (empty: ``tcp/127.0.0.1:7447``).
+    realtime: wall clock, latest value wins (else lockstep). lockstep_timeout: wall seconds an
+    input is waited for before it counts as a drop. keys, tls: credentials of a secured router
+    (:mod:`zenswarm.security`). link_delay, link_jitter, link_loss, partition: the whole-swarm
+    link faults (:mod:`zenswarm.linkfaults`); seed: disturbances and fault decisions (None: the
+    scenario's).
+    """
+
+    scenario: Path | None = None
+    swarm: str = "default"
+    connect: tuple[str, ...] = ()
+    realtime: bool = False
+    lockstep_timeout: float = DEFAULT_LOCKSTEP_TIMEOUT_S
+    keys: Path | None = None
+    tls: bool = False
+    link_delay: str | None = None
+    link_jitter: str | None = None
+    link_loss: str | None = None
+    partition: tuple[str, ...] = ()
+    seed: int | None = None
+
+    @classmethod
+    def of(cls, obj: Any) -> "ProcessOptions":
+        """The options read off any object with these attribute names (e.g. a parsed command
+        line); a missing or None attribute takes the default."""
+        if isinstance(obj, ProcessOptions):
+            return obj
+        get = lambda name, default: default if getattr(obj, name, None) is None else getattr(obj, name)  # noqa: E731
+        return cls(
+            scenario=get("scenario", None),
+            swarm=str(get("swarm", "default")),
+            connect=tuple(get("connect", ())),
+            realtime=bool(get("realtime", False)),
+            lockstep_timeout=float(get("lockstep_timeout", DEFAULT_LOCKSTEP_TIMEOUT_S)),
+            keys=get("keys", None),
+            tls=bool(get("tls", False)),
+            link_delay=get("link_delay", None),
+            link_jitter=get("link_jitter", None),
+            link_loss=get("link_loss", None),
+            partition=tuple(get("partition", ())),
+            seed=get("seed", None),
+        )
+
+    def fault_plan(self, scenario: Scenario) -> "FaultPlan | None":
+        """The link-fault plan of this run (scenario's ``[faults]`` plus the flags); None when no
+        fault is active. Raises :class:`zenswarm.errors.ScenarioError` naming the bad field."""
+        from .linkfaults import plan_for
+
+        return plan_for(scenario, self.link_delay, self.link_jitter, self.link_loss, self.partition, self.seed)
+
+
+def __getattr__(name: str) -> Any:
+    """``add_common_args``: kept for ``bridge/mavlink.py`` (it builds its parser from it); the
+    flags live in :func:`zenswarm.argtypes.add_process_args`. Imported on use, so this module
+    does not import argparse."""
+    if name == "add_common_args":
+        from .argtypes import add_process_args
+
+        return add_process_args
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class SwarmProcess:
@@ -504,10 +591,11 @@ class SwarmProcess:
     callbacks hangs interpreter exit).
     """
 
-    def __init__(self, name: str, args: argparse.Namespace) -> None:
+    def __init__(self, name: str, options: ProcessOptions | Any) -> None:
         self.name = name
-        self.args = args
-        self.keys = wire.Keys(args.swarm)
+        self.options = ProcessOptions.of(options)
+        self.args = options  # what it was started with: an edge's own flags (bridge/mavlink.py)
+        self.keys = wire.Keys(self.options.swarm)
         self.decoder = _KeyedDecoder()
         self.inbox = Inbox()
         self.stop = threading.Event()
@@ -557,8 +645,8 @@ class SwarmProcess:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
         bus.use_swarm_runtime()  # before the first session: zenoh reads it once per process
-        connect = self.args.connect or ["tcp/127.0.0.1:7447"]
-        conf = bus.client_config(connect, settings=security.client_fragments_from_args(self.name, self.args))
+        connect = list(self.options.connect) or ["tcp/127.0.0.1:7447"]
+        conf = bus.client_config(connect, settings=security.client_fragments_from_args(self.name, self.options))
         self._session_cm = bus.open_session(conf, handle_signals=False)
         self.session = self._session_cm.__enter__()
         try:
@@ -594,12 +682,12 @@ class SwarmProcess:
 
     def _load_scenario(self) -> Scenario:
         sc = self._fetch_scenario()
-        seed = getattr(self.args, "seed", None)
+        seed = self.options.seed
         return sc if seed is None else replace(sc, seed=int(seed))
 
     def _fetch_scenario(self) -> Scenario:
-        if self.args.scenario is not None:
-            return load_scenario(self.args.scenario)
+        if self.options.scenario is not None:
+            return load_scenario(self.options.scenario)
         # Fetch the mission from the leader (late joiners, other hosts). A reply that does not
         # decode or is not a valid scenario is counted (decoder / rejected.value) and skipped.
         deadline = time.monotonic() + 30.0
@@ -632,8 +720,8 @@ class SwarmProcess:
         if g is None:
             sc = self.scenario
             dt = sc.timing.dt
-            timeout = float(getattr(self.args, "lockstep_timeout", DEFAULT_LOCKSTEP_TIMEOUT_S) or DEFAULT_LOCKSTEP_TIMEOUT_S)
-            realtime = bool(getattr(self.args, "realtime", False))
+            timeout = self.options.lockstep_timeout
+            realtime = self.options.realtime
             g = self._guard = InputGuard(
                 dt_ns=wire.t_ns(dt),
                 n_ticks=sc.timing.n_ticks,
@@ -648,9 +736,7 @@ class SwarmProcess:
     def _fault_horizon_ticks(self) -> int:
         """Largest link-fault delay of the run, in ticks (+1), 0 without faults."""
         try:
-            from .linkfaults import plan_from_args
-
-            plan = plan_from_args(self.scenario, self.args)
+            plan = self.options.fault_plan(self.scenario)
         except Exception:  # noqa: BLE001 - bad flags are reported by the process itself
             return 0
         if plan is None:
@@ -894,10 +980,12 @@ class SwarmProcess:
         print(text, flush=True)
 
 
-def run_process(fn: Callable[[SwarmProcess], int], name: str, args: argparse.Namespace) -> int:
-    """Run ``fn`` inside a :class:`SwarmProcess`; map errors to exit codes and always close."""
+def run_process(fn: Callable[[SwarmProcess], int], name: str, options: ProcessOptions | Any) -> int:
+    """Run ``fn`` inside a :class:`SwarmProcess` started with ``options`` (or any object with
+    their attribute names, see :meth:`ProcessOptions.of`); map errors to exit codes (2: bad
+    scenario, credentials, unreachable router) and always close."""
     try:
-        with SwarmProcess(name, args) as proc:
+        with SwarmProcess(name, options) as proc:
             return fn(proc)
     except ZenswarmError as e:  # bad scenario, credentials, unreachable router: say what, exit 2
         print(f"{name}: error: {e}", file=sys.stderr, flush=True)
