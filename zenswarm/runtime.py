@@ -418,44 +418,11 @@ class InputGuard:
                     return "internal"
                 st = self._keys[key] = _KeyState()
             now = self.clock()
-            repin = False
-            if self.check_sender:
-                if st.pin is None:
-                    holders = self._holders_of(senders)
-                    if holders and zid not in holders:
-                        return "foreign_sender"
-                elif zid != st.pin:
-                    holders = self._holders_of(senders)
-                    if st.pin in holders:
-                        return "foreign_sender"
-                    if zid in holders or (not holders and self._was_holder(senders, st.pin)):
-                        repin = True  # the pinned session is gone: a restarted process
-                    else:
-                        return "foreign_sender"
-            elif st.pin is not None and zid != st.pin:
-                repin = True  # no sender check: a new session is the process restarted
-            fresh = repin or st.pin is None
-            last_tick = None if fresh else st.last_tick
-            if not fresh and st.last_seq is not None and seq <= st.last_seq:
-                return "stale"
-            if not fresh and tick in st.recent:
-                return "duplicate"
-            if last_tick is not None and tick < last_tick:
-                return "past"
-            c = self.now_tick() if self.now_tick is not None else None
-            if c is not None and tick < c - self.window:
-                return "past"
-            if tick > self.cap:
-                return "future"
-            if last_tick is not None:
-                base = last_tick if c is None else max(last_tick, c)
-                growth = (now - st.last_rx) / self.growth_period_s
-                if tick > base + self.window + growth:
-                    a = st.ahead
-                    if a is None or not a < tick <= a + self.window + (now - st.ahead_rx) / self.growth_period_s:
-                        st.ahead, st.ahead_rx = tick, now
-                        return "future"
-                    # else a second message agrees with the one refused: the stream did jump
+            reason, repin = self._sender_verdict(st, senders, zid)
+            if reason is None:
+                reason = self._order_verdict(st, repin or st.pin is None, tick, seq, now)
+            if reason is not None:
+                return reason
             # accepted
             if repin:
                 st.reset()
@@ -466,6 +433,55 @@ class InputGuard:
             st.recent.append(tick)
             st.ahead = None
             return None
+
+    def _sender_verdict(self, st: _KeyState, senders: tuple[str, ...], zid: str) -> tuple[str | None, bool]:
+        """Check 2 (``foreign_sender``): (reject reason or None, whether the key re-pins to
+        ``zid``: a restarted process). Under the lock."""
+        if not self.check_sender:
+            return None, st.pin is not None and zid != st.pin  # a new session is the process restarted
+        if st.pin is None:
+            holders = self._holders_of(senders)
+            return ("foreign_sender" if holders and zid not in holders else None), False
+        if zid == st.pin:
+            return None, False
+        holders = self._holders_of(senders)
+        if st.pin in holders:
+            return "foreign_sender", False
+        if zid in holders or (not holders and self._was_holder(senders, st.pin)):
+            return None, True  # the pinned session is gone: a restarted process
+        return "foreign_sender", False
+
+    def _order_verdict(self, st: _KeyState, fresh: bool, tick: int, seq: int, now: float) -> str | None:
+        """Checks 3-6 (``stale``, ``duplicate``, ``past``, ``future``) of a message on a key whose
+        stream is ``st`` (``fresh``: a new stream, nothing to compare with). Under the lock."""
+        last_tick = None if fresh else st.last_tick
+        if not fresh and st.last_seq is not None and seq <= st.last_seq:
+            return "stale"
+        if not fresh and tick in st.recent:
+            return "duplicate"
+        if last_tick is not None and tick < last_tick:
+            return "past"
+        c = self.now_tick() if self.now_tick is not None else None
+        if c is not None and tick < c - self.window:
+            return "past"
+        if tick > self.cap:
+            return "future"
+        if last_tick is not None and self._too_far_ahead(st, tick, last_tick if c is None else max(last_tick, c), now):
+            return "future"
+        return None
+
+    def _too_far_ahead(self, st: _KeyState, tick: int, base: int, now: float) -> bool:
+        """Check 6 relative to the stream: more than ``window`` ticks (plus one per
+        ``growth_period_s`` of silence) past ``base``, unless a second message agrees with the
+        one refused last (the stream did jump)."""
+        growth = (now - st.last_rx) / self.growth_period_s
+        if tick <= base + self.window + growth:
+            return False
+        a = st.ahead
+        if a is None or not a < tick <= a + self.window + (now - st.ahead_rx) / self.growth_period_s:
+            st.ahead, st.ahead_rx = tick, now
+            return True
+        return False
 
     # ------------------------------------------------------------------ counters
     def count(self, key: str, reason: str) -> None:
