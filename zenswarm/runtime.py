@@ -181,7 +181,9 @@ class WallClock:
     (:class:`LoopStats`) and moves the deadline one ``period_s`` on. The first deadline is now, or
     one period from now with ``first_wait`` (a loop that works first, then waits). A late loop
     catches up (deadlines stay on the grid) unless ``catch_up`` is False: then the next deadline is
-    one period after the wait ended (pacing: never faster than real time, never in a burst)::
+    one period after the wait ended (pacing: never faster than real time, never in a burst). With
+    ``resync_after_s``, a loop later than that starts its grid again one period from now (counted
+    in :attr:`resyncs`) instead of catching up in a burst::
 
         clock = WallClock(dt, proc.stop)
         while clock.wait():
@@ -189,10 +191,12 @@ class WallClock:
     """
 
     def __init__(self, period_s: float, stop: threading.Event | None = None, *, first_wait: bool = False,
-                 catch_up: bool = True) -> None:
+                 catch_up: bool = True, resync_after_s: float | None = None) -> None:
         self.period = period_s
         self.stop = stop
         self.catch_up = catch_up
+        self.resync_after_s = resync_after_s
+        self.resyncs = 0
         self.stats = LoopStats(period_s)
         self.next = time.monotonic() + (period_s if first_wait else 0.0)
 
@@ -202,8 +206,11 @@ class WallClock:
             return False
         sleep_until(self.next)
         now = time.monotonic()
-        self.stats.record(now - self.next)
-        self.next = self.next + self.period if self.catch_up else now + self.period
+        late = now - self.next
+        self.stats.record(late)
+        resync = self.resync_after_s is not None and late > self.resync_after_s
+        self.resyncs += resync
+        self.next = now + self.period if resync or not self.catch_up else self.next + self.period
         return True
 
 
@@ -454,11 +461,12 @@ class InputGuard:
     def _order_verdict(self, st: _KeyState, fresh: bool, tick: int, seq: int, now: float) -> str | None:
         """Checks 3-6 (``stale``, ``duplicate``, ``past``, ``future``) of a message on a key whose
         stream is ``st`` (``fresh``: a new stream, nothing to compare with). Under the lock."""
+        if not fresh:
+            if st.last_seq is not None and seq <= st.last_seq:
+                return "stale"
+            if tick in st.recent:
+                return "duplicate"
         last_tick = None if fresh else st.last_tick
-        if not fresh and st.last_seq is not None and seq <= st.last_seq:
-            return "stale"
-        if not fresh and tick in st.recent:
-            return "duplicate"
         if last_tick is not None and tick < last_tick:
             return "past"
         c = self.now_tick() if self.now_tick is not None else None
