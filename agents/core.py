@@ -15,8 +15,9 @@ function row by row, and its :meth:`~AgentCore.command` and :meth:`~AgentCore.ad
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, Sequence
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -24,7 +25,7 @@ from .controller import composite_control, invert_thrust_attitude
 from .eso import eso_step
 from .generator import generator_rates
 
-__all__ = ["AgentRow", "AgentCommand", "AgentCore", "StackedAgents", "RefLike", "Rates"]
+__all__ = ["AgentCommand", "AgentCore", "AgentRow", "Rates", "RefLike", "StackedAgents"]
 
 
 class RefLike(Protocol):
@@ -64,7 +65,7 @@ class AgentRow:
     dt: float
 
     @classmethod
-    def from_scenario(cls, scenario, i: int, mass: float, g: float) -> "AgentRow":
+    def from_scenario(cls, scenario, i: int, mass: float, g: float) -> AgentRow:
         A = np.asarray(scenario.graph.adjacency, dtype=float)
         h = np.asarray(scenario.offsets, dtype=float)
         nbr = tuple(int(j) for j in np.flatnonzero(A[i]))

@@ -31,7 +31,13 @@ from zenswarm import wire
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters
 from zenswarm.params import QuadParams
-from zenswarm.runtime import Lockstep, ProcessOptions, SwarmProcess, WallClock, run_process
+from zenswarm.runtime import (
+    Lockstep,
+    ProcessOptions,
+    SwarmProcess,
+    WallClock,
+    run_process,
+)
 
 from .core import AgentCommand, AgentCore, AgentRow, Rates
 

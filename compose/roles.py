@@ -13,7 +13,7 @@ import argparse
 from zenswarm.argtypes import add_process_args
 from zenswarm.runtime import ProcessOptions
 
-__all__ = ["add_parsers", "process_options", "agent_options", "plant_options"]
+__all__ = ["add_parsers", "agent_options", "plant_options", "process_options"]
 
 
 def process_options(args: argparse.Namespace) -> ProcessOptions:
@@ -21,13 +21,13 @@ def process_options(args: argparse.Namespace) -> ProcessOptions:
     return ProcessOptions.of(args)
 
 
-def agent_options(args: argparse.Namespace):  # noqa: ANN201 - AgentOptions (imported on use)
+def agent_options(args: argparse.Namespace):
     from zenswarm.agents.process import AgentOptions
 
     return AgentOptions(id=int(args.id), process=process_options(args))
 
 
-def plant_options(args: argparse.Namespace):  # noqa: ANN201 - PlantOptions (imported on use)
+def plant_options(args: argparse.Namespace):
     from zenswarm.plant.process import PlantOptions
 
     return PlantOptions(process=process_options(args), expect=tuple(args.expect or ()))
@@ -58,9 +58,10 @@ def _main_mavlink_fleet(args: argparse.Namespace) -> int:
     (:mod:`plant.mavlink_vehicle`; no Zenoh session: the MAVLink bridge is their swarm side)."""
     from dataclasses import replace
 
+    from zenswarm.plant.mavlink_vehicle import run_fleet
+
     from zenswarm.config import load_scenario
     from zenswarm.errors import ScenarioError
-    from zenswarm.plant.mavlink_vehicle import run_fleet
 
     if args.scenario is None:
         raise ScenarioError("--scenario", "plant --mavlink needs the scenario file (it has no bus to fetch it from)")

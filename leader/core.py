@@ -28,7 +28,7 @@ class LeaderCore:
         self.substeps = substeps
 
     @classmethod
-    def from_scenario(cls, scenario) -> "LeaderCore":  # noqa: ANN001 - zenswarm.config.Scenario
+    def from_scenario(cls, scenario) -> LeaderCore:
         tm = scenario.timing
         return cls(np.asarray(scenario.leader.start, dtype=float), AapfParams.from_scenario(scenario), tm.dt, tm.substeps)
 

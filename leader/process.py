@@ -19,7 +19,14 @@ from __future__ import annotations
 
 from zenswarm import wire
 from zenswarm.config import scenario_to_dict
-from zenswarm.runtime import LEADER_AHEAD_TICKS, Lockstep, ProcessOptions, SwarmProcess, WallClock, run_process
+from zenswarm.runtime import (
+    LEADER_AHEAD_TICKS,
+    Lockstep,
+    ProcessOptions,
+    SwarmProcess,
+    WallClock,
+    run_process,
+)
 
 from .core import LeaderCore
 
@@ -101,7 +108,7 @@ def _run(proc: SwarmProcess) -> int:
     keys = proc.keys
     mission = wire.encode(wire.Mission(t=0, seq=1, scenario=scenario_to_dict(proc.scenario)))
 
-    def on_query(query) -> None:  # noqa: ANN001 - zenoh.Query
+    def on_query(query) -> None:
         query.reply(keys.mission, mission)
 
     queryable = proc.session.declare_queryable(keys.mission, on_query)

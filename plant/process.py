@@ -25,7 +25,14 @@ from dataclasses import dataclass, field
 from zenswarm import wire
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters
-from zenswarm.runtime import CLOCK_EVERY_TICKS, Lockstep, ProcessOptions, SwarmProcess, WallClock, run_process
+from zenswarm.runtime import (
+    CLOCK_EVERY_TICKS,
+    Lockstep,
+    ProcessOptions,
+    SwarmProcess,
+    WallClock,
+    run_process,
+)
 
 from .core import PlantCore
 
