@@ -2,14 +2,22 @@
 
 :class:`AgentCore` holds exactly what UAV i holds in the distributed swarm: its generator state
 (q*_i, v*_i), its ESO estimate and its row of the graph. It performs steps 2-6 of a control tick
-as documented in :mod:`zenswarm.compose.sim`, in the same order and with the same functions, so a
-lockstep swarm reproduces the in-process simulator.
+as documented in :mod:`zenswarm.compose.sim`. It is THE agent tick: the agent process
+(:mod:`zenswarm.agents.process`), the in-process simulator (:mod:`zenswarm.compose.sim`) and
+``zenswarm verify`` (:mod:`zenswarm.bridge.replay`) all run it, so a lockstep swarm reproduces the
+simulator and a recording reproduces its agents bit for bit.
+
+:class:`StackedAgents` is the same tick for all N agents at once (the simulator's fast path
+without link faults): its state arrays are (N, 3), its rates run :meth:`AgentCore.rates`'s
+function row by row, and its :meth:`~AgentCore.command` and :meth:`~AgentCore.advance` ARE
+:class:`AgentCore`'s (inherited; the same numpy functions, which work row-wise on (N, 3)).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, Any, Protocol, cast
 
 import numpy as np
 
@@ -20,7 +28,18 @@ from zenswarm.agents.generator import generator_rates
 if TYPE_CHECKING:  # pragma: no cover
     from zenswarm.config import Scenario
 
-__all__ = ["AgentRow", "AgentCommand", "AgentCore"]
+__all__ = ["AgentCommand", "AgentCore", "AgentRow", "Rates", "RefLike", "StackedAgents"]
+
+
+class RefLike(Protocol):
+    """A reference (q*, v*) as received: each (3,), m and m/s (:class:`zenswarm.wire.Ref` is one)."""
+
+    q: np.ndarray
+    v: np.ndarray
+
+
+Rates = tuple[np.ndarray, np.ndarray]
+"""Generator rates (q*', v*') of one tick: (3,) m/s and m/s^2 for one agent, (N, 3) stacked."""
 
 
 @dataclass(frozen=True)
@@ -80,9 +99,10 @@ class AgentRow:
 @dataclass(frozen=True)
 class AgentCommand:
     """Output of one tick: thrust F (N), attitude setpoint rpy (3,) rad, virtual control u (3,)
-    m/s^2, the disturbance estimate used d_hat (3,) m/s^2 and the feed-forward v*' (3,)."""
+    m/s^2, the disturbance estimate used d_hat (3,) m/s^2 and the feed-forward v*' (3,).
+    From :class:`StackedAgents`: thrust (N,), the others (N, 3)."""
 
-    thrust: float
+    thrust: Any
     rpy: np.ndarray
     u: np.ndarray
     d_hat: np.ndarray
@@ -107,10 +127,19 @@ class AgentCore:
     def reset(self, q_meas: np.ndarray, v_meas: np.ndarray) -> None:
         """Start (or restart) from the measured state: q* = q, v* = 0; ESO at (q, v, 0)."""
         self.q_ref = np.array(q_meas, dtype=float)
-        self.v_ref = np.zeros(3)
+        self.v_ref = np.zeros(self.q_ref.shape)
         self.q_hat = np.array(q_meas, dtype=float)
         self.v_hat = np.array(v_meas, dtype=float)
-        self.d_hat = np.zeros(3)
+        self.d_hat = np.zeros(self.q_ref.shape)
+
+    def rates_from(self, nbr: Sequence[RefLike | None], lead: RefLike | None) -> Rates:
+        """Step 3 from the inputs as received: ``nbr`` holds the neighbours' references in
+        ``row.neighbours`` order (None: never heard from, left out this tick), ``lead`` the
+        leader's (None: no pinning term this tick). See :meth:`rates`."""
+        present = [x for x, m in enumerate(nbr) if m is not None]
+        qn = np.array([nbr[x].q for x in present]).reshape(-1, 3)  # type: ignore[union-attr]
+        vn = np.array([nbr[x].v for x in present]).reshape(-1, 3)  # type: ignore[union-attr]
+        return self.rates(qn, vn, lead.q if lead else None, lead.v if lead else None, present)
 
     def rates(
         self,
@@ -139,10 +168,13 @@ class AgentCore:
         state: call :meth:`advance` with the result to finish the tick."""
         assert self.q_ref is not None and self.v_ref is not None and self.d_hat is not None, "reset() first"
         r = self.row
-        d_used = self.d_hat if r.eso_enabled else np.zeros(3)
+        d_used = self.d_hat if r.eso_enabled else np.zeros(np.shape(self.d_hat))
         u = composite_control(self.q_ref, self.v_ref, dv, q_meas, v_meas, d_used, r.kp, r.kd, r.g)
         F, phi, theta = invert_thrust_attitude(u, r.mass, r.yaw)
-        return AgentCommand(float(F), np.array([float(phi), float(theta), r.yaw]), u, d_used.copy(), dv)
+        return self._command_of(F, phi, theta, u, d_used, dv)
+
+    def _command_of(self, F: Any, phi: Any, theta: Any, u: np.ndarray, d_used: np.ndarray, dv: np.ndarray) -> AgentCommand:
+        return AgentCommand(float(F), np.array([float(phi), float(theta), self.row.yaw]), u, d_used.copy(), dv)
 
     def advance(self, q_meas: np.ndarray, u: np.ndarray, dq: np.ndarray, dv: np.ndarray) -> None:
         """Step 6: ESO (27) and generator to k+1 with the tick's control ``u`` and rates."""
@@ -172,7 +204,42 @@ class AgentCore:
         Missing data (a neighbour never heard from, or the leader before its first message):
         ``present`` lists the positions in ``row.neighbours`` that q_nbr/v_nbr hold (default: all),
         and q0 = None drops the pinning term for this tick."""
-        dq, dv = self.rates(q_nbr, v_nbr, q0, v0, present)
+        return self.finish(q_meas, v_meas, self.rates(q_nbr, v_nbr, q0, v0, present))
+
+    def finish(self, q_meas: np.ndarray, v_meas: np.ndarray, rates: Rates) -> AgentCommand:
+        """Steps 4-6 with the tick's generator rates (from :meth:`rates` or :meth:`rates_from`):
+        :meth:`command`, then :meth:`advance`. Returns the command."""
+        dq, dv = rates
         cmd = self.command(q_meas, v_meas, dv)
         self.advance(q_meas, cmd.u, dq, dv)
         return cmd
+
+
+class StackedAgents(AgentCore):
+    """All N agents of a scenario as one :class:`AgentCore` with (N, 3) state arrays.
+
+    For the in-process simulator without link faults (every agent hears every input of every
+    tick). :meth:`rates_all` runs the generator function of :meth:`AgentCore.rates` for each row
+    in turn; :meth:`command`, :meth:`advance` and :meth:`finish` are :class:`AgentCore`'s. The
+    rows' scenario-wide gains (kp, kd, beta, mass, g, yaw, dt, eso) are those of row 0.
+    """
+
+    def __init__(self, rows: Sequence[AgentRow]) -> None:
+        super().__init__(rows[0])
+        self.rows = list(rows)
+        self.h_all = np.array([r.h for r in self.rows])
+
+    def rates_all(self, q0: np.ndarray, v0: np.ndarray) -> Rates:
+        """Step 3 for every agent: ((N, 3), (N, 3)), row i as :meth:`AgentCore.rates` of agent i
+        with all its neighbours present and the leader's (q0, v0) (3,) given."""
+        q, v = self.q_ref, self.v_ref
+        dq, dv = np.empty_like(q), np.empty_like(v)
+        for i, r in enumerate(self.rows):
+            nbr = list(r.neighbours)
+            dq[i], dv[i] = generator_rates(q[i], v[i], r.h, q[nbr], v[nbr], r.h_nbr, r.weights, r.b, q0, v0, r.mu1, r.mu2)
+        return dq, dv
+
+    def _command_of(self, F: Any, phi: Any, theta: Any, u: np.ndarray, d_used: np.ndarray, dv: np.ndarray) -> AgentCommand:
+        rpy = np.empty((len(F), 3))
+        rpy[:, 0], rpy[:, 1], rpy[:, 2] = phi, theta, self.row.yaw
+        return AgentCommand(F, rpy, u, d_used.copy(), dv)

@@ -5,7 +5,9 @@ Pure numerics (numpy only). Two forms of the same equations:
 * :func:`generator_rates` for one agent i, using only what agent i has in the distributed
   swarm: its own generator state (q*_i, v*_i) and offset h_i, its neighbours' (q*_j, v*_j) with
   their offsets h_j and weights a_ij, and, only if pinned (b_i > 0), the leader's (q0, v0).
-* :func:`generator_rates_all` for all N agents at once (the in-process simulator).
+* :func:`generator_rates_all` for all N agents at once, from the whole graph (analysis and tests;
+  the in-process simulator runs :func:`generator_rates` per agent row, through
+  :class:`zenswarm.agents.core.StackedAgents`).
 
 Both return (q*_i', v*_i'); v*_i' is also the feed-forward term v-dot-star of eq. (28).
 Discretisation (both simulator and swarm): explicit Euler at the control period dt,

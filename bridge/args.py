@@ -16,7 +16,15 @@ from zenswarm.errors import ScenarioError
 from zenswarm.linkfaults import LinkFaults
 from zenswarm.security import ClientSecurity
 
-__all__ = ["positive_float", "seed_arg", "add_fault_args", "link_faults", "add_security_args", "client_security"]
+__all__ = [
+    "positive_float",
+    "seed_arg",
+    "add_fault_args",
+    "link_faults",
+    "add_security_args",
+    "client_security",
+    "add_process_args",
+]
 
 
 def positive_float(text: str) -> float:
@@ -88,3 +96,31 @@ def add_security_args(p: argparse.ArgumentParser) -> None:
 def client_security(args: argparse.Namespace) -> ClientSecurity:
     """The flags of :func:`add_security_args` as a typed value."""
     return ClientSecurity(keys=args.keys, tls=bool(args.tls))
+
+
+def add_process_args(p: argparse.ArgumentParser) -> None:
+    """The flags every swarm process takes (read back with
+    :meth:`zenswarm.runtime.ProcessOptions.of`): ``--scenario``, ``--swarm``, ``--connect``,
+    ``--realtime``, the credentials (:func:`add_security_args`), the link faults
+    (:func:`add_fault_args`) and ``--lockstep-timeout``."""
+    from zenswarm.runtime import DEFAULT_LOCKSTEP_TIMEOUT_S
+
+    p.add_argument("--scenario", type=Path, help="scenario TOML; if omitted, fetched from the leader's mission key")
+    p.add_argument("--swarm", default="default", help="swarm name: the key prefix swarm/<name> (default: default)")
+    p.add_argument(
+        "--connect",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help="Zenoh router endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; default tcp/127.0.0.1:7447)",
+    )
+    p.add_argument("--realtime", action="store_true", help="run on the wall clock (latest value wins) instead of lockstep")
+    add_security_args(p)
+    add_fault_args(p)
+    p.add_argument(
+        "--lockstep-timeout",
+        type=positive_float,
+        default=DEFAULT_LOCKSTEP_TIMEOUT_S,
+        metavar="S",
+        help=f"lockstep: wall seconds to wait for an input before it counts as a drop (default {DEFAULT_LOCKSTEP_TIMEOUT_S})",
+    )

@@ -890,10 +890,9 @@ def _make_bridge(proc: Any, settings: MavlinkSettings) -> Bridge:
     # cmd link (also when it forwards uav/<i>/ref as position setpoints), decided on receipt and
     # released after its delay, exactly as in the realtime plant.
     from zenswarm.faults import FaultState
-    from zenswarm.linkfaults import plan_from_args
 
     in_keys = cmd_keys if settings.setpoint == "attitude" else ref_keys
-    plan = plan_from_args(sc, proc.args)
+    plan = proc.options.fault_plan(sc)
     if plan is not None:
         proc.use_delay_line(FaultState(plan), {key: (f"agent:{i + 1}", "plant", "cmd") for i, key in enumerate(in_keys)})
     for key in in_keys:
@@ -1123,10 +1122,10 @@ def _main_args(args: argparse.Namespace) -> int:
 
 
 def _configure(p: argparse.ArgumentParser) -> None:
-    from zenswarm.runtime import add_common_args
+    from zenswarm.bridge.args import add_process_args
 
     p.add_argument("scenario_path", nargs="?", type=Path, metavar="SCENARIO", help="scenario TOML (its [mavlink] table configures the links)")
-    add_common_args(p)
+    add_process_args(p)
     g = p.add_argument_group("MAVLink")
     g.add_argument(
         "--conn", action="append", metavar="I=URL",

@@ -27,6 +27,7 @@ import numpy as np
 
 from zenswarm import wire
 from zenswarm.errors import RecordingError, ScenarioError
+from zenswarm.runtime import sleep_until
 
 from .mcapio import Recording, read_recording
 
@@ -249,11 +250,7 @@ class _Player:
 
     def _wait_until(self, target: float) -> None:
         """Sleep until ``target`` (or a stop); note how late it was."""
-        while True:
-            now = time.monotonic()
-            if now >= target or self.stop.is_set():
-                break
-            time.sleep(min(target - now, 0.1))
+        sleep_until(target, self.stop, slice_s=0.1)
         lag = time.monotonic() - target
         if lag > self.stats.max_lag_s:
             self.stats.max_lag_s = lag
@@ -483,181 +480,225 @@ def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> Verif
     first difference. strict: refuse a damaged file (default: verify what is readable and list
     the damage in ``problems``).
     """
-    from zenswarm.agents.core import AgentCore, AgentRow
-    from zenswarm.params import QuadParams
-
     rec = read_recording(path, strict=strict)
     sc = rec.load_scenario()
     if not 1 <= agent <= sc.n:
         raise ScenarioError("--agent", f"agent {agent} out of range 1..{sc.n} for scenario {sc.name}")
-    res = VerifyResult(agent=agent, mode=rec.mode)
-    keys = wire.Keys(_swarm_of(rec))
-    me = f"agent:{agent}"
-    params = QuadParams.from_vehicle(sc.vehicle)
-    row = AgentRow.from_scenario(sc, agent - 1, params.mass, params.g)
-    dt_ns = wire.t_ns(sc.timing.dt)
-    state_key, ref_key, cmd_key = keys.state(agent), keys.ref(agent), keys.cmd(agent)
-    nbr_keys = [keys.ref(j + 1) for j in row.neighbours]
-    input_keys = nbr_keys + ([keys.leader_ref] if row.pinned else [])
-    sender = {state_key: "plant", keys.leader_ref: "leader"}
-    sender.update({keys.ref(j + 1): f"agent:{j + 1}" for j in row.neighbours})
-    wanted = {state_key: "state", ref_key: "ref", cmd_key: "cmd"}
-    wanted.update({k: "ref" for k in input_keys})
-    by_tick: dict[str, dict[int, Any]] = {k: {} for k in wanted}
-    timeline: dict[str, list[tuple[int, int, Any]]] = {k: [] for k in wanted}  # (log_time, tick, msg)
-    start_refs: dict[int, wire.Ref] = {}  # own ref with seq 1: a (re)start of the agent process
-    decoder = wire.Decoder()
-    for m in rec.messages(topics=wanted.__contains__):
-        msg = decoder.decode(m.topic, wanted[m.topic], m.payload)
-        if msg is None:
-            continue
-        k = (msg.t + dt_ns // 2) // dt_ns
-        if m.topic == ref_key and msg.seq == 1:
-            start_refs[k] = msg
-        else:
-            by_tick[m.topic][k] = msg  # the latest wins, as in the inbox
-        timeline[m.topic].append((m.log_time, k, msg))
-    res.problems += rec.problems
+    v = _Verifier(rec, sc, agent)
+    v.res.problems += rec.problems
     dropped = rec.dropped_note()
     if dropped is not None:
-        res.notes.append(dropped)
-    if decoder.rejected:
-        res.notes.append(f"{decoder.rejected} recorded payloads of agent {agent}'s keys were rejected by the decoder")
-    cmds = by_tick[cmd_key]
-    if not cmds:
-        raise RecordingError(f"{rec.path}: no commands of agent {agent} ({cmd_key}) in the recording")
-    last = max(cmds)
-    refs = by_tick[ref_key]  # references published after a tick (seq > 1)
-    states = by_tick[state_key]
-    starts = sorted(start_refs)
-    if not starts:
-        starts = [min(cmds)]
-        res.notes.append(f"the agent's start reference (seq 1) is not in the recording; starting at tick {starts[0]}")
-    if len(starts) > 1:
-        res.notes.append(f"the agent (re)started at ticks {starts}")
-    core = AgentCore(row)
+        v.res.notes.append(dropped)
+    if v.decoder.rejected:
+        v.res.notes.append(f"{v.decoder.rejected} recorded payloads of agent {agent}'s keys were rejected by the decoder")
+    v.find_starts()
+    try:
+        if rec.mode == "realtime":
+            v.verify_realtime()
+        else:
+            v.verify_lockstep(_fault_plan(rec, sc))
+    except _Differs as e:
+        v.res.difference = e.difference
+    return v.res
 
-    def compute(k: int, st: wire.State, inputs: dict[str, Any], seg_end: int) -> Difference | None:
-        """Tick k exactly as agents.process.tick(), then compare cmd(k) and ref(k + 1)."""
-        present = [x for x, key in enumerate(nbr_keys) if key in inputs]
-        qn = np.array([inputs[nbr_keys[x]].q for x in present]).reshape(-1, 3)
-        vn = np.array([inputs[nbr_keys[x]].v for x in present]).reshape(-1, 3)
-        lead = inputs.get(keys.leader_ref)
-        cmd = core.tick(st.q, st.v, qn, vn, lead.q if lead else None, lead.v if lead else None, present)
-        rc = cmds.get(k)
+
+class _Differs(Exception):
+    """The first difference: ends the verification."""
+
+    def __init__(self, difference: Difference) -> None:
+        super().__init__(str(difference))
+        self.difference = difference
+
+
+class _Verifier:
+    """Agent ``agent``'s recorded messages, and its :class:`zenswarm.agents.core.AgentCore` fed
+    with them tick by tick (as the agent process feeds it)."""
+
+    def __init__(self, rec: Recording, sc: Any, agent: int) -> None:
+        from zenswarm.agents.core import AgentCore, AgentRow
+        from zenswarm.params import QuadParams
+
+        self.sc = sc
+        self.res = VerifyResult(agent=agent, mode=rec.mode)
+        self.keys = keys = wire.Keys(_swarm_of(rec))
+        self.me = wire.agent(agent)
+        params = QuadParams.from_vehicle(sc.vehicle)
+        self.row = AgentRow.from_scenario(sc, agent - 1, params.mass, params.g)
+        self.core = AgentCore(self.row)
+        self.dt_ns = wire.t_ns(sc.timing.dt)
+        self.state_key, self.ref_key, self.cmd_key = keys.state(agent), keys.ref(agent), keys.cmd(agent)
+        self.nbr_keys = [keys.ref(j + 1) for j in self.row.neighbours]
+        self.input_keys = self.nbr_keys + ([keys.leader_ref] if self.row.pinned else [])
+        self.sender = {self.state_key: "plant", keys.leader_ref: "leader"}
+        self.sender.update({keys.ref(j + 1): wire.agent(j + 1) for j in self.row.neighbours})
+        self.decoder = wire.Decoder()
+        self._read(rec)
+
+    def _read(self, rec: Recording) -> None:
+        """Decode the agent's keys: the newest message per (key, tick), each key's timeline and
+        the agent's start references (seq 1: a (re)start of the agent process)."""
+        wanted = {self.state_key: "state", self.ref_key: "ref", self.cmd_key: "cmd"}
+        wanted.update({k: "ref" for k in self.input_keys})
+        self.by_tick: dict[str, dict[int, Any]] = {k: {} for k in wanted}
+        self.timeline: dict[str, list[tuple[int, int, Any]]] = {k: [] for k in wanted}  # (log_time, tick, msg)
+        self.start_refs: dict[int, wire.Ref] = {}
+        dt_ns = self.dt_ns
+        for m in rec.messages(topics=wanted.__contains__):
+            msg = self.decoder.decode(m.topic, wanted[m.topic], m.payload)
+            if msg is None:
+                continue
+            k = (msg.t + dt_ns // 2) // dt_ns
+            if m.topic == self.ref_key and msg.seq == 1:
+                self.start_refs[k] = msg
+            else:
+                self.by_tick[m.topic][k] = msg  # the latest wins, as in the inbox
+            self.timeline[m.topic].append((m.log_time, k, msg))
+        self.cmds = self.by_tick[self.cmd_key]
+        if not self.cmds:
+            raise RecordingError(f"{rec.path}: no commands of agent {self.res.agent} ({self.cmd_key}) in the recording")
+        self.last = max(self.cmds)
+        self.refs = self.by_tick[self.ref_key]  # references published after a tick (seq > 1)
+        self.states = self.by_tick[self.state_key]
+
+    def find_starts(self) -> None:
+        """The ticks where the agent (re)started (its references with seq 1)."""
+        self.starts = sorted(self.start_refs)
+        if not self.starts:
+            self.starts = [min(self.cmds)]
+            self.res.notes.append(f"the agent's start reference (seq 1) is not in the recording; starting at tick {self.starts[0]}")
+        if len(self.starts) > 1:
+            self.res.notes.append(f"the agent (re)started at ticks {self.starts}")
+
+    def state(self, k: int) -> wire.State:
+        st = self.states.get(k)
+        if st is None:
+            raise _Differs(Difference(k, "input state", "<missing from the recording>", "needed to compute the tick"))
+        return st
+
+    def compute(self, k: int, st: wire.State, inputs: dict[str, Any], seg_end: int) -> None:
+        """Tick k exactly as the agent process ticks (:meth:`AgentCore.rates_from`, then
+        :meth:`AgentCore.finish`), then compare cmd(k) and ref(k + 1)."""
+        core = self.core
+        cmd = core.finish(st.q, st.v, core.rates_from([inputs.get(key) for key in self.nbr_keys], inputs.get(self.keys.leader_ref)))
+        rc = self.cmds.get(k)
         if rc is None:
-            return Difference(k, "cmd", "<missing from the recording>", f"thrust={float(cmd.thrust)!r}")
+            raise _Differs(Difference(k, "cmd", "<missing from the recording>", f"thrust={float(cmd.thrust)!r}"))
         d = _compare_cmd(k, rc, cmd)
+        if d is None:
+            rr = self.refs.get(k + 1)
+            if rr is None and k == seg_end:
+                self.res.notes.append(f"ref of tick {k + 1} (after the last command of a run) is not in the recording")
+            elif rr is None:
+                d = Difference(k + 1, "ref", "<missing from the recording>", f"q={core.q_ref.tolist()}")
+            else:
+                d = _compare_ref(k + 1, rr, core.q_ref, core.v_ref)
         if d is not None:
-            return d
-        rr = refs.get(k + 1)
-        if rr is None:
-            if k == seg_end:
-                res.notes.append(f"ref of tick {k + 1} (after the last command of a run) is not in the recording")
-                return None
-            return Difference(k + 1, "ref", "<missing from the recording>", f"q={core.q_ref.tolist()}")
-        return _compare_ref(k + 1, rr, core.q_ref, core.v_ref)
+            raise _Differs(d)
+        self.res.ticks += 1
 
-    def restart(k: int, st: wire.State) -> Difference | None:
-        core.reset(st.q, st.v)
-        r0 = start_refs.get(k)
-        if r0 is None:
-            return None
-        return _compare_ref(k, r0, core.q_ref, core.v_ref)
+    def restart(self, k: int, st: wire.State) -> None:
+        """(Re)start the generator and ESO from the state of tick k; the recorded start
+        reference of tick k, if any, must equal the reset."""
+        self.core.reset(st.q, st.v)
+        r0 = self.start_refs.get(k)
+        d = None if r0 is None else _compare_ref(k, r0, self.core.q_ref, self.core.v_ref)
+        if d is not None:
+            raise _Differs(d)
 
-    if rec.mode == "realtime":
-        res.notes.append("realtime recording: inputs reconstructed from the recorder's receive times")
-        lt_of = {key: [lt for lt, _, _ in timeline[key]] for key in input_keys}
+    # ------------------------------------------------------------------ realtime
+    def verify_realtime(self) -> None:
+        """Each recorded command with the inputs newest before its receive time."""
+        self.res.notes.append("realtime recording: inputs reconstructed from the recorder's receive times")
+        lt_of = {key: [lt for lt, _, _ in self.timeline[key]] for key in self.input_keys}
         started: set[int] = set()
-        for lt_cmd, k, rc in timeline[cmd_key]:
-            st = states.get(k)
-            if st is None:
-                res.difference = Difference(k, "input state", "<missing from the recording>", "needed to compute the tick")
-                return res
-            s = max((x for x in starts if x <= k), default=None)
+        for lt_cmd, k, _rc in self.timeline[self.cmd_key]:
+            st = self.state(k)
+            s = max((x for x in self.starts if x <= k), default=None)
             if s is not None and s not in started:
                 started.add(s)
-                d = restart(s, states.get(s, st))
-                if d is not None:
-                    res.difference = d
-                    return res
-            elif not core.initialised:
-                core.reset(st.q, st.v)
+                self.restart(s, self.states.get(s, st))
+            elif not self.core.initialised:
+                self.core.reset(st.q, st.v)
             inputs = {}
-            for key in input_keys:
+            for key in self.input_keys:
                 j = bisect.bisect_right(lt_of[key], lt_cmd) - 1
                 if j >= 0:
-                    inputs[key] = timeline[key][j][2]
-            d = compute(k, st, inputs, last)
-            if d is not None:
-                res.difference = d
-                return res
-            res.ticks += 1
-        return res
+                    inputs[key] = self.timeline[key][j][2]
+            self.compute(k, st, inputs, self.last)
 
-    plan = _fault_plan(rec, sc)
-    if plan is not None:
-        res.notes.append("link faults replayed through the agent's receive boxes")
-    for idx, s in enumerate(starts):
-        hi = starts[idx + 1] - 1 if idx + 1 < len(starts) else last
-        seg = [k for k in cmds if s <= k <= hi]
-        if not seg:
-            continue
-        seg_end = max(seg)
-        held: dict[str, Any] = {}  # a new process: nothing held yet
-        boxes: dict[str, Any] = {}
-        feed: dict[str, list[tuple[int, Any]]] = {}
+    # ------------------------------------------------------------------ lockstep
+    def verify_lockstep(self, plan: Any) -> None:
+        """Each run of the agent process (from one start to the next), tick by tick."""
         if plan is not None:
-            from zenswarm.faults import FaultState
-            from zenswarm.linkfaults import Box
+            self.res.notes.append("link faults replayed through the agent's receive boxes")
+        for idx, s in enumerate(self.starts):
+            hi = self.starts[idx + 1] - 1 if idx + 1 < len(self.starts) else self.last
+            seg = [k for k in self.cmds if s <= k <= hi]
+            if seg:
+                inputs = _BoxedInputs(self, plan, s) if plan is not None else _HeldInputs(self, s)
+                for k in range(s, max(seg) + 1):
+                    st_raw = self.state(k)
+                    if k == s:
+                        self.restart(k, st_raw)
+                    st, got = inputs.at(k, st_raw)
+                    self.compute(k, st, got, max(seg))
 
-            fstate = FaultState(plan)
-            kinds = {state_key: "state", keys.leader_ref: "leader"}
-            boxes = {
-                key: Box(fstate, sender[key], me, kinds.get(key, "ref"), sc.timing.dt) for key in [state_key] + input_keys
-            }
-            feed = {key: [(k, msg) for _, k, msg in timeline[key] if k >= s] for key in boxes}
-        pos = {key: 0 for key in feed}
-        for k in range(s, seg_end + 1):
-            st_raw = states.get(k)
-            if st_raw is None:
-                res.difference = Difference(k, "input state", "<missing from the recording>", "needed to compute the tick")
-                return res
-            if k == s:
-                d = restart(k, st_raw)
-                if d is not None:
-                    res.difference = d
-                    return res
-            rejoin = k == s and s > 0  # the inputs of this tick were sent before it subscribed
-            if boxes:
-                for key, box in boxes.items():
-                    lst, i = feed[key], pos[key]
-                    while i < len(lst) and lst[i][0] <= k:
-                        if not (rejoin and key != state_key and lst[i][0] == k):
-                            box.offer(lst[i][0], lst[i][1].seq, lst[i][1])
-                        i += 1
-                    pos[key] = i
-                for box in boxes.values():
-                    if not box.ready(k) and not rejoin:
-                        box.mark_timeout(box.due(k))
-                got = {key: box.at(k) for key, box in boxes.items()}
-                h = got.pop(state_key)
-                st = h.value if h is not None else st_raw
-                inputs = {key: g.value for key, g in got.items() if g is not None}
-            else:
-                st = st_raw
-                if not rejoin:
-                    for key in input_keys:
-                        m = by_tick[key].get(k)
-                        if m is not None:
-                            held[key] = m
-                inputs = held
-            d = compute(k, st, inputs, seg_end)
-            if d is not None:
-                res.difference = d
-                return res
-            res.ticks += 1
-    return res
+
+class _HeldInputs:
+    """A run's inputs without link faults: the newest recorded value of each input key, held
+    (a new process holds nothing; a rejoining one hears no input of its first tick)."""
+
+    def __init__(self, v: _Verifier, start: int) -> None:
+        self.v = v
+        self.start = start
+        self.held: dict[str, Any] = {}
+
+    def at(self, k: int, st: wire.State) -> tuple[wire.State, dict[str, Any]]:
+        if not (k == self.start and self.start > 0):  # the inputs of a rejoin tick were sent before it subscribed
+            for key in self.v.input_keys:
+                m = self.v.by_tick[key].get(k)
+                if m is not None:
+                    self.held[key] = m
+        return st, self.held
+
+
+class _BoxedInputs:
+    """A run's inputs with link faults: every input through the receive box the agent uses
+    (:class:`zenswarm.linkfaults.Box`), fed the recorded messages in order."""
+
+    def __init__(self, v: _Verifier, plan: Any, start: int) -> None:
+        from zenswarm.faults import FaultState
+        from zenswarm.linkfaults import Box
+
+        fstate = FaultState(plan)
+        kinds = {v.state_key: "state", v.keys.leader_ref: "leader"}
+        self.v = v
+        self.start = start
+        self.boxes = {
+            key: Box(fstate, v.sender[key], v.me, kinds.get(key, "ref"), v.sc.timing.dt) for key in [v.state_key] + v.input_keys
+        }
+        self.feed = {key: [(k, msg) for _, k, msg in v.timeline[key] if k >= start] for key in self.boxes}
+        self.pos = {key: 0 for key in self.feed}
+
+    def _offer(self, k: int, rejoin: bool) -> None:
+        """Offer every recorded message up to tick k (none of a rejoin tick but the state)."""
+        for key, box in self.boxes.items():
+            lst, i = self.feed[key], self.pos[key]
+            while i < len(lst) and lst[i][0] <= k:
+                if not (rejoin and key != self.v.state_key and lst[i][0] == k):
+                    box.offer(lst[i][0], lst[i][1].seq, lst[i][1])
+                i += 1
+            self.pos[key] = i
+
+    def at(self, k: int, st_raw: wire.State) -> tuple[wire.State, dict[str, Any]]:
+        rejoin = k == self.start and self.start > 0  # the inputs of this tick were sent before it subscribed
+        self._offer(k, rejoin)
+        for box in self.boxes.values():
+            if not box.ready(k) and not rejoin:
+                box.mark_timeout(box.due(k))
+        got = {key: box.at(k) for key, box in self.boxes.items()}
+        h = got.pop(self.v.state_key)
+        return (h.value if h is not None else st_raw), {key: g.value for key, g in got.items() if g is not None}
 
 
 def _agents_arg(text: str) -> str:

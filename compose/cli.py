@@ -138,19 +138,21 @@ def run_standalone(prog: str, doc: str | None, configure, argv: Sequence[str] | 
 
 
 # The swarm's own processes start with only what they need (a restarted agent rejoins sooner).
-_ROLE_MODULES = {"agent": "zenswarm.agents.process", "leader": "zenswarm.leader.process", "plant": "zenswarm.plant.process"}
+_ROLE_PARSERS = {"agent": "add_agent_parser", "leader": "add_leader_parser", "plant": "add_plant_parser"}
 
 
 def _role_parser(role: str) -> argparse.ArgumentParser:
+    from zenswarm.compose import roles
+
     parser = argparse.ArgumentParser(prog="zenswarm")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    __import__(_ROLE_MODULES[role], fromlist=["add_parser"]).add_parser(sub)
+    getattr(roles, _ROLE_PARSERS[role])(sub)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = _role_parser(argv[0]) if argv and argv[0] in _ROLE_MODULES else build_parser()
+    parser = _role_parser(argv[0]) if argv and argv[0] in _ROLE_PARSERS else build_parser()
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)

@@ -1,17 +1,148 @@
-"""CLI entry points of the swarm's processes (what the supervisor starts, one OS process each)."""
+"""CLI entry points of the swarm's processes (what the supervisor starts, one OS process each).
+
+The edge of the roles: here the command line of ``zenswarm plant|leader|agent`` is parsed and
+turned into the roles' typed options (:class:`zenswarm.runtime.ProcessOptions`,
+:class:`zenswarm.agents.process.AgentOptions`, :class:`zenswarm.plant.process.PlantOptions`),
+which their ``run`` functions take. A bad flag is a usage error (exit 2) before any work.
+"""
 
 from __future__ import annotations
 
 import argparse
 
+from zenswarm.bridge.args import add_process_args
+from zenswarm.runtime import ProcessOptions
+
+__all__ = ["add_parsers", "agent_options", "plant_options", "process_options"]
+
+
+def process_options(args: argparse.Namespace) -> ProcessOptions:
+    """The common options of a parsed process command line (:func:`add_process_args`)."""
+    return ProcessOptions.of(args)
+
+
+def agent_options(args: argparse.Namespace):
+    from zenswarm.agents.process import AgentOptions
+
+    return AgentOptions(id=int(args.id), process=process_options(args))
+
+
+def plant_options(args: argparse.Namespace):
+    from zenswarm.plant.process import PlantOptions
+
+    return PlantOptions(process=process_options(args), expect=tuple(args.expect or ()))
+
+
+def _main_agent(args: argparse.Namespace) -> int:
+    from zenswarm.agents.process import run
+
+    return run(agent_options(args))
+
+
+def _main_leader(args: argparse.Namespace) -> int:
+    from zenswarm.leader.process import run
+
+    return run(process_options(args))
+
+
+def _main_plant(args: argparse.Namespace) -> int:
+    if getattr(args, "mavlink", False):
+        return _main_mavlink_fleet(args)
+    from zenswarm.plant.process import run
+
+    return run(plant_options(args))
+
+
+def _main_mavlink_fleet(args: argparse.Namespace) -> int:
+    """``plant --mavlink``: the scenario's quadrotors as simulated MAVLink vehicles over UDP
+    (:mod:`zenswarm.plant.mavlink_vehicle`; no Zenoh session: the MAVLink bridge is their swarm side)."""
+    from dataclasses import replace
+
+    from zenswarm.plant.mavlink_vehicle import run_fleet
+
+    from zenswarm.config import load_scenario
+    from zenswarm.errors import ScenarioError
+
+    if args.scenario is None:
+        raise ScenarioError("--scenario", "plant --mavlink needs the scenario file (it has no bus to fetch it from)")
+    sc = load_scenario(args.scenario)
+    if args.seed is not None:
+        sc = replace(sc, seed=int(args.seed))
+    return run_fleet(sc, base_port=args.base_port, autopilot=args.autopilot, telemetry_hz=args.telemetry_hz, duration=args.duration)
+
+
+def add_agent_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "agent",
+        help="run one UAV's agent process (generator, ESO, controller)",
+        description="Run agent I: reference generator (16-17), ESO (27) and controller (28) of UAV I, over Zenoh.",
+    )
+    p.add_argument("--id", type=int, required=True, metavar="I", help="UAV number, 1..N as in the paper")
+    add_process_args(p)
+    p.set_defaults(func=_main_agent)
+
+
+def add_leader_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "leader",
+        help="run the leader process (AAPF virtual leader)",
+        description="Run the virtual leader: AAPF planner (eqs 8-15); publishes leader/ref and serves the mission.",
+    )
+    add_process_args(p)
+    p.set_defaults(func=_main_leader)
+
+
+def add_vehicle_args(p: argparse.ArgumentParser) -> None:
+    """The simulated MAVLink vehicles' flags (``mavlink-vehicle`` and ``plant --mavlink``)."""
+    g = p.add_argument_group("simulated MAVLink vehicles")
+    g.add_argument("--base-port", type=int, default=None, metavar="P", help="vehicle i listens on UDP P+i-1 (default mavlink.base_port, 14540)")
+    g.add_argument("--autopilot", choices=("px4", "ardupilot"), help="mode numbering and heartbeat flavour (default px4)")
+    g.add_argument("--telemetry-hz", type=float, metavar="HZ", help="LOCAL_POSITION_NED + ATTITUDE rate (default 50)")
+    g.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until SIGTERM/SIGINT)")
+
+
+def add_vehicles_parser(sub: argparse._SubParsersAction) -> None:
+    """``mavlink-vehicle SCENARIO --base-port P`` (:mod:`zenswarm.plant.mavlink_vehicle`)."""
+    from pathlib import Path
+
+    from zenswarm.plant import mavlink_vehicle
+
+    p = sub.add_parser(
+        "mavlink-vehicle",
+        help="run the scenario's quadrotors as simulated MAVLink (PX4-like) vehicles over UDP",
+        description=(mavlink_vehicle.__doc__ or "").split("\n\n")[0],
+    )
+    p.add_argument("scenario", type=Path, help="scenario TOML (N vehicles, [vehicle], [timing], [mavlink])")
+    add_vehicle_args(p)
+    p.add_argument("--seed", type=int, default=None, help="seed of the disturbances (default: the scenario's)")
+    p.set_defaults(func=_main_mavlink_fleet)
+
+
+def add_plant_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "plant",
+        help="run the plant process (simulated quadrotors; the lockstep clock)",
+        description="Simulate every UAV of the scenario (eqs 1-5, onboard attitude PID) and publish their states.",
+    )
+    add_process_args(p)
+    p.add_argument(
+        "--expect",
+        action="append",
+        metavar="PROCESS",
+        help="also wait for this process (e.g. recorder) to announce itself before the first tick",
+    )
+    p.add_argument(
+        "--mavlink",
+        action="store_true",
+        help="run the quadrotors as simulated MAVLink vehicles over UDP instead (vehicle i on UDP --base-port + i - 1; "
+        "fly them with `zenswarm bridge mavlink`); the bus flags are then ignored",
+    )
+    add_vehicle_args(p)
+    p.set_defaults(func=_main_plant)
+
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
-    from zenswarm.agents.process import add_parser as add_agent
-    from zenswarm.leader.process import add_parser as add_leader
-    from zenswarm.plant.mavlink_vehicle import add_parsers as add_vehicles
-    from zenswarm.plant.process import add_parser as add_plant
-
-    add_plant(sub)
-    add_vehicles(sub)
-    add_leader(sub)
-    add_agent(sub)
+    add_plant_parser(sub)
+    add_vehicles_parser(sub)
+    add_leader_parser(sub)
+    add_agent_parser(sub)

@@ -30,20 +30,14 @@ import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 from msgspec.structs import replace as replace_table
 
-from zenswarm.agents.controller import composite_control, invert_thrust_attitude
-from zenswarm.agents.core import AgentCore, AgentRow
-from zenswarm.agents.eso import eso_step
-from zenswarm.agents.generator import euler_step, generator_rates_all
-from zenswarm.leader.aapf import AapfParams, integrate_leader, total_force
-from zenswarm.plant.disturbance import DisturbanceModel
-from zenswarm.plant.failsafe import FailsafeState, failsafe_config
-from zenswarm.params import QuadParams
-from zenswarm.plant.quadrotor import initial_state, step_held
+from zenswarm.agents.core import AgentCore, AgentRow, StackedAgents
+from zenswarm.leader.core import LeaderCore
+from zenswarm.plant.core import PlantCore
 
 from zenswarm.config import Scenario
 from zenswarm.faults import FaultPlan, FaultState
@@ -67,6 +61,143 @@ DECIDE_EVERY = 50
 names: checking in blocks costs less and ends at the same tick)."""
 
 
+class _Ref(NamedTuple):
+    """A reference as it travels on a link: (q, v), each (3,) (a :class:`agents.core.RefLike`)."""
+
+    q: np.ndarray
+    v: np.ndarray
+
+
+class _Links:
+    """With link faults: every directed link of the swarm as a receive box
+    (:class:`zenswarm.linkfaults.Box`, hold last value), as in the lockstep processes."""
+
+    def __init__(self, plan: FaultPlan, rows: list[AgentRow], dt: float) -> None:
+        fs = FaultState(plan)
+        n = len(rows)
+        self.state = [Box(fs, "plant", f"agent:{i + 1}", "state", dt) for i in range(n)]
+        self.nbr = [[Box(fs, f"agent:{j + 1}", f"agent:{i + 1}", "ref", dt) for j in r.neighbours] for i, r in enumerate(rows)]
+        self.lead = [Box(fs, "leader", f"agent:{i + 1}", "leader", dt) if r.pinned else None for i, r in enumerate(rows)]
+        self.cmd = [Box(fs, f"agent:{i + 1}", "plant", "cmd", dt) for i in range(n)]
+
+    def counters(self) -> dict[str, int]:
+        boxes = [*self.state, *self.cmd, *(b for b in self.lead if b), *(b for lst in self.nbr for b in lst)]
+        return box_counters({f"{b.src}{b.dst}{b.kind}": b for b in boxes})
+
+
+class _Swarm:
+    """The whole swarm in one process: the leader's, the agents' and the plant's cores
+    (:class:`leader.core.LeaderCore`, :class:`agents.core.AgentCore`, :class:`plant.core.PlantCore`),
+    ticked in the order of the module docstring. Without link faults the agents are one
+    :class:`agents.core.StackedAgents`; with them, one :class:`agents.core.AgentCore` per UAV
+    behind its receive boxes."""
+
+    def __init__(self, scenario: Scenario, faults: FaultPlan | None) -> None:
+        self.dt = scenario.timing.dt
+        self.leader = LeaderCore.from_scenario(scenario)
+        self.plant = PlantCore(scenario)
+        p = self.plant.params
+        rows = [AgentRow.from_scenario(scenario, i, p.mass, p.g) for i in range(scenario.n)]
+        self.links = _Links(faults, rows, self.dt) if faults is not None and faults.active else None
+        self.stacked = StackedAgents(rows)
+        self.cores = [AgentCore(r) for r in rows]
+
+    def tick(self, k: int, ts: TimeSeries) -> None:
+        """Control tick k: steps 1-8; the samples of step 2 go into ``ts[k]``."""
+        q0, v0 = self.leader.ref()
+        st = self.plant.state
+        q, v = st.q.copy(), st.v.copy()
+        ts.t[k], ts.q0[k], ts.v0[k], ts.q[k], ts.v[k], ts.rpy[k] = k * self.dt, q0, v0, q, v, st.rpy
+        if self.links is None:
+            self._agents_stacked(k, q, v, q0, v0, ts)
+        else:
+            self._agents_linked(k, q, v, q0, v0, ts)
+        self.plant.step(k)
+        self.leader.advance()
+
+    def _agents_stacked(self, k: int, q: np.ndarray, v: np.ndarray, q0: np.ndarray, v0: np.ndarray, ts: TimeSeries) -> None:
+        ag = self.stacked
+        if k == 0:
+            ag.reset(q, v)
+        ts.qref[k], ts.vref[k] = ag.q_ref, ag.v_ref
+        cmd = ag.finish(q, v, ag.rates_all(q0, v0))
+        ts.u[k], ts.thrust[k], ts.d_hat[k] = cmd.u, cmd.thrust, cmd.d_hat
+        self.plant.hold_all(cmd.thrust, cmd.rpy, k)
+
+    def _agents_linked(self, k: int, q: np.ndarray, v: np.ndarray, q0: np.ndarray, v0: np.ndarray, ts: TimeSeries) -> None:
+        """Every agent reads its links (hold last value), then ticks; the plant reads its links."""
+        lk, cores = self.links, self.cores
+        for i, c in enumerate(cores):
+            lk.state[i].offer(k, k, (q[i], v[i]))
+            if not c.initialised:
+                c.reset(*lk.state[i].at(k).value)
+        refs = [_Ref(c.q_ref, c.v_ref) for c in cores]
+        for i, c in enumerate(cores):
+            for x, j in enumerate(c.row.neighbours):
+                lk.nbr[i][x].offer(k, k, refs[j])
+            if lk.lead[i] is not None:
+                lk.lead[i].offer(k, k, _Ref(q0, v0))
+        for i, c in enumerate(cores):
+            qm, vm = lk.state[i].at(k).value
+            nbr = [_held(box.at(k)) for box in lk.nbr[i]]
+            lead = _held(lk.lead[i].at(k)) if lk.lead[i] is not None else None
+            cmd = c.finish(qm, vm, c.rates_from(nbr, lead))
+            ts.qref[k, i], ts.vref[k, i] = refs[i]
+            ts.u[k, i], ts.thrust[k, i], ts.d_hat[k, i] = cmd.u, cmd.thrust, cmd.d_hat
+            lk.cmd[i].offer(k, k, (cmd.thrust, cmd.rpy))
+        for i, box in enumerate(lk.cmd):
+            held = box.at(k)
+            self.plant.hold(i, *held.value, held.send_tick)
+
+    def fault_results(self) -> dict:
+        """``link_counters`` and ``failsafe_events`` of a run with link faults ({} without)."""
+        if self.links is None:
+            return {}
+        return {"link_counters": self.links.counters(), "failsafe_events": [list(e) for e in self.plant.failsafe.events]}
+
+
+def _held(h: Any) -> Any:
+    """The value a box holds (None before its first delivery)."""
+    return None if h is None else h.value
+
+
+class _Flight:
+    """Ticks a :class:`_Swarm` into a time series; ``flown``: ticks whose samples are complete
+    (what a Ctrl-C keeps)."""
+
+    def __init__(self, swarm: _Swarm, ts: TimeSeries, scenario: Scenario, progress: ProgressFn | None, full_time: bool) -> None:
+        self.swarm = swarm
+        self.ts = ts
+        self.crit = None if full_time else criteria_from_scenario(scenario)
+        self.goal = np.asarray(scenario.leader.goal, dtype=float)
+        self.progress = progress
+        self.flown = 0
+
+    def _decided(self, lo: int, hi: int) -> int | None:
+        """The tick in [lo, hi) that decided the run (:func:`zenswarm.verdict.decide_end`), if any."""
+        ts = self.ts
+        return None if self.crit is None else decide_end(ts.q0, ts.q, ts.qref, self.crit, lo, hi)
+
+    def run(self, T: int) -> int:
+        """Tick until T, or until the tick that decided the run (unless ``full_time``).
+        Returns the ticks flown."""
+        checked = 0  # ticks already given to decide_end
+        for k in range(T):
+            if k - checked >= DECIDE_EVERY:  # the run ends after a tick that decided its outcome
+                stop = self._decided(checked, k)
+                if stop is not None:
+                    self.flown = stop + 1
+                    return self.flown
+                checked = k
+            self.flown = k
+            self.swarm.tick(k, self.ts)
+            if self.progress is not None and (k % 100 == 0 or k == T - 1):
+                self.progress(k + 1, T, float(np.linalg.norm(self.swarm.leader.q0 - self.goal)))
+        stop = self._decided(checked, T)
+        self.flown = T if stop is None else stop + 1
+        return self.flown
+
+
 def simulate(
     scenario: Scenario,
     progress: ProgressFn | None = None,
@@ -85,152 +216,24 @@ def simulate(
     Returns the time series (one sample per tick, taken at step 2 of the tick) and the results.
     """
     wall0 = time.perf_counter()
-    tm = scenario.timing
-    dt = tm.dt
-    nsub = tm.substeps
-    h_phys = dt / nsub
-    T = tm.n_ticks if n_ticks is None else int(n_ticks)
-    n = scenario.n
-
-    params = QuadParams.from_vehicle(scenario.vehicle)
-    g = params.g
-    mass = params.mass
-    aapf = AapfParams.from_scenario(scenario)
-    A = np.asarray(scenario.graph.adjacency, dtype=float)
-    b = np.asarray(scenario.graph.pinning, dtype=float)
-    h = np.asarray(scenario.offsets, dtype=float)
-    kp = np.asarray(scenario.controller.kp, dtype=float)
-    kd = np.asarray(scenario.controller.kd, dtype=float)
-    beta = tuple(scenario.eso.beta)
-    mu1, mu2 = scenario.generator.mu1, scenario.generator.mu2
-    yaw = scenario.controller.yaw
-    goal = np.asarray(scenario.leader.goal, dtype=float)
-
-    rng = np.random.default_rng(scenario.seed)
-    dist = DisturbanceModel(scenario.disturbance, n, rng)
-    plant = initial_state(np.asarray(scenario.initial_positions, dtype=float))
-    q0 = np.asarray(scenario.leader.start, dtype=float).copy()
-
-    ts = TimeSeries.allocate(T, n)
-    qref = vref = q_hat = v_hat = d_hat = None
-    rpy_cmd = np.zeros((n, 3))
-    rpy_cmd[:, 2] = yaw
-    zeros = np.zeros((n, 3))
-
-    faulty = faults is not None and faults.active
-    if faulty:
-        fstate = FaultState(faults)
-        rows = [AgentRow.from_scenario(scenario, i, mass, g) for i in range(n)]
-        cores = [AgentCore(r) for r in rows]
-        st_box = [Box(fstate, "plant", f"agent:{i + 1}", "state", dt) for i in range(n)]
-        nb_box = [[Box(fstate, f"agent:{j + 1}", f"agent:{i + 1}", "ref", dt) for j in r.neighbours] for i, r in enumerate(rows)]
-        ld_box = [Box(fstate, "leader", f"agent:{i + 1}", "leader", dt) if r.pinned else None for i, r in enumerate(rows)]
-        cmd_box = [Box(fstate, f"agent:{i + 1}", "plant", "cmd", dt) for i in range(n)]
-        failsafe = FailsafeState(n, failsafe_config(scenario.failsafe))
-
-    crit = criteria_from_scenario(scenario)
-    flown = 0  # ticks whose samples are complete in ts
-    checked = 0  # ticks already given to decide_end
+    dt = scenario.timing.dt
+    T = scenario.timing.n_ticks if n_ticks is None else int(n_ticks)
+    swarm = _Swarm(scenario, faults)
+    ts = TimeSeries.allocate(T, scenario.n)
+    flight = _Flight(swarm, ts, scenario, progress, full_time)
     interrupted = False
     try:
-        for k in range(T):
-            if k - checked >= DECIDE_EVERY:  # the run ends after a tick that decided its outcome
-                stop = None if full_time else decide_end(ts.q0, ts.q, ts.qref, crit, checked, k)
-                if stop is not None:
-                    flown = stop + 1
-                    break
-                checked = k
-            flown = k
-            t = k * dt
-            v0 = total_force(q0, aapf)
-            q = plant.q.copy()
-            v = plant.v.copy()
-            if faulty:
-                # every agent reads its links (hold last value), then ticks; the plant reads its links
-                for i in range(n):
-                    st_box[i].offer(k, k, (q[i], v[i]))
-                    if not cores[i].initialised:
-                        held = st_box[i].at(k)
-                        cores[i].reset(*held.value)
-                refs = [(c.q_ref, c.v_ref) for c in cores]
-                for i, r in enumerate(rows):
-                    for x, j in enumerate(r.neighbours):
-                        nb_box[i][x].offer(k, k, refs[j])
-                    if ld_box[i] is not None:
-                        ld_box[i].offer(k, k, (q0, v0))
-                for i, r in enumerate(rows):
-                    qm, vm = st_box[i].at(k).value
-                    nb = [box.at(k).value for box in nb_box[i]]
-                    qn = np.array([x[0] for x in nb]).reshape(-1, 3)
-                    vn = np.array([x[1] for x in nb]).reshape(-1, 3)
-                    lead = ld_box[i].at(k).value if ld_box[i] is not None else (None, None)
-                    cmd = cores[i].tick(qm, vm, qn, vn, lead[0], lead[1])
-                    ts.qref[k, i], ts.vref[k, i] = refs[i]
-                    ts.u[k, i] = cmd.u
-                    ts.thrust[k, i] = cmd.thrust
-                    ts.d_hat[k, i] = cmd.d_hat
-                    cmd_box[i].offer(k, k, (cmd.thrust, cmd.rpy))
-                thrust_held = np.empty(n)
-                ages = []
-                for i in range(n):
-                    held = cmd_box[i].at(k)
-                    thrust_held[i], rpy_cmd[i] = held.value
-                    ages.append(held.age_ticks * dt)
-                thrust_applied, rpy_applied = failsafe.apply(k, ages, plant.q, plant.v, thrust_held, rpy_cmd, mass, g, yaw)
-                ts.t[k], ts.q0[k], ts.v0[k], ts.q[k], ts.v[k], ts.rpy[k] = t, q0, v0, q, v, plant.rpy
-                step_held(plant, thrust_applied, rpy_applied, params, h_phys, nsub, dist.sampler(t, h_phys))
-                q0, _info = integrate_leader(q0, dt, aapf, nsub)
-                if progress is not None and (k % 100 == 0 or k == T - 1):
-                    progress(k + 1, T, float(np.linalg.norm(q0 - goal)))
-                continue
-            if k == 0:
-                qref, vref = q.copy(), np.zeros((n, 3))
-                q_hat, v_hat, d_hat = q.copy(), v.copy(), np.zeros((n, 3))
-            dqr, dvr = generator_rates_all(qref, vref, h, A, b, q0, v0, mu1, mu2)
-            d_used = d_hat if scenario.eso.enabled else zeros
-            u = composite_control(qref, vref, dvr, q, v, d_used, kp, kd, g)
-            F, phi, theta = invert_thrust_attitude(u, mass, yaw)
-            rpy_cmd[:, 0] = phi
-            rpy_cmd[:, 1] = theta
-
-            ts.t[k] = t
-            ts.q0[k] = q0
-            ts.v0[k] = v0
-            ts.qref[k] = qref
-            ts.vref[k] = vref
-            ts.q[k] = q
-            ts.v[k] = v
-            ts.rpy[k] = plant.rpy
-            ts.u[k] = u
-            ts.thrust[k] = F
-            ts.d_hat[k] = d_used
-
-            q_hat, v_hat, d_hat = eso_step(q_hat, v_hat, d_hat, q, u, beta, dt, g)
-            qref, vref = euler_step(qref, vref, dqr, dvr, dt)
-            step_held(plant, F, rpy_cmd, params, h_phys, nsub, dist.sampler(t, h_phys))
-            q0, _info = integrate_leader(q0, dt, aapf, nsub)
-
-            if progress is not None and (k % 100 == 0 or k == T - 1):
-                progress(k + 1, T, float(np.linalg.norm(q0 - goal)))
-        else:
-            flown = T
-            stop = None if full_time else decide_end(ts.q0, ts.q, ts.qref, crit, checked, T)
-            if stop is not None:
-                flown = stop + 1
+        flight.run(T)
     except KeyboardInterrupt:  # Ctrl-C: judge and keep what was flown
         interrupted = True
-
+    flown = flight.flown
     wall = time.perf_counter() - wall0
     if flown < T:
         ts = ts.truncated(flown)
     results = compute_results(ts, scenario, wall_time_s=wall, early_end=not full_time)
     if interrupted:
         add_failure(results, "interrupted", f"interrupted (Ctrl-C) at sim time {flown * dt:.2f} s", flown * dt)
-    if faulty:
-        boxes = {f"{b.src}{b.dst}{b.kind}": b for lst in (st_box, cmd_box, [x for x in ld_box if x]) for b in lst}
-        boxes.update({f"{b.src}{b.dst}{b.kind}": b for lst in nb_box for b in lst})
-        results["link_counters"] = box_counters(boxes)
-        results["failsafe_events"] = [list(e) for e in failsafe.events]
+    results.update(swarm.fault_results())
     return SimResult(ts, results)
 
 

@@ -8,34 +8,105 @@ clock(c) (published every :data:`zenswarm.runtime.CLOCK_EVERY_TICKS` ticks) it p
 ref up to ref(c + :data:`zenswarm.runtime.LEADER_AHEAD_TICKS`), so pinned agents never wait for it
 (the plant starts the clock only once every process has subscribed, so nothing is published into
 the void; a leader that starts late catches up at once). Realtime: it follows the plant's clock on a fixed
-loop, integrating from its current time to the newest clock time.
+loop (:class:`zenswarm.runtime.WallClock`), integrating from its current time to the newest clock time.
+
+The leader's tick is :class:`leader.core.LeaderCore` (the in-process simulator runs the same).
+Started with :class:`zenswarm.runtime.ProcessOptions` by :func:`run` (the command line is parsed at
+the edge, :mod:`zenswarm.compose.roles`).
 """
 
 from __future__ import annotations
 
-import argparse
-import time
-
-import numpy as np
-
 from zenswarm import wire
 from zenswarm.config import scenario_to_dict
-from zenswarm.runtime import LEADER_AHEAD_TICKS, Lockstep, LoopStats, SwarmProcess, add_common_args, run_process
+from zenswarm.runtime import (
+    LEADER_AHEAD_TICKS,
+    Lockstep,
+    ProcessOptions,
+    SwarmProcess,
+    WallClock,
+    run_process,
+)
 
-from .aapf import AapfParams, integrate_leader, total_force
+from .core import LeaderCore
 
-__all__ = ["main", "add_parser"]
+__all__ = ["run"]
+
+
+class _Leader:
+    """The leader's publications around its :class:`LeaderCore`."""
+
+    def __init__(self, proc: SwarmProcess) -> None:
+        sc = proc.scenario
+        self.proc = proc
+        self.keys = proc.keys
+        self.core = LeaderCore.from_scenario(sc)
+        self.dt_ns = wire.t_ns(sc.timing.dt)
+        self.n_ticks = sc.timing.n_ticks
+        self.seq = 0
+
+    def publish_current(self) -> None:
+        """ref(k) of the core's tick k: (q0, v0)."""
+        self.seq += 1
+        q0, v0 = self.core.ref()
+        self.proc.publish(self.keys.leader_ref, wire.Ref(t=self.core.k * self.dt_ns, seq=self.seq, q=q0.copy(), v=v0))
+
+    def diag(self, info: dict | None = None) -> None:
+        self.proc.counters["substep_cap_hits"] = self.core.capped
+        self.proc.publish_diag(self.core.k * self.dt_ns, info)
+
+    # ------------------------------------------------------------------ lockstep
+    def ready(self, k: int) -> bool:
+        """Tick k may run: at most LEADER_AHEAD_TICKS past the newest clock."""
+        clk = self.proc.inbox.latest.get(self.keys.clock)
+        return clk is not None and k <= (clk.t + self.dt_ns // 2) // self.dt_ns + LEADER_AHEAD_TICKS
+
+    def step(self, k: int, forced: bool) -> None:
+        if k > 0:
+            self.core.advance()
+        self.publish_current()
+        self.proc.inbox.forget_before(k - 2 * LEADER_AHEAD_TICKS)
+        if k % 500 == 0:
+            self.diag()
+
+    def run_lockstep(self) -> int:
+        proc = self.proc
+        ls = Lockstep(self.n_ticks, self.ready, self.step, proc.options.lockstep_timeout, proc.stop, can_force=lambda k: False)
+        proc.on_input = ls.poke
+        k = ls.run()
+        proc.publish_diag(k * self.dt_ns, {"finished": k >= self.n_ticks, **ls.timing()})
+        proc.linger_until_gone("plant")
+        return 0
+
+    # ------------------------------------------------------------------ realtime
+    def run_realtime(self) -> int:
+        """Follow the plant's clock on a fixed loop: integrate up to the newest clock time."""
+        proc, core = self.proc, self.core
+        clock = WallClock(proc.scenario.timing.dt, proc.stop)
+        published = -1
+        limit = wire.t_ns(proc.scenario.timing.time_limit_s)
+        while clock.wait():
+            clk = proc.inbox.latest.get(self.keys.clock)
+            if clk is not None and not proc.is_alive("plant"):
+                break  # the plant is gone: the flight is over
+            target = 0 if clk is None else int(round(clk.t / self.dt_ns)) + 1
+            while core.k < target:
+                core.advance()
+            if core.k != published:
+                self.publish_current()
+                published = core.k
+            if clk is not None and clk.t >= limit:
+                break
+            if clock.stats.ticks % 100 == 0:
+                proc.publish_diag(core.k * self.dt_ns, clock.stats.as_dict())
+        proc.publish_diag(core.k * self.dt_ns, clock.stats.as_dict())
+        return 0
 
 
 def _run(proc: SwarmProcess) -> int:
-    sc = proc.scenario
+    leader = _Leader(proc)
     keys = proc.keys
-    p = AapfParams.from_scenario(sc)
-    dt = sc.timing.dt
-    dt_ns = wire.t_ns(dt)
-    nsub = sc.timing.substeps
-    n_ticks = sc.timing.n_ticks
-    mission = wire.encode(wire.Mission(t=0, seq=1, scenario=scenario_to_dict(sc)))
+    mission = wire.encode(wire.Mission(t=0, seq=1, scenario=scenario_to_dict(proc.scenario)))
 
     def on_query(query) -> None:
         query.reply(keys.mission, mission)
@@ -44,83 +115,12 @@ def _run(proc: SwarmProcess) -> int:
     proc.subscribe(keys.clock, "clock")
     proc.watch_alive(["plant"])
     proc.announce()
-
-    q0 = np.asarray(sc.leader.start, dtype=float).copy()
-    k_q = 0  # tick index of q0
-    seq = 0
-    capped = 0
-
-    def publish_current() -> None:
-        nonlocal seq
-        seq += 1
-        proc.publish(keys.leader_ref, wire.Ref(t=k_q * dt_ns, seq=seq, q=q0.copy(), v=total_force(q0, p)))
-
-    def advance() -> None:
-        nonlocal q0, k_q, capped
-        q0, info = integrate_leader(q0, dt, p, nsub)
-        capped += int(info.capped)
-        k_q += 1
-
     try:
-        if not proc.args.realtime:
-            def ready(k: int) -> bool:
-                clk = proc.inbox.latest.get(keys.clock)
-                return clk is not None and k <= (clk.t + dt_ns // 2) // dt_ns + LEADER_AHEAD_TICKS
-
-            def step(k: int, forced: bool) -> None:
-                if k > 0:
-                    advance()
-                publish_current()
-                proc.inbox.forget_before(k - 2 * LEADER_AHEAD_TICKS)
-                if k % 500 == 0:
-                    proc.counters["substep_cap_hits"] = capped
-                    proc.publish_diag(k * dt_ns)
-
-            ls = Lockstep(n_ticks, ready, step, proc.args.lockstep_timeout, proc.stop, can_force=lambda k: False)
-            proc.on_input = ls.poke
-            k = ls.run()
-            proc.publish_diag(k * dt_ns, {"finished": k >= n_ticks, **ls.timing()})
-            proc.linger_until_gone("plant")
-            return 0
-
-        stats = LoopStats(dt)
-        next_t = time.monotonic()
-        published = -1
-        limit = wire.t_ns(sc.timing.time_limit_s)
-        while not proc.stop.is_set():
-            now = time.monotonic()
-            if now < next_t:
-                time.sleep(next_t - now)
-            stats.record(time.monotonic() - next_t)
-            next_t += dt
-            clk = proc.inbox.latest.get(keys.clock)
-            if clk is not None and not proc.is_alive("plant"):
-                break  # the plant is gone: the flight is over
-            target = 0 if clk is None else int(round(clk.t / dt_ns)) + 1
-            while k_q < target:
-                advance()
-            if k_q != published:
-                publish_current()
-                published = k_q
-            if clk is not None and clk.t >= limit:
-                break
-            if stats.ticks % 100 == 0:
-                proc.publish_diag(k_q * dt_ns, stats.as_dict())
-        proc.publish_diag(k_q * dt_ns, stats.as_dict())
-        return 0
+        return leader.run_realtime() if proc.options.realtime else leader.run_lockstep()
     finally:
         queryable.undeclare()
 
 
-def main(args: argparse.Namespace) -> int:
-    return run_process(_run, "leader", args)
-
-
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "leader",
-        help="run the leader process (AAPF virtual leader)",
-        description="Run the virtual leader: AAPF planner (eqs 8-15); publishes leader/ref and serves the mission.",
-    )
-    add_common_args(p)
-    p.set_defaults(func=main)
+def run(options: ProcessOptions) -> int:
+    """Run the leader until the flight ends; the exit code (2: bad input)."""
+    return run_process(_run, "leader", options)

@@ -42,7 +42,6 @@ SIGTERM/SIGINT. Importing this module sets ``MAVLINK20=1`` (see bridge.mavlink).
 
 from __future__ import annotations
 
-import argparse
 import math
 import signal
 import sys
@@ -76,7 +75,7 @@ from .quadrotor import PlantState, initial_state, step
 mavutil = load_mavutil()
 mavlink = mavutil.mavlink
 
-__all__ = ["VehicleOptions", "SimVehicle", "MavlinkFleet", "run_fleet", "add_vehicle_args", "add_parsers"]
+__all__ = ["VehicleOptions", "SimVehicle", "MavlinkFleet", "run_fleet"]
 
 _FORCE_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that forces (dis)arming
 
@@ -741,19 +740,29 @@ class MavlinkFleet:
 # --------------------------------------------------------------------------- CLI
 
 
-def run_fleet(sc: Any, args: argparse.Namespace) -> int:
+def run_fleet(
+    sc: Any,
+    *,
+    base_port: int | None = None,
+    autopilot: str | None = None,
+    telemetry_hz: float | None = None,
+    duration: float | None = None,
+) -> int:
     """Run the fleet of scenario ``sc`` in the calling thread until SIGTERM/SIGINT (or
-    ``args.duration``); ``args`` carries the flags of :func:`add_vehicle_args`."""
-    fleet = MavlinkFleet.from_scenario(sc, base_port=args.base_port)
-    if args.autopilot or args.telemetry_hz:
+    ``duration`` s). ``base_port``: vehicle i listens on UDP base_port + i - 1 (None: the
+    scenario's ``mavlink.base_port``); ``autopilot`` (``px4`` or ``ardupilot``) and
+    ``telemetry_hz`` override the scenario's vehicle options. The command line (``zenswarm
+    mavlink-vehicle``, ``zenswarm plant --mavlink``) is parsed in :mod:`zenswarm.compose.roles`."""
+    fleet = MavlinkFleet.from_scenario(sc, base_port=base_port)
+    if autopilot or telemetry_hz:
         opts = fleet.opts
         fleet.close()
         opts = replace(
             opts,
-            autopilot=args.autopilot or opts.autopilot,
-            telemetry_hz=args.telemetry_hz or opts.telemetry_hz,
+            autopilot=autopilot or opts.autopilot,
+            telemetry_hz=telemetry_hz or opts.telemetry_hz,
         )
-        fleet = MavlinkFleet.from_scenario(sc, base_port=args.base_port, opts=opts)
+        fleet = MavlinkFleet.from_scenario(sc, base_port=base_port, opts=opts)
     stop = threading.Event()
 
     def on_signal(signum: int, frame: Any) -> None:
@@ -768,44 +777,8 @@ def run_fleet(sc: Any, args: argparse.Namespace) -> int:
             + f"; physics {1 / fleet.h:g} Hz in chunks of {fleet.chunk}, telemetry {fleet.loop_hz / fleet.tel_every:g} Hz",
             flush=True,
         )
-        why = fleet.run(stop, args.duration)
+        why = fleet.run(stop, duration)
         print(f"mavlink-vehicle: stopped ({why}); overruns {fleet.overruns}; " + str(fleet.status()), flush=True)
     finally:
         fleet.close()
     return 0
-
-
-def _run_cli(args: argparse.Namespace) -> int:
-    from zenswarm.config import load_scenario
-
-    sc = load_scenario(args.scenario)
-    if getattr(args, "seed", None) is not None:
-        sc = replace(sc, seed=int(args.seed))
-    return run_fleet(sc, args)
-
-
-def add_vehicle_args(p: argparse.ArgumentParser) -> None:
-    """The simulated vehicles' flags (``mavlink-vehicle`` and ``plant --mavlink``)."""
-    g = p.add_argument_group("simulated MAVLink vehicles")
-    g.add_argument("--base-port", type=int, default=None, metavar="P", help="vehicle i listens on UDP P+i-1 (default mavlink.base_port, 14540)")
-    g.add_argument("--autopilot", choices=("px4", "ardupilot"), help="mode numbering and heartbeat flavour (default px4)")
-    g.add_argument("--telemetry-hz", type=float, metavar="HZ", help="LOCAL_POSITION_NED + ATTITUDE rate (default 50)")
-    g.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until SIGTERM/SIGINT)")
-
-
-def _configure(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scenario", type=Path, help="scenario TOML (N vehicles, [vehicle], [timing], [mavlink])")
-    add_vehicle_args(p)
-    p.add_argument("--seed", type=int, default=None, help="seed of the disturbances (default: the scenario's)")
-    p.set_defaults(func=_run_cli)
-
-
-def add_parsers(sub: argparse._SubParsersAction) -> None:
-    """Register ``mavlink-vehicle SCENARIO --base-port P``."""
-    p = sub.add_parser(
-        "mavlink-vehicle",
-        help="run the scenario's quadrotors as simulated MAVLink (PX4-like) vehicles over UDP",
-        description=(__doc__ or "").split("\n\n")[0],
-    )
-    _configure(p)
-

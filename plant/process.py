@@ -9,240 +9,228 @@ the leader and the supervisor only, goes out every :data:`zenswarm.runtime.CLOCK
 ticks: clock(0) with the first states, then clock(k + 1) as the integration of tick k starts, so
 the leader's burst of refs overlaps the integration, not the agents' work. It starts only
 when the leader and every agent have announced themselves.
-Realtime: a fixed-rate loop at the control rate; each period integrates one control period of
-physics with the latest command of each UAV (hover thrust, level, before the first one).
+Realtime: a fixed-rate loop at the control rate (:class:`zenswarm.runtime.WallClock`); each period
+integrates one control period of physics with the latest command of each UAV (hover thrust, level,
+before the first one).
+
+The plant's tick is :class:`plant.core.PlantCore` (the in-process simulator runs the same).
+Started with :class:`PlantOptions` by :func:`run` (the command line is parsed at the edge,
+:mod:`zenswarm.compose.roles`; ``plant --mavlink`` runs :mod:`plant.mavlink_vehicle` instead).
 """
 
 from __future__ import annotations
 
-import argparse
-import time
-
-import numpy as np
+from dataclasses import dataclass, field
 
 from zenswarm import wire
 from zenswarm.faults import FaultState
-from zenswarm.linkfaults import Box, box_counters, plan_from_args
-from zenswarm.runtime import CLOCK_EVERY_TICKS, Lockstep, LoopStats, SwarmProcess, add_common_args, run_process
+from zenswarm.linkfaults import Box, box_counters
+from zenswarm.runtime import (
+    CLOCK_EVERY_TICKS,
+    Lockstep,
+    ProcessOptions,
+    SwarmProcess,
+    WallClock,
+    run_process,
+)
 
-from .disturbance import DisturbanceModel
-from .failsafe import FailsafeState, failsafe_config
-from zenswarm.params import QuadParams
-from .quadrotor import initial_state, step_held
+from .core import PlantCore
 
-__all__ = ["main", "add_parser"]
+__all__ = ["PlantOptions", "run"]
 
 
-def _run(proc: SwarmProcess) -> int:
-    sc = proc.scenario
-    keys = proc.keys
-    n = sc.n
-    params = QuadParams.from_vehicle(sc.vehicle)
-    dt = sc.timing.dt
-    dt_ns = wire.t_ns(dt)
-    nsub = sc.timing.substeps
-    h = dt / nsub
-    n_ticks = sc.timing.n_ticks
-    yaw = sc.controller.yaw
-    rng = np.random.default_rng(sc.seed)
-    dist = DisturbanceModel(sc.disturbance, n, rng)
-    plant = initial_state(np.asarray(sc.initial_positions, dtype=float))
-    failsafe = FailsafeState(n, failsafe_config(sc.failsafe))
-    thrust = np.full(n, params.mass * params.g)
-    rpy_cmd = np.zeros((n, 3))
-    rpy_cmd[:, 2] = yaw
-    last_cmd_tick = [0] * n
-    cmd_keys = [keys.cmd(i + 1) for i in range(n)]
-    agents = [f"agent:{i + 1}" for i in range(n)]
-    plan = plan_from_args(sc, proc.args)
-    boxes: dict[str, Box] = {}
-    if plan is not None and not proc.args.realtime:
+@dataclass(frozen=True)
+class PlantOptions:
+    """The common process options, and ``expect``: more processes (e.g. ``recorder``) to wait
+    for before the first tick, beside the leader and every agent."""
+
+    process: ProcessOptions = field(default_factory=ProcessOptions)
+    expect: tuple[str, ...] = ()
+
+
+class _Plant:
+    """The plant's keys, links and publications around its :class:`PlantCore`."""
+
+    def __init__(self, proc: SwarmProcess) -> None:
+        sc = proc.scenario
+        self.proc = proc
+        self.keys = proc.keys
+        self.core = PlantCore(sc)
+        self.n = sc.n
+        self.dt = sc.timing.dt
+        self.dt_ns = wire.t_ns(self.dt)
+        self.n_ticks = sc.timing.n_ticks
+        self.realtime = proc.options.realtime
+        self.cmd_keys = [self.keys.cmd(i + 1) for i in range(self.n)]
+        self.agents = [wire.agent(i + 1) for i in range(self.n)]
+        self.boxes: dict[str, Box] = {}
+        self.seq = 0
+
+    def use_faults(self) -> None:
+        """Link faults: lockstep commands go through receive boxes, realtime ones a delay line."""
+        proc = self.proc
+        plan = proc.options.fault_plan(proc.scenario)
+        if plan is None:
+            return
+        links = {key: (self.agents[i], "plant", "cmd") for i, key in enumerate(self.cmd_keys)}
+        if self.realtime:
+            proc.use_delay_line(FaultState(plan), links)
+            return
         fstate = FaultState(plan)
-        boxes = {key: Box(fstate, agents[i], "plant", "cmd", dt) for i, key in enumerate(cmd_keys)}
+        boxes = self.boxes = {key: Box(fstate, *links[key], self.dt) for key in self.cmd_keys}
         proc.extra_counters = lambda: box_counters(boxes)
-    elif plan is not None:
-        proc.use_delay_line(FaultState(plan), {key: (agents[i], "plant", "cmd") for i, key in enumerate(cmd_keys)})
-    seq = 0
 
-    def publish_tick(k: int) -> None:
-        nonlocal seq
-        seq += 1
-        t = k * dt_ns
-        for i in range(n):  # the states first: they are what the agents wait for
-            proc.publish(
-                keys.state(i + 1),
-                wire.State(t=t, seq=seq, q=plant.q[i].copy(), v=plant.v[i].copy(), rpy=plant.rpy[i].copy(), w=plant.w[i].copy()),
+    def publish_tick(self, k: int) -> None:
+        """state_i(k) of every UAV (and, in realtime or at k = 0, clock(k))."""
+        self.seq += 1
+        t = k * self.dt_ns
+        st = self.core.state
+        for i in range(self.n):  # the states first: they are what the agents wait for
+            self.proc.publish(
+                self.keys.state(i + 1),
+                wire.State(t=t, seq=self.seq, q=st.q[i].copy(), v=st.v[i].copy(), rpy=st.rpy[i].copy(), w=st.w[i].copy()),
             )
-        if proc.args.realtime or k == 0:  # lockstep: publish_clock_early
-            proc.publish(keys.clock, wire.Clock(t=t, seq=seq))
+        if self.realtime or k == 0:  # lockstep: publish_clock_early
+            self.proc.publish(self.keys.clock, wire.Clock(t=t, seq=self.seq))
 
-    def publish_clock_early(k: int) -> None:
+    def publish_clock_early(self, k: int) -> None:
         """Lockstep: clock(k + 1) once the commands of tick k are in, before integrating: the
         leader then runs ahead while the plant integrates (when the agents wait) rather than
         when the agents compute. Every CLOCK_EVERY_TICKS ticks and at the end."""
         k1 = k + 1
-        if k1 % CLOCK_EVERY_TICKS == 0 or k1 >= n_ticks:
-            proc.publish(keys.clock, wire.Clock(t=k1 * dt_ns, seq=seq + 1))
+        if k1 % CLOCK_EVERY_TICKS == 0 or k1 >= self.n_ticks:
+            self.proc.publish(self.keys.clock, wire.Clock(t=k1 * self.dt_ns, seq=self.seq + 1))
 
-    def apply(i: int, c: wire.Cmd, k_cmd: int) -> None:
-        thrust[i] = c.thrust
-        rpy_cmd[i] = c.rpy
-        last_cmd_tick[i] = k_cmd
+    def integrate(self, k: int) -> None:
+        """Step 7 of tick k (:meth:`PlantCore.step`); failsafe changes are logged and diagnosed."""
+        events = self.core.step(k)
+        if events:
+            proc = self.proc
+            for ev in events:
+                proc.log(f"plant: tick {ev[0]} (t = {ev[0] * self.dt:.2f} s): UAV {ev[1]} failsafe {ev[2]} -> {ev[3]}")
+            proc.counters["failsafe_events"] = len(self.core.failsafe.events)
+            proc.publish_diag(k * self.dt_ns, {"failsafe": self.failsafe_summary()})
 
-    def integrate(k: int) -> None:
-        before = len(failsafe.events)
-        ages = [(k - last_cmd_tick[i]) * dt for i in range(n)]
-        f_app, r_app = failsafe.apply(k, ages, plant.q, plant.v, thrust, rpy_cmd, params.mass, params.g, yaw)
-        if len(failsafe.events) > before:
-            for ev in failsafe.events[before:]:
-                proc.log(f"plant: tick {ev[0]} (t = {ev[0] * dt:.2f} s): UAV {ev[1]} failsafe {ev[2]} -> {ev[3]}")
-            proc.counters["failsafe_events"] = len(failsafe.events)
-            proc.publish_diag(k * dt_ns, {"failsafe": failsafe.summary() or "none"})
-        step_held(plant, f_app, r_app, params, h, nsub, dist.sampler(k * dt, h))
+    def failsafe_summary(self) -> str:
+        return self.core.failsafe.summary() or "none"
 
-    if not proc.args.realtime:
 
-        def on_msg(key: str, k: int, msg) -> None:  # noqa: ANN001 - under the lockstep lock
-            if boxes:
-                boxes[key].offer(k, msg.seq, msg)
+class _LockstepPlant:
+    """The lockstep clock: publish state(k), wait for every cmd(k) (:class:`Lockstep`), integrate."""
 
-        def needed(i: int, k: int) -> bool:
-            """Wait for agent i's cmd(k)? Not if it is gone or has moved past tick k."""
-            if not proc.is_alive(agents[i]):
-                return False
-            m = proc.inbox.latest.get(cmd_keys[i])
-            return m is None or m.t <= k * dt_ns
+    def __init__(self, plant: _Plant) -> None:
+        self.p = plant
+        self.proc = plant.proc
+        # while an agent is down, run no faster than real time
+        self.pacer = WallClock(plant.dt, catch_up=False)
+        self.ls = Lockstep(plant.n_ticks, self.ready, self.step, self.proc.options.lockstep_timeout, self.proc.stop,
+                           on_msg=self.on_msg)
 
-        def ready(k: int) -> bool:
-            if boxes:
-                return all(b.ready(k) or not needed(i, k) for i, b in enumerate(boxes.values()))
-            return all(proc.inbox.get(key, k) is not None or not needed(i, k) for i, key in enumerate(cmd_keys))
+    def on_msg(self, key: str, k: int, msg: wire.Cmd) -> None:  # under the lockstep lock
+        if self.p.boxes:
+            self.p.boxes[key].offer(k, msg.seq, msg)
 
-        last_tick_wall = [0.0]
+    def needed(self, i: int, k: int) -> bool:
+        """Wait for agent i's cmd(k)? Not if it is gone or has moved past tick k."""
+        if not self.proc.is_alive(self.p.agents[i]):
+            return False
+        m = self.proc.inbox.latest.get(self.p.cmd_keys[i])
+        return m is None or m.t <= k * self.p.dt_ns
 
-        def pace() -> None:
-            """While an agent is down, run no faster than real time: failsafe timers and restart
-            delays then mean in sim time what they mean on the wall clock."""
-            if all(proc.is_alive(a) for a in agents):
-                return
-            proc.counters["paced_ticks"] += 1
-            wait = last_tick_wall[0] + dt - time.monotonic()
-            if wait > 0:
-                time.sleep(wait)
-            last_tick_wall[0] = time.monotonic()
+    def ready(self, k: int) -> bool:
+        p, inbox = self.p, self.proc.inbox
+        if p.boxes:
+            return all(b.ready(k) or not self.needed(i, k) for i, b in enumerate(p.boxes.values()))
+        return all(inbox.get(key, k) is not None or not self.needed(i, k) for i, key in enumerate(p.cmd_keys))
 
-        def step_tick(k: int, forced: bool) -> None:
-            if forced:
-                proc.counters["cmd_timeouts"] += 1
-            for i, key in enumerate(cmd_keys):
-                if boxes:
-                    b = boxes[key]
-                    if forced and not b.ready(k):
-                        b.mark_timeout(b.due(k))
-                    held = b.at(k)
-                    if held is not None:
-                        apply(i, held.value, held.send_tick)
-                else:
-                    c = proc.inbox.get(key, k)
-                    if c is not None:
-                        apply(i, c, k)
-            publish_clock_early(k)
-            integrate(k)
-            proc.inbox.forget_before(k - 1)
-            if k % 500 == 0:
-                proc.publish_diag(k * dt_ns)
-            pace()
-            publish_tick(k + 1)  # the last one is the final state, t = time limit
+    def pace(self) -> None:
+        """While an agent is down, run no faster than real time: failsafe timers and restart
+        delays then mean in sim time what they mean on the wall clock."""
+        if all(self.proc.is_alive(a) for a in self.p.agents):
+            return
+        self.proc.counters["paced_ticks"] += 1
+        self.pacer.wait()
 
-        ls = Lockstep(n_ticks, ready, step_tick, proc.args.lockstep_timeout, proc.stop, on_msg=on_msg)
-        proc.on_input = ls.poke
-    for key in cmd_keys:
+    def take_commands(self, k: int, forced: bool) -> None:
+        """Hold each UAV's command of tick k (from its receive box with link faults)."""
+        p = self.p
+        for i, key in enumerate(p.cmd_keys):
+            if p.boxes:
+                b = p.boxes[key]
+                if forced and not b.ready(k):
+                    b.mark_timeout(b.due(k))
+                held = b.at(k)
+                if held is not None:
+                    p.core.hold(i, held.value.thrust, held.value.rpy, held.send_tick)
+            else:
+                c = self.proc.inbox.get(key, k)
+                if c is not None:
+                    p.core.hold(i, c.thrust, c.rpy, k)
+
+    def step(self, k: int, forced: bool) -> None:
+        p, proc = self.p, self.proc
+        if forced:
+            proc.counters["cmd_timeouts"] += 1
+        self.take_commands(k, forced)
+        p.publish_clock_early(k)
+        p.integrate(k)
+        proc.inbox.forget_before(k - 1)
+        if k % 500 == 0:
+            proc.publish_diag(k * p.dt_ns)
+        self.pace()
+        p.publish_tick(k + 1)  # the last one is the final state, t = time limit
+
+    def run(self) -> int:
+        p, proc = self.p, self.proc
+        proc.watch_alive(p.agents, self.ls.poke)
+        with self.ls.lock:
+            p.publish_tick(0)
+        k = self.ls.run()
+        proc.publish_diag(k * p.dt_ns, {"finished": k >= p.n_ticks, "failsafe": p.failsafe_summary(), **self.ls.timing()})
+        return 0
+
+
+def _run_realtime(p: _Plant) -> int:
+    """Each period: publish the states, integrate one control period with the latest commands."""
+    proc, core = p.proc, p.core
+    clock = WallClock(p.dt, proc.stop, first_wait=True)
+    k = 0
+    while k <= p.n_ticks and not proc.stop.is_set():
+        p.publish_tick(k)
+        if k == p.n_ticks:
+            break
+        proc.release_delayed()
+        for i, key in enumerate(p.cmd_keys):
+            c = proc.inbox.latest.get(key)
+            if c is not None and c.t >= core.last_cmd_tick[i] * p.dt_ns:
+                core.hold(i, c.thrust, c.rpy, int(round(c.t / p.dt_ns)))
+        p.integrate(k)
+        k += 1
+        clock.wait()
+        if k % 100 == 0:
+            proc.publish_diag(k * p.dt_ns, clock.stats.as_dict())
+    proc.publish_diag(k * p.dt_ns, {**clock.stats.as_dict(), "finished": k >= p.n_ticks, "failsafe": p.failsafe_summary()})
+    return 0
+
+
+def _run(proc: SwarmProcess, expect: tuple[str, ...]) -> int:
+    plant = _Plant(proc)
+    plant.use_faults()
+    lockstep = None if plant.realtime else _LockstepPlant(plant)
+    if lockstep is not None:
+        proc.on_input = lockstep.ls.poke
+    for key in plant.cmd_keys:
         proc.subscribe(key, "cmd")
     proc.announce()
-    missing = proc.wait_for_alive(["leader"] + agents + list(proc.args.expect or []), timeout_s=60.0)
+    missing = proc.wait_for_alive(["leader"] + plant.agents + list(expect), timeout_s=60.0)
     if proc.stop.is_set():
         return 0
     if missing:
         proc.log(f"plant: these processes never announced themselves: {', '.join(missing)}")
         return 3
-
-    if not proc.args.realtime:
-        proc.watch_alive(agents, ls.poke)
-        with ls.lock:
-            publish_tick(0)
-        k = ls.run()
-        proc.publish_diag(k * dt_ns, {"finished": k >= n_ticks, "failsafe": failsafe.summary() or "none", **ls.timing()})
-        return 0
-
-    stats = LoopStats(dt)
-    next_t = time.monotonic()
-    k = 0
-    while k <= n_ticks and not proc.stop.is_set():
-        publish_tick(k)
-        if k == n_ticks:
-            break
-        proc.release_delayed()
-        for i, key in enumerate(cmd_keys):
-            c = proc.inbox.latest.get(key)
-            if c is not None and c.t >= last_cmd_tick[i] * dt_ns:
-                apply(i, c, int(round(c.t / dt_ns)))
-        integrate(k)
-        k += 1
-        next_t += dt
-        now = time.monotonic()
-        if now < next_t:
-            time.sleep(next_t - now)
-        stats.record(time.monotonic() - next_t)
-        if k % 100 == 0:
-            proc.publish_diag(k * dt_ns, stats.as_dict())
-    proc.publish_diag(k * dt_ns, {**stats.as_dict(), "finished": k >= n_ticks, "failsafe": failsafe.summary() or "none"})
-    return 0
+    return _run_realtime(plant) if lockstep is None else lockstep.run()
 
 
-def main(args: argparse.Namespace) -> int:
-    if getattr(args, "mavlink", False):
-        return _run_mavlink(args)
-    return run_process(_run, "plant", args)
-
-
-def _run_mavlink(args: argparse.Namespace) -> int:
-    """``plant --mavlink``: the scenario's quadrotors as simulated MAVLink vehicles over UDP
-    (:mod:`plant.mavlink_vehicle`; no Zenoh session: the MAVLink bridge is their swarm side)."""
-    from dataclasses import replace
-
-    from zenswarm.config import load_scenario
-    from zenswarm.errors import ScenarioError
-
-    from .mavlink_vehicle import run_fleet
-
-    if args.scenario is None:
-        raise ScenarioError("--scenario", "plant --mavlink needs the scenario file (it has no bus to fetch it from)")
-    sc = load_scenario(args.scenario)
-    if args.seed is not None:
-        sc = replace(sc, seed=int(args.seed))
-    return run_fleet(sc, args)
-
-
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "plant",
-        help="run the plant process (simulated quadrotors; the lockstep clock)",
-        description="Simulate every UAV of the scenario (eqs 1-5, onboard attitude PID) and publish their states.",
-    )
-    add_common_args(p)
-    p.add_argument(
-        "--expect",
-        action="append",
-        metavar="PROCESS",
-        help="also wait for this process (e.g. recorder) to announce itself before the first tick",
-    )
-    from .mavlink_vehicle import add_vehicle_args
-
-    p.add_argument(
-        "--mavlink",
-        action="store_true",
-        help="run the quadrotors as simulated MAVLink vehicles over UDP instead (vehicle i on UDP --base-port + i - 1; "
-        "fly them with `zenswarm bridge mavlink`); the bus flags are then ignored",
-    )
-    add_vehicle_args(p)
-    p.set_defaults(func=main)
+def run(options: PlantOptions) -> int:
+    """Run the plant until the flight ends; the exit code (2: bad input, 3: a process never came)."""
+    return run_process(lambda proc: _run(proc, options.expect), "plant", options.process)

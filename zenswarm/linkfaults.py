@@ -25,7 +25,7 @@ from typing import Any, Callable
 from .config import Scenario
 from .faults import FaultPlan, FaultState, LinkInbox, plan_from_cli, plan_from_scenario
 
-__all__ = ["Box", "LinkFaults", "plan_for", "plan_from_args", "add_fault_args", "DelayLine", "box_counters"]
+__all__ = ["Box", "LinkFaults", "plan_for", "DelayLine", "box_counters"]
 
 
 class Box(LinkInbox):
@@ -96,31 +96,6 @@ class LinkFaults:
         if self.seed is not None:
             out += ["--seed", str(self.seed)]
         return out
-
-
-# TRANSITIONAL (issue 14): zenswarm.runtime and the role processes (agents/, leader/, plant/,
-# bridge/mavlink.py) still parse their own flags; once they take typed options, delete these two
-# and zenswarm/argtypes.py. Everything else uses LinkFaults and zenswarm.bridge.args.
-
-
-def add_fault_args(p: Any) -> None:
-    """TRANSITIONAL: the fault flags for :func:`zenswarm.runtime.add_common_args` (the edges use
-    :func:`zenswarm.bridge.args.add_fault_args`)."""
-    from .argtypes import add_fault_args as add
-
-    add(p)
-
-
-def plan_from_args(scenario: Scenario, options: Any) -> FaultPlan | None:
-    """TRANSITIONAL: :meth:`LinkFaults.plan` of the fault fields of ``options`` (any object with
-    ``link_delay``, ``link_jitter``, ``link_loss``, ``partition``, ``seed`` attributes)."""
-    return LinkFaults(
-        getattr(options, "link_delay", None),
-        getattr(options, "link_jitter", None),
-        getattr(options, "link_loss", None),
-        tuple(getattr(options, "partition", None) or ()),
-        getattr(options, "seed", None),
-    ).plan(scenario)
 
 
 def box_counters(boxes: dict[str, Box]) -> dict[str, int]:

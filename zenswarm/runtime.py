@@ -30,25 +30,26 @@ the first session's id in its ``SourceInfo`` as well.
 
 from __future__ import annotations
 
-import argparse
 import signal
 import sys
 import threading
 import time
 from collections import defaultdict, deque
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import zenoh
 
 from . import bus, security, wire
-from .argtypes import positive_float
 from .config import Scenario, load_scenario, scenario_from_dict
 from .errors import ScenarioError, ZenswarmError
 
-__all__ = ["Inbox", "SwarmProcess", "add_common_args", "LoopStats", "InputGuard", "GUARD_REASONS", "sample_sender",
-           "expected_senders"]
+if TYPE_CHECKING:
+    from .faults import FaultPlan
+
+__all__ = ["Inbox", "SwarmProcess", "ProcessOptions", "run_process", "LoopStats", "WallClock", "sleep_until",
+           "InputGuard", "GUARD_REASONS", "sample_sender", "expected_senders"]
 
 # Lockstep: a missing input is waited for this long (wall clock) before it counts as a drop.
 DEFAULT_LOCKSTEP_TIMEOUT_S = 5.0
@@ -161,6 +162,56 @@ class LoopStats:
             "jitter_max_ms": 1e3 * self.max_jitter_s,
             "jitter_mean_ms": 1e3 * self._sum_jitter / self.ticks if self.ticks else 0.0,
         }
+
+
+def sleep_until(deadline: float, stop: threading.Event | None = None, slice_s: float = float("inf")) -> None:
+    """Sleep until ``time.monotonic()`` reaches ``deadline`` (s); at once if it has. With ``stop``,
+    sleep in slices of at most ``slice_s`` and return early once it is set."""
+    while True:
+        left = deadline - time.monotonic()
+        if left <= 0 or (stop is not None and stop.is_set()):
+            return
+        time.sleep(min(left, slice_s))
+
+
+class WallClock:
+    """A fixed-rate loop on the wall clock (``time.monotonic``): the one every realtime loop uses.
+
+    :meth:`wait` sleeps until the next deadline, records the lateness in :attr:`stats`
+    (:class:`LoopStats`) and moves the deadline one ``period_s`` on. The first deadline is now, or
+    one period from now with ``first_wait`` (a loop that works first, then waits). A late loop
+    catches up (deadlines stay on the grid) unless ``catch_up`` is False: then the next deadline is
+    one period after the wait ended (pacing: never faster than real time, never in a burst). With
+    ``resync_after_s``, a loop later than that starts its grid again one period from now (counted
+    in :attr:`resyncs`) instead of catching up in a burst::
+
+        clock = WallClock(dt, proc.stop)
+        while clock.wait():
+            ...  # one period's work
+    """
+
+    def __init__(self, period_s: float, stop: threading.Event | None = None, *, first_wait: bool = False,
+                 catch_up: bool = True, resync_after_s: float | None = None) -> None:
+        self.period = period_s
+        self.stop = stop
+        self.catch_up = catch_up
+        self.resync_after_s = resync_after_s
+        self.resyncs = 0
+        self.stats = LoopStats(period_s)
+        self.next = time.monotonic() + (period_s if first_wait else 0.0)
+
+    def wait(self) -> bool:
+        """Sleep until the next deadline; False (at once) if ``stop`` is set."""
+        if self.stop is not None and self.stop.is_set():
+            return False
+        sleep_until(self.next)
+        now = time.monotonic()
+        late = now - self.next
+        self.stats.record(late)
+        resync = self.resync_after_s is not None and late > self.resync_after_s
+        self.resyncs += resync
+        self.next = now + self.period if resync or not self.catch_up else self.next + self.period
+        return True
 
 
 def sample_sender(sample: Any) -> str:
@@ -374,44 +425,11 @@ class InputGuard:
                     return "internal"
                 st = self._keys[key] = _KeyState()
             now = self.clock()
-            repin = False
-            if self.check_sender:
-                if st.pin is None:
-                    holders = self._holders_of(senders)
-                    if holders and zid not in holders:
-                        return "foreign_sender"
-                elif zid != st.pin:
-                    holders = self._holders_of(senders)
-                    if st.pin in holders:
-                        return "foreign_sender"
-                    if zid in holders or (not holders and self._was_holder(senders, st.pin)):
-                        repin = True  # the pinned session is gone: a restarted process
-                    else:
-                        return "foreign_sender"
-            elif st.pin is not None and zid != st.pin:
-                repin = True  # no sender check: a new session is the process restarted
-            fresh = repin or st.pin is None
-            last_tick = None if fresh else st.last_tick
-            if not fresh and st.last_seq is not None and seq <= st.last_seq:
-                return "stale"
-            if not fresh and tick in st.recent:
-                return "duplicate"
-            if last_tick is not None and tick < last_tick:
-                return "past"
-            c = self.now_tick() if self.now_tick is not None else None
-            if c is not None and tick < c - self.window:
-                return "past"
-            if tick > self.cap:
-                return "future"
-            if last_tick is not None:
-                base = last_tick if c is None else max(last_tick, c)
-                growth = (now - st.last_rx) / self.growth_period_s
-                if tick > base + self.window + growth:
-                    a = st.ahead
-                    if a is None or not a < tick <= a + self.window + (now - st.ahead_rx) / self.growth_period_s:
-                        st.ahead, st.ahead_rx = tick, now
-                        return "future"
-                    # else a second message agrees with the one refused: the stream did jump
+            reason, repin = self._sender_verdict(st, senders, zid)
+            if reason is None:
+                reason = self._order_verdict(st, repin or st.pin is None, tick, seq, now)
+            if reason is not None:
+                return reason
             # accepted
             if repin:
                 st.reset()
@@ -422,6 +440,56 @@ class InputGuard:
             st.recent.append(tick)
             st.ahead = None
             return None
+
+    def _sender_verdict(self, st: _KeyState, senders: tuple[str, ...], zid: str) -> tuple[str | None, bool]:
+        """Check 2 (``foreign_sender``): (reject reason or None, whether the key re-pins to
+        ``zid``: a restarted process). Under the lock."""
+        if not self.check_sender:
+            return None, st.pin is not None and zid != st.pin  # a new session is the process restarted
+        if st.pin is None:
+            holders = self._holders_of(senders)
+            return ("foreign_sender" if holders and zid not in holders else None), False
+        if zid == st.pin:
+            return None, False
+        holders = self._holders_of(senders)
+        if st.pin in holders:
+            return "foreign_sender", False
+        if zid in holders or (not holders and self._was_holder(senders, st.pin)):
+            return None, True  # the pinned session is gone: a restarted process
+        return "foreign_sender", False
+
+    def _order_verdict(self, st: _KeyState, fresh: bool, tick: int, seq: int, now: float) -> str | None:
+        """Checks 3-6 (``stale``, ``duplicate``, ``past``, ``future``) of a message on a key whose
+        stream is ``st`` (``fresh``: a new stream, nothing to compare with). Under the lock."""
+        if not fresh:
+            if st.last_seq is not None and seq <= st.last_seq:
+                return "stale"
+            if tick in st.recent:
+                return "duplicate"
+        last_tick = None if fresh else st.last_tick
+        if last_tick is not None and tick < last_tick:
+            return "past"
+        c = self.now_tick() if self.now_tick is not None else None
+        if c is not None and tick < c - self.window:
+            return "past"
+        if tick > self.cap:
+            return "future"
+        if last_tick is not None and self._too_far_ahead(st, tick, last_tick if c is None else max(last_tick, c), now):
+            return "future"
+        return None
+
+    def _too_far_ahead(self, st: _KeyState, tick: int, base: int, now: float) -> bool:
+        """Check 6 relative to the stream: more than ``window`` ticks (plus one per
+        ``growth_period_s`` of silence) past ``base``, unless a second message agrees with the
+        one refused last (the stream did jump)."""
+        growth = (now - st.last_rx) / self.growth_period_s
+        if tick <= base + self.window + growth:
+            return False
+        a = st.ahead
+        if a is None or not a < tick <= a + self.window + (now - st.ahead_rx) / self.growth_period_s:
+            st.ahead, st.ahead_rx = tick, now
+            return True
+        return False
 
     # ------------------------------------------------------------------ counters
     def count(self, key: str, reason: str) -> None:
@@ -472,29 +540,61 @@ class _KeyedDecoder(wire.Decoder):
         self._reject(key, reason, text)
 
 
-def add_common_args(p: argparse.ArgumentParser) -> None:
-    """The flags every swarm process takes."""
-    p.add_argument("--scenario", type=Path, help="scenario TOML; if omitted, fetched from the leader's mission key")
-    p.add_argument("--swarm", default="default", help="swarm name: the key prefix swarm/<name> (default: default)")
-    p.add_argument(
-        "--connect",
-        action="append",
-        default=None,
-        metavar="ENDPOINT",
-        help="Zenoh router endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; default tcp/127.0.0.1:7447)",
-    )
-    p.add_argument("--realtime", action="store_true", help="run on the wall clock (latest value wins) instead of lockstep")
-    security.add_security_args(p)
-    from .linkfaults import add_fault_args
+@dataclass(frozen=True)
+class ProcessOptions:
+    """What every swarm process is started with (the common flags, typed; the command line is
+    turned into these at the edge, :mod:`zenswarm.compose.roles`).
 
-    add_fault_args(p)
-    p.add_argument(
-        "--lockstep-timeout",
-        type=positive_float,
-        default=DEFAULT_LOCKSTEP_TIMEOUT_S,
-        metavar="S",
-        help=f"lockstep: wall seconds to wait for an input before it counts as a drop (default {DEFAULT_LOCKSTEP_TIMEOUT_S})",
-    )
+    scenario: scenario TOML (None: fetched from the leader's mission key). swarm: key prefix
+    ``swarm/<swarm>``. connect: Zenoh router endpoints (empty: ``tcp/127.0.0.1:7447``).
+    realtime: wall clock, latest value wins (else lockstep). lockstep_timeout: wall seconds an
+    input is waited for before it counts as a drop. keys, tls: credentials of a secured router
+    (:mod:`zenswarm.security`). link_delay, link_jitter, link_loss, partition: the whole-swarm
+    link faults (:mod:`zenswarm.linkfaults`); seed: disturbances and fault decisions (None: the
+    scenario's).
+    """
+
+    scenario: Path | None = None
+    swarm: str = "default"
+    connect: tuple[str, ...] = ()
+    realtime: bool = False
+    lockstep_timeout: float = DEFAULT_LOCKSTEP_TIMEOUT_S
+    keys: Path | None = None
+    tls: bool = False
+    link_delay: str | None = None
+    link_jitter: str | None = None
+    link_loss: str | None = None
+    partition: tuple[str, ...] = ()
+    seed: int | None = None
+
+    @classmethod
+    def of(cls, obj: Any) -> "ProcessOptions":
+        """The options read off any object with these attribute names (e.g. a parsed command
+        line); a missing or None attribute takes the default."""
+        if isinstance(obj, ProcessOptions):
+            return obj
+        get = lambda name, default: default if getattr(obj, name, None) is None else getattr(obj, name)  # noqa: E731
+        return cls(
+            scenario=get("scenario", None),
+            swarm=str(get("swarm", "default")),
+            connect=tuple(get("connect", ())),
+            realtime=bool(get("realtime", False)),
+            lockstep_timeout=float(get("lockstep_timeout", DEFAULT_LOCKSTEP_TIMEOUT_S)),
+            keys=get("keys", None),
+            tls=bool(get("tls", False)),
+            link_delay=get("link_delay", None),
+            link_jitter=get("link_jitter", None),
+            link_loss=get("link_loss", None),
+            partition=tuple(get("partition", ())),
+            seed=get("seed", None),
+        )
+
+    def fault_plan(self, scenario: Scenario) -> "FaultPlan | None":
+        """The link-fault plan of this run (scenario's ``[faults]`` plus the flags); None when no
+        fault is active. Raises :class:`zenswarm.errors.ScenarioError` naming the bad field."""
+        from .linkfaults import plan_for
+
+        return plan_for(scenario, self.link_delay, self.link_jitter, self.link_loss, self.partition, self.seed)
 
 
 class SwarmProcess:
@@ -504,10 +604,11 @@ class SwarmProcess:
     callbacks hangs interpreter exit).
     """
 
-    def __init__(self, name: str, args: argparse.Namespace) -> None:
+    def __init__(self, name: str, options: ProcessOptions | Any) -> None:
         self.name = name
-        self.args = args
-        self.keys = wire.Keys(args.swarm)
+        self.options = ProcessOptions.of(options)
+        self.args = options  # what it was started with: an edge's own flags (bridge/mavlink.py)
+        self.keys = wire.Keys(self.options.swarm)
         self.decoder = _KeyedDecoder()
         self.inbox = Inbox()
         self.stop = threading.Event()
@@ -557,8 +658,13 @@ class SwarmProcess:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
         bus.use_swarm_runtime()  # before the first session: zenoh reads it once per process
-        connect = self.args.connect or ["tcp/127.0.0.1:7447"]
-        conf = bus.client_config(connect, settings=security.client_fragments_from_args(self.name, self.args))
+        connect = list(self.options.connect) or ["tcp/127.0.0.1:7447"]
+        conf = bus.client_config(connect, settings=security.client_fragments(
+                self.name,
+                security.ClientSecurity(self.options.keys, self.options.tls),
+                connect=self.options.connect,
+                swarm=self.options.swarm,
+            ))
         self._session_cm = bus.open_session(conf, handle_signals=False)
         self.session = self._session_cm.__enter__()
         try:
@@ -594,12 +700,12 @@ class SwarmProcess:
 
     def _load_scenario(self) -> Scenario:
         sc = self._fetch_scenario()
-        seed = getattr(self.args, "seed", None)
+        seed = self.options.seed
         return sc if seed is None else replace(sc, seed=int(seed))
 
     def _fetch_scenario(self) -> Scenario:
-        if self.args.scenario is not None:
-            return load_scenario(self.args.scenario)
+        if self.options.scenario is not None:
+            return load_scenario(self.options.scenario)
         # Fetch the mission from the leader (late joiners, other hosts). A reply that does not
         # decode or is not a valid scenario is counted (decoder / rejected.value) and skipped.
         deadline = time.monotonic() + 30.0
@@ -632,8 +738,8 @@ class SwarmProcess:
         if g is None:
             sc = self.scenario
             dt = sc.timing.dt
-            timeout = float(getattr(self.args, "lockstep_timeout", DEFAULT_LOCKSTEP_TIMEOUT_S) or DEFAULT_LOCKSTEP_TIMEOUT_S)
-            realtime = bool(getattr(self.args, "realtime", False))
+            timeout = self.options.lockstep_timeout
+            realtime = self.options.realtime
             g = self._guard = InputGuard(
                 dt_ns=wire.t_ns(dt),
                 n_ticks=sc.timing.n_ticks,
@@ -648,9 +754,7 @@ class SwarmProcess:
     def _fault_horizon_ticks(self) -> int:
         """Largest link-fault delay of the run, in ticks (+1), 0 without faults."""
         try:
-            from .linkfaults import plan_from_args
-
-            plan = plan_from_args(self.scenario, self.args)
+            plan = self.options.fault_plan(self.scenario)
         except Exception:  # noqa: BLE001 - bad flags are reported by the process itself
             return 0
         if plan is None:
@@ -894,10 +998,12 @@ class SwarmProcess:
         print(text, flush=True)
 
 
-def run_process(fn: Callable[[SwarmProcess], int], name: str, args: argparse.Namespace) -> int:
-    """Run ``fn`` inside a :class:`SwarmProcess`; map errors to exit codes and always close."""
+def run_process(fn: Callable[[SwarmProcess], int], name: str, options: ProcessOptions | Any) -> int:
+    """Run ``fn`` inside a :class:`SwarmProcess` started with ``options`` (or any object with
+    their attribute names, see :meth:`ProcessOptions.of`); map errors to exit codes (2: bad
+    scenario, credentials, unreachable router) and always close."""
     try:
-        with SwarmProcess(name, args) as proc:
+        with SwarmProcess(name, options) as proc:
             return fn(proc)
     except ZenswarmError as e:  # bad scenario, credentials, unreachable router: say what, exit 2
         print(f"{name}: error: {e}", file=sys.stderr, flush=True)

@@ -71,7 +71,6 @@ __all__ = [
     "ClientSecurity",
     "client_fragments",
     "add_security_args",
-    "client_fragments_from_args",
 ]
 
 AuthMode = Literal["usrpwd", "tls"]
@@ -937,25 +936,6 @@ def client_fragments(
     if endpoints:
         check_endpoints(endpoints, auth)
     return client_security_config(process, sec.keys, auth=auth, swarm=swarm)
-
-
-# TRANSITIONAL (issue 14): zenswarm.runtime still builds its parser from the base; once it takes
-# typed options, delete these two (the edges use zenswarm.bridge.args and client_fragments).
-
-
-def add_security_args(p: Any) -> None:
-    """TRANSITIONAL: ``--keys DIR`` and ``--tls`` for :func:`zenswarm.runtime.add_common_args`
-    (the edges use :func:`zenswarm.bridge.args.add_security_args`)."""
-    from .argtypes import add_security_args as add
-
-    add(p)
-
-
-def client_fragments_from_args(process: str, options: Any) -> dict[str, Any]:
-    """TRANSITIONAL: :func:`client_fragments` of the ``keys``, ``tls``, ``connect`` and ``swarm``
-    attributes of ``options``."""
-    sec = ClientSecurity(getattr(options, "keys", None), bool(getattr(options, "tls", False)))
-    return client_fragments(process, sec, connect=getattr(options, "connect", None) or (), swarm=getattr(options, "swarm", None))
 
 
 def tls_endpoint(endpoint: str) -> str:
