@@ -452,7 +452,7 @@ def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> Verif
         if msg is None:
             continue
         k = (msg.t + dt_ns // 2) // dt_ns
-        if m.topic == ref_key and msg.seq == 1:
+        if m.topic == ref_key and msg.seq == 1 and isinstance(msg, wire.Ref):
             start_refs[k] = msg
         else:
             by_tick[m.topic][k] = msg  # the latest wins, as in the inbox

@@ -1,12 +1,18 @@
 """Wire protocol of the swarm bus: key expressions, message types, msgpack codec.
 
-Pure: msgpack, numpy and the standard library only (no zenoh). Every payload is a msgpack map
+Pure: msgspec, numpy and the standard library only (no zenoh). Every payload is a msgpack map
 that carries the schema version ``"v"`` and a kind tag ``"k"``; ``t`` is sim time in integer
 nanoseconds and ``seq`` a non-negative integer. Vectors are float64 ``(3,)`` arrays, SI units,
 inertial frame ENU (z up). Floats are packed as msgpack float64, so they round-trip bit-exactly.
 
+Each message is defined once, as a typed :class:`msgspec.Struct` (:class:`Clock`, :class:`State`,
+:class:`Ref`, :class:`Cmd`, :class:`Mission`, :class:`Diag`): its field types (:data:`TimeNs`,
+:data:`Seq`, :data:`Number`, :data:`Vec3`, :data:`Process`, :data:`PlainMap`, :data:`Counters`)
+carry both the wire constraints msgspec checks when decoding and the checks a Python constructor
+runs; the encoder, the decoder and the header fields ``v`` and ``k`` are derived from them.
+
 Wire layout (``v`` is always :data:`SCHEMA_VERSION`; velocity travels as ``"vel"`` because
-``"v"`` is the version)::
+``"v"`` is the version; fields are packed in this order)::
 
     clock    {v, k:"clock",   t, seq}
     state    {v, k:"state",   t, seq, q[3], vel[3], rpy[3], w[3]}
@@ -26,11 +32,15 @@ Process names are ``plant``, ``leader``, ``agent:<i>``, ``recorder``, ``bridge``
 trailing ``/`` are forbidden; checked against eclipse-zenoh 1.10.2), so a process name is used in
 keys verbatim: ``swarm/demo/alive/agent:2``.
 
-Decoding (:func:`decode`) checks, in this order: payload type and size (before unpacking), msgpack
-well-formedness (with ``max_*_len`` limits), map, schema version, kind tag, exact field set,
-field types (``bool`` is not a number), vector lengths, finiteness, ranges. A rejection raises
-:class:`WireDecodeError` (a :class:`zenswarm.errors.DecodeError`) whose ``reason`` is one of
-:data:`REASONS`. :class:`Decoder` wraps it for a process loop: it never raises and counts.
+Decoding (:func:`decode`) first checks the kind asked for, the payload type and its size (before
+unpacking); msgspec then decodes the map straight into the message type, checking msgpack
+well-formedness (lengths against the payload), the map, and each field as it comes: schema
+version, kind tag, field types (``bool`` is not a number, an int is accepted for a float), vector
+lengths, finiteness, ranges, then the exact field set (missing or unknown fields). The first
+offending field in payload order is the one reported. Nested maps (``scenario``, ``info``) are
+then checked for plain types, finiteness and depth. A rejection raises :class:`WireDecodeError`
+(a :class:`zenswarm.errors.DecodeError`) whose ``reason`` is one of :data:`REASONS`.
+:class:`Decoder` wraps it for a process loop: it never raises and counts.
 """
 
 from __future__ import annotations
@@ -42,13 +52,21 @@ import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Final, Literal, TypeAlias, Union, overload
+from typing import (
+    TYPE_CHECKING,
+    Annotated,
+    Any,
+    ClassVar,
+    Final,
+    Literal,
+    TypeAlias,
+    overload,
+)
 
 import msgspec
 import numpy as np
 import numpy.typing as npt
-from msgspec import Meta, Struct
-from msgspec.structs import StructMeta
+from msgspec import Meta, Struct, StructMeta
 
 from .errors import DecodeError, ZenswarmError
 
@@ -372,10 +390,10 @@ def _mk_plain(name: str, value: Any, depth: int = 0) -> Any:
             raise MessageError(name, "out_of_range", f"integer {v} does not fit 64 bits")
         return v
     if isinstance(value, (float, np.floating)):
-        v = float(value)
-        if not math.isfinite(v):
-            raise MessageError(name, "nonfinite", f"{v!r} is not finite")
-        return v
+        f = float(value)
+        if not math.isfinite(f):
+            raise MessageError(name, "nonfinite", f"{f!r} is not finite")
+        return f
     if isinstance(value, (list, tuple)):
         return [_mk_plain(f"{name}[{j}]", x, depth + 1) for j, x in enumerate(value)]
     if isinstance(value, dict):
@@ -410,7 +428,8 @@ def _mk_counters(name: str, value: Any) -> dict[str, int | float]:
         if not isinstance(k, str):
             raise MessageError(name, "type", f"key {k!r} is not a str")
         if isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_)):
-            out[k] = _mk_plain(f"{name}.{k}", x)
+            n: int = _mk_plain(f"{name}.{k}", x)
+            out[k] = n
         else:
             out[k] = _mk_float(f"{name}.{k}", x)
     return out
@@ -468,7 +487,7 @@ Process = Annotated[str, Meta(pattern=r"\A(?:plant|leader|recorder|bridge|superv
 """A process name (see :func:`validate_process`)."""
 PlainMap = Annotated[dict[str, Any], _Check(_mk_map, _d_plain, dict)]
 """Nested plain types: None, bool, int, finite float, str, list, dict with str keys, <= MAX_DEPTH deep."""
-Counters = Annotated[dict[str, Union[int, _Finite]], _Check(_mk_counters, None, dict)]
+Counters = Annotated[dict[str, int | _Finite], _Check(_mk_counters, None, dict)]
 """str -> int or finite float."""
 if TYPE_CHECKING:
     Vec3: TypeAlias = npt.NDArray[np.float64]
@@ -498,7 +517,7 @@ class _MsgMeta(StructMeta):
             }
             ns["schema"] = msgspec.field(name="v")
             ns["tag"] = msgspec.field(name="k")
-        cls = super().__new__(mcls, name, bases, ns, **kw)
+        cls: Any = super().__new__(mcls, name, bases, ns, **kw)
         if kind is not None:
             checks = {f.name: next(m for m in f.type.__metadata__ if isinstance(m, _Check))
                       for f in msgspec.structs.fields(cls)[2:]}
@@ -519,7 +538,8 @@ class _MsgMeta(StructMeta):
         sig = cls.__dict__.get("_sig")
         return sig if sig is not None else StructMeta.__signature__.__get__(cls)  # type: ignore[attr-defined]
 
-    def __call__(cls, *args: Any, **kwargs: Any) -> Any:
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        cls: Any = self
         names = cls._args
         if len(args) > len(names):
             raise TypeError(f"{cls.__name__} takes at most {len(names)} positional arguments")
@@ -536,7 +556,7 @@ class _MsgMeta(StructMeta):
                 vals[k] = c.default()
             else:
                 raise TypeError(f"{cls.__name__}: missing argument {k!r}")
-        return super().__call__(schema=SCHEMA_VERSION, tag=cls.kind, **vals)
+        return super().__call__(schema=SCHEMA_VERSION, tag=cls.kind, **vals)  # type: ignore[misc]
 
 
 class _Msg(Struct, metaclass=_MsgMeta, frozen=True, eq=False, kw_only=True, forbid_unknown_fields=True):
@@ -643,7 +663,7 @@ class Diag(_Msg, frozen=True):
     info: PlainMap
 
 
-Message = Union[Clock, State, Ref, Cmd, Mission, Diag]
+Message = Clock | State | Ref | Cmd | Mission | Diag
 
 _CLASSES: Final[Mapping[str, type[_Msg]]] = MappingProxyType({c.kind: c for c in (Clock, State, Ref, Cmd, Mission, Diag)})
 _LIMIT: Final = MappingProxyType({k: (MAX_MISSION_PAYLOAD if k == "mission" else MAX_PAYLOAD) for k in KINDS})
@@ -803,6 +823,20 @@ class Decoder:
         self.last_error: str | None = None
         self._last_seq: dict[str, int] = {}
 
+    @overload
+    def decode(self, key: str, kind: Literal["clock"], payload: bytes) -> Clock | None: ...
+    @overload
+    def decode(self, key: str, kind: Literal["state"], payload: bytes) -> State | None: ...
+    @overload
+    def decode(self, key: str, kind: Literal["ref"], payload: bytes) -> Ref | None: ...
+    @overload
+    def decode(self, key: str, kind: Literal["cmd"], payload: bytes) -> Cmd | None: ...
+    @overload
+    def decode(self, key: str, kind: Literal["mission"], payload: bytes) -> Mission | None: ...
+    @overload
+    def decode(self, key: str, kind: Literal["diag"], payload: bytes) -> Diag | None: ...
+    @overload
+    def decode(self, key: str, kind: str, payload: bytes) -> Message | None: ...
     def decode(self, key: str, kind: str, payload: bytes) -> Message | None:
         """Decoded message, or None (counted under ``key`` and the reason) if rejected."""
         try:
