@@ -523,7 +523,9 @@ class _MsgMeta(StructMeta):
                       for f in msgspec.structs.fields(cls)[2:]}
             cls._args = tuple(checks)
             cls._checks = checks
-            cls._vecs = tuple(n for n, c in checks.items() if c.make is _mk_vec3)
+            cls._makes = tuple((n, c.make) for n, c in checks.items())
+            vec_names = [n for n, c in checks.items() if c.make is _mk_vec3]
+            cls._vecs = tuple((n, slice(3 * j, 3 * j + 3)) for j, n in enumerate(vec_names))
             cls._posts = tuple((n, c.post) for n, c in checks.items() if c.post is not None)
             cls._decoder = msgspec.msgpack.Decoder(cls)
             cls._sig = inspect.Signature([  # what calling the class takes (see __call__)
@@ -540,22 +542,23 @@ class _MsgMeta(StructMeta):
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         cls: Any = self
-        names = cls._args
-        if len(args) > len(names):
-            raise TypeError(f"{cls.__name__} takes at most {len(names)} positional arguments")
-        given = dict(zip(names, args))
-        for k, x in kwargs.items():
-            if k not in cls._checks or k in given:
-                raise TypeError(f"{cls.__name__}: unexpected or repeated argument {k!r}")
-            given[k] = x
-        vals = {}
-        for k, c in cls._checks.items():
-            if k in given:
-                vals[k] = c.make(k, given[k])
-            elif c.default is not None:
-                vals[k] = c.default()
-            else:
-                raise TypeError(f"{cls.__name__}: missing argument {k!r}")
+        if args:
+            if len(args) > len(cls._args):
+                raise TypeError(f"{cls.__name__} takes at most {len(cls._args)} positional arguments")
+            for k, x in zip(cls._args, args):
+                if k in kwargs:
+                    raise TypeError(f"{cls.__name__}: argument {k!r} given twice")
+                kwargs[k] = x
+        if len(kwargs) != len(cls._args):  # an optional argument left out, or an unknown one
+            unknown = kwargs.keys() - cls._checks.keys()
+            if unknown:
+                raise TypeError(f"{cls.__name__}: unexpected argument {sorted(unknown)[0]!r}")
+            for k, c in cls._checks.items():
+                if k not in kwargs:
+                    if c.default is None:
+                        raise TypeError(f"{cls.__name__}: missing argument {k!r}")
+                    kwargs[k] = c.default()
+        vals = {k: make(k, kwargs[k]) for k, make in cls._makes}
         return super().__call__(schema=SCHEMA_VERSION, tag=cls.kind, **vals)  # type: ignore[misc]
 
 
@@ -565,7 +568,8 @@ class _Msg(Struct, metaclass=_MsgMeta, frozen=True, eq=False, kw_only=True, forb
     kind: ClassVar[str]
     _args: ClassVar[tuple[str, ...]]
     _checks: ClassVar[dict[str, _Check]]
-    _vecs: ClassVar[tuple[str, ...]]
+    _makes: ClassVar[tuple[tuple[str, Callable[[str, Any], Any]], ...]]
+    _vecs: ClassVar[tuple[tuple[str, slice], ...]]
     _posts: ClassVar[tuple[tuple[str, Callable[[str, Any, int], None]], ...]]
     _decoder: ClassVar[msgspec.msgpack.Decoder[Any]]
 
@@ -788,18 +792,22 @@ def decode(kind: str, payload: bytes | bytearray | memoryview) -> Message:
         raise WireDecodeError("malformed", f"not msgpack ({e})") from None
     except RecursionError:
         raise WireDecodeError("nesting", "nested deeper than the decoder allows") from None
-    names = cls._vecs
-    if names:  # the tuples msgspec checked -> read-only float64 (3,) arrays, one numpy call
-        a = np.array([getattr(msg, n) for n in names], dtype=np.float64)
-        a.flags.writeable = False
-        for n, row in zip(names, a):
-            _force_setattr(msg, n, row)
+    vecs = cls._vecs
+    if vecs:  # the tuples msgspec checked -> read-only float64 (3,) views of one array
+        flat: tuple[float, ...] = ()
+        for n, _ in vecs:
+            flat += getattr(msg, n)
+        a = _fromiter(flat, _F64, len(flat))
+        a.setflags(write=False)
+        for n, sl in vecs:
+            _force_setattr(msg, n, a[sl])
     for n, post in cls._posts:
         post(n, getattr(msg, n), 0)
     return msg  # type: ignore[no-any-return]
 
 
 _force_setattr: Final = msgspec.structs.force_setattr
+_fromiter: Final = np.fromiter
 
 
 class Decoder:
