@@ -98,6 +98,13 @@ __all__ = [
     "Mission",
     "Diag",
     "Message",
+    "TimeNs",
+    "Seq",
+    "Number",
+    "Vec3",
+    "Process",
+    "PlainMap",
+    "Counters",
     "encode",
     "decode",
     "Decoder",
@@ -552,7 +559,7 @@ class _MsgMeta(StructMeta):
         if len(kwargs) != len(cls._args):  # an optional argument left out, or an unknown one
             unknown = kwargs.keys() - cls._checks.keys()
             if unknown:
-                raise TypeError(f"{cls.__name__}: unexpected argument {sorted(unknown)[0]!r}")
+                raise TypeError(f"{cls.__name__}: unexpected argument {min(unknown)!r}")
             for k, c in cls._checks.items():
                 if k not in kwargs:
                     if c.default is None:
