@@ -133,6 +133,8 @@ class Collector:
                 msg = wire.decode(kind, payload)
             except Exception:  # noqa: BLE001 - garbage: the series' decoder counts it
                 continue
+            if not isinstance(msg, (wire.State, wire.Ref)):
+                continue
             out[i] = ((msg.t + self.dt_ns // 2) // self.dt_ns, np.asarray(msg.q, dtype=float))
         return out
 
@@ -150,14 +152,14 @@ class Collector:
         msg = self.decoder.decode(key, "ref" if kind == "leader_ref" else kind, payload)
         if msg is None:
             return
-        if kind == "diag":
+        if isinstance(msg, wire.Diag):
             self.diag[msg.process] = {**msg.counters, **{k: v for k, v in msg.info.items() if isinstance(v, (int, float, bool, str))}}
             return
-        if kind == "mission":
+        if isinstance(msg, wire.Mission):
             return
         k = (msg.t + self.dt_ns // 2) // self.dt_ns
         with self.lock:
-            if kind == "clock":
+            if isinstance(msg, wire.Clock):
                 if 0 <= k <= self.T:  # a clock past the mission's end is garbage: progress must not jump
                     self.sim_t_ns = max(self.sim_t_ns, msg.t)
                 else:
@@ -166,22 +168,22 @@ class Collector:
             if not 0 <= k < self.T:
                 return
             ts = self.ts
-            if kind == "leader_ref":
+            if kind == "leader_ref" and isinstance(msg, wire.Ref):
                 ts.q0[k] = msg.q
                 ts.v0[k] = msg.v
                 self.leader_q = msg.q
                 self.leader_ticks = max(self.leader_ticks, int(k) + 1)
                 if self.goal_tick is None and float(np.linalg.norm(msg.q - self._goal)) <= self._goal_tol:
                     self.goal_tick = int(k)
-            elif kind == "ref" and idx is not None:
+            elif isinstance(msg, wire.Ref) and idx is not None:
                 ts.qref[k, idx - 1] = msg.q
                 ts.vref[k, idx - 1] = msg.v
-            elif kind == "state" and idx is not None:
+            elif isinstance(msg, wire.State) and idx is not None:
                 self.got_state[k, idx - 1] = True
                 ts.q[k, idx - 1] = msg.q
                 ts.v[k, idx - 1] = msg.v
                 ts.rpy[k, idx - 1] = msg.rpy
-            elif kind == "cmd" and idx is not None:
+            elif isinstance(msg, wire.Cmd) and idx is not None:
                 ts.u[k, idx - 1] = msg.u
                 ts.thrust[k, idx - 1] = msg.thrust
                 ts.d_hat[k, idx - 1] = msg.d_hat

@@ -1,12 +1,18 @@
 """Wire protocol of the swarm bus: key expressions, message types, msgpack codec.
 
-Pure: msgpack, numpy and the standard library only (no zenoh). Every payload is a msgpack map
+Pure: msgspec, numpy and the standard library only (no zenoh). Every payload is a msgpack map
 that carries the schema version ``"v"`` and a kind tag ``"k"``; ``t`` is sim time in integer
 nanoseconds and ``seq`` a non-negative integer. Vectors are float64 ``(3,)`` arrays, SI units,
 inertial frame ENU (z up). Floats are packed as msgpack float64, so they round-trip bit-exactly.
 
+Each message is defined once, as a typed :class:`msgspec.Struct` (:class:`Clock`, :class:`State`,
+:class:`Ref`, :class:`Cmd`, :class:`Mission`, :class:`Diag`): its field types (:data:`TimeNs`,
+:data:`Seq`, :data:`Number`, :data:`Vec3`, :data:`Process`, :data:`PlainMap`, :data:`Counters`)
+carry both the wire constraints msgspec checks when decoding and the checks a Python constructor
+runs; the encoder, the decoder and the header fields ``v`` and ``k`` are derived from them.
+
 Wire layout (``v`` is always :data:`SCHEMA_VERSION`; velocity travels as ``"vel"`` because
-``"v"`` is the version)::
+``"v"`` is the version; fields are packed in this order)::
 
     clock    {v, k:"clock",   t, seq}
     state    {v, k:"state",   t, seq, q[3], vel[3], rpy[3], w[3]}
@@ -26,24 +32,41 @@ Process names are ``plant``, ``leader``, ``agent:<i>``, ``recorder``, ``bridge``
 trailing ``/`` are forbidden; checked against eclipse-zenoh 1.10.2), so a process name is used in
 keys verbatim: ``swarm/demo/alive/agent:2``.
 
-Decoding (:func:`decode`) checks, in this order: payload type and size (before unpacking), msgpack
-well-formedness (with ``max_*_len`` limits), map, schema version, kind tag, exact field set,
-field types (``bool`` is not a number), vector lengths, finiteness, ranges. A rejection raises
-:class:`WireDecodeError` (a :class:`zenswarm.errors.DecodeError`) whose ``reason`` is one of
-:data:`REASONS`. :class:`Decoder` wraps it for a process loop: it never raises and counts.
+Decoding (:func:`decode`) first checks the kind asked for, the payload type and its size (before
+unpacking); msgspec then decodes the map straight into the message type, checking msgpack
+well-formedness (lengths against the payload), the map, and each field as it comes: schema
+version, kind tag, field types (``bool`` is not a number, an int is accepted for a float), vector
+lengths, finiteness, ranges, then the exact field set (missing or unknown fields). The first
+offending field in payload order is the one reported. Nested maps (``scenario``, ``info``) are
+then checked for plain types, finiteness and depth. A rejection raises :class:`WireDecodeError`
+(a :class:`zenswarm.errors.DecodeError`) whose ``reason`` is one of :data:`REASONS`.
+:class:`Decoder` wraps it for a process loop: it never raises and counts.
 """
 
 from __future__ import annotations
 
+import inspect
 import math
 import re
-import threading
-from dataclasses import dataclass, field
+import sys
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any, ClassVar, Final, Union
+from typing import (
+    TYPE_CHECKING,
+    Annotated,
+    Any,
+    ClassVar,
+    Final,
+    Literal,
+    TypeAlias,
+    overload,
+)
 
-import msgpack
+import msgspec
 import numpy as np
+import numpy.typing as npt
+from msgspec import Meta, Struct, StructMeta
 
 from .errors import DecodeError, ZenswarmError
 
@@ -75,6 +98,13 @@ __all__ = [
     "Mission",
     "Diag",
     "Message",
+    "TimeNs",
+    "Seq",
+    "Number",
+    "Vec3",
+    "Process",
+    "PlainMap",
+    "Counters",
     "encode",
     "decode",
     "Decoder",
@@ -292,9 +322,9 @@ def t_s(t: int) -> float:
     return t / 1e9
 
 
-# --------------------------------------------------------------------------- message types
-
-Vec3 = np.ndarray  # float64, shape (3,), read-only inside a message
+# --------------------------------------------------------------------------- constructor checks
+# A message built in Python (``State(t=..., q=array, ...)``) is checked and normalised by these,
+# raising MessageError; a decoded payload is checked by msgspec against the same field types.
 
 
 def _mk_vec3(name: str, value: Any) -> np.ndarray:
@@ -335,6 +365,14 @@ def _mk_int(name: str, value: Any, hi: int) -> int:
     return v
 
 
+def _mk_t(name: str, value: Any) -> int:
+    return _mk_int(name, value, MAX_T_NS)
+
+
+def _mk_seq(name: str, value: Any) -> int:
+    return _mk_int(name, value, MAX_SEQ)
+
+
 def _mk_float(name: str, value: Any) -> float:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise MessageError(name, "type", f"expected a number, got {type(value).__name__}")
@@ -359,10 +397,10 @@ def _mk_plain(name: str, value: Any, depth: int = 0) -> Any:
             raise MessageError(name, "out_of_range", f"integer {v} does not fit 64 bits")
         return v
     if isinstance(value, (float, np.floating)):
-        v = float(value)
-        if not math.isfinite(v):
-            raise MessageError(name, "nonfinite", f"{v!r} is not finite")
-        return v
+        f = float(value)
+        if not math.isfinite(f):
+            raise MessageError(name, "nonfinite", f"{f!r} is not finite")
+        return f
     if isinstance(value, (list, tuple)):
         return [_mk_plain(f"{name}[{j}]", x, depth + 1) for j, x in enumerate(value)]
     if isinstance(value, dict):
@@ -375,329 +413,37 @@ def _mk_plain(name: str, value: Any, depth: int = 0) -> Any:
     raise MessageError(name, "type", f"{type(value).__name__} is not a plain type")
 
 
-def _set(obj: Any, name: str, value: Any) -> None:
-    object.__setattr__(obj, name, value)
+def _mk_map(name: str, value: Any) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise MessageError(name, "type", "expected a dict")
+    out: dict[str, Any] = _mk_plain(name, value)
+    return out
 
 
-class _Msg:
-    """Common behaviour: value equality (numpy arrays compared elementwise), unhashable."""
-
-    __slots__ = ()
-    kind: ClassVar[str]
-    _fields: ClassVar[tuple[str, ...]]
-
-    def __eq__(self, other: object) -> bool:
-        if type(other) is not type(self):
-            return NotImplemented
-        for f in self._fields:
-            a, b = getattr(self, f), getattr(other, f)
-            if isinstance(a, np.ndarray):
-                if not np.array_equal(a, b):
-                    return False
-            elif a != b:
-                return False
-        return True
-
-    __hash__ = None  # type: ignore[assignment]
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class Clock(_Msg):
-    """Lockstep tick published by the plant. t: sim time, ns; seq: tick number."""
-
-    t: int
-    seq: int
-    kind: ClassVar[str] = "clock"
-    _fields: ClassVar[tuple[str, ...]] = ("t", "seq")
-
-    def __post_init__(self) -> None:
-        _set(self, "t", _mk_int("t", self.t, MAX_T_NS))
-        _set(self, "seq", _mk_int("seq", self.seq, MAX_SEQ))
-
-    def _to_wire(self) -> dict[str, Any]:
-        return {"v": SCHEMA_VERSION, "k": "clock", "t": self.t, "seq": self.seq}
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class State(_Msg):
-    """State of UAV i (plant -> agent i; eq. (1)-(5)).
-
-    q: (3,) m, ENU position; v: (3,) m/s, ENU velocity; rpy: (3,) rad, roll/pitch/yaw;
-    w: (3,) rad/s, body (FLU) angular rate. t: sim time, ns.
-    """
-
-    t: int
-    seq: int
-    q: Vec3
-    v: Vec3
-    rpy: Vec3
-    w: Vec3
-    kind: ClassVar[str] = "state"
-    _fields: ClassVar[tuple[str, ...]] = ("t", "seq", "q", "v", "rpy", "w")
-
-    def __post_init__(self) -> None:
-        _set(self, "t", _mk_int("t", self.t, MAX_T_NS))
-        _set(self, "seq", _mk_int("seq", self.seq, MAX_SEQ))
-        _set(self, "q", _mk_vec3("q", self.q))
-        _set(self, "v", _mk_vec3("v", self.v))
-        _set(self, "rpy", _mk_vec3("rpy", self.rpy))
-        _set(self, "w", _mk_vec3("w", self.w))
-
-    def _to_wire(self) -> dict[str, Any]:
-        return {
-            "v": SCHEMA_VERSION,
-            "k": "state",
-            "t": self.t,
-            "seq": self.seq,
-            "q": self.q.tolist(),
-            "vel": self.v.tolist(),
-            "rpy": self.rpy.tolist(),
-            "w": self.w.tolist(),
-        }
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class Ref(_Msg):
-    """Reference position and velocity: q*_i, v*_i of eqs. (16)-(17) on ``uav/<i>/ref``, or the
-    leader's q0, v0 on ``leader/ref``. q: (3,) m, ENU; v: (3,) m/s, ENU; t: sim time, ns."""
-
-    t: int
-    seq: int
-    q: Vec3
-    v: Vec3
-    kind: ClassVar[str] = "ref"
-    _fields: ClassVar[tuple[str, ...]] = ("t", "seq", "q", "v")
-
-    def __post_init__(self) -> None:
-        _set(self, "t", _mk_int("t", self.t, MAX_T_NS))
-        _set(self, "seq", _mk_int("seq", self.seq, MAX_SEQ))
-        _set(self, "q", _mk_vec3("q", self.q))
-        _set(self, "v", _mk_vec3("v", self.v))
-
-    def _to_wire(self) -> dict[str, Any]:
-        return {
-            "v": SCHEMA_VERSION,
-            "k": "ref",
-            "t": self.t,
-            "seq": self.seq,
-            "q": self.q.tolist(),
-            "vel": self.v.tolist(),
-        }
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class Cmd(_Msg):
-    """Command of agent i to the plant (eq. (28) and the attitude inversion after it).
-
-    thrust: N, collective thrust F; rpy: (3,) rad, desired roll/pitch/yaw; u: (3,) m/s^2,
-    virtual control u_i; d_hat: (3,) m/s^2, ESO disturbance estimate (eq. 27); t: sim time, ns.
-    """
-
-    t: int
-    seq: int
-    thrust: float
-    rpy: Vec3
-    u: Vec3
-    d_hat: Vec3
-    kind: ClassVar[str] = "cmd"
-    _fields: ClassVar[tuple[str, ...]] = ("t", "seq", "thrust", "rpy", "u", "d_hat")
-
-    def __post_init__(self) -> None:
-        _set(self, "t", _mk_int("t", self.t, MAX_T_NS))
-        _set(self, "seq", _mk_int("seq", self.seq, MAX_SEQ))
-        _set(self, "thrust", _mk_float("thrust", self.thrust))
-        _set(self, "rpy", _mk_vec3("rpy", self.rpy))
-        _set(self, "u", _mk_vec3("u", self.u))
-        _set(self, "d_hat", _mk_vec3("d_hat", self.d_hat))
-
-    def _to_wire(self) -> dict[str, Any]:
-        return {
-            "v": SCHEMA_VERSION,
-            "k": "cmd",
-            "t": self.t,
-            "seq": self.seq,
-            "thrust": self.thrust,
-            "rpy": self.rpy.tolist(),
-            "u": self.u.tolist(),
-            "d_hat": self.d_hat.tolist(),
-        }
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class Mission(_Msg):
-    """The scenario (e.g. :func:`zenswarm.config.scenario_to_dict`), published by the leader.
-
-    scenario: nested dict of plain types (None, bool, int, finite float, str, list, dict with
-    str keys; at most :data:`MAX_DEPTH` levels). Copied on construction; tuples become lists.
-    """
-
-    t: int
-    seq: int
-    scenario: dict[str, Any] = field(default_factory=dict)
-    kind: ClassVar[str] = "mission"
-    _fields: ClassVar[tuple[str, ...]] = ("t", "seq", "scenario")
-
-    def __post_init__(self) -> None:
-        _set(self, "t", _mk_int("t", self.t, MAX_T_NS))
-        _set(self, "seq", _mk_int("seq", self.seq, MAX_SEQ))
-        if not isinstance(self.scenario, dict):
-            raise MessageError("scenario", "type", "expected a dict")
-        _set(self, "scenario", _mk_plain("scenario", self.scenario))
-
-    def _to_wire(self) -> dict[str, Any]:
-        return {"v": SCHEMA_VERSION, "k": "mission", "t": self.t, "seq": self.seq, "scenario": self.scenario}
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class Diag(_Msg):
-    """Diagnostics of a process: counters (rejected, dropped, late, loop timing in s, ...) and
-    free-form info (plain types, like :class:`Mission`). t: sim time, ns."""
-
-    t: int
-    seq: int
-    process: str
-    counters: dict[str, int | float] = field(default_factory=dict)
-    info: dict[str, Any] = field(default_factory=dict)
-    kind: ClassVar[str] = "diag"
-    _fields: ClassVar[tuple[str, ...]] = ("t", "seq", "process", "counters", "info")
-
-    def __post_init__(self) -> None:
-        _set(self, "t", _mk_int("t", self.t, MAX_T_NS))
-        _set(self, "seq", _mk_int("seq", self.seq, MAX_SEQ))
-        try:
-            validate_process(self.process)
-        except InvalidKeyError as e:
-            raise MessageError("process", "value", str(e)) from None
-        if not isinstance(self.counters, dict):
-            raise MessageError("counters", "type", "expected a dict")
-        counters: dict[str, int | float] = {}
-        for k, x in self.counters.items():
-            if not isinstance(k, str):
-                raise MessageError("counters", "type", f"key {k!r} is not a str")
-            if isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_)):
-                counters[k] = _mk_plain(f"counters.{k}", x)
-            else:
-                counters[k] = _mk_float(f"counters.{k}", x)
-        _set(self, "counters", counters)
-        if not isinstance(self.info, dict):
-            raise MessageError("info", "type", "expected a dict")
-        _set(self, "info", _mk_plain("info", self.info))
-
-    def _to_wire(self) -> dict[str, Any]:
-        return {
-            "v": SCHEMA_VERSION,
-            "k": "diag",
-            "t": self.t,
-            "seq": self.seq,
-            "process": self.process,
-            "counters": self.counters,
-            "info": self.info,
-        }
-
-
-Message = Union[Clock, State, Ref, Cmd, Mission, Diag]
-
-_LIMIT: Final = MappingProxyType({k: (MAX_MISSION_PAYLOAD if k == "mission" else MAX_PAYLOAD) for k in KINDS})
-
-
-# --------------------------------------------------------------------------- encode
-
-
-_tls = threading.local()  # one msgpack.Packer per thread (a Packer is not thread-safe), for encode
-
-
-def encode(msg: Message) -> bytes:
-    """Pack a message into msgpack bytes (floats as float64). Raises MessageError if the
-    result is over the size bound for its kind (:data:`MAX_PAYLOAD`, missions
-    :data:`MAX_MISSION_PAYLOAD`), so nothing is sent that every decoder would reject."""
+def _mk_process(name: str, value: Any) -> str:
     try:
-        to_wire = msg._to_wire
-    except AttributeError:
-        raise MessageError("msg", "type", f"{type(msg).__name__} is not a wire message") from None
-    packer = getattr(_tls, "packer", None)
-    if packer is None:
-        packer = _tls.packer = msgpack.Packer(use_bin_type=True)
-    data: bytes = packer.pack(to_wire())
-    if len(data) > _LIMIT[msg.kind]:
-        raise MessageError("msg", "oversize", f"{len(data)} bytes > {_LIMIT[msg.kind]} for {msg.kind}")
-    return data
+        return validate_process(value)
+    except InvalidKeyError as e:
+        raise MessageError(name, "value", str(e)) from None
 
 
-# --------------------------------------------------------------------------- decode
-
-_FIELDS: Final = MappingProxyType({
-    "clock": frozenset({"v", "k", "t", "seq"}),
-    "state": frozenset({"v", "k", "t", "seq", "q", "vel", "rpy", "w"}),
-    "ref": frozenset({"v", "k", "t", "seq", "q", "vel"}),
-    "cmd": frozenset({"v", "k", "t", "seq", "thrust", "rpy", "u", "d_hat"}),
-    "mission": frozenset({"v", "k", "t", "seq", "scenario"}),
-    "diag": frozenset({"v", "k", "t", "seq", "process", "counters", "info"}),
-})
-
-
-def _d_int(obj: dict[str, Any], name: str, hi: int) -> int:
-    x = obj[name]
-    if type(x) is not int:
-        raise WireDecodeError("type", f"expected an int, got {type(x).__name__}", name)
-    if x < 0:
-        raise WireDecodeError("negative", f"{x} < 0", name)
-    if x > hi:
-        raise WireDecodeError("out_of_range", f"{x} > {hi}", name)
-    return x
+def _mk_counters(name: str, value: Any) -> dict[str, int | float]:
+    if not isinstance(value, dict):
+        raise MessageError(name, "type", "expected a dict")
+    out: dict[str, int | float] = {}
+    for k, x in value.items():
+        if not isinstance(k, str):
+            raise MessageError(name, "type", f"key {k!r} is not a str")
+        if isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_)):
+            n: int = _mk_plain(f"{name}.{k}", x)
+            out[k] = n
+        else:
+            out[k] = _mk_float(f"{name}.{k}", x)
+    return out
 
 
-def _d_float(obj: dict[str, Any], name: str) -> float:
-    x = obj[name]
-    tx = type(x)
-    if tx is float:
-        if not math.isfinite(x):
-            raise WireDecodeError("nonfinite", f"{x!r}", name)
-        return x
-    if tx is int:
-        return float(x)
-    raise WireDecodeError("type", f"expected a number, got {tx.__name__}", name)
-
-
-_NUM_TYPES: Final = frozenset({float, int})
-
-
-def _d_vecs(obj: dict[str, Any], *names: str) -> np.ndarray:
-    """Validate the named fields as arrays of 3 finite numbers; one read-only (n, 3) float64
-    array whose rows are the vectors (one numpy call for all of them: decode runs ~10 kHz)."""
-    flat: list[Any] = []
-    for name in names:
-        x = obj[name]
-        if type(x) is not list or len(x) != 3:
-            break
-        flat += x
-    else:
-        # every field a list of 3: fast path when all elements are floats or ints with a finite
-        # sum (which means each is finite); anything else is judged element by element below
-        try:
-            if _NUM_TYPES.issuperset(map(type, flat)) and _isfinite(sum(flat)):
-                a = np.array(flat, dtype=np.float64)
-                a.flags.writeable = False
-                return a.reshape(len(names), 3)
-        except OverflowError:  # an int too large for a float
-            pass
-    flat = []
-    for name in names:
-        x = obj[name]
-        if type(x) is not list:
-            raise WireDecodeError("type", f"expected an array of 3 numbers, got {type(x).__name__}", name)
-        if len(x) != 3:
-            raise WireDecodeError("length", f"expected 3 elements, got {len(x)}", name)
-        for e in x:
-            te = type(e)
-            if te is float:
-                if not math.isfinite(e):
-                    raise WireDecodeError("nonfinite", f"element {e!r}", name)
-            elif te is not int:
-                raise WireDecodeError("type", f"element of type {te.__name__} is not a number", name)
-        flat += x
-    a = np.array(flat, dtype=np.float64)
-    a.setflags(write=False)
-    return a.reshape(len(names), 3)
+# --------------------------------------------------------------------------- decode-side checks
+# What msgspec's types cannot say: the nested plain maps of Mission.scenario and Diag.info.
 
 
 def _d_plain(name: str, x: Any, depth: int) -> None:
@@ -720,116 +466,355 @@ def _d_plain(name: str, x: Any, depth: int) -> None:
         raise WireDecodeError("type", f"{tx.__name__} is not a plain type", name)
 
 
-def _new(cls: type, names: tuple[str, ...], values: tuple[Any, ...]) -> Any:
-    """Build a message from already validated values, skipping __post_init__."""
-    obj = _object_new(cls)
-    for k, v in zip(names, values):
-        _object_setattr(obj, k, v)
-    return obj
+# --------------------------------------------------------------------------- field types
 
 
-_object_new: Final = object.__new__
-_object_setattr: Final = object.__setattr__
+@dataclass(frozen=True)
+class _Check:
+    """Annotated metadata of a field type: ``make(name, value)`` checks and normalises a value
+    given to a constructor (raising MessageError); ``post(name, value, 0)`` checks a decoded value
+    beyond what msgspec checked (raising WireDecodeError); ``default`` makes the constructor
+    argument optional (the payload field is always required)."""
+
+    make: Callable[[str, Any], Any]
+    post: Callable[[str, Any, int], None] | None = None
+    default: Callable[[], Any] | None = None
 
 
-def _unpack(kind: str, payload: bytes) -> dict[str, Any]:
-    limit = _LIMIT.get(kind)
-    if limit is None:
-        raise WireDecodeError("kind", f"unknown message kind {kind!r}; expected one of {KINDS}")
-    if not isinstance(payload, (bytes, bytearray, memoryview)):
-        raise WireDecodeError("malformed", f"payload is {type(payload).__name__}, not bytes")
-    n = payload.nbytes if isinstance(payload, memoryview) else len(payload)
-    if n > limit:
-        raise WireDecodeError("oversize", f"{n} bytes > {limit} for {kind}")
+_FMAX: Final = sys.float_info.max
+_Finite = Annotated[float, Meta(ge=-_FMAX, le=_FMAX)]  # NaN fails both bounds, +-inf one of them
+TimeNs = Annotated[int, Meta(ge=0, le=MAX_T_NS), _Check(_mk_t)]
+"""Sim time, integer ns in [0, MAX_T_NS]."""
+Seq = Annotated[int, Meta(ge=0, le=MAX_SEQ), _Check(_mk_seq)]
+"""Sequence number in [0, MAX_SEQ]."""
+Number = Annotated[float, Meta(ge=-_FMAX, le=_FMAX), _Check(_mk_float)]
+"""Finite float64 (an int on the wire is accepted, bool is not)."""
+Process = Annotated[str, Meta(pattern=r"\A(?:plant|leader|recorder|bridge|supervisor|agent:[1-9][0-9]{0,8})\Z"),
+                    _Check(_mk_process)]
+"""A process name (see :func:`validate_process`)."""
+PlainMap = Annotated[dict[str, Any], _Check(_mk_map, _d_plain, dict)]
+"""Nested plain types: None, bool, int, finite float, str, list, dict with str keys, <= MAX_DEPTH deep."""
+Counters = Annotated[dict[str, int | _Finite], _Check(_mk_counters, None, dict)]
+"""str -> int or finite float."""
+if TYPE_CHECKING:
+    Vec3: TypeAlias = npt.NDArray[np.float64]
+else:
+    Vec3 = Annotated[tuple[_Finite, _Finite, _Finite], _Check(_mk_vec3)]
+"""A vector: 3 finite float64 on the wire; a read-only float64 (3,) array in a message."""
+
+
+# --------------------------------------------------------------------------- message types
+
+
+class _MsgMeta(StructMeta):
+    """Metaclass of the wire messages. For a class with a ``kind`` it adds the header fields
+    ``schema`` (wire ``"v"``, ``Literal[SCHEMA_VERSION]``) and ``tag`` (wire ``"k"``,
+    ``Literal[kind]``) in front of the declared ones, so the payload carries them first and a
+    decoder requires both; it derives from the field types what a constructor checks, which fields
+    are vectors and the decoder; and it makes calling the class a checked construction (positional
+    or keyword arguments in declaration order, MessageError for a bad value)."""
+
+    def __new__(mcls, name: str, bases: tuple[type, ...], ns: dict[str, Any], **kw: Any) -> Any:
+        kind = ns.get("kind")
+        if kind is not None:
+            ns["__annotations__"] = {
+                "schema": Literal[SCHEMA_VERSION],  # type: ignore[valid-type]
+                "tag": Literal[kind],  # type: ignore[valid-type]
+                **ns.get("__annotations__", {}),
+            }
+            ns["schema"] = msgspec.field(name="v")
+            ns["tag"] = msgspec.field(name="k")
+        cls: Any = super().__new__(mcls, name, bases, ns, **kw)
+        if kind is not None:
+            checks = {f.name: next(m for m in f.type.__metadata__ if isinstance(m, _Check))
+                      for f in msgspec.structs.fields(cls)[2:]}
+            cls._args = tuple(checks)
+            cls._checks = checks
+            cls._makes = tuple((n, c.make) for n, c in checks.items())
+            vec_names = [n for n, c in checks.items() if c.make is _mk_vec3]
+            cls._vecs = tuple((n, slice(3 * j, 3 * j + 3)) for j, n in enumerate(vec_names))
+            cls._posts = tuple((n, c.post) for n, c in checks.items() if c.post is not None)
+            cls._decoder = msgspec.msgpack.Decoder(cls)
+            cls._sig = inspect.Signature([  # what calling the class takes (see __call__)
+                inspect.Parameter(f.name, inspect.Parameter.POSITIONAL_OR_KEYWORD,
+                                  default=inspect.Parameter.empty if checks[f.name].default is None else {})
+                for f in msgspec.structs.fields(cls)[2:]
+            ])
+        return cls
+
+    @property
+    def __signature__(cls) -> inspect.Signature:
+        sig = cls.__dict__.get("_sig")
+        return sig if sig is not None else StructMeta.__signature__.__get__(cls)  # type: ignore[attr-defined]
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        cls: Any = self
+        if args:
+            if len(args) > len(cls._args):
+                raise TypeError(f"{cls.__name__} takes at most {len(cls._args)} positional arguments")
+            for k, x in zip(cls._args, args):
+                if k in kwargs:
+                    raise TypeError(f"{cls.__name__}: argument {k!r} given twice")
+                kwargs[k] = x
+        if len(kwargs) != len(cls._args):  # an optional argument left out, or an unknown one
+            unknown = kwargs.keys() - cls._checks.keys()
+            if unknown:
+                raise TypeError(f"{cls.__name__}: unexpected argument {min(unknown)!r}")
+            for k, c in cls._checks.items():
+                if k not in kwargs:
+                    if c.default is None:
+                        raise TypeError(f"{cls.__name__}: missing argument {k!r}")
+                    kwargs[k] = c.default()
+        vals = {k: make(k, kwargs[k]) for k, make in cls._makes}
+        return super().__call__(schema=SCHEMA_VERSION, tag=cls.kind, **vals)  # type: ignore[misc]
+
+
+class _Msg(Struct, metaclass=_MsgMeta, frozen=True, eq=False, kw_only=True, forbid_unknown_fields=True):
+    """Common behaviour: value equality (numpy arrays compared elementwise), unhashable, frozen."""
+
+    kind: ClassVar[str]
+    _args: ClassVar[tuple[str, ...]]
+    _checks: ClassVar[dict[str, _Check]]
+    _makes: ClassVar[tuple[tuple[str, Callable[[str, Any], Any]], ...]]
+    _vecs: ClassVar[tuple[tuple[str, slice], ...]]
+    _posts: ClassVar[tuple[tuple[str, Callable[[str, Any, int], None]], ...]]
+    _decoder: ClassVar[msgspec.msgpack.Decoder[Any]]
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        for f in self._args:
+            a, b = getattr(self, f), getattr(other, f)
+            if isinstance(a, np.ndarray):
+                if not np.array_equal(a, b):
+                    return False
+            elif a != b:
+                return False
+        return True
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+class Clock(_Msg, frozen=True):
+    """Lockstep tick published by the plant. t: sim time, ns; seq: tick number."""
+
+    kind: ClassVar[str] = "clock"
+    t: TimeNs
+    seq: Seq
+
+
+class State(_Msg, frozen=True):
+    """State of UAV i (plant -> agent i; eq. (1)-(5)).
+
+    q: (3,) m, ENU position; v: (3,) m/s, ENU velocity (wire ``"vel"``); rpy: (3,) rad,
+    roll/pitch/yaw; w: (3,) rad/s, body (FLU) angular rate. t: sim time, ns.
+    """
+
+    kind: ClassVar[str] = "state"
+    t: TimeNs
+    seq: Seq
+    q: Vec3
+    v: Vec3 = msgspec.field(name="vel")
+    rpy: Vec3
+    w: Vec3
+
+
+class Ref(_Msg, frozen=True):
+    """Reference position and velocity: q*_i, v*_i of eqs. (16)-(17) on ``uav/<i>/ref``, or the
+    leader's q0, v0 on ``leader/ref``. q: (3,) m, ENU; v: (3,) m/s, ENU (wire ``"vel"``);
+    t: sim time, ns."""
+
+    kind: ClassVar[str] = "ref"
+    t: TimeNs
+    seq: Seq
+    q: Vec3
+    v: Vec3 = msgspec.field(name="vel")
+
+
+class Cmd(_Msg, frozen=True):
+    """Command of agent i to the plant (eq. (28) and the attitude inversion after it).
+
+    thrust: N, collective thrust F; rpy: (3,) rad, desired roll/pitch/yaw; u: (3,) m/s^2,
+    virtual control u_i; d_hat: (3,) m/s^2, ESO disturbance estimate (eq. 27); t: sim time, ns.
+    """
+
+    kind: ClassVar[str] = "cmd"
+    t: TimeNs
+    seq: Seq
+    thrust: Number
+    rpy: Vec3
+    u: Vec3
+    d_hat: Vec3
+
+
+class Mission(_Msg, frozen=True):
+    """The scenario (e.g. :func:`zenswarm.config.scenario_to_dict`), published by the leader.
+
+    scenario: nested dict of plain types (None, bool, int, finite float, str, list, dict with
+    str keys; at most :data:`MAX_DEPTH` levels). Copied on construction; tuples become lists.
+    Optional for the constructor (default ``{}``), required in a payload.
+    """
+
+    kind: ClassVar[str] = "mission"
+    t: TimeNs
+    seq: Seq
+    scenario: PlainMap
+
+
+class Diag(_Msg, frozen=True):
+    """Diagnostics of a process: counters (rejected, dropped, late, loop timing in s, ...) and
+    free-form info (plain types, like :class:`Mission`). t: sim time, ns. counters and info are
+    optional for the constructor (default ``{}``), required in a payload."""
+
+    kind: ClassVar[str] = "diag"
+    t: TimeNs
+    seq: Seq
+    process: Process
+    counters: Counters
+    info: PlainMap
+
+
+Message = Clock | State | Ref | Cmd | Mission | Diag
+
+_CLASSES: Final[Mapping[str, type[_Msg]]] = MappingProxyType({c.kind: c for c in (Clock, State, Ref, Cmd, Mission, Diag)})
+_LIMIT: Final = MappingProxyType({k: (MAX_MISSION_PAYLOAD if k == "mission" else MAX_PAYLOAD) for k in KINDS})
+
+
+# --------------------------------------------------------------------------- encode
+
+
+def _enc_hook(obj: Any) -> Any:
+    if type(obj) is np.ndarray:  # a vector of a message: float64 (3,)
+        return obj.tolist()
+    raise TypeError(f"{type(obj).__name__} is not a wire type")
+
+
+_encoder: Final = msgspec.msgpack.Encoder(enc_hook=_enc_hook)  # thread-safe
+
+
+def encode(msg: Message) -> bytes:
+    """Pack a message into msgpack bytes (floats as float64). Raises MessageError if the
+    result is over the size bound for its kind (:data:`MAX_PAYLOAD`, missions
+    :data:`MAX_MISSION_PAYLOAD`), so nothing is sent that every decoder would reject."""
+    if not isinstance(msg, _Msg):
+        raise MessageError("msg", "type", f"{type(msg).__name__} is not a wire message")
+    data = _encoder.encode(msg)
+    if len(data) > _LIMIT[msg.kind]:
+        raise MessageError("msg", "oversize", f"{len(data)} bytes > {_LIMIT[msg.kind]} for {msg.kind}")
+    return data
+
+
+# --------------------------------------------------------------------------- decode
+
+_PATH_FIELD: Final = re.compile(r"- at `\$\.([^`\[]+)")
+_QUOTED: Final = re.compile(r"`([^`]*)`")
+
+
+def _reason(text: str) -> tuple[str, str | None]:
+    """(reason, field) of a msgspec ValidationError message (field: its wire name)."""
+    m = _PATH_FIELD.search(text)
+    if text.startswith(("Object missing required field", "Object contains unknown field")):
+        field = _QUOTED.search(text).group(1)  # type: ignore[union-attr]
+        reason = "missing_field" if text.startswith("Object missing") else "extra_field"
+    elif m is None:  # about the payload as a whole: a map key that is not a str, or not a map
+        return ("malformed" if "at `key` in `$`" in text else "not_map"), None
+    else:
+        field = m.group(1)
+        if " of length " in text:
+            reason = "length"
+        elif text.startswith(("Expected `float` >=", "Expected `float` <=")):
+            reason = "nonfinite"  # only NaN and +-inf fail the bounds of a finite float
+        elif text.startswith("Expected `int` >= 0"):
+            reason = "negative"
+        elif text.startswith("Expected `int` <="):
+            reason = "out_of_range"
+        elif "matching regex" in text:
+            reason = "value"
+        else:
+            reason = "type"
+    return {"v": "version", "k": "kind"}.get(field, reason), field
+
+
+def _whole_payload(payload: Any, text: str) -> WireDecodeError:
+    """The error of a payload that is not a map: garbage or too deep inside it is told first."""
     try:
-        obj = msgpack.unpackb(
-            payload,
-            raw=False,
-            use_list=True,
-            strict_map_key=True,
-            max_str_len=n,
-            max_bin_len=n,
-            max_array_len=n,
-            max_map_len=n,
-            max_ext_len=n,
-        )
-    except msgpack.StackError:
-        raise WireDecodeError("nesting", "nested deeper than msgpack's unpacker allows") from None
-    except Exception as e:  # msgpack raises ValueError, its own exception types, UnicodeDecodeError...
-        raise WireDecodeError("malformed", f"not msgpack ({type(e).__name__}: {e})") from None
-    if type(obj) is not dict:
-        raise WireDecodeError("not_map", f"top-level object is {type(obj).__name__}, not a map")
-    if "v" not in obj:
-        raise WireDecodeError("version", "missing schema version", "v")
-    ver = obj["v"]
-    if type(ver) is not int or ver != SCHEMA_VERSION:
-        raise WireDecodeError("version", f"schema version {ver!r}, expected {SCHEMA_VERSION}", "v")
-    if "k" not in obj:
-        raise WireDecodeError("kind", "missing kind tag", "k")
-    if obj["k"] != kind:
-        raise WireDecodeError("kind", f"kind tag {obj['k']!r}, expected {kind!r}", "k")
-    expected = _FIELDS[kind]
-    if obj.keys() != expected:
-        missing = expected - obj.keys()
-        if missing:
-            raise WireDecodeError("missing_field", f"missing {sorted(missing)}", sorted(missing)[0])
-        extra = sorted(map(repr, obj.keys() - expected))
-        raise WireDecodeError("extra_field", f"unexpected {', '.join(extra)}", extra[0])
-    return obj
+        msgspec.msgpack.decode(payload)
+    except RecursionError:
+        return WireDecodeError("nesting", "nested deeper than the decoder allows")
+    except msgspec.DecodeError as e:
+        return WireDecodeError("malformed", f"not msgpack ({e})")
+    return WireDecodeError("not_map", f"top-level object is not a map ({text})")
 
 
-def decode(kind: str, payload: bytes) -> Message:
+def _check_payload(kind: str, payload: Any) -> type[_Msg]:
+    """Class of ``kind``; WireDecodeError for an unknown kind, a non-bytes or oversize payload."""
+    cls = _CLASSES.get(kind)
+    if cls is None:
+        raise WireDecodeError("kind", f"unknown message kind {kind!r}; expected one of {KINDS}")
+    tp = type(payload)
+    if tp is bytes or tp is bytearray:
+        n = len(payload)
+    elif tp is memoryview:
+        n = payload.nbytes
+    else:
+        raise WireDecodeError("malformed", f"payload is {tp.__name__}, not bytes")
+    if n > _LIMIT[kind]:
+        raise WireDecodeError("oversize", f"{n} bytes > {_LIMIT[kind]} for {kind}")
+    return cls
+
+
+@overload
+def decode(kind: Literal["clock"], payload: bytes | bytearray | memoryview) -> Clock: ...
+@overload
+def decode(kind: Literal["state"], payload: bytes | bytearray | memoryview) -> State: ...
+@overload
+def decode(kind: Literal["ref"], payload: bytes | bytearray | memoryview) -> Ref: ...
+@overload
+def decode(kind: Literal["cmd"], payload: bytes | bytearray | memoryview) -> Cmd: ...
+@overload
+def decode(kind: Literal["mission"], payload: bytes | bytearray | memoryview) -> Mission: ...
+@overload
+def decode(kind: Literal["diag"], payload: bytes | bytearray | memoryview) -> Diag: ...
+@overload
+def decode(kind: str, payload: bytes | bytearray | memoryview) -> Message: ...
+def decode(kind: str, payload: bytes | bytearray | memoryview) -> Message:
     """Decode and validate a payload of the given kind (one of :data:`KINDS`).
 
     payload: bytes-like (``sample.payload.to_bytes()``). Raises :class:`WireDecodeError` (a
     :class:`zenswarm.errors.DecodeError`) with ``reason`` in :data:`REASONS`. Work is bounded:
-    size is checked before unpacking, msgpack lengths are capped by the payload size, nesting by
-    msgpack's and :data:`MAX_DEPTH`. Returned vectors are read-only float64 (3,) arrays.
+    size is checked before unpacking, msgpack lengths are checked against the payload, nesting by
+    the decoder's recursion limit and :data:`MAX_DEPTH`. Returned vectors are read-only float64
+    (3,) arrays.
     """
-    o = _unpack(kind, payload)
-    t = _d_int(o, "t", MAX_T_NS)
-    seq = _d_int(o, "seq", MAX_SEQ)
-    if kind == "state":
-        q, v, rpy, w = _d_vecs(o, "q", "vel", "rpy", "w")
-        return _new(State, State._fields, (t, seq, q, v, rpy, w))
-    if kind == "ref":
-        q, v = _d_vecs(o, "q", "vel")
-        return _new(Ref, Ref._fields, (t, seq, q, v))
-    if kind == "cmd":
-        thrust = _d_float(o, "thrust")
-        rpy, u, d_hat = _d_vecs(o, "rpy", "u", "d_hat")
-        return _new(Cmd, Cmd._fields, (t, seq, thrust, rpy, u, d_hat))
-    if kind == "clock":
-        return _new(Clock, Clock._fields, (t, seq))
-    if kind == "mission":
-        sc = o["scenario"]
-        if type(sc) is not dict:
-            raise WireDecodeError("type", f"expected a map, got {type(sc).__name__}", "scenario")
-        _d_plain("scenario", sc, 0)
-        return _new(Mission, Mission._fields, (t, seq, sc))
-    # diag
-    process = o["process"]
-    if type(process) is not str:
-        raise WireDecodeError("type", f"expected a str, got {type(process).__name__}", "process")
-    if _PROCESS_RE.fullmatch(process) is None:
-        raise WireDecodeError("value", f"unknown process name {process!r}", "process")
-    counters = o["counters"]
-    if type(counters) is not dict:
-        raise WireDecodeError("type", f"expected a map, got {type(counters).__name__}", "counters")
-    for k, x in counters.items():
-        tx = type(x)
-        if type(k) is not str:
-            raise WireDecodeError("type", f"key {k!r} is not a str", "counters")
-        if tx is float:
-            if not math.isfinite(x):
-                raise WireDecodeError("nonfinite", f"{k}={x!r}", "counters")
-        elif tx is not int:
-            raise WireDecodeError("type", f"{k} is {tx.__name__}, not a number", "counters")
-    info = o["info"]
-    if type(info) is not dict:
-        raise WireDecodeError("type", f"expected a map, got {type(info).__name__}", "info")
-    _d_plain("info", info, 0)
-    return _new(Diag, Diag._fields, (t, seq, process, counters, info))
+    cls = _check_payload(kind, payload)
+    try:
+        msg: Any = cls._decoder.decode(payload)
+    except msgspec.ValidationError as e:
+        text = str(e)
+        reason, field = _reason(text)
+        if reason == "not_map":
+            raise _whole_payload(payload, text) from None
+        raise WireDecodeError(reason, text, field) from None
+    except msgspec.DecodeError as e:
+        raise WireDecodeError("malformed", f"not msgpack ({e})") from None
+    except RecursionError:
+        raise WireDecodeError("nesting", "nested deeper than the decoder allows") from None
+    vecs = cls._vecs
+    if vecs:  # the tuples msgspec checked -> read-only float64 (3,) views of one array
+        flat: tuple[float, ...] = ()
+        for n, _ in vecs:
+            flat += getattr(msg, n)
+        a = _fromiter(flat, _F64, len(flat))
+        a.setflags(write=False)
+        for n, sl in vecs:
+            _force_setattr(msg, n, a[sl])
+    for n, post in cls._posts:
+        post(n, getattr(msg, n), 0)
+    return msg  # type: ignore[no-any-return]
+
+
+_force_setattr: Final = msgspec.structs.force_setattr
+_fromiter: Final = np.fromiter
 
 
 class Decoder:
@@ -853,6 +838,20 @@ class Decoder:
         self.last_error: str | None = None
         self._last_seq: dict[str, int] = {}
 
+    @overload
+    def decode(self, key: str, kind: Literal["clock"], payload: bytes) -> Clock | None: ...
+    @overload
+    def decode(self, key: str, kind: Literal["state"], payload: bytes) -> State | None: ...
+    @overload
+    def decode(self, key: str, kind: Literal["ref"], payload: bytes) -> Ref | None: ...
+    @overload
+    def decode(self, key: str, kind: Literal["cmd"], payload: bytes) -> Cmd | None: ...
+    @overload
+    def decode(self, key: str, kind: Literal["mission"], payload: bytes) -> Mission | None: ...
+    @overload
+    def decode(self, key: str, kind: Literal["diag"], payload: bytes) -> Diag | None: ...
+    @overload
+    def decode(self, key: str, kind: str, payload: bytes) -> Message | None: ...
     def decode(self, key: str, kind: str, payload: bytes) -> Message | None:
         """Decoded message, or None (counted under ``key`` and the reason) if rejected."""
         try:
