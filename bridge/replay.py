@@ -19,17 +19,17 @@ import struct
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from zenswarm import wire
+from zenswarm.bridge.mcapio import Recording, read_recording
 from zenswarm.errors import RecordingError, ScenarioError
 from zenswarm.runtime import sleep_until
-
-from .mcapio import Recording, read_recording
 
 __all__ = [
     "ReplayStats",
@@ -449,7 +449,7 @@ def _fault_plan(rec: Recording, sc: Any) -> Any:
     flags the recorder was given (metadata ``fault_args``). None when no fault was active."""
     import json
 
-    from .args import add_fault_args, link_faults
+    from zenswarm.bridge.args import add_fault_args, link_faults
 
     p = argparse.ArgumentParser(add_help=False)
     add_fault_args(p)
@@ -548,7 +548,7 @@ class _Verifier:
             if msg is None:
                 continue
             k = (msg.t + dt_ns // 2) // dt_ns
-            if m.topic == self.ref_key and msg.seq == 1:
+            if m.topic == self.ref_key and isinstance(msg, wire.Ref) and msg.seq == 1:
                 self.start_refs[k] = msg
             else:
                 self.by_tick[m.topic][k] = msg  # the latest wins, as in the inbox
@@ -580,6 +580,8 @@ class _Verifier:
         :meth:`AgentCore.finish`), then compare cmd(k) and ref(k + 1)."""
         core = self.core
         cmd = core.finish(st.q, st.v, core.rates_from([inputs.get(key) for key in self.nbr_keys], inputs.get(self.keys.leader_ref)))
+        q_ref, v_ref = core.q_ref, core.v_ref
+        assert q_ref is not None and v_ref is not None, "finish() leaves the generator's state set"
         rc = self.cmds.get(k)
         if rc is None:
             raise _Differs(Difference(k, "cmd", "<missing from the recording>", f"thrust={float(cmd.thrust)!r}"))
@@ -589,9 +591,9 @@ class _Verifier:
             if rr is None and k == seg_end:
                 self.res.notes.append(f"ref of tick {k + 1} (after the last command of a run) is not in the recording")
             elif rr is None:
-                d = Difference(k + 1, "ref", "<missing from the recording>", f"q={core.q_ref.tolist()}")
+                d = Difference(k + 1, "ref", "<missing from the recording>", f"q={q_ref.tolist()}")
             else:
-                d = _compare_ref(k + 1, rr, core.q_ref, core.v_ref)
+                d = _compare_ref(k + 1, rr, q_ref, v_ref)
         if d is not None:
             raise _Differs(d)
         self.res.ticks += 1
@@ -600,8 +602,10 @@ class _Verifier:
         """(Re)start the generator and ESO from the state of tick k; the recorded start
         reference of tick k, if any, must equal the reset."""
         self.core.reset(st.q, st.v)
+        q_ref, v_ref = self.core.q_ref, self.core.v_ref
+        assert q_ref is not None and v_ref is not None, "reset() sets the generator's state"
         r0 = self.start_refs.get(k)
-        d = None if r0 is None else _compare_ref(k, r0, self.core.q_ref, self.core.v_ref)
+        d = None if r0 is None else _compare_ref(k, r0, q_ref, v_ref)
         if d is not None:
             raise _Differs(d)
 

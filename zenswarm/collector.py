@@ -43,7 +43,7 @@ class Collector:
         self.goal_tick: int | None = None
         self._goal = np.asarray(scenario.leader.goal, dtype=float)
         self._goal_tol = scenario.timing.goal_tolerance_m
-        self.diag: dict[str, dict] = {}
+        self.diag: dict[str, dict[str, Any]] = {}
         self.counts: dict[str, int] = {}
         self._eager = {keys.clock, keys.leader_ref}
         self._pending: list[tuple[str, bytes]] = []

@@ -60,6 +60,7 @@ from typing import (
     Final,
     Literal,
     TypeAlias,
+    cast,
     overload,
 )
 
@@ -518,8 +519,8 @@ class _MsgMeta(StructMeta):
         kind = ns.get("kind")
         if kind is not None:
             ns["__annotations__"] = {
-                "schema": Literal[SCHEMA_VERSION],  # type: ignore[valid-type]
-                "tag": Literal[kind],  # type: ignore[valid-type]
+                "schema": Literal[SCHEMA_VERSION],
+                "tag": Literal[kind],
                 **ns.get("__annotations__", {}),
             }
             ns["schema"] = msgspec.field(name="v")
@@ -545,14 +546,14 @@ class _MsgMeta(StructMeta):
     @property
     def __signature__(cls) -> inspect.Signature:
         sig = cls.__dict__.get("_sig")
-        return sig if sig is not None else StructMeta.__signature__.__get__(cls)  # type: ignore[attr-defined]
+        return sig if sig is not None else cast(inspect.Signature, StructMeta.__signature__.__get__(cls))
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         cls: Any = self
         if args:
             if len(args) > len(cls._args):
                 raise TypeError(f"{cls.__name__} takes at most {len(cls._args)} positional arguments")
-            for k, x in zip(cls._args, args):
+            for k, x in zip(cls._args, args, strict=False):  # fewer positional arguments than fields is fine
                 if k in kwargs:
                     raise TypeError(f"{cls.__name__}: argument {k!r} given twice")
                 kwargs[k] = x
@@ -566,7 +567,7 @@ class _MsgMeta(StructMeta):
                         raise TypeError(f"{cls.__name__}: missing argument {k!r}")
                     kwargs[k] = c.default()
         vals = {k: make(k, kwargs[k]) for k, make in cls._makes}
-        return super().__call__(schema=SCHEMA_VERSION, tag=cls.kind, **vals)  # type: ignore[misc]
+        return super().__call__(schema=SCHEMA_VERSION, tag=cls.kind, **vals)
 
 
 class _Msg(Struct, metaclass=_MsgMeta, frozen=True, eq=False, kw_only=True, forbid_unknown_fields=True):
