@@ -71,7 +71,9 @@ __all__ = [
     "serve_router",
 ]
 
-ZENOH_RUNTIME_DEFAULT: Final = "(rx: (handover: app), tx: (handover: app), net: (handover: app), acc: (handover: app), app: (worker_threads: 1))"
+ZENOH_RUNTIME_DEFAULT: Final = (
+    "(rx: (handover: app), tx: (handover: app), net: (handover: app), acc: (handover: app), app: (worker_threads: 1))"
+)
 """zenoh's thread layout in the swarm's plant, leader and agent processes (see :func:`use_swarm_runtime`)."""
 
 
@@ -95,7 +97,9 @@ def use_swarm_runtime() -> None:
     os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME_DEFAULT)
 
 
-ZENOH_RUNTIME_ROUTER: Final = "(rx: (handover: app), net: (handover: app), acc: (handover: app), app: (worker_threads: 1), tx: (worker_threads: 1))"
+ZENOH_RUNTIME_ROUTER: Final = (
+    "(rx: (handover: app), net: (handover: app), acc: (handover: app), app: (worker_threads: 1), tx: (worker_threads: 1))"
+)
 """zenoh's thread layout in the supervisor (the router): one ``app`` thread, and ``tx`` on its own.
 
 A router forwarding a ``BLOCK`` message into a full queue waits, inside the task that read it,
@@ -192,7 +196,7 @@ def check_endpoint_syntax(endpoints: Sequence[str], flag: str, *, listen: bool =
                 raise ScenarioError(flag, f"{ep!r}: expected {proto}/<host>:<port> with a port in {lo}..65535, {example}")
         try:
             zenoh.Config().insert_json5("connect/endpoints", json.dumps([ep]))
-        except Exception as x:  # zenoh raises ZError
+        except (zenoh.ZError, TypeError, ValueError) as x:  # zenoh's errors; json.dumps' too
             raise ScenarioError(flag, f"{ep!r} is not a zenoh endpoint: {str(x).split(' at ', 1)[0]}") from None
         out.append(ep)
     return out
@@ -208,7 +212,7 @@ def apply_settings(conf: zenoh.Config, settings: Mapping[str, Any]) -> zenoh.Con
     for path, value in settings.items():
         try:
             conf.insert_json5(path, json.dumps(value))
-        except Exception as e:  # zenoh raises ZError
+        except (zenoh.ZError, TypeError, ValueError) as e:  # zenoh's errors; json.dumps' (not JSON)
             raise BusError(f"config {path!r} = {value!r}: {e}") from None
     return conf
 
@@ -301,7 +305,7 @@ def open_session(conf: zenoh.Config, *, handle_signals: bool = True) -> Iterator
     """
     try:
         session = zenoh.open(conf)
-    except Exception as e:  # ZError
+    except zenoh.ZError as e:
         raise BusError(f"cannot open zenoh session: {e}") from None
     close_at_exit(session)
     previous: dict[int, Any] = {}
@@ -365,7 +369,7 @@ def _pin_thread_state() -> None:
             ctypes.pythonapi.PyGILState_Ensure()
 
 
-def direct_callback(fn: Callable[[Any], None]) -> "zenoh.handlers.Callback":
+def direct_callback(fn: Callable[[Any], None]) -> zenoh.handlers.Callback:
     """A subscriber handler that runs ``fn(sample)`` on zenoh's receiving thread.
 
     The default for a plain Python callable is a dedicated Python thread per subscriber that

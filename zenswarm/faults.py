@@ -99,8 +99,9 @@ import hashlib
 import math
 import re
 from collections import OrderedDict
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -286,7 +287,7 @@ def _parse_end(text: str) -> float:
     return math.inf if text.strip() in ("inf", "end") else parse_duration(text)
 
 
-def parse_partition(text: str) -> "Partition":
+def parse_partition(text: str) -> Partition:
     """``"agent:2@10s-13s"`` or ``"agent:1->agent:2@10s-13.5s"`` -> :class:`Partition`.
 
     The end may be ``inf`` (or ``end``): down for the rest of the run. Raises ValueError naming
@@ -492,7 +493,7 @@ class FaultPlan:
         return hash(self._key())
 
     @classmethod
-    def none(cls, seed: int = 0) -> "FaultPlan":
+    def none(cls, seed: int = 0) -> FaultPlan:
         """No faults at all."""
         return cls(seed=seed)
 
@@ -699,7 +700,7 @@ class FaultState:
 
         def gather(get) -> np.ndarray:
             out = np.empty(m)
-            for b, s0, s1 in zip(blocks.tolist(), starts.tolist(), ends.tolist()):
+            for b, s0, s1 in zip(blocks.tolist(), starts.tolist(), ends.tolist(), strict=True):
                 sel = order[s0:s1]
                 out[sel] = get(b)[idx[sel]]
             return out

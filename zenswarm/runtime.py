@@ -35,9 +35,10 @@ import sys
 import threading
 import time
 from collections import defaultdict, deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
@@ -568,7 +569,7 @@ class ProcessOptions:
     seed: int | None = None
 
     @classmethod
-    def of(cls, obj: Any) -> "ProcessOptions":
+    def of(cls, obj: Any) -> ProcessOptions:
         """The options read off any object with these attribute names (e.g. a parsed command
         line); a missing or None attribute takes the default."""
         if isinstance(obj, ProcessOptions):
@@ -589,7 +590,7 @@ class ProcessOptions:
             seed=get("seed", None),
         )
 
-    def fault_plan(self, scenario: Scenario) -> "FaultPlan | None":
+    def fault_plan(self, scenario: Scenario) -> FaultPlan | None:
         """The link-fault plan of this run (scenario's ``[faults]`` plus the flags); None when no
         fault is active. Raises :class:`zenswarm.errors.ScenarioError` naming the bad field."""
         from .linkfaults import plan_for
@@ -653,7 +654,7 @@ class SwarmProcess:
             self._lockstep = owner
 
     # ------------------------------------------------------------------ lifecycle
-    def __enter__(self) -> "SwarmProcess":
+    def __enter__(self) -> SwarmProcess:
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)

@@ -5,9 +5,10 @@ This is the one definition of the scenario format. :func:`convert` turns a parse
 rejected, types and ranges are checked (``Meta`` constraints), bools are not numbers, NaN, inf
 and integers too large for a float are refused, and the math-free cross-field checks run in
 ``__post_init__`` (a table at a fixed place raises :class:`ScenarioError` naming its key; one
-inside a list raises ``ValueError("@key: ...")``, which gets the path of the list entry). Every failure is a :class:`zenswarm.errors.ScenarioError` whose ``field`` is
-the dotted path of the offending key (``leader.k_att``, ``obstacles[1].radius``,
-``mavlink.bogus``, ``network``): msgspec's path ``$.obstacles[1].radius`` mapped to ours.
+inside a list raises ``ValueError("@key: ...")``, which gets the path of the list entry). Every
+failure is a :class:`zenswarm.errors.ScenarioError` whose ``field`` is the dotted path of the
+offending key (``leader.k_att``, ``obstacles[1].radius``, ``mavlink.bogus``, ``network``):
+msgspec's path ``$.obstacles[1].radius`` mapped to ours.
 
 Units are SI, positions in the inertial ENU frame (z up). The checks that need numbers of the
 whole scenario (the graph's Lemma 1, start/goal clearance, run-size bounds, durations in the

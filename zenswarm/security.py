@@ -38,9 +38,10 @@ import ipaddress
 import json
 import os
 import secrets
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Literal, Mapping
+from typing import Any, Literal
 
 from . import wire
 from .config import Scenario, load_scenario
@@ -70,7 +71,6 @@ __all__ = [
     "is_loopback_endpoint",
     "ClientSecurity",
     "client_fragments",
-    "add_security_args",
 ]
 
 AuthMode = Literal["usrpwd", "tls"]
@@ -245,8 +245,8 @@ def manifest_mismatch(m: Manifest, scenario: Scenario, swarm: str, *, all_files:
     except (TypeError, ValueError):
         return f"have an unreadable expiry date {m.not_after!r}"
     if expires.tzinfo is None:
-        expires = expires.replace(tzinfo=_dt.timezone.utc)
-    if expires <= _dt.datetime.now(_dt.timezone.utc):
+        expires = expires.replace(tzinfo=_dt.UTC)
+    if expires <= _dt.datetime.now(_dt.UTC):
         return f"expired on {m.not_after}"
     if all_files:
         gone = [f for f in m.files() if not f.is_file()]
@@ -479,7 +479,7 @@ def generate_credentials(
         raise CredentialsError(f"days: expected an integer >= 1, got {days!r}")
     hosts = _router_hosts(router_hosts)
     root = Path(out_dir).resolve()
-    now = _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0)
+    now = _dt.datetime.now(_dt.UTC).replace(microsecond=0)
     not_before = now - _dt.timedelta(hours=1)  # tolerate small clock skew between hosts
     not_after = now + _dt.timedelta(days=days)
     plan = _plan(root, swarm, sc, hosts, not_after.isoformat())
