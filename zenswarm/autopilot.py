@@ -171,8 +171,12 @@ _MAV_KEYS: dict[str, str] = {
     "start_timeout_s": "start the mission clock after this long even if some UAV is not ready, s (default 60)",
     "reengage": "after a link loss, ask a still-armed vehicle for the offboard mode again (default true)",
     "source_system": "the bridge's MAVLink system id (default 245)",
-    "telemetry_hz": "LOCAL_POSITION_NED and ATTITUDE rate, Hz: the simulated vehicles send at it, the bridge asks real ones for it (default 50)",
-    "request_telemetry": "ask each vehicle for telemetry_hz with MAV_CMD_SET_MESSAGE_INTERVAL on connect and after a link loss (default true)",
+    "telemetry_hz": (
+        "LOCAL_POSITION_NED and ATTITUDE rate, Hz: the simulated vehicles send at it, the bridge asks real ones for it (default 50)"
+    ),
+    "request_telemetry": (
+        "ask each vehicle for telemetry_hz with MAV_CMD_SET_MESSAGE_INTERVAL on connect and after a link loss (default true)"
+    ),
     "offboard_loss_s": "simulated vehicle: no setpoint this long -> hold (PX4 COM_OF_LOSS_T, whose default is also 1 s), s (default 1.0)",
     "failsafe_land_s": "simulated vehicle: hold this long after the loss, then land, s (default 5)",
     "ground_z": "simulated vehicle: ground height, m ENU (default 0)",
@@ -280,7 +284,7 @@ def _links(t: MavlinkTable, n: int, conn_over: dict[int, str], sysid_over: dict[
     sysids = list(t.sysids or range(1, n + 1))
     _override("--sysid", sysids, sysid_over, lambda f, s: _int(f, s, 1, 254))
     seen: dict[tuple[str, int], int] = {}
-    for i, (c, s) in enumerate(zip(conns, sysids)):
+    for i, (c, s) in enumerate(zip(conns, sysids, strict=True)):
         if (c, s) in seen:
             raise ScenarioError("mavlink.sysids", f"UAV {seen[(c, s)] + 1} and UAV {i + 1} share connection {c!r} and system id {s}")
         seen[(c, s)] = i

@@ -40,7 +40,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from types import FrameType
-from typing import Any, Final
+from typing import Any, Final, Protocol, cast
 
 import zenoh
 
@@ -63,6 +63,8 @@ __all__ = [
     "router_config",
     "client_config",
     "close_at_exit",
+    "Undeclarable",
+    "undeclare",
     "direct_callback",
     "open_session",
     "declare_alive",
@@ -71,7 +73,9 @@ __all__ = [
     "serve_router",
 ]
 
-ZENOH_RUNTIME_DEFAULT: Final = "(rx: (handover: app), tx: (handover: app), net: (handover: app), acc: (handover: app), app: (worker_threads: 1))"
+ZENOH_RUNTIME_DEFAULT: Final = (
+    "(rx: (handover: app), tx: (handover: app), net: (handover: app), acc: (handover: app), app: (worker_threads: 1))"
+)
 """zenoh's thread layout in the swarm's plant, leader and agent processes (see :func:`use_swarm_runtime`)."""
 
 
@@ -95,7 +99,9 @@ def use_swarm_runtime() -> None:
     os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME_DEFAULT)
 
 
-ZENOH_RUNTIME_ROUTER: Final = "(rx: (handover: app), net: (handover: app), acc: (handover: app), app: (worker_threads: 1), tx: (worker_threads: 1))"
+ZENOH_RUNTIME_ROUTER: Final = (
+    "(rx: (handover: app), net: (handover: app), acc: (handover: app), app: (worker_threads: 1), tx: (worker_threads: 1))"
+)
 """zenoh's thread layout in the supervisor (the router): one ``app`` thread, and ``tx`` on its own.
 
 A router forwarding a ``BLOCK`` message into a full queue waits, inside the task that read it,
@@ -192,7 +198,7 @@ def check_endpoint_syntax(endpoints: Sequence[str], flag: str, *, listen: bool =
                 raise ScenarioError(flag, f"{ep!r}: expected {proto}/<host>:<port> with a port in {lo}..65535, {example}")
         try:
             zenoh.Config().insert_json5("connect/endpoints", json.dumps([ep]))
-        except Exception as x:  # zenoh raises ZError
+        except (zenoh.ZError, TypeError, ValueError) as x:  # zenoh's errors; json.dumps' too
             raise ScenarioError(flag, f"{ep!r} is not a zenoh endpoint: {str(x).split(' at ', 1)[0]}") from None
         out.append(ep)
     return out
@@ -208,7 +214,7 @@ def apply_settings(conf: zenoh.Config, settings: Mapping[str, Any]) -> zenoh.Con
     for path, value in settings.items():
         try:
             conf.insert_json5(path, json.dumps(value))
-        except Exception as e:  # zenoh raises ZError
+        except (zenoh.ZError, TypeError, ValueError) as e:  # zenoh's errors; json.dumps' (not JSON)
             raise BusError(f"config {path!r} = {value!r}: {e}") from None
     return conf
 
@@ -271,6 +277,28 @@ def client_config(
 # --------------------------------------------------------------------------- sessions
 
 
+class Undeclarable(Protocol):
+    """A zenoh entity that can be undeclared: subscriber, publisher, queryable, liveliness token,
+    transport-events listener."""
+
+    def undeclare(self) -> None: ...
+
+
+def undeclare(entity: Undeclarable) -> None:
+    """``entity.undeclare()``: zenoh's type stubs (1.10.2) leave ``undeclare`` unannotated, so
+    typed code calls it through this protocol."""
+    entity.undeclare()
+
+
+class _Closable(Protocol):
+    def close(self) -> None: ...
+
+
+def _close(session: _Closable) -> None:
+    """``session.close()``, typed (zenoh's stubs leave ``Session.close`` unannotated)."""
+    session.close()
+
+
 def close_at_exit(session: zenoh.Session) -> None:
     """Close ``session`` when the interpreter shuts down, *before* it joins non-daemon threads
     (zenoh's Python-callback threads), which ``atexit`` would be too late for."""
@@ -284,6 +312,10 @@ def close_at_exit(session: zenoh.Session) -> None:
             atexit.register(session.close)
     except RuntimeError:  # interpreter already shutting down
         pass
+
+
+_SignalHandler = Callable[[int, FrameType | None], Any] | int | signal.Handlers | None
+"""What :func:`signal.signal` returns and takes: a handler, ``SIG_DFL``/``SIG_IGN``, or None."""
 
 
 @contextlib.contextmanager
@@ -301,10 +333,10 @@ def open_session(conf: zenoh.Config, *, handle_signals: bool = True) -> Iterator
     """
     try:
         session = zenoh.open(conf)
-    except Exception as e:  # ZError
+    except zenoh.ZError as e:
         raise BusError(f"cannot open zenoh session: {e}") from None
     close_at_exit(session)
-    previous: dict[int, Any] = {}
+    previous: dict[signal.Signals, _SignalHandler] = {}
     quiet = False  # set once a signal fired or the block is left: further signals are ignored
 
     def _handler(signum: int, frame: FrameType | None) -> None:
@@ -321,7 +353,7 @@ def open_session(conf: zenoh.Config, *, handle_signals: bool = True) -> Iterator
     finally:
         quiet = True
         try:
-            session.close()
+            _close(session)
         finally:
             for sig, h in previous.items():
                 signal.signal(sig, h)
@@ -365,7 +397,7 @@ def _pin_thread_state() -> None:
             ctypes.pythonapi.PyGILState_Ensure()
 
 
-def direct_callback(fn: Callable[[Any], None]) -> "zenoh.handlers.Callback":
+def direct_callback(fn: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback[zenoh.Sample]:
     """A subscriber handler that runs ``fn(sample)`` on zenoh's receiving thread.
 
     The default for a plain Python callable is a dedicated Python thread per subscriber that
@@ -381,7 +413,7 @@ def direct_callback(fn: Callable[[Any], None]) -> "zenoh.handlers.Callback":
     BENCHMARKS.md, "What made the swarm faster".
     """
 
-    def run(sample: Any) -> None:
+    def run(sample: zenoh.Sample) -> None:
         if threading.get_ident() not in _PINNED:
             _pin_thread_state()
         fn(sample)
@@ -463,7 +495,7 @@ class AliveWatcher:
     def close(self) -> None:
         """Undeclare the liveliness subscriber (idempotent; a closed session already did)."""
         with contextlib.suppress(Exception):
-            self._sub.undeclare()
+            undeclare(self._sub)
 
     def __enter__(self) -> AliveWatcher:
         return self
@@ -481,7 +513,8 @@ def wait_matching(publisher: zenoh.Publisher, timeout: float = 5.0, poll_s: floa
     """
     deadline = time.monotonic() + timeout
     while True:
-        if publisher.matching_status.matching:
+        # zenoh 1.10.2's stub types matching_status as bool; it is a MatchingStatus (see above)
+        if cast(zenoh.MatchingStatus, publisher.matching_status).matching:
             return True
         if time.monotonic() >= deadline:
             return False

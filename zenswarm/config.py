@@ -161,7 +161,7 @@ class Scenario:
         """Formation-enclosing sphere radius r_f = max_i ||h_i||, m."""
         return formation_radius(self.offsets)
 
-    def with_changes(self, **changes: Any) -> "Scenario":
+    def with_changes(self, **changes: Any) -> Scenario:
         """A copy with top-level fields replaced (validated again)."""
         new = replace(self, **changes)
         validate(new)

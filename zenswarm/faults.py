@@ -99,8 +99,9 @@ import hashlib
 import math
 import re
 from collections import OrderedDict
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -146,6 +147,8 @@ _REASONS = ("ok", "loss", "burst", "partition")
 _TWO_M53 = 2.0**-53
 _EPS_TICK = 1e-9
 _CHUNK = 256  # LinkInbox computes decisions in batches of this many ticks (a cache, not a definition)
+_Chunk = tuple[list[bool], list[float], list[str], list[int]]
+"""One batch of :class:`LinkInbox` decisions: dropped, delay_s, reason, delivery tick (one per send tick)."""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -286,7 +289,7 @@ def _parse_end(text: str) -> float:
     return math.inf if text.strip() in ("inf", "end") else parse_duration(text)
 
 
-def parse_partition(text: str) -> "Partition":
+def parse_partition(text: str) -> Partition:
     """``"agent:2@10s-13s"`` or ``"agent:1->agent:2@10s-13.5s"`` -> :class:`Partition`.
 
     The end may be ``inf`` (or ``end``): down for the rest of the run. Raises ValueError naming
@@ -457,7 +460,7 @@ class FaultPlan:
     per_link: Mapping[Any, LinkFaultSpec] = field(default_factory=dict)
     seed: int = 0
     partitions: tuple[Partition, ...] = ()
-    _resolved: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    _resolved: dict[tuple[str, str, str], LinkFaultSpec] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.default, LinkFaultSpec):
@@ -480,7 +483,7 @@ class FaultPlan:
                 raise ValueError(f"partitions must hold Partition objects, got {p!r}")
         object.__setattr__(self, "partitions", parts)
 
-    def _key(self) -> tuple:
+    def _key(self) -> tuple[object, ...]:
         return (self.default, tuple(self.per_link.items()), self.seed, self.partitions)
 
     def __eq__(self, other: object) -> bool:  # per_link order matters (the last match wins)
@@ -492,7 +495,7 @@ class FaultPlan:
         return hash(self._key())
 
     @classmethod
-    def none(cls, seed: int = 0) -> "FaultPlan":
+    def none(cls, seed: int = 0) -> FaultPlan:
         """No faults at all."""
         return cls(seed=seed)
 
@@ -507,7 +510,9 @@ class FaultPlan:
         spec = self._resolved.get(key)
         if spec is None:
             spec = self.default
-            for (ps, pd, pk), s in reversed(self.per_link.items()):
+            per_link = self.per_link
+            assert isinstance(per_link, dict)  # __post_init__ made it one (ordered: the last match wins)
+            for (ps, pd, pk), s in reversed(per_link.items()):
                 if fnmatch.fnmatchcase(src, ps) and fnmatch.fnmatchcase(dst, pd) and fnmatch.fnmatchcase(kind, pk):
                     spec = s
                     break
@@ -567,8 +572,9 @@ def _ge_block_states(s0: bool, u: np.ndarray, p_gb: float, p_bg: float) -> np.nd
     val = go.copy()
     val[0] = s0
     last = np.maximum.accumulate(np.where(const, np.arange(n), 0))
-    cf = np.cumsum(flip)
-    return val[last] ^ ((cf - cf[last]) & 1).astype(bool)
+    cf = np.cumsum(flip, dtype=np.int64)  # flip counts (what cumsum of bools gives, said explicitly)
+    states: np.ndarray = val[last] ^ ((cf - cf[last]) & 1).astype(bool)
+    return states
 
 
 def _ge_step(s: bool, u: float, p_gb: float, p_bg: float) -> bool:
@@ -588,7 +594,7 @@ class FaultState:
             raise TypeError(f"plan must be a FaultPlan, got {type(plan).__name__}")
         self.plan = plan
         self.cache_blocks = max(1, int(cache_blocks))
-        self._blocks: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._blocks: OrderedDict[tuple[object, ...], np.ndarray] = OrderedDict()
         self._ge_starts: dict[tuple[str, str, str], list[bool]] = {}
 
     # -- uniforms
@@ -596,7 +602,7 @@ class FaultState:
         raw = np.random.Philox(key=_key128(self.plan.seed, link, stream, b)).random_raw(BLOCK)
         return (raw >> np.uint64(11)).astype(np.float64) * _TWO_M53
 
-    def _cached(self, key: tuple, make) -> np.ndarray:
+    def _cached(self, key: tuple[object, ...], make: Callable[[], np.ndarray]) -> np.ndarray:
         arr = self._blocks.get(key)
         if arr is None:
             arr = make()
@@ -628,7 +634,7 @@ class FaultState:
             starts.append(_ge_step(bool(states[-1]), u_next, ge.p_good_to_bad, ge.p_bad_to_good))
         return starts[b]
 
-    def _ge_states_from(self, link, ge: GilbertElliott, b: int, s0: bool) -> np.ndarray:
+    def _ge_states_from(self, link: tuple[str, str, str], ge: GilbertElliott, b: int, s0: bool) -> np.ndarray:
         key = ("ge", link, b)
         arr = self._blocks.get(key)
         if arr is not None:
@@ -697,9 +703,9 @@ class FaultState:
         blocks, starts = np.unique(blk[order], return_index=True)
         ends = np.append(starts[1:], m)
 
-        def gather(get) -> np.ndarray:
+        def gather(get: Callable[[int], np.ndarray]) -> np.ndarray:
             out = np.empty(m)
-            for b, s0, s1 in zip(blocks.tolist(), starts.tolist(), ends.tolist()):
+            for b, s0, s1 in zip(blocks.tolist(), starts.tolist(), ends.tolist(), strict=True):
                 sel = order[s0:s1]
                 out[sel] = get(b)[idx[sel]]
             return out
@@ -818,7 +824,7 @@ class LinkInbox:
         self._held: tuple[int, int, Any] | None = None  # (send_tick, seq, value)
         self._last_k: int | None = None
         self._due_memo: tuple[int, int | None] | None = None  # (k, due(k))
-        self._chunks: OrderedDict[int, tuple[list, list, list, list]] = OrderedDict()
+        self._chunks: OrderedDict[int, _Chunk] = OrderedDict()
         self._n = {
             "received": 0,
             "delivered": 0,
@@ -845,7 +851,7 @@ class LinkInbox:
         i = j % _CHUNK
         return Delivery(dropped[i], delay[i], reason[i])
 
-    def _chunk(self, c: int) -> tuple[list, list, list, list]:
+    def _chunk(self, c: int) -> _Chunk:
         """Decisions of send ticks c*_CHUNK .. (c+1)*_CHUNK - 1, computed in one batch
         (element for element equal to :meth:`FaultState.decide`): dropped, delay_s, reason,
         delivery tick."""

@@ -135,7 +135,8 @@ def formation_offsets(n: int, shape: str = "circle", spacing: float = 0.3) -> np
         h[:, 0] = -(idx // cols) * spacing  # rows go back along -x
         h[:, 1] = (idx % cols) * spacing
     h[:, :2] -= h[:, :2].mean(axis=0)
-    return np.vectorize(_r)(h)
+    rounded: np.ndarray = np.vectorize(_r)(h)
+    return rounded
 
 
 # ----------------------------------------------------------------------------- graph

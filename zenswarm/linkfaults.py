@@ -19,11 +19,12 @@ from __future__ import annotations
 
 import heapq
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from .config import Scenario
-from .faults import FaultPlan, FaultState, LinkInbox, plan_from_cli, plan_from_scenario
+from .faults import Delivery, FaultPlan, FaultState, LinkInbox, plan_from_cli, plan_from_scenario
 
 __all__ = ["Box", "LinkFaults", "plan_for", "DelayLine", "box_counters"]
 
@@ -36,7 +37,7 @@ class Box(LinkInbox):
             return False, 0
         return super()._fate(j)
 
-    def decision(self, send_tick: int):  # noqa: ANN201 - same type as the base class
+    def decision(self, send_tick: int) -> Delivery:
         d = super().decision(send_tick)
         if send_tick == 0 and d.dropped:
             return type(d)(False, 0.0, "ok")

@@ -5,8 +5,8 @@ In the base layer because the scenario's loader validates the table (the supervi
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 from zenswarm.schema import RestartTable, convert

@@ -35,9 +35,10 @@ import sys
 import threading
 import time
 from collections import defaultdict, deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
@@ -411,7 +412,7 @@ class InputGuard:
         else:
             self.count(key, reason)
             if detail:
-                self.last_reject += detail
+                self.last_reject = f"{key}: {reason}{detail}"  # what count() set, with the detail
         return reason
 
     def _check(self, key: str, senders: tuple[str, ...], tick: int, msg: Any, zid: str) -> str | None:
@@ -568,12 +569,16 @@ class ProcessOptions:
     seed: int | None = None
 
     @classmethod
-    def of(cls, obj: Any) -> "ProcessOptions":
+    def of(cls, obj: Any) -> ProcessOptions:
         """The options read off any object with these attribute names (e.g. a parsed command
         line); a missing or None attribute takes the default."""
         if isinstance(obj, ProcessOptions):
             return obj
-        get = lambda name, default: default if getattr(obj, name, None) is None else getattr(obj, name)  # noqa: E731
+
+        def get(name: str, default: Any) -> Any:
+            value = getattr(obj, name, None)
+            return default if value is None else value
+
         return cls(
             scenario=get("scenario", None),
             swarm=str(get("swarm", "default")),
@@ -589,7 +594,7 @@ class ProcessOptions:
             seed=get("seed", None),
         )
 
-    def fault_plan(self, scenario: Scenario) -> "FaultPlan | None":
+    def fault_plan(self, scenario: Scenario) -> FaultPlan | None:
         """The link-fault plan of this run (scenario's ``[faults]`` plus the flags); None when no
         fault is active. Raises :class:`zenswarm.errors.ScenarioError` naming the bad field."""
         from .linkfaults import plan_for
@@ -615,10 +620,10 @@ class SwarmProcess:
         self.session: zenoh.Session | None = None
         self._subs: list[Any] = []
         self._pubs: dict[str, Any] = {}
-        self._token = None
+        self._token: zenoh.LivelinessToken | None = None
         self.counters: dict[str, float] = defaultdict(float)
         self._diag_seq = 0
-        self.scenario: Scenario | None = None
+        self._scenario: Scenario | None = None
         self._on_input: Callable[[str, int, Any], None] | None = None
         self._lockstep: Lockstep | None = None
         self.subscribed: list[str] = []  # every key this process subscribed to (contract tests)
@@ -633,11 +638,31 @@ class SwarmProcess:
         self.check_sender = True
         self._guard: InputGuard | None = None
         self._watched_senders: set[str] = set()
-        self._zid_token = None
+        self._zid_token: zenoh.LivelinessToken | None = None
         self._source_info: dict[str, Any] = {}
-        self._transport_listener = None
+        self._transport_listener: bus.Undeclarable | None = None
         self._link_lost = False
         self.on_reconnect: Callable[[], None] | None = None  # called (zenoh's thread) when the link to the router is back
+
+    @property
+    def scenario(self) -> Scenario:
+        """The scenario of this run: loaded (or fetched from the leader) on entering the ``with``
+        block; :class:`ScenarioError` before that."""
+        sc = self._scenario
+        if sc is None:
+            raise ScenarioError("--scenario", f"{self.name}: not loaded yet (use the process as a context manager)")
+        return sc
+
+    @scenario.setter
+    def scenario(self, sc: Scenario) -> None:
+        self._scenario = sc
+
+    def _zenoh(self) -> zenoh.Session:
+        """The open session (inside the ``with`` block); :class:`zenswarm.bus.BusError` outside it."""
+        s = self.session
+        if s is None:
+            raise bus.BusError(f"{self.name}: no open zenoh session (use the process as a context manager)")
+        return s
 
     @property
     def on_input(self) -> Callable[[str, int, Any], None] | None:
@@ -653,7 +678,7 @@ class SwarmProcess:
             self._lockstep = owner
 
     # ------------------------------------------------------------------ lifecycle
-    def __enter__(self) -> "SwarmProcess":
+    def __enter__(self) -> SwarmProcess:
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
@@ -666,9 +691,9 @@ class SwarmProcess:
                 swarm=self.options.swarm,
             ))
         self._session_cm = bus.open_session(conf, handle_signals=False)
-        self.session = self._session_cm.__enter__()
+        self.session = session = self._session_cm.__enter__()
         try:
-            self._transport_listener = self.session.info.declare_transport_events_listener(self._on_transport)
+            self._transport_listener = session.info.declare_transport_events_listener(self._on_transport)
         except Exception:  # noqa: BLE001 - diagnostics only
             self._transport_listener = None
         self.scenario = self._load_scenario()
@@ -688,12 +713,12 @@ class SwarmProcess:
         for tok in (self._token, self._zid_token, self._transport_listener):
             try:
                 if tok is not None:
-                    tok.undeclare()
+                    bus.undeclare(tok)
             except Exception:  # noqa: BLE001 - best effort on shutdown
                 pass
         for sub in self._subs + self._alive_subs:
             try:
-                sub.undeclare()
+                bus.undeclare(sub)
             except Exception:  # noqa: BLE001
                 pass
         self._session_cm.__exit__(None, None, None)
@@ -711,7 +736,7 @@ class SwarmProcess:
         deadline = time.monotonic() + 30.0
         key = self.keys.mission
         while time.monotonic() < deadline and not self.stop.is_set():
-            for reply in self.session.get(key, timeout=2.0):
+            for reply in self._zenoh().get(key, timeout=2.0):
                 ok = getattr(reply, "ok", None)
                 if ok is None:
                     continue
@@ -721,7 +746,7 @@ class SwarmProcess:
                     self.decoder.reject(key, "malformed", f"unreadable reply: {e}")
                     continue
                 msg = self.decoder.decode(key, "mission", payload)
-                if msg is None:
+                if not isinstance(msg, wire.Mission):  # None: rejected (counted)
                     continue
                 try:
                     return scenario_from_dict(msg.scenario)
@@ -817,7 +842,7 @@ class SwarmProcess:
         # there; in realtime the callback only files the message and the main loop puts. A put
         # releases the GIL while it waits for queue space, so a main-loop put never keeps this
         # callback from running (tests/test_bus.py checks it).
-        self._subs.append(self.session.declare_subscriber(key, bus.direct_callback(cb)))
+        self._subs.append(self._zenoh().declare_subscriber(key, bus.direct_callback(cb)))
         self.subscribed.append(key)
 
     def _watch_sender_tokens(self, names: tuple[str, ...]) -> None:
@@ -834,7 +859,7 @@ class SwarmProcess:
                 if key.startswith(prefix):
                     guard.token(name, key[len(prefix):], sample.kind == zenoh.SampleKind.PUT)
 
-            self._alive_subs.append(self.session.liveliness().declare_subscriber(prefix + "*", cb, history=True))
+            self._alive_subs.append(self._zenoh().liveliness().declare_subscriber(prefix + "*", cb, history=True))
 
     def _on_transport(self, event: Any) -> None:
         """Our link to the router went away or came back (zenoh clients reconnect by themselves)."""
@@ -863,7 +888,7 @@ class SwarmProcess:
             # costs a write, and a wake-up of zenoh's thread, per put. Lockstep ran 36 % faster
             # without it; realtime, once zenoh ran on one thread, missed 8 times fewer deadlines
             # at 16 UAVs, with a shorter latency tail too (BENCHMARKS.md).
-            pub = self.session.declare_publisher(
+            pub = self._zenoh().declare_publisher(
                 key,
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 express=False,
@@ -884,9 +909,10 @@ class SwarmProcess:
     def announce(self) -> None:
         """Declare this process's liveliness token: all its subscriptions are in place. Also
         ``alive/<process>/<zid>``: which session is this process (the receivers pin to it)."""
+        session = self._zenoh()
         if self.check_sender and self._zid_token is None:
-            self._zid_token = self.session.liveliness().declare_token(f"{self.keys.alive(self.name)}/{self.session.zid()}")
-        self._token = self.session.liveliness().declare_token(self.keys.alive(self.name))
+            self._zid_token = session.liveliness().declare_token(f"{self.keys.alive(self.name)}/{session.zid()}")
+        self._token = session.liveliness().declare_token(self.keys.alive(self.name))
 
     def wait_for_alive(self, names: list[str], timeout_s: float = 60.0) -> list[str]:
         """Block until every named process has announced itself; return those still missing."""
@@ -894,7 +920,7 @@ class SwarmProcess:
         want = {self.keys.alive(n): n for n in names}
         while not self.stop.is_set():
             seen = set()
-            for reply in self.session.liveliness().get(self.keys.alive_all, timeout=1.0):
+            for reply in self._zenoh().liveliness().get(self.keys.alive_all, timeout=1.0):
                 ok = getattr(reply, "ok", None)
                 if ok is not None:
                     seen.add(str(ok.key_expr))
@@ -915,7 +941,7 @@ class SwarmProcess:
                 if on_change is not None:
                     on_change()
 
-            self._alive_subs.append(self.session.liveliness().declare_subscriber(self.keys.alive(name), cb, history=True))
+            self._alive_subs.append(self._zenoh().liveliness().declare_subscriber(self.keys.alive(name), cb, history=True))
 
     def linger_until_gone(self, name: str, timeout_s: float = 30.0) -> None:
         """Lockstep end: stay (token held) until ``name`` is gone, so a receiver still on its last

@@ -5,9 +5,10 @@ This is the one definition of the scenario format. :func:`convert` turns a parse
 rejected, types and ranges are checked (``Meta`` constraints), bools are not numbers, NaN, inf
 and integers too large for a float are refused, and the math-free cross-field checks run in
 ``__post_init__`` (a table at a fixed place raises :class:`ScenarioError` naming its key; one
-inside a list raises ``ValueError("@key: ...")``, which gets the path of the list entry). Every failure is a :class:`zenswarm.errors.ScenarioError` whose ``field`` is
-the dotted path of the offending key (``leader.k_att``, ``obstacles[1].radius``,
-``mavlink.bogus``, ``network``): msgspec's path ``$.obstacles[1].radius`` mapped to ours.
+inside a list raises ``ValueError("@key: ...")``, which gets the path of the list entry). Every
+failure is a :class:`zenswarm.errors.ScenarioError` whose ``field`` is the dotted path of the
+offending key (``leader.k_att``, ``obstacles[1].radius``, ``mavlink.bogus``, ``network``):
+msgspec's path ``$.obstacles[1].radius`` mapped to ours.
 
 Units are SI, positions in the inertial ENU frame (z up). The checks that need numbers of the
 whole scenario (the graph's Lemma 1, start/goal clearance, run-size bounds, durations in the
@@ -71,7 +72,10 @@ Duration = str | float
 
 
 class Table(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
-    """Base of every table: immutable, unknown keys rejected."""
+    """Base of every table: immutable, unknown keys rejected.
+
+    Subclasses repeat ``frozen=True``: msgspec inherits it, but type checkers (PEP 681's
+    ``dataclass_transform``) read a subclass without it as a mutable one."""
 
 
 def check_seed(value: Any, field: str = "scenario.seed") -> int:
@@ -88,7 +92,7 @@ def check_seed(value: Any, field: str = "scenario.seed") -> int:
 # ----------------------------------------------------------------------------- the flight
 
 
-class ScenarioMeta(Table):
+class ScenarioMeta(Table, frozen=True):
     """``[scenario]``: name (non-empty), description, seed in [0, 2**63 - 1]."""
 
     name: Annotated[str, Meta(min_length=1)] = "scenario"
@@ -99,7 +103,7 @@ class ScenarioMeta(Table):
         check_seed(self.seed, "scenario.seed")
 
 
-class Timing(Table):
+class Timing(Table, frozen=True):
     """``[timing]``: rates, Hz; time limit, settle time, s; goal tolerance, m (all > 0)."""
 
     control_rate_hz: Pos = 100.0
@@ -124,7 +128,7 @@ class Timing(Table):
         return int(round(self.time_limit_s * self.control_rate_hz))
 
 
-class LeaderConfig(Table):
+class LeaderConfig(Table, frozen=True):
     """``[leader]``: virtual leader and AAPF parameters, eqs 8-15 (start, goal m ENU; gains > 0)."""
 
     start: Vec3
@@ -142,7 +146,7 @@ class LeaderConfig(Table):
             raise ScenarioError("leader.k_rep_max", f"must be >= leader.k_rep_min ({self.k_rep_max} < {self.k_rep_min})")
 
 
-class Obstacle(Table):
+class Obstacle(Table, frozen=True):
     """``[[obstacles]]``: vertical cylinder capped by an upper hemisphere (paper, Remark 1).
 
     center: (3,) m, centre of the cylinder base c = [x_c, y_c, z_c]; radius r_o > 0 m;
@@ -154,7 +158,7 @@ class Obstacle(Table):
     height: Pos
 
 
-class FormationConfig(Table):
+class FormationConfig(Table, frozen=True):
     """``[formation]``: offsets h_i (N, 3) m and initial positions q_i(0) (N, 3) m, N >= 1."""
 
     offsets: tuple[Vec3, ...]
@@ -168,7 +172,7 @@ class FormationConfig(Table):
             raise ScenarioError("formation.initial_positions", f"expected {n} rows, got {len(self.initial_positions)}")
 
 
-class GraphConfig(Table):
+class GraphConfig(Table, frozen=True):
     """``[graph]``: communication graph among followers: adjacency A (N, N), pinning b (N,)."""
 
     adjacency: tuple[tuple[float, ...], ...]
@@ -179,21 +183,21 @@ class GraphConfig(Table):
         return [j for j, a in enumerate(self.adjacency[i]) if a > 0]
 
 
-class GeneratorConfig(Table):
+class GeneratorConfig(Table, frozen=True):
     """``[generator]``: reference generator gains mu1, mu2 > 0 (eqs 16-17)."""
 
     mu1: Pos = 0.1
     mu2: Pos = 2.0
 
 
-class EsoConfig(Table):
+class EsoConfig(Table, frozen=True):
     """``[eso]``: observer gains beta = [beta1, beta2, beta3] > 0, enabled (eq. 27)."""
 
     beta: PosVec3 = (15.0, 75.0, 125.0)
     enabled: bool = True
 
 
-class ControllerConfig(Table):
+class ControllerConfig(Table, frozen=True):
     """``[controller]``: kp (3,), kd (3,) > 0, desired yaw psi_d rad (eq. 28)."""
 
     kp: PosVec3 = (4.5, 4.5, 5.4)
@@ -201,7 +205,7 @@ class ControllerConfig(Table):
     yaw: float = 0.0
 
 
-class VehicleConfig(Table):
+class VehicleConfig(Table, frozen=True):
     """``[vehicle]``: optional overrides of :class:`plant.params.QuadParams`; ``None`` keeps the default.
 
     ``radius``: the vehicle's contact radius, m, used by the verdict (obstacle contact when a
@@ -215,7 +219,7 @@ class VehicleConfig(Table):
     radius: Pos | None = None
 
 
-class MissionConfig(Table):
+class MissionConfig(Table, frozen=True):
     """``[mission]``: how a flight is judged (:mod:`zenswarm.verdict`).
 
     slot_tolerance_m: every UAV must end within this distance of its slot q0_goal + h_i, m ...
@@ -234,7 +238,7 @@ class MissionConfig(Table):
     divergence_m: Pos = 5.0
 
 
-class DisturbanceConfig(Table):
+class DisturbanceConfig(Table, frozen=True):
     """``[disturbance]``: lumped translational disturbance d_p (eq. 1) as an acceleration, m/s^2, ENU.
 
     d_p(t) = wind + sine_amplitude * sin(2 pi sine_freq_hz t) + gust(t), where gust is a
@@ -258,7 +262,7 @@ class DisturbanceConfig(Table):
 # ----------------------------------------------------------------------------- the subsystems
 
 
-class FailsafeConfig(Table):
+class FailsafeConfig(Table, frozen=True):
     """``[failsafe]``: hover_after_s < land_after_s, s of sim time without a fresh command;
     land_speed m/s; hold gains kp (1/s^2), kd (1/s); ground_z m (motors off below it while landing)."""
 
@@ -276,7 +280,7 @@ class FailsafeConfig(Table):
             )
 
 
-class RestartTable(Table):
+class RestartTable(Table, frozen=True):
     """``[restart]``: supervisor backoff (see :class:`zenswarm.policy.RestartPolicy`); present
     means enabled unless ``enabled = false``. Delays s > 0, factor >= 1, max_restarts >= 0."""
 
@@ -287,7 +291,7 @@ class RestartTable(Table):
     max_restarts: Annotated[int, Meta(ge=0)] = 3
 
 
-class BurstTable(Table):
+class BurstTable(Table, frozen=True):
     """A Gilbert-Elliott burst-loss model: transition and per-state loss probabilities."""
 
     p_good_to_bad: Prob
@@ -300,7 +304,7 @@ class BurstTable(Table):
             raise ValueError("@p_bad_to_good: p_good_to_bad and p_bad_to_good cannot both be 0")
 
 
-class PartitionTable(Table):
+class PartitionTable(Table, frozen=True):
     """A partition as a table: target (``agent:2`` or ``agent:1->agent:2``), start, end (durations;
     end may be ``inf`` or ``end``)."""
 
@@ -309,7 +313,7 @@ class PartitionTable(Table):
     end: Duration
 
 
-class LinkFaultsTable(Table):
+class LinkFaultsTable(Table, frozen=True):
     """One ``[[faults.links]]`` entry: src, dst (process names or globs), kind (``ref``,
     ``leader``, ``state``, ``cmd`` or ``*``); omitted fields inherit the ``[faults]`` values;
     ``burst = false`` turns an inherited burst off."""
@@ -323,7 +327,7 @@ class LinkFaultsTable(Table):
     burst: BurstTable | bool | None = None
 
 
-class FaultsTable(Table):
+class FaultsTable(Table, frozen=True):
     """``[faults]``: link faults (see :func:`zenswarm.faults.plan_from_scenario` and docs/faults.md)."""
 
     delay: Duration | None = None
@@ -334,7 +338,7 @@ class FaultsTable(Table):
     links: tuple[LinkFaultsTable, ...] = ()
 
 
-class MavlinkTable(Table):
+class MavlinkTable(Table, frozen=True):
     """``[mavlink]``: the MAVLink bridge and simulated vehicles (see
     :func:`zenswarm.autopilot.mavlink_settings` for every key; ``None``: the derived default)."""
 
@@ -367,7 +371,7 @@ class MavlinkTable(Table):
 # ----------------------------------------------------------------------------- the document
 
 
-class ScenarioFile(Table, kw_only=True):
+class ScenarioFile(Table, frozen=True, kw_only=True):
     """A whole scenario file; sections absent from the file take their defaults (subsystem
     tables: None). The shapes that depend on N (graph) are checked here."""
 
@@ -467,7 +471,10 @@ def _error(e: msgspec.ValidationError, obj: Any, typ: type, prefix: str) -> Scen
     tokens = _tokens(at.rstrip("`").removeprefix("$"))
     where = "".join(f"[{t}]" if isinstance(t, int) else f".{t}" for t in tokens)
     path = (prefix + where).lstrip(".")
-    join = lambda key: f"{path}.{key}" if path else key  # noqa: E731
+
+    def join(key: str) -> str:
+        return f"{path}.{key}" if path else key
+
     if m := re.fullmatch(r"Object contains unknown field `(.+)`", msg):
         st = _type_at(mi.type_info(typ), tokens)
         names = sorted(f.encode_name for f in st.fields) if isinstance(st, mi.StructType) else []

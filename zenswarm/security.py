@@ -38,13 +38,18 @@ import ipaddress
 import json
 import os
 import secrets
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Literal, Mapping
+from typing import TYPE_CHECKING, Any, Literal
 
 from . import wire
 from .config import Scenario, load_scenario
 from .errors import ZenswarmError
+
+if TYPE_CHECKING:  # imported where used: only credential generation needs cryptography
+    from cryptography import x509
+    from cryptography.hazmat.primitives.asymmetric import ec
 
 __all__ = [
     "CredentialsError",
@@ -70,7 +75,6 @@ __all__ = [
     "is_loopback_endpoint",
     "ClientSecurity",
     "client_fragments",
-    "add_security_args",
 ]
 
 AuthMode = Literal["usrpwd", "tls"]
@@ -159,7 +163,10 @@ class Manifest:
         return out + [self.root / MANIFEST_FILE]
 
     def to_dict(self) -> dict[str, Any]:
-        rel = lambda p: str(Path(p).relative_to(self.root))  # noqa: E731
+
+        def rel(p: str | Path) -> str:
+            return str(Path(p).relative_to(self.root))
+
         return {
             "version": MANIFEST_VERSION,
             "swarm": self.swarm,
@@ -245,8 +252,8 @@ def manifest_mismatch(m: Manifest, scenario: Scenario, swarm: str, *, all_files:
     except (TypeError, ValueError):
         return f"have an unreadable expiry date {m.not_after!r}"
     if expires.tzinfo is None:
-        expires = expires.replace(tzinfo=_dt.timezone.utc)
-    if expires <= _dt.datetime.now(_dt.timezone.utc):
+        expires = expires.replace(tzinfo=_dt.UTC)
+    if expires <= _dt.datetime.now(_dt.UTC):
         return f"expired on {m.not_after}"
     if all_files:
         gone = [f for f in m.files() if not f.is_file()]
@@ -287,7 +294,7 @@ def _mkdir(path: Path) -> None:
 # --------------------------------------------------------------------------- certificates
 
 
-def _new_key():
+def _new_key() -> ec.EllipticCurvePrivateKey:
     from cryptography.hazmat.primitives.asymmetric import ec
 
     # ECDSA P-256: accepted by rustls/webpki with the ring provider that Zenoh's TLS link uses
@@ -295,7 +302,7 @@ def _new_key():
     return ec.generate_private_key(ec.SECP256R1())
 
 
-def _key_pem(key) -> bytes:
+def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
     from cryptography.hazmat.primitives import serialization
 
     return key.private_bytes(
@@ -303,16 +310,16 @@ def _key_pem(key) -> bytes:
     )
 
 
-def _cert_pem(cert) -> bytes:
+def _cert_pem(cert: x509.Certificate) -> bytes:
     from cryptography.hazmat.primitives import serialization
 
     return cert.public_bytes(serialization.Encoding.PEM)
 
 
-def _san(hosts: Iterable[str]):
+def _san(hosts: Iterable[str]) -> x509.SubjectAlternativeName:
     from cryptography import x509
 
-    names: list[Any] = []
+    names: list[x509.GeneralName] = []
     for h in hosts:
         try:
             names.append(x509.IPAddress(ipaddress.ip_address(h)))
@@ -321,7 +328,7 @@ def _san(hosts: Iterable[str]):
     return x509.SubjectAlternativeName(names)
 
 
-def _make_ca(swarm: str, not_before: _dt.datetime, not_after: _dt.datetime):
+def _make_ca(swarm: str, not_before: _dt.datetime, not_after: _dt.datetime) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes
     from cryptography.x509.oid import NameOID
@@ -363,7 +370,14 @@ def _make_ca(swarm: str, not_before: _dt.datetime, not_after: _dt.datetime):
     return key, cert
 
 
-def _make_leaf(ca_key, ca_cert, common_name: str, hosts: Iterable[str] | None, not_before, not_after):
+def _make_leaf(
+    ca_key: ec.EllipticCurvePrivateKey,
+    ca_cert: x509.Certificate,
+    common_name: str,
+    hosts: Iterable[str] | None,
+    not_before: _dt.datetime,
+    not_after: _dt.datetime,
+) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
     """A certificate for one process. ``hosts`` (router only) become subjectAltNames and add the
     serverAuth usage; the other processes' certificates are clientAuth only and carry no name a
     client would accept for the router."""
@@ -479,7 +493,7 @@ def generate_credentials(
         raise CredentialsError(f"days: expected an integer >= 1, got {days!r}")
     hosts = _router_hosts(router_hosts)
     root = Path(out_dir).resolve()
-    now = _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0)
+    now = _dt.datetime.now(_dt.UTC).replace(microsecond=0)
     not_before = now - _dt.timedelta(hours=1)  # tolerate small clock skew between hosts
     not_after = now + _dt.timedelta(days=days)
     plan = _plan(root, swarm, sc, hosts, not_after.isoformat())
@@ -598,7 +612,8 @@ def load_credentials(process: str, keys_dir: str | Path, swarm: str | None = Non
         raise CredentialsError(f"{path} holds the credentials of {d['process']!r}, not {process!r}")
     if swarm is not None and d["swarm"] != swarm:
         raise CredentialsError(f"{path} holds credentials for swarm {d['swarm']!r}, not {swarm!r}")
-    return d
+    creds: dict[str, str] = d  # a JSON object whose four keys were checked to be strings
+    return creds
 
 
 # --------------------------------------------------------------------------- access control
