@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from zenswarm import wire
+from zenswarm.agents.core import AgentCommand, AgentCore, AgentRow, Rates
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters
 from zenswarm.params import QuadParams
@@ -38,8 +39,6 @@ from zenswarm.runtime import (
     WallClock,
     run_process,
 )
-
-from .core import AgentCommand, AgentCore, AgentRow, Rates
 
 __all__ = ["AgentOptions", "run", "subscriptions"]
 

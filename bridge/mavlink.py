@@ -54,17 +54,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
-
-from zenswarm.config import Scenario
-from zenswarm.errors import ScenarioError
 
 from zenswarm import frames
 from zenswarm.autopilot import (  # re-exported: the mode tables and settings are the bridge's vocabulary
@@ -85,15 +81,31 @@ from zenswarm.autopilot import (  # re-exported: the mode tables and settings ar
     px4_custom_mode,
     px4_decode,
 )
-
+from zenswarm.config import Scenario
+from zenswarm.errors import ScenarioError
 
 mavutil = load_mavutil()
 mavlink = mavutil.mavlink
 
 __all__ = [
     "Bridge",
-        "add_parsers",
+    "add_parsers",
     "add_mavlink_parser",
+    # re-exported from zenswarm.autopilot: the bridge's vocabulary (modes, settings)
+    "AP_COPTER_MODES",
+    "PX4_AUTO_SUB",
+    "PX4_HOLD",
+    "PX4_LAND",
+    "PX4_MAIN",
+    "PX4_OFFBOARD",
+    "PX4_POSCTL",
+    "MavlinkSettings",
+    "autopilot_name",
+    "mavlink_settings",
+    "mode_name",
+    "mode_request_params",
+    "px4_custom_mode",
+    "px4_decode",
 ]
 
 # --------------------------------------------------------------------------- per-UAV link

@@ -66,10 +66,9 @@ from typing import Any, Final
 import msgpack
 
 from zenswarm import __version__, bus, security, wire
+from zenswarm.bridge.args import add_fault_args, add_security_args, client_security, link_faults
+from zenswarm.bridge.mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME
 from zenswarm.paths import check_output_file
-
-from .args import add_fault_args, add_security_args, client_security, link_faults
-from .mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME
 
 __all__ = [
     "PROCESS_NAME",
@@ -261,7 +260,7 @@ class McapSink:
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
         path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(path, "wb")  # noqa: SIM115 - closed by the writer thread
+        self._file = open(path, "wb")  # closed by the writer thread
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp)
         self._writer.start(profile="", library=f"zenswarm-recorder/{__version__}")
         if metadata is not None:

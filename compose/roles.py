@@ -58,10 +58,9 @@ def _main_mavlink_fleet(args: argparse.Namespace) -> int:
     (:mod:`zenswarm.plant.mavlink_vehicle`; no Zenoh session: the MAVLink bridge is their swarm side)."""
     from dataclasses import replace
 
-    from zenswarm.plant.mavlink_vehicle import run_fleet
-
     from zenswarm.config import load_scenario
     from zenswarm.errors import ScenarioError
+    from zenswarm.plant.mavlink_vehicle import run_fleet
 
     if args.scenario is None:
         raise ScenarioError("--scenario", "plant --mavlink needs the scenario file (it has no bus to fetch it from)")

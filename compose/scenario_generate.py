@@ -37,7 +37,7 @@ def _nonneg_int(s: str) -> int:
     return v
 
 
-def add_parser(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") -> argparse.ArgumentParser:
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> argparse.ArgumentParser:
     """Register ``generate`` under the ``scenario`` command's sub-parsers; returns the parser.
 
     The parser sets ``func`` to a callable(args) -> exit status (0 written, 2 bad input).

@@ -28,21 +28,21 @@ from __future__ import annotations
 import json
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from msgspec.structs import replace as replace_table
 
 from zenswarm.agents.core import AgentCore, AgentRow, StackedAgents
-from zenswarm.leader.core import LeaderCore
-from zenswarm.plant.core import PlantCore
-
 from zenswarm.config import Scenario
 from zenswarm.faults import FaultPlan, FaultState
+from zenswarm.leader.core import LeaderCore
 from zenswarm.linkfaults import Box, box_counters
 from zenswarm.metrics import TimeSeries, add_failure, compute_results
+from zenswarm.plant.core import PlantCore
 from zenswarm.verdict import criteria_from_scenario, decide_end
 
 __all__ = ["simulate", "SimResult", "run_sim_cli"]

@@ -25,18 +25,15 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from zenswarm import bus, security, wire
+from zenswarm import bus, security, verdict, wire
 from zenswarm.bridge.args import add_fault_args, link_faults, positive_float
+from zenswarm.collector import Collector
 from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.linkfaults import LinkFaults
+from zenswarm.metrics import add_failure, compute_results
 from zenswarm.paths import check_output_dir, check_output_file
-from zenswarm.runtime import expected_senders, sample_sender
-
 from zenswarm.policy import restart_policy
-from zenswarm import verdict
-from zenswarm.collector import Collector
-from zenswarm.metrics import TimeSeries, add_failure, compute_results
 
 __all__ = ["add_parsers", "UpOptions", "up_options", "Supervisor", "role_names", "swarm_roles", "check_up_args"]
 

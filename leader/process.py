@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from zenswarm import wire
 from zenswarm.config import scenario_to_dict
+from zenswarm.leader.core import LeaderCore
 from zenswarm.runtime import (
     LEADER_AHEAD_TICKS,
     Lockstep,
@@ -27,8 +28,6 @@ from zenswarm.runtime import (
     WallClock,
     run_process,
 )
-
-from .core import LeaderCore
 
 __all__ = ["run"]
 

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from zenswarm import wire
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters
+from zenswarm.plant.core import PlantCore
 from zenswarm.runtime import (
     CLOCK_EVERY_TICKS,
     Lockstep,
@@ -33,8 +34,6 @@ from zenswarm.runtime import (
     WallClock,
     run_process,
 )
-
-from .core import PlantCore
 
 __all__ = ["PlantOptions", "run"]
 
