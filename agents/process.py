@@ -185,7 +185,7 @@ class _LockstepAgent:
         msgs = [inbox.get(key, k) for key in a.input_keys]
         if None in msgs:
             return
-        self.early = _Early(k, a.core.q_ref, msgs, a.rates_from(dict(zip(a.input_keys, msgs))))
+        self.early = _Early(k, a.core.q_ref, msgs, a.rates_from(dict(zip(a.input_keys, msgs, strict=True))))
 
     def needed(self, key: str, k: int) -> bool:
         """Wait for this input of tick k? Not if its sender is gone, or if the sender has
@@ -221,7 +221,7 @@ class _LockstepAgent:
         value held for a missing one."""
         inbox = self.proc.inbox
         msgs = [inbox.get(key, k) for key in self.a.input_keys]
-        for key, m in zip(self.a.input_keys, msgs):
+        for key, m in zip(self.a.input_keys, msgs, strict=True):
             if m is not None:
                 self.held[key] = m
             elif key in self.held:
@@ -236,7 +236,7 @@ class _LockstepAgent:
             rates = a.rates_from(inputs)
         else:
             st, msgs, inputs = self._held_inputs(k)
-            same = e is not None and e.k == k and e.q_ref is a.core.q_ref and all(x is y for x, y in zip(e.msgs, msgs))
+            same = e is not None and e.k == k and e.q_ref is a.core.q_ref and all(x is y for x, y in zip(e.msgs, msgs, strict=True))
             rates = e.rates if same else a.rates_from(inputs)  # the same inputs as computed ahead
         if forced:
             proc.counters["input_timeouts"] += 1

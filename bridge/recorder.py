@@ -549,7 +549,9 @@ def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: 
             diag_seq += 1
             next_diag += args.diag_interval
             st = sink.stats
-            diag = wire.Diag(t=st.last_sim_t, seq=diag_seq, process=PROCESS_NAME, counters=st.counters(sink.backlog), info={"file": str(out)})
+            diag = wire.Diag(
+                t=st.last_sim_t, seq=diag_seq, process=PROCESS_NAME, counters=st.counters(sink.backlog), info={"file": str(out)}
+            )
             diag_pub.put(wire.encode(diag))
 
 
@@ -604,9 +606,13 @@ def run(args: argparse.Namespace) -> int:
         token = bus.declare_alive(session, keys, PROCESS_NAME)  # only now: the subscriber is in place
         if scenario is None:
             the_sink = sink
+
+            def on_mission(d: dict[str, Any]) -> None:
+                the_sink.set_metadata(build_metadata(args.swarm, mode, d, "mission", fault_args))
+
             fetcher = threading.Thread(
                 target=_fetch_mission,
-                args=(session, keys, stop.event, lambda d: the_sink.set_metadata(build_metadata(args.swarm, mode, d, "mission", fault_args)), log),
+                args=(session, keys, stop.event, on_mission, log),
                 name="mission-fetch",
                 daemon=True,
             )

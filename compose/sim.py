@@ -320,10 +320,12 @@ def summary_line(r: dict) -> str:
         verdict = f"FAILED: {named}{more}" if fails else "FAILED"
     ttg = r.get("time_to_goal_s")
     wall = r.get("wall_time_s")
+    goal = f"reached at {ttg:.2f} s" if ttg is not None else "NOT reached"
     return (
         f"{r['scenario']}: {verdict}\n"
-        f"  goal {'reached at %.2f s' % ttg if ttg is not None else 'NOT reached'}  "
-        f"max formation error {_fmt(r.get('max_formation_error_m'))} (vehicles; generator {_fmt(r.get('max_generator_formation_error_m'))})  "
+        f"  goal {goal}  "
+        f"max formation error {_fmt(r.get('max_formation_error_m'))} "
+        f"(vehicles; generator {_fmt(r.get('max_generator_formation_error_m'))})  "
         f"final slot error {_fmt(r.get('max_final_slot_error_m'))}  rms tracking {_fmt(r.get('rms_tracking_error_m'))}\n"
         f"  min margin to obstacles {_fmt(r.get('min_obstacle_margin_m'))}  between UAVs {_fmt(r.get('min_inter_uav_margin_m'))}  "
         f"(vehicle radius {_fmt(r.get('vehicle_radius_m'))})  sim {r.get('sim_time_s', 0.0):.2f} s"

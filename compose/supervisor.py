@@ -609,13 +609,18 @@ class Supervisor:
             return EXIT_PROCESS_FAILED
         return None
 
+    def _child_state(self, name: str, c: Child) -> str:
+        """One of our roles for the progress line: up, exit N, leaving or starting."""
+        if name in self.alive:
+            return "up"
+        if c.returncode is not None:
+            return "exit " + str(c.returncode)
+        return "leaving" if name in self.seen else "starting"
+
     def _health(self) -> str:
         """The roles' states for the progress line: ours (up, starting, leaving, exit N) and the external
         ones (waiting until their token appears, up, gone)."""
-        out = [
-            f"{name}:{'up' if name in self.alive else ('exit ' + str(c.returncode) if c.returncode is not None else ('leaving' if name in self.seen else 'starting'))}"
-            for name, c in self.children.items()
-        ]
+        out = [f"{name}:{self._child_state(name, c)}" for name, c in self.children.items()]
         for role in self.external_roles():
             names = self._token_names(role)
             state = "up" if any(p in self.alive for p in names) else ("gone" if any(p in self.seen for p in names) else "waiting")
