@@ -471,14 +471,19 @@ def _strip(points: np.ndarray, color: dict[str, float], thickness: float = 2.0) 
     }
 
 
+def _rgb(rgba: tuple[float, float, float, float]) -> tuple[float, float, float]:
+    """The colour of an RGBA tuple (each 0..1), without its alpha."""
+    return (rgba[0], rgba[1], rgba[2])
+
+
 def _palette(n: int) -> list[tuple[float, float, float]]:
     from matplotlib import colormaps
 
     if n <= 10:
         cmap = colormaps["tab10"]
-        return [tuple(cmap(i)[:3]) for i in range(n)]
+        return [_rgb(cmap(i)) for i in range(n)]
     cmap = colormaps["turbo"]
-    return [tuple(cmap(0.05 + 0.9 * i / max(1, n - 1))[:3]) for i in range(n)]
+    return [_rgb(cmap(0.05 + 0.9 * i / max(1, n - 1))) for i in range(n)]
 
 
 def _finite(p: np.ndarray) -> bool:

@@ -188,8 +188,9 @@ class RecorderStats:
         if size > d["largest"]:
             d["largest"] = size
 
-    def counters(self, backlog: int) -> dict[str, int]:
-        """Counters for the recorder's own ``diag/recorder`` messages."""
+    def counters(self, backlog: int) -> dict[str, int | float]:
+        """Counters for the recorder's own ``diag/recorder`` messages (:class:`zenswarm.wire.Diag`
+        counters; all of these are counts)."""
         return {
             "recorded": self.messages,
             "channels": self.channels,
@@ -457,6 +458,8 @@ def _fetch_mission(session: Any, keys: wire.Keys, stop: threading.Event, on_scen
                         continue
                     try:
                         msg = wire.decode("mission", ok.payload.to_bytes())
+                        if not isinstance(msg, wire.Mission):  # decode("mission") gives a Mission or raises
+                            raise TypeError(f"not a mission: {type(msg).__name__}")
                         sc = scenario_from_dict(msg.scenario)
                     except Exception as e:  # noqa: BLE001 - a bad answer: keep asking
                         log(f"recorder: ignoring an invalid mission answer: {e}")

@@ -37,7 +37,7 @@ import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -226,7 +226,7 @@ def flight_from_recording(rec: Recording) -> Flight:
 # =========================================================================== figures
 
 
-def _figure(figsize: tuple[float, float], layout: str | None = None, **adjust: float):
+def _figure(figsize: tuple[float, float], layout: Literal["constrained", "compressed", "tight"] | None = None, **adjust: float):
     """A figure without pyplot (no global state, Agg canvas). Fixed margins (``adjust``, as for
     ``subplots_adjust``) unless a layout engine is asked for: constrained layout costs seconds."""
     from matplotlib.figure import Figure
@@ -468,10 +468,10 @@ def plot_clearance(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
         ax1.axhline(r, color="tab:red", lw=1.0, ls="--", label=f"contact: clearance = vehicle radius {r:.4f} m")
         ax1.axhline(0.0, color="0.5", lw=0.8, ls=":", label="surface")
         if np.isfinite(c).any():
-            k, i = np.unravel_index(np.nanargmin(c), c.shape)
-            ax1.plot(ts.t[k], c[k, i], "v", color="tab:red", ms=7)
-            label = f"min {c[k, i]:.3f} m (UAV {i + 1}, t={ts.t[k]:.2f} s)"
-            ax1.annotate(label, (ts.t[k], c[k, i]), xytext=(6, 10), textcoords="offset points", fontsize=8)
+            kc, ic = np.unravel_index(np.nanargmin(c), c.shape)  # tick and UAV of the closest approach
+            ax1.plot(ts.t[kc], c[kc, ic], "v", color="tab:red", ms=7)
+            label = f"min {c[kc, ic]:.3f} m (UAV {ic + 1}, t={ts.t[kc]:.2f} s)"
+            ax1.annotate(label, (ts.t[kc], c[kc, ic]), xytext=(6, 10), textcoords="offset points", fontsize=8)
         ax1.set_ylabel("clearance [m]")
         ax1.set_title("UAV distance to the nearest obstacle surface (cylinder + hemispherical cap)", fontsize=10)
         ax1.set_ylim(bottom=min(-0.02, float(np.nanmin(c)) - 0.02) if np.isfinite(c).any() else None)
@@ -480,9 +480,10 @@ def plot_clearance(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
         ax2.axhline(sc.leader.d0, color="tab:orange", ls="--", lw=1.0, label=f"$d_0$ = {sc.leader.d0:g} m (avoidance threshold)")
         ax2.axhline(0.0, color="tab:red", ls="--", lw=1.0, label="sphere touches obstacle")
         if np.isfinite(d).any():
-            k = int(np.nanargmin(d))
-            ax2.plot(ts.t[k], d[k], "v", color="tab:red", ms=7)
-            ax2.annotate(f"min {d[k]:.3f} m at t={ts.t[k]:.2f} s", (ts.t[k], d[k]), xytext=(6, 10), textcoords="offset points", fontsize=8)
+            kd = int(np.nanargmin(d))
+            ax2.plot(ts.t[kd], d[kd], "v", color="tab:red", ms=7)
+            label = f"min {d[kd]:.3f} m at t={ts.t[kd]:.2f} s"
+            ax2.annotate(label, (ts.t[kd], d[kd]), xytext=(6, 10), textcoords="offset points", fontsize=8)
             hi = float(np.nanmax(d[np.isfinite(d)]))
             ax2.set_ylim(min(-0.02, float(np.nanmin(d)) - 0.02), max(4.0 * sc.leader.d0, min(hi, 8.0 * sc.leader.d0)))
         ax2.set_ylabel("clearance [m]")

@@ -184,6 +184,7 @@ class Supervisor:
         self._deciding = False  # the live look saw the outcome decided; waiting for the exact tick
         self.recording_loss: dict | None = None  # the recorder died mid-flight (_recorder_died)
         self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n)
+        self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -376,7 +377,7 @@ class Supervisor:
             if open_net:
                 self.say("WARNING: --insecure on a non-loopback address: anyone who reaches the router can command the swarm")
             return {}, listen
-        auth = "tls" if a.tls else "usrpwd"
+        auth: security.AuthMode = "tls" if a.tls else "usrpwd"
         if a.tls:
             listen = [security.tls_endpoint(e) for e in listen]
         # before anything starts: the processes would each die on such an endpoint
@@ -442,8 +443,8 @@ class Supervisor:
         external = set(self.args.external)
         return [r for r in self.all_roles() if r in external and r != "vehicles"]
 
-    def _report(self, out: Path) -> None:
-        """Flight report from the recording alone (``--report``); partial if the recorder died."""
+    def _report(self, out: Path, recording: Path) -> None:
+        """Flight report from the recording (``--record``) alone (``--report``); partial if the recorder died."""
         if self.recording_loss is not None:
             self.say(
                 f"report: warning: the recorder died at sim time {self.recording_loss['died_at_sim_time_s']:.2f} s: "
@@ -453,7 +454,7 @@ class Supervisor:
             from zenswarm.bridge.report import report_recording
 
             written = report_recording(
-                self.args.record, out / "report", full_time=self.args.full_time, warn=lambda text: self.say(f"report: warning: {text}")
+                recording, out / "report", full_time=self.args.full_time, warn=lambda text: self.say(f"report: warning: {text}")
             )
         except ZenswarmError as e:
             self.say(f"report failed: {e}")
@@ -755,7 +756,7 @@ class Supervisor:
             self.say(line)
         self.say(f"wrote {out / 'results.json'} and {out / 'timeseries.npz'}")
         if self.args.record is not None and self.args.report:
-            self._report(out)
+            self._report(out, self.args.record)
         if code != EXIT_OK:
             return code
         return EXIT_OK if res["success"] else EXIT_MISSION_FAILED

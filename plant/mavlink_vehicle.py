@@ -626,6 +626,8 @@ class MavlinkFleet:
                 f, rpy = veh.update(now, st.q[i], st.v[i], st.rpy[i])
                 self.thrust[i] = f
                 self.rpy_cmd[i] = rpy
+            d_p: np.ndarray | None
+            d_a: np.ndarray | None
             for j in range(self.chunk):
                 if self.dist is not None:
                     d_p, d_a = self.dist.sample(self.sim_t + j * self.h, self.h)
