@@ -24,10 +24,12 @@ Started with :class:`AgentOptions` by :func:`run` (the command line is parsed at
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 from zenswarm import wire
+from zenswarm.agents.core import AgentCommand, AgentCore, AgentRow, Rates
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters
 from zenswarm.params import QuadParams
@@ -38,8 +40,6 @@ from zenswarm.runtime import (
     WallClock,
     run_process,
 )
-
-from .core import AgentCommand, AgentCore, AgentRow, Rates
 
 __all__ = ["AgentOptions", "run", "subscriptions"]
 
@@ -68,7 +68,7 @@ class _Early:
 
     k: int
     q_ref: Any
-    msgs: list
+    msgs: list[Any]
     rates: Rates
 
 
@@ -77,6 +77,8 @@ class _Agent:
 
     def __init__(self, proc: SwarmProcess, index: int) -> None:
         sc = proc.scenario
+        assert sc is not None, "the process loads its scenario on start"
+        self.sc = sc
         self.proc = proc
         self.index = index
         self.me = wire.agent(index)
@@ -104,7 +106,7 @@ class _Agent:
     def use_faults(self) -> None:
         """Link faults: lockstep inputs go through receive boxes, realtime ones a delay line."""
         proc = self.proc
-        plan = proc.options.fault_plan(proc.scenario)
+        plan = proc.options.fault_plan(self.sc)
         if plan is None:
             return
         if proc.options.realtime:
@@ -112,11 +114,17 @@ class _Agent:
             return
         fstate = FaultState(plan)
         boxes = self.boxes = {key: Box(fstate, *link, self.dt) for key, link in self.links().items()}
-        proc.extra_counters = lambda: box_counters(boxes)
+
+        def link_counters() -> dict[str, float]:
+            return dict(box_counters(boxes))
+
+        proc.extra_counters = link_counters
 
     def publish_ref(self, t_ns: int) -> None:
+        q, v = self.core.q_ref, self.core.v_ref
+        assert q is not None and v is not None, "start() first"
         self.seq += 1
-        self.proc.publish(self.ref_key, wire.Ref(t=t_ns, seq=self.seq, q=self.core.q_ref, v=self.core.v_ref))
+        self.proc.publish(self.ref_key, wire.Ref(t=t_ns, seq=self.seq, q=q, v=v))
 
     def publish_cmd(self, t_ns: int, cmd: AgentCommand) -> None:
         self.seq += 1
@@ -129,7 +137,7 @@ class _Agent:
         if k > 0:
             self.proc.log(f"{self.me}: joined at tick {k} (t = {k * self.dt:.2f} s), generator restarted from the measured state")
 
-    def rates_from(self, inputs: dict[str, Any]) -> Rates:
+    def rates_from(self, inputs: Mapping[str, Any]) -> Rates:
         """Generator rates (16-17) from the inputs given (a missing neighbour or leader is left
         out this tick)."""
         return self.core.rates_from([inputs.get(key) for key in self.nbr_keys], inputs.get(self.keys.leader_ref))
@@ -144,6 +152,13 @@ class _Agent:
         self.publish_cmd(t, cmd)
         core.advance(st.q, cmd.u, dq, dv)
         self.publish_ref(t + self.dt_ns)
+
+
+def _mark_timeout(box: Box, k: int) -> None:
+    """``box`` is not ready at tick k (its due message was not offered) and the wait timed out."""
+    due = box.due(k)
+    assert due is not None, "a box that is not ready has a due message"
+    box.mark_timeout(due)
 
 
 class _LockstepAgent:
@@ -186,7 +201,7 @@ class _LockstepAgent:
         msgs = [inbox.get(key, k) for key in a.input_keys]
         if None in msgs:
             return
-        self.early = _Early(k, a.core.q_ref, msgs, a.rates_from(dict(zip(a.input_keys, msgs))))
+        self.early = _Early(k, a.core.q_ref, msgs, a.rates_from(dict(zip(a.input_keys, msgs, strict=True))))
 
     def needed(self, key: str, k: int) -> bool:
         """Wait for this input of tick k? Not if its sender is gone, or if the sender has
@@ -212,22 +227,25 @@ class _LockstepAgent:
         if forced:
             for b in boxes.values():
                 if not b.ready(k):
-                    b.mark_timeout(b.due(k))
+                    _mark_timeout(b, k)
         got = {key: b.at(k) for key, b in boxes.items()}
-        st = got.pop(self.a.state_key).value
-        return st, {key: h.value for key, h in got.items() if h is not None}
+        held_state = got.pop(self.a.state_key)
+        assert held_state is not None, "ready(k): the state of tick k is in"
+        return held_state.value, {key: h.value for key, h in got.items() if h is not None}
 
-    def _held_inputs(self, k: int) -> tuple[wire.State, list, dict[str, Any]]:
+    def _held_inputs(self, k: int) -> tuple[wire.State, list[Any], Mapping[str, Any]]:
         """State, the messages of tick k (None: missing) and the inputs with the newest earlier
         value held for a missing one."""
         inbox = self.proc.inbox
         msgs = [inbox.get(key, k) for key in self.a.input_keys]
-        for key, m in zip(self.a.input_keys, msgs):
+        for key, m in zip(self.a.input_keys, msgs, strict=True):
             if m is not None:
                 self.held[key] = m
             elif key in self.held:
                 self.proc.counters["held_inputs"] += 1
-        return inbox.get(self.a.state_key, k), msgs, self.held
+        st = inbox.get(self.a.state_key, k)
+        assert st is not None, "ready(k): the state of tick k is in"
+        return st, msgs, self.held
 
     def step(self, k: int, forced: bool) -> None:
         a, proc = self.a, self.proc
@@ -236,9 +254,11 @@ class _LockstepAgent:
             st, inputs = self._boxed_inputs(k, forced)
             rates = a.rates_from(inputs)
         else:
-            st, msgs, inputs = self._held_inputs(k)
-            same = e is not None and e.k == k and e.q_ref is a.core.q_ref and all(x is y for x, y in zip(e.msgs, msgs))
-            rates = e.rates if same else a.rates_from(inputs)  # the same inputs as computed ahead
+            st, msgs, held = self._held_inputs(k)
+            if e is not None and e.k == k and e.q_ref is a.core.q_ref and all(x is y for x, y in zip(e.msgs, msgs, strict=True)):
+                rates = e.rates  # the same inputs as computed ahead
+            else:
+                rates = a.rates_from(held)
         if forced:
             proc.counters["input_timeouts"] += 1
         a.tick(k, st, rates)
@@ -276,7 +296,7 @@ def _run_realtime(a: _Agent) -> int:
     proc.announce()
     clock = WallClock(a.dt, proc.stop)
     last_state_t = -1
-    limit_ns = wire.t_ns(proc.scenario.timing.time_limit_s)
+    limit_ns = wire.t_ns(a.sc.timing.time_limit_s)
     while not (last_state_t >= 0 and not proc.is_alive("plant")) and clock.wait():
         # (the plant gone: its last messages may never come, the flight is over)
         proc.release_delayed()
@@ -298,6 +318,7 @@ def _run_realtime(a: _Agent) -> int:
 
 def _run(proc: SwarmProcess, index: int) -> int:
     sc = proc.scenario
+    assert sc is not None, "the process loads its scenario on start"
     if not 1 <= index <= sc.n:
         proc.log(f"agent index {index} out of range 1..{sc.n}")
         return 2

@@ -16,9 +16,8 @@ __all__ = ["add_parsers"]
 
 
 def _run_recover(args: argparse.Namespace) -> int:
+    from zenswarm.bridge.mcapio import recover
     from zenswarm.paths import check_output_file
-
-    from .mcapio import recover
 
     check_output_file(args.out, "--out")
     st = recover(args.src, args.out)
@@ -67,12 +66,12 @@ def _add_recover(sub: argparse._SubParsersAction) -> None:
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Register ``record``, ``replay``, ``verify``, ``recover`` (and ``report``/``export``
     when :mod:`bridge.report` / :mod:`bridge.foxglove` exist)."""
-    from . import recorder, replay
+    from zenswarm.bridge import recorder, replay
 
     recorder.add_parser(sub)
     replay.add_parsers(sub)
     _add_recover(sub)
-    from . import mavlink
+    from zenswarm.bridge import mavlink
 
     mavlink.add_parsers(sub)
     for modname in ("zenswarm.bridge.report", "zenswarm.bridge.foxglove"):

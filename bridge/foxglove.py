@@ -72,7 +72,10 @@ _KIND_TITLES = {
 _KIND_DESCRIPTIONS = {
     "clock": "Lockstep tick published by the plant (swarm/<name>/clock)",
     "state": "Measured state of UAV i, plant -> agent i (swarm/<name>/uav/<i>/state); ENU, SI units",
-    "ref": "Reference q*_i, v*_i of UAV i, eqs (16)-(17) (swarm/<name>/uav/<i>/ref), or the virtual leader's q0, v0 (swarm/<name>/leader/ref)",
+    "ref": (
+        "Reference q*_i, v*_i of UAV i, eqs (16)-(17) (swarm/<name>/uav/<i>/ref), "
+        "or the virtual leader's q0, v0 (swarm/<name>/leader/ref)"
+    ),
     "cmd": "Command of agent i to the plant, eq. (28) and the attitude inversion (swarm/<name>/uav/<i>/cmd)",
     "mission": "The scenario, published by the leader (swarm/<name>/mission)",
     "diag": "Diagnostics counters of a process (swarm/<name>/diag/<process>)",
@@ -220,8 +223,12 @@ _ARROW = _fx(
         "color": _COLOR,
     },
 )
-_CUBE = _fx("foxglove.CubePrimitive", "A primitive representing a cube or rectangular prism", {"pose": _POSE, "size": _VECTOR3, "color": _COLOR})
-_SPHERE = _fx("foxglove.SpherePrimitive", "A primitive representing a sphere or ellipsoid", {"pose": _POSE, "size": _VECTOR3, "color": _COLOR})
+_CUBE = _fx(
+    "foxglove.CubePrimitive", "A primitive representing a cube or rectangular prism", {"pose": _POSE, "size": _VECTOR3, "color": _COLOR}
+)
+_SPHERE = _fx(
+    "foxglove.SpherePrimitive", "A primitive representing a sphere or ellipsoid", {"pose": _POSE, "size": _VECTOR3, "color": _COLOR}
+)
 _CYLINDER = _fx(
     "foxglove.CylinderPrimitive",
     "A primitive representing a cylinder, elliptic cylinder, or truncated cone",
@@ -249,7 +256,11 @@ _LINE = _fx(
         },
         "pose": _POSE,
         "thickness": _num("Line thickness"),
-        "scale_invariant": {"type": "boolean", "description": "Indicates whether `thickness` is a fixed size in screen pixels (true), or specified in world coordinates and scales with distance from the camera (false)"},
+        "scale_invariant": {
+            "type": "boolean",
+            "description": "Indicates whether `thickness` is a fixed size in screen pixels (true), "
+            "or specified in world coordinates and scales with distance from the camera (false)",
+        },
         "points": _arr(_POINT3, "Points along the line"),
         "color": _COLOR,
         "colors": _arr(_COLOR, "Per-point colors (if non-empty, must have the same length as `points`)."),
@@ -272,9 +283,16 @@ _TEXT = _fx(
     "A primitive representing a text label",
     {
         "pose": _POSE,
-        "billboard": {"type": "boolean", "description": "Whether the text should respect `pose.orientation` (false) or always face the camera (true)"},
+        "billboard": {
+            "type": "boolean",
+            "description": "Whether the text should respect `pose.orientation` (false) or always face the camera (true)",
+        },
         "font_size": _num("Font size (height of one line of text)"),
-        "scale_invariant": {"type": "boolean", "description": "Indicates whether `font_size` is a fixed size in screen pixels (true), or specified in world coordinates and scales with distance from the camera (false)"},
+        "scale_invariant": {
+            "type": "boolean",
+            "description": "Indicates whether `font_size` is a fixed size in screen pixels (true), "
+            "or specified in world coordinates and scales with distance from the camera (false)",
+        },
         "color": _COLOR,
         "text": {"type": "string", "description": "Text"},
     },
@@ -286,10 +304,15 @@ _MODEL = _fx(
         "pose": _POSE,
         "scale": _VECTOR3,
         "color": _COLOR,
-        "override_color": {"type": "boolean", "description": "Whether to use the color specified in `color` instead of any materials embedded in the original model."},
+        "override_color": {
+            "type": "boolean",
+            "description": "Whether to use the color specified in `color` instead of any materials embedded in the original model.",
+        },
         "url": {"type": "string", "description": "URL pointing to model file. One of `url` or `data` should be non-empty."},
         "media_type": {"type": "string", "description": "Media type of embedded model (e.g. `model/gltf-binary`)."},
-        "data": {"type": "string", "contentEncoding": "base64", "description": "Embedded model. One of `url` or `data` should be non-empty."},
+        "data": {
+            "type": "string", "contentEncoding": "base64", "description": "Embedded model. One of `url` or `data` should be non-empty."
+        },
     },
 )
 _ENTITY = _fx(
@@ -298,9 +321,16 @@ _ENTITY = _fx(
     {
         "timestamp": _TIME,
         "frame_id": {"type": "string", "description": "Frame of reference"},
-        "id": {"type": "string", "description": "Identifier for the entity. A entity will replace any prior entity on the same topic with the same `id`."},
+        "id": {
+            "type": "string",
+            "description": "Identifier for the entity. A entity will replace any prior entity on the same topic with the same `id`.",
+        },
         "lifetime": _DURATION,
-        "frame_locked": {"type": "boolean", "description": "Whether the entity should keep its location in the fixed frame (false) or follow the frame specified in `frame_id` as it moves relative to the fixed frame (true)"},
+        "frame_locked": {
+            "type": "boolean",
+            "description": "Whether the entity should keep its location in the fixed frame (false) or follow the frame "
+            "specified in `frame_id` as it moves relative to the fixed frame (true)",
+        },
         "metadata": _arr(_KEY_VALUE, "Additional user-provided metadata associated with the entity. Keys must be unique."),
         "arrows": _arr(_ARROW, "Arrow primitives"),
         "cubes": _arr(_CUBE, "Cube primitives"),
@@ -321,7 +351,11 @@ _DELETION = _fx(
             "title": "foxglove.SceneEntityDeletionType",
             "description": "An enumeration indicating which entities should match a SceneEntityDeletion command",
             "oneOf": [
-                {"title": "MATCHING_ID", "const": 0, "description": "Delete the existing entity on the same topic that has the provided `id`"},
+                {
+                    "title": "MATCHING_ID",
+                    "const": 0,
+                    "description": "Delete the existing entity on the same topic that has the provided `id`",
+                },
                 {"title": "ALL", "const": 1, "description": "Delete all existing entities on the same topic"},
             ],
         },
@@ -437,14 +471,19 @@ def _strip(points: np.ndarray, color: dict[str, float], thickness: float = 2.0) 
     }
 
 
+def _rgb(rgba: tuple[float, float, float, float]) -> tuple[float, float, float]:
+    """The colour of an RGBA tuple (each 0..1), without its alpha."""
+    return (rgba[0], rgba[1], rgba[2])
+
+
 def _palette(n: int) -> list[tuple[float, float, float]]:
     from matplotlib import colormaps
 
     if n <= 10:
         cmap = colormaps["tab10"]
-        return [tuple(cmap(i)[:3]) for i in range(n)]
+        return [_rgb(cmap(i)) for i in range(n)]
     cmap = colormaps["turbo"]
-    return [tuple(cmap(0.05 + 0.9 * i / max(1, n - 1))[:3]) for i in range(n)]
+    return [_rgb(cmap(0.05 + 0.9 * i / max(1, n - 1))) for i in range(n)]
 
 
 def _finite(p: np.ndarray) -> bool:
@@ -476,7 +515,8 @@ def scene_update(ts: Any, sc: Any, k: int, stamp_ns: int, trail_ticks: int, stri
             texts=[_text(np.asarray(sc.leader.goal) + (0, 0, 0.08), "goal", {"r": 0.1, "g": 0.6, "b": 0.2, "a": 1.0})],
         )
     )
-    ents.append(_entity("start", stamp_ns, cubes=[{"pose": _pose(sc.leader.start), "size": _v3((0.04, 0.04, 0.04)), "color": {"r": 0.2, "g": 0.2, "b": 0.2, "a": 0.9}}]))
+    start_cube = {"pose": _pose(sc.leader.start), "size": _v3((0.04, 0.04, 0.04)), "color": {"r": 0.2, "g": 0.2, "b": 0.2, "a": 0.9}}
+    ents.append(_entity("start", stamp_ns, cubes=[start_cube]))
 
     lo = max(0, k - trail_ticks)
     idx = np.arange(lo, k + 1, stride)
@@ -543,11 +583,27 @@ def frame_transforms(ts: Any, k: int, stamp_ns: int) -> dict[str, Any]:
     """``foxglove.FrameTransforms`` of tick k: world -> leader, world -> uav<i>."""
     out = []
     if _finite(ts.q0[k]):
-        out.append({"timestamp": _time(stamp_ns), "parent_frame_id": WORLD, "child_frame_id": "leader", "translation": _v3(ts.q0[k]), "rotation": dict(_IDENTITY)})
+        out.append(
+            {
+                "timestamp": _time(stamp_ns),
+                "parent_frame_id": WORLD,
+                "child_frame_id": "leader",
+                "translation": _v3(ts.q0[k]),
+                "rotation": dict(_IDENTITY),
+            }
+        )
     for i in range(ts.q.shape[1]):
         if _finite(ts.q[k, i]):
             rot = _quat_rpy(ts.rpy[k, i]) if _finite(ts.rpy[k, i]) else dict(_IDENTITY)
-            out.append({"timestamp": _time(stamp_ns), "parent_frame_id": WORLD, "child_frame_id": f"uav{i + 1}", "translation": _v3(ts.q[k, i]), "rotation": rot})
+            out.append(
+                {
+                    "timestamp": _time(stamp_ns),
+                    "parent_frame_id": WORLD,
+                    "child_frame_id": f"uav{i + 1}",
+                    "translation": _v3(ts.q[k, i]),
+                    "rotation": rot,
+                }
+            )
     return {"transforms": out}
 
 

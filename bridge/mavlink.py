@@ -54,17 +54,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
-
-from zenswarm.config import Scenario
-from zenswarm.errors import ScenarioError
 
 from zenswarm import frames
 from zenswarm.autopilot import (  # re-exported: the mode tables and settings are the bridge's vocabulary
@@ -85,15 +81,31 @@ from zenswarm.autopilot import (  # re-exported: the mode tables and settings ar
     px4_custom_mode,
     px4_decode,
 )
-
+from zenswarm.config import Scenario
+from zenswarm.errors import ScenarioError
 
 mavutil = load_mavutil()
 mavlink = mavutil.mavlink
 
 __all__ = [
     "Bridge",
-        "add_parsers",
+    "add_parsers",
     "add_mavlink_parser",
+    # re-exported from zenswarm.autopilot: the bridge's vocabulary (modes, settings)
+    "AP_COPTER_MODES",
+    "PX4_AUTO_SUB",
+    "PX4_HOLD",
+    "PX4_LAND",
+    "PX4_MAIN",
+    "PX4_OFFBOARD",
+    "PX4_POSCTL",
+    "MavlinkSettings",
+    "autopilot_name",
+    "mavlink_settings",
+    "mode_name",
+    "mode_request_params",
+    "px4_custom_mode",
+    "px4_decode",
 ]
 
 # --------------------------------------------------------------------------- per-UAV link
@@ -681,7 +693,7 @@ class Bridge:
                 link.recovered_t = max(link.recovered_t, self.clock())
 
     def _ack_time(self, link: UavLink) -> float:
-        for t, c, r in reversed(link.acks):
+        for t, c, _result in reversed(link.acks):
             if c == mavlink.MAV_CMD_DO_SET_MODE and t >= link.mode_req_t:
                 return t
         return math.inf
@@ -1124,7 +1136,9 @@ def _main_args(args: argparse.Namespace) -> int:
 def _configure(p: argparse.ArgumentParser) -> None:
     from zenswarm.bridge.args import add_process_args
 
-    p.add_argument("scenario_path", nargs="?", type=Path, metavar="SCENARIO", help="scenario TOML (its [mavlink] table configures the links)")
+    p.add_argument(
+        "scenario_path", nargs="?", type=Path, metavar="SCENARIO", help="scenario TOML (its [mavlink] table configures the links)"
+    )
     add_process_args(p)
     g = p.add_argument_group("MAVLink")
     g.add_argument(
@@ -1135,7 +1149,11 @@ def _configure(p: argparse.ArgumentParser) -> None:
     g.add_argument("--sysid", action="append", metavar="I=ID", help="MAVLink system id of UAV I's vehicle (repeatable)")
     g.add_argument("--base-port", type=int, help="default connections udpout:HOST:P+i-1 (overrides mavlink.base_port)")
     g.add_argument("--mav-host", help="host of the default connections (overrides mavlink.host)")
-    g.add_argument("--setpoint", choices=("attitude", "position"), help="SET_ATTITUDE_TARGET from uav/<i>/cmd, or SET_POSITION_TARGET_LOCAL_NED from uav/<i>/ref")
+    g.add_argument(
+        "--setpoint",
+        choices=("attitude", "position"),
+        help="SET_ATTITUDE_TARGET from uav/<i>/cmd, or SET_POSITION_TARGET_LOCAL_NED from uav/<i>/ref",
+    )
     g.add_argument("--rate", type=float, metavar="HZ", help="minimum setpoint rate, >= 20 Hz")
     g.add_argument("--autopilot", choices=("auto", "px4", "ardupilot"), help="mode numbering (default: from the vehicle's heartbeat)")
     g.add_argument("--hover-throttle", type=float, metavar="U", help="normalised throttle at hover (PX4 MPC_THR_HOVER)")
@@ -1165,7 +1183,11 @@ def add_mavlink_parser(bridge_sub: argparse._SubParsersAction) -> None:
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Register ``bridge`` with its ``mavlink`` subcommand (``zenswarm bridge mavlink ...``)."""
-    p = sub.add_parser("bridge", help="connect the swarm bus to the outside (MAVLink vehicles)", description="Bridges between the swarm bus and the outside world.")
+    p = sub.add_parser(
+        "bridge",
+        help="connect the swarm bus to the outside (MAVLink vehicles)",
+        description="Bridges between the swarm bus and the outside world.",
+    )
     bsub = p.add_subparsers(dest="bridge_cmd", metavar="{mavlink}", required=True)
     add_mavlink_parser(bsub)
 

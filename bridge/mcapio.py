@@ -43,9 +43,10 @@ import io
 import os
 import struct
 import zlib
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Generator, Iterator, NamedTuple
+from typing import Any, NamedTuple
 
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
@@ -273,23 +274,23 @@ def _chunk_records(chunk: Chunk, offset: int) -> list[Any]:
         raise _Damage(offset, f"chunk at offset {offset} is corrupted ({type(e).__name__}: {e})", False) from None
 
 
-def _read_tail(f: io.BufferedReader, size: int) -> tuple[Footer | None, str | None]:
+def _read_tail(f: io.BufferedReader, size: int) -> Footer | str:
     """The footer if the file ends with a valid footer + magic (and, if the footer has a summary
-    CRC, the summary matches it); else ``(None, why)``."""
+    CRC, the summary matches it); else why not (a sentence)."""
     if size < 8 + _FOOTER_LEN + 8:
-        return None, f"file is only {size} bytes: no footer"
+        return f"file is only {size} bytes: no footer"
     f.seek(size - 8 - _FOOTER_LEN)
     tail = f.read(_FOOTER_LEN + 8)
     if tail[-8:] != MAGIC:
-        return None, "no closing magic at the end of the file: it was not closed cleanly (truncated)"
+        return "no closing magic at the end of the file: it was not closed cleanly (truncated)"
     opcode, length = struct.unpack("<BQ", tail[:9])
     if opcode != Opcode.FOOTER or length != 20:
-        return None, "no footer record before the closing magic"
+        return "no footer record before the closing magic"
     summary_start, summary_offset_start, summary_crc = struct.unpack("<QQI", tail[9:29])
     footer = Footer(summary_start=summary_start, summary_offset_start=summary_offset_start, summary_crc=summary_crc)
     footer_pos = size - 8 - _FOOTER_LEN
     if summary_start and not 8 <= summary_start <= footer_pos:
-        return None, f"footer points at a summary outside the file (offset {summary_start})"
+        return f"footer points at a summary outside the file (offset {summary_start})"
     if summary_crc:
         if summary_start:
             f.seek(summary_start)
@@ -299,8 +300,8 @@ def _read_tail(f: io.BufferedReader, size: int) -> tuple[Footer | None, str | No
         crc = zlib.crc32(data)
         crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
         if crc != summary_crc:
-            return None, "summary section fails its CRC check (corrupted)"
-    return footer, None
+            return "summary section fails its CRC check (corrupted)"
+    return footer
 
 
 def _cut_chunk_header(f: io.BufferedReader, offset: int, end: int) -> dict[str, Any] | None:
@@ -322,7 +323,7 @@ def file_is_complete(path: str | os.PathLike[str]) -> bool:
         with open(path, "rb") as f:
             if f.read(8) != MAGIC:
                 return False
-            return _read_tail(f, os.fstat(f.fileno()).st_size)[0] is not None
+            return isinstance(_read_tail(f, os.fstat(f.fileno()).st_size), Footer)
     except OSError:
         return False
 
@@ -683,8 +684,9 @@ def read_recording(path: str | os.PathLike[str], *, strict: bool = True) -> Reco
             if head != MAGIC:
                 what = "empty file" if not head else f"starts with {head[:8]!r}"
                 raise RecordingError(f"{p}: not an MCAP file ({what}, expected the MCAP magic)")
-            footer, why = _read_tail(f, rec.size)
-            if footer is None:
+            footer = _read_tail(f, rec.size)
+            if isinstance(footer, str):
+                why = footer
                 rec.summary_problem = why
                 rec.problems.append(why)
                 if strict:

@@ -66,10 +66,9 @@ from typing import Any, Final
 import msgpack
 
 from zenswarm import __version__, bus, security, wire
+from zenswarm.bridge.args import add_fault_args, add_security_args, client_security, link_faults
+from zenswarm.bridge.mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME
 from zenswarm.paths import check_output_file
-
-from .args import add_fault_args, add_security_args, client_security, link_faults
-from .mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME
 
 __all__ = [
     "PROCESS_NAME",
@@ -189,8 +188,9 @@ class RecorderStats:
         if size > d["largest"]:
             d["largest"] = size
 
-    def counters(self, backlog: int) -> dict[str, int]:
-        """Counters for the recorder's own ``diag/recorder`` messages."""
+    def counters(self, backlog: int) -> dict[str, int | float]:
+        """Counters for the recorder's own ``diag/recorder`` messages (:class:`zenswarm.wire.Diag`
+        counters; all of these are counts)."""
         return {
             "recorded": self.messages,
             "channels": self.channels,
@@ -261,7 +261,7 @@ class McapSink:
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
         path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(path, "wb")  # noqa: SIM115 - closed by the writer thread
+        self._file = open(path, "wb")  # closed by the writer thread
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp)
         self._writer.start(profile="", library=f"zenswarm-recorder/{__version__}")
         if metadata is not None:
@@ -458,6 +458,8 @@ def _fetch_mission(session: Any, keys: wire.Keys, stop: threading.Event, on_scen
                         continue
                     try:
                         msg = wire.decode("mission", ok.payload.to_bytes())
+                        if not isinstance(msg, wire.Mission):  # decode("mission") gives a Mission or raises
+                            raise TypeError(f"not a mission: {type(msg).__name__}")
                         sc = scenario_from_dict(msg.scenario)
                     except Exception as e:  # noqa: BLE001 - a bad answer: keep asking
                         log(f"recorder: ignoring an invalid mission answer: {e}")
@@ -550,7 +552,9 @@ def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: 
             diag_seq += 1
             next_diag += args.diag_interval
             st = sink.stats
-            diag = wire.Diag(t=st.last_sim_t, seq=diag_seq, process=PROCESS_NAME, counters=st.counters(sink.backlog), info={"file": str(out)})
+            diag = wire.Diag(
+                t=st.last_sim_t, seq=diag_seq, process=PROCESS_NAME, counters=st.counters(sink.backlog), info={"file": str(out)}
+            )
             diag_pub.put(wire.encode(diag))
 
 
@@ -605,9 +609,13 @@ def run(args: argparse.Namespace) -> int:
         token = bus.declare_alive(session, keys, PROCESS_NAME)  # only now: the subscriber is in place
         if scenario is None:
             the_sink = sink
+
+            def on_mission(d: dict[str, Any]) -> None:
+                the_sink.set_metadata(build_metadata(args.swarm, mode, d, "mission", fault_args))
+
             fetcher = threading.Thread(
                 target=_fetch_mission,
-                args=(session, keys, stop.event, lambda d: the_sink.set_metadata(build_metadata(args.swarm, mode, d, "mission", fault_args)), log),
+                args=(session, keys, stop.event, on_mission, log),
                 name="mission-fetch",
                 daemon=True,
             )

@@ -34,9 +34,10 @@ import argparse
 import json
 import math
 import re
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, NamedTuple, Sequence
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -225,7 +226,7 @@ def flight_from_recording(rec: Recording) -> Flight:
 # =========================================================================== figures
 
 
-def _figure(figsize: tuple[float, float], layout: str | None = None, **adjust: float):
+def _figure(figsize: tuple[float, float], layout: Literal["constrained", "compressed", "tight"] | None = None, **adjust: float):
     """A figure without pyplot (no global state, Agg canvas). Fixed margins (``adjust``, as for
     ``subplots_adjust``) unless a layout engine is asked for: constrained layout costs seconds."""
     from matplotlib.figure import Figure
@@ -296,7 +297,7 @@ def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
     hi[:2] += 0.5 * grow[:2]
     hi[2] += grow[2]  # z grows upward only: the ground stays at the bottom
 
-    for k, ob in enumerate(sc.obstacles):
+    for ob in sc.obstacles:
         ax.plot_surface(*_cylinder_mesh(ob), color="0.55", alpha=0.35, linewidth=0, shade=True)
         ax.plot_surface(*_cap_mesh(ob), color="0.55", alpha=0.35, linewidth=0, shade=True)
     q0 = ts.q0
@@ -467,9 +468,10 @@ def plot_clearance(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
         ax1.axhline(r, color="tab:red", lw=1.0, ls="--", label=f"contact: clearance = vehicle radius {r:.4f} m")
         ax1.axhline(0.0, color="0.5", lw=0.8, ls=":", label="surface")
         if np.isfinite(c).any():
-            k, i = np.unravel_index(np.nanargmin(c), c.shape)
-            ax1.plot(ts.t[k], c[k, i], "v", color="tab:red", ms=7)
-            ax1.annotate(f"min {c[k, i]:.3f} m (UAV {i + 1}, t={ts.t[k]:.2f} s)", (ts.t[k], c[k, i]), xytext=(6, 10), textcoords="offset points", fontsize=8)
+            kc, ic = np.unravel_index(np.nanargmin(c), c.shape)  # tick and UAV of the closest approach
+            ax1.plot(ts.t[kc], c[kc, ic], "v", color="tab:red", ms=7)
+            label = f"min {c[kc, ic]:.3f} m (UAV {ic + 1}, t={ts.t[kc]:.2f} s)"
+            ax1.annotate(label, (ts.t[kc], c[kc, ic]), xytext=(6, 10), textcoords="offset points", fontsize=8)
         ax1.set_ylabel("clearance [m]")
         ax1.set_title("UAV distance to the nearest obstacle surface (cylinder + hemispherical cap)", fontsize=10)
         ax1.set_ylim(bottom=min(-0.02, float(np.nanmin(c)) - 0.02) if np.isfinite(c).any() else None)
@@ -478,9 +480,10 @@ def plot_clearance(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
         ax2.axhline(sc.leader.d0, color="tab:orange", ls="--", lw=1.0, label=f"$d_0$ = {sc.leader.d0:g} m (avoidance threshold)")
         ax2.axhline(0.0, color="tab:red", ls="--", lw=1.0, label="sphere touches obstacle")
         if np.isfinite(d).any():
-            k = int(np.nanargmin(d))
-            ax2.plot(ts.t[k], d[k], "v", color="tab:red", ms=7)
-            ax2.annotate(f"min {d[k]:.3f} m at t={ts.t[k]:.2f} s", (ts.t[k], d[k]), xytext=(6, 10), textcoords="offset points", fontsize=8)
+            kd = int(np.nanargmin(d))
+            ax2.plot(ts.t[kd], d[kd], "v", color="tab:red", ms=7)
+            label = f"min {d[kd]:.3f} m at t={ts.t[kd]:.2f} s"
+            ax2.annotate(label, (ts.t[kd], d[kd]), xytext=(6, 10), textcoords="offset points", fontsize=8)
             hi = float(np.nanmax(d[np.isfinite(d)]))
             ax2.set_ylim(min(-0.02, float(np.nanmin(d)) - 0.02), max(4.0 * sc.leader.d0, min(hi, 8.0 * sc.leader.d0)))
         ax2.set_ylabel("clearance [m]")
@@ -530,7 +533,7 @@ def _plot_key_counts(ax: Any, fl: Flight, keys: list[str]) -> None:
         f"messages per key: {int(counts.sum())} recorded" + (f", {nrej} rejected by the decoder (red)" if nrej else ", none rejected"),
         fontsize=10,
     )
-    for yy, c, r in zip(y, counts, rej):
+    for yy, c, r in zip(y, counts, rej, strict=True):
         text = f"{int(c)}" + (f"  ({int(r)} rejected)" if r else "")
         ax.annotate(text, (c, yy), xytext=(2, 0), textcoords="offset points", va="center", fontsize=7, color="tab:red" if r else "black")
     ax.grid(True, axis="x", alpha=0.3)
@@ -544,7 +547,7 @@ def _plot_fault_counters(ax: Any, faults: list[tuple[str, float]]) -> None:
         ax.barh(yf, vals, color=["tab:red" if v > 0 else "0.7" for v in vals])
         ax.set_yticks(yf, [lab for lab, _ in faults], fontsize=8)
         ax.invert_yaxis()
-        for yy, v in zip(yf, vals):
+        for yy, v in zip(yf, vals, strict=True):
             ax.annotate(f"{v:g}", (v, yy), xytext=(2, 0), textcoords="offset points", va="center", fontsize=7)
         ax.set_xlim(0, max(1.0, float(vals.max()) * 1.15))
         nz = int(np.count_nonzero(vals))
@@ -665,7 +668,8 @@ def _run_report(args: argparse.Namespace) -> int:
         except (OSError, ValueError, KeyError) as e:
             raise RecordingError(f"{args.series}: not a zenswarm timeseries.npz ({e})") from None
         if ts.q.ndim != 3 or ts.q.shape[1] != sc.n:
-            raise ScenarioError("--scenario", f"{args.scenario} has {sc.n} UAVs but {args.series} has {ts.q.shape[1] if ts.q.ndim == 3 else '?'}")
+            got = ts.q.shape[1] if ts.q.ndim == 3 else "?"
+            raise ScenarioError("--scenario", f"{args.scenario} has {sc.n} UAVs but {args.series} has {got}")
         files = report_from_series(ts, sc, args.out)
     else:
         import sys

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from zenswarm.bridge.args import add_fault_args, link_faults, positive_float
 from zenswarm.errors import ZenswarmError
@@ -57,11 +57,10 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_sim(args: argparse.Namespace) -> int:
-    from zenswarm.config import load_scenario
-    from zenswarm.compose.sim import apply_overrides, run_sim_cli
-
     from dataclasses import replace
 
+    from zenswarm.compose.sim import apply_overrides, run_sim_cli
+    from zenswarm.config import load_scenario
     from zenswarm.paths import check_output_dir
 
     sc = apply_overrides(load_scenario(args.scenario), no_eso=args.no_eso, fixed_gain=args.fixed_gain)

@@ -38,7 +38,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="a DNS name or IP address other hosts use to reach the router (repeatable); "
         "localhost, 127.0.0.1 and ::1 are always included",
     )
-    p.add_argument("--days", type=int, default=security.DEFAULT_DAYS, help=f"certificate validity in days (default {security.DEFAULT_DAYS})")
+    p.add_argument(
+        "--days", type=int, default=security.DEFAULT_DAYS, help=f"certificate validity in days (default {security.DEFAULT_DAYS})"
+    )
     p.add_argument("--force", action="store_true", help="replace existing credentials in OUT")
     p.set_defaults(func=_run_keys)
 

@@ -58,10 +58,9 @@ def _main_mavlink_fleet(args: argparse.Namespace) -> int:
     (:mod:`zenswarm.plant.mavlink_vehicle`; no Zenoh session: the MAVLink bridge is their swarm side)."""
     from dataclasses import replace
 
-    from zenswarm.plant.mavlink_vehicle import run_fleet
-
     from zenswarm.config import load_scenario
     from zenswarm.errors import ScenarioError
+    from zenswarm.plant.mavlink_vehicle import run_fleet
 
     if args.scenario is None:
         raise ScenarioError("--scenario", "plant --mavlink needs the scenario file (it has no bus to fetch it from)")
@@ -95,7 +94,9 @@ def add_leader_parser(sub: argparse._SubParsersAction) -> None:
 def add_vehicle_args(p: argparse.ArgumentParser) -> None:
     """The simulated MAVLink vehicles' flags (``mavlink-vehicle`` and ``plant --mavlink``)."""
     g = p.add_argument_group("simulated MAVLink vehicles")
-    g.add_argument("--base-port", type=int, default=None, metavar="P", help="vehicle i listens on UDP P+i-1 (default mavlink.base_port, 14540)")
+    g.add_argument(
+        "--base-port", type=int, default=None, metavar="P", help="vehicle i listens on UDP P+i-1 (default mavlink.base_port, 14540)"
+    )
     g.add_argument("--autopilot", choices=("px4", "ardupilot"), help="mode numbering and heartbeat flavour (default px4)")
     g.add_argument("--telemetry-hz", type=float, metavar="HZ", help="LOCAL_POSITION_NED + ATTITUDE rate (default 50)")
     g.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until SIGTERM/SIGINT)")

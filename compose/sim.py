@@ -28,21 +28,21 @@ from __future__ import annotations
 import json
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from msgspec.structs import replace as replace_table
 
 from zenswarm.agents.core import AgentCore, AgentRow, StackedAgents
-from zenswarm.leader.core import LeaderCore
-from zenswarm.plant.core import PlantCore
-
 from zenswarm.config import Scenario
-from zenswarm.faults import FaultPlan, FaultState
+from zenswarm.faults import FaultPlan, FaultState, Held
+from zenswarm.leader.core import LeaderCore
 from zenswarm.linkfaults import Box, box_counters
 from zenswarm.metrics import TimeSeries, add_failure, compute_results
+from zenswarm.plant.core import PlantCore
 from zenswarm.verdict import criteria_from_scenario, decide_end
 
 __all__ = ["simulate", "SimResult", "run_sim_cli"]
@@ -111,7 +111,7 @@ class _Swarm:
         if self.links is None:
             self._agents_stacked(k, q, v, q0, v0, ts)
         else:
-            self._agents_linked(k, q, v, q0, v0, ts)
+            self._agents_linked(self.links, k, q, v, q0, v0, ts)
         self.plant.step(k)
         self.leader.advance()
 
@@ -124,30 +124,35 @@ class _Swarm:
         ts.u[k], ts.thrust[k], ts.d_hat[k] = cmd.u, cmd.thrust, cmd.d_hat
         self.plant.hold_all(cmd.thrust, cmd.rpy, k)
 
-    def _agents_linked(self, k: int, q: np.ndarray, v: np.ndarray, q0: np.ndarray, v0: np.ndarray, ts: TimeSeries) -> None:
+    def _agents_linked(
+        self, lk: _Links, k: int, q: np.ndarray, v: np.ndarray, q0: np.ndarray, v0: np.ndarray, ts: TimeSeries
+    ) -> None:
         """Every agent reads its links (hold last value), then ticks; the plant reads its links."""
-        lk, cores = self.links, self.cores
+        cores = self.cores
         for i, c in enumerate(cores):
             lk.state[i].offer(k, k, (q[i], v[i]))
             if not c.initialised:
-                c.reset(*lk.state[i].at(k).value)
-        refs = [_Ref(c.q_ref, c.v_ref) for c in cores]
+                c.reset(*_present(lk.state[i].at(k)).value)
+        refs = [_ref_of(c) for c in cores]
         for i, c in enumerate(cores):
             for x, j in enumerate(c.row.neighbours):
                 lk.nbr[i][x].offer(k, k, refs[j])
-            if lk.lead[i] is not None:
-                lk.lead[i].offer(k, k, _Ref(q0, v0))
+            lead_box = lk.lead[i]
+            if lead_box is not None:
+                lead_box.offer(k, k, _Ref(q0, v0))
         for i, c in enumerate(cores):
-            qm, vm = lk.state[i].at(k).value
+            qm, vm = _present(lk.state[i].at(k)).value
             nbr = [_held(box.at(k)) for box in lk.nbr[i]]
-            lead = _held(lk.lead[i].at(k)) if lk.lead[i] is not None else None
+            lead_box = lk.lead[i]
+            lead = _held(lead_box.at(k)) if lead_box is not None else None
             cmd = c.finish(qm, vm, c.rates_from(nbr, lead))
             ts.qref[k, i], ts.vref[k, i] = refs[i]
             ts.u[k, i], ts.thrust[k, i], ts.d_hat[k, i] = cmd.u, cmd.thrust, cmd.d_hat
             lk.cmd[i].offer(k, k, (cmd.thrust, cmd.rpy))
         for i, box in enumerate(lk.cmd):
-            held = box.at(k)
-            self.plant.hold(i, *held.value, held.send_tick)
+            held = _present(box.at(k))
+            thrust, rpy = held.value
+            self.plant.hold(i, thrust, rpy, held.send_tick)
 
     def fault_results(self) -> dict:
         """``link_counters`` and ``failsafe_events`` of a run with link faults ({} without)."""
@@ -156,9 +161,22 @@ class _Swarm:
         return {"link_counters": self.links.counters(), "failsafe_events": [list(e) for e in self.plant.failsafe.events]}
 
 
-def _held(h: Any) -> Any:
+def _held(h: Held | None) -> Any:
     """The value a box holds (None before its first delivery)."""
     return None if h is None else h.value
+
+
+def _present(h: Held | None) -> Held:
+    """What a box holds where something must be held: the state and command links carry a
+    message every tick from tick 0, which a :class:`zenswarm.linkfaults.Box` always delivers at once."""
+    assert h is not None, "a state or command link holds nothing"
+    return h
+
+
+def _ref_of(c: AgentCore) -> _Ref:
+    """The reference an agent sends to its neighbours this tick (its generator is started)."""
+    assert c.q_ref is not None and c.v_ref is not None, "reset() first"
+    return _Ref(c.q_ref, c.v_ref)
 
 
 class _Flight:
@@ -320,10 +338,12 @@ def summary_line(r: dict) -> str:
         verdict = f"FAILED: {named}{more}" if fails else "FAILED"
     ttg = r.get("time_to_goal_s")
     wall = r.get("wall_time_s")
+    goal = f"reached at {ttg:.2f} s" if ttg is not None else "NOT reached"
     return (
         f"{r['scenario']}: {verdict}\n"
-        f"  goal {'reached at %.2f s' % ttg if ttg is not None else 'NOT reached'}  "
-        f"max formation error {_fmt(r.get('max_formation_error_m'))} (vehicles; generator {_fmt(r.get('max_generator_formation_error_m'))})  "
+        f"  goal {goal}  "
+        f"max formation error {_fmt(r.get('max_formation_error_m'))} "
+        f"(vehicles; generator {_fmt(r.get('max_generator_formation_error_m'))})  "
         f"final slot error {_fmt(r.get('max_final_slot_error_m'))}  rms tracking {_fmt(r.get('rms_tracking_error_m'))}\n"
         f"  min margin to obstacles {_fmt(r.get('min_obstacle_margin_m'))}  between UAVs {_fmt(r.get('min_inter_uav_margin_m'))}  "
         f"(vehicle radius {_fmt(r.get('vehicle_radius_m'))})  sim {r.get('sim_time_s', 0.0):.2f} s"

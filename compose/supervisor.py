@@ -25,18 +25,15 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from zenswarm import bus, security, wire
+from zenswarm import bus, security, verdict, wire
 from zenswarm.bridge.args import add_fault_args, link_faults, positive_float
+from zenswarm.collector import Collector
 from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.linkfaults import LinkFaults
+from zenswarm.metrics import add_failure, compute_results
 from zenswarm.paths import check_output_dir, check_output_file
-from zenswarm.runtime import expected_senders, sample_sender
-
 from zenswarm.policy import restart_policy
-from zenswarm import verdict
-from zenswarm.collector import Collector
-from zenswarm.metrics import TimeSeries, add_failure, compute_results
 
 __all__ = ["add_parsers", "UpOptions", "up_options", "Supervisor", "role_names", "swarm_roles", "check_up_args"]
 
@@ -187,6 +184,7 @@ class Supervisor:
         self._deciding = False  # the live look saw the outcome decided; waiting for the exact tick
         self.recording_loss: dict | None = None  # the recorder died mid-flight (_recorder_died)
         self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n)
+        self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -379,7 +377,7 @@ class Supervisor:
             if open_net:
                 self.say("WARNING: --insecure on a non-loopback address: anyone who reaches the router can command the swarm")
             return {}, listen
-        auth = "tls" if a.tls else "usrpwd"
+        auth: security.AuthMode = "tls" if a.tls else "usrpwd"
         if a.tls:
             listen = [security.tls_endpoint(e) for e in listen]
         # before anything starts: the processes would each die on such an endpoint
@@ -445,8 +443,8 @@ class Supervisor:
         external = set(self.args.external)
         return [r for r in self.all_roles() if r in external and r != "vehicles"]
 
-    def _report(self, out: Path) -> None:
-        """Flight report from the recording alone (``--report``); partial if the recorder died."""
+    def _report(self, out: Path, recording: Path) -> None:
+        """Flight report from the recording (``--record``) alone (``--report``); partial if the recorder died."""
         if self.recording_loss is not None:
             self.say(
                 f"report: warning: the recorder died at sim time {self.recording_loss['died_at_sim_time_s']:.2f} s: "
@@ -456,7 +454,7 @@ class Supervisor:
             from zenswarm.bridge.report import report_recording
 
             written = report_recording(
-                self.args.record, out / "report", full_time=self.args.full_time, warn=lambda text: self.say(f"report: warning: {text}")
+                recording, out / "report", full_time=self.args.full_time, warn=lambda text: self.say(f"report: warning: {text}")
             )
         except ZenswarmError as e:
             self.say(f"report failed: {e}")
@@ -612,13 +610,18 @@ class Supervisor:
             return EXIT_PROCESS_FAILED
         return None
 
+    def _child_state(self, name: str, c: Child) -> str:
+        """One of our roles for the progress line: up, exit N, leaving or starting."""
+        if name in self.alive:
+            return "up"
+        if c.returncode is not None:
+            return "exit " + str(c.returncode)
+        return "leaving" if name in self.seen else "starting"
+
     def _health(self) -> str:
         """The roles' states for the progress line: ours (up, starting, leaving, exit N) and the external
         ones (waiting until their token appears, up, gone)."""
-        out = [
-            f"{name}:{'up' if name in self.alive else ('exit ' + str(c.returncode) if c.returncode is not None else ('leaving' if name in self.seen else 'starting'))}"
-            for name, c in self.children.items()
-        ]
+        out = [f"{name}:{self._child_state(name, c)}" for name, c in self.children.items()]
         for role in self.external_roles():
             names = self._token_names(role)
             state = "up" if any(p in self.alive for p in names) else ("gone" if any(p in self.seen for p in names) else "waiting")
@@ -753,7 +756,7 @@ class Supervisor:
             self.say(line)
         self.say(f"wrote {out / 'results.json'} and {out / 'timeseries.npz'}")
         if self.args.record is not None and self.args.report:
-            self._report(out)
+            self._report(out, self.args.record)
         if code != EXIT_OK:
             return code
         return EXIT_OK if res["success"] else EXIT_MISSION_FAILED

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .aapf import AapfParams, integrate_leader, total_force
+from zenswarm.leader.aapf import AapfParams, integrate_leader, total_force
 
 __all__ = ["LeaderCore"]
 

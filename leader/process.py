@@ -17,8 +17,11 @@ the edge, :mod:`zenswarm.compose.roles`).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from zenswarm import wire
 from zenswarm.config import scenario_to_dict
+from zenswarm.leader.core import LeaderCore
 from zenswarm.runtime import (
     LEADER_AHEAD_TICKS,
     Lockstep,
@@ -28,7 +31,8 @@ from zenswarm.runtime import (
     run_process,
 )
 
-from .core import LeaderCore
+if TYPE_CHECKING:
+    import zenoh
 
 __all__ = ["run"]
 
@@ -38,6 +42,8 @@ class _Leader:
 
     def __init__(self, proc: SwarmProcess) -> None:
         sc = proc.scenario
+        assert sc is not None, "the process loads its scenario on start"
+        self.sc = sc
         self.proc = proc
         self.keys = proc.keys
         self.core = LeaderCore.from_scenario(sc)
@@ -82,9 +88,9 @@ class _Leader:
     def run_realtime(self) -> int:
         """Follow the plant's clock on a fixed loop: integrate up to the newest clock time."""
         proc, core = self.proc, self.core
-        clock = WallClock(proc.scenario.timing.dt, proc.stop)
+        clock = WallClock(self.sc.timing.dt, proc.stop)
         published = -1
-        limit = wire.t_ns(proc.scenario.timing.time_limit_s)
+        limit = wire.t_ns(self.sc.timing.time_limit_s)
         while clock.wait():
             clk = proc.inbox.latest.get(self.keys.clock)
             if clk is not None and not proc.is_alive("plant"):
@@ -106,12 +112,14 @@ class _Leader:
 def _run(proc: SwarmProcess) -> int:
     leader = _Leader(proc)
     keys = proc.keys
-    mission = wire.encode(wire.Mission(t=0, seq=1, scenario=scenario_to_dict(proc.scenario)))
+    mission = wire.encode(wire.Mission(t=0, seq=1, scenario=scenario_to_dict(leader.sc)))
 
-    def on_query(query) -> None:
+    def on_query(query: zenoh.Query) -> None:
         query.reply(keys.mission, mission)
 
-    queryable = proc.session.declare_queryable(keys.mission, on_query)
+    session = proc.session
+    assert session is not None, "the process opens its session on start"
+    queryable = session.declare_queryable(keys.mission, on_query)
     proc.subscribe(keys.clock, "clock")
     proc.watch_alive(["plant"])
     proc.announce()

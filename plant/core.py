@@ -15,10 +15,9 @@ from typing import Any
 import numpy as np
 
 from zenswarm.params import QuadParams
-
-from .disturbance import DisturbanceModel
-from .failsafe import FailsafeState, failsafe_config
-from .quadrotor import PlantState, initial_state, step_held
+from zenswarm.plant.disturbance import DisturbanceModel
+from zenswarm.plant.failsafe import FailsafeState, failsafe_config
+from zenswarm.plant.quadrotor import PlantState, initial_state, step_held
 
 __all__ = ["PlantCore"]
 

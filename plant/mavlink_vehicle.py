@@ -44,11 +44,9 @@ from __future__ import annotations
 
 import math
 import signal
-import sys
 import threading
 import time
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -67,10 +65,9 @@ from zenswarm.autopilot import (
     px4_custom_mode,
     px4_decode,
 )
-
-from .disturbance import DisturbanceModel
 from zenswarm.params import QuadParams
-from .quadrotor import PlantState, initial_state, step
+from zenswarm.plant.disturbance import DisturbanceModel
+from zenswarm.plant.quadrotor import PlantState, initial_state, step
 
 mavutil = load_mavutil()
 mavlink = mavutil.mavlink
@@ -573,7 +570,7 @@ class MavlinkFleet:
         self.error: BaseException | None = None
 
     @classmethod
-    def from_scenario(cls, sc: Any, base_port: int | None = None, opts: VehicleOptions | None = None, **kw: Any) -> "MavlinkFleet":
+    def from_scenario(cls, sc: Any, base_port: int | None = None, opts: VehicleOptions | None = None, **kw: Any) -> MavlinkFleet:
         """Fleet of the scenario: spawn under ``formation.initial_positions``, ``[vehicle]``
         parameters, ``[disturbance]`` (seeded by ``scenario.seed``), timing from ``[timing]``,
         ports/ids/options from ``[mavlink]`` (``base_port``, ``host``, ``sysids``, ``autopilot``,
@@ -629,6 +626,8 @@ class MavlinkFleet:
                 f, rpy = veh.update(now, st.q[i], st.v[i], st.rpy[i])
                 self.thrust[i] = f
                 self.rpy_cmd[i] = rpy
+            d_p: np.ndarray | None
+            d_a: np.ndarray | None
             for j in range(self.chunk):
                 if self.dist is not None:
                     d_p, d_a = self.dist.sample(self.sim_t + j * self.h, self.h)
@@ -688,7 +687,7 @@ class MavlinkFleet:
                 self.overruns += 1
                 next_t = time.monotonic()
 
-    def start(self) -> "MavlinkFleet":
+    def start(self) -> MavlinkFleet:
         """Run the loop in a daemon thread."""
         if self._thread is not None:
             raise RuntimeError("fleet already started")
@@ -714,7 +713,7 @@ class MavlinkFleet:
         for veh in self.vehicles:
             veh.close()
 
-    def __enter__(self) -> "MavlinkFleet":
+    def __enter__(self) -> MavlinkFleet:
         return self.start()
 
     def __exit__(self, *exc: Any) -> None:

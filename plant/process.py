@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from zenswarm import wire
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters
+from zenswarm.plant.core import PlantCore
 from zenswarm.runtime import (
     CLOCK_EVERY_TICKS,
     Lockstep,
@@ -33,8 +34,6 @@ from zenswarm.runtime import (
     WallClock,
     run_process,
 )
-
-from .core import PlantCore
 
 __all__ = ["PlantOptions", "run"]
 
@@ -48,11 +47,20 @@ class PlantOptions:
     expect: tuple[str, ...] = ()
 
 
+def _mark_timeout(box: Box, k: int) -> None:
+    """``box`` is not ready at tick k (its due message was not offered) and the wait timed out."""
+    due = box.due(k)
+    assert due is not None, "a box that is not ready has a due message"
+    box.mark_timeout(due)
+
+
 class _Plant:
     """The plant's keys, links and publications around its :class:`PlantCore`."""
 
     def __init__(self, proc: SwarmProcess) -> None:
         sc = proc.scenario
+        assert sc is not None, "the process loads its scenario on start"
+        self.sc = sc
         self.proc = proc
         self.keys = proc.keys
         self.core = PlantCore(sc)
@@ -69,7 +77,7 @@ class _Plant:
     def use_faults(self) -> None:
         """Link faults: lockstep commands go through receive boxes, realtime ones a delay line."""
         proc = self.proc
-        plan = proc.options.fault_plan(proc.scenario)
+        plan = proc.options.fault_plan(self.sc)
         if plan is None:
             return
         links = {key: (self.agents[i], "plant", "cmd") for i, key in enumerate(self.cmd_keys)}
@@ -78,7 +86,11 @@ class _Plant:
             return
         fstate = FaultState(plan)
         boxes = self.boxes = {key: Box(fstate, *links[key], self.dt) for key in self.cmd_keys}
-        proc.extra_counters = lambda: box_counters(boxes)
+
+        def link_counters() -> dict[str, float]:
+            return dict(box_counters(boxes))
+
+        proc.extra_counters = link_counters
 
     def publish_tick(self, k: int) -> None:
         """state_i(k) of every UAV (and, in realtime or at k = 0, clock(k))."""
@@ -158,7 +170,7 @@ class _LockstepPlant:
             if p.boxes:
                 b = p.boxes[key]
                 if forced and not b.ready(k):
-                    b.mark_timeout(b.due(k))
+                    _mark_timeout(b, k)
                 held = b.at(k)
                 if held is not None:
                     p.core.hold(i, held.value.thrust, held.value.rpy, held.send_tick)

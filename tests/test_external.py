@@ -185,12 +185,10 @@ def test_external_watch_logic_without_processes(tmp_path: Path) -> None:
     by hand (it announces itself as ``bridge``)."""
     from types import SimpleNamespace
 
-    from zenswarm.collector import Collector
-    from zenswarm.compose.supervisor import EXIT_PROCESS_FAILED, EXTERNAL_GONE_GRACE_S, Supervisor, up_options
     from zenswarm import wire
     from zenswarm.collector import Collector
     from zenswarm.compose.cli import build_parser
-    from zenswarm.compose.supervisor import EXIT_PROCESS_FAILED, EXTERNAL_GONE_GRACE_S, Supervisor
+    from zenswarm.compose.supervisor import EXIT_PROCESS_FAILED, EXTERNAL_GONE_GRACE_S, Supervisor, up_options
     from zenswarm.config import load_scenario
 
     scenario = scenario_variant(tmp_path, time_limit_s=2.0)

@@ -6,8 +6,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from msgspec.structs import replace as replace_table
 import pytest
+from msgspec.structs import replace as replace_table
 
 from zenswarm.compose.sim import simulate
 from zenswarm.config import DisturbanceConfig, load_scenario
