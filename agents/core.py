@@ -233,6 +233,7 @@ class StackedAgents(AgentCore):
         """Step 3 for every agent: ((N, 3), (N, 3)), row i as :meth:`AgentCore.rates` of agent i
         with all its neighbours present and the leader's (q0, v0) (3,) given."""
         q, v = self.q_ref, self.v_ref
+        assert q is not None and v is not None, "reset() first"
         dq, dv = np.empty_like(q), np.empty_like(v)
         for i, r in enumerate(self.rows):
             nbr = list(r.neighbours)

@@ -699,7 +699,9 @@ class _BoxedInputs:
         self._offer(k, rejoin)
         for box in self.boxes.values():
             if not box.ready(k) and not rejoin:
-                box.mark_timeout(box.due(k))
+                due = box.due(k)
+                assert due is not None, "a box that is not ready has a due message"
+                box.mark_timeout(due)
         got = {key: box.at(k) for key, box in self.boxes.items()}
         h = got.pop(self.v.state_key)
         return (h.value if h is not None else st_raw), {key: g.value for key, g in got.items() if g is not None}
