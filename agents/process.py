@@ -1,4 +1,4 @@
-"""The agent process: one per UAV. A shell around :class:`agents.core.AgentCore` (the agent's tick):
+"""The agent process: one per UAV. A shell around :class:`zenswarm.agents.core.AgentCore` (the agent's tick):
 it decodes inputs, hands them to the core and publishes what the core computes.
 
 Subscribes to exactly its graph row: its own state ``uav/<i>/state``, its neighbours'

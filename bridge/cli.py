@@ -1,8 +1,8 @@
 """Subcommands of the flight recorder, wired into ``zenswarm`` by :func:`add_parsers`.
 
-``record`` (:mod:`bridge.recorder`), ``replay`` and ``verify`` (:mod:`bridge.replay`),
-``recover`` (:mod:`bridge.mcapio`); ``report`` (:mod:`bridge.report`) and ``export``
-(:mod:`bridge.foxglove`) when those modules are present.
+``record`` (:mod:`zenswarm.bridge.recorder`), ``replay`` and ``verify`` (:mod:`zenswarm.bridge.replay`),
+``recover`` (:mod:`zenswarm.bridge.mcapio`); ``report`` (:mod:`zenswarm.bridge.report`) and ``export``
+(:mod:`zenswarm.bridge.foxglove`) when those modules are present.
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ def _add_recover(sub: argparse._SubParsersAction) -> None:
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Register ``record``, ``replay``, ``verify``, ``recover`` (and ``report``/``export``
-    when :mod:`bridge.report` / :mod:`bridge.foxglove` exist)."""
+    when :mod:`zenswarm.bridge.report` / :mod:`zenswarm.bridge.foxglove` exist)."""
     from zenswarm.bridge import recorder, replay
 
     recorder.add_parser(sub)

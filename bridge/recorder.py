@@ -3,7 +3,7 @@
 ``zenswarm record --swarm NAME --connect EP --out FILE.mcap [--scenario F] [--duration S]``
 
 Subscribes to ``swarm/<name>/**`` and writes each sample as it was received (file layout: see
-:mod:`bridge.mcapio`). It declares its liveliness token ``swarm/<name>/alive/recorder`` only
+:mod:`zenswarm.bridge.mcapio`). It declares its liveliness token ``swarm/<name>/alive/recorder`` only
 once its subscriber is declared, so a plant that waits for the recorder loses nothing.
 
 Threads and crash safety
@@ -18,7 +18,7 @@ Threads and crash safety
   only its key and size (not a copy of it), and the writer counts it per key: count, bytes,
   largest. A flood of such payloads once wrote 1.76 GB of undecodable bytes into a recording.
   The counts go into the ``zenswarm`` metadata record (value ``dropped_oversize_json``, see
-  :mod:`bridge.mcapio`), rewritten at most once a second while they change and at the end, and
+  :mod:`zenswarm.bridge.mcapio`), rewritten at most once a second while they change and at the end, and
   into the ``diag/recorder`` counters (``dropped_oversize``); ``zenswarm report`` and
   ``zenswarm verify`` say how many were dropped, on which keys, and why.
 * One writer thread owns the ``mcap.writer.Writer``: it registers a channel per new key, takes

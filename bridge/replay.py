@@ -6,7 +6,7 @@ timing (log-time deltas divided by the rate), optionally under another swarm nam
 
 ``zenswarm replay --verify FILE --agent I`` (also ``zenswarm verify FILE [--agent I|all]``)
 rebuilds agent I's controller from the recorded scenario, feeds it agent I's recorded inputs
-tick by tick exactly as :mod:`agents.process` does, and compares what it computes with what the
+tick by tick exactly as :mod:`zenswarm.agents.process` does, and compares what it computes with what the
 agent published: bit for bit. The tool for "why did UAV 2 do that".
 """
 
@@ -460,7 +460,7 @@ def _fault_plan(rec: Recording, sc: Any) -> Any:
 def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> VerifyResult:
     """Re-run agent ``agent``'s controller on its recorded inputs and compare its outputs.
 
-    Lockstep (and unknown-mode) recordings are replayed as :mod:`agents.process` runs lockstep.
+    Lockstep (and unknown-mode) recordings are replayed as :mod:`zenswarm.agents.process` runs lockstep.
     The agent (re)starts where it published a reference with ``seq == 1`` (normally tick 0; a
     restarted process starts its sequence numbers again): it resets the generator and ESO from
     the state of that tick, and that recorded reference must equal the reset. Then for each tick

@@ -2,7 +2,7 @@
 
 From a recording (``zenswarm report FILE.mcap --out DIR``) the scenario comes from the file's
 ``zenswarm`` metadata record, the flight's :class:`zenswarm.metrics.TimeSeries` is rebuilt from the
-recorded samples by the supervisor's :class:`compose.supervisor.Collector` (the same code that
+recorded samples by the supervisor's :class:`zenswarm.collector.Collector` (the same code that
 builds it live, so a lockstep recording gives the run's own series), and the results by
 :func:`zenswarm.metrics.compute_results` (so ``results.json`` matches the run's own on every field
 of :data:`zenswarm.metrics.FLIGHT_FIELDS`; ``wall_time_s`` is null, the recording does not know the
@@ -99,7 +99,7 @@ class Recording:
     metadata: the ``zenswarm`` metadata record(s), merged; scenario from its ``scenario_json``;
     swarm and mode (``lockstep``, ``realtime``; anything else counts as lockstep) from it too.
     truncated: the damage met while reading (file cut short, chunk failing its CRC), None for a
-    complete, intact file. notes: what a reader must be told (:meth:`bridge.mcapio.Recording.notes`:
+    complete, intact file. notes: what a reader must be told (:meth:`zenswarm.bridge.mcapio.Recording.notes`:
     truncated or damaged, oversize payloads the recorder did not record).
     """
 
@@ -119,7 +119,7 @@ class Recording:
 
 
 def load_recording(path: str | Path) -> Recording:
-    """Load a recording and the scenario it carries (read by :func:`bridge.mcapio.read_recording`,
+    """Load a recording and the scenario it carries (read by :func:`zenswarm.bridge.mcapio.read_recording`,
     leniently: a truncated file or a corrupted chunk costs only what is unreadable, and
     :attr:`Recording.truncated` says what happened).
 

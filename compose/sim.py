@@ -15,9 +15,9 @@ tick k (t_k = k dt, dt = 1 / timing.control_rate_hz):
 6. generator explicit Euler step -> (q*, v*)_{k+1}.
 7. plant: ``timing.substeps`` physics sub-steps of 1 / physics_rate_hz with the command held
    (zero-order hold), onboard attitude PID at the physics rate, disturbances sampled every
-   sub-step; semi-implicit Euler (see :func:`plant.quadrotor.step`; :func:`~plant.quadrotor.step_held`
+   sub-step; semi-implicit Euler (see :func:`zenswarm.plant.quadrotor.step`; :func:`~zenswarm.plant.quadrotor.step_held`
    runs the sub-steps of a tick).
-8. leader: q0_{k+1} by :func:`leader.aapf.integrate_leader` (explicit Euler, at least
+8. leader: q0_{k+1} by :func:`zenswarm.leader.aapf.integrate_leader` (explicit Euler, at least
    ``timing.substeps`` sub-steps, adaptively refined near obstacles).
 
 The distributed lockstep swarm runs exactly these steps, each in the process that owns it.
@@ -62,7 +62,7 @@ names: checking in blocks costs less and ends at the same tick)."""
 
 
 class _Ref(NamedTuple):
-    """A reference as it travels on a link: (q, v), each (3,) (a :class:`agents.core.RefLike`)."""
+    """A reference as it travels on a link: (q, v), each (3,) (a :class:`zenswarm.agents.core.RefLike`)."""
 
     q: np.ndarray
     v: np.ndarray
@@ -87,9 +87,9 @@ class _Links:
 
 class _Swarm:
     """The whole swarm in one process: the leader's, the agents' and the plant's cores
-    (:class:`leader.core.LeaderCore`, :class:`agents.core.AgentCore`, :class:`plant.core.PlantCore`),
+    (:class:`zenswarm.leader.core.LeaderCore`, :class:`zenswarm.agents.core.AgentCore`, :class:`zenswarm.plant.core.PlantCore`),
     ticked in the order of the module docstring. Without link faults the agents are one
-    :class:`agents.core.StackedAgents`; with them, one :class:`agents.core.AgentCore` per UAV
+    :class:`zenswarm.agents.core.StackedAgents`; with them, one :class:`zenswarm.agents.core.AgentCore` per UAV
     behind its receive boxes."""
 
     def __init__(self, scenario: Scenario, faults: FaultPlan | None) -> None:

@@ -1,1 +1,1 @@
-"""Virtual leader: AAPF planner (eqs 8-15) in :mod:`leader.aapf`; the leader process."""
+"""Virtual leader: AAPF planner (eqs 8-15) in :mod:`zenswarm.leader.aapf`; the leader process."""

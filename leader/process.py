@@ -10,7 +10,7 @@ ref up to ref(c + :data:`zenswarm.runtime.LEADER_AHEAD_TICKS`), so pinned agents
 the void; a leader that starts late catches up at once). Realtime: it follows the plant's clock on a fixed
 loop (:class:`zenswarm.runtime.WallClock`), integrating from its current time to the newest clock time.
 
-The leader's tick is :class:`leader.core.LeaderCore` (the in-process simulator runs the same).
+The leader's tick is :class:`zenswarm.leader.core.LeaderCore` (the in-process simulator runs the same).
 Started with :class:`zenswarm.runtime.ProcessOptions` by :func:`run` (the command line is parsed at
 the edge, :mod:`zenswarm.compose.roles`).
 """

@@ -87,7 +87,7 @@ class DisturbanceModel:
         self._gust[...] = 0.0
 
     def sampler(self, t: float, dt: float) -> Callable[[int], tuple[np.ndarray, np.ndarray]] | None:
-        """The disturbance argument of :func:`plant.quadrotor.step_held` for the sub-steps of dt
+        """The disturbance argument of :func:`zenswarm.plant.quadrotor.step_held` for the sub-steps of dt
         from t: ``j -> self.sample(t + j * dt, dt)``; None when the configuration is inactive
         (no disturbance, and the generator is not touched, as with :meth:`sample`)."""
         if not self.active:

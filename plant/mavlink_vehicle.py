@@ -1,10 +1,10 @@
 """Simulated quadrotors exposed as MAVLink vehicles over UDP: the subset of a PX4 multicopter
-that the MAVLink bridge (:mod:`bridge.mavlink`) uses, so the whole chain agents -> bridge ->
+that the MAVLink bridge (:mod:`zenswarm.bridge.mavlink`) uses, so the whole chain agents -> bridge ->
 MAVLink/UDP -> vehicles runs on one machine and in CI.
 
 Each UAV i of the scenario is a vehicle with its own system id (default i) listening on its own
 UDP port (``udpin:HOST:BASE_PORT + i - 1``; it answers whoever talks to it, as PX4 SITL's
-offboard link does once a peer is known). Physics is :func:`plant.quadrotor.step` (eqs 1-5 with
+offboard link does once a peer is known). Physics is :func:`zenswarm.plant.quadrotor.step` (eqs 1-5 with
 the onboard attitude PID) for all UAVs at once, ``timing.physics_rate_hz`` sub-steps (1 kHz) in
 chunks of ``timing.substeps`` (10) at ``timing.control_rate_hz`` (100 Hz) on the wall clock, plus
 the scenario's disturbances and a flat ground at ``ground_z`` (vehicles spawn on it below their
@@ -15,11 +15,11 @@ heartbeat's autopilot to ArduCopter's):
 
 * HEARTBEAT 1 Hz: MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4, base_mode = CUSTOM_MODE_ENABLED
   (| SAFETY_ARMED), custom_mode = PX4 ``main << 16 | sub << 24``; SYS_STATUS 1 Hz;
-* LOCAL_POSITION_NED and ATTITUDE at ``telemetry_hz`` (50 Hz), NED/FRD via :mod:`bridge.frames`;
+* LOCAL_POSITION_NED and ATTITUDE at ``telemetry_hz`` (50 Hz), NED/FRD via :mod:`zenswarm.frames`;
 * COMMAND_LONG MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE (and the SET_MODE message),
   MAV_CMD_NAV_TAKEOFF (ArduPilot flavour), each answered with COMMAND_ACK; other commands get
   MAV_RESULT_UNSUPPORTED;
-* SET_ATTITUDE_TARGET (quaternion + normalised thrust through :class:`bridge.frames.ThrustMap`)
+* SET_ATTITUDE_TARGET (quaternion + normalised thrust through :class:`zenswarm.frames.ThrustMap`)
   and SET_POSITION_TARGET_LOCAL_NED (position/velocity/yaw in MAV_FRAME_LOCAL_NED; the vehicle
   then runs its own PD position loop producing thrust and attitude).
 
@@ -518,7 +518,7 @@ class MavlinkFleet:
 
     Use :meth:`start` / :meth:`stop` (a background thread, for tests and embedding) or
     :meth:`run` (in the calling thread, for the CLI). Attribute ``state`` is the
-    :class:`plant.quadrotor.PlantState` (ENU, read it, do not write it while running).
+    :class:`zenswarm.plant.quadrotor.PlantState` (ENU, read it, do not write it while running).
     """
 
     def __init__(

@@ -4,7 +4,7 @@ Subscribes to each UAV's ``uav/<i>/cmd``; publishes ``clock`` and each ``uav/<i>
 Lockstep tick k: publish state_i(k) for all i, wait for every cmd_i(k) (a timeout
 counts as a drop and holds the UAV's previous command; an agent whose liveliness token is gone is
 not waited for), then integrate ``timing.substeps`` physics sub-steps. A UAV whose newest command
-is too old goes into the failsafe of :mod:`plant.failsafe` (hover, then land). The clock, read by
+is too old goes into the failsafe of :mod:`zenswarm.plant.failsafe` (hover, then land). The clock, read by
 the leader and the supervisor only, goes out every :data:`zenswarm.runtime.CLOCK_EVERY_TICKS`
 ticks: clock(0) with the first states, then clock(k + 1) as the integration of tick k starts, so
 the leader's burst of refs overlaps the integration, not the agents' work. It starts only
@@ -13,9 +13,9 @@ Realtime: a fixed-rate loop at the control rate (:class:`zenswarm.runtime.WallCl
 integrates one control period of physics with the latest command of each UAV (hover thrust, level,
 before the first one).
 
-The plant's tick is :class:`plant.core.PlantCore` (the in-process simulator runs the same).
+The plant's tick is :class:`zenswarm.plant.core.PlantCore` (the in-process simulator runs the same).
 Started with :class:`PlantOptions` by :func:`run` (the command line is parsed at the edge,
-:mod:`zenswarm.compose.roles`; ``plant --mavlink`` runs :mod:`plant.mavlink_vehicle` instead).
+:mod:`zenswarm.compose.roles`; ``plant --mavlink`` runs :mod:`zenswarm.plant.mavlink_vehicle` instead).
 """
 
 from __future__ import annotations

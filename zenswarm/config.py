@@ -20,7 +20,7 @@ The sections and their meaning (see ``compose/scenarios/paper_example1.toml`` fo
 ``[generator]``  mu1, mu2 (eqs 16-17)
 ``[eso]``        beta = [beta1, beta2, beta3], enabled (eq. 27)
 ``[controller]`` kp (3,), kd (3,), yaw (eq. 28 and the inversion after it)
-``[vehicle]``    optional overrides of the Crazyflie 2.1 parameters (see :mod:`plant.params`), and
+``[vehicle]``    optional overrides of the Crazyflie 2.1 parameters (see :mod:`zenswarm.params`), and
                  radius (the contact radius the verdict uses; default :data:`CRAZYFLIE_RADIUS_M`)
 ``[mission]``    how the flight is judged (:mod:`zenswarm.verdict`): slot_tolerance_m,
                  settle_window_s, stall_speed_m_s, stall_window_s, divergence_m

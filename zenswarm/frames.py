@@ -77,7 +77,7 @@ def _vec3(x: Any, name: str) -> np.ndarray:
 
 
 def wrap_pi(a: Any) -> np.ndarray:
-    """Wrap angles to (-pi, pi], rad (same formula as :func:`plant.quadrotor.wrap_angle`)."""
+    """Wrap angles to (-pi, pi], rad (same formula as :func:`zenswarm.plant.quadrotor.wrap_angle`)."""
     a = np.asarray(a, dtype=float)
     w: np.ndarray = _PI - np.remainder(_PI - a, _TWO_PI)
     return w

@@ -5,7 +5,7 @@ hints). Units are SI; every default names its source.
 
 The onboard attitude controller is a cascade like the Crazyflie firmware's (``controller_pid``):
 angle error -> P -> body-rate setpoint (clamped to ``max_rate``) -> rate PID -> torque (clamped to
-``max_torque``); see :func:`plant.quadrotor.step`. The firmware's gains act on PWM-scaled units, so
+``max_torque``); see :func:`zenswarm.plant.quadrotor.step`. The firmware's gains act on PWM-scaled units, so
 the gains below are ours, chosen in SI for these inertias and a 1 kHz update:
 
 * rate loop: ``rate_kp = 200 J /s`` (rate bandwidth 200 rad/s), ``rate_ki = 800 J /s^2``

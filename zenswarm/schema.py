@@ -206,7 +206,7 @@ class ControllerConfig(Table, frozen=True):
 
 
 class VehicleConfig(Table, frozen=True):
-    """``[vehicle]``: optional overrides of :class:`plant.params.QuadParams`; ``None`` keeps the default.
+    """``[vehicle]``: optional overrides of :class:`zenswarm.params.QuadParams`; ``None`` keeps the default.
 
     ``radius``: the vehicle's contact radius, m, used by the verdict (obstacle contact when a
     UAV's clearance is below it, UAV-UAV contact below twice it); ``None``: a Crazyflie 2.1's.
