@@ -925,7 +925,7 @@ class _BridgeLoop:
 
     def __init__(self, proc: Any, bridge: Bridge, settings: MavlinkSettings) -> None:
         from zenswarm import wire
-        from zenswarm.runtime import LoopStats
+        from zenswarm.runtime import WallClock
 
         sc = proc.scenario
         self.proc = proc
@@ -937,7 +937,10 @@ class _BridgeLoop:
         self.n_ticks = sc.timing.n_ticks
         sub = max(1, math.ceil(settings.rate_hz / sc.timing.control_rate_hz - 1e-9))
         self.period = self.dt / sub  # s between loop iterations (setpoints)
-        self.stats = LoopStats(self.period)
+        # the loop's pacing: more than a period behind, start again from now (no burst of
+        # back-to-back setpoints); the deadline is moved to "now + period" where the loop restarts
+        self.clock = WallClock(self.period, first_wait=True, resync_after_s=self.period)
+        self.stats = self.clock.stats
         self.code = 0
         self.k_tick = 0  # control tick of the mission clock last published
         self.t0 = math.inf  # time.monotonic() of mission time 0
@@ -947,14 +950,13 @@ class _BridgeLoop:
         self.start_deadline = time.monotonic() + settings.start_timeout_s
         self.next_diag = 0.0
         self.waited_alive = getattr(proc.args, "no_wait_alive", False)
-        self.next_t = time.monotonic()  # when the next loop iteration is due
-        self.last = self.next_t  # when the last one ran (stall detection)
+        self.last = time.monotonic()  # when the last iteration ran (stall detection)
 
     def fly(self) -> None:
         """Until the mission ends, the process is asked to stop, or the start fails."""
         proc, bridge = self.proc, self.bridge
-        self.next_t = time.monotonic()
-        self.last = self.next_t
+        self.last = time.monotonic()
+        self.clock.next = self.last + self.period
         while not proc.stop.is_set():
             now = time.monotonic()
             bridge.note_stall(now - self.last)
@@ -989,8 +991,8 @@ class _BridgeLoop:
                 proc.log(f"bridge: these processes never announced themselves: {', '.join(missing)}")
                 self.code = 3
                 return None
-            self.next_t = time.monotonic()
-            now = self.last = self.next_t
+            now = self.last = time.monotonic()
+            self.clock.next = now + self.period
         self.started = True
         self.t0 = now
         self.k_tick = -1
@@ -1042,18 +1044,11 @@ class _BridgeLoop:
             self.proc.publish_diag(max(self.k_tick, 0) * self.dt_ns, {**bridge.info(now), **stats, **extra})
 
     def _pace(self) -> None:
-        """Sleep until the next iteration is due; more than a period behind: start again from
-        now (no burst of back-to-back setpoints)."""
-        self.next_t += self.period
-        now = time.monotonic()
-        if now < self.next_t:
-            time.sleep(self.next_t - now)
-        elif now - self.next_t > self.period:
-            self.stats.record(now - self.next_t)
-            self.next_t = now
-            self.proc.counters["loop_resync"] += 1
-            return
-        self.stats.record(time.monotonic() - self.next_t)
+        """Sleep until the next iteration is due (:class:`zenswarm.runtime.WallClock`); more than
+        a period behind: start again from now, counted in ``loop_resync``."""
+        resyncs = self.clock.resyncs
+        self.clock.wait()
+        self.proc.counters["loop_resync"] += self.clock.resyncs - resyncs
 
     def land(self) -> None:
         """Land and disarm whatever the bridge armed: end of mission, SIGTERM/SIGINT, or an error."""

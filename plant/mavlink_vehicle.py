@@ -669,9 +669,11 @@ class MavlinkFleet:
         stopped. Late periods are caught up (physics stays on the wall clock); a stall of more
         than 0.5 s resynchronises instead (counted in ``overruns``; the simulation then runs
         behind the wall clock by the stall)."""
+        from zenswarm.runtime import WallClock
+
         stop = stop or self._stop
         end = math.inf if duration_s is None else time.monotonic() + duration_s
-        next_t = time.monotonic()
+        clock = WallClock(self.period, stop, first_wait=True, resync_after_s=0.5)
         while True:
             if stop.is_set():
                 return "stop requested"
@@ -679,13 +681,9 @@ class MavlinkFleet:
             if now >= end:
                 return "duration reached"
             self.tick(now)
-            next_t += self.period
-            delay = next_t - time.monotonic()
-            if delay > 0:
-                stop.wait(delay)
-            elif delay < -0.5:
-                self.overruns += 1
-                next_t = time.monotonic()
+            resyncs = clock.resyncs
+            clock.wait()
+            self.overruns += clock.resyncs - resyncs
 
     def start(self) -> MavlinkFleet:
         """Run the loop in a daemon thread."""
