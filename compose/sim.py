@@ -26,7 +26,9 @@ The distributed lockstep swarm runs exactly these steps, each in the process tha
 from __future__ import annotations
 
 import json
+import signal
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -299,9 +301,14 @@ def apply_overrides(scenario: Scenario, no_eso: bool = False, fixed_gain: float 
 
 def run_sim_cli(scenario: Scenario, out: Path, quiet: bool = False, faults: FaultPlan | None = None, full_time: bool = False) -> int:
     """``zenswarm sim``: run, write outputs, print a summary. Exit code 0 on mission success, 1 on
-    failure, 130 when interrupted (Ctrl-C; what was flown is judged and written)."""
+    failure, 130 when interrupted (Ctrl-C or SIGTERM; what was flown is judged and written)."""
     prog = None if quiet else ProgressPrinter("sim", scenario.timing.dt)
-    res = simulate(scenario, progress=prog, faults=faults, full_time=full_time)
+    previous = _interrupt_on_signals()
+    try:
+        res = simulate(scenario, progress=prog, faults=faults, full_time=full_time)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     write_outputs(out, res.series, res.results)
     r = res.results
     print(summary_line(r))
@@ -309,6 +316,15 @@ def run_sim_cli(scenario: Scenario, out: Path, quiet: bool = False, faults: Faul
     if any(f["cause"] == "interrupted" for f in r["failures"]):
         return 130
     return 0 if r["success"] else 1
+
+
+def _interrupt_on_signals() -> dict[int, Any]:
+    """SIGINT and SIGTERM raise KeyboardInterrupt in the simulator's loop (so the ticks flown are
+    judged and written), also when the process was started with SIGINT ignored (a shell's
+    background job). Returns the previous handlers. Main thread only; elsewhere nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {sig: signal.signal(sig, signal.default_int_handler) for sig in (signal.SIGINT, signal.SIGTERM)}
 
 
 def _fmt(x: object, unit: str = " m") -> str:
