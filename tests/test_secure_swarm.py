@@ -28,16 +28,19 @@ from test_swarm import _assert_equal_to_sim, _up
 pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
 
 
-def test_secure_example1_reaches_goal_and_equals_open_run(tmp_path: Path) -> None:
-    """User/password + ACL: example 1 reaches the goal; the trajectory equals the open run's
-    (the open lockstep run equals the in-process simulator, asserted in test_swarm)."""
+def test_secure_swarm_equals_the_simulator(tmp_path: Path) -> None:
+    """User/password + ACL: the first 10 s of example 1 (past the first obstacle's band) equal
+    the in-process simulator bit for bit, as the open swarm's do (tests/test_swarm.py flies the
+    whole of example 1 open), so the access rules let every message of a flight through."""
     out = tmp_path / "secure"
-    cp = _up(SCENARIOS / "paper_example1.toml", out, unique_swarm("s"), "--secure")
-    assert cp.returncode == 0, cp.stdout[-3000:]
+    scenario = scenario_variant(tmp_path, time_limit_s=10.0, settle_time_s=1.0)
+    cp = _up(scenario, out, unique_swarm("s"), "--secure")
+    assert cp.returncode in (0, 1), cp.stdout[-3000:]
     assert "secure mode: user/password" in cp.stdout
     assert (out / "keys" / "manifest.json").exists()
-    res = _assert_equal_to_sim(SCENARIOS / "paper_example1.toml", out)
-    assert res["success"]
+    res = _assert_equal_to_sim(scenario, out)
+    assert [f["cause"] for f in res["failures"]] == ["timeout"], res["failures"]
+    assert read_results(out)["decoder_rejects"]["rejected"] == 0
 
 
 def test_tls_swarm_equals_open_swarm(tmp_path: Path) -> None:
