@@ -422,34 +422,3 @@ def integrate_escape(
         remaining -= h
         n += 1
     return np.array([x, y, z]), LeaderStepInfo(n, False)
-
-
-class EscapeLeaderCore:
-    """The leader's tick with the escape planner, in the shape of :class:`zenswarm.leader.core.LeaderCore`:
-    q0 (3,) m at tick ``k``; :meth:`ref` is step 1 (q0, v0), :meth:`advance` step 8."""
-
-    def __init__(self, start: np.ndarray, params: EscapeParams, dt: float, substeps: int) -> None:
-        self.q0 = np.asarray(start, dtype=float).copy()
-        self.k = 0
-        self.capped = 0
-        self.params = params
-        self.dt = dt
-        self.substeps = substeps
-
-    @classmethod
-    def from_scenario(cls, scenario: Scenario) -> EscapeLeaderCore:
-        """Build from a :class:`zenswarm.config.Scenario` with the default margin, lookahead, sides."""
-        tm = scenario.timing
-        E = EscapeParams.from_scenario(scenario)
-        return cls(E.start, E, tm.dt, tm.substeps)
-
-    def ref(self) -> tuple[np.ndarray, np.ndarray]:
-        """Step 1: (q0, v0) of tick ``k``, each (3,): m, m/s. q0 is the core's own array (replaced,
-        never mutated, by :meth:`advance`)."""
-        return self.q0, escape_velocity(self.q0, self.params)
-
-    def advance(self) -> None:
-        """Step 8: q0 to tick k + 1 (:func:`integrate_escape`)."""
-        self.q0, info = integrate_escape(self.q0, self.dt, self.params, self.substeps)
-        self.capped += int(info.capped)
-        self.k += 1

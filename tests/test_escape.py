@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from zenswarm.config import Obstacle, load_scenario
+from zenswarm.errors import ScenarioError
 from zenswarm.geometry import obstacle_clearance_many
 from zenswarm.leader.aapf import AapfParams, integrate_leader, total_force
+from zenswarm.leader.core import LeaderCore
 from zenswarm.leader.escape import (
-    EscapeLeaderCore,
     EscapeParams,
     _segments_clear,
     escape_velocity,
@@ -134,11 +135,27 @@ def test_bad_parameters_are_rejected() -> None:
             EscapeParams(p, START, **kw)
 
 
-def test_leader_core_shape() -> None:
+def test_selected_by_name_with_typed_params() -> None:
+    """``planner = "escape"`` builds the built-in; its ``[leader.params]`` are typed, unknown keys named."""
+    from dataclasses import replace
+
+    from msgspec.structs import replace as replace_table
+
+    from zenswarm.leader.planner import EscapePlanner
+    from zenswarm.plugins import check_selection, select
+
     sc = load_scenario(SCEN / "paper_example1.toml")
-    core = EscapeLeaderCore.from_scenario(sc)
+    core = LeaderCore.from_scenario(select(sc, planner="escape"))
+    assert isinstance(core.planner, EscapePlanner)
+    assert len(core.planner.path) > 2  # example 1's straight line crosses obstacle 1's inflated disc
     q0, v0 = core.ref()
     np.testing.assert_array_equal(q0, sc.leader.start)
     assert v0.shape == (3,) and np.linalg.norm(v0) > 0
     core.advance()
     assert core.k == 1 and not np.array_equal(core.q0, q0)
+    # the default stays the paper's
+    assert type(LeaderCore.from_scenario(sc).planner).__name__ == "AapfPlanner"
+    for bad, field in (({"lookahead": 0.0}, "leader.params.lookahead"), ({"sides": 2}, "leader.params.sides"), ({"nope": 1}, "nope")):
+        scb = replace(select(sc, planner="escape"), leader=replace_table(select(sc, planner="escape").leader, params=bad))
+        with pytest.raises(ScenarioError, match=field):
+            check_selection(scb)
