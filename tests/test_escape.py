@@ -159,3 +159,27 @@ def test_selected_by_name_with_typed_params() -> None:
         scb = replace(select(sc, planner="escape"), leader=replace_table(select(sc, planner="escape").leader, params=bad))
         with pytest.raises(ScenarioError, match=field):
             check_selection(scb)
+
+
+def test_sim_escape_flies_goal_behind_obstacle_to_success() -> None:
+    """The full in-process simulator (plant, agents, vehicle verdicts): goal 2 m straight behind a
+    tall obstacle. The AAPF stalls (``leader_stalled``, the run ends early); the escape planner
+    succeeds with no collision. K_att 0.15 and a 2 m leg keep it to 36 s of sim time."""
+    import tomllib
+
+    from zenswarm.compose.sim import simulate
+    from zenswarm.config import scenario_from_dict
+    from zenswarm.plugins import select
+
+    d = tomllib.loads((SCEN / "paper_example1.toml").read_text())
+    d["scenario"]["name"] = "goal_behind_obstacle"
+    d["leader"].update(start=[0.0, 0.0, 0.4], goal=[2.0, 0.0, 0.4], k_att=0.15)
+    d["obstacles"] = [{"center": [1.0, 0.0, 0.0], "radius": 0.15, "height": 1.0}]
+    d["timing"].update(time_limit_s=36.0, settle_time_s=20.0)
+    sc = scenario_from_dict(d)
+    a = simulate(select(sc, planner="aapf")).results
+    assert not a["success"] and "leader_stalled" in [f["cause"] for f in a["failures"]]
+    e = simulate(select(sc, planner="escape")).results
+    assert e["failures"] == [] and e["success"], e["failures"]
+    assert e["time_to_goal_s"] is not None and e["time_to_goal_s"] < 36.0
+    assert e["min_obstacle_margin_m"] > 0.0  # vehicle clearance beyond the vehicle radius
