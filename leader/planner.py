@@ -19,17 +19,18 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 
 import msgspec
 import numpy as np
 
 from zenswarm.leader.aapf import AapfParams, ObstacleLike, integrate_leader, total_force
+from zenswarm.leader.escape import DEFAULT_LOOKAHEAD, DEFAULT_MARGIN, DEFAULT_SIDES, EscapeParams, escape_velocity, integrate_escape
 
 if TYPE_CHECKING:  # pragma: no cover
     from zenswarm.config import LeaderConfig
 
-__all__ = ["PlannerContext", "Planner", "NoParams", "AapfPlanner", "ApfPlanner"]
+__all__ = ["PlannerContext", "Planner", "NoParams", "AapfPlanner", "ApfPlanner", "EscapePlanner"]
 
 
 class NoParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -124,3 +125,50 @@ class ApfPlanner(AapfPlanner):
     name = "apf"
     description = "fixed-gain artificial potential field (K_rep = leader.k_rep_fixed instead of eq. 12), for comparison"
     adaptive = False
+
+
+class EscapePlanner(Planner):
+    """The AAPF steered along a global path around the known obstacles, so it does not stall in
+    the AAPF's local minima (:mod:`zenswarm.leader.escape`): a shortest path over the obstacles
+    inflated by r_f + d0 + ``margin`` (visibility graph, planned once at construction), the
+    attraction of eq. (9) aimed at a carrot ``lookahead`` m ahead on it, the repulsion of
+    eqs (10)-(13) unchanged; explicit Euler sub-steps as the AAPF's. Where the straight
+    start-goal segment is clear it is the AAPF bit for bit. Gains from ``[leader]``."""
+
+    name = "escape"
+    description = "the AAPF steered along a path round the inflated obstacles (visibility graph): escapes the AAPF's local minima"
+
+    class Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+        """``[leader.params]`` of the escape planner. margin: m, how far outside the repulsion band
+        (d_obs = d0) the path keeps the formation sphere; lookahead: m, carrot arc length ahead
+        of the leader's nearest path point; sides: polygon sides per inflated obstacle disc."""
+
+        margin: Annotated[float, msgspec.Meta(ge=0)] = DEFAULT_MARGIN
+        lookahead: Annotated[float, msgspec.Meta(gt=0)] = DEFAULT_LOOKAHEAD
+        sides: Annotated[int, msgspec.Meta(ge=3, le=360)] = DEFAULT_SIDES
+
+    def __init__(self, ctx: PlannerContext, params: Any) -> None:
+        super().__init__(ctx, params)
+        ld = ctx.leader
+        aapf = AapfParams(
+            goal=tuple(float(x) for x in ctx.goal), k_att=ld.k_att, k_rep_min=ld.k_rep_min, k_rep_max=ld.k_rep_max, d0=ld.d0, r_f=ctx.r_f,
+            obstacles=ctx.obstacles, adaptive=ld.adaptive, k_rep_fixed=ld.k_rep_fixed, speed_limit=ld.speed_limit,
+        )
+        self.escape = EscapeParams(aapf, tuple(float(x) for x in ctx.start), params.margin, params.lookahead, params.sides)
+        self.q0 = np.asarray(ctx.start, dtype=float).copy()
+        self.capped = 0
+
+    @property
+    def path(self) -> np.ndarray:
+        """The planned path's waypoints (M, 3), m ENU, start first and goal last."""
+        return self.escape.path
+
+    def ref(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.q0, escape_velocity(self.q0, self.escape)
+
+    def advance(self) -> None:
+        self.q0, info = integrate_escape(self.q0, self.ctx.dt, self.escape, self.ctx.substeps)
+        self.capped += int(info.capped)
+
+    def counters(self) -> dict[str, int]:
+        return {"substep_cap_hits": self.capped}

@@ -21,6 +21,7 @@ from zenswarm.leader import aapf
 ROOT = Path(__file__).resolve().parents[1]
 PURE_MODULES = [
     "leader/aapf.py",
+    "leader/escape.py",
     "agents/generator.py",
     "agents/eso.py",
     "agents/controller.py",

@@ -35,7 +35,7 @@ PLAN = "plugin_fixtures:LinePlanner"
 
 def test_builtins_listed_and_resolved() -> None:
     assert [p.name for p in available("controller")] == ["paper"]
-    assert [p.name for p in available("planner")] == ["aapf", "apf"]
+    assert [p.name for p in available("planner")] == ["aapf", "apf", "escape"]
     assert resolve("planner", "apf").adaptive is False
 
 

@@ -5,7 +5,7 @@ or :class:`zenswarm.leader.planner.Planner` (kind ``"planner"``). It is named, i
 (``[agents] controller = NAME``, ``[leader] planner = NAME``) or on the command line
 (``--controller NAME``, ``--planner NAME``), by one of:
 
-* a built-in name (:data:`BUILTINS`: ``paper`` for the controller; ``aapf``, ``apf`` for the planner);
+* a built-in name (:data:`BUILTINS`: ``paper`` for the controller; ``aapf``, ``apf``, ``escape`` for the planner);
 * ``module:attribute``, e.g. ``my_pkg.control:Consensus`` (imported as is; the module must be
   importable, e.g. installed or on ``PYTHONPATH``);
 * the name of an installed entry point in the group :data:`GROUPS` ``[kind]``
@@ -65,7 +65,11 @@ GROUPS: Final[Mapping[str, str]] = {"controller": "zenswarm.controllers", "plann
 
 BUILTINS: Final[Mapping[str, Mapping[str, str]]] = {
     "controller": {"paper": "zenswarm.agents.paper:PaperController"},
-    "planner": {"aapf": "zenswarm.leader.planner:AapfPlanner", "apf": "zenswarm.leader.planner:ApfPlanner"},
+    "planner": {
+        "aapf": "zenswarm.leader.planner:AapfPlanner",
+        "apf": "zenswarm.leader.planner:ApfPlanner",
+        "escape": "zenswarm.leader.planner:EscapePlanner",
+    },
 }
 """Built-in plug-ins: kind -> name -> ``module:attribute``."""
 
