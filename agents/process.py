@@ -16,7 +16,12 @@ faults each input goes through its link's :class:`zenswarm.linkfaults.Box` (hold
 exactly as in the in-process simulator. A (re)started agent joins at the first state it sees and
 restarts its generator from it.
 Realtime: the same computation at the control rate on the wall clock with the latest values
-(:class:`zenswarm.runtime.WallClock`).
+(:class:`zenswarm.runtime.WallClock`), on each new state; when states were skipped (late, lost,
+or a MAVLink vehicle's telemetry slower than the control rate) the ESO and the generator integrate
+over the time that elapsed since the state last ticked on (its tick index, see
+:func:`zenswarm.agents.core.elapsed_dt` and :meth:`zenswarm.agents.core.AgentCore.advance_elapsed`),
+so the references keep pace with the leader, which catches up to the clock. Counters
+``skipped_ticks`` and ``max_gap_ticks`` in the diagnostics.
 
 Started with :class:`AgentOptions` by :func:`run` (the command line is parsed at the edge,
 :mod:`zenswarm.compose.roles`).
@@ -29,7 +34,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from zenswarm import wire
-from zenswarm.agents.core import AgentCommand, AgentCore, AgentRow, Rates
+from zenswarm.agents.core import AgentCommand, AgentCore, AgentRow, Rates, elapsed_dt
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters
 from zenswarm.params import QuadParams
@@ -142,15 +147,16 @@ class _Agent:
         out this tick)."""
         return self.core.rates_from([inputs.get(key) for key in self.nbr_keys], inputs.get(self.keys.leader_ref))
 
-    def tick(self, k: int, st: wire.State, rates: Rates) -> None:
+    def tick(self, k: int, st: wire.State, rates: Rates, dt: float | None = None) -> None:
         """Tick k with its generator rates: the command first (what the plant waits for), then
-        ESO and generator to k+1 and ref(k+1) (what the neighbours need only next tick)."""
+        ESO and generator over ``dt`` (s; None = one control period, always so in lockstep) and
+        ref(k+1) (what the neighbours need only next tick)."""
         core = self.core
         dq, dv = rates
         cmd = core.command(st.q, st.v, dv)
         t = st.t if self.proc.options.realtime else k * self.dt_ns
         self.publish_cmd(t, cmd)
-        core.advance(st.q, cmd.u, dq, dv)
+        core.advance(st.q, cmd.u, dq, dv, dt)
         self.publish_ref(t + self.dt_ns)
 
 
@@ -296,6 +302,7 @@ def _run_realtime(a: _Agent) -> int:
     proc.announce()
     clock = WallClock(a.dt, proc.stop)
     last_state_t = -1
+    k_prev: int | None = None
     limit_ns = wire.t_ns(a.sc.timing.time_limit_s)
     while not (last_state_t >= 0 and not proc.is_alive("plant")) and clock.wait():
         # (the plant gone: its last messages may never come, the flight is over)
@@ -309,7 +316,15 @@ def _run_realtime(a: _Agent) -> int:
         k = int(round(st.t / a.dt_ns))
         if not a.core.initialised:
             a.start(st, k)
-        a.tick(k, st, a.rates_from({key: m for key in a.input_keys if (m := proc.inbox.latest.get(key)) is not None}))
+            k_prev = None
+        # Integrate over the time that elapsed since the state we last ticked on (states we
+        # never saw, or saw too late, were skipped): the generator keeps pace with the leader.
+        dt = elapsed_dt(k, k_prev, a.dt)
+        if dt is not None and k_prev is not None:
+            proc.counters["skipped_ticks"] += k - k_prev - 1
+            proc.counters["max_gap_ticks"] = max(proc.counters["max_gap_ticks"], k - k_prev)
+        a.tick(k, st, a.rates_from({key: m for key in a.input_keys if (m := proc.inbox.latest.get(key)) is not None}), dt)
+        k_prev = k
         if clock.stats.ticks % 100 == 0:
             proc.publish_diag(st.t, clock.stats.as_dict())
     proc.publish_diag(max(last_state_t, 0), clock.stats.as_dict())

@@ -34,6 +34,7 @@ from zenswarm.linkfaults import LinkFaults
 from zenswarm.metrics import add_failure, compute_results
 from zenswarm.paths import check_output_dir, check_output_file
 from zenswarm.policy import restart_policy
+from zenswarm.runtime import gc_policy, gc_safe_point, gc_startup_done
 
 __all__ = ["add_parsers", "UpOptions", "up_options", "Supervisor", "role_names", "swarm_roles", "check_up_args"]
 
@@ -354,6 +355,7 @@ class Supervisor:
                 self.spawn("recorder")  # first: the plant waits for it, so no tick goes unrecorded
             for role in self.roles():
                 self.spawn(role)
+            gc_startup_done()  # the children are started: see zenswarm.runtime.GcPolicy
             code = self._watch(collector)
         finally:
             self.terminate_all()
@@ -656,6 +658,7 @@ class Supervisor:
             if now - last_print >= self.args.progress_every and not self.args.quiet:
                 last_print = now
                 self._progress(collector, now - wall0)
+            gc_safe_point()
             time.sleep(0.05)
 
     def _check_children(self, collector: Collector, now: float) -> tuple[bool, int | None]:
@@ -830,6 +833,7 @@ def _run_up(ns: argparse.Namespace) -> int:
     sc = load_scenario(args.scenario)
     args.faults.plan(sc)  # bad flags: exit 2 now
     check_up_args(args, sc)
+    gc_policy()  # a bad ZENSWARM_GC: exit 2 now
     if args.only:
         return _run_only(args)
     sup = Supervisor(args, sc)
