@@ -325,6 +325,7 @@ def _run_realtime(a: _Agent) -> int:
             proc.counters["max_gap_ticks"] = max(proc.counters["max_gap_ticks"], k - k_prev)
         a.tick(k, st, a.rates_from({key: m for key in a.input_keys if (m := proc.inbox.latest.get(key)) is not None}), dt)
         k_prev = k
+        proc.inbox.forget_before(k - 2)  # only the latest values are used: keep memory flat
         if clock.stats.ticks % 100 == 0:
             proc.publish_diag(st.t, clock.stats.as_dict())
     proc.publish_diag(max(last_state_t, 0), clock.stats.as_dict())

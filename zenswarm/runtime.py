@@ -133,6 +133,10 @@ class GcPolicy:
        :data:`GC_YOUNG_LIMIT` young objects have accumulated, older generations every
        :data:`GC_OLDER_LIMIT` collections of the younger one; in a realtime loop only with at
        least :data:`GC_MIN_SLACK_S` left before the deadline (or above :data:`GC_FORCE_LIMIT`).
+       What survives a full (generation 2) collection is frozen too, so a process whose live
+       data grows (the supervisor's flight record) never rescans it: no full collection gets
+       longer as the flight goes on. The price: a frozen object that later becomes cyclic
+       garbage is never freed; the ticks make none (below).
 
     The ticks make no cyclic garbage (``tests/test_gc.py``), so in flight the young generation
     barely grows and collections are rare and short. ``ZENSWARM_GC=python`` (:data:`GC_ENV`)
@@ -179,6 +183,8 @@ class GcPolicy:
         with self._lock:
             t0 = time.perf_counter()
             found = gc.collect(gen)
+            if gen == 2:
+                gc.freeze()  # what survived a full collection is long-lived: never scan it again
             dt = time.perf_counter() - t0
             self.collections += 1
             self.collected += found
