@@ -3,10 +3,11 @@
 A realtime agent ticks on each new state of its UAV. When states are skipped (late, lost, a
 vehicle's telemetry slower than the control rate) it integrates its ESO and generator over the
 elapsed ticks (:func:`zenswarm.agents.core.elapsed_dt`), so its references keep pace with the
-leader, which catches up to the clock. Here half of the plant's states to every agent are lost
-on purpose (a realtime link fault on the ``state`` links, seeded): the formation error stays
-within 1.5x of the same flight with every state delivered. Before the fix the agents' generators
-ran at about half the leader's pace and the error was several times larger.
+leader, which catches up to the clock. Here two thirds of the plant's states to every agent are
+lost on purpose (a realtime link fault on the ``state`` links, seeded): the formation error (and
+the generators' own) stays within 1.5x of the same flight with every state delivered. Before the
+fix the agents' generators ran at a third of the leader's pace: on a loaded machine the ratios
+were 1.63 (vehicles) and 1.66 (generators), see BENCHMARKS.md (issue 16).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from swarmtest import SCENARIOS, kill_mentioning, processes_mentioning, read_res
 pytestmark = pytest.mark.swarm
 
 FLIGHT_S = 6.0
+STATE_LOSS = 0.67
 
 
 def _scenario(tmp: Path, name: str, state_loss: float) -> Path:
@@ -55,13 +57,15 @@ def _fly(tmp: Path, scenario: Path, name: str) -> dict:
 
 def test_skipped_states_keep_the_formation_error_within_1_5x(tmp_path: Path) -> None:
     base = _fly(tmp_path, _scenario(tmp_path, "all_states", 0.0), "all")
-    lossy = _fly(tmp_path, _scenario(tmp_path, "half_states", 0.5), "lossy")
+    lossy = _fly(tmp_path, _scenario(tmp_path, "third_of_states", STATE_LOSS), "lossy")
     skipped = [lossy["diagnostics"][f"agent:{i}"].get("skipped_ticks", 0) for i in (1, 2, 3)]
-    # the flight did skip: roughly half of each agent's states were lost
-    assert all(s > 0.25 * FLIGHT_S * 100 for s in skipped), skipped
+    # the flight did skip: about two thirds of each agent's states were lost
+    assert all(s > 0.4 * FLIGHT_S * 100 for s in skipped), skipped
     e0, e1 = base["max_formation_error_m"], lossy["max_formation_error_m"]
     assert e0 is not None and e1 is not None
-    assert e1 <= 1.5 * e0, f"formation error {e1:.3f} m with half the states lost vs {e0:.3f} m with all"
+    assert e1 <= 1.5 * e0, f"formation error {e1:.3f} m with 2/3 of the states lost vs {e0:.3f} m with all"
+    g0, g1 = base["max_generator_formation_error_m"], lossy["max_generator_formation_error_m"]
+    assert g1 <= 1.5 * g0, f"generator formation error {g1:.3f} m with 2/3 of the states lost vs {g0:.3f} m with all"
     # every process ran the managed collector (item 5) and found no cyclic garbage worth speaking of
     for name in ("plant", "leader", "agent:1"):
         d = lossy["diagnostics"][name]
