@@ -15,6 +15,7 @@ function row by row, and its :meth:`~AgentCore.command` and :meth:`~AgentCore.ad
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol, cast
@@ -28,7 +29,7 @@ from zenswarm.agents.generator import generator_rates
 if TYPE_CHECKING:  # pragma: no cover
     from zenswarm.config import Scenario
 
-__all__ = ["AgentCommand", "AgentCore", "AgentRow", "Rates", "RefLike", "StackedAgents"]
+__all__ = ["AgentCommand", "AgentCore", "AgentRow", "Rates", "RefLike", "StackedAgents", "elapsed_dt"]
 
 
 class RefLike(Protocol):
@@ -94,6 +95,16 @@ class AgentRow:
     @property
     def pinned(self) -> bool:
         return self.b > 0.0
+
+
+def elapsed_dt(k: int, k_prev: int | None, dt: float) -> float | None:
+    """Time (s) a realtime agent integrates over at tick ``k`` when the previous state it ticked
+    on was of tick ``k_prev``: (k - k_prev) control periods of ``dt`` s. None (= one nominal
+    period, :meth:`AgentCore.advance`'s default) when no tick was skipped, at the first tick
+    (``k_prev`` None) and if the ticks do not advance (a restarted stream)."""
+    if k_prev is None or k - k_prev <= 1:
+        return None
+    return (k - k_prev) * dt
 
 
 @dataclass(frozen=True)
@@ -177,15 +188,57 @@ class AgentCore:
         return AgentCommand(float(F), np.array([float(phi), float(theta), self.row.yaw]), u, d_used.copy(), dv)
 
     def advance(self, q_meas: np.ndarray, u: np.ndarray, dq: np.ndarray, dv: np.ndarray, dt: float | None = None) -> None:
-        """Step 6: ESO (27) and generator to k+1 with the tick's control ``u`` and rates, over
-        ``dt`` s (default: the nominal ``row.dt``)."""
+        """Step 6: ESO (27) and generator to k+1 with the tick's control ``u`` and rates.
+
+        ``dt`` (s): the time to integrate over; None or ``row.dt`` = one control period (lockstep,
+        the simulator, replay: always, so they stay bit-identical). A realtime agent that
+        skipped ticks passes the time that elapsed since the state it last ticked on
+        (:func:`elapsed_dt`); see :meth:`advance_elapsed` for how a long step stays stable."""
+        if dt is not None and dt != self.row.dt:
+            self.advance_elapsed(q_meas, u, dq, dv, dt)
+            return
         assert self.q_hat is not None and self.v_hat is not None and self.d_hat is not None, "reset() first"
         assert self.q_ref is not None and self.v_ref is not None, "reset() first"
         r = self.row
-        h = r.dt if dt is None else dt
-        self.q_hat, self.v_hat, self.d_hat = eso_step(self.q_hat, self.v_hat, self.d_hat, q_meas, u, r.beta, h, r.g)
-        self.q_ref = self.q_ref + h * dq
-        self.v_ref = self.v_ref + h * dv
+        self.q_hat, self.v_hat, self.d_hat = eso_step(self.q_hat, self.v_hat, self.d_hat, q_meas, u, r.beta, r.dt, r.g)
+        self.q_ref = self.q_ref + r.dt * dq
+        self.v_ref = self.v_ref + r.dt * dv
+
+    def advance_elapsed(self, q_meas: np.ndarray, u: np.ndarray, dq: np.ndarray, dv: np.ndarray, dt: float) -> None:
+        """Step 6 over an elapsed time ``dt`` (s) that may span several control periods.
+
+        ESO (27): ``ceil(dt / row.dt)`` explicit-Euler sub-steps of equal length (at most one
+        control period each, so the observer's discretisation is never coarser than nominally
+        and stays as stable as at the nominal rate), with the measurement ``q_meas`` and the
+        control ``u`` held over the sub-steps. Generator (16)-(17): one explicit-Euler step with
+        the tick's rates (the neighbours' references are held anyway), over ``dt`` clamped to
+        :meth:`generator_max_step`: for a longer gap the references lag by the excess (as before
+        this existed) rather than overshoot. ``dt`` equal to ``row.dt`` computes what
+        :meth:`advance` does with ``dt=None``."""
+        assert self.q_hat is not None and self.v_hat is not None and self.d_hat is not None, "reset() first"
+        assert self.q_ref is not None and self.v_ref is not None, "reset() first"
+        if not (dt > 0.0 and math.isfinite(dt)):
+            raise ValueError(f"elapsed dt must be positive and finite, got {dt!r} s")
+        r = self.row
+        n = max(1, math.ceil(dt / r.dt - 1e-9))
+        h = dt / n
+        q_hat, v_hat, d_hat = self.q_hat, self.v_hat, self.d_hat
+        for _ in range(n):
+            q_hat, v_hat, d_hat = eso_step(q_hat, v_hat, d_hat, q_meas, u, r.beta, h, r.g)
+        self.q_hat, self.v_hat, self.d_hat = q_hat, v_hat, d_hat
+        hg = min(dt, self.generator_max_step())
+        self.q_ref = self.q_ref + hg * dq
+        self.v_ref = self.v_ref + hg * dv
+
+    def generator_max_step(self) -> float:
+        """Longest explicit-Euler step (s) of this agent's generator: 1 / (max(mu1, mu2) d_i),
+        d_i = sum_j a_ij + b_i. Within it the agent's own feedback terms of (16)-(17)
+        (-mu d_i q*_i, -mu d_i v*_i) contract without changing sign (the Euler factor
+        1 - mu d_i h stays in [0, 1)). Infinite for an isolated, unpinned agent."""
+        r = self.row
+        d = float(np.sum(r.weights)) + r.b
+        mu = max(r.mu1, r.mu2)
+        return 1.0 / (mu * d) if mu * d > 0.0 else math.inf
 
     def tick(
         self,
@@ -210,7 +263,7 @@ class AgentCore:
 
     def finish(self, q_meas: np.ndarray, v_meas: np.ndarray, rates: Rates, dt: float | None = None) -> AgentCommand:
         """Steps 4-6 with the tick's generator rates (from :meth:`rates` or :meth:`rates_from`):
-        :meth:`command`, then :meth:`advance` over ``dt`` s (default ``row.dt``). Returns the command."""
+        :meth:`command`, then :meth:`advance` over ``dt`` (s; None = ``row.dt``). Returns the command."""
         dq, dv = rates
         cmd = self.command(q_meas, v_meas, dv)
         self.advance(q_meas, cmd.u, dq, dv, dt)

@@ -19,7 +19,12 @@ faults each input goes through its link's :class:`zenswarm.linkfaults.Box` (hold
 exactly as in the in-process simulator. A (re)started agent joins at the first state it sees and
 restarts its generator from it.
 Realtime: the same computation at the control rate on the wall clock with the latest values
-(:class:`zenswarm.runtime.WallClock`).
+(:class:`zenswarm.runtime.WallClock`), on each new state; when states were skipped (late, lost,
+or a MAVLink vehicle's telemetry slower than the control rate) the ESO and the generator integrate
+over the time that elapsed since the state last ticked on (its tick index, see
+:func:`zenswarm.agents.core.elapsed_dt` and :meth:`zenswarm.agents.core.AgentCore.advance_elapsed`),
+so the references keep pace with the leader, which catches up to the clock. Counters
+``skipped_ticks`` and ``max_gap_ticks`` in the diagnostics.
 
 Started with :class:`AgentOptions` by :func:`run` (the command line is parsed at the edge,
 :mod:`zenswarm.compose.roles`).
@@ -33,7 +38,7 @@ from typing import Any
 
 from zenswarm import wire
 from zenswarm.agents.api import Command, Controller, finish, make_controller, prepare
-from zenswarm.agents.core import AgentRow
+from zenswarm.agents.core import AgentRow, elapsed_dt
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters
 from zenswarm.params import QuadParams
@@ -154,9 +159,11 @@ class _Agent:
         """Phase 1 of a tick from the inputs given (a missing neighbour or leader: None)."""
         return prepare(self.ctrl, [inputs.get(key) for key in self.nbr_keys], inputs.get(self.keys.leader_ref))
 
-    def tick(self, k: int, st: wire.State, prepared: Any) -> None:
-        """Tick k (phase 2 with the state): publish cmd(k), then ref(k+1). dt: the nominal tick."""
-        cmd = finish(self.ctrl, st.q, st.v, prepared, self.dt)
+    def tick(self, k: int, st: wire.State, prepared: Any, dt: float | None = None) -> None:
+        """Tick k (phase 2 with the state) over ``dt`` s (None: one control period, always so in
+        lockstep; a realtime agent that skipped ticks passes the time that elapsed), then publish
+        cmd(k) and ref(k+1)."""
+        cmd = finish(self.ctrl, st.q, st.v, prepared, self.dt if dt is None else dt)
         self.gen += 1
         t = st.t if self.proc.options.realtime else k * self.dt_ns
         self.publish_cmd(t, cmd)
@@ -305,6 +312,7 @@ def _run_realtime(a: _Agent) -> int:
     proc.announce()
     clock = WallClock(a.dt, proc.stop)
     last_state_t = -1
+    k_prev: int | None = None
     limit_ns = wire.t_ns(a.sc.timing.time_limit_s)
     while not (last_state_t >= 0 and not proc.is_alive("plant")) and clock.wait():
         # (the plant gone: its last messages may never come, the flight is over)
@@ -318,7 +326,16 @@ def _run_realtime(a: _Agent) -> int:
         k = int(round(st.t / a.dt_ns))
         if not a.ctrl.initialised:
             a.start(st, k)
-        a.tick(k, st, a.prepare({key: m for key in a.input_keys if (m := proc.inbox.latest.get(key)) is not None}))
+            k_prev = None
+        # Integrate over the time that elapsed since the state we last ticked on (states we
+        # never saw, or saw too late, were skipped): the generator keeps pace with the leader.
+        dt = elapsed_dt(k, k_prev, a.dt)
+        if dt is not None and k_prev is not None:
+            proc.counters["skipped_ticks"] += k - k_prev - 1
+            proc.counters["max_gap_ticks"] = max(proc.counters["max_gap_ticks"], k - k_prev)
+        a.tick(k, st, a.prepare({key: m for key in a.input_keys if (m := proc.inbox.latest.get(key)) is not None}), dt)
+        k_prev = k
+        proc.inbox.forget_before(k - 2)  # only the latest values are used: keep memory flat
         if clock.stats.ticks % 100 == 0:
             proc.publish_diag(st.t, clock.stats.as_dict())
     proc.publish_diag(max(last_state_t, 0), clock.stats.as_dict())

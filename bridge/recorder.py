@@ -69,6 +69,7 @@ from zenswarm import __version__, bus, security, wire
 from zenswarm.bridge.args import add_fault_args, add_plugin_args, add_security_args, client_security, link_faults
 from zenswarm.bridge.mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME
 from zenswarm.paths import check_output_file
+from zenswarm.runtime import gc_policy, gc_safe_point, gc_startup_done
 
 __all__ = [
     "PROCESS_NAME",
@@ -535,7 +536,9 @@ def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: 
     diag_pub = session.declare_publisher(keys.diag(PROCESS_NAME)) if args.diag_interval > 0 else None
     diag_seq = 0
     next_diag = time.monotonic() + (args.diag_interval if diag_pub is not None else 1e18)
+    gc_startup_done()  # subscribed, writer running: see zenswarm.runtime.GcPolicy
     while not stop.event.is_set():
+        gc_safe_point()
         now = time.monotonic()
         left = min(0.2, next_diag - now)
         if deadline is not None:
@@ -553,7 +556,8 @@ def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: 
             next_diag += args.diag_interval
             st = sink.stats
             diag = wire.Diag(
-                t=st.last_sim_t, seq=diag_seq, process=PROCESS_NAME, counters=st.counters(sink.backlog), info={"file": str(out)}
+                t=st.last_sim_t, seq=diag_seq, process=PROCESS_NAME, counters={**st.counters(sink.backlog), **gc_policy().counters()},
+                info={"file": str(out)},
             )
             diag_pub.put(wire.encode(diag))
 
@@ -562,6 +566,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the recorder until SIGTERM/SIGINT or ``--duration``. Exit code 0 on a clean stop."""
     from zenswarm.config import load_scenario, scenario_to_dict
 
+    gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work
     stop = _Stop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, stop.on_signal)

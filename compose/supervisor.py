@@ -35,6 +35,7 @@ from zenswarm.metrics import add_failure, compute_results
 from zenswarm.paths import check_output_dir, check_output_file
 from zenswarm.plugins import check_selection, select
 from zenswarm.policy import restart_policy
+from zenswarm.runtime import gc_policy, gc_safe_point, gc_startup_done
 
 __all__ = ["add_parsers", "UpOptions", "up_options", "Supervisor", "role_names", "swarm_roles", "check_up_args"]
 
@@ -367,6 +368,7 @@ class Supervisor:
                 self.spawn("recorder")  # first: the plant waits for it, so no tick goes unrecorded
             for role in self.roles():
                 self.spawn(role)
+            gc_startup_done()  # the children are started: see zenswarm.runtime.GcPolicy
             code = self._watch(collector)
         finally:
             self.terminate_all()
@@ -669,6 +671,7 @@ class Supervisor:
             if now - last_print >= self.args.progress_every and not self.args.quiet:
                 last_print = now
                 self._progress(collector, now - wall0)
+            gc_safe_point()
             time.sleep(0.05)
 
     def _check_children(self, collector: Collector, now: float) -> tuple[bool, int | None]:
@@ -844,6 +847,7 @@ def _run_up(ns: argparse.Namespace) -> int:
     check_selection(sc)  # a bad plug-in name or parameter: exit 2 now
     args.faults.plan(sc)  # bad flags: exit 2 now
     check_up_args(args, sc)
+    gc_policy()  # a bad ZENSWARM_GC: exit 2 now
     if args.only:
         return _run_only(args)
     sup = Supervisor(args, sc)

@@ -99,6 +99,7 @@ class _Leader:
             target = 0 if clk is None else int(round(clk.t / self.dt_ns)) + 1
             while core.k < target:
                 core.advance()
+            proc.inbox.forget_before(target - 2)  # only the latest clock is used: keep memory flat
             if core.k != published:
                 self.publish_current()
                 published = core.k

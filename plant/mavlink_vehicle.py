@@ -750,6 +750,9 @@ def run_fleet(
     scenario's ``mavlink.base_port``); ``autopilot`` (``px4`` or ``ardupilot``) and
     ``telemetry_hz`` override the scenario's vehicle options. The command line (``zenswarm
     mavlink-vehicle``, ``zenswarm plant --mavlink``) is parsed in :mod:`zenswarm.compose.roles`."""
+    from zenswarm.runtime import gc_policy, gc_startup_done
+
+    gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work
     fleet = MavlinkFleet.from_scenario(sc, base_port=base_port)
     if autopilot or telemetry_hz:
         opts = fleet.opts
@@ -774,8 +777,10 @@ def run_fleet(
             + f"; physics {1 / fleet.h:g} Hz in chunks of {fleet.chunk}, telemetry {fleet.loop_hz / fleet.tel_every:g} Hz",
             flush=True,
         )
+        gc_startup_done()  # sockets open, vehicles built: see zenswarm.runtime.GcPolicy (safe points: WallClock.wait)
         why = fleet.run(stop, duration)
-        print(f"mavlink-vehicle: stopped ({why}); overruns {fleet.overruns}; " + str(fleet.status()), flush=True)
+        print(f"mavlink-vehicle: stopped ({why}); overruns {fleet.overruns}; {gc_policy().counters()}; " + str(fleet.status()),
+              flush=True)
     finally:
         fleet.close()
     return 0

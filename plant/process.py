@@ -217,6 +217,7 @@ def _run_realtime(p: _Plant) -> int:
             if c is not None and c.t >= core.last_cmd_tick[i] * p.dt_ns:
                 core.hold(i, c.thrust, c.rpy, int(round(c.t / p.dt_ns)))
         p.integrate(k)
+        proc.inbox.forget_before(k - 2)  # only the latest commands are used: keep memory flat
         k += 1
         clock.wait()
         if k % 100 == 0:
