@@ -611,12 +611,36 @@ class Supervisor:
         return None
 
     def _child_state(self, name: str, c: Child) -> str:
-        """One of our roles for the progress line: up, exit N, leaving or starting."""
+        """One of our roles for the progress line: up, exit N, leaving or starting. The simulated
+        MAVLink vehicles have no Zenoh session (no liveliness token): they are up while their
+        process runs and the bridge reports a vehicle past ``connecting`` (it hears them)."""
         if name in self.alive:
             return "up"
         if c.returncode is not None:
             return "exit " + str(c.returncode)
+        if name == "vehicles" and c.popen.poll() is None and self._bridge_hears_vehicles():
+            return "up"
         return "leaving" if name in self.seen else "starting"
+
+    def _bridge_hears_vehicles(self) -> bool:
+        """The bridge's last diag shows a UAV past ``connecting`` (``phases`` = "1:ready,...")."""
+        d = self.collector.diag.get("bridge", {}) if self.collector is not None else {}
+        phases = str(d.get("phases", ""))
+        return any(p.partition(":")[2] not in ("", "connecting") for p in phases.split(","))
+
+    def _vehicles_figures(self, collector: Collector) -> dict[str, Any] | None:
+        """results.json ``vehicles``: the MAVLink vehicles as the bridge last reported them
+        (phases, armed/airborne/unhealthy counts, worst link latency and state age in ms, -1 if
+        unmeasured) and the vehicles process's exit status; None without ``--plant mavlink``."""
+        if "vehicles" not in self.children and "bridge" not in collector.diag:
+            return None
+        d = collector.diag.get("bridge", {})
+        keys = ("phases", "armed_uavs", "airborne_uavs", "unhealthy_uavs", "max_latency_ms", "max_state_age_ms", "refused", "link_lost")
+        out: dict[str, Any] = {k: d[k] for k in keys if k in d}
+        c = self.children.get("vehicles")
+        if c is not None:
+            out["process_exit"] = c.returncode if c.returncode is not None else c.popen.poll()
+        return out
 
     def _health(self) -> str:
         """The roles' states for the progress line: ours (up, starting, leaving, exit N) and the external
@@ -765,7 +789,9 @@ class Supervisor:
         """What results.json says of the run beside the verdict: mode, processes, recording, diagnostics."""
         res["mode"] = "realtime" if self.args.realtime else "lockstep"
         res["swarm"] = self.args.swarm
-        res["processes"] = {name: c.returncode for name, c in self.children.items()}
+        # a child stopped by terminate_all has its code on popen only (returncode is set when one dies)
+        res["processes"] = {name: c.returncode if c.returncode is not None else c.popen.poll() for name, c in self.children.items()}
+        res["vehicles"] = self._vehicles_figures(collector)
         res["process_deaths"] = self.deaths
         if self.args.record is not None:
             res["recording"] = str(self.args.record)

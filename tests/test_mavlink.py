@@ -450,7 +450,7 @@ def test_bridge_asks_each_vehicle_for_its_telemetry_rate():
             now = time.monotonic()
             b.poll(now)
             b.advance(now)
-            return b.links[0].phase == "stream"
+            return b.links[0].phase == "params"  # met: telemetry asked for, parameters next
 
         wait_until(step, 3.0, "the bridge meeting the vehicle")
         got: dict[int, tuple[float, int, int]] = {}

@@ -33,6 +33,11 @@ __all__ = [
     "MavlinkSettings",
     "mavlink_settings",
     "load_mavutil",
+    "AUTOPILOT_PARAMS",
+    "GUID_OPTIONS_THRUST_AS_THRUST",
+    "VehicleParams",
+    "vehicle_params",
+    "param_value",
 ]
 
 
@@ -164,7 +169,11 @@ _MAV_KEYS: dict[str, str] = {
     "takeoff": "fly to the scenario's initial positions before the mission (default true)",
     "takeoff_tolerance_m": "takeoff done within this distance, m (default 0.08)",
     "takeoff_timeout_s": "give up a takeoff after this long, s (default 30)",
-    "link_timeout_s": "a vehicle silent this long is unhealthy, s (default 1.0)",
+    "link_timeout_s": (
+        "a vehicle silent this long is unhealthy, s (default 0.5); must be below the simulated vehicles' offboard_loss_s "
+        "and, checked on each vehicle before arming, below PX4 COM_OF_LOSS_T / ArduPilot GUID_TIMEOUT"
+    ),
+    "params_timeout_s": "give up reading (or setting) a vehicle's parameters after this long: the UAV is refused, s (default 5)",
     "stream_s": "setpoints streamed before asking for the offboard mode, s (default 1.0)",
     "cmd_timeout_s": "an agent command older than this is replaced by a position hold, s (default 0.5)",
     "land_timeout_s": "wait at most this long for the vehicles to land and disarm, s (default 15)",
@@ -200,7 +209,8 @@ class MavlinkSettings:
     takeoff: bool = True
     takeoff_tolerance_m: float = 0.08
     takeoff_timeout_s: float = 30.0
-    link_timeout_s: float = 1.0
+    link_timeout_s: float = 0.5
+    params_timeout_s: float = 5.0
     stream_s: float = 1.0
     cmd_timeout_s: float = 0.5
     land_timeout_s: float = 15.0
@@ -264,6 +274,13 @@ def _table_with(sc: Scenario, cli: dict[str, Any]) -> MavlinkTable:
     _per_uav(t, "connections", n, "connection strings")
     _per_uav(t, "sysids", n, "system ids")
     _per_uav(t, "origins", n, "[x, y, z] points, m ENU")
+    if not t.link_timeout_s < t.offboard_loss_s:
+        # the bridge must notice a silent vehicle before the vehicle's own offboard-loss failsafe
+        # fires, or the failsafe's mode change looks like a pilot taking over (docs/mavlink.md)
+        raise ScenarioError(
+            "mavlink.link_timeout_s",
+            f"must be below mavlink.offboard_loss_s ({t.offboard_loss_s:g} s, the vehicles' offboard-loss time), got {t.link_timeout_s:g}",
+        )
     return t
 
 
@@ -283,12 +300,115 @@ def _links(t: MavlinkTable, n: int, conn_over: dict[int, str], sysid_over: dict[
     _override("--conn", conns, conn_over, _check_url)
     sysids = list(t.sysids or range(1, n + 1))
     _override("--sysid", sysids, sysid_over, lambda f, s: _int(f, s, 1, 254))
-    seen: dict[tuple[str, int], int] = {}
-    for i, (c, s) in enumerate(zip(conns, sysids, strict=True)):
-        if (c, s) in seen:
-            raise ScenarioError("mavlink.sysids", f"UAV {seen[(c, s)] + 1} and UAV {i + 1} share connection {c!r} and system id {s}")
-        seen[(c, s)] = i
+    seen: dict[int, int] = {}
+    for i, s in enumerate(sysids):
+        # MAVLink system ids must be unique on a network (routers and ground stations tell the
+        # vehicles apart by id alone), whether or not the vehicles share a connection
+        if s in seen:
+            where = "share connection " + repr(conns[i]) + " and" if conns[i] == conns[seen[s]] else "have the same"
+            raise ScenarioError("mavlink.sysids", f"UAV {seen[s] + 1} and UAV {i + 1} {where} system id {s}: give each vehicle its own")
+        if s == t.source_system:
+            raise ScenarioError(
+                "mavlink.sysids",
+                f"UAV {i + 1} has system id {s}, the bridge's own (mavlink.source_system): the bridge would take "
+                "its own messages for the vehicle's; change one of them",
+            )
+        seen[s] = i
     return conns, sysids
+
+
+# --------------------------------------------------------------------------- parameters
+
+AUTOPILOT_PARAMS: dict[str, tuple[str, ...]] = {
+    "px4": ("MPC_THR_HOVER", "COM_OF_LOSS_T"),
+    "ardupilot": ("GUID_OPTIONS", "GUID_TIMEOUT"),
+}
+"""Parameters the bridge reads (PARAM_REQUEST_READ) from each vehicle before arming.
+
+PX4: ``MPC_THR_HOVER`` (hover thrust, normalised 0..1: the throttle of SET_ATTITUDE_TARGET at
+which the vehicle hovers; PX4 ``mc_pos_control`` parameters) and ``COM_OF_LOSS_T`` (s without
+offboard setpoints before the offboard-loss failsafe; PX4 ``commander`` parameters).
+ArduCopter: ``GUID_OPTIONS`` (bitmask; bit 3 ``SetAttitudeTarget_ThrustAsThrust``, ArduCopter
+``mode.h``) and ``GUID_TIMEOUT`` (s without guided setpoints before the vehicle stops following
+them: levels out / holds; ArduCopter ``Parameters.cpp``)."""
+
+GUID_OPTIONS_THRUST_AS_THRUST = 1 << 3
+"""ArduCopter ``GUID_OPTIONS`` bit 3 (``ModeGuided::Option::SetAttitudeTarget_ThrustAsThrust``,
+ArduCopter ``mode.h``): SET_ATTITUDE_TARGET.thrust is a thrust (0..1 throttle). Clear (the
+default) it is a climb rate: 0.5 holds the altitude, less descends
+(``ModeGuided::set_attitude_target_provides_thrust`` in ``mode_guided.cpp``)."""
+
+_PX4_INT_TYPES = (1, 2, 3, 4, 5, 6)  # MAV_PARAM_TYPE_UINT8..INT32: PX4 sends their bytes in the float
+
+
+def param_value(autopilot: str, param_type: int, value: float) -> float:
+    """A PARAM_VALUE's ``param_value`` as a number. ArduPilot casts integers to float (C cast);
+    PX4 copies an integer's bytes into the float field (``MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE``),
+    so they are read back bytewise."""
+    if autopilot == "px4" and int(param_type) in _PX4_INT_TYPES:
+        import struct
+
+        return float(struct.unpack("<i", struct.pack("<f", float(value)))[0])
+    return float(value)
+
+
+@dataclass(frozen=True)
+class VehicleParams:
+    """What the bridge does with one vehicle's parameters (:func:`vehicle_params`).
+
+    hover_throttle: SET_ATTITUDE_TARGET throttle at which the vehicle hovers, (0, 1), or None
+    (the scenario's ``thrust / max_thrust``). loss_timeout_s: the vehicle's own setpoint-loss
+    time, s. set_guid_options: ArduCopter only: the ``GUID_OPTIONS`` value to write (PARAM_SET)
+    before arming, or None if it is right already. error: why the vehicle must not be flown, or
+    "". notes: what was decided, for the log."""
+
+    hover_throttle: float | None
+    loss_timeout_s: float
+    set_guid_options: int | None = None
+    error: str = ""
+    notes: str = ""
+
+
+def vehicle_params(
+    autopilot: str, params: dict[str, float], link_timeout_s: float, setpoint: str, hover_throttle: float | None = None
+) -> VehicleParams:
+    """Decide the thrust mapping and check the link timeout from a vehicle's parameters
+    (the names of :data:`AUTOPILOT_PARAMS`; all present).
+
+    PX4: the hover throttle is ``MPC_THR_HOVER`` unless the ``hover_throttle`` setting overrides
+    it; the loss time is ``COM_OF_LOSS_T``. ArduCopter: with ``setpoint = "attitude"`` the
+    bridge sends thrusts, so ``GUID_OPTIONS`` must have bit 3 set (else 0.444, the scenario's
+    hover thrust, would be read as "descend"): if it is clear, ``set_guid_options`` asks the
+    bridge to set it (the documented choice, docs/mavlink.md); the hover throttle is the
+    ``hover_throttle`` setting, else the scenario's (set it to ``MOT_THST_HOVER``). The loss time
+    is ``GUID_TIMEOUT``. ``link_timeout_s`` must be below the loss time, or ``error`` says so.
+    """
+    set_opts: int | None = None
+    if autopilot == "ardupilot":
+        loss = float(params["GUID_TIMEOUT"])
+        opts = int(params["GUID_OPTIONS"])
+        notes = f"GUID_TIMEOUT {loss:g} s, GUID_OPTIONS {opts}"
+        if setpoint == "attitude" and not opts & GUID_OPTIONS_THRUST_AS_THRUST:
+            set_opts = opts | GUID_OPTIONS_THRUST_AS_THRUST
+            notes += f" (thrust would be a climb rate: setting GUID_OPTIONS = {set_opts}, thrust as thrust)"
+        hover = hover_throttle
+    else:
+        loss = float(params["COM_OF_LOSS_T"])
+        thr = float(params["MPC_THR_HOVER"])
+        notes = f"COM_OF_LOSS_T {loss:g} s, MPC_THR_HOVER {thr:g}"
+        if not 0.0 < thr < 1.0:
+            return VehicleParams(None, loss, None, f"MPC_THR_HOVER = {thr:g} is not a hover thrust in (0, 1)", notes)
+        if hover_throttle is not None and abs(hover_throttle - thr) > 1e-6:
+            notes += f" (mavlink.hover_throttle {hover_throttle:g} overrides it)"
+        hover = hover_throttle if hover_throttle is not None else thr
+    name = "GUID_TIMEOUT" if autopilot == "ardupilot" else "COM_OF_LOSS_T"
+    if not link_timeout_s < loss:
+        err = (
+            f"mavlink.link_timeout_s ({link_timeout_s:g} s) is not below the vehicle's {name} ({loss:g} s): the bridge "
+            f"would not notice a lost link before the vehicle's failsafe; lower link_timeout_s or raise {name}"
+        )
+        return VehicleParams(hover, loss, set_opts, err, notes)
+    return VehicleParams(hover, loss, set_opts, "", notes)
 
 
 def mavlink_settings(sc: Scenario, cli: dict[str, Any] | None = None) -> MavlinkSettings:
