@@ -316,6 +316,7 @@ class SimVehicle:
         """The parameter protocol (see :mod:`zenswarm.plant.mavlink_params`)."""
         store = self.ap_params
         mtype = m.get_type()
+        i: int | None
         if mtype == "PARAM_REQUEST_LIST":
             self._count("param_lists")
             for i in range(len(store)):
