@@ -67,6 +67,7 @@ from zenswarm.autopilot import (
 )
 from zenswarm.params import QuadParams
 from zenswarm.plant.disturbance import DisturbanceModel
+from zenswarm.plant.mavlink_params import ParamStore, ardupilot_params, px4_params
 from zenswarm.plant.quadrotor import PlantState, initial_state, step
 
 mavutil = load_mavutil()
@@ -91,8 +92,9 @@ class VehicleOptions:
     offboard_loss_s: a setpoint must be this recent to enter OFFBOARD or arm in it; no setpoint
         for this long in OFFBOARD -> HOLD (PX4 COM_OF_LOSS_T), s.
     failsafe_land_s: after that HOLD, still no setpoint for this long -> LAND, s.
-    land_speed: descent rate in LAND, m/s. disarm_after_land_s: on the ground in LAND this long
-        -> disarm, s.
+    land_speed: descent rate in LAND, m/s, the initial MPC_LAND_SPEED / LAND_SPEED (None: the
+        autopilot's default, 0.7 / 0.5 m/s). disarm_after_land_s: on the ground in LAND this long
+        -> disarm, s (None: PX4 COM_DISARM_LAND 2 s; ArduCopter 1 s, its land detector's time).
     ground_z: ground height, m ENU. pos_kp (1/s^2), pos_kd (1/s): the vehicle's own position PD.
     max_pos_err: position error clipped to this norm in the PD, m (limits the approach speed).
     hover_throttle: the vehicle's throttle at hover, or None (thrust = throttle * max_thrust).
@@ -105,8 +107,8 @@ class VehicleOptions:
     sys_status_hz: float = 1.0
     offboard_loss_s: float = 1.0  # PX4 COM_OF_LOSS_T default
     failsafe_land_s: float = 5.0
-    land_speed: float = 0.5
-    disarm_after_land_s: float = 0.5
+    land_speed: float | None = None
+    disarm_after_land_s: float | None = None
     ground_z: float = 0.0
     pos_kp: tuple[float, float, float] = (4.0, 4.0, 6.0)
     pos_kd: tuple[float, float, float] = (3.5, 3.5, 4.5)
@@ -117,8 +119,10 @@ class VehicleOptions:
     def __post_init__(self) -> None:
         if self.autopilot not in ("px4", "ardupilot"):
             raise ValueError(f"VehicleOptions.autopilot must be 'px4' or 'ardupilot', got {self.autopilot!r}")
-        for name in ("telemetry_hz", "heartbeat_hz", "sys_status_hz", "offboard_loss_s", "land_speed"):
+        for name in ("telemetry_hz", "heartbeat_hz", "sys_status_hz", "offboard_loss_s", "land_speed", "disarm_after_land_s"):
             x = getattr(self, name)
+            if x is None and name in ("land_speed", "disarm_after_land_s"):
+                continue
             if not (math.isfinite(x) and x > 0):
                 raise ValueError(f"VehicleOptions.{name} must be > 0, got {x!r}")
 
@@ -169,6 +173,12 @@ class SimVehicle:
         self.params = params
         self.boot = boot
         self.tmap = frames.ThrustMap(params.max_thrust, params.hover_thrust, opts.hover_throttle)
+        hover_u = float(self.tmap.to_normalized(params.hover_thrust))
+        if opts.autopilot == "ardupilot":
+            specs = ardupilot_params(sysid, hover_u, opts.land_speed)
+        else:
+            specs = px4_params(sysid, hover_u, opts.offboard_loss_s, opts.land_speed)
+        self.ap_params = ParamStore(specs, bytewise=opts.autopilot == "px4")
         self.conn = mavutil.mavlink_connection(
             f"udpin:{opts.host}:{port}", source_system=sysid, source_component=mavlink.MAV_COMP_ID_AUTOPILOT1, udp_timeout=5
         )
@@ -214,7 +224,31 @@ class SimVehicle:
         return int((now - self.boot) * 1000.0) & 0xFFFFFFFF
 
     def _setpoint_fresh(self, now: float) -> bool:
-        return now - self.last_sp <= self.opts.offboard_loss_s
+        return now - self.last_sp <= self.loss_s
+
+    # ------------------------------------------------------------------ parameters the vehicle follows
+    @property
+    def loss_s(self) -> float:
+        """Offboard-loss time, s: PX4 COM_OF_LOSS_T (ArduCopter: the option, see GUID_TIMEOUT)."""
+        if self.opts.autopilot == "px4":
+            return self.ap_params["COM_OF_LOSS_T"]
+        return self.opts.offboard_loss_s
+
+    @property
+    def land_speed(self) -> float:
+        """Descent rate in LAND, m/s (PX4 MPC_LAND_SPEED, ArduCopter LAND_SPEED in cm/s)."""
+        if self.opts.autopilot == "px4":
+            return self.ap_params["MPC_LAND_SPEED"]
+        return self.ap_params["LAND_SPEED"] / 100.0
+
+    @property
+    def disarm_after_land_s(self) -> float:
+        """Time on the ground in LAND before the auto-disarm, s."""
+        if self.opts.disarm_after_land_s is not None:
+            return self.opts.disarm_after_land_s
+        if self.opts.autopilot == "px4":
+            return max(self.ap_params["COM_DISARM_LAND"], 0.0)  # PX4 commander: auto-disarm on land
+        return 1.0  # ArduCopter mode_land.cpp: disarms once the land detector (about 1 s) says landed
 
     def _enter(self, custom_mode: int, q: np.ndarray, yaw: float) -> None:
         """Switch mode; HOLD and LAND remember where they were entered."""
@@ -273,8 +307,35 @@ class SimVehicle:
                 self._set_mode(int(m.custom_mode), now, q, yaw)
         elif mtype == "HEARTBEAT":
             self._count("peer_heartbeats")
+        elif mtype in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET"):
+            self._param(m)
         else:
             self._count("ignored")
+
+    def _param(self, m: Any) -> None:
+        """The parameter protocol (see :mod:`zenswarm.plant.mavlink_params`)."""
+        store = self.ap_params
+        mtype = m.get_type()
+        i: int | None
+        if mtype == "PARAM_REQUEST_LIST":
+            self._count("param_lists")
+            for i in range(len(store)):
+                self._send_param(i)
+            return
+        if mtype == "PARAM_REQUEST_READ":
+            self._count("param_reads")
+            i = store.lookup(m.param_id, int(m.param_index))
+        else:
+            self._count("param_sets")
+            i = store.handle_set(m.param_id, float(m.param_value))
+        if i is None:
+            self._count("param_unknown")  # both autopilots stay silent
+            return
+        self._send_param(i)
+
+    def _send_param(self, i: int) -> None:
+        if not self.muted(time.monotonic()):
+            self.conn.mav.param_value_send(*self.ap_params.value_msg(i))
 
     def _command(self, m: Any, now: float, q: np.ndarray, yaw: float) -> None:
         p = (m.param1, m.param2, m.param3, m.param4, m.param5, m.param6, m.param7)
@@ -404,7 +465,7 @@ class SimVehicle:
             self.hold_enu, self.hold_yaw = q.copy(), float(rpy[2])
         if k == LAND:
             p_ref = np.array([self.hold_enu[0], self.hold_enu[1], math.nan])
-            return self._pd(q, v, p_ref, np.array([0.0, 0.0, -self.opts.land_speed]), self.hold_yaw)
+            return self._pd(q, v, p_ref, np.array([0.0, 0.0, -self.land_speed]), self.hold_yaw)
         return self._pd(q, v, self.hold_enu, np.zeros(3), self.hold_yaw)  # HOLD (and unknown modes)
 
     def _mode_logic(self, now: float, q: np.ndarray, rpy: np.ndarray) -> str | None:
@@ -414,16 +475,16 @@ class SimVehicle:
             self._enter(self.mode_override, q, rpy[2])
         k = self.kind()
         since = now - self.last_sp
-        if k == OFFBOARD and since > self.opts.offboard_loss_s:
+        if k == OFFBOARD and since > self.loss_s:
             self._enter(self.opts.modes["hold"], q, rpy[2])
             self.failsafe = True  # offboard loss: hold, then land
             self._count("failsafe_hold")
             k = HOLD
-        elif self.failsafe and k == HOLD and self.armed and since > self.opts.offboard_loss_s + self.opts.failsafe_land_s:
+        elif self.failsafe and k == HOLD and self.armed and since > self.loss_s + self.opts.failsafe_land_s:
             self._enter(self.opts.modes["land"], q, rpy[2])
             self._count("failsafe_land")
             k = LAND
-        if k == LAND and self.armed and self.on_ground and now - self.ground_since >= self.opts.disarm_after_land_s:
+        if k == LAND and self.armed and self.on_ground and now - self.ground_since >= self.disarm_after_land_s:
             self.armed = False  # landed: auto-disarm (PX4 COM_DISARM_LAND)
             self._count("auto_disarmed")
         return k
