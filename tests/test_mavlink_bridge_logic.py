@@ -110,13 +110,17 @@ def test_vehicle_params_px4_hover_thrust_and_offboard_loss():
 
 
 def test_vehicle_params_ardupilot_guid_options_thrust_bit():
+    def ap(opts: int, timeout: float = 3.0, setpoint: str = "attitude") -> Any:
+        return vehicle_params("ardupilot", {"GUID_OPTIONS": opts, "GUID_TIMEOUT": timeout, "MOT_THST_HOVER": 0.35}, 0.5, setpoint)
+
     # default GUID_OPTIONS = 0: thrust would be a climb rate (0.5 = hold) -> the bridge sets bit 3
-    vp = vehicle_params("ardupilot", {"GUID_OPTIONS": 0, "GUID_TIMEOUT": 3.0}, 0.5, "attitude")
+    vp = ap(0)
     assert vp.set_guid_options == GUID_OPTIONS_THRUST_AS_THRUST == 8 and vp.loss_timeout_s == 3.0 and not vp.error
-    assert vehicle_params("ardupilot", {"GUID_OPTIONS": 1, "GUID_TIMEOUT": 3.0}, 0.5, "attitude").set_guid_options == 9
-    assert vehicle_params("ardupilot", {"GUID_OPTIONS": 8, "GUID_TIMEOUT": 3.0}, 0.5, "attitude").set_guid_options is None
-    assert vehicle_params("ardupilot", {"GUID_OPTIONS": 0, "GUID_TIMEOUT": 3.0}, 0.5, "position").set_guid_options is None
-    assert "GUID_TIMEOUT" in vehicle_params("ardupilot", {"GUID_OPTIONS": 8, "GUID_TIMEOUT": 0.4}, 0.5, "attitude").error
+    assert vp.hover_throttle == 0.35  # with thrust as thrust, the throttle that hovers is MOT_THST_HOVER
+    assert ap(1).set_guid_options == 9  # the other bits are kept
+    assert ap(8).set_guid_options is None
+    assert ap(0, setpoint="position").set_guid_options is None  # position targets: thrust unused
+    assert "GUID_TIMEOUT" in ap(8, timeout=0.4).error
 
 
 def test_param_value_decoding():
@@ -256,6 +260,7 @@ def test_params_phase_sets_ardupilot_thrust_bit_and_waits_for_the_echo():
     _advance(b, 0.0)
     _param(b, 1, "GUID_OPTIONS", 0.0, mavlink.MAV_PARAM_TYPE_INT32)
     _param(b, 1, "GUID_TIMEOUT", 3.0)
+    _param(b, 1, "MOT_THST_HOVER", 0.35)
     _advance(b, 0.1)
     sets = [a for n, a in recs[0].sent if n == "param_set"]
     assert lk.phase == "params" and sets and sets[0][2] == b"GUID_OPTIONS" and sets[0][3] == 8.0

@@ -165,7 +165,10 @@ _MAV_KEYS: dict[str, str] = {
     "autopilot": "px4 | ardupilot | auto (bridge: from the vehicle's heartbeat; default auto)",
     "setpoint": "attitude (SET_ATTITUDE_TARGET from uav/<i>/cmd) | position (SET_POSITION_TARGET_LOCAL_NED from uav/<i>/ref)",
     "rate_hz": "minimum setpoint rate, Hz, >= 20 (default max(20, control rate))",
-    "hover_throttle": "normalised throttle at which the vehicle hovers, (0, 1) (default: thrust / max_thrust)",
+    "hover_throttle": (
+        "normalised throttle at which the vehicle hovers, (0, 1): overrides the vehicle's MPC_THR_HOVER / MOT_THST_HOVER "
+        "(default: read from the vehicle; before that, thrust / max_thrust)"
+    ),
     "takeoff": "fly to the scenario's initial positions before the mission (default true)",
     "takeoff_tolerance_m": "takeoff done within this distance, m (default 0.08)",
     "takeoff_timeout_s": "give up a takeoff after this long, s (default 30)",
@@ -321,7 +324,7 @@ def _links(t: MavlinkTable, n: int, conn_over: dict[int, str], sysid_over: dict[
 
 AUTOPILOT_PARAMS: dict[str, tuple[str, ...]] = {
     "px4": ("MPC_THR_HOVER", "COM_OF_LOSS_T"),
-    "ardupilot": ("GUID_OPTIONS", "GUID_TIMEOUT"),
+    "ardupilot": ("GUID_OPTIONS", "GUID_TIMEOUT", "MOT_THST_HOVER"),
 }
 """Parameters the bridge reads (PARAM_REQUEST_READ) from each vehicle before arming.
 
@@ -329,8 +332,10 @@ PX4: ``MPC_THR_HOVER`` (hover thrust, normalised 0..1: the throttle of SET_ATTIT
 which the vehicle hovers; PX4 ``mc_pos_control`` parameters) and ``COM_OF_LOSS_T`` (s without
 offboard setpoints before the offboard-loss failsafe; PX4 ``commander`` parameters).
 ArduCopter: ``GUID_OPTIONS`` (bitmask; bit 3 ``SetAttitudeTarget_ThrustAsThrust``, ArduCopter
-``mode.h``) and ``GUID_TIMEOUT`` (s without guided setpoints before the vehicle stops following
-them: levels out / holds; ArduCopter ``Parameters.cpp``)."""
+``mode.h``), ``GUID_TIMEOUT`` (s without guided setpoints before the vehicle stops following
+them: levels out / holds; ArduCopter ``Parameters.cpp``) and ``MOT_THST_HOVER`` (the learnt
+hover throttle, 0..1; ``AP_MotorsMulticopter.cpp``: with thrust as thrust, SET_ATTITUDE_TARGET's
+thrust is that throttle)."""
 
 GUID_OPTIONS_THRUST_AS_THRUST = 1 << 3
 """ArduCopter ``GUID_OPTIONS`` bit 3 (``ModeGuided::Option::SetAttitudeTarget_ThrustAsThrust``,
@@ -379,9 +384,9 @@ def vehicle_params(
     it; the loss time is ``COM_OF_LOSS_T``. ArduCopter: with ``setpoint = "attitude"`` the
     bridge sends thrusts, so ``GUID_OPTIONS`` must have bit 3 set (else 0.444, the scenario's
     hover thrust, would be read as "descend"): if it is clear, ``set_guid_options`` asks the
-    bridge to set it (the documented choice, docs/mavlink.md); the hover throttle is the
-    ``hover_throttle`` setting, else the scenario's (set it to ``MOT_THST_HOVER``). The loss time
-    is ``GUID_TIMEOUT``. ``link_timeout_s`` must be below the loss time, or ``error`` says so.
+    bridge to set it (the documented choice, docs/mavlink.md); the hover throttle is
+    ``MOT_THST_HOVER`` unless the ``hover_throttle`` setting overrides it. The loss time is
+    ``GUID_TIMEOUT``. ``link_timeout_s`` must be below the loss time, or ``error`` says so.
     """
     set_opts: int | None = None
     if autopilot == "ardupilot":
@@ -391,17 +396,18 @@ def vehicle_params(
         if setpoint == "attitude" and not opts & GUID_OPTIONS_THRUST_AS_THRUST:
             set_opts = opts | GUID_OPTIONS_THRUST_AS_THRUST
             notes += f" (thrust would be a climb rate: setting GUID_OPTIONS = {set_opts}, thrust as thrust)"
-        hover = hover_throttle
+        hover_name, name = "MOT_THST_HOVER", "GUID_TIMEOUT"
     else:
         loss = float(params["COM_OF_LOSS_T"])
-        thr = float(params["MPC_THR_HOVER"])
-        notes = f"COM_OF_LOSS_T {loss:g} s, MPC_THR_HOVER {thr:g}"
-        if not 0.0 < thr < 1.0:
-            return VehicleParams(None, loss, None, f"MPC_THR_HOVER = {thr:g} is not a hover thrust in (0, 1)", notes)
-        if hover_throttle is not None and abs(hover_throttle - thr) > 1e-6:
-            notes += f" (mavlink.hover_throttle {hover_throttle:g} overrides it)"
-        hover = hover_throttle if hover_throttle is not None else thr
-    name = "GUID_TIMEOUT" if autopilot == "ardupilot" else "COM_OF_LOSS_T"
+        notes = f"COM_OF_LOSS_T {loss:g} s"
+        hover_name, name = "MPC_THR_HOVER", "COM_OF_LOSS_T"
+    thr = float(params[hover_name])
+    notes += f", {hover_name} {thr:g}"
+    if not 0.0 < thr < 1.0:
+        return VehicleParams(None, loss, None, f"{hover_name} = {thr:g} is not a hover throttle in (0, 1)", notes)
+    if hover_throttle is not None and abs(hover_throttle - thr) > 1e-6:
+        notes += f" (mavlink.hover_throttle {hover_throttle:g} overrides it)"
+    hover = hover_throttle if hover_throttle is not None else thr
     if not link_timeout_s < loss:
         err = (
             f"mavlink.link_timeout_s ({link_timeout_s:g} s) is not below the vehicle's {name} ({loss:g} s): the bridge "
