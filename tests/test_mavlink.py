@@ -474,7 +474,7 @@ def test_bridge_position_setpoints_on_ardupilot_vehicles_in_process():
     SET_POSITION_TARGET_LOCAL_NED (vehicle position loop), then lands (LAND, 9) and the vehicles
     disarm. Driven in process (no bus): get_ref stands in for the agents' refs."""
     base = free_udp_block(3)
-    sc = scenario_from_dict(_doc_with({"base_port": base, "setpoint": "position", "takeoff": False, "stream_s": 0.3}))
+    sc = scenario_from_dict(_doc_with({"base_port": base, "setpoint": "position", "takeoff": True, "stream_s": 0.3}))
     fleet = MavlinkFleet.from_scenario(sc, opts=VehicleOptions(autopilot="ardupilot", offboard_loss_s=1.0)).start()
     targets = {1: [0.3, 0.1, 0.5], 2: [0.1, 0.4, 0.6], 3: [-0.2, -0.3, 0.45]}  # ENU, m
     counters: dict[str, float] = {}
