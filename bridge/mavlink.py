@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -1391,6 +1392,18 @@ def _main_args(args: argparse.Namespace) -> int:
     if getattr(args, "scenario_path", None) is not None:
         args.scenario = args.scenario_path
     args.realtime = True
+    if getattr(args, "scenario", None) is not None:
+        # bad [mavlink] settings or flags (ids, timeouts): exit 2 naming the field before any
+        # work (no Zenoh session, no MAVLink link opened); the process checks again with the
+        # scenario it loads
+        from zenswarm.config import load_scenario
+        from zenswarm.errors import ZenswarmError
+
+        try:
+            mavlink_settings(load_scenario(args.scenario), _cli_overrides(args))
+        except ZenswarmError as e:
+            print(f"bridge: error: {e}", file=sys.stderr, flush=True)
+            return 2
     return run_process(_run, "bridge", args)
 
 
