@@ -214,6 +214,8 @@ class ApGcs(Gcs):
 
     def command(self, cmd: int, *params: float, timeout: float = 1.0) -> int | None:
         p = list(params) + [0.0] * (7 - len(params))
+        while self.c.recv_msg() is not None:  # drop the telemetry queued meanwhile
+            pass
         self.c.mav.command_long_send(self.sysid, 1, cmd, 0, *p)
         ack = self.recv("COMMAND_ACK", timeout, lambda a: a.command == cmd)
         return None if ack is None else int(ack.result)
@@ -332,3 +334,54 @@ def test_ardupilot_guided_nogps_thrust_is_climb_rate_and_guid_timeout(copter: tu
     time.sleep(1.5)  # > GUID_TIMEOUT without targets: level, hold altitude, still GUIDED_NOGPS
     assert abs(float(fleet.state.rpy[0, 1])) < 0.03 and abs(float(fleet.state.v[0, 2])) < 0.1
     assert veh.mode == "GUIDED_NOGPS" and veh.armed
+
+
+@pytest.mark.swarm
+def test_px4_addressing_prearm_body_rates_and_rtl() -> None:
+    """PX4 flavour: a command for another component gets no answer; a failed pre-arm check shows
+    in SYS_STATUS and refuses arming with a STATUSTEXT; body-rate setpoints turn the vehicle;
+    MAV_CMD_NAV_RETURN_TO_LAUNCH climbs to RTL_RETURN_ALT, returns over home, lands, disarms."""
+    port = free_udp_port()
+    fleet = MavlinkFleet([[0.0, 0.0, 0.0]], P, port, VehicleOptions()).start()
+    gcs = ApGcs(port)
+    veh = fleet.vehicles[0]
+    try:
+        assert gcs.recv("HEARTBEAT", 3.0) is not None
+        gcs.c.mav.command_long_send(1, 100, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)  # a camera
+        assert gcs.recv("COMMAND_ACK", 0.5) is None and not veh.armed and veh.counters["other_component"] == 1
+        fleet.set_prearm_failure(0, "Compass not calibrated")
+        assert gcs.recv("SYS_STATUS", 5.0, lambda s: not s.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK)
+        gcs.c.mav.command_long_send(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        text = gcs.recv("STATUSTEXT", 2.0)  # sent before the COMMAND_ACK, as PX4 does
+        ack = gcs.recv("COMMAND_ACK", 2.0)
+        assert text is not None and "Preflight Fail" in text.text and ack.result == mavlink.MAV_RESULT_DENIED
+        fleet.set_prearm_failure(0, None)
+        assert gcs.param_set("MIS_TAKEOFF_ALT", 1.0, REAL32) is not None
+        assert gcs.param_set("RTL_RETURN_ALT", 1.5, REAL32) is not None
+        assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, *[math.nan] * 7) == mavlink.MAV_RESULT_ACCEPTED
+        wait_until(lambda: veh.mode == "AUTO.LOITER", 4.0, "takeoff done -> hold")
+        assert float(fleet.state.q[0, 2]) == pytest.approx(1.0, abs=0.06)
+        # body rates only (attitude ignored): yaw at 0.5 rad/s FRD (clockwise seen from above)
+        t_end = time.monotonic() + 1.0
+        while time.monotonic() < t_end:
+            gcs.c.mav.set_attitude_target_send(0, 1, 1, 0b1000_0000, [1, 0, 0, 0], 0, 0, 0.5, 0.444)
+            time.sleep(0.05)
+        assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0, timeout=2.0) == mavlink.MAV_RESULT_ACCEPTED  # OFFBOARD
+        yaw0 = float(fleet.state.rpy[0, 2])
+        t_end = time.monotonic() + 1.0
+        while time.monotonic() < t_end:
+            gcs.c.mav.set_attitude_target_send(0, 1, 1, 0b1000_0000, [1, 0, 0, 0], 0, 0, 0.5, float(P.hover_thrust / P.max_thrust))
+            time.sleep(0.05)
+        # the rate setpoint is integrated at 0.5 rad/s (scheduling slack); the airframe's slow yaw
+        # loop follows it clockwise (ENU yaw decreasing)
+        assert veh.att_int is not None and -0.65 < float(veh.att_int[2]) - yaw0 < -0.3
+        assert float(fleet.state.rpy[0, 2]) - yaw0 < -0.05
+        assert gcs.command(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH) == mavlink.MAV_RESULT_ACCEPTED
+        wait_until(lambda: float(fleet.state.q[0, 2]) > 1.4, 3.0, "the climb to RTL_RETURN_ALT")
+        wait_until(lambda: not veh.armed, 12.0, "the landing and disarm at home")
+        assert np.linalg.norm(fleet.state.q[0, 0:2]) < 0.1 and veh.mode == "AUTO.RTL"
+    finally:
+        gcs.close()
+        fleet.stop()
+    assert fleet.error is None
