@@ -1372,6 +1372,7 @@ def _cli_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return {
         "conn": pairs(getattr(args, "conn", None), "--conn", str),
         "sysid": pairs(getattr(args, "sysid", None), "--sysid", int),
+        "origin": pairs(getattr(args, "origin", None), "--origin", lambda v: tuple(float(c) for c in v.split(","))),
         "base_port": getattr(args, "base_port", None),
         "host": getattr(args, "mav_host", None),
         "setpoint": getattr(args, "setpoint", None),
@@ -1421,6 +1422,10 @@ def _configure(p: argparse.ArgumentParser) -> None:
         "3=tcp:127.0.0.1:5762, 4=/dev/ttyUSB0,921600 (repeatable; overrides mavlink.connections)",
     )
     g.add_argument("--sysid", action="append", metavar="I=ID", help="MAVLink system id of UAV I's vehicle (repeatable)")
+    g.add_argument(
+        "--origin", action="append", metavar="I=X,Y,Z",
+        help="where UAV I's local NED origin is in the swarm's ENU frame, m (repeatable; overrides mavlink.origins)",
+    )
     g.add_argument("--base-port", type=int, help="default connections udpout:HOST:P+i-1 (overrides mavlink.base_port)")
     g.add_argument("--mav-host", help="host of the default connections (overrides mavlink.host)")
     g.add_argument(

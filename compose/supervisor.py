@@ -209,7 +209,12 @@ class Supervisor:
             return argv + self._recorder_argv()
         if role == "vehicles":  # simulated MAVLink vehicles (no Zenoh): the bridge talks to them over UDP
             a = self.args
-            return argv + ["mavlink-vehicle", str(a.scenario), "--base-port", str(self.mav_base_port), "--telemetry-hz", "100"]
+            # as PX4 SITL and real autopilots: each vehicle's NED about where it booted, and
+            # vehicle i sending from P+40+i to P+i where the bridge listens (udpin)
+            return argv + [
+                "mavlink-vehicle", str(a.scenario), "--base-port", str(self.mav_base_port), "--telemetry-hz", "100",
+                "--own-origin", "--sitl-ports",
+            ]
         if role == "bridge":
             return argv + self._bridge_argv()
         return argv + self._role_argv(role)
@@ -235,6 +240,11 @@ class Supervisor:
         a = self.args
         argv = ["bridge", "mavlink", str(a.scenario), "--base-port", str(self.mav_base_port), "--swarm", a.swarm]
         argv += self._join_words()
+        # the simulated vehicles (own origins, SITL ports): listen where vehicle i sends, and put
+        # its origin where it boots, on the ground under its initial position
+        gz = self.sc.mavlink.ground_z if self.sc.mavlink is not None else 0.0
+        for i, q in enumerate(self.sc.initial_positions):
+            argv += ["--conn", f"{i + 1}=udpin:127.0.0.1:{self.mav_base_port + i}", "--origin", f"{i + 1}={q[0]!r},{q[1]!r},{gz!r}"]
         return argv + a.faults.argv() + (["--expect", "recorder"] if a.record is not None else [])
 
     def _role_argv(self, role: str) -> list[str]:

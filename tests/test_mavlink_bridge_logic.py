@@ -342,3 +342,13 @@ def test_vehicle_time_stamps_and_latency():
     assert lk.tel.rtt_s == pytest.approx(0.02) and lk.tel.clock_from_timesync
     assert lk.info(11.02)["latency_ms"] == pytest.approx(10.0)
     assert b.info(11.02)["max_latency_ms"] == pytest.approx(10.0)
+
+
+def test_origin_flag_overrides_one_uav():
+    s = mavlink_settings(_sc({"origins": [[0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [2.0, 2.0, 0.0]]}), {"origin": {2: (5.0, -1.0, 0.25)}})
+    assert s.origins == ((0.0, 0.0, 0.0), (5.0, -1.0, 0.25), (2.0, 2.0, 0.0))
+    with pytest.raises(ScenarioError) as e:
+        mavlink_settings(_sc({}), {"origin": {4: (0.0, 0.0, 0.0)}})
+    assert e.value.field == "--origin"
+    with pytest.raises(ScenarioError):
+        mavlink_settings(_sc({}), {"origin": {1: (0.0, math.nan, 0.0)}})

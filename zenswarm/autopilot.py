@@ -295,6 +295,14 @@ def _override(flag: str, values: list[Any], over: dict[int, Any], check: Any) ->
         values[i - 1] = check(flag, v)
 
 
+def _check_origin(flag: str, o: Any) -> tuple[float, float, float]:
+    import math
+
+    if not isinstance(o, (tuple, list)) or len(o) != 3 or not all(isinstance(c, (int, float)) and math.isfinite(c) for c in o):
+        raise ScenarioError(flag, f"expected X,Y,Z (m, ENU, finite), got {o!r}")
+    return (float(o[0]), float(o[1]), float(o[2]))
+
+
 def _links(t: MavlinkTable, n: int, conn_over: dict[int, str], sysid_over: dict[int, int]) -> tuple[list[str], list[int]]:
     """Connection string and system id of each UAV; a (connection, id) pair names one vehicle."""
     conns = list(t.connections or [f"udpout:{t.host}:{t.base_port + i}" for i in range(n)])
@@ -422,22 +430,26 @@ def mavlink_settings(sc: Scenario, cli: dict[str, Any] | None = None) -> Mavlink
     :class:`zenswarm.schema.MavlinkTable`), with command-line overrides applied.
 
     cli: optional overrides with the same keys as the table (None values are ignored), plus
-    ``conn`` ({uav: url}) and ``sysid`` ({uav: id}) for single UAVs. Errors are
+    ``conn`` ({uav: url}), ``sysid`` ({uav: id}) and ``origin`` ({uav: (x, y, z)}, m ENU) for
+    single UAVs. Errors are
     :class:`ScenarioError` naming the field (``mavlink.<key>`` or the flag). Keys of the table:
 
     """
     cli = dict(cli or {})
     conn_over: dict[int, str] = cli.pop("conn", None) or {}
     sysid_over: dict[int, int] = cli.pop("sysid", None) or {}
+    origin_over: dict[int, Any] = cli.pop("origin", None) or {}
     t = _table_with(sc, cli)
     n = sc.n
     conns, sysids = _links(t, n, conn_over, sysid_over)
+    origins = [tuple(float(c) for c in o) for o in (t.origins or [(0.0, 0.0, 0.0)] * n)]
+    _override("--origin", origins, origin_over, _check_origin)
     plain = {k: getattr(t, k) for k in _MAV_KEYS if k not in ("connections", "sysids", "origins", "rate_hz")}
     return MavlinkSettings(
         n=n,
         connections=tuple(conns),
         sysids=tuple(sysids),
-        origins=tuple(t.origins or [(0.0, 0.0, 0.0)] * n),
+        origins=tuple(origins),  # type: ignore[arg-type]
         rate_hz=t.rate_hz if t.rate_hz is not None else max(20.0, sc.timing.control_rate_hz),
         **plain,
     )
