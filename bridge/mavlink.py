@@ -7,6 +7,11 @@ mode. For each UAV i it opens (or shares) a MAVLink connection (pymavlink connec
 vehicle with system id ``sysid_i`` and then:
 
 1. sends its own HEARTBEAT at 1 Hz (MAV_TYPE_ONBOARD_CONTROLLER) and waits for the vehicle's;
+   then reads the autopilot's parameters (PX4 ``MPC_THR_HOVER``, ``COM_OF_LOSS_T``; ArduCopter
+   ``GUID_OPTIONS``, ``GUID_TIMEOUT``, ``MOT_THST_HOVER``): the hover throttle of the thrust map,
+   the check that ``link_timeout_s`` is below the vehicle's loss timeout, and on ArduCopter with
+   attitude setpoints ``GUID_OPTIONS`` bit 3 set (thrust as thrust, not a climb rate); a missing
+   or bad parameter refuses the UAV (:func:`zenswarm.autopilot.vehicle_params`);
 2. streams setpoints (a position hold at the current position) for ``stream_s`` seconds before
    asking for the offboard mode, as PX4 requires (it refuses OFFBOARD unless setpoints arrive at
    more than 2 Hz, and leaves it after ``COM_OF_LOSS_T`` without them);
@@ -14,9 +19,12 @@ vehicle with system id ``sysid_i`` and then:
    GUIDED = 4 for position setpoints or a takeoff, GUIDED_NOGPS = 20 for attitude only) and waits
    until the vehicle's heartbeat reports it. It never arms a vehicle whose heartbeat reports a
    mode it did not ask for: if the vehicle acknowledges the request but keeps reporting another
-   mode, the UAV is *refused* (reason in the diag message) and left alone;
+   mode, the UAV is *refused* (reason in the diag message) and left alone. Nor one whose
+   SYS_STATUS reports a present, enabled subsystem unhealthy or failing pre-arm checks
+   (:func:`health_problem`);
 4. arms (MAV_CMD_COMPONENT_ARM_DISARM) and, with ``takeoff = true``, flies to the UAV's initial
-   position of the scenario with position setpoints (ArduPilot: after MAV_CMD_NAV_TAKEOFF);
+   position of the scenario with position setpoints (ArduCopter: MAV_CMD_NAV_TAKEOFF first, and
+   no position target until its altitude is reached, see ``_ardupilot_climb``);
 5. once every UAV is ready (or ``start_timeout_s`` passed) and, unless ``--no-wait-alive``, the
    leader and the agents hold liveliness tokens, starts the mission clock: every control tick it
    publishes ``clock`` and each ready UAV's ``uav/<i>/state`` (from LOCAL_POSITION_NED and
