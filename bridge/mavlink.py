@@ -177,6 +177,7 @@ class Telemetry:
     rpy_ned: np.ndarray | None = None
     rates_frd: np.ndarray | None = None
     att_rx: float = -math.inf
+    att_euler_rx: float = -math.inf  # last ATTITUDE (Euler): ATTITUDE_QUATERNION is then redundant
     pos_boot_s: float | None = None  # the vehicle's time_boot_ms of the position sample, s
     sensors: tuple[int, int, int] | None = None  # SYS_STATUS (present, enabled, health) bitmasks
     ss_rx: float = -math.inf
@@ -499,10 +500,12 @@ class Bridge:
         t = link.tel
         t.rpy_ned = np.array([m.roll, m.pitch, m.yaw])
         t.rates_frd = np.array([m.rollspeed, m.pitchspeed, m.yawspeed])
-        t.att_rx = now
+        t.att_rx = t.att_euler_rx = now
         return True
 
     def _rx_attitude_quaternion(self, link: UavLink, m: Any, now: float) -> bool:
+        if now - link.tel.att_euler_rx < 0.1:
+            return True  # ATTITUDE streams too (same estimate): skip the conversion, a sign of life
         try:
             rpy = frames.quat_to_euler([m.q1, m.q2, m.q3, m.q4])
         except ValueError:
