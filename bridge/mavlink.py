@@ -710,6 +710,8 @@ class Bridge:
                         )
                     self._count("param_sets")
                 return
+        if math.isfinite(link.guid_set_t):
+            vp = VehicleParams(vp.hover_throttle, vp.loss_timeout_s, None, "", vp.notes + " (bit 3 set by the bridge: thrust as thrust)")
         link.vparams = vp
         h = vp.hover_throttle
         link.tmap = frames.ThrustMap(self.max_thrust, self.hover_thrust, h) if h is not None else self.tmap
