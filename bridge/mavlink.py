@@ -7,6 +7,11 @@ mode. For each UAV i it opens (or shares) a MAVLink connection (pymavlink connec
 vehicle with system id ``sysid_i`` and then:
 
 1. sends its own HEARTBEAT at 1 Hz (MAV_TYPE_ONBOARD_CONTROLLER) and waits for the vehicle's;
+   then reads the autopilot's parameters (PX4 ``MPC_THR_HOVER``, ``COM_OF_LOSS_T``; ArduCopter
+   ``GUID_OPTIONS``, ``GUID_TIMEOUT``, ``MOT_THST_HOVER``): the hover throttle of the thrust map,
+   the check that ``link_timeout_s`` is below the vehicle's loss timeout, and on ArduCopter with
+   attitude setpoints ``GUID_OPTIONS`` bit 3 set (thrust as thrust, not a climb rate); a missing
+   or bad parameter refuses the UAV (:func:`zenswarm.autopilot.vehicle_params`);
 2. streams setpoints (a position hold at the current position) for ``stream_s`` seconds before
    asking for the offboard mode, as PX4 requires (it refuses OFFBOARD unless setpoints arrive at
    more than 2 Hz, and leaves it after ``COM_OF_LOSS_T`` without them);
@@ -14,9 +19,12 @@ vehicle with system id ``sysid_i`` and then:
    GUIDED = 4 for position setpoints or a takeoff, GUIDED_NOGPS = 20 for attitude only) and waits
    until the vehicle's heartbeat reports it. It never arms a vehicle whose heartbeat reports a
    mode it did not ask for: if the vehicle acknowledges the request but keeps reporting another
-   mode, the UAV is *refused* (reason in the diag message) and left alone;
+   mode, the UAV is *refused* (reason in the diag message) and left alone. Nor one whose
+   SYS_STATUS reports a present, enabled subsystem unhealthy or failing pre-arm checks
+   (:func:`health_problem`);
 4. arms (MAV_CMD_COMPONENT_ARM_DISARM) and, with ``takeoff = true``, flies to the UAV's initial
-   position of the scenario with position setpoints (ArduPilot: after MAV_CMD_NAV_TAKEOFF);
+   position of the scenario with position setpoints (ArduCopter: MAV_CMD_NAV_TAKEOFF first, and
+   no position target until its altitude is reached, see ``_ardupilot_climb``);
 5. once every UAV is ready (or ``start_timeout_s`` passed) and, unless ``--no-wait-alive``, the
    leader and the agents hold liveliness tokens, starts the mission clock: every control tick it
    publishes ``clock`` and each ready UAV's ``uav/<i>/state`` (from LOCAL_POSITION_NED and
@@ -54,6 +62,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -65,6 +74,8 @@ import numpy as np
 from zenswarm import frames
 from zenswarm.autopilot import (  # re-exported: the mode tables and settings are the bridge's vocabulary
     AP_COPTER_MODES,
+    AUTOPILOT_PARAMS,
+    GUID_OPTIONS_THRUST_AS_THRUST,
     PX4_AUTO_SUB,
     PX4_HOLD,
     PX4_LAND,
@@ -72,14 +83,17 @@ from zenswarm.autopilot import (  # re-exported: the mode tables and settings ar
     PX4_OFFBOARD,
     PX4_POSCTL,
     MavlinkSettings,
+    VehicleParams,
     _same_mode,
     autopilot_name,
     load_mavutil,
     mavlink_settings,
     mode_name,
     mode_request_params,
+    param_value,
     px4_custom_mode,
     px4_decode,
+    vehicle_params,
 )
 from zenswarm.config import Scenario
 from zenswarm.errors import ScenarioError
@@ -89,6 +103,9 @@ mavlink = mavutil.mavlink
 
 __all__ = [
     "Bridge",
+    "vehicle_to_swarm",
+    "swarm_to_vehicle",
+    "health_problem",
     "add_parsers",
     "add_mavlink_parser",
     # re-exported from zenswarm.autopilot: the bridge's vocabulary (modes, settings)
@@ -126,10 +143,16 @@ POS_MASK = (
 )
 
 # phases of a link (diag: uav.<i>.phase)
-CONNECTING, STREAM, MODE, ARM, TAKEOFF, READY, REFUSED, RELEASED, GROUNDED, LANDING, DONE = (
-    "connecting", "stream", "mode", "arm", "takeoff", "ready", "refused", "released", "grounded", "landing", "done",
+CONNECTING, PARAMS, STREAM, MODE, ARM, TAKEOFF, READY, REFUSED, RELEASED, GROUNDED, LANDING, DONE = (
+    "connecting", "params", "stream", "mode", "arm", "takeoff", "ready", "refused", "released", "grounded", "landing", "done",
 )
-_PENDING = (CONNECTING, STREAM, MODE, ARM, TAKEOFF)
+_PENDING = (CONNECTING, PARAMS, STREAM, MODE, ARM, TAKEOFF)
+_PARAM_RETRY_S = 0.5  # PARAM_REQUEST_READ / PARAM_SET repeated this often until answered
+_SYS_STATUS_WAIT_S = 3.0  # ARM: no SYS_STATUS this long -> refused (health unknown)
+_TAKEOFF_RETRY_S = 1.0
+_TIMESYNC_S = 1.0  # TIMESYNC request period per vehicle (link latency)
+# MAV_LANDED_STATE (MAVLink common.xml, sent in EXTENDED_SYS_STATE): IN_AIR, TAKEOFF, LANDING
+_AIRBORNE_STATES = (2, 3, 4)
 _MODE_RETRY_S = 1.0
 _MODE_ATTEMPTS = 8
 _ARM_RETRY_S = 1.0
@@ -154,6 +177,16 @@ class Telemetry:
     rpy_ned: np.ndarray | None = None
     rates_frd: np.ndarray | None = None
     att_rx: float = -math.inf
+    att_euler_rx: float = -math.inf  # last ATTITUDE (Euler): ATTITUDE_QUATERNION is then redundant
+    pos_boot_s: float | None = None  # the vehicle's time_boot_ms of the position sample, s
+    sensors: tuple[int, int, int] | None = None  # SYS_STATUS (present, enabled, health) bitmasks
+    ss_rx: float = -math.inf
+    landed_state: int | None = None  # EXTENDED_SYS_STATE.landed_state (MAV_LANDED_STATE), None: never sent
+    params: dict[str, float] = field(default_factory=dict)  # PARAM_VALUE by name (decoded)
+    param_rx: dict[str, float] = field(default_factory=dict)  # when each parameter was last received
+    rtt_s: float | None = None  # TIMESYNC round trip, s (latest)
+    clock_offset_s: float | None = None  # vehicle clock - bridge monotonic clock, s (TIMESYNC, else time_boot_ms)
+    clock_from_timesync: bool = False
 
 
 class Endpoint:
@@ -231,6 +264,16 @@ class UavLink:
     still_since: float = math.inf
     recovered_t: float = -math.inf
     takeoff_sent: bool = False
+    takeoff_req_t: float = -math.inf
+    takeoff_attempts: int = 0
+    climbed: bool = False  # ArduPilot: the takeoff altitude was reached (position targets allowed)
+    airborne_known: bool = False  # took off under the bridge, or adopted in flight
+    tmap: frames.ThrustMap | None = None  # per vehicle: from its hover throttle parameter
+    vparams: VehicleParams | None = None
+    param_req_t: float = -math.inf
+    guid_set_t: float = -math.inf
+    timesync_t: float = -math.inf
+    state_age_s: float | None = None  # age of the last published state's sample (vehicle time), s
     acks: list[tuple[float, int, int]] = field(default_factory=list)
 
     def info(self, now: float) -> dict[str, Any]:
@@ -245,11 +288,51 @@ class UavLink:
             "silent_s": round(now - t.last_rx, 3) if math.isfinite(t.last_rx) else -1.0,
             "reason": self.reason,
             "url": self.endpoint.url,
+            "params": {k: round(v, 6) for k, v in sorted(t.params.items())},
+            "hover_throttle": self.vparams.hover_throttle if self.vparams is not None else None,
+            "latency_ms": round(t.rtt_s * 500.0, 2) if t.rtt_s is not None else None,
+            "state_age_ms": round(self.state_age_s * 1000.0, 2) if self.state_age_s is not None else None,
+            "landed_state": t.landed_state,
         }
 
 
 def _finite(*xs: float) -> bool:
     return all(math.isfinite(x) for x in xs)
+
+
+def vehicle_to_swarm(p_ned: Any, origin_enu: Any) -> np.ndarray:
+    """A point of a vehicle's own local NED frame (m; origin = that vehicle's estimator origin,
+    which differs from vehicle to vehicle on real autopilots) in the swarm's common ENU frame (m):
+    ``ned_to_enu(p_ned) + origin_enu``; origin_enu (3,) = where the vehicle's local origin is in
+    the swarm frame (``mavlink.origins``)."""
+    return np.asarray(frames.ned_to_enu(np.asarray(p_ned, dtype=float)), dtype=float) + np.asarray(origin_enu, dtype=float)
+
+
+def swarm_to_vehicle(q_enu: Any, origin_enu: Any) -> np.ndarray:
+    """Inverse of :func:`vehicle_to_swarm`: a swarm-frame ENU point (m) in the vehicle's local NED (m)."""
+    return np.asarray(frames.enu_to_ned(np.asarray(q_enu, dtype=float) - np.asarray(origin_enu, dtype=float)), dtype=float)
+
+
+_SENSOR_NAMES = {
+    int(getattr(mavlink, name)): name.removeprefix("MAV_SYS_STATUS_").removeprefix("SENSOR_").lower()
+    for name in dir(mavlink)
+    if name.startswith("MAV_SYS_STATUS_") and not name.endswith("ENUM_END") and isinstance(getattr(mavlink, name), int)
+}
+
+
+def health_problem(present: int, enabled: int, health: int) -> str:
+    """Why a vehicle reporting these SYS_STATUS bitmasks (``onboard_control_sensors_present``,
+    ``_enabled``, ``_health``) must not be armed, or "" if it may. A subsystem that is present and
+    enabled but not healthy blocks arming; ``MAV_SYS_STATUS_PREARM_CHECK`` (PX4 and ArduPilot set
+    it present and enabled, healthy once their pre-arm checks pass; MAVLink common.xml) is
+    reported as the pre-arm checks failing."""
+    bad = int(present) & int(enabled) & ~int(health) & 0xFFFFFFFF
+    if not bad:
+        return ""
+    prearm = int(mavlink.MAV_SYS_STATUS_PREARM_CHECK)
+    names = [_SENSOR_NAMES.get(1 << k, f"bit {k}") for k in range(32) if bad & (1 << k) and (1 << k) != prearm]
+    parts = (["pre-arm checks failing"] if bad & prearm else []) + ([f"unhealthy: {', '.join(names)}"] if names else [])
+    return "; ".join(parts)
 
 
 class Bridge:
@@ -289,6 +372,8 @@ class Bridge:
         self.clock = clock
         params = QuadParams.from_vehicle(scenario.vehicle)
         self.hover_thrust = params.hover_thrust
+        self.max_thrust = params.max_thrust
+        # until a vehicle's parameters are read: the hover_throttle setting, else thrust / max_thrust
         self.tmap = frames.ThrustMap(params.max_thrust, params.hover_thrust, settings.hover_throttle)
         self.yaw_ned = float(frames.euler_enu_to_ned([0.0, 0.0, scenario.controller.yaw])[2])
         self.endpoints: dict[str, Endpoint] = {}
@@ -399,6 +484,13 @@ class Bridge:
         t.pos_ned = np.array([m.x, m.y, m.z])
         t.vel_ned = np.array([m.vx, m.vy, m.vz])
         t.pos_rx = now
+        t.pos_boot_s = m.time_boot_ms / 1000.0
+        if not t.clock_from_timesync:
+            # no TIMESYNC answer (yet): the offset that makes the fastest delivery seen so far
+            # take no time; ages measured with it are upper bounds minus that fastest latency
+            off = t.pos_boot_s - now
+            if t.clock_offset_s is None or off > t.clock_offset_s or off < t.clock_offset_s - 5.0:  # reboot: restart
+                t.clock_offset_s = off
         return True
 
     def _rx_attitude(self, link: UavLink, m: Any, now: float) -> bool:
@@ -408,10 +500,12 @@ class Bridge:
         t = link.tel
         t.rpy_ned = np.array([m.roll, m.pitch, m.yaw])
         t.rates_frd = np.array([m.rollspeed, m.pitchspeed, m.yawspeed])
-        t.att_rx = now
+        t.att_rx = t.att_euler_rx = now
         return True
 
     def _rx_attitude_quaternion(self, link: UavLink, m: Any, now: float) -> bool:
+        if now - link.tel.att_euler_rx < 0.1:
+            return True  # ATTITUDE streams too (same estimate): skip the conversion, a sign of life
         try:
             rpy = frames.quat_to_euler([m.q1, m.q2, m.q3, m.q4])
         except ValueError:
@@ -427,14 +521,61 @@ class Bridge:
         return True
 
     def _rx_command_ack(self, link: UavLink, m: Any, now: float) -> bool:
-        if m.target_system not in (0, self.s.source_system):
-            self._count("mav_unhandled")
+        # an ACK answers whoever sent the command: addressed to another system, or to another
+        # component of ours (a ground station may share the system id), it is not ours
+        if m.target_system not in (0, self.s.source_system) or m.target_component not in (0, mavlink.MAV_COMP_ID_ONBOARD_COMPUTER):
+            self._count("mav_ack_not_ours")
             return False
         link.acks.append((now, int(m.command), int(m.result)))
         del link.acks[:-16]
         return True
 
+    def _rx_sys_status(self, link: UavLink, m: Any, now: float) -> bool:
+        t = link.tel
+        t.sensors = (int(m.onboard_control_sensors_present), int(m.onboard_control_sensors_enabled), int(m.onboard_control_sensors_health))
+        t.ss_rx = now
+        return True
+
+    def _rx_extended_sys_state(self, link: UavLink, m: Any, now: float) -> bool:
+        link.tel.landed_state = int(m.landed_state)
+        return True
+
+    def _rx_param_value(self, link: UavLink, m: Any, now: float) -> bool:
+        name = m.param_id.decode(errors="replace") if isinstance(m.param_id, bytes) else str(m.param_id)
+        name = name.rstrip("\x00")
+        if not math.isfinite(m.param_value):
+            self._count("mav_malformed")
+            return False
+        ap = link.tel.autopilot or link.autopilot
+        link.tel.params[name] = param_value(ap, m.param_type, m.param_value)
+        link.tel.param_rx[name] = now
+        return True
+
+    def _rx_timesync(self, link: UavLink, m: Any, now: float) -> bool:
+        """TIMESYNC answer (tc1 = the vehicle's time, ns; ts1 = ours, echoed): round trip and
+        clock offset (MAVLink timesync protocol; PX4 and ArduPilot both answer). A request from
+        the vehicle (tc1 = 0) is answered."""
+        t = link.tel
+        if m.tc1 == 0:
+            mav = self._mav(link)
+            if mav is not None:
+                mav.timesync_send(int(self.clock() * 1e9), m.ts1)
+            return True
+        sent = m.ts1 / 1e9
+        rtt = now - sent
+        if not 0.0 <= rtt < 10.0:
+            self._count("timesync_stale")
+            return True
+        t.rtt_s = rtt
+        t.clock_offset_s = m.tc1 / 1e9 - (sent + now) / 2.0
+        t.clock_from_timesync = True
+        return True
+
     _RX: ClassVar[dict[str, Callable[[Bridge, UavLink, Any, float], bool]]] = {
+        "SYS_STATUS": _rx_sys_status,
+        "EXTENDED_SYS_STATE": _rx_extended_sys_state,
+        "PARAM_VALUE": _rx_param_value,
+        "TIMESYNC": _rx_timesync,
         "HEARTBEAT": _rx_heartbeat,
         "LOCAL_POSITION_NED": _rx_local_position,
         "ATTITUDE": _rx_attitude,
@@ -520,11 +661,63 @@ class Bridge:
             return
         link.wanted_mode = self._offboard_mode(link)
         self._request_telemetry(link)
-        self._set_phase(link, STREAM, now, "")
+        link.param_req_t = -math.inf
+        self._set_phase(link, PARAMS, now, "")
         self.log(
             f"bridge: uav {link.uav}: vehicle sysid {link.sysid} ({link.autopilot}) on {link.endpoint.url}, "
             f"mode {mode_name(link.autopilot, t.custom_mode)}, {'armed' if t.armed else 'disarmed'}"
         )
+
+    def _step_params(self, link: UavLink, now: float) -> None:
+        """PARAMS -> STREAM once the autopilot's parameters (:data:`AUTOPILOT_PARAMS`) are read
+        and acceptable (:func:`zenswarm.autopilot.vehicle_params`), and ArduCopter's GUID_OPTIONS
+        is written if the thrust mapping needs it (PARAM_SET, confirmed by the PARAM_VALUE echo).
+        REFUSED (the reason names the parameter) after ``params_timeout_s`` or on a bad value."""
+        t = link.tel
+        names = AUTOPILOT_PARAMS[link.autopilot]
+        missing = [n for n in names if n not in t.params]
+        if now - link.phase_t > self.s.params_timeout_s:
+            what = (
+                f"parameter(s) {', '.join(missing)} not received" if missing else "GUID_OPTIONS not confirmed after PARAM_SET"
+            )
+            self._count("params_timeouts")
+            self._refuse(link, now, f"{what} within {self.s.params_timeout_s:g} s (PARAM_REQUEST_READ); not arming")
+            return
+        if missing:
+            if now - link.param_req_t >= _PARAM_RETRY_S:
+                link.param_req_t = now
+                mav = self._mav(link)
+                for n in missing:
+                    if mav is not None:
+                        mav.param_request_read_send(link.sysid, mavlink.MAV_COMP_ID_AUTOPILOT1, n.encode(), -1)
+                    self._count("param_requests")
+            return
+        vp = vehicle_params(link.autopilot, {n: t.params[n] for n in names}, self.s.link_timeout_s, self.s.setpoint, self.s.hover_throttle)
+        if vp.error:
+            self._refuse(link, now, vp.error + "; not arming")
+            return
+        if vp.set_guid_options is not None:
+            if int(t.params["GUID_OPTIONS"]) & GUID_OPTIONS_THRUST_AS_THRUST:  # the echo came
+                vp = VehicleParams(vp.hover_throttle, vp.loss_timeout_s, None, "", vp.notes + " (set)")
+            else:
+                if now - link.guid_set_t >= _PARAM_RETRY_S:
+                    link.guid_set_t = now
+                    mav = self._mav(link)
+                    if mav is not None:
+                        mav.param_set_send(
+                            link.sysid, mavlink.MAV_COMP_ID_AUTOPILOT1, b"GUID_OPTIONS", float(vp.set_guid_options or 0),
+                            mavlink.MAV_PARAM_TYPE_INT32,
+                        )
+                    self._count("param_sets")
+                return
+        if math.isfinite(link.guid_set_t):
+            vp = VehicleParams(vp.hover_throttle, vp.loss_timeout_s, None, "", vp.notes + " (bit 3 set by the bridge: thrust as thrust)")
+        link.vparams = vp
+        h = vp.hover_throttle
+        link.tmap = frames.ThrustMap(self.max_thrust, self.hover_thrust, h) if h is not None else self.tmap
+        hover_u = float(link.tmap.to_normalized(self.hover_thrust))
+        self.log(f"bridge: uav {link.uav}: parameters {vp.notes}; hover throttle {hover_u:.3f}")
+        self._set_phase(link, STREAM, now, "")
 
     def _step_stream(self, link: UavLink, now: float) -> None:
         """STREAM -> MODE after ``stream_s`` of setpoints (a position hold needs a position)."""
@@ -588,6 +781,8 @@ class Bridge:
             self._set_phase(link, GROUNDED, now, "vehicle disarmed while re-engaging; not re-arming")
             return
         if now - link.arm_req_t >= _ARM_RETRY_S and not (link.engaged_once or t.armed):
+            if not self._healthy_to_arm(link, now):
+                return
             if link.arm_attempts >= _ARM_ATTEMPTS:
                 self._refuse(link, now, f"vehicle did not arm after {link.arm_attempts} requests")
                 return
@@ -596,6 +791,23 @@ class Bridge:
             link.arm_req_t = now
             link.armed_by_us = True
             self._count("arm_requests")
+
+    def _healthy_to_arm(self, link: UavLink, now: float) -> bool:
+        """The vehicle's latest SYS_STATUS allows arming (:func:`health_problem`); otherwise
+        REFUSED, saying why (no SYS_STATUS within ``_SYS_STATUS_WAIT_S``, unhealthy subsystems,
+        pre-arm checks failing). The bridge never arms a vehicle that says it is not ready."""
+        t = link.tel
+        if t.sensors is None:
+            if now - link.phase_t >= _SYS_STATUS_WAIT_S:
+                self._count("arm_unhealthy")
+                self._refuse(link, now, f"no SYS_STATUS within {_SYS_STATUS_WAIT_S:g} s: health unknown; not arming")
+            return False
+        why = health_problem(*t.sensors)
+        if why:
+            self._count("arm_unhealthy")
+            self._refuse(link, now, f"vehicle not healthy: {why}; not arming")
+            return False
+        return True
 
     def _armed(self, link: UavLink, now: float) -> None:
         """The vehicle reports armed in the wanted mode: where the ARM phase goes next."""
@@ -607,9 +819,13 @@ class Bridge:
             # flight: adopt it where it is, no takeoff; it is ours to land at the end
             link.engaged_once = True
             link.armed_by_us = True
+            link.airborne_known = True
             self._set_phase(link, READY, now, "vehicle already armed; adopted in place")
         elif self.s.takeoff:
             link.takeoff_sent = False
+            link.takeoff_attempts = 0
+            link.takeoff_req_t = -math.inf
+            link.climbed = False
             self._set_phase(link, TAKEOFF, now, "")
         else:
             link.engaged_once = True
@@ -648,29 +864,58 @@ class Bridge:
         if not self._still_engaged(link, now):
             return
         t = link.tel
-        if link.autopilot == "ardupilot" and not link.takeoff_sent:
-            alt = float(-self._takeoff_ned(link)[2])
-            self._command(link, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, alt)
-            link.takeoff_sent = True
-        if t.pos_ned is not None:
+        if link.autopilot == "ardupilot" and not link.climbed:
+            self._ardupilot_climb(link, now)
+        elif t.pos_ned is not None:
             err = float(np.linalg.norm(t.pos_ned - self._takeoff_ned(link)))
             speed = float(np.linalg.norm(t.vel_ned)) if t.vel_ned is not None else 0.0
             if err <= self.s.takeoff_tolerance_m and speed <= 0.2:
                 link.engaged_once = True
+                link.airborne_known = True
                 self._set_phase(link, READY, now, "")
                 link.hold_ned = self._takeoff_ned(link)  # hold there until the agent commands
                 link.hold_yaw_ned = self.yaw_ned
                 return
         if now - link.phase_t > self.s.takeoff_timeout_s:
             link.engaged_once = True
+            link.airborne_known = True
+            link.climbed = True
             self._set_phase(
                 link, READY, now,
                 f"takeoff not within {self.s.takeoff_tolerance_m:g} m after {self.s.takeoff_timeout_s:g} s; flying anyway",
             )
 
+    def _takeoff_alt(self, link: UavLink) -> float:
+        """Takeoff altitude, m above the vehicle's local origin (ArduCopter: above home)."""
+        return float(-self._takeoff_ned(link)[2])
+
+    def _ardupilot_climb(self, link: UavLink, now: float) -> None:
+        """ArduCopter's takeoff: MAV_CMD_NAV_TAKEOFF (param7 = altitude, m), repeated each
+        second until acknowledged, and NO position target until the altitude is reached. A
+        position target switches GUIDED's sub-mode from TakeOff to a position controller whose
+        run function, while the vehicle is landed, only does ground handling (ArduCopter
+        ``mode_guided.cpp``: ``ModeGuided::set_destination`` -> ``pos_control_start``;
+        ``pos_control_run`` returns early while ``is_disarmed_or_landed()``): the vehicle
+        would never lift off and would auto-disarm."""
+        t = link.tel
+        alt = self._takeoff_alt(link)
+        if t.pos_ned is not None and -float(t.pos_ned[2]) >= alt - max(self.s.takeoff_tolerance_m, 0.1):
+            link.climbed = True
+            link.airborne_known = True
+            self.log(f"bridge: uav {link.uav}: takeoff altitude {alt:.2f} m reached; flying to the initial position")
+            return
+        acked = self._ack(link, mavlink.MAV_CMD_NAV_TAKEOFF, link.takeoff_req_t) == mavlink.MAV_RESULT_ACCEPTED
+        if not acked and now - link.takeoff_req_t >= _TAKEOFF_RETRY_S and link.takeoff_attempts < _ARM_ATTEMPTS:
+            self._command(link, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, alt)
+            link.takeoff_req_t = now
+            link.takeoff_attempts += 1
+            link.takeoff_sent = True
+            self._count("takeoff_requests")
+
     # one step of each pending phase (and READY); the other phases do not move by themselves
     _PHASE_STEPS: ClassVar[dict[str, Callable[[Bridge, UavLink, float], None]]] = {
         CONNECTING: _step_connecting,
+        PARAMS: _step_params,
         STREAM: _step_stream,
         MODE: _step_mode,
         ARM: _step_arm,
@@ -706,7 +951,16 @@ class Bridge:
         return not (link.autopilot == "ardupilot" and link.wanted_mode == AP_COPTER_MODES["GUIDED_NOGPS"])
 
     def _takeoff_ned(self, link: UavLink) -> np.ndarray:
-        return frames.enu_to_ned(link.takeoff_enu - link.origin)
+        return swarm_to_vehicle(link.takeoff_enu, link.origin)
+
+    def _airborne(self, link: UavLink) -> bool:
+        """The vehicle is flying: EXTENDED_SYS_STATE's landed state if the vehicle sends it
+        (IN_AIR, TAKEOFF, LANDING), else whether it took off under the bridge or was adopted in
+        flight. Hover throttle is only ever sent to an airborne vehicle."""
+        ls = link.tel.landed_state
+        if ls is not None and ls != 0:  # 0: MAV_LANDED_STATE_UNDEFINED
+            return ls in _AIRBORNE_STATES
+        return link.airborne_known
 
     @property
     def settled(self) -> bool:
@@ -731,11 +985,22 @@ class Bridge:
                     self._count("mav_send_errors")
         for link in self.links:
             try:
+                self._timesync(link, now)
                 self._send_setpoint(link, now)
             except Exception as e:  # noqa: BLE001
                 self._count("mav_send_errors")
                 if self.counters.get("mav_send_errors", 0) <= 3:
                     self.log(f"bridge: uav {link.uav}: send error {type(e).__name__}: {e}")
+
+    def _timesync(self, link: UavLink, now: float) -> None:
+        """A TIMESYNC request (tc1 = 0, ts1 = our clock, ns) once a second to each vehicle that
+        talks: its answer gives the link's round trip (diag ``latency_ms`` = half of it) and the
+        vehicle's clock offset (state ages from ``time_boot_ms``)."""
+        mav = self._mav(link)
+        if mav is None or not link.tel.hb_count or now - link.timesync_t < _TIMESYNC_S:
+            return
+        link.timesync_t = now
+        mav.timesync_send(0, int(now * 1e9))
 
     def _hold(self, link: UavLink) -> None:
         t = link.tel
@@ -747,7 +1012,13 @@ class Bridge:
         mav = self._mav(link)
         if mav is None or link.phase in (CONNECTING, REFUSED, RELEASED, GROUNDED, LANDING, DONE):
             return
+        if link.phase in (PARAMS,):
+            return  # nothing to hold yet: the vehicle's parameters decide how
         ms = self._ms(now)
+        if link.autopilot == "ardupilot" and self.s.takeoff and not link.engaged_once and not link.climbed:
+            # ArduCopter needs no setpoint stream to enter GUIDED, and a position target before
+            # the takeoff altitude is reached would cancel the takeoff (see _ardupilot_climb)
+            return
         if link.phase == TAKEOFF:
             p = self._takeoff_ned(link)
             self._pos_target(mav, link, ms, p, np.zeros(3), self.yaw_ned)
@@ -758,7 +1029,7 @@ class Bridge:
                 if cmd is not None and age <= self.s.cmd_timeout_s:
                     link.hold_ned = None
                     q = frames.attitude_to_quat_ned(cmd.rpy)
-                    thr = self.tmap.to_normalized(cmd.thrust)
+                    thr = (link.tmap or self.tmap).to_normalized(cmd.thrust)
                     mav.set_attitude_target_send(ms, link.sysid, mavlink.MAV_COMP_ID_AUTOPILOT1, ATT_MASK, q.tolist(), 0.0, 0.0, 0.0, thr)
                     self._count("setpoints_attitude")
                     return
@@ -774,9 +1045,11 @@ class Bridge:
             self._count("cmd_stale_ticks")
         # before the mission, or without a fresh command: hold where the vehicle is
         if not self._needs_position(link):
-            # attitude-only vehicle: level at the current yaw; hover throttle once flying, else 0
+            # attitude-only vehicle: level at the current yaw; hover throttle only to a vehicle
+            # that is flying (never to one on the ground, e.g. with takeoff = false), else 0
             q = frames.euler_to_quat([0.0, 0.0, link.tel.rpy_ned[2] if link.tel.rpy_ned is not None else self.yaw_ned])
-            thr = self.tmap.to_normalized(self.hover_thrust) if link.phase == READY else 0.0
+            flying = link.phase == READY and self._airborne(link)
+            thr = (link.tmap or self.tmap).to_normalized(self.hover_thrust) if flying else 0.0
             mav.set_attitude_target_send(ms, link.sysid, mavlink.MAV_COMP_ID_AUTOPILOT1, ATT_MASK, q.tolist(), 0.0, 0.0, 0.0, thr)
             return
         self._hold(link)
@@ -799,8 +1072,10 @@ class Bridge:
         lim = self.s.link_timeout_s
         if now - t.pos_rx > lim or now - t.att_rx > lim:
             return None
-        q = frames.ned_to_enu(t.pos_ned) + link.origin
+        q = vehicle_to_swarm(t.pos_ned, link.origin)
         v = frames.ned_to_enu(t.vel_ned)
+        if t.pos_boot_s is not None and t.clock_offset_s is not None:
+            link.state_age_s = now - (t.pos_boot_s - t.clock_offset_s)  # the sample's age, from the vehicle's own stamp
         rpy = frames.euler_ned_to_enu(t.rpy_ned)
         w = frames.frd_to_flu(t.rates_frd)
         return q, v, rpy, w
@@ -813,6 +1088,11 @@ class Bridge:
             "phases": ",".join(f"{link.uav}:{link.phase}" for link in self.links),
             "armed_uavs": sum(1 for link in self.links if link.tel.armed),
             "unhealthy_uavs": sum(1 for link in self.links if not link.healthy),
+            "airborne_uavs": sum(1 for link in self.links if self._airborne(link)),
+            "max_latency_ms": max((round(lk.tel.rtt_s * 500.0, 2) for lk in self.links if lk.tel.rtt_s is not None), default=-1.0),
+            "max_state_age_ms": max(
+                (round(lk.state_age_s * 1000.0, 2) for lk in self.links if lk.state_age_s is not None), default=-1.0
+            ),
             "uav": {str(link.uav): link.info(now) for link in self.links},
             "unhealthy": [link.uav for link in self.links if not link.healthy],
             "ready": [link.uav for link in self.links if link.phase == READY],
@@ -1105,6 +1385,7 @@ def _cli_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return {
         "conn": pairs(getattr(args, "conn", None), "--conn", str),
         "sysid": pairs(getattr(args, "sysid", None), "--sysid", int),
+        "origin": pairs(getattr(args, "origin", None), "--origin", lambda v: tuple(float(c) for c in v.split(","))),
         "base_port": getattr(args, "base_port", None),
         "host": getattr(args, "mav_host", None),
         "setpoint": getattr(args, "setpoint", None),
@@ -1125,6 +1406,18 @@ def _main_args(args: argparse.Namespace) -> int:
     if getattr(args, "scenario_path", None) is not None:
         args.scenario = args.scenario_path
     args.realtime = True
+    if getattr(args, "scenario", None) is not None:
+        # bad [mavlink] settings or flags (ids, timeouts): exit 2 naming the field before any
+        # work (no Zenoh session, no MAVLink link opened); the process checks again with the
+        # scenario it loads
+        from zenswarm.config import load_scenario
+        from zenswarm.errors import ZenswarmError
+
+        try:
+            mavlink_settings(load_scenario(args.scenario), _cli_overrides(args))
+        except ZenswarmError as e:
+            print(f"bridge: error: {e}", file=sys.stderr, flush=True)
+            return 2
     return run_process(_run, "bridge", args)
 
 
@@ -1142,6 +1435,10 @@ def _configure(p: argparse.ArgumentParser) -> None:
         "3=tcp:127.0.0.1:5762, 4=/dev/ttyUSB0,921600 (repeatable; overrides mavlink.connections)",
     )
     g.add_argument("--sysid", action="append", metavar="I=ID", help="MAVLink system id of UAV I's vehicle (repeatable)")
+    g.add_argument(
+        "--origin", action="append", metavar="I=X,Y,Z",
+        help="where UAV I's local NED origin is in the swarm's ENU frame, m (repeatable; overrides mavlink.origins)",
+    )
     g.add_argument("--base-port", type=int, help="default connections udpout:HOST:P+i-1 (overrides mavlink.base_port)")
     g.add_argument("--mav-host", help="host of the default connections (overrides mavlink.host)")
     g.add_argument(

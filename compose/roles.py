@@ -67,7 +67,15 @@ def _main_mavlink_fleet(args: argparse.Namespace) -> int:
     sc = load_scenario(args.scenario)
     if args.seed is not None:
         sc = replace(sc, seed=int(args.seed))
-    return run_fleet(sc, base_port=args.base_port, autopilot=args.autopilot, telemetry_hz=args.telemetry_hz, duration=args.duration)
+    return run_fleet(
+        sc,
+        base_port=args.base_port,
+        autopilot=args.autopilot,
+        telemetry_hz=args.telemetry_hz,
+        duration=args.duration,
+        own_origin=bool(getattr(args, "own_origin", False)),
+        sitl_ports=bool(getattr(args, "sitl_ports", False)),
+    )
 
 
 def add_agent_parser(sub: argparse._SubParsersAction) -> None:
@@ -100,6 +108,10 @@ def add_vehicle_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--autopilot", choices=("px4", "ardupilot"), help="mode numbering and heartbeat flavour (default px4)")
     g.add_argument("--telemetry-hz", type=float, metavar="HZ", help="LOCAL_POSITION_NED + ATTITUDE rate (default 50)")
     g.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until SIGTERM/SIGINT)")
+    g.add_argument("--own-origin", action="store_true", help="each vehicle's local NED origin is where it booted (as a real autopilot)")
+    g.add_argument(
+        "--sitl-ports", action="store_true", help="PX4 SITL's direction: vehicle i sends from P+40+i-1 to P+i-1 (a GCS listens, udpin)"
+    )
 
 
 def add_vehicles_parser(sub: argparse._SubParsersAction) -> None:

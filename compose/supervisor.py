@@ -223,7 +223,12 @@ class Supervisor:
             return argv + self._recorder_argv()
         if role == "vehicles":  # simulated MAVLink vehicles (no Zenoh): the bridge talks to them over UDP
             a = self.args
-            return argv + ["mavlink-vehicle", str(a.scenario), "--base-port", str(self.mav_base_port), "--telemetry-hz", "100"]
+            # as PX4 SITL and real autopilots: each vehicle's NED about where it booted, and
+            # vehicle i sending from P+40+i to P+i where the bridge listens (udpin)
+            return argv + [
+                "mavlink-vehicle", str(a.scenario), "--base-port", str(self.mav_base_port), "--telemetry-hz", "100",
+                "--own-origin", "--sitl-ports",
+            ]
         if role == "bridge":
             return argv + self._bridge_argv()
         return argv + self._role_argv(role)
@@ -249,6 +254,11 @@ class Supervisor:
         a = self.args
         argv = ["bridge", "mavlink", str(a.scenario), "--base-port", str(self.mav_base_port), "--swarm", a.swarm]
         argv += self._join_words()
+        # the simulated vehicles (own origins, SITL ports): listen where vehicle i sends, and put
+        # its origin where it boots, on the ground under its initial position
+        gz = self.sc.mavlink.ground_z if self.sc.mavlink is not None else 0.0
+        for i, q in enumerate(self.sc.initial_positions):
+            argv += ["--conn", f"{i + 1}=udpin:127.0.0.1:{self.mav_base_port + i}", "--origin", f"{i + 1}={q[0]!r},{q[1]!r},{gz!r}"]
         return argv + a.faults.argv() + (["--expect", "recorder"] if a.record is not None else [])
 
     def _role_argv(self, role: str) -> list[str]:
@@ -626,12 +636,36 @@ class Supervisor:
         return None
 
     def _child_state(self, name: str, c: Child) -> str:
-        """One of our roles for the progress line: up, exit N, leaving or starting."""
+        """One of our roles for the progress line: up, exit N, leaving or starting. The simulated
+        MAVLink vehicles have no Zenoh session (no liveliness token): they are up while their
+        process runs and the bridge reports a vehicle past ``connecting`` (it hears them)."""
         if name in self.alive:
             return "up"
         if c.returncode is not None:
             return "exit " + str(c.returncode)
+        if name == "vehicles" and c.popen.poll() is None and self._bridge_hears_vehicles():
+            return "up"
         return "leaving" if name in self.seen else "starting"
+
+    def _bridge_hears_vehicles(self) -> bool:
+        """The bridge's last diag shows a UAV past ``connecting`` (``phases`` = "1:ready,...")."""
+        d = self.collector.diag.get("bridge", {}) if self.collector is not None else {}
+        phases = str(d.get("phases", ""))
+        return any(p.partition(":")[2] not in ("", "connecting") for p in phases.split(","))
+
+    def _vehicles_figures(self, collector: Collector) -> dict[str, Any] | None:
+        """results.json ``vehicles``: the MAVLink vehicles as the bridge last reported them
+        (phases, armed/airborne/unhealthy counts, worst link latency and state age in ms, -1 if
+        unmeasured) and the vehicles process's exit status; None without ``--plant mavlink``."""
+        if "vehicles" not in self.children and "bridge" not in collector.diag:
+            return None
+        d = collector.diag.get("bridge", {})
+        keys = ("phases", "armed_uavs", "airborne_uavs", "unhealthy_uavs", "max_latency_ms", "max_state_age_ms", "refused", "link_lost")
+        out: dict[str, Any] = {k: d[k] for k in keys if k in d}
+        c = self.children.get("vehicles")
+        if c is not None:
+            out["process_exit"] = c.returncode if c.returncode is not None else c.popen.poll()
+        return out
 
     def _health(self) -> str:
         """The roles' states for the progress line: ours (up, starting, leaving, exit N) and the external
@@ -781,7 +815,9 @@ class Supervisor:
         """What results.json says of the run beside the verdict: mode, processes, recording, diagnostics."""
         res["mode"] = "realtime" if self.args.realtime else "lockstep"
         res["swarm"] = self.args.swarm
-        res["processes"] = {name: c.returncode for name, c in self.children.items()}
+        # a child stopped by terminate_all has its code on popen only (returncode is set when one dies)
+        res["processes"] = {name: c.returncode if c.returncode is not None else c.popen.poll() for name, c in self.children.items()}
+        res["vehicles"] = self._vehicles_figures(collector)
         res["process_deaths"] = self.deaths
         if self.args.record is not None:
             res["recording"] = str(self.args.record)

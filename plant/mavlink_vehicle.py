@@ -3,37 +3,60 @@ that the MAVLink bridge (:mod:`zenswarm.bridge.mavlink`) uses, so the whole chai
 MAVLink/UDP -> vehicles runs on one machine and in CI.
 
 Each UAV i of the scenario is a vehicle with its own system id (default i) listening on its own
-UDP port (``udpin:HOST:BASE_PORT + i - 1``; it answers whoever talks to it, as PX4 SITL's
-offboard link does once a peer is known). Physics is :func:`zenswarm.plant.quadrotor.step` (eqs 1-5 with
+UDP port (``udpin:HOST:BASE_PORT + i - 1``; it answers whoever talks to it), or with
+``sitl_ports`` sending as PX4 SITL does from ``BASE_PORT + 40 + i - 1`` to ``BASE_PORT + i - 1``
+(a ground station listens with ``udpin``). Physics is :func:`zenswarm.plant.quadrotor.step` (eqs 1-5 with
 the onboard attitude PID) for all UAVs at once, ``timing.physics_rate_hz`` sub-steps (1 kHz) in
 chunks of ``timing.substeps`` (10) at ``timing.control_rate_hz`` (100 Hz) on the wall clock, plus
 the scenario's disturbances and a flat ground at ``ground_z`` (vehicles spawn on it below their
 scenario initial position).
 
-Spoken (PX4 flavour by default; ``autopilot = "ardupilot"`` switches the mode numbers and the
-heartbeat's autopilot to ArduCopter's):
+Spoken (PX4 flavour by default; ``autopilot = "ardupilot"`` switches to ArduCopter's mode numbers,
+heartbeat and behaviours; each behaviour cites its autopilot source next to its code):
 
-* HEARTBEAT 1 Hz: MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4, base_mode = CUSTOM_MODE_ENABLED
-  (| SAFETY_ARMED), custom_mode = PX4 ``main << 16 | sub << 24``; SYS_STATUS 1 Hz;
-* LOCAL_POSITION_NED and ATTITUDE at ``telemetry_hz`` (50 Hz), NED/FRD via :mod:`zenswarm.frames`;
-* COMMAND_LONG MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE (and the SET_MODE message),
-  MAV_CMD_NAV_TAKEOFF (ArduPilot flavour), each answered with COMMAND_ACK; other commands get
-  MAV_RESULT_UNSUPPORTED;
-* SET_ATTITUDE_TARGET (quaternion + normalised thrust through :class:`zenswarm.frames.ThrustMap`)
-  and SET_POSITION_TARGET_LOCAL_NED (position/velocity/yaw in MAV_FRAME_LOCAL_NED; the vehicle
-  then runs its own PD position loop producing thrust and attitude).
+* HEARTBEAT 1 Hz: MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4 / ARDUPILOTMEGA, base_mode =
+  CUSTOM_MODE_ENABLED (| SAFETY_ARMED), custom_mode = PX4 ``main << 16 | sub << 24`` or the
+  ArduCopter mode number; SYS_STATUS 1 Hz with the sensor, GPS and MAV_SYS_STATUS_PREARM_CHECK
+  health bits; EXTENDED_SYS_STATE (landed state) and HOME_POSITION 1 Hz;
+* LOCAL_POSITION_NED and ATTITUDE (PX4: and ATTITUDE_QUATERNION) at ``telemetry_hz`` (50 Hz),
+  GLOBAL_POSITION_INT at a fifth of it (a simulated GPS about PX4 SITL's default home);
+  local NED about the swarm origin, or with ``own_origin`` about where each vehicle booted;
+* the parameter protocol with each autopilot's parameters (:mod:`zenswarm.plant.mavlink_params`),
+  which the vehicle follows (COM_OF_LOSS_T, MIS_TAKEOFF_ALT, MPC_TKO_SPEED, MPC_LAND_SPEED,
+  COM_DISARM_LAND, RTL_RETURN_ALT; GUID_OPTIONS, GUID_TIMEOUT, WPNAV_SPEED_UP/DN, LAND_SPEED,
+  DISARM_DELAY, RTL_ALT);
+* COMMAND_LONG MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE (and SET_MODE),
+  MAV_CMD_NAV_TAKEOFF, MAV_CMD_NAV_LAND, MAV_CMD_NAV_RETURN_TO_LAUNCH, MAV_CMD_REQUEST_MESSAGE
+  (HOME_POSITION, AUTOPILOT_VERSION), each answered with COMMAND_ACK; other commands get
+  MAV_RESULT_UNSUPPORTED; messages for another system or another component are ignored;
+* SET_ATTITUDE_TARGET (quaternion, or body rates when the attitude is ignored; PX4: normalised
+  thrust through :class:`zenswarm.frames.ThrustMap`; ArduCopter: a climb rate unless GUID_OPTIONS
+  bit 3) and SET_POSITION_TARGET_LOCAL_NED (position/velocity/yaw in MAV_FRAME_LOCAL_NED; the
+  vehicle then runs its own PD position loop producing thrust and attitude).
 
-Modes: OFFBOARD (PX4 main 6; ArduCopter GUIDED 4 / GUIDED_NOGPS 20) follows the setpoints; it is
-refused (MAV_RESULT_TEMPORARILY_REJECTED) unless a setpoint arrived in the last
-``offboard_loss_s`` (PX4 flavour); HOLD (AUTO.LOITER, POSCTL, ALTCTL; LOITER, BRAKE, ...) holds
-the position where it was entered; LAND (AUTO.LAND; LAND) descends at ``land_speed`` and disarms
-0.5 s after touchdown. Offboard-loss failsafe: no setpoint for ``offboard_loss_s`` (1 s, as PX4's
-default ``COM_OF_LOSS_T``) -> HOLD; still none ``failsafe_land_s`` later -> LAND. Arming in OFFBOARD needs
+PX4 modes: OFFBOARD (main 6) follows the setpoints; it is refused (MAV_RESULT_TEMPORARILY_REJECTED)
+unless a setpoint arrived in the last COM_OF_LOSS_T; HOLD (AUTO.LOITER, POSCTL, ALTCTL) holds the
+position where it was entered; AUTO.TAKEOFF climbs to MIS_TAKEOFF_ALT (or param7 AMSL) then
+holds; AUTO.RTL climbs to RTL_RETURN_ALT, returns over home and lands; AUTO.LAND descends at
+MPC_LAND_SPEED and disarms COM_DISARM_LAND after touchdown. Offboard-loss failsafe: no setpoint
+for COM_OF_LOSS_T -> HOLD; still none ``failsafe_land_s`` later -> LAND. Arming in OFFBOARD needs
 fresh setpoints; disarming needs the vehicle on the ground unless forced (param2 = 21196).
+
+ArduCopter modes: GUIDED / GUIDED_NOGPS stay in the mode without setpoints; their sub-modes
+(TakeOff, Pos, PosVelAccel, VelAccel, Angle) follow ArduCopter ``mode_guided.cpp``: landed,
+only MAV_CMD_NAV_TAKEOFF or a positive climb rate lifts off (position targets do not), and
+velocity/angle targets older than GUID_TIMEOUT are dropped (stop, or level and hold altitude);
+LOITER, BRAKE, POSHOLD, ALT_HOLD, STABILIZE hold; LAND descends at LAND_SPEED and disarms on
+touchdown; RTL climbs to RTL_ALT, returns and lands; landed for DISARM_DELAY -> disarm.
 
 Test hooks (also what a faulty vehicle looks like): :meth:`MavlinkFleet.silence` drops all
 traffic of one vehicle both ways for a while (physics goes on); ``mode_override`` makes a vehicle
-accept mode requests but keep reporting (and flying) another mode.
+accept mode requests but keep reporting (and flying) another mode;
+:meth:`MavlinkFleet.set_prearm_failure` makes it fail its pre-arm checks.
+
+Not simulated: PX4's RTL_DESCEND_ALT loiter and COM_DISARM_PRFLT, ArduCopter's RTL_LOIT_TIME,
+the auto_armed / throttle-zero subtleties of ArduCopter's auto-disarm,
+MAV_CMD_SET_MESSAGE_INTERVAL (answered UNSUPPORTED), missions, geofence, RC.
 
 ``zenswarm mavlink-vehicle SCENARIO --base-port P`` (or ``zenswarm plant --mavlink --scenario
 SCENARIO --base-port P``) runs the fleet until
@@ -67,6 +90,7 @@ from zenswarm.autopilot import (
 )
 from zenswarm.params import QuadParams
 from zenswarm.plant.disturbance import DisturbanceModel
+from zenswarm.plant.mavlink_params import ParamStore, ardupilot_params, px4_params
 from zenswarm.plant.quadrotor import PlantState, initial_state, step
 
 mavutil = load_mavutil()
@@ -77,7 +101,17 @@ __all__ = ["VehicleOptions", "SimVehicle", "MavlinkFleet", "run_fleet"]
 _FORCE_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that forces (dis)arming
 
 # mode kinds
-OFFBOARD, HOLD, LAND = "offboard", "hold", "land"
+OFFBOARD, HOLD, LAND, TAKEOFF, RTL = "offboard", "hold", "land", "takeoff", "rtl"
+
+# ArduCopter GUIDED sub-modes (ArduCopter/mode.h ModeGuided::SubMode)
+SUB_TAKEOFF, SUB_POS, SUB_POSVEL, SUB_VEL, SUB_ANGLE = "TakeOff", "Pos", "PosVelAccel", "VelAccel", "Angle"
+
+_GUID_THRUST_AS_THRUST = 8  # GUID_OPTIONS bit 3 (ArduCopter mode.h ModeGuided::Option::SetAttitudeTarget_ThrustAsThrust)
+
+# PX4 SITL's global position of the default world (Zurich), used as every vehicle's GPS
+# reference: lat, lon in degrees, AMSL altitude in m.
+REF_LLA = (47.397742, 8.545594, 488.0)
+_EARTH_R = 6371000.0
 
 
 @dataclass(frozen=True)
@@ -91,12 +125,18 @@ class VehicleOptions:
     offboard_loss_s: a setpoint must be this recent to enter OFFBOARD or arm in it; no setpoint
         for this long in OFFBOARD -> HOLD (PX4 COM_OF_LOSS_T), s.
     failsafe_land_s: after that HOLD, still no setpoint for this long -> LAND, s.
-    land_speed: descent rate in LAND, m/s. disarm_after_land_s: on the ground in LAND this long
-        -> disarm, s.
+    land_speed: descent rate in LAND, m/s, the initial MPC_LAND_SPEED / LAND_SPEED (None: the
+        autopilot's default, 0.7 / 0.5 m/s). disarm_after_land_s: on the ground in LAND this long
+        -> disarm, s (None: PX4 COM_DISARM_LAND 2 s; ArduCopter 1 s, its land detector's time).
     ground_z: ground height, m ENU. pos_kp (1/s^2), pos_kd (1/s): the vehicle's own position PD.
     max_pos_err: position error clipped to this norm in the PD, m (limits the approach speed).
     hover_throttle: the vehicle's throttle at hover, or None (thrust = throttle * max_thrust).
     host: address the UDP sockets bind to.
+    own_origin: each vehicle's local NED origin is where it booted (its estimator origin, as on a
+        real autopilot); False: every vehicle reports NED about the swarm's ENU origin (legacy).
+    sitl_ports: PX4 SITL's UDP direction: vehicle i (0-based) sends from ``base_port + 40 + i``
+        to ``base_port + i`` (PX4 SITL: from 14580+i to 14540+i) from boot on, and a ground
+        station listens with ``udpin``; False: the vehicle listens on ``base_port + i``.
     """
 
     autopilot: str = "px4"
@@ -105,20 +145,24 @@ class VehicleOptions:
     sys_status_hz: float = 1.0
     offboard_loss_s: float = 1.0  # PX4 COM_OF_LOSS_T default
     failsafe_land_s: float = 5.0
-    land_speed: float = 0.5
-    disarm_after_land_s: float = 0.5
+    land_speed: float | None = None
+    disarm_after_land_s: float | None = None
     ground_z: float = 0.0
     pos_kp: tuple[float, float, float] = (4.0, 4.0, 6.0)
     pos_kd: tuple[float, float, float] = (3.5, 3.5, 4.5)
     max_pos_err: float = 1.0
     hover_throttle: float | None = None
     host: str = "127.0.0.1"
+    own_origin: bool = False
+    sitl_ports: bool = False
 
     def __post_init__(self) -> None:
         if self.autopilot not in ("px4", "ardupilot"):
             raise ValueError(f"VehicleOptions.autopilot must be 'px4' or 'ardupilot', got {self.autopilot!r}")
-        for name in ("telemetry_hz", "heartbeat_hz", "sys_status_hz", "offboard_loss_s", "land_speed"):
+        for name in ("telemetry_hz", "heartbeat_hz", "sys_status_hz", "offboard_loss_s", "land_speed", "disarm_after_land_s"):
             x = getattr(self, name)
+            if x is None and name in ("land_speed", "disarm_after_land_s"):
+                continue
             if not (math.isfinite(x) and x > 0):
                 raise ValueError(f"VehicleOptions.{name} must be > 0, got {x!r}")
 
@@ -146,6 +190,7 @@ class VehicleOptions:
                 AP_COPTER_MODES["ALT_HOLD"]: HOLD,
                 AP_COPTER_MODES["STABILIZE"]: HOLD,
                 AP_COPTER_MODES["LAND"]: LAND,
+                AP_COPTER_MODES["RTL"]: RTL,
             }.get(int(custom_mode))
         main, sub = px4_decode(custom_mode)
         if main == PX4_MAIN["OFFBOARD"] and sub == 0:
@@ -153,7 +198,12 @@ class VehicleOptions:
         if main in (PX4_MAIN["POSCTL"], PX4_MAIN["ALTCTL"]) and sub == 0:
             return HOLD
         if main == PX4_MAIN["AUTO"]:
-            return {PX4_AUTO_SUB["LOITER"]: HOLD, PX4_AUTO_SUB["LAND"]: LAND}.get(sub)
+            return {
+                PX4_AUTO_SUB["LOITER"]: HOLD,
+                PX4_AUTO_SUB["LAND"]: LAND,
+                PX4_AUTO_SUB["TAKEOFF"]: TAKEOFF,
+                PX4_AUTO_SUB["RTL"]: RTL,
+            }.get(sub)
         return None
 
 
@@ -161,7 +211,7 @@ class SimVehicle:
     """One simulated vehicle: its MAVLink endpoint and its autopilot's logic (not its physics,
     which :class:`MavlinkFleet` integrates for all vehicles at once). Row ``index`` of the fleet."""
 
-    def __init__(self, index: int, sysid: int, port: int, opts: VehicleOptions, params: QuadParams, boot: float) -> None:
+    def __init__(self, index: int, sysid: int, port: int, opts: VehicleOptions, params: QuadParams, boot: float, spawn: Any = None) -> None:
         self.index = index
         self.sysid = sysid
         self.port = port
@@ -169,10 +219,39 @@ class SimVehicle:
         self.params = params
         self.boot = boot
         self.tmap = frames.ThrustMap(params.max_thrust, params.hover_thrust, opts.hover_throttle)
-        self.conn = mavutil.mavlink_connection(
-            f"udpin:{opts.host}:{port}", source_system=sysid, source_component=mavlink.MAV_COMP_ID_AUTOPILOT1, udp_timeout=5
-        )
+        hover_u = float(self.tmap.to_normalized(params.hover_thrust))
+        if opts.autopilot == "ardupilot":
+            specs = ardupilot_params(sysid, hover_u, opts.land_speed)
+        else:
+            specs = px4_params(sysid, hover_u, opts.offboard_loss_s, opts.land_speed)
+        self.ap_params = ParamStore(specs, bytewise=opts.autopilot == "px4")
+        # the estimator origin (swarm ENU, m): where the vehicle booted, or the swarm's origin
+        self.spawn = np.zeros(3) if spawn is None else np.array(spawn, dtype=float)
+        self.origin = self.spawn.copy() if opts.own_origin else np.zeros(3)
+        self.home_enu = self.spawn.copy()  # home: set again on arming (both autopilots)
+        if opts.sitl_ports:
+            # PX4 SITL (ROMFS px4-rc.mavlink: mavlink start -u 14580+i -o 14540+i): the vehicle
+            # binds its own port and streams to the ground station's from boot on
+            self.conn = mavutil.mavlink_connection(
+                f"udpout:{opts.host}:{port}", source_system=sysid, source_component=mavlink.MAV_COMP_ID_AUTOPILOT1
+            )
+            self.conn.port.bind((opts.host, port + 40))
+        else:
+            self.conn = mavutil.mavlink_connection(
+                f"udpin:{opts.host}:{port}", source_system=sysid, source_component=mavlink.MAV_COMP_ID_AUTOPILOT1, udp_timeout=5
+            )
         self.armed = False
+        self.guided_sub: str | None = None  # ArduCopter GUIDED sub-mode
+        self.land_complete = True  # ArduCopter ap.land_complete (the land detector's verdict)
+        self.landed_since = boot
+        self.takeoff_z = math.nan  # takeoff target, m ENU
+        self._pending: list[str] = []  # messages requested (MAV_CMD_REQUEST_MESSAGE), sent next tick
+        self.rtl_phase = ""
+        self.climb_rate = 0.0  # ArduCopter angle control: climb rate from SET_ATTITUDE_TARGET.thrust, m/s
+        self.rates_frd: np.ndarray | None = None  # body-rate setpoint (attitude ignored), rad/s FRD
+        self.att_int: np.ndarray | None = None  # attitude integrated from the body rates, rpy ENU
+        self.prearm_failure: str | None = None
+        self.period = 0.01  # the fleet's loop period, s (set by the fleet)
         self.custom_mode = opts.modes["boot"]
         self.mode_override: int | None = None
         self.muted_until = -math.inf
@@ -190,7 +269,7 @@ class SimVehicle:
         self.failsafe = False
         self.on_ground = True
         self.ground_since = -math.inf
-        self.peer_seen = False
+        self.peer_seen = bool(opts.sitl_ports)
         self.counters: dict[str, int] = {}
         self.acks: list[tuple[int, int]] = []  # (command, result) sent, latest last (bounded)
         self.telemetry_sent = 0
@@ -214,7 +293,31 @@ class SimVehicle:
         return int((now - self.boot) * 1000.0) & 0xFFFFFFFF
 
     def _setpoint_fresh(self, now: float) -> bool:
-        return now - self.last_sp <= self.opts.offboard_loss_s
+        return now - self.last_sp <= self.loss_s
+
+    # ------------------------------------------------------------------ parameters the vehicle follows
+    @property
+    def loss_s(self) -> float:
+        """Offboard-loss time, s: PX4 COM_OF_LOSS_T (ArduCopter: the option, see GUID_TIMEOUT)."""
+        if self.opts.autopilot == "px4":
+            return self.ap_params["COM_OF_LOSS_T"]
+        return self.opts.offboard_loss_s
+
+    @property
+    def land_speed(self) -> float:
+        """Descent rate in LAND, m/s (PX4 MPC_LAND_SPEED, ArduCopter LAND_SPEED in cm/s)."""
+        if self.opts.autopilot == "px4":
+            return self.ap_params["MPC_LAND_SPEED"]
+        return self.ap_params["LAND_SPEED"] / 100.0
+
+    @property
+    def disarm_after_land_s(self) -> float:
+        """Time on the ground in LAND before the auto-disarm, s."""
+        if self.opts.disarm_after_land_s is not None:
+            return self.opts.disarm_after_land_s
+        if self.opts.autopilot == "px4":
+            return max(self.ap_params["COM_DISARM_LAND"], 0.0)  # PX4 commander: auto-disarm on land
+        return 1.0  # ArduCopter mode_land.cpp: disarms once the land detector (about 1 s) says landed
 
     def _enter(self, custom_mode: int, q: np.ndarray, yaw: float) -> None:
         """Switch mode; HOLD and LAND remember where they were entered."""
@@ -245,9 +348,7 @@ class SimVehicle:
         self.acks.append((int(m.command), int(result)))
         del self.acks[:-32]
         if not self.muted(time.monotonic()):
-            self.conn.mav.command_ack_send(
-                m.command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent()
-            )
+            self.conn.mav.command_ack_send(m.command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent())
 
     def _handle(self, m: Any, now: float, q: np.ndarray, yaw: float) -> None:
         mtype = m.get_type()
@@ -262,6 +363,11 @@ class SimVehicle:
         if target not in (0, self.sysid):
             self._count("other_target")
             return
+        # addressed to another component of this system (a camera, a gimbal, ...): not the
+        # autopilot's (MAVLink routing, https://mavlink.io/en/guide/routing.html)
+        if getattr(m, "target_component", 0) not in (0, mavlink.MAV_COMP_ID_AUTOPILOT1):
+            self._count("other_component")
+            return
         if mtype == "COMMAND_LONG":
             self._command(m, now, q, yaw)
         elif mtype == "SET_ATTITUDE_TARGET":
@@ -273,8 +379,35 @@ class SimVehicle:
                 self._set_mode(int(m.custom_mode), now, q, yaw)
         elif mtype == "HEARTBEAT":
             self._count("peer_heartbeats")
+        elif mtype in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET"):
+            self._param(m)
         else:
             self._count("ignored")
+
+    def _param(self, m: Any) -> None:
+        """The parameter protocol (see :mod:`zenswarm.plant.mavlink_params`)."""
+        store = self.ap_params
+        mtype = m.get_type()
+        i: int | None
+        if mtype == "PARAM_REQUEST_LIST":
+            self._count("param_lists")
+            for i in range(len(store)):
+                self._send_param(i)
+            return
+        if mtype == "PARAM_REQUEST_READ":
+            self._count("param_reads")
+            i = store.lookup(m.param_id, int(m.param_index))
+        else:
+            self._count("param_sets")
+            i = store.handle_set(m.param_id, float(m.param_value))
+        if i is None:
+            self._count("param_unknown")  # both autopilots stay silent
+            return
+        self._send_param(i)
+
+    def _send_param(self, i: int) -> None:
+        if not self.muted(time.monotonic()):
+            self.conn.mav.param_value_send(*self.ap_params.value_msg(i))
 
     def _command(self, m: Any, now: float, q: np.ndarray, yaw: float) -> None:
         p = (m.param1, m.param2, m.param3, m.param4, m.param5, m.param6, m.param7)
@@ -284,8 +417,22 @@ class SimVehicle:
         elif m.command == mavlink.MAV_CMD_DO_SET_MODE:
             self._count("mode_requests")
             self._ack(m, self._cmd_set_mode(p, now, q, yaw))
-        elif m.command == mavlink.MAV_CMD_NAV_TAKEOFF and self.opts.autopilot == "ardupilot":
-            self._ack(m, self._cmd_takeoff(p[6], now, q))
+        elif m.command == mavlink.MAV_CMD_NAV_TAKEOFF:
+            self._count("takeoff_requests")
+            if self.opts.autopilot == "ardupilot":
+                self._ack(m, self._ap_takeoff(p[6], now, q))
+            else:
+                self._ack(m, self._px4_takeoff(p[6], now, q, yaw))
+        elif m.command == mavlink.MAV_CMD_NAV_LAND:
+            # PX4 commander: NAV_LAND -> AUTO.LAND; ArduCopter GCS_Mavlink.cpp: set_mode(LAND)
+            # (MAV_RESULT_FAILED if refused)
+            self._ack(m, self._set_mode(self.opts.modes["land"], now, q, yaw))
+        elif m.command == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            # PX4: -> AUTO.RTL; ArduCopter: set_mode(RTL)
+            rtl = AP_COPTER_MODES["RTL"] if self.opts.autopilot == "ardupilot" else px4_custom_mode(4, PX4_AUTO_SUB["RTL"])
+            self._ack(m, self._set_mode(rtl, now, q, yaw))
+        elif m.command == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            self._ack(m, self._request_message(p[0]))
         else:
             self._count("unsupported_commands")
             self._ack(m, mavlink.MAV_RESULT_UNSUPPORTED)
@@ -293,9 +440,7 @@ class SimVehicle:
     def _cmd_set_mode(self, p: tuple[float, ...], now: float, q: np.ndarray, yaw: float) -> int:
         """MAV_CMD_DO_SET_MODE (params: base mode with CUSTOM_MODE_ENABLED, custom (main) mode,
         PX4 sub mode); the MAV_RESULT."""
-        if not (math.isfinite(p[0]) and int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED) or not all(
-            math.isfinite(x) for x in p[1:3]
-        ):
+        if not (math.isfinite(p[0]) and int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED) or not all(math.isfinite(x) for x in p[1:3]):
             return mavlink.MAV_RESULT_UNSUPPORTED
         if self.opts.autopilot == "ardupilot":
             cm = int(p[1])
@@ -303,39 +448,81 @@ class SimVehicle:
             cm = px4_custom_mode(int(p[1]), int(p[2]))
         return self._set_mode(cm, now, q, yaw)
 
-    def _cmd_takeoff(self, alt: float, now: float, q: np.ndarray) -> int:
-        """ArduPilot MAV_CMD_NAV_TAKEOFF to ``alt`` m above the ground (armed, in GUIDED); the
-        MAV_RESULT."""
-        if not (self.armed and self.kind() == OFFBOARD and math.isfinite(alt) and alt > 0):
-            return mavlink.MAV_RESULT_DENIED
-        self.pos_ned = frames.enu_to_ned([q[0], q[1], self.opts.ground_z + alt])
-        self.vel_ned = np.zeros(3)
-        self.pos_use, self.vel_use, self.yaw_ned = True, True, None
-        self.sp_kind = "position"
+    def _ap_takeoff(self, alt: float, now: float, q: np.ndarray) -> int:
+        """ArduCopter MAV_CMD_NAV_TAKEOFF, param7 = altitude above home, m (GCS_Mavlink.cpp;
+        takeoff.cpp Mode::do_user_takeoff: refused (MAV_RESULT_FAILED) unless armed, landed
+        (land_complete), in a mode with a user takeoff (GUIDED) and the altitude above the current
+        one). Starts GUIDED's TakeOff sub-mode (mode_guided.cpp do_user_takeoff_start), which
+        climbs at WPNAV_SPEED_UP; any position/velocity/attitude target sent later switches the
+        sub-mode and ends the takeoff."""
+        in_guided = self.custom_mode == AP_COPTER_MODES["GUIDED"]
+        if not (self.armed and self.land_complete and in_guided and math.isfinite(alt)):
+            return mavlink.MAV_RESULT_FAILED
+        if alt <= q[2] - self.home_enu[2]:
+            return mavlink.MAV_RESULT_FAILED  # "can't takeoff downwards"
+        self.takeoff_z = float(self.home_enu[2] + alt)
+        self.guided_sub = SUB_TAKEOFF
+        self.hold_enu = np.array([q[0], q[1], self.takeoff_z])
+        self.land_complete = False
         self.last_sp = now
         return mavlink.MAV_RESULT_ACCEPTED
+
+    def _px4_takeoff(self, alt_amsl: float, now: float, q: np.ndarray, yaw: float) -> int:
+        """PX4 MAV_CMD_NAV_TAKEOFF: switch to AUTO.TAKEOFF (commander), which climbs at
+        MPC_TKO_SPEED to param7 (altitude AMSL, m) or, if NaN, to MIS_TAKEOFF_ALT above home, then
+        holds (AUTO.LOITER) (docs.px4.io flight_modes_mc/takeoff; navigator/takeoff.cpp). Disarmed,
+        the mode is entered and the climb starts on arming."""
+        if self.prearm_failure is not None and not self.armed:
+            return mavlink.MAV_RESULT_DENIED
+        if math.isfinite(alt_amsl):
+            self.takeoff_z = float(alt_amsl - REF_LLA[2])  # AMSL -> swarm ENU z (REF_LLA alt at z = 0)
+        else:
+            self.takeoff_z = float(self.home_enu[2] + self.ap_params["MIS_TAKEOFF_ALT"])
+        return self._set_mode(px4_custom_mode(4, PX4_AUTO_SUB["TAKEOFF"]), now, q, yaw)
+
+    def _request_message(self, msg_id: float) -> int:
+        """MAV_CMD_REQUEST_MESSAGE: HOME_POSITION and AUTOPILOT_VERSION are sent; others UNSUPPORTED."""
+        if msg_id == mavlink.MAVLINK_MSG_ID_HOME_POSITION:
+            self._pending.append("home")
+            return mavlink.MAV_RESULT_ACCEPTED
+        if msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            self._pending.append("version")
+            return mavlink.MAV_RESULT_ACCEPTED
+        return mavlink.MAV_RESULT_UNSUPPORTED
 
     def _arm(self, arm: bool, force: bool, now: float, q: np.ndarray, yaw: float) -> int:
         if arm:
             if self.armed:
                 return mavlink.MAV_RESULT_ACCEPTED
             k = self.kind()
-            if k == LAND or k is None:
+            if self.prearm_failure is not None and not force:
+                # PX4: "Preflight Fail: ..." and DENIED; ArduCopter: "PreArm: ..." and FAILED
+                text = ("PreArm: " if self.opts.autopilot == "ardupilot" else "Preflight Fail: ") + self.prearm_failure
+                self.conn.mav.statustext_send(mavlink.MAV_SEVERITY_CRITICAL, text.encode()[:50])
+                return mavlink.MAV_RESULT_FAILED if self.opts.autopilot == "ardupilot" else mavlink.MAV_RESULT_DENIED
+            if k == LAND or k is None or k == RTL:
                 return mavlink.MAV_RESULT_DENIED
             if k == OFFBOARD and not self._setpoint_fresh(now) and self.opts.autopilot == "px4" and not force:
                 return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
             self.armed = True
             self.hold_enu = q.copy()
             self.hold_yaw = float(yaw)
+            self.home_enu = q.copy()  # both autopilots set home on arming
+            self.landed_since = now
             self._count("arm_accepted")
             return mavlink.MAV_RESULT_ACCEPTED
         if not self.armed:
             return mavlink.MAV_RESULT_ACCEPTED
         if not (self.on_ground or force):
             return mavlink.MAV_RESULT_DENIED  # PX4 refuses to disarm in flight unless forced
-        self.armed = False
+        self._disarm()
         self._count("disarmed")
         return mavlink.MAV_RESULT_ACCEPTED
+
+    def _disarm(self) -> None:
+        self.armed = False
+        self.land_complete = True
+        self.guided_sub = None
 
     def _set_mode(self, custom_mode: int, now: float, q: np.ndarray, yaw: float) -> int:
         k = self.opts.mode_kind(custom_mode)
@@ -344,8 +531,17 @@ class SimVehicle:
         if k == OFFBOARD and self.opts.autopilot == "px4" and not self._setpoint_fresh(now):
             self._count("offboard_refused")
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED  # PX4: no setpoint stream, no OFFBOARD
+        if k == TAKEOFF and self.custom_mode != custom_mode and not math.isfinite(self.takeoff_z):
+            self.takeoff_z = float(self.home_enu[2] + self.ap_params["MIS_TAKEOFF_ALT"])
         if self.mode_override is None:
             self._enter(custom_mode, q, yaw)
+            if k == OFFBOARD and self.opts.autopilot == "ardupilot":
+                # ArduCopter ModeGuided::init: starts in velocity control with a zero target
+                # (mode_guided.cpp); the GUID_TIMEOUT is counted from here
+                self.guided_sub, self.sp_kind, self.last_sp = SUB_VEL, None, now
+                self.vel_ned = np.zeros(3)
+            if k == RTL:
+                self.rtl_phase = "climb"
         return mavlink.MAV_RESULT_ACCEPTED
 
     def _attitude_target(self, m: Any, now: float) -> None:
@@ -360,9 +556,33 @@ class SimVehicle:
             except ValueError:
                 self._count("malformed")
                 return
+        rates_used = (mask & 0b111) != 0b111
+        if mask & mavlink.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE and rates_used:
+            # attitude ignored, body rates given: a rate setpoint (PX4 mavlink_receiver.cpp
+            # handle_message_set_attitude_target -> vehicle_rates_setpoint; ArduCopter
+            # GCS_Mavlink.cpp -> ModeGuided::set_angle with ang_vel); an ignored axis is 0 rad/s
+            rates = [0.0 if mask & (1 << i) else float(x) for i, x in enumerate((m.body_roll_rate, m.body_pitch_rate, m.body_yaw_rate))]
+            if not all(math.isfinite(x) for x in rates):
+                self._count("malformed")
+                return
+            if self.rates_frd is None:
+                self.att_int = None  # integrate from the current attitude
+            self.rates_frd = np.array(rates)
+        elif not mask & mavlink.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE:
+            self.rates_frd = None
         if not mask & mavlink.ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE:
             self.att_thrust = min(max(float(m.thrust), 0.0), 1.0)
+            if self.opts.autopilot == "ardupilot":
+                # ArduCopter GCS_Mavlink.cpp handle SET_ATTITUDE_TARGET: unless GUID_OPTIONS bit 3,
+                # thrust is a climb rate: 0.5 = hold altitude, 1 = WPNAV_SPEED_UP, 0 = -WPNAV_SPEED_DN
+                u = self.att_thrust
+                if u >= 0.5:
+                    self.climb_rate = (u - 0.5) * 2.0 * self.ap_params["WPNAV_SPEED_UP"] / 100.0
+                else:
+                    self.climb_rate = -(0.5 - u) * 2.0 * self.ap_params["WPNAV_SPEED_DN"] / 100.0
         self.sp_kind = "attitude"
+        if self.opts.autopilot == "ardupilot":
+            self.guided_sub = SUB_ANGLE  # mode_guided.cpp set_angle: angle_control_start()
         self.last_sp = now
         self._count("setpoints")
 
@@ -384,6 +604,11 @@ class SimVehicle:
         self.vel_ned = np.array(vals[3:6]) if vel_use else np.zeros(3)
         self.yaw_ned = float(vals[6]) if yaw_use else None
         self.sp_kind = "position"
+        if self.opts.autopilot == "ardupilot":
+            # ArduCopter GCS_Mavlink.cpp handle SET_POSITION_TARGET_LOCAL_NED -> set_destination /
+            # set_velocity / set_destination_posvelaccel: each starts its own sub-mode (pos_control_
+            # start, velaccel_control_start, posvelaccel_control_start), ending a TakeOff
+            self.guided_sub = SUB_POS if not vel_use else (SUB_VEL if not pos_use else SUB_POSVEL)
         self.last_sp = now
         self._count("setpoints")
 
@@ -394,18 +619,133 @@ class SimVehicle:
         k = self._mode_logic(now, q, rpy)
         if not self.armed:
             return 0.0, np.array([0.0, 0.0, rpy[2]])
+        if k == OFFBOARD and self.opts.autopilot == "ardupilot":
+            return self._ap_guided(now, q, v, rpy)
         if k == OFFBOARD and self.sp_kind == "attitude":
-            return float(self.tmap.to_newtons(self.att_thrust)), frames.quat_ned_to_attitude(self.att_q)
+            return float(self.tmap.to_newtons(self.att_thrust)), self._attitude_sp(rpy)
         if k == OFFBOARD and self.sp_kind == "position":
-            p_ref = frames.ned_to_enu(self.pos_ned) if self.pos_ned is not None else None
-            yaw = rpy[2] if self.yaw_ned is None else float(frames.euler_ned_to_enu([0.0, 0.0, self.yaw_ned])[2])
-            return self._pd(q, v, p_ref, frames.ned_to_enu(self.vel_ned), yaw)
+            return self._pd(q, v, self._pos_ref(), frames.ned_to_enu(self.vel_ned), self._yaw_ref(rpy))
+        if k == TAKEOFF:
+            return self._climb(now, q, v, rpy, self.ap_params["MPC_TKO_SPEED"])
+        if k == RTL:
+            return self._rtl(now, q, v, rpy)
         if self.hold_enu is None:
             self.hold_enu, self.hold_yaw = q.copy(), float(rpy[2])
         if k == LAND:
             p_ref = np.array([self.hold_enu[0], self.hold_enu[1], math.nan])
-            return self._pd(q, v, p_ref, np.array([0.0, 0.0, -self.opts.land_speed]), self.hold_yaw)
+            return self._pd(q, v, p_ref, np.array([0.0, 0.0, -self.land_speed]), self.hold_yaw)
         return self._pd(q, v, self.hold_enu, np.zeros(3), self.hold_yaw)  # HOLD (and unknown modes)
+
+    def _pos_ref(self) -> np.ndarray | None:
+        """The position setpoint in the swarm's ENU frame (local NED about the vehicle's origin)."""
+        return frames.ned_to_enu(self.pos_ned) + self.origin if self.pos_ned is not None else None
+
+    def _yaw_ref(self, rpy: np.ndarray) -> float:
+        return float(rpy[2]) if self.yaw_ned is None else float(frames.euler_ned_to_enu([0.0, 0.0, self.yaw_ned])[2])
+
+    def _attitude_sp(self, rpy: np.ndarray) -> np.ndarray:
+        """Attitude setpoint, rpy ENU: the target quaternion, or the body rates integrated over the
+        loop period from the attitude when they started."""
+        if self.rates_frd is None:
+            return frames.quat_ned_to_attitude(self.att_q)
+        if self.att_int is None:
+            self.att_int = np.array(rpy, dtype=float)
+        w_flu = frames.flu_to_frd(self.rates_frd)  # the same sign flip both ways (y, z)
+        ph, th = self.att_int[0], self.att_int[1]
+        # ZYX Euler rates from body rates (eq. 2's kinematics)
+        dphi = w_flu[0] + math.tan(th) * (math.sin(ph) * w_flu[1] + math.cos(ph) * w_flu[2])
+        dth = math.cos(ph) * w_flu[1] - math.sin(ph) * w_flu[2]
+        dpsi = (math.sin(ph) * w_flu[1] + math.cos(ph) * w_flu[2]) / math.cos(th)
+        tilt = self.params.max_tilt
+        self.att_int = self.att_int + self.period * np.array([dphi, dth, dpsi])
+        self.att_int[0:2] = np.clip(self.att_int[0:2], -tilt, tilt)
+        return self.att_int.copy()
+
+    def _climb(self, now: float, q: np.ndarray, v: np.ndarray, rpy: np.ndarray, speed: float) -> tuple[float, np.ndarray]:
+        """Vertical climb to ``takeoff_z`` at ``speed`` m/s over the takeoff point; at the
+        altitude, PX4's AUTO.TAKEOFF hands over to AUTO.LOITER (navigator takeoff.cpp)."""
+        assert self.hold_enu is not None
+        if not math.isfinite(self.takeoff_z):  # reached: hold there
+            return self._pd(q, v, self.hold_enu, np.zeros(3), self.hold_yaw)
+        dz = self.takeoff_z - q[2]
+        if abs(dz) < 0.05 and abs(v[2]) < 0.2:
+            target = np.array([self.hold_enu[0], self.hold_enu[1], self.takeoff_z])
+            self.takeoff_z = math.nan
+            if self.opts.autopilot == "px4":
+                self._enter(self.opts.modes["hold"], target, self.hold_yaw)
+            self.hold_enu = target
+            return self._pd(q, v, target, np.zeros(3), self.hold_yaw)
+        self.land_complete = False
+        vz = math.copysign(min(speed, 1.5 * abs(dz) + 0.05), dz)
+        p_ref = np.array([self.hold_enu[0], self.hold_enu[1], math.nan])
+        return self._pd(q, v, p_ref, np.array([0.0, 0.0, vz]), self.hold_yaw)
+
+    def _rtl(self, now: float, q: np.ndarray, v: np.ndarray, rpy: np.ndarray) -> tuple[float, np.ndarray]:
+        """Return: climb to at least the return altitude above home (PX4 RTL_RETURN_ALT,
+        ArduCopter RTL_ALT), fly over home, then land there and disarm (PX4 docs
+        flight_modes_mc/return; ArduCopter mode_rtl.cpp). PX4's intermediate RTL_DESCEND_ALT loiter
+        and ArduCopter's RTL_LOIT_TIME pause are not simulated."""
+        home = self.home_enu
+        if self.opts.autopilot == "px4":
+            ret_z = home[2] + self.ap_params["RTL_RETURN_ALT"]
+        else:
+            ret_z = home[2] + self.ap_params["RTL_ALT"] / 100.0
+        if self.hold_enu is None:
+            self.hold_enu = q.copy()
+        if self.rtl_phase == "climb":
+            self.hold_enu = np.array([self.hold_enu[0], self.hold_enu[1], max(ret_z, self.hold_enu[2])])
+            if q[2] >= self.hold_enu[2] - 0.1:
+                self.rtl_phase = "return"
+            return self._pd(q, v, self.hold_enu, np.zeros(3), self.hold_yaw)
+        if self.rtl_phase == "return":
+            target = np.array([home[0], home[1], self.hold_enu[2]])
+            if float(np.linalg.norm(q[0:2] - home[0:2])) < 0.1 and float(np.linalg.norm(v)) < 0.2:
+                self.rtl_phase = "land"
+            return self._pd(q, v, target, np.zeros(3), self.hold_yaw)
+        p_ref = np.array([home[0], home[1], math.nan])
+        return self._pd(q, v, p_ref, np.array([0.0, 0.0, -self.land_speed]), self.hold_yaw)
+
+    def _ap_guided(self, now: float, q: np.ndarray, v: np.ndarray, rpy: np.ndarray) -> tuple[float, np.ndarray]:
+        """ArduCopter GUIDED / GUIDED_NOGPS, by sub-mode (mode_guided.cpp *_control_run).
+
+        Landed (land_complete), every sub-mode but TakeOff, and Angle with a positive climb rate
+        (or thrust given as thrust), only does ground handling: motors idle, no lift-off.
+        Velocity, acceleration and angle targets older than GUID_TIMEOUT are dropped: the
+        vehicle stops (zero velocity), or levels out and holds its altitude; a position target
+        is held without time limit."""
+        level = np.array([0.0, 0.0, rpy[2]])
+        sub = self.guided_sub
+        timed_out = now - self.last_sp > self.ap_params["GUID_TIMEOUT"]
+        thrust_as_thrust = bool(int(self.ap_params["GUID_OPTIONS"]) & _GUID_THRUST_AS_THRUST)
+        if sub == SUB_TAKEOFF:
+            return self._climb(now, q, v, rpy, self.ap_params["WPNAV_SPEED_UP"] / 100.0)
+        if sub == SUB_ANGLE:
+            if timed_out:
+                att, climb, as_thrust = np.array([0.0, 0.0, rpy[2]]), 0.0, False
+            else:
+                att, climb, as_thrust = self._attitude_sp(rpy), self.climb_rate, thrust_as_thrust
+            if self.land_complete:
+                if not (climb > 0.0 or (as_thrust and self.att_thrust > 0.0)):
+                    return 0.0, level  # make_safe_ground_handling
+                self.land_complete = False  # "landed with positive desired climb rate, takeoff"
+            if as_thrust:
+                return float(self.tmap.to_newtons(self.att_thrust)), att
+            # climb-rate control under the commanded attitude
+            p = self.params
+            az = float(self.opts.pos_kd[2]) * (climb - v[2])
+            tilt = math.cos(att[0]) * math.cos(att[1])
+            f = p.mass * (p.g + az) / max(tilt, 0.3)
+            return float(min(max(f, 0.0), p.max_thrust)), att
+        if self.land_complete:
+            return 0.0, level  # pos/vel run functions: is_disarmed_or_landed -> ground handling
+        if sub == SUB_VEL:
+            vel = np.zeros(3) if timed_out or self.sp_kind != "position" else frames.ned_to_enu(self.vel_ned)
+            return self._pd(q, v, None, vel, self._yaw_ref(rpy))
+        vel = frames.ned_to_enu(self.vel_ned) if sub == SUB_POSVEL and not timed_out else np.zeros(3)
+        p_ref = self._pos_ref()
+        if p_ref is None:
+            p_ref = self.hold_enu if self.hold_enu is not None else q.copy()
+        return self._pd(q, v, p_ref, vel, self._yaw_ref(rpy))
 
     def _mode_logic(self, now: float, q: np.ndarray, rpy: np.ndarray) -> str | None:
         """The autopilot's own mode changes this period (forced mode, offboard-loss failsafe:
@@ -414,18 +754,33 @@ class SimVehicle:
             self._enter(self.mode_override, q, rpy[2])
         k = self.kind()
         since = now - self.last_sp
-        if k == OFFBOARD and since > self.opts.offboard_loss_s:
+        if k == OFFBOARD and since > self.loss_s and self.opts.autopilot == "px4":
             self._enter(self.opts.modes["hold"], q, rpy[2])
             self.failsafe = True  # offboard loss: hold, then land
             self._count("failsafe_hold")
             k = HOLD
-        elif self.failsafe and k == HOLD and self.armed and since > self.opts.offboard_loss_s + self.opts.failsafe_land_s:
+        elif self.failsafe and k == HOLD and self.armed and since > self.loss_s + self.opts.failsafe_land_s:
             self._enter(self.opts.modes["land"], q, rpy[2])
             self._count("failsafe_land")
             k = LAND
-        if k == LAND and self.armed and self.on_ground and now - self.ground_since >= self.opts.disarm_after_land_s:
-            self.armed = False  # landed: auto-disarm (PX4 COM_DISARM_LAND)
+        landing = k == LAND or (k == RTL and self.rtl_phase == "land")
+        if landing and self.armed and self.on_ground and now - self.ground_since >= self.disarm_after_land_s:
+            self._disarm()  # landed: auto-disarm (PX4 COM_DISARM_LAND; ArduCopter mode_land.cpp)
             self._count("auto_disarmed")
+        if self.opts.autopilot == "ardupilot" and self.armed:
+            # the land detector (ArduCopter land_detector.cpp, about 1 s on the ground); landed and
+            # armed for DISARM_DELAY s -> disarm (motors.cpp auto_disarm_check)
+            if self.on_ground and now - self.ground_since >= 1.0 and self.guided_sub != SUB_TAKEOFF:
+                if not self.land_complete:
+                    self.land_complete, self.landed_since = True, now
+            elif not self.on_ground:
+                self.land_complete = False
+            if not self.land_complete:
+                self.landed_since = now
+            delay = self.ap_params["DISARM_DELAY"]
+            if delay > 0 and self.land_complete and now - self.landed_since >= delay:
+                self._disarm()
+                self._count("auto_disarmed")
         return k
 
     def _pd(self, q: np.ndarray, v: np.ndarray, p_ref: np.ndarray | None, v_ref: np.ndarray, yaw: float) -> tuple[float, np.ndarray]:
@@ -462,7 +817,76 @@ class SimVehicle:
         mav = self.conn.mav
         mav.local_position_ned_send(ms, *map(float, p_ned), *map(float, v_ned))
         mav.attitude_send(ms, *map(float, rpy_ned), *map(float, w_frd))
+        if self.opts.autopilot == "px4":
+            # PX4 streams ATTITUDE_QUATERNION beside ATTITUDE (mavlink_main.cpp stream lists);
+            # ArduPilot only on request
+            qn = frames.attitude_to_quat_ned(frames.euler_ned_to_enu(rpy_ned))
+            mav.attitude_quaternion_send(ms, *map(float, qn), *map(float, w_frd))
         self.telemetry_sent += 1
+        if self.telemetry_sent % 5 == 1:
+            # GLOBAL_POSITION_INT at a fifth of the rate: simulated GPS about REF_LLA (flat earth)
+            q = frames.ned_to_enu(p_ned) + self.origin
+            v = frames.ned_to_enu(v_ned)
+            lat, lon, alt = self._lla(q)
+            rel = q[2] - self.home_enu[2]
+            hdg = int(round(math.degrees(float(rpy_ned[2])) % 360.0 * 100.0)) % 36000
+            mav.global_position_int_send(
+                ms, lat, lon, int(alt * 1000), int(rel * 1000), int(v[1] * 100), int(v[0] * 100), int(-v[2] * 100), hdg
+            )
+
+    def _lla(self, q_enu: np.ndarray) -> tuple[int, int, float]:
+        """(lat 1e-7 deg, lon 1e-7 deg, alt AMSL m) of swarm ENU ``q_enu`` about REF_LLA."""
+        lat = REF_LLA[0] + math.degrees(float(q_enu[1]) / _EARTH_R)
+        lon = REF_LLA[1] + math.degrees(float(q_enu[0]) / (_EARTH_R * math.cos(math.radians(REF_LLA[0]))))
+        return int(round(lat * 1e7)), int(round(lon * 1e7)), REF_LLA[2] + float(q_enu[2])
+
+    def landed_state(self) -> int:
+        """MAV_LANDED_STATE of EXTENDED_SYS_STATE (PX4 land detector / ArduCopter land_complete)."""
+        k = self.kind()
+        if not self.armed:
+            return int(mavlink.MAV_LANDED_STATE_ON_GROUND)
+        if k == TAKEOFF or (self.guided_sub == SUB_TAKEOFF and math.isfinite(self.takeoff_z)):
+            return int(mavlink.MAV_LANDED_STATE_TAKEOFF)
+        if self.on_ground and (self.opts.autopilot == "px4" or self.land_complete):
+            return int(mavlink.MAV_LANDED_STATE_ON_GROUND)
+        if k == LAND or (k == RTL and self.rtl_phase == "land"):
+            return int(mavlink.MAV_LANDED_STATE_LANDING)
+        return int(mavlink.MAV_LANDED_STATE_IN_AIR)
+
+    def send_status_extra(self, now: float) -> None:
+        """EXTENDED_SYS_STATE and HOME_POSITION (both autopilots stream them at low rate), and
+        any message requested with MAV_CMD_REQUEST_MESSAGE."""
+        if self.muted(now) or not self.peer_seen:
+            return
+        self.conn.mav.extended_sys_state_send(mavlink.MAV_VTOL_STATE_UNDEFINED, self.landed_state())
+        self._send_home()
+
+    def send_requested(self, now: float) -> None:
+        pending, self._pending = self._pending, []
+        if self.muted(now):
+            return
+        for what in pending:
+            if what == "home":
+                self._send_home()
+            elif what == "version":
+                caps = (
+                    mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+                    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
+                    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+                    | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+                    | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+                )
+                if self.opts.autopilot == "px4":
+                    caps |= mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
+                else:
+                    caps |= mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+                self.conn.mav.autopilot_version_send(caps, 0, 0, 0, 0, bytes(8), bytes(8), bytes(8), 0, 0, self.sysid, bytes(18))
+
+    def _send_home(self) -> None:
+        h = self.home_enu
+        lat, lon, alt = self._lla(h)
+        x, y, z = (float(c) for c in frames.enu_to_ned(h - self.origin))
+        self.conn.mav.home_position_send(lat, lon, int(alt * 1000), x, y, z, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0)
 
     def send_heartbeat(self, now: float) -> None:
         if self.muted(now) or not self.peer_seen:
@@ -489,8 +913,15 @@ class SimVehicle:
             | mavlink.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
             | mavlink.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL
         )
+        sensors |= mavlink.MAV_SYS_STATUS_SENSOR_GPS | mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        # health: all sensors healthy; the PREARM_CHECK bit is healthy when the vehicle would arm
+        # (PX4 mavlink_messages SYS_STATUS from health_report; ArduCopter GCS_MAVLink
+        # update_sensor_status_flags: MAV_SYS_STATUS_PREARM_CHECK set when pre_arm_checks pass)
+        health = sensors
+        if self.prearm_failure is not None:
+            health &= ~(mavlink.MAV_SYS_STATUS_PREARM_CHECK | mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG)
         # load 0.1 %, battery 4.2 V (1S), current and remaining unknown (-1)
-        self.conn.mav.sys_status_send(sensors, sensors, sensors, 100, 4200, -1, -1, 0, 0, 0, 0, 0, 0)
+        self.conn.mav.sys_status_send(sensors, sensors, health, 100, 4200, -1, -1, 0, 0, 0, 0, 0, 0)
 
     def close(self) -> None:
         try:
@@ -555,10 +986,13 @@ class MavlinkFleet:
         self.vehicles: list[SimVehicle] = []
         try:
             for i in range(self.n):
-                self.vehicles.append(SimVehicle(i, int(ids[i]), int(base_port) + i, self.opts, params, self.boot))
+                veh = SimVehicle(i, int(ids[i]), int(base_port) + i, self.opts, params, self.boot, spawn=q[i])
+                veh.period = self.period
+                self.vehicles.append(veh)
         except Exception:
             self.close()
             raise
+        self.origins = np.array([veh.origin for veh in self.vehicles])
         self.thrust = np.zeros(self.n)
         self.rpy_cmd = np.zeros((self.n, 3))
         self.sim_t = 0.0
@@ -606,6 +1040,12 @@ class MavlinkFleet:
         """Vehicle ``index`` (0-based) drops all its traffic, both ways, for ``seconds``."""
         self.vehicles[index].muted_until = time.monotonic() + float(seconds)
 
+    def set_prearm_failure(self, index: int, reason: str | None) -> None:
+        """Vehicle ``index`` fails its pre-arm checks with ``reason`` (None: passes again): its
+        SYS_STATUS says so (PREARM_CHECK and 3D_MAG unhealthy) and arming is refused with a
+        STATUSTEXT, as a vehicle with an uncalibrated compass would."""
+        self.vehicles[index].prearm_failure = reason
+
     def set_mode_override(self, index: int, custom_mode: int | None) -> None:
         """Vehicle ``index`` accepts mode requests but reports and flies ``custom_mode``."""
         self.vehicles[index].mode_override = custom_mode
@@ -639,7 +1079,7 @@ class MavlinkFleet:
             self.ticks += 1
             k = self.ticks
             if k % self.tel_every == 0:
-                p_ned = frames.enu_to_ned(st.q)
+                p_ned = frames.enu_to_ned(st.q - self.origins)
                 v_ned = frames.enu_to_ned(st.v)
                 rpy_ned = frames.euler_enu_to_ned(st.rpy)
                 w_frd = frames.flu_to_frd(st.w)
@@ -651,6 +1091,10 @@ class MavlinkFleet:
             if k % self.ss_every == 1 % self.ss_every:
                 for veh in self.vehicles:
                     veh.send_sys_status(now)
+                    veh.send_status_extra(now)
+            for veh in self.vehicles:
+                if veh._pending:
+                    veh.send_requested(now)
 
     def _ground(self) -> None:
         """Flat ground at ground_z: a vehicle below it is put back on it, at rest and level."""
@@ -744,23 +1188,28 @@ def run_fleet(
     autopilot: str | None = None,
     telemetry_hz: float | None = None,
     duration: float | None = None,
+    own_origin: bool = False,
+    sitl_ports: bool = False,
 ) -> int:
     """Run the fleet of scenario ``sc`` in the calling thread until SIGTERM/SIGINT (or
     ``duration`` s). ``base_port``: vehicle i listens on UDP base_port + i - 1 (None: the
     scenario's ``mavlink.base_port``); ``autopilot`` (``px4`` or ``ardupilot``) and
-    ``telemetry_hz`` override the scenario's vehicle options. The command line (``zenswarm
+    ``telemetry_hz`` override the scenario's vehicle options; ``own_origin`` and ``sitl_ports`` set
+    the options of the same names (:class:`VehicleOptions`). The command line (``zenswarm
     mavlink-vehicle``, ``zenswarm plant --mavlink``) is parsed in :mod:`zenswarm.compose.roles`."""
     from zenswarm.runtime import gc_policy, gc_startup_done
 
     gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work
     fleet = MavlinkFleet.from_scenario(sc, base_port=base_port)
-    if autopilot or telemetry_hz:
+    if autopilot or telemetry_hz or own_origin or sitl_ports:
         opts = fleet.opts
         fleet.close()
         opts = replace(
             opts,
             autopilot=autopilot or opts.autopilot,
             telemetry_hz=telemetry_hz or opts.telemetry_hz,
+            own_origin=own_origin or opts.own_origin,
+            sitl_ports=sitl_ports or opts.sitl_ports,
         )
         fleet = MavlinkFleet.from_scenario(sc, base_port=base_port, opts=opts)
     stop = threading.Event()

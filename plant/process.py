@@ -135,8 +135,7 @@ class _LockstepPlant:
         self.proc = plant.proc
         # while an agent is down, run no faster than real time
         self.pacer = WallClock(plant.dt, catch_up=False)
-        self.ls = Lockstep(plant.n_ticks, self.ready, self.step, self.proc.options.lockstep_timeout, self.proc.stop,
-                           on_msg=self.on_msg)
+        self.ls = Lockstep(plant.n_ticks, self.ready, self.step, self.proc.options.lockstep_timeout, self.proc.stop, on_msg=self.on_msg)
 
     def on_msg(self, key: str, k: int, msg: wire.Cmd) -> None:  # under the lockstep lock
         if self.p.boxes:

@@ -282,13 +282,52 @@ class _Compiled:
         self.Fb = np.zeros(n)  # clamped thrust
         self.tmp = np.zeros((n, 3))
         self.consts = (
-            self.zero, self.fmax, self.cmd_lo, self.cmd_hi, self.pi, self.two_pi, self.att_kp,
-            self.rate_lo, self.rate_hi, self.dt0, self.int_lo, self.int_hi, self.k_e, self.k_prev,
-            self.ki, self.tau_lo, self.tau_hi, self.G, self.G0, self.G1, self.G2, self.jinv_dt,
-            self.gyro_dt, self.S, self.C,
-            self.sf, self.st, self.sp, self.cf, self.ct, self.cp, self.cos_min, self.E, self.e0,
-            self.e1, self.e2, self.t1, self.t2, self.t3, self.t4, self.tmp, self.fdt_m, self.g_dt,
-            self.inv_two_pi, self.half, self.Fb,
+            self.zero,
+            self.fmax,
+            self.cmd_lo,
+            self.cmd_hi,
+            self.pi,
+            self.two_pi,
+            self.att_kp,
+            self.rate_lo,
+            self.rate_hi,
+            self.dt0,
+            self.int_lo,
+            self.int_hi,
+            self.k_e,
+            self.k_prev,
+            self.ki,
+            self.tau_lo,
+            self.tau_hi,
+            self.G,
+            self.G0,
+            self.G1,
+            self.G2,
+            self.jinv_dt,
+            self.gyro_dt,
+            self.S,
+            self.C,
+            self.sf,
+            self.st,
+            self.sp,
+            self.cf,
+            self.ct,
+            self.cp,
+            self.cos_min,
+            self.E,
+            self.e0,
+            self.e1,
+            self.e2,
+            self.t1,
+            self.t2,
+            self.t3,
+            self.t4,
+            self.tmp,
+            self.fdt_m,
+            self.g_dt,
+            self.inv_two_pi,
+            self.half,
+            self.Fb,
         )
         # the same constants as Python floats, per axis, for _step_held_scalar
 
@@ -296,10 +335,23 @@ class _Compiled:
             return tuple(float(x) for x in a[0])
 
         self.scalars = (
-            row(self.cmd_lo), row(self.cmd_hi), row(self.att_kp), row(self.rate_hi), row(self.int_hi),
-            row(self.k_e), row(self.k_prev), row(self.ki), row(self.tau_hi), row(self.jinv_dt),
-            row(self.gyro_dt), float(self.g_dt[0, 0]), float(self.g_dt[0, 2]), float(self.fdt_m),
-            float(self.cos_min), float(self.fmax[0]), dt,
+            row(self.cmd_lo),
+            row(self.cmd_hi),
+            row(self.att_kp),
+            row(self.rate_hi),
+            row(self.int_hi),
+            row(self.k_e),
+            row(self.k_prev),
+            row(self.ki),
+            row(self.tau_hi),
+            row(self.jinv_dt),
+            row(self.gyro_dt),
+            float(self.g_dt[0, 0]),
+            float(self.g_dt[0, 2]),
+            float(self.fdt_m),
+            float(self.cos_min),
+            float(self.fmax[0]),
+            dt,
         )
 
 
@@ -385,10 +437,54 @@ def step(
     c = state._cache
     if c is None or c.params is not params or c.dt != dt or c.n != state.q.shape[0]:
         c = _compile(state, params, dt)
-    (zero, fmaxv, cmd_lo, cmd_hi, pi, two_pi, att_kp, rate_lo, rate_hi, dt0, int_lo, int_hi, k_e,
-     k_prev, ki, tau_lo, tau_hi, G, G0, G1, G2, jinv_dt, gyro_dt, S, C,
-     sf, st, sp, cf, ct, cp, cos_min, E, e0, e1, e2, t1, t2, t3, t4, tmp, fdt_m, g_dt, inv_two_pi,
-     half, Fb) = c.consts
+    (
+        zero,
+        fmaxv,
+        cmd_lo,
+        cmd_hi,
+        pi,
+        two_pi,
+        att_kp,
+        rate_lo,
+        rate_hi,
+        dt0,
+        int_lo,
+        int_hi,
+        k_e,
+        k_prev,
+        ki,
+        tau_lo,
+        tau_hi,
+        G,
+        G0,
+        G1,
+        G2,
+        jinv_dt,
+        gyro_dt,
+        S,
+        C,
+        sf,
+        st,
+        sp,
+        cf,
+        ct,
+        cp,
+        cos_min,
+        E,
+        e0,
+        e1,
+        e2,
+        t1,
+        t2,
+        t3,
+        t4,
+        tmp,
+        fdt_m,
+        g_dt,
+        inv_two_pi,
+        half,
+        Fb,
+    ) = c.consts
     mul = _mul
     add = _add
     sub = _sub
@@ -519,15 +615,29 @@ def _rows(x: Any, n: int, shape: tuple[int, ...]) -> list[Any]:
     return np.broadcast_to(np.asarray(x, dtype=float), shape).tolist() if x is not None else [None] * n
 
 
-def _step_held_scalar(
-    state: PlantState, c: _Compiled, thrust_cmd: Any, rpy_cmd: Any, nsub: int, samples: list[Any] | None
-) -> None:
+def _step_held_scalar(state: PlantState, c: _Compiled, thrust_cmd: Any, rpy_cmd: Any, nsub: int, samples: list[Any] | None) -> None:
     """:func:`step_held` on Python floats, UAV by UAV: every operation of :func:`step`, in its
     order (``fmax(a, b)`` = ``a if a >= b else b`` as numpy's for a non-NaN bound, ``%`` as
     ``np.remainder``, ``np.ceil``'s signed zero kept). Writes the state only at the end."""
-    ((lo0, lo1, lo2), (hi0, hi1, hi2), (ak0, ak1, ak2), (rh0, rh1, rh2), (ih0, ih1, ih2),
-     (ke0, ke1, ke2), (kp0, kp1, kp2), (ki0, ki1, ki2), (th0, th1, th2), (jd0, jd1, jd2),
-     (gd0, gd1, gd2), gxy, gz, fdt_m, cos_min, fmx, dt) = c.scalars
+    (
+        (lo0, lo1, lo2),
+        (hi0, hi1, hi2),
+        (ak0, ak1, ak2),
+        (rh0, rh1, rh2),
+        (ih0, ih1, ih2),
+        (ke0, ke1, ke2),
+        (kp0, kp1, kp2),
+        (ki0, ki1, ki2),
+        (th0, th1, th2),
+        (jd0, jd1, jd2),
+        (gd0, gd1, gd2),
+        gxy,
+        gz,
+        fdt_m,
+        cos_min,
+        fmx,
+        dt,
+    ) = c.scalars
     n = c.n
     pi, two_pi, inv = _PI, _TWO_PI, 1.0 / _TWO_PI
     sin, cos, ceil, copysign, fabs = math.sin, math.cos, math.ceil, math.copysign, math.fabs

@@ -325,3 +325,27 @@ def test_up_regenerates_keys_left_in_out_by_another_swarm(tmp_path: Path) -> Non
     assert f'"swarm": "{swarm}"' in (out / "keys" / "manifest.json").read_text()
     assert not (out / "keys" / "agent-4").exists()
     assert (out / "results.json").exists() and processes_mentioning(swarm) == []
+
+
+# ----------------------------------------------------------------------------- MAVLink ids and timeouts
+
+
+@pytest.mark.parametrize(
+    "flags, needle",
+    [
+        (("--sysid", "2=245"), "mavlink.sysids"),  # the bridge's own source_system
+        (("--sysid", "3=1"), "mavlink.sysids"),  # two vehicles with one id
+        (("--link-timeout", "1.0"), "mavlink.link_timeout_s"),  # not below the vehicles' 1 s loss time
+    ],
+)
+def test_bridge_refuses_bad_ids_and_timeouts_before_connecting(flags: tuple[str, ...], needle: str) -> None:
+    """``zenswarm bridge mavlink``: exit 2 naming the field, before any Zenoh session (the router
+    endpoint here does not exist: trying it would fail with a Zenoh connection error)."""
+    r = zenswarm("bridge", "mavlink", str(EX1), "--swarm", unique_swarm("bad"), "--connect", "tcp/127.0.0.1:1", *flags, timeout=60)
+    _bad(r, needle)
+    assert "zenoh" not in r.stdout.lower(), r.stdout
+
+
+def test_up_refuses_duplicate_mavlink_sysids(tmp_path: Path) -> None:
+    p = _variant(tmp_path, "dupids", lambda d: d.__setitem__("mavlink", {"sysids": [1, 2, 2]}))
+    _up_refused(tmp_path, "--plant", "mavlink", scenario=p, needles=("mavlink.sysids", "UAV 2 and UAV 3"))

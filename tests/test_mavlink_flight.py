@@ -132,6 +132,14 @@ def test_example1_through_mavlink_bridge_reaches_goal_and_lands(tmp_path: Path) 
     assert diag["states_published"] > 1000 and diag["setpoints_attitude"] > 1000, diag
     assert diag.get("refused", 0) == 0 and diag.get("mav_bad", 0) == 0, diag
     assert "mission clock started with UAV(s) [1, 2, 3]" in cp.stdout
+    # the vehicles' own origins and PX4 SITL's port direction (the bridge listens, udpin)
+    assert "udpin:127.0.0.1:" in cp.stdout and "--own-origin" not in cp.stdout
+    # the vehicles role is up once the bridge hears them, and results.json has their figures
+    assert re.search(r"vehicles:up", cp.stdout), cp.stdout[-3000:]
+    veh = res["vehicles"]
+    assert veh is not None and veh["phases"] == "1:done,2:done,3:done" and veh["armed_uavs"] == 0, veh
+    assert 0 < veh["max_state_age_ms"] < 1000, veh  # measured from the vehicles' time_boot_ms
+    assert res["processes"]["vehicles"] is not None, res["processes"]
     _assert_landed_and_disarmed(cp, res)
 
 

@@ -33,6 +33,11 @@ __all__ = [
     "MavlinkSettings",
     "mavlink_settings",
     "load_mavutil",
+    "AUTOPILOT_PARAMS",
+    "GUID_OPTIONS_THRUST_AS_THRUST",
+    "VehicleParams",
+    "vehicle_params",
+    "param_value",
 ]
 
 
@@ -160,11 +165,18 @@ _MAV_KEYS: dict[str, str] = {
     "autopilot": "px4 | ardupilot | auto (bridge: from the vehicle's heartbeat; default auto)",
     "setpoint": "attitude (SET_ATTITUDE_TARGET from uav/<i>/cmd) | position (SET_POSITION_TARGET_LOCAL_NED from uav/<i>/ref)",
     "rate_hz": "minimum setpoint rate, Hz, >= 20 (default max(20, control rate))",
-    "hover_throttle": "normalised throttle at which the vehicle hovers, (0, 1) (default: thrust / max_thrust)",
+    "hover_throttle": (
+        "normalised throttle at which the vehicle hovers, (0, 1): overrides the vehicle's MPC_THR_HOVER / MOT_THST_HOVER "
+        "(default: read from the vehicle; before that, thrust / max_thrust)"
+    ),
     "takeoff": "fly to the scenario's initial positions before the mission (default true)",
     "takeoff_tolerance_m": "takeoff done within this distance, m (default 0.08)",
     "takeoff_timeout_s": "give up a takeoff after this long, s (default 30)",
-    "link_timeout_s": "a vehicle silent this long is unhealthy, s (default 1.0)",
+    "link_timeout_s": (
+        "a vehicle silent this long is unhealthy, s (default 0.5); must be below the simulated vehicles' offboard_loss_s "
+        "and, checked on each vehicle before arming, below PX4 COM_OF_LOSS_T / ArduPilot GUID_TIMEOUT"
+    ),
+    "params_timeout_s": "give up reading (or setting) a vehicle's parameters after this long: the UAV is refused, s (default 5)",
     "stream_s": "setpoints streamed before asking for the offboard mode, s (default 1.0)",
     "cmd_timeout_s": "an agent command older than this is replaced by a position hold, s (default 0.5)",
     "land_timeout_s": "wait at most this long for the vehicles to land and disarm, s (default 15)",
@@ -200,7 +212,8 @@ class MavlinkSettings:
     takeoff: bool = True
     takeoff_tolerance_m: float = 0.08
     takeoff_timeout_s: float = 30.0
-    link_timeout_s: float = 1.0
+    link_timeout_s: float = 0.5
+    params_timeout_s: float = 5.0
     stream_s: float = 1.0
     cmd_timeout_s: float = 0.5
     land_timeout_s: float = 15.0
@@ -264,6 +277,13 @@ def _table_with(sc: Scenario, cli: dict[str, Any]) -> MavlinkTable:
     _per_uav(t, "connections", n, "connection strings")
     _per_uav(t, "sysids", n, "system ids")
     _per_uav(t, "origins", n, "[x, y, z] points, m ENU")
+    if not t.link_timeout_s < t.offboard_loss_s:
+        # the bridge must notice a silent vehicle before the vehicle's own offboard-loss failsafe
+        # fires, or the failsafe's mode change looks like a pilot taking over (docs/mavlink.md)
+        raise ScenarioError(
+            "mavlink.link_timeout_s",
+            f"must be below mavlink.offboard_loss_s ({t.offboard_loss_s:g} s, the vehicles' offboard-loss time), got {t.link_timeout_s:g}",
+        )
     return t
 
 
@@ -275,6 +295,14 @@ def _override(flag: str, values: list[Any], over: dict[int, Any], check: Any) ->
         values[i - 1] = check(flag, v)
 
 
+def _check_origin(flag: str, o: Any) -> tuple[float, float, float]:
+    import math
+
+    if not isinstance(o, (tuple, list)) or len(o) != 3 or not all(isinstance(c, (int, float)) and math.isfinite(c) for c in o):
+        raise ScenarioError(flag, f"expected X,Y,Z (m, ENU, finite), got {o!r}")
+    return (float(o[0]), float(o[1]), float(o[2]))
+
+
 def _links(t: MavlinkTable, n: int, conn_over: dict[int, str], sysid_over: dict[int, int]) -> tuple[list[str], list[int]]:
     """Connection string and system id of each UAV; a (connection, id) pair names one vehicle."""
     conns = list(t.connections or [f"udpout:{t.host}:{t.base_port + i}" for i in range(n)])
@@ -283,12 +311,118 @@ def _links(t: MavlinkTable, n: int, conn_over: dict[int, str], sysid_over: dict[
     _override("--conn", conns, conn_over, _check_url)
     sysids = list(t.sysids or range(1, n + 1))
     _override("--sysid", sysids, sysid_over, lambda f, s: _int(f, s, 1, 254))
-    seen: dict[tuple[str, int], int] = {}
-    for i, (c, s) in enumerate(zip(conns, sysids, strict=True)):
-        if (c, s) in seen:
-            raise ScenarioError("mavlink.sysids", f"UAV {seen[(c, s)] + 1} and UAV {i + 1} share connection {c!r} and system id {s}")
-        seen[(c, s)] = i
+    seen: dict[int, int] = {}
+    for i, s in enumerate(sysids):
+        # MAVLink system ids must be unique on a network (routers and ground stations tell the
+        # vehicles apart by id alone), whether or not the vehicles share a connection
+        if s in seen:
+            where = "share connection " + repr(conns[i]) + " and" if conns[i] == conns[seen[s]] else "have the same"
+            raise ScenarioError("mavlink.sysids", f"UAV {seen[s] + 1} and UAV {i + 1} {where} system id {s}: give each vehicle its own")
+        if s == t.source_system:
+            raise ScenarioError(
+                "mavlink.sysids",
+                f"UAV {i + 1} has system id {s}, the bridge's own (mavlink.source_system): the bridge would take "
+                "its own messages for the vehicle's; change one of them",
+            )
+        seen[s] = i
     return conns, sysids
+
+
+# --------------------------------------------------------------------------- parameters
+
+AUTOPILOT_PARAMS: dict[str, tuple[str, ...]] = {
+    "px4": ("MPC_THR_HOVER", "COM_OF_LOSS_T"),
+    "ardupilot": ("GUID_OPTIONS", "GUID_TIMEOUT", "MOT_THST_HOVER"),
+}
+"""Parameters the bridge reads (PARAM_REQUEST_READ) from each vehicle before arming.
+
+PX4: ``MPC_THR_HOVER`` (hover thrust, normalised 0..1: the throttle of SET_ATTITUDE_TARGET at
+which the vehicle hovers; PX4 ``mc_pos_control`` parameters) and ``COM_OF_LOSS_T`` (s without
+offboard setpoints before the offboard-loss failsafe; PX4 ``commander`` parameters).
+ArduCopter: ``GUID_OPTIONS`` (bitmask; bit 3 ``SetAttitudeTarget_ThrustAsThrust``, ArduCopter
+``mode.h``), ``GUID_TIMEOUT`` (s without guided setpoints before the vehicle stops following
+them: levels out / holds; ArduCopter ``Parameters.cpp``) and ``MOT_THST_HOVER`` (the learnt
+hover throttle, 0..1; ``AP_MotorsMulticopter.cpp``: with thrust as thrust, SET_ATTITUDE_TARGET's
+thrust is that throttle)."""
+
+GUID_OPTIONS_THRUST_AS_THRUST = 1 << 3
+"""ArduCopter ``GUID_OPTIONS`` bit 3 (``ModeGuided::Option::SetAttitudeTarget_ThrustAsThrust``,
+ArduCopter ``mode.h``): SET_ATTITUDE_TARGET.thrust is a thrust (0..1 throttle). Clear (the
+default) it is a climb rate: 0.5 holds the altitude, less descends
+(``ModeGuided::set_attitude_target_provides_thrust`` in ``mode_guided.cpp``)."""
+
+_PX4_INT_TYPES = (1, 2, 3, 4, 5, 6)  # MAV_PARAM_TYPE_UINT8..INT32: PX4 sends their bytes in the float
+
+
+def param_value(autopilot: str, param_type: int, value: float) -> float:
+    """A PARAM_VALUE's ``param_value`` as a number. ArduPilot casts integers to float (C cast);
+    PX4 copies an integer's bytes into the float field (``MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE``),
+    so they are read back bytewise."""
+    if autopilot == "px4" and int(param_type) in _PX4_INT_TYPES:
+        import struct
+
+        return float(struct.unpack("<i", struct.pack("<f", float(value)))[0])
+    return float(value)
+
+
+@dataclass(frozen=True)
+class VehicleParams:
+    """What the bridge does with one vehicle's parameters (:func:`vehicle_params`).
+
+    hover_throttle: SET_ATTITUDE_TARGET throttle at which the vehicle hovers, (0, 1), or None
+    (the scenario's ``thrust / max_thrust``). loss_timeout_s: the vehicle's own setpoint-loss
+    time, s. set_guid_options: ArduCopter only: the ``GUID_OPTIONS`` value to write (PARAM_SET)
+    before arming, or None if it is right already. error: why the vehicle must not be flown, or
+    "". notes: what was decided, for the log."""
+
+    hover_throttle: float | None
+    loss_timeout_s: float
+    set_guid_options: int | None = None
+    error: str = ""
+    notes: str = ""
+
+
+def vehicle_params(
+    autopilot: str, params: dict[str, float], link_timeout_s: float, setpoint: str, hover_throttle: float | None = None
+) -> VehicleParams:
+    """Decide the thrust mapping and check the link timeout from a vehicle's parameters
+    (the names of :data:`AUTOPILOT_PARAMS`; all present).
+
+    PX4: the hover throttle is ``MPC_THR_HOVER`` unless the ``hover_throttle`` setting overrides
+    it; the loss time is ``COM_OF_LOSS_T``. ArduCopter: with ``setpoint = "attitude"`` the
+    bridge sends thrusts, so ``GUID_OPTIONS`` must have bit 3 set (else 0.444, the scenario's
+    hover thrust, would be read as "descend"): if it is clear, ``set_guid_options`` asks the
+    bridge to set it (the documented choice, docs/mavlink.md); the hover throttle is
+    ``MOT_THST_HOVER`` unless the ``hover_throttle`` setting overrides it. The loss time is
+    ``GUID_TIMEOUT``. ``link_timeout_s`` must be below the loss time, or ``error`` says so.
+    """
+    set_opts: int | None = None
+    if autopilot == "ardupilot":
+        loss = float(params["GUID_TIMEOUT"])
+        opts = int(params["GUID_OPTIONS"])
+        notes = f"GUID_TIMEOUT {loss:g} s, GUID_OPTIONS {opts}"
+        if setpoint == "attitude" and not opts & GUID_OPTIONS_THRUST_AS_THRUST:
+            set_opts = opts | GUID_OPTIONS_THRUST_AS_THRUST
+            notes += f" (thrust would be a climb rate: setting GUID_OPTIONS = {set_opts}, thrust as thrust)"
+        hover_name, name = "MOT_THST_HOVER", "GUID_TIMEOUT"
+    else:
+        loss = float(params["COM_OF_LOSS_T"])
+        notes = f"COM_OF_LOSS_T {loss:g} s"
+        hover_name, name = "MPC_THR_HOVER", "COM_OF_LOSS_T"
+    thr = float(params[hover_name])
+    notes += f", {hover_name} {thr:g}"
+    if not 0.0 < thr < 1.0:
+        return VehicleParams(None, loss, None, f"{hover_name} = {thr:g} is not a hover throttle in (0, 1)", notes)
+    if hover_throttle is not None and abs(hover_throttle - thr) > 1e-6:
+        notes += f" (mavlink.hover_throttle {hover_throttle:g} overrides it)"
+    hover = hover_throttle if hover_throttle is not None else thr
+    if not link_timeout_s < loss:
+        err = (
+            f"mavlink.link_timeout_s ({link_timeout_s:g} s) is not below the vehicle's {name} ({loss:g} s): the bridge "
+            f"would not notice a lost link before the vehicle's failsafe; lower link_timeout_s or raise {name}"
+        )
+        return VehicleParams(hover, loss, set_opts, err, notes)
+    return VehicleParams(hover, loss, set_opts, "", notes)
 
 
 def mavlink_settings(sc: Scenario, cli: dict[str, Any] | None = None) -> MavlinkSettings:
@@ -296,22 +430,26 @@ def mavlink_settings(sc: Scenario, cli: dict[str, Any] | None = None) -> Mavlink
     :class:`zenswarm.schema.MavlinkTable`), with command-line overrides applied.
 
     cli: optional overrides with the same keys as the table (None values are ignored), plus
-    ``conn`` ({uav: url}) and ``sysid`` ({uav: id}) for single UAVs. Errors are
+    ``conn`` ({uav: url}), ``sysid`` ({uav: id}) and ``origin`` ({uav: (x, y, z)}, m ENU) for
+    single UAVs. Errors are
     :class:`ScenarioError` naming the field (``mavlink.<key>`` or the flag). Keys of the table:
 
     """
     cli = dict(cli or {})
     conn_over: dict[int, str] = cli.pop("conn", None) or {}
     sysid_over: dict[int, int] = cli.pop("sysid", None) or {}
+    origin_over: dict[int, Any] = cli.pop("origin", None) or {}
     t = _table_with(sc, cli)
     n = sc.n
     conns, sysids = _links(t, n, conn_over, sysid_over)
+    origins = [tuple(float(c) for c in o) for o in (t.origins or [(0.0, 0.0, 0.0)] * n)]
+    _override("--origin", origins, origin_over, _check_origin)
     plain = {k: getattr(t, k) for k in _MAV_KEYS if k not in ("connections", "sysids", "origins", "rate_hz")}
     return MavlinkSettings(
         n=n,
         connections=tuple(conns),
         sysids=tuple(sysids),
-        origins=tuple(t.origins or [(0.0, 0.0, 0.0)] * n),
+        origins=tuple(origins),  # type: ignore[arg-type]
         rate_hz=t.rate_hz if t.rate_hz is not None else max(20.0, sc.timing.control_rate_hz),
         **plain,
     )
