@@ -28,12 +28,7 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import subprocess
-import sys
 import tempfile
-import threading
-import time
 import tomllib
 import uuid
 from collections.abc import Iterable, Mapping, Sequence
@@ -44,6 +39,7 @@ from typing import Any, Literal
 import numpy as np
 
 from zenswarm.bus import free_port
+from zenswarm.compose.launch import kill_processes_of, live_flights, processes_of, run_up, stop_flight
 from zenswarm.compose.sim import simulate, summary_line, write_outputs
 from zenswarm.compose.supervisor import UpOptions, check_up_args
 from zenswarm.config import Scenario, scenario_from_dict, scenario_to_dict
@@ -380,59 +376,6 @@ def unique_swarm_name(prefix: str = "api") -> str:
     return f"{prefix}{uuid.uuid4().hex[:10]}"
 
 
-def processes_of(swarm: str) -> list[tuple[int, str]]:
-    """(pid, command line) of the live processes of ``swarm`` (Linux /proc; not zombies)."""
-    found = []
-    needle = f"--swarm {swarm} "
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            cmd = (Path("/proc") / entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            stat = (Path("/proc") / entry / "stat").read_text()
-        except OSError:
-            continue
-        if needle in cmd + " " and ") Z " not in stat:
-            found.append((int(entry), cmd.strip()))
-    return found
-
-
-def kill_processes_of(swarm: str) -> list[str]:
-    """SIGKILL every live process of ``swarm``; returns their command lines."""
-    found = processes_of(swarm)
-    for pid, _ in found:
-        try:
-            os.kill(pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-    return [cmd for _, cmd in found]
-
-
-_LIVE: dict[int, subprocess.Popen[str]] = {}
-_LIVE_LOCK = threading.Lock()
-
-
-def live_flights() -> list[subprocess.Popen[str]]:
-    """The supervisors (``zenswarm up``) of swarm flights still running in this process."""
-    with _LIVE_LOCK:
-        return [p for p in _LIVE.values() if p.poll() is None]
-
-
-def stop_flight(p: subprocess.Popen[str], grace_s: float = 10.0) -> None:
-    """SIGTERM the supervisor's process group (it stops its swarm), SIGKILL it after ``grace_s``."""
-    for sig, wait in ((signal.SIGTERM, grace_s), (signal.SIGKILL, 5.0)):
-        if p.poll() is not None:
-            break
-        try:
-            os.killpg(p.pid, sig)
-        except ProcessLookupError:
-            break
-        try:
-            p.wait(timeout=wait)
-        except subprocess.TimeoutExpired:
-            continue
-
-
 # ----------------------------------------------------------------------------- flying
 
 
@@ -583,13 +526,10 @@ def _fly_swarm(
             kill=kills, restart=restart, full_time=full_time, faults=faults, listen=(f"tcp/127.0.0.1:{port}",),
         )
         check_up_args(opts, sc)  # the supervisor's own checks, here: bad input raises before anything starts
-        argv = [sys.executable, "-m", "zenswarm", "up", str(scen_file), "--out", str(out_dir), "--swarm", swarm]
-        argv += ["--listen", f"tcp/127.0.0.1:{port}", "--progress-every", "5", "--lockstep-timeout", repr(lockstep_timeout)]
-        argv += [w for role, t in kills for w in ("--kill", f"{role}@{t!r}s")]
-        argv += ["--restart"] * restart + ["--realtime"] * realtime + ["--full-time"] * full_time
-        argv += ["--record", str(record)] if record is not None else []
-        argv += faults.argv()
-        code, log, leftovers = _run_supervisor(argv, swarm, timeout)
+        run = run_up(opts, timeout)
+        code, log, leftovers = run.exit_code, run.log, run.leftovers
+        if run.timed_out:
+            raise FlightError(f"the swarm flight took more than {timeout:g} s of wall time; stopped", None, log)
         if code not in (0, 1, 3) or not (out_dir / "results.json").is_file():
             tail = "\n".join(log.splitlines()[-20:])
             raise FlightError(f"zenswarm up ended with exit status {code} and no results:\n{tail}", code, log)
@@ -598,40 +538,4 @@ def _fly_swarm(
     return _flight("swarm", sc, results, series, code, out, swarm, log, leftovers)
 
 
-def _run_supervisor(argv: list[str], swarm: str, timeout: float) -> tuple[int, str, tuple[str, ...]]:
-    """Run the supervisor in its own process group; stop the group on a timeout or an exception
-    (Ctrl-C included). Returns (exit status, output, command lines of processes left behind)."""
-    env = dict(os.environ)
-    env.setdefault("PYTHONUNBUFFERED", "1")
-    p = subprocess.Popen(
-        argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True,
-        start_new_session=True, env=env,
-    )
-    with _LIVE_LOCK:
-        _LIVE[p.pid] = p
-    timed_out = False
-    try:
-        try:
-            log, _ = p.communicate(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            timed_out = True
-            stop_flight(p)
-            log, _ = p.communicate()
-    finally:
-        if p.poll() is None:  # an exception here (KeyboardInterrupt): nothing may outlive us
-            stop_flight(p)
-        with _LIVE_LOCK:
-            _LIVE.pop(p.pid, None)
-        leftovers = tuple(_reap(swarm))
-    if timed_out:
-        raise FlightError(f"the swarm flight took more than {timeout:g} s of wall time; stopped", None, log)
-    return int(p.returncode), log, leftovers
 
-
-def _reap(swarm: str, settle_s: float = 2.0) -> list[str]:
-    """Processes of ``swarm`` still alive a moment after its supervisor ended (they die with it:
-    PR_SET_PDEATHSIG), killed; their command lines."""
-    deadline = time.monotonic() + settle_s
-    while processes_of(swarm) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    return kill_processes_of(swarm)
