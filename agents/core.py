@@ -176,14 +176,16 @@ class AgentCore:
     def _command_of(self, F: Any, phi: Any, theta: Any, u: np.ndarray, d_used: np.ndarray, dv: np.ndarray) -> AgentCommand:
         return AgentCommand(float(F), np.array([float(phi), float(theta), self.row.yaw]), u, d_used.copy(), dv)
 
-    def advance(self, q_meas: np.ndarray, u: np.ndarray, dq: np.ndarray, dv: np.ndarray) -> None:
-        """Step 6: ESO (27) and generator to k+1 with the tick's control ``u`` and rates."""
+    def advance(self, q_meas: np.ndarray, u: np.ndarray, dq: np.ndarray, dv: np.ndarray, dt: float | None = None) -> None:
+        """Step 6: ESO (27) and generator to k+1 with the tick's control ``u`` and rates, over
+        ``dt`` s (default: the nominal ``row.dt``)."""
         assert self.q_hat is not None and self.v_hat is not None and self.d_hat is not None, "reset() first"
         assert self.q_ref is not None and self.v_ref is not None, "reset() first"
         r = self.row
-        self.q_hat, self.v_hat, self.d_hat = eso_step(self.q_hat, self.v_hat, self.d_hat, q_meas, u, r.beta, r.dt, r.g)
-        self.q_ref = self.q_ref + r.dt * dq
-        self.v_ref = self.v_ref + r.dt * dv
+        h = r.dt if dt is None else dt
+        self.q_hat, self.v_hat, self.d_hat = eso_step(self.q_hat, self.v_hat, self.d_hat, q_meas, u, r.beta, h, r.g)
+        self.q_ref = self.q_ref + h * dq
+        self.v_ref = self.v_ref + h * dv
 
     def tick(
         self,
@@ -206,12 +208,12 @@ class AgentCore:
         and q0 = None drops the pinning term for this tick."""
         return self.finish(q_meas, v_meas, self.rates(q_nbr, v_nbr, q0, v0, present))
 
-    def finish(self, q_meas: np.ndarray, v_meas: np.ndarray, rates: Rates) -> AgentCommand:
+    def finish(self, q_meas: np.ndarray, v_meas: np.ndarray, rates: Rates, dt: float | None = None) -> AgentCommand:
         """Steps 4-6 with the tick's generator rates (from :meth:`rates` or :meth:`rates_from`):
-        :meth:`command`, then :meth:`advance`. Returns the command."""
+        :meth:`command`, then :meth:`advance` over ``dt`` s (default ``row.dt``). Returns the command."""
         dq, dv = rates
         cmd = self.command(q_meas, v_meas, dv)
-        self.advance(q_meas, cmd.u, dq, dv)
+        self.advance(q_meas, cmd.u, dq, dv, dt)
         return cmd
 
 

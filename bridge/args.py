@@ -98,11 +98,25 @@ def client_security(args: argparse.Namespace) -> ClientSecurity:
     return ClientSecurity(keys=args.keys, tls=bool(args.tls))
 
 
+def add_plugin_args(p: argparse.ArgumentParser) -> None:
+    """``--controller NAME`` and ``--planner NAME``: override the scenario's ``[agents] controller``
+    and ``[leader] planner`` (:func:`zenswarm.plugins.select`)."""
+    p.add_argument(
+        "--controller", metavar="NAME", default=None,
+        help="agent controller plug-in: a built-in name, module:attribute or an installed entry point "
+        "(default: the scenario's [agents] controller; `zenswarm plugins` lists them)",
+    )
+    p.add_argument(
+        "--planner", metavar="NAME", default=None,
+        help="leader planner plug-in, named the same ways (default: the scenario's [leader] planner)",
+    )
+
+
 def add_process_args(p: argparse.ArgumentParser) -> None:
     """The flags every swarm process takes (read back with
     :meth:`zenswarm.runtime.ProcessOptions.of`): ``--scenario``, ``--swarm``, ``--connect``,
     ``--realtime``, the credentials (:func:`add_security_args`), the link faults
-    (:func:`add_fault_args`) and ``--lockstep-timeout``."""
+    (:func:`add_fault_args`), the plug-ins (:func:`add_plugin_args`) and ``--lockstep-timeout``."""
     from zenswarm.runtime import DEFAULT_LOCKSTEP_TIMEOUT_S
 
     p.add_argument("--scenario", type=Path, help="scenario TOML; if omitted, fetched from the leader's mission key")
@@ -117,6 +131,7 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--realtime", action="store_true", help="run on the wall clock (latest value wins) instead of lockstep")
     add_security_args(p)
     add_fault_args(p)
+    add_plugin_args(p)
     p.add_argument(
         "--lockstep-timeout",
         type=positive_float,

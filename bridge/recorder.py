@@ -66,7 +66,7 @@ from typing import Any, Final
 import msgpack
 
 from zenswarm import __version__, bus, security, wire
-from zenswarm.bridge.args import add_fault_args, add_security_args, client_security, link_faults
+from zenswarm.bridge.args import add_fault_args, add_plugin_args, add_security_args, client_security, link_faults
 from zenswarm.bridge.mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME
 from zenswarm.paths import check_output_file
 
@@ -573,7 +573,9 @@ def run(args: argparse.Namespace) -> int:
     mode = "realtime" if args.realtime else args.mode
     scenario: dict[str, Any] | None = None
     if args.scenario is not None:
-        scenario = scenario_to_dict(load_scenario(args.scenario))
+        from zenswarm.plugins import select
+
+        scenario = scenario_to_dict(select(load_scenario(args.scenario), args.controller, args.planner))
     connect = args.connect or ["tcp/127.0.0.1:7447"]
     out: Path = check_output_file(args.out, "--out")  # before joining: exit 2, nothing recorded in vain
     conf = bus.client_config(
@@ -713,4 +715,5 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="publish the recorder's counters on diag/recorder every S seconds (recorded too; 0 = never; default 1)",
     )
     add_fault_args(p)  # not applied here: stored in the metadata for `replay --verify`
+    add_plugin_args(p)  # applied to the scenario stored (what `verify` rebuilds the agents from)
     p.set_defaults(func=main)

@@ -10,7 +10,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from zenswarm.bridge.args import add_fault_args, link_faults, positive_float
+from zenswarm.bridge.args import add_fault_args, add_plugin_args, link_faults, positive_float
 from zenswarm.errors import ZenswarmError
 
 EPILOG = """\
@@ -53,6 +53,7 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
         "diverged UAV ends the run early; the verdict names the failure either way)",
     )
     add_fault_args(p)
+    add_plugin_args(p)
     p.set_defaults(func=_run_sim)
 
 
@@ -62,10 +63,13 @@ def _run_sim(args: argparse.Namespace) -> int:
     from zenswarm.compose.sim import apply_overrides, run_sim_cli
     from zenswarm.config import load_scenario
     from zenswarm.paths import check_output_dir
+    from zenswarm.plugins import check_selection, select
 
-    sc = apply_overrides(load_scenario(args.scenario), no_eso=args.no_eso, fixed_gain=args.fixed_gain)
+    sc = select(load_scenario(args.scenario), args.controller, args.planner)
+    sc = apply_overrides(sc, no_eso=args.no_eso, fixed_gain=args.fixed_gain)
     if args.seed is not None:
         sc = replace(sc, seed=args.seed)
+    check_selection(sc)
     faults = link_faults(args).plan(sc)
     check_output_dir(args.out, "--out")  # before the flight: a run must not be lost at the end
     return run_sim_cli(sc, args.out, quiet=args.quiet, faults=faults, full_time=args.full_time)
@@ -98,6 +102,31 @@ def _run_check(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_plugins(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "plugins",
+        help="list the available agent controllers and leader planners",
+        description=(
+            "List the controllers and planners a scenario can name ([agents] controller, [leader] planner, "
+            "--controller, --planner): the built-ins and the installed entry points (groups zenswarm.controllers, "
+            "zenswarm.planners), with a one-line description each. Any other plug-in is named module:attribute."
+        ),
+    )
+    psub = p.add_subparsers(dest="plugins_cmd", metavar="{list}")
+    psub.add_parser("list", help="list them (the default)").set_defaults(func=_run_plugins)
+    p.set_defaults(func=_run_plugins)
+
+
+def _run_plugins(args: argparse.Namespace) -> int:
+    from zenswarm.plugins import DEFAULTS, KINDS, available
+
+    for kind in KINDS:
+        print(f"{kind}s (default {DEFAULTS[kind]}):")
+        for info in available(kind):
+            print(f"  {info.name:<12} {info.description}  [{info.origin}: {info.target}]")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="zenswarm",
@@ -112,6 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_sim(sub)
     _add_scenario(sub)
+    _add_plugins(sub)
     for modname in ("zenswarm.compose.supervisor", "zenswarm.compose.roles", "zenswarm.bridge.cli", "zenswarm.compose.keys"):
         try:
             mod = __import__(modname, fromlist=["add_parsers"])

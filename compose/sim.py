@@ -295,7 +295,9 @@ def apply_overrides(scenario: Scenario, no_eso: bool = False, fixed_gain: float 
     if no_eso:
         scenario = replace(scenario, eso=replace_table(scenario.eso, enabled=False))
     if fixed_gain is not None:
-        scenario = replace(scenario, leader=replace_table(scenario.leader, adaptive=False, k_rep_fixed=float(fixed_gain)))
+        scenario = replace(
+            scenario, leader=replace_table(scenario.leader, adaptive=False, k_rep_fixed=float(fixed_gain), planner="apf")
+        )
     return scenario
 
 

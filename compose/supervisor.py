@@ -26,13 +26,14 @@ import numpy as np
 import zenoh
 
 from zenswarm import bus, security, verdict, wire
-from zenswarm.bridge.args import add_fault_args, link_faults, positive_float
+from zenswarm.bridge.args import add_fault_args, add_plugin_args, link_faults, positive_float
 from zenswarm.collector import Collector
 from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.linkfaults import LinkFaults
 from zenswarm.metrics import add_failure, compute_results
 from zenswarm.paths import check_output_dir, check_output_file
+from zenswarm.plugins import check_selection, select
 from zenswarm.policy import restart_policy
 
 __all__ = ["add_parsers", "UpOptions", "up_options", "Supervisor", "role_names", "swarm_roles", "check_up_args"]
@@ -108,6 +109,16 @@ class UpOptions:
     quiet: bool = False
     quiet_children: bool = False
     faults: LinkFaults = field(default_factory=LinkFaults)
+    controller: str | None = None  # plug-in names overriding the scenario's (zenswarm.plugins.select)
+    planner: str | None = None
+
+    def plugin_argv(self) -> list[str]:
+        """``--controller NAME`` / ``--planner NAME`` for the processes (those given)."""
+        words: list[str] = []
+        for flag, name in (("--controller", self.controller), ("--planner", self.planner)):
+            if name is not None:
+                words += [flag, name]
+        return words
 
 
 def up_options(args: argparse.Namespace) -> UpOptions:
@@ -140,6 +151,8 @@ def up_options(args: argparse.Namespace) -> UpOptions:
         quiet=args.quiet,
         quiet_children=args.quiet_children,
         faults=link_faults(args),
+        controller=args.controller,
+        planner=args.planner,
     )
 
 
@@ -229,7 +242,7 @@ class Supervisor:
             argv.append("--realtime")
         if self.keys_dir is not None:
             argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
-        return argv + a.faults.argv()
+        return argv + a.faults.argv() + a.plugin_argv()
 
     def _bridge_argv(self) -> list[str]:
         a = self.args
@@ -252,7 +265,7 @@ class Supervisor:
             argv.append("--realtime")
         if self.keys_dir is not None:
             argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
-        return argv + a.faults.argv()
+        return argv + a.faults.argv() + a.plugin_argv()
 
     def spawn(self, role: str) -> Child:
         env = dict(os.environ)
@@ -827,7 +840,8 @@ def _check_kills(args: UpOptions, sc: Scenario, names: list[str]) -> None:
 
 def _run_up(ns: argparse.Namespace) -> int:
     args = up_options(ns)
-    sc = load_scenario(args.scenario)
+    sc = select(load_scenario(args.scenario), args.controller, args.planner)
+    check_selection(sc)  # a bad plug-in name or parameter: exit 2 now
     args.faults.plan(sc)  # bad flags: exit 2 now
     check_up_args(args, sc)
     if args.only:
@@ -856,7 +870,7 @@ def _run_only(args: UpOptions) -> int:
         argv.append("--realtime")
     if args.keys is not None:
         argv += ["--keys", str(args.keys)] + (["--tls"] if args.tls else [])
-    return cli_main(argv)
+    return cli_main(argv + args.plugin_argv())
 
 
 def _parse_kill(text: str) -> tuple[str, float]:
@@ -1007,4 +1021,5 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--quiet-children", action="store_true", help="do not echo the processes' own output")
     add_fault_args(p)
+    add_plugin_args(p)
     p.set_defaults(func=_run_up)

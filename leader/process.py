@@ -1,4 +1,5 @@
-"""The leader process: runs the AAPF (eqs 8-15) and publishes the virtual leader's (q0, v0).
+"""The leader process: runs the scenario's planner (the paper's AAPF, eqs 8-15, by default) and
+publishes the virtual leader's (q0, v0).
 
 Publishes ``leader/ref`` and answers queries on ``mission`` with the scenario, so processes that
 join late (or run on other hosts without the scenario file) can fetch it.
@@ -58,7 +59,7 @@ class _Leader:
         self.proc.publish(self.keys.leader_ref, wire.Ref(t=self.core.k * self.dt_ns, seq=self.seq, q=q0.copy(), v=v0))
 
     def diag(self, info: dict | None = None) -> None:
-        self.proc.counters["substep_cap_hits"] = self.core.capped
+        self.proc.counters.update(self.core.planner.counters())
         self.proc.publish_diag(self.core.k * self.dt_ns, info)
 
     # ------------------------------------------------------------------ lockstep

@@ -13,13 +13,15 @@ The sections and their meaning (see ``compose/scenarios/paper_example1.toml`` fo
 
 ``[scenario]``   name, description, seed
 ``[timing]``     control_rate_hz, physics_rate_hz, time_limit_s, settle_time_s, goal_tolerance_m
-``[leader]``     start, goal, k_att, k_rep_min, k_rep_max, d0, adaptive, k_rep_fixed, speed_limit
+``[leader]``     start, goal, k_att, k_rep_min, k_rep_max, d0, adaptive, k_rep_fixed, speed_limit,
+                 planner (plug-in name, :mod:`zenswarm.plugins`) and ``[leader.params]`` (its parameters)
 ``[[obstacles]]`` center (base centre), radius, height: cylinder capped by a hemisphere (Remark 1)
 ``[formation]``  offsets h_i (N, 3), initial_positions q_i(0) (N, 3)
 ``[graph]``      adjacency A (N, N) symmetric, pinning b (N,)
 ``[generator]``  mu1, mu2 (eqs 16-17)
 ``[eso]``        beta = [beta1, beta2, beta3], enabled (eq. 27)
 ``[controller]`` kp (3,), kd (3,), yaw (eq. 28 and the inversion after it)
+``[agents]``     controller (plug-in name, default ``paper``) and ``[agents.params]`` (its parameters)
 ``[vehicle]``    optional overrides of the Crazyflie 2.1 parameters (see :mod:`zenswarm.params`), and
                  radius (the contact radius the verdict uses; default :data:`CRAZYFLIE_RADIUS_M`)
 ``[mission]``    how the flight is judged (:mod:`zenswarm.verdict`): slot_tolerance_m,
@@ -52,6 +54,7 @@ from .errors import ScenarioError
 from .geometry import obstacle_clearance
 from .schema import (
     MAX_SEED,
+    AgentsConfig,
     ControllerConfig,
     DisturbanceConfig,
     EsoConfig,
@@ -81,6 +84,7 @@ __all__ = [
     "GeneratorConfig",
     "EsoConfig",
     "ControllerConfig",
+    "AgentsConfig",
     "VehicleConfig",
     "DisturbanceConfig",
     "MissionConfig",
@@ -136,6 +140,7 @@ class Scenario:
     generator: GeneratorConfig = field(default_factory=GeneratorConfig)
     eso: EsoConfig = field(default_factory=EsoConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
+    agents: AgentsConfig = field(default_factory=AgentsConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     disturbance: DisturbanceConfig = field(default_factory=DisturbanceConfig)
     mission: MissionConfig = field(default_factory=MissionConfig)
@@ -196,6 +201,7 @@ def scenario_from_dict(d: dict[str, Any]) -> Scenario:
         generator=doc.generator,
         eso=doc.eso,
         controller=doc.controller,
+        agents=doc.agents,
         vehicle=doc.vehicle,
         disturbance=doc.disturbance,
         mission=doc.mission,
@@ -348,7 +354,7 @@ def scenario_to_dict(s: Scenario) -> dict[str, Any]:
     d: dict[str, Any] = {
         "scenario": {"name": s.name, "description": s.description, "seed": s.seed},
         "timing": to_builtins(s.timing),
-        "leader": to_builtins(s.leader),
+        "leader": {k: v for k, v in to_builtins(s.leader).items() if not (k in ("planner", "params") and not v)},
         "obstacles": [to_builtins(o) for o in s.obstacles],
         "formation": {"offsets": [list(h) for h in s.offsets], "initial_positions": [list(q) for q in s.initial_positions]},
         "graph": to_builtins(s.graph),
@@ -358,6 +364,9 @@ def scenario_to_dict(s: Scenario) -> dict[str, Any]:
         "disturbance": to_builtins(s.disturbance),
         "mission": to_builtins(s.mission),
     }
+    agents = to_builtins(s.agents, omit_defaults=True)
+    if agents:
+        d["agents"] = agents
     veh = {k: v for k, v in to_builtins(s.vehicle).items() if v is not None}
     if veh:
         d["vehicle"] = veh

@@ -552,7 +552,8 @@ class ProcessOptions:
     input is waited for before it counts as a drop. keys, tls: credentials of a secured router
     (:mod:`zenswarm.security`). link_delay, link_jitter, link_loss, partition: the whole-swarm
     link faults (:mod:`zenswarm.linkfaults`); seed: disturbances and fault decisions (None: the
-    scenario's).
+    scenario's). controller, planner: plug-in names overriding the scenario's
+    (:func:`zenswarm.plugins.select`; None: the scenario's).
     """
 
     scenario: Path | None = None
@@ -567,6 +568,8 @@ class ProcessOptions:
     link_loss: str | None = None
     partition: tuple[str, ...] = ()
     seed: int | None = None
+    controller: str | None = None
+    planner: str | None = None
 
     @classmethod
     def of(cls, obj: Any) -> ProcessOptions:
@@ -592,6 +595,8 @@ class ProcessOptions:
             link_loss=get("link_loss", None),
             partition=tuple(get("partition", ())),
             seed=get("seed", None),
+            controller=get("controller", None),
+            planner=get("planner", None),
         )
 
     def fault_plan(self, scenario: Scenario) -> FaultPlan | None:
@@ -724,9 +729,14 @@ class SwarmProcess:
         self._session_cm.__exit__(None, None, None)
 
     def _load_scenario(self) -> Scenario:
+        from .plugins import check_selection, select
+
         sc = self._fetch_scenario()
         seed = self.options.seed
-        return sc if seed is None else replace(sc, seed=int(seed))
+        sc = sc if seed is None else replace(sc, seed=int(seed))
+        sc = select(sc, self.options.controller, self.options.planner)
+        check_selection(sc)  # a bad plug-in name or parameter: exit 2 before any work
+        return sc
 
     def _fetch_scenario(self) -> Scenario:
         if self.options.scenario is not None:

@@ -38,6 +38,7 @@ __all__ = [
     "GeneratorConfig",
     "EsoConfig",
     "ControllerConfig",
+    "AgentsConfig",
     "VehicleConfig",
     "MissionConfig",
     "DisturbanceConfig",
@@ -140,10 +141,20 @@ class LeaderConfig(Table, frozen=True):
     adaptive: bool = True
     k_rep_fixed: Pos = 1.0
     speed_limit: NonNeg = 0.0  # m/s; 0 means off (fidelity to the paper)
+    planner: str | None = None  # plug-in name (zenswarm.plugins); None: "aapf", or "apf" with adaptive = false
+    params: dict[str, Any] = field(default_factory=dict)  # [leader.params]: the planner's Params
 
     def __post_init__(self) -> None:
         if self.k_rep_max < self.k_rep_min:
             raise ScenarioError("leader.k_rep_max", f"must be >= leader.k_rep_min ({self.k_rep_max} < {self.k_rep_min})")
+
+
+class AgentsConfig(Table, frozen=True):
+    """``[agents]``: the agents' controller plug-in (:mod:`zenswarm.plugins`) and its parameters
+    (``[agents.params]``, decoded into the controller's ``Params``)."""
+
+    controller: str = "paper"
+    params: dict[str, Any] = field(default_factory=dict)
 
 
 class Obstacle(Table, frozen=True):
@@ -384,6 +395,7 @@ class ScenarioFile(Table, frozen=True, kw_only=True):
     generator: GeneratorConfig = field(default_factory=GeneratorConfig)
     eso: EsoConfig = field(default_factory=EsoConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
+    agents: AgentsConfig = field(default_factory=AgentsConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     mission: MissionConfig = field(default_factory=MissionConfig)
     disturbance: DisturbanceConfig = field(default_factory=DisturbanceConfig)

@@ -1,0 +1,181 @@
+"""The agent controller interface: what one UAV holds and does per control tick.
+
+A controller is pure and deterministic: no clock, no I/O; randomness only from the seeded
+:class:`numpy.random.Generator` of its context. The in-process simulator
+(:mod:`zenswarm.compose.sim`), the agent process (:mod:`zenswarm.agents.process`) and
+``zenswarm verify`` (:mod:`zenswarm.bridge.replay`) call it the same way, so any such controller
+flies bit for bit the same in ``zenswarm sim`` and in the lockstep swarm, with and without link
+faults. The paper's generator + ESO + composite controller is the built-in
+:class:`zenswarm.agents.paper.PaperController` (name ``paper``, the default).
+
+Frames and units: positions (3,) float64 m, velocities (3,) m/s, accelerations m/s^2, inertial
+ENU (z up); attitude roll, pitch, yaw in rad (ZYX); thrust N; times s.
+
+One tick k of agent i, in every runner:
+
+1. the agent publishes :meth:`Controller.share` (its :class:`Shared` of tick k) to its neighbours
+   (on the first tick after :meth:`Controller.reset` from the measured state);
+2. it receives its neighbours' :class:`Shared` of tick k (in ``ctx.neighbours`` order; None = not
+   heard from yet: with link faults the newest value a link delivered is held) and, if pinned
+   (b_i > 0), the leader's (q0, v0) (a :class:`Shared` without extras; None before the first);
+3. :meth:`Controller.step` with the measured (q, v) of tick k and ``dt`` (seconds since the
+   previous step: the nominal dt in lockstep and in the simulator) returns the :class:`Command`
+   and moves the controller to tick k + 1.
+
+Sharing more than (q*, v*): declare ``shares = {"name": shape, ...}`` and return the values in
+``Shared.extra``; they travel in the reference message (:attr:`zenswarm.wire.Ref.extra`), are
+recorded and fault-injected with it, and arrive reshaped to the declared shape (a message
+without them counts as not heard).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import msgspec
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    from zenswarm.config import Scenario
+
+__all__ = ["Neighbour", "ControllerContext", "Shared", "Command", "Controller", "NoParams", "received", "context_of"]
+
+_EMPTY: Mapping[str, np.ndarray] = MappingProxyType({})
+
+
+class NoParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A plug-in without parameters: its ``params`` table must be empty."""
+
+
+@dataclass(frozen=True)
+class Neighbour:
+    """Neighbour j of agent i: ``index`` j (0-based; UAV number j + 1), ``weight`` a_ij > 0,
+    ``offset`` h_j (3,) m (its formation offset)."""
+
+    index: int
+    weight: float
+    offset: np.ndarray
+
+
+@dataclass(frozen=True)
+class ControllerContext:
+    """What agent i's controller is built from (its row of the scenario, typed).
+
+    i: 0-based index (UAV number i + 1). offset: h_i (3,) m. neighbours: its graph row (a_ij > 0,
+    in increasing j: the order :meth:`Controller.step` gets their messages in). pinning: b_i
+    (0: never hears the leader). mass: kg. g: m/s^2. dt: nominal control tick, s.
+    rng: its seeded stream (:func:`zenswarm.plugins.plugin_rng` with role i + 1).
+    scenario: the whole scenario (the built-in reads the paper's gains from it).
+    """
+
+    i: int
+    offset: np.ndarray
+    neighbours: tuple[Neighbour, ...]
+    pinning: float
+    mass: float
+    g: float
+    dt: float
+    rng: np.random.Generator
+    scenario: Scenario
+
+    @property
+    def pinned(self) -> bool:
+        return self.pinning > 0.0
+
+
+@dataclass(frozen=True)
+class Shared:
+    """What an agent publishes to its neighbours each tick: q (3,) m and v (3,) m/s (the paper:
+    its reference q*_i, v*_i) and ``extra``: the controller's declared quantities, name -> array
+    of the declared shape."""
+
+    q: np.ndarray
+    v: np.ndarray
+    extra: Mapping[str, np.ndarray] = field(default_factory=lambda: _EMPTY)
+
+
+@dataclass(frozen=True)
+class Command:
+    """What a tick sends to the vehicle: ``thrust`` F (N), ``rpy`` (3,) rad attitude setpoint;
+    optional diagnostics (recorded, in the command message): ``u`` (3,) m/s^2 the virtual control
+    (commanded acceleration incl. gravity compensation), ``d_hat`` (3,) m/s^2 a disturbance
+    estimate (zeros when the controller has none)."""
+
+    thrust: float
+    rpy: np.ndarray
+    u: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    d_hat: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+class Controller(ABC):
+    """One UAV's controller. Class attributes: ``name`` (listed under), ``description`` (one
+    line), ``Params`` (a frozen :class:`msgspec.Struct` with ``forbid_unknown_fields=True``: the
+    scenario's ``[agents.params]`` decoded, unknown keys rejected naming the field), ``shares``
+    (extra quantities published to neighbours: name -> shape)."""
+
+    name: ClassVar[str] = ""
+    description: ClassVar[str] = ""
+    Params: ClassVar[type[msgspec.Struct]] = NoParams
+    shares: ClassVar[Mapping[str, tuple[int, ...]]] = MappingProxyType({})
+
+    def __init__(self, ctx: ControllerContext, params: Any) -> None:
+        self.ctx = ctx
+        self.params = params
+
+    @property
+    @abstractmethod
+    def initialised(self) -> bool:
+        """:meth:`reset` has been called (since the last restart)."""
+
+    @abstractmethod
+    def reset(self, q: np.ndarray, v: np.ndarray) -> None:
+        """(Re)start from the measured state q (3,) m, v (3,) m/s (first tick, or rejoining)."""
+
+    @abstractmethod
+    def share(self) -> Shared:
+        """What this agent publishes to its neighbours for the current tick (after :meth:`reset`).
+        The runner copies nothing: return arrays that :meth:`step` replaces, never mutates."""
+
+    @abstractmethod
+    def step(
+        self, q: np.ndarray, v: np.ndarray, neighbours: Sequence[Shared | None], leader: Shared | None, dt: float
+    ) -> Command:
+        """One tick: measured q (3,) m and v (3,) m/s; the neighbours' shared values of this tick
+        in ``ctx.neighbours`` order (None: not heard from); the leader's (q0, v0) if pinned and
+        heard (else None); dt s since the previous step. Returns the command; the controller is
+        then at the next tick (its :meth:`share` is the next tick's)."""
+
+
+def received(msg: Any, shares: Mapping[str, tuple[int, ...]]) -> Shared | None:
+    """A neighbour's message as the controller gets it. Without declared extras the message
+    itself (anything with ``q``, ``v``: a :class:`Shared` or a :class:`zenswarm.wire.Ref`);
+    with them a :class:`Shared` whose extras are float64 arrays of the declared shapes, or None
+    if one is missing or has the wrong size (counted as not heard)."""
+    if msg is None or not shares:
+        return msg  # type: ignore[no-any-return]
+    got = msg.extra
+    extra: dict[str, np.ndarray] = {}
+    for name, shape in shares.items():
+        x = got.get(name)
+        if x is None:
+            return None
+        a = np.asarray(x, dtype=float)
+        if a.size != int(np.prod(shape)):
+            return None
+        extra[name] = a.reshape(shape)
+    return Shared(msg.q, msg.v, MappingProxyType(extra))
+
+
+def context_of(scenario: Scenario, i: int, mass: float, g: float, rng: np.random.Generator) -> ControllerContext:
+    """Agent i's (0-based) :class:`ControllerContext` from the scenario."""
+    A = np.asarray(scenario.graph.adjacency, dtype=float)
+    h = np.asarray(scenario.offsets, dtype=float)
+    nbrs = tuple(Neighbour(int(j), float(A[i, j]), h[j].copy()) for j in np.flatnonzero(A[i]))
+    return ControllerContext(
+        i=i, offset=h[i].copy(), neighbours=nbrs, pinning=float(scenario.graph.pinning[i]), mass=mass, g=g,
+        dt=scenario.timing.dt, rng=rng, scenario=scenario,
+    )

@@ -1,0 +1,126 @@
+"""The leader planner interface, and the paper's planners as its built-in implementations.
+
+A planner is the virtual leader's trajectory: from the start, the goal and the obstacles it gives
+the leader's reference (q0, v0) of each control tick. It is pure and deterministic: no clock, no
+I/O; randomness only from the seeded :class:`numpy.random.Generator` of its context. The
+in-process simulator, the leader process and ``zenswarm verify`` call it through
+:class:`zenswarm.leader.core.LeaderCore`, so any such planner flies the same in all of them.
+
+Frames and units: positions (3,) float64 m, velocities (3,) m/s, inertial ENU (z up); times s.
+
+Write one by subclassing :class:`Planner` (set ``name``, ``description``, ``Params``; implement
+:meth:`Planner.ref` and :meth:`Planner.advance`) and name it in the scenario
+(``[leader] planner = "my_pkg.plan:MyPlanner"``) with its parameters in ``[leader.params]``
+(see :mod:`zenswarm.plugins`).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import msgspec
+import numpy as np
+
+from zenswarm.leader.aapf import AapfParams, ObstacleLike, integrate_leader, total_force
+
+if TYPE_CHECKING:  # pragma: no cover
+    from zenswarm.config import LeaderConfig
+
+__all__ = ["PlannerContext", "Planner", "NoParams", "AapfPlanner", "ApfPlanner"]
+
+
+class NoParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A plug-in without parameters: its ``params`` table must be empty."""
+
+
+@dataclass(frozen=True)
+class PlannerContext:
+    """What a planner is built from (the scenario, typed).
+
+    start, goal: (3,) m ENU (``[leader]``). obstacles: the scenario's capped cylinders
+    (:class:`zenswarm.leader.aapf.ObstacleLike`). r_f: formation-enclosing sphere radius, m.
+    dt: control tick, s. substeps: physics sub-steps per tick (a floor for integration sub-steps).
+    rng: the planner's seeded stream (:func:`zenswarm.plugins.plugin_rng` with role 0).
+    leader: the whole ``[leader]`` table (the built-ins read the paper's gains from it).
+    """
+
+    start: np.ndarray
+    goal: np.ndarray
+    obstacles: Sequence[ObstacleLike]
+    r_f: float
+    dt: float
+    substeps: int
+    rng: np.random.Generator
+    leader: LeaderConfig
+
+
+class Planner(ABC):
+    """The virtual leader's planner: its state is at control tick k (k = 0 after construction).
+
+    Class attributes: ``name`` (the name it is listed under), ``description`` (one line),
+    ``Params`` (a frozen :class:`msgspec.Struct` with ``forbid_unknown_fields=True``: the
+    scenario's ``[leader.params]`` table decoded, unknown keys rejected naming the field).
+    """
+
+    name: ClassVar[str] = ""
+    description: ClassVar[str] = ""
+    Params: ClassVar[type[msgspec.Struct]] = NoParams
+
+    def __init__(self, ctx: PlannerContext, params: Any) -> None:
+        self.ctx = ctx
+        self.params = params
+
+    @abstractmethod
+    def ref(self) -> tuple[np.ndarray, np.ndarray]:
+        """(q0, v0) of the current tick: (3,) m and (3,) m/s, ENU. May return internal arrays:
+        the caller copies what it keeps past :meth:`advance`, which must replace, not mutate, them.
+        Called once or more per tick; must not change the state."""
+
+    @abstractmethod
+    def advance(self) -> None:
+        """Move to the next tick (dt = ``ctx.dt`` later)."""
+
+    def counters(self) -> dict[str, int]:
+        """Diagnostic counters (published in the leader's diag); default none."""
+        return {}
+
+
+class AapfPlanner(Planner):
+    """The paper's adaptive APF (eqs 8-15, adaptive gain eq. 12): v0 = Gamma*_total(q0)
+    (eq. 15), q0 integrated by explicit Euler sub-steps (:func:`zenswarm.leader.aapf.integrate_leader`).
+    Gains from ``[leader]`` (k_att, k_rep_min, k_rep_max, d0, speed_limit)."""
+
+    name = "aapf"
+    description = "the paper's adaptive artificial potential field (eqs 8-15, adaptive gain eq. 12); the default"
+    adaptive: ClassVar[bool] = True
+
+    def __init__(self, ctx: PlannerContext, params: Any) -> None:
+        super().__init__(ctx, params)
+        ld = ctx.leader
+        self.aapf = AapfParams(
+            goal=tuple(float(x) for x in ctx.goal), k_att=ld.k_att, k_rep_min=ld.k_rep_min, k_rep_max=ld.k_rep_max, d0=ld.d0, r_f=ctx.r_f,
+            obstacles=ctx.obstacles, adaptive=self.adaptive, k_rep_fixed=ld.k_rep_fixed, speed_limit=ld.speed_limit,
+        )
+        self.q0 = np.asarray(ctx.start, dtype=float).copy()
+        self.capped = 0
+
+    def ref(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.q0, total_force(self.q0, self.aapf)
+
+    def advance(self) -> None:
+        self.q0, info = integrate_leader(self.q0, self.ctx.dt, self.aapf, self.ctx.substeps)
+        self.capped += int(info.capped)
+
+    def counters(self) -> dict[str, int]:
+        return {"substep_cap_hits": self.capped}
+
+
+class ApfPlanner(AapfPlanner):
+    """The fixed-gain APF: :class:`AapfPlanner` with K_rep = ``[leader] k_rep_fixed`` instead of eq. (12)."""
+
+    name = "apf"
+    description = "fixed-gain artificial potential field (K_rep = leader.k_rep_fixed instead of eq. 12), for comparison"
+    adaptive = False

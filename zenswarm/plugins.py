@@ -1,0 +1,225 @@
+"""Plug-in registry: which agent controller and which leader planner a flight runs.
+
+A plug-in is a class implementing :class:`zenswarm.agents.api.Controller` (kind ``"controller"``)
+or :class:`zenswarm.leader.planner.Planner` (kind ``"planner"``). It is named, in the scenario
+(``[agents] controller = NAME``, ``[leader] planner = NAME``) or on the command line
+(``--controller NAME``, ``--planner NAME``), by one of:
+
+* a built-in name (:data:`BUILTINS`: ``paper`` for the controller; ``aapf``, ``apf`` for the planner);
+* ``module:attribute``, e.g. ``my_pkg.control:Consensus`` (imported as is; the module must be
+  importable, e.g. installed or on ``PYTHONPATH``);
+* the name of an installed entry point in the group :data:`GROUPS` ``[kind]``
+  (``zenswarm.controllers`` / ``zenswarm.planners``), e.g. in a plug-in package's pyproject::
+
+      [project.entry-points."zenswarm.controllers"]
+      consensus = "my_pkg.control:Consensus"
+
+Built-ins are registered as ``module:attribute`` strings, so this base module imports no role.
+A name that resolves to nothing raises :class:`PluginError` (a :class:`ScenarioError`: exit 2),
+naming the name and what was tried, before any work starts.
+
+Deterministic randomness (:func:`plugin_rng`): a plug-in gets a :class:`numpy.random.Generator`
+seeded from the scenario's seed and its role (0: the leader's planner, i: UAV i's controller,
+1-based), the same in the simulator, the swarm's processes and ``zenswarm verify``.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib import metadata
+from typing import TYPE_CHECKING, Any, Final, Literal
+
+import msgspec
+import numpy as np
+
+from .errors import ScenarioError
+from .schema import convert
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .config import Scenario
+
+__all__ = [
+    "KINDS",
+    "GROUPS",
+    "BUILTINS",
+    "DEFAULTS",
+    "PluginError",
+    "PluginInfo",
+    "resolve",
+    "available",
+    "decode_params",
+    "plugin_rng",
+    "PLUGIN_STREAM",
+    "planner_name",
+    "select",
+    "check_selection",
+]
+
+Kind = Literal["controller", "planner"]
+KINDS: Final[tuple[Kind, ...]] = ("controller", "planner")
+
+GROUPS: Final[Mapping[str, str]] = {"controller": "zenswarm.controllers", "planner": "zenswarm.planners"}
+"""Entry point group of each kind (fixed: installed plug-in packages register under these)."""
+
+BUILTINS: Final[Mapping[str, Mapping[str, str]]] = {
+    "controller": {"paper": "zenswarm.agents.paper:PaperController"},
+    "planner": {"aapf": "zenswarm.leader.planner:AapfPlanner", "apf": "zenswarm.leader.planner:ApfPlanner"},
+}
+"""Built-in plug-ins: kind -> name -> ``module:attribute``."""
+
+DEFAULTS: Final[Mapping[str, str]] = {"controller": "paper", "planner": "aapf"}
+"""The plug-in of each kind when the scenario names none."""
+
+PLUGIN_STREAM: Final = 0x706C7567
+"""Spawn key of the plug-ins' random streams (``"plug"``), apart from the other seeded streams."""
+
+_BASES: Final[Mapping[str, str]] = {"controller": "zenswarm.agents.api:Controller", "planner": "zenswarm.leader.planner:Planner"}
+
+
+class PluginError(ScenarioError):
+    """A plug-in name that resolves to nothing usable (exit 2). ``field``: where it was given."""
+
+
+@dataclass(frozen=True)
+class PluginInfo:
+    """One available plug-in: ``name`` (what to write in the scenario), one-line ``description``,
+    ``origin`` (``builtin``, ``entry point <group>`` or ``module``) and ``target`` (``module:attribute``)."""
+
+    kind: str
+    name: str
+    description: str
+    origin: str
+    target: str
+
+
+def _load_target(target: str) -> Any:
+    """The object ``module:attribute`` names (ImportError / AttributeError as raised)."""
+    mod, _, attr = target.partition(":")
+    obj: Any = importlib.import_module(mod)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _entry_points(kind: str) -> dict[str, metadata.EntryPoint]:
+    return {ep.name: ep for ep in metadata.entry_points(group=GROUPS[kind])}
+
+
+def _base(kind: str) -> type:
+    base: type = _load_target(_BASES[kind])
+    return base
+
+
+def resolve(kind: str, name: str, field: str | None = None) -> type:
+    """The plug-in class ``name`` of ``kind`` ("controller" or "planner"): a built-in name,
+    ``module:attribute`` or an entry point of :data:`GROUPS` ``[kind]``, in that order.
+    ``field`` names where it was given (default ``agents.controller`` / ``leader.planner``).
+    Raises :class:`PluginError` naming the name and what was tried."""
+    if kind not in GROUPS:
+        raise PluginError("kind", f"unknown plug-in kind {kind!r}; expected one of {KINDS}")
+    where = field or ("agents.controller" if kind == "controller" else "leader.planner")
+    if not isinstance(name, str) or not name:
+        raise PluginError(where, f"expected a {kind} name (built-in, module:attribute or entry point), got {name!r}")
+    tried: list[str] = []
+    target: str | None = BUILTINS[kind].get(name)
+    if target is not None:
+        tried.append(f"built-in {name!r} -> {target}")
+    elif ":" in name:
+        target = name
+        tried.append(f"module:attribute {name!r}")
+    else:
+        tried.append(f"built-ins {sorted(BUILTINS[kind])}")
+        ep = _entry_points(kind).get(name)
+        tried.append(f"entry points in group {GROUPS[kind]!r}")
+        if ep is not None:
+            target = ep.value
+    if target is None:
+        raise PluginError(where, f"no {kind} named {name!r} (tried {'; '.join(tried)}); `zenswarm plugins` lists them")
+    try:
+        obj = _load_target(target)
+    except (ImportError, AttributeError) as e:
+        raise PluginError(where, f"{kind} {name!r}: cannot load {target} ({type(e).__name__}: {e}); tried {'; '.join(tried)}") from None
+    base = _base(kind)
+    if not (isinstance(obj, type) and issubclass(obj, base)):
+        raise PluginError(where, f"{kind} {name!r}: {target} is not a subclass of {_BASES[kind]}")
+    abstract = getattr(obj, "__abstractmethods__", None)
+    if abstract:
+        missing = ", ".join(sorted(abstract))
+        raise PluginError(where, f"{kind} {name!r}: {target} does not implement {missing}")
+    return obj
+
+
+def available(kind: str) -> list[PluginInfo]:
+    """Every plug-in of ``kind`` that can be named without ``module:attribute``: the built-ins,
+    then the installed entry points (one that fails to load is listed with the reason)."""
+    out: list[PluginInfo] = []
+    for name, target in BUILTINS[kind].items():
+        cls = resolve(kind, name)
+        out.append(PluginInfo(kind, name, _one_line(cls), "builtin", target))
+    for name, ep in sorted(_entry_points(kind).items()):
+        if name in BUILTINS[kind]:
+            continue
+        try:
+            desc = _one_line(resolve(kind, name))
+        except PluginError as e:
+            desc = f"(cannot load: {e.message})"
+        out.append(PluginInfo(kind, name, desc, f"entry point {GROUPS[kind]}", ep.value))
+    return out
+
+
+def _one_line(cls: type) -> str:
+    text = str(getattr(cls, "description", "") or (cls.__doc__ or "")).strip()
+    return text.splitlines()[0] if text else ""
+
+
+def decode_params(cls: type, table: Mapping[str, Any] | None, field: str) -> Any:
+    """The plug-in's ``[... .params]`` table decoded into its ``Params`` (a frozen
+    :class:`msgspec.Struct` with ``forbid_unknown_fields=True``): an unknown key or a bad value
+    raises :class:`ScenarioError` naming ``field.key`` (exit 2)."""
+    params_type = getattr(cls, "Params", None)
+    if not (isinstance(params_type, type) and issubclass(params_type, msgspec.Struct)):
+        raise PluginError(field, f"{cls.__module__}:{cls.__qualname__}.Params must be a msgspec.Struct subclass")
+    return convert(dict(table or {}), params_type, field)
+
+
+def plugin_rng(seed: int, role: int) -> np.random.Generator:
+    """The random stream of a plug-in: ``SeedSequence(seed, spawn_key=(PLUGIN_STREAM, role))``,
+    role 0 for the leader's planner and i (1-based UAV number) for UAV i's controller. The
+    simulator, the processes and ``zenswarm verify`` all draw from this, so they agree."""
+    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(PLUGIN_STREAM, int(role))))
+
+
+def planner_name(scenario: Scenario) -> str:
+    """The planner the scenario selects: ``[leader] planner``, else ``aapf`` (``apf`` with
+    ``[leader] adaptive = false``, the older spelling, kept). ``planner = "aapf"`` with
+    ``adaptive = false`` is a contradiction (ScenarioError naming ``leader.adaptive``)."""
+    ld = scenario.leader
+    if ld.planner is None:
+        return "aapf" if ld.adaptive else "apf"
+    if ld.planner == "aapf" and not ld.adaptive:
+        raise ScenarioError("leader.adaptive", 'false contradicts leader.planner = "aapf" (the adaptive gain); use planner = "apf"')
+    return ld.planner
+
+
+def select(scenario: Scenario, controller: str | None = None, planner: str | None = None) -> Scenario:
+    """The scenario with the command line's ``--controller`` / ``--planner`` applied (None: the
+    scenario's). They override ``[agents] controller`` and ``[leader] planner`` (and
+    ``adaptive``: the named planner decides); the params tables stay."""
+    from dataclasses import replace
+
+    from msgspec.structs import replace as replace_table
+
+    if controller is not None:
+        scenario = replace(scenario, agents=replace_table(scenario.agents, controller=controller))
+    if planner is not None:
+        scenario = replace(scenario, leader=replace_table(scenario.leader, planner=planner, adaptive=planner != "apf"))
+    return scenario
+
+
+def check_selection(scenario: Scenario) -> None:
+    """Resolve the scenario's controller and planner and decode their params tables: a bad name
+    or parameter raises ScenarioError naming it (exit 2), before any work starts."""
+    # CONTROLLER-CHECK
+    decode_params(resolve("planner", planner_name(scenario)), scenario.leader.params, "leader.params")
