@@ -46,8 +46,9 @@ from zenswarm.config import Scenario, scenario_from_dict, scenario_to_dict
 from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.generate import to_toml
 from zenswarm.linkfaults import LinkFaults
-from zenswarm.metrics import FLIGHT_FIELDS, TimeSeries
+from zenswarm.metrics import TimeSeries, flight_differences
 from zenswarm.paths import check_output_dir
+from zenswarm.plugins import check_selection
 from zenswarm.wire import validate_process
 
 __all__ = [
@@ -219,19 +220,7 @@ def differences(a: Flight, b: Flight) -> list[str]:
     bit (NaN equal to NaN, shapes included) and the flight fields of the verdict
     (:data:`zenswarm.metrics.FLIGHT_FIELDS`). Empty when the flights are identical (the
     lockstep swarm's guarantee against the simulator)."""
-    out: list[str] = []
-    for f in TimeSeries.FIELDS:
-        x, y = getattr(a.series, f), getattr(b.series, f)
-        if x.shape != y.shape:
-            out.append(f"series.{f}: shape {x.shape} != {y.shape}")
-        elif not np.array_equal(x, y, equal_nan=True):
-            bad = np.argwhere(~((x == y) | (np.isnan(x) & np.isnan(y))))
-            tick = int(bad[0][0])
-            out.append(f"series.{f}: {len(bad)} values differ, first at tick {tick} (t = {float(a.series.t[tick]):.3f} s)")
-    for key in FLIGHT_FIELDS:
-        if a.results.get(key) != b.results.get(key):
-            out.append(f"results.{key}: {a.results.get(key)!r} != {b.results.get(key)!r}")
-    return out
+    return flight_differences(a.series, dict(a.results), b.series, dict(b.results))
 
 
 # ----------------------------------------------------------------------------- scenarios
@@ -469,7 +458,10 @@ def fly(
     ov: dict[str, Any] = dict(overrides or {})
     shortcuts = {"timing.time_limit_s": duration, "scenario.seed": seed, "agents.controller": controller, "leader.planner": planner}
     ov.update({key: value for key, value in shortcuts.items() if value is not None})
+    if planner is not None:  # as --planner: the named planner decides ([leader] adaptive is its older spelling)
+        ov["leader.adaptive"] = planner != "apf"
     sc, doc = load(scenario, ov)
+    check_selection(sc)  # the controller and planner resolve, their params decode (PluginError naming them)
     loss = None if link_loss is None else (link_loss if isinstance(link_loss, str) else repr(float(link_loss)))
     faults = LinkFaults(_duration_text(link_delay, "link_delay"), _duration_text(link_jitter, "link_jitter"), loss, tuple(partitions))
     plan = faults.plan(sc)  # bad values: ScenarioError naming the flag, before any work
