@@ -42,7 +42,10 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from zenswarm.config import Scenario
 
-__all__ = ["Neighbour", "ControllerContext", "Shared", "Command", "Controller", "NoParams", "received", "context_of"]
+__all__ = [
+    "Neighbour", "ControllerContext", "Shared", "Command", "Controller", "NoParams", "received", "context_of",
+    "make_controller", "inputs_of", "prepare", "finish",
+]
 
 _EMPTY: Mapping[str, np.ndarray] = MappingProxyType({})
 
@@ -179,3 +182,45 @@ def context_of(scenario: Scenario, i: int, mass: float, g: float, rng: np.random
         i=i, offset=h[i].copy(), neighbours=nbrs, pinning=float(scenario.graph.pinning[i]), mass=mass, g=g,
         dt=scenario.timing.dt, rng=rng, scenario=scenario,
     )
+
+
+def make_controller(scenario: Scenario, i: int, mass: float, g: float) -> Controller:
+    """Agent i's (0-based) controller: the scenario's ``[agents] controller`` with its
+    ``[agents.params]`` and the random stream :func:`zenswarm.plugins.plugin_rng` (seed, i + 1).
+    A bad name or parameter raises :class:`zenswarm.errors.ScenarioError` naming it."""
+    from zenswarm.plugins import decode_params, plugin_rng, resolve
+
+    cls = resolve("controller", scenario.agents.controller)
+    params = decode_params(cls, scenario.agents.params, "agents.params")
+    ctrl: Controller = cls(context_of(scenario, i, mass, g, plugin_rng(scenario.seed, i + 1)), params)
+    return ctrl
+
+
+def inputs_of(ctrl: Controller, nbr: Sequence[Any], lead: Any) -> tuple[list[Shared | None], Shared | None]:
+    """The neighbours' messages (in ``ctx.neighbours`` order, None: not heard) and the leader's
+    as the controller gets them (:func:`received`)."""
+    shares = ctrl.shares
+    if not shares:
+        return list(nbr), lead
+    return [received(m, shares) for m in nbr], lead
+
+
+def prepare(ctrl: Controller, nbr: Sequence[Any], lead: Any) -> Any:
+    """Phase 1 of a tick, with the inputs only: a two-phase controller's (``two_phase = True``:
+    :meth:`prepare` then :meth:`finish`, e.g. the paper's generator rates) work done ahead;
+    for any other controller just the inputs. Hand the result to :func:`finish`."""
+    nbrs, leader = inputs_of(ctrl, nbr, lead)
+    if getattr(ctrl, "two_phase", False):
+        return ctrl.prepare(nbrs, leader)  # type: ignore[attr-defined]
+    return nbrs, leader
+
+
+def finish(ctrl: Controller, q: np.ndarray, v: np.ndarray, prepared: Any, dt: float) -> Command:
+    """Phase 2 of a tick with the measured state (q, v) and dt s: the command (the controller is
+    then at the next tick). ``finish(c, q, v, prepare(c, nbr, lead), dt)`` IS the tick, in the
+    simulator, the agent process and ``zenswarm verify`` alike."""
+    if getattr(ctrl, "two_phase", False):
+        cmd: Command = ctrl.finish(q, v, prepared, dt)  # type: ignore[attr-defined]
+        return cmd
+    nbrs, leader = prepared
+    return ctrl.step(q, v, nbrs, leader, dt)

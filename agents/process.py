@@ -1,5 +1,7 @@
-"""The agent process: one per UAV. A shell around :class:`zenswarm.agents.core.AgentCore` (the agent's tick):
-it decodes inputs, hands them to the core and publishes what the core computes.
+"""The agent process: one per UAV. A shell around the scenario's controller plug-in
+(:class:`zenswarm.agents.api.Controller`; the paper's by default): it decodes inputs, hands them
+to the controller (:func:`zenswarm.agents.api.prepare` / :func:`zenswarm.agents.api.finish`, the
+simulator's tick) and publishes what it computes.
 
 Subscribes to exactly its graph row: its own state ``uav/<i>/state``, its neighbours'
 references ``uav/<j>/ref`` (a_ij > 0) and, only if pinned (b_i > 0), ``leader/ref``. Publishes its
@@ -7,10 +9,11 @@ reference ``uav/<i>/ref`` and its command ``uav/<i>/cmd``. See :func:`subscripti
 
 Lockstep tick k: wait for state(k) (the plant's clock); first tick: start the generator from it
 and publish ref(k); wait for the neighbours' ref(k) and, if pinned, leader ref(k); compute and
-publish cmd(k); then step the ESO and the generator and publish ref(k+1). The generator rates
-of tick k need only the references, so they are computed as soon as those are in (usually while
-the plant integrates): when state(k) arrives, only the control law (28) and the inversion stand
-between it and cmd(k). A timeout (``--lockstep-timeout``) counts as a drop and holds
+publish cmd(k) and ref(k+1) (the controller's :meth:`~zenswarm.agents.api.Controller.share`).
+A two-phase controller (the paper's: its generator rates of tick k need only the references)
+prepares as soon as the references are in (usually while the plant integrates): when state(k)
+arrives, only the control law (28) and the inversion stand between it and cmd(k).
+A timeout (``--lockstep-timeout``) counts as a drop and holds
 the newest earlier value; a sender whose liveliness token is gone is not waited for. With link
 faults each input goes through its link's :class:`zenswarm.linkfaults.Box` (hold last value),
 exactly as in the in-process simulator. A (re)started agent joins at the first state it sees and
@@ -29,7 +32,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from zenswarm import wire
-from zenswarm.agents.core import AgentCommand, AgentCore, AgentRow, Rates
+from zenswarm.agents.api import Command, Controller, finish, make_controller, prepare
+from zenswarm.agents.core import AgentRow
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters
 from zenswarm.params import QuadParams
@@ -63,17 +67,17 @@ def subscriptions(keys: wire.Keys, row: AgentRow) -> list[tuple[str, str]]:
 
 @dataclass
 class _Early:
-    """Generator rates of tick ``k`` computed ahead from ``msgs`` (the input messages, in
-    ``input_keys`` order), starting from the reference array ``q_ref``."""
+    """Phase 1 of tick ``k`` (:func:`zenswarm.agents.api.prepare`) done ahead from ``msgs`` (the
+    input messages, in ``input_keys`` order) by the controller in generation ``gen``."""
 
     k: int
-    q_ref: Any
+    gen: int
     msgs: list[Any]
-    rates: Rates
+    prepared: Any
 
 
 class _Agent:
-    """Agent ``index``'s keys, links and publications around its :class:`AgentCore`."""
+    """Agent ``index``'s keys, links and publications around its controller."""
 
     def __init__(self, proc: SwarmProcess, index: int) -> None:
         sc = proc.scenario
@@ -82,9 +86,10 @@ class _Agent:
         self.proc = proc
         self.index = index
         self.me = wire.agent(index)
-        params = QuadParams.from_vehicle(sc.vehicle)
+        self.quad = params = QuadParams.from_vehicle(sc.vehicle)
         self.row = AgentRow.from_scenario(sc, index - 1, params.mass, params.g)
-        self.core = AgentCore(self.row)
+        self.ctrl: Controller = make_controller(sc, index - 1, params.mass, params.g)
+        self.gen = 0  # counts the controller's ticks and restarts (what a prepared phase 1 belongs to)
         keys = self.keys = proc.keys
         self.state_key = keys.state(index)
         self.nbr_keys = [keys.ref(j + 1) for j in self.row.neighbours]
@@ -121,36 +126,40 @@ class _Agent:
         proc.extra_counters = link_counters
 
     def publish_ref(self, t_ns: int) -> None:
-        q, v = self.core.q_ref, self.core.v_ref
-        assert q is not None and v is not None, "start() first"
+        sh = self.ctrl.share()
         self.seq += 1
-        self.proc.publish(self.ref_key, wire.Ref(t=t_ns, seq=self.seq, q=q, v=v))
+        if sh.extra:
+            self.proc.publish(self.ref_key, wire.Ref(t=t_ns, seq=self.seq, q=sh.q, v=sh.v, extra=dict(sh.extra)))  # type: ignore[arg-type]
+        else:
+            self.proc.publish(self.ref_key, wire.Ref(t=t_ns, seq=self.seq, q=sh.q, v=sh.v))
 
-    def publish_cmd(self, t_ns: int, cmd: AgentCommand) -> None:
+    def publish_cmd(self, t_ns: int, cmd: Command) -> None:
         self.seq += 1
         self.proc.publish(self.cmd_key, wire.Cmd(t=t_ns, seq=self.seq, thrust=cmd.thrust, rpy=cmd.rpy, u=cmd.u, d_hat=cmd.d_hat))
 
     def start(self, st: wire.State, k: int) -> None:
-        """(Re)start the generator from a measured state and share ref(k)."""
-        self.core.reset(st.q, st.v)
+        """(Re)start the controller from a measured state and share ref(k)."""
+        self.gen += 1
+        self.ctrl.reset(st.q, st.v)
         self.publish_ref(k * self.dt_ns)
         if k > 0:
             self.proc.log(f"{self.me}: joined at tick {k} (t = {k * self.dt:.2f} s), generator restarted from the measured state")
 
-    def rates_from(self, inputs: Mapping[str, Any]) -> Rates:
-        """Generator rates (16-17) from the inputs given (a missing neighbour or leader is left
-        out this tick)."""
-        return self.core.rates_from([inputs.get(key) for key in self.nbr_keys], inputs.get(self.keys.leader_ref))
+    def restart(self) -> None:
+        """A fresh controller that starts at the next state (a rejoin)."""
+        self.gen += 1
+        self.ctrl = make_controller(self.sc, self.index - 1, self.quad.mass, self.quad.g)
 
-    def tick(self, k: int, st: wire.State, rates: Rates) -> None:
-        """Tick k with its generator rates: the command first (what the plant waits for), then
-        ESO and generator to k+1 and ref(k+1) (what the neighbours need only next tick)."""
-        core = self.core
-        dq, dv = rates
-        cmd = core.command(st.q, st.v, dv)
+    def prepare(self, inputs: Mapping[str, Any]) -> Any:
+        """Phase 1 of a tick from the inputs given (a missing neighbour or leader: None)."""
+        return prepare(self.ctrl, [inputs.get(key) for key in self.nbr_keys], inputs.get(self.keys.leader_ref))
+
+    def tick(self, k: int, st: wire.State, prepared: Any) -> None:
+        """Tick k (phase 2 with the state): publish cmd(k), then ref(k+1). dt: the nominal tick."""
+        cmd = finish(self.ctrl, st.q, st.v, prepared, self.dt)
+        self.gen += 1
         t = st.t if self.proc.options.realtime else k * self.dt_ns
         self.publish_cmd(t, cmd)
-        core.advance(st.q, cmd.u, dq, dv)
         self.publish_ref(t + self.dt_ns)
 
 
@@ -183,25 +192,25 @@ class _LockstepAgent:
         a = self.a
         if a.boxes:
             a.boxes[key].offer(k, msg.seq, msg)
-        if key == a.state_key and not a.core.initialised and k > self.ls.k:
+        if key == a.state_key and not a.ctrl.initialised and k > self.ls.k:
             self.ls.k = self.join_tick = k  # a (re)started agent joins at the first state it sees
 
     def prepare(self, k: int) -> None:
         a, inbox = self.a, self.proc.inbox
-        if not a.core.initialised:
+        if not a.ctrl.initialised:
             st = inbox.get(a.state_key, k)
             if st is not None:
                 a.start(st, k)
             return
-        # The generator rates depend on the references only: compute them as soon as every
-        # input of tick k is in, usually while the plant integrates, so that when state(k)
-        # arrives only the control law stands between it and cmd(k).
-        if a.boxes or (self.early is not None and self.early.k == k):
+        # A two-phase controller's first phase depends on the references only: run it as soon
+        # as every input of tick k is in, usually while the plant integrates, so that when
+        # state(k) arrives only the second phase stands between it and cmd(k).
+        if a.boxes or not getattr(a.ctrl, "two_phase", False) or (self.early is not None and self.early.k == k):
             return
         msgs = [inbox.get(key, k) for key in a.input_keys]
         if None in msgs:
             return
-        self.early = _Early(k, a.core.q_ref, msgs, a.rates_from(dict(zip(a.input_keys, msgs, strict=True))))
+        self.early = _Early(k, a.gen, msgs, a.prepare(dict(zip(a.input_keys, msgs, strict=True))))
 
     def needed(self, key: str, k: int) -> bool:
         """Wait for this input of tick k? Not if its sender is gone, or if the sender has
@@ -252,16 +261,16 @@ class _LockstepAgent:
         e, self.early = self.early, None
         if a.boxes:
             st, inputs = self._boxed_inputs(k, forced)
-            rates = a.rates_from(inputs)
+            prepared = a.prepare(inputs)
         else:
             st, msgs, held = self._held_inputs(k)
-            if e is not None and e.k == k and e.q_ref is a.core.q_ref and all(x is y for x, y in zip(e.msgs, msgs, strict=True)):
-                rates = e.rates  # the same inputs as computed ahead
+            if e is not None and e.k == k and e.gen == a.gen and all(x is y for x, y in zip(e.msgs, msgs, strict=True)):
+                prepared = e.prepared  # the same inputs as prepared ahead
             else:
-                rates = a.rates_from(held)
+                prepared = a.prepare(held)
         if forced:
             proc.counters["input_timeouts"] += 1
-        a.tick(k, st, rates)
+        a.tick(k, st, prepared)
         proc.inbox.forget_before(k - 2)
         if k % 500 == 0:
             proc.publish_diag(k * a.dt_ns)
@@ -270,7 +279,7 @@ class _LockstepAgent:
         """Back from a split longer than the session lease: what we waited for is lost, so
         rejoin like a restarted agent, at the next state we see, from the measured state."""
         with self.ls.lock:
-            self.a.core.q_ref = None
+            self.a.restart()
             self.proc.log(f"{self.a.me}: will rejoin at the next state (generator restarted from it)")
 
     def run(self) -> int:
@@ -307,9 +316,9 @@ def _run_realtime(a: _Agent) -> int:
         if st.t >= limit_ns:
             break
         k = int(round(st.t / a.dt_ns))
-        if not a.core.initialised:
+        if not a.ctrl.initialised:
             a.start(st, k)
-        a.tick(k, st, a.rates_from({key: m for key in a.input_keys if (m := proc.inbox.latest.get(key)) is not None}))
+        a.tick(k, st, a.prepare({key: m for key in a.input_keys if (m := proc.inbox.latest.get(key)) is not None}))
         if clock.stats.ticks % 100 == 0:
             proc.publish_diag(st.t, clock.stats.as_dict())
     proc.publish_diag(max(last_state_t, 0), clock.stats.as_dict())

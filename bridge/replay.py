@@ -426,8 +426,19 @@ def _compare_cmd(tick: int, rec: wire.Cmd, cmd: Any) -> Difference | None:
     return None
 
 
-def _compare_ref(tick: int, rec: wire.Ref, q: np.ndarray, v: np.ndarray) -> Difference | None:
-    return _compare_vec(tick, "ref.q", rec.q, q) or _compare_vec(tick, "ref.v", rec.v, v)
+def _compare_ref(tick: int, rec: wire.Ref, shared: Any) -> Difference | None:
+    """ref.q, ref.v and each extra shared quantity (:attr:`zenswarm.wire.Ref.extra`), bit for bit."""
+    d = _compare_vec(tick, "ref.q", rec.q, shared.q) or _compare_vec(tick, "ref.v", rec.v, shared.v)
+    if d is not None:
+        return d
+    extra = dict(shared.extra)
+    if sorted(extra) != sorted(rec.extra):
+        return Difference(tick, "ref.extra", sorted(rec.extra), sorted(extra))
+    for name, x in extra.items():
+        d = _compare_vec(tick, f"ref.extra.{name}", np.asarray(rec.extra[name]), np.asarray(x))
+        if d is not None:
+            return d
+    return None
 
 
 def _swarm_of(rec: Recording) -> str:
@@ -442,6 +453,20 @@ def _swarm_of(rec: Recording) -> str:
         if s:
             return s
     raise RecordingError(f"{rec.path}: cannot tell the swarm name (no metadata and no swarm/<name>/ topics)")
+
+
+def _recorded_seed(rec: Recording, sc: Any) -> Any:
+    """The scenario with the run's ``--seed`` (recorded with the fault flags) applied: the
+    controllers' random streams (:func:`zenswarm.plugins.plugin_rng`) derive from it."""
+    import json
+    from dataclasses import replace
+
+    from zenswarm.bridge.args import add_fault_args
+
+    p = argparse.ArgumentParser(add_help=False)
+    add_fault_args(p)
+    seed = p.parse_args(json.loads(rec.info.get("fault_args", "[]"))).seed
+    return sc if seed is None else replace(sc, seed=int(seed))
 
 
 def _fault_plan(rec: Recording, sc: Any) -> Any:
@@ -481,7 +506,7 @@ def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> Verif
     the damage in ``problems``).
     """
     rec = read_recording(path, strict=strict)
-    sc = rec.load_scenario()
+    sc = _recorded_seed(rec, rec.load_scenario())
     if not 1 <= agent <= sc.n:
         raise ScenarioError("--agent", f"agent {agent} out of range 1..{sc.n} for scenario {sc.name}")
     v = _Verifier(rec, sc, agent)
@@ -511,11 +536,12 @@ class _Differs(Exception):
 
 
 class _Verifier:
-    """Agent ``agent``'s recorded messages, and its :class:`zenswarm.agents.core.AgentCore` fed
-    with them tick by tick (as the agent process feeds it)."""
+    """Agent ``agent``'s recorded messages, and its controller plug-in (the recorded scenario's
+    ``[agents] controller``) fed with them tick by tick (as the agent process feeds it, through
+    :func:`zenswarm.agents.api.prepare` and :func:`zenswarm.agents.api.finish`)."""
 
     def __init__(self, rec: Recording, sc: Any, agent: int) -> None:
-        from zenswarm.agents.core import AgentCore, AgentRow
+        from zenswarm.agents.core import AgentRow
         from zenswarm.params import QuadParams
 
         self.sc = sc
@@ -524,7 +550,8 @@ class _Verifier:
         self.me = wire.agent(agent)
         params = QuadParams.from_vehicle(sc.vehicle)
         self.row = AgentRow.from_scenario(sc, agent - 1, params.mass, params.g)
-        self.core = AgentCore(self.row)
+        self.quad = params
+        self.ctrl = self._new_controller()
         self.dt_ns = wire.t_ns(sc.timing.dt)
         self.state_key, self.ref_key, self.cmd_key = keys.state(agent), keys.ref(agent), keys.cmd(agent)
         self.nbr_keys = [keys.ref(j + 1) for j in self.row.neighbours]
@@ -575,13 +602,21 @@ class _Verifier:
             raise _Differs(Difference(k, "input state", "<missing from the recording>", "needed to compute the tick"))
         return st
 
+    def _new_controller(self) -> Any:
+        from zenswarm.agents.api import make_controller
+
+        return make_controller(self.sc, self.res.agent - 1, self.quad.mass, self.quad.g)
+
     def compute(self, k: int, st: wire.State, inputs: dict[str, Any], seg_end: int) -> None:
-        """Tick k exactly as the agent process ticks (:meth:`AgentCore.rates_from`, then
-        :meth:`AgentCore.finish`), then compare cmd(k) and ref(k + 1)."""
-        core = self.core
-        cmd = core.finish(st.q, st.v, core.rates_from([inputs.get(key) for key in self.nbr_keys], inputs.get(self.keys.leader_ref)))
-        q_ref, v_ref = core.q_ref, core.v_ref
-        assert q_ref is not None and v_ref is not None, "finish() leaves the generator's state set"
+        """Tick k exactly as the agent process ticks (:func:`zenswarm.agents.api.prepare`, then
+        :func:`zenswarm.agents.api.finish` with the nominal dt), then compare cmd(k) and ref(k + 1)."""
+        from zenswarm.agents.api import finish, prepare
+
+        ctrl = self.ctrl
+        nbr = [inputs.get(key) for key in self.nbr_keys]
+        cmd = finish(ctrl, st.q, st.v, prepare(ctrl, nbr, inputs.get(self.keys.leader_ref)), self.sc.timing.dt)
+        shared = ctrl.share()
+        q_ref = shared.q
         rc = self.cmds.get(k)
         if rc is None:
             raise _Differs(Difference(k, "cmd", "<missing from the recording>", f"thrust={float(cmd.thrust)!r}"))
@@ -593,19 +628,19 @@ class _Verifier:
             elif rr is None:
                 d = Difference(k + 1, "ref", "<missing from the recording>", f"q={q_ref.tolist()}")
             else:
-                d = _compare_ref(k + 1, rr, q_ref, v_ref)
+                d = _compare_ref(k + 1, rr, shared)
         if d is not None:
             raise _Differs(d)
         self.res.ticks += 1
 
     def restart(self, k: int, st: wire.State) -> None:
-        """(Re)start the generator and ESO from the state of tick k; the recorded start
-        reference of tick k, if any, must equal the reset."""
-        self.core.reset(st.q, st.v)
-        q_ref, v_ref = self.core.q_ref, self.core.v_ref
-        assert q_ref is not None and v_ref is not None, "reset() sets the generator's state"
+        """(Re)start the controller (a fresh one, as a restarted process builds) from the state of
+        tick k; the recorded start reference of tick k, if any, must equal its share()."""
+        if self.ctrl.initialised:
+            self.ctrl = self._new_controller()
+        self.ctrl.reset(st.q, st.v)
         r0 = self.start_refs.get(k)
-        d = None if r0 is None else _compare_ref(k, r0, q_ref, v_ref)
+        d = None if r0 is None else _compare_ref(k, r0, self.ctrl.share())
         if d is not None:
             raise _Differs(d)
 
@@ -621,8 +656,8 @@ class _Verifier:
             if s is not None and s not in started:
                 started.add(s)
                 self.restart(s, self.states.get(s, st))
-            elif not self.core.initialised:
-                self.core.reset(st.q, st.v)
+            elif not self.ctrl.initialised:
+                self.ctrl.reset(st.q, st.v)
             inputs = {}
             for key in self.input_keys:
                 j = bisect.bisect_right(lt_of[key], lt_cmd) - 1

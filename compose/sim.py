@@ -38,7 +38,9 @@ from typing import Any, NamedTuple
 import numpy as np
 from msgspec.structs import replace as replace_table
 
-from zenswarm.agents.core import AgentCore, AgentRow, StackedAgents
+from zenswarm.agents.api import Controller, finish, make_controller, prepare
+from zenswarm.agents.core import AgentRow, StackedAgents
+from zenswarm.agents.paper import PaperController
 from zenswarm.config import Scenario
 from zenswarm.faults import FaultPlan, FaultState, Held
 from zenswarm.leader.core import LeaderCore
@@ -90,9 +92,10 @@ class _Links:
 class _Swarm:
     """The whole swarm in one process: the leader's, the agents' and the plant's cores
     (:class:`zenswarm.leader.core.LeaderCore`, :class:`zenswarm.agents.core.AgentCore`, :class:`zenswarm.plant.core.PlantCore`),
-    ticked in the order of the module docstring. Without link faults the agents are one
-    :class:`zenswarm.agents.core.StackedAgents`; with them, one :class:`zenswarm.agents.core.AgentCore` per UAV
-    behind its receive boxes."""
+    ticked in the order of the module docstring. The agents are the scenario's controller plug-in
+    (:mod:`zenswarm.agents.api`), one per UAV, each behind its receive boxes when there are link
+    faults; the paper's controller without link faults runs as one
+    :class:`zenswarm.agents.core.StackedAgents` (the same functions, bit for bit)."""
 
     def __init__(self, scenario: Scenario, faults: FaultPlan | None) -> None:
         self.dt = scenario.timing.dt
@@ -101,8 +104,8 @@ class _Swarm:
         p = self.plant.params
         rows = [AgentRow.from_scenario(scenario, i, p.mass, p.g) for i in range(scenario.n)]
         self.links = _Links(faults, rows, self.dt) if faults is not None and faults.active else None
-        self.stacked = StackedAgents(rows)
-        self.cores = [AgentCore(r) for r in rows]
+        self.ctrls: list[Controller] = [make_controller(scenario, i, p.mass, p.g) for i in range(scenario.n)]
+        self.stacked = StackedAgents(rows) if self.links is None and all(type(c) is PaperController for c in self.ctrls) else None
 
     def tick(self, k: int, ts: TimeSeries) -> None:
         """Control tick k: steps 1-8; the samples of step 2 go into ``ts[k]``."""
@@ -110,15 +113,16 @@ class _Swarm:
         st = self.plant.state
         q, v = st.q.copy(), st.v.copy()
         ts.t[k], ts.q0[k], ts.v0[k], ts.q[k], ts.v[k], ts.rpy[k] = k * self.dt, q0, v0, q, v, st.rpy
-        if self.links is None:
-            self._agents_stacked(k, q, v, q0, v0, ts)
+        if self.stacked is not None:
+            self._agents_stacked(self.stacked, k, q, v, q0, v0, ts)
         else:
-            self._agents_linked(self.links, k, q, v, q0, v0, ts)
+            self._agents_each(self.links, k, q, v, q0, v0, ts)
         self.plant.step(k)
         self.leader.advance()
 
-    def _agents_stacked(self, k: int, q: np.ndarray, v: np.ndarray, q0: np.ndarray, v0: np.ndarray, ts: TimeSeries) -> None:
-        ag = self.stacked
+    def _agents_stacked(
+        self, ag: StackedAgents, k: int, q: np.ndarray, v: np.ndarray, q0: np.ndarray, v0: np.ndarray, ts: TimeSeries
+    ) -> None:
         if k == 0:
             ag.reset(q, v)
         ts.qref[k], ts.vref[k] = ag.q_ref, ag.v_ref
@@ -126,35 +130,49 @@ class _Swarm:
         ts.u[k], ts.thrust[k], ts.d_hat[k] = cmd.u, cmd.thrust, cmd.d_hat
         self.plant.hold_all(cmd.thrust, cmd.rpy, k)
 
-    def _agents_linked(
-        self, lk: _Links, k: int, q: np.ndarray, v: np.ndarray, q0: np.ndarray, v0: np.ndarray, ts: TimeSeries
+    def _agents_each(
+        self, lk: _Links | None, k: int, q: np.ndarray, v: np.ndarray, q0: np.ndarray, v0: np.ndarray, ts: TimeSeries
     ) -> None:
-        """Every agent reads its links (hold last value), then ticks; the plant reads its links."""
-        cores = self.cores
-        for i, c in enumerate(cores):
-            lk.state[i].offer(k, k, (q[i], v[i]))
+        """Every agent's controller ticks on its inputs (through its links' receive boxes, hold
+        last value, when there are link faults), as the agent processes do; the plant reads the
+        commands (through their links)."""
+        ctrls = self.ctrls
+        for i, c in enumerate(ctrls):
+            if lk is not None:
+                lk.state[i].offer(k, k, (q[i], v[i]))
             if not c.initialised:
-                c.reset(*_present(lk.state[i].at(k)).value)
-        refs = [_ref_of(c) for c in cores]
-        for i, c in enumerate(cores):
-            for x, j in enumerate(c.row.neighbours):
-                lk.nbr[i][x].offer(k, k, refs[j])
-            lead_box = lk.lead[i]
-            if lead_box is not None:
-                lead_box.offer(k, k, _Ref(q0, v0))
-        for i, c in enumerate(cores):
-            qm, vm = _present(lk.state[i].at(k)).value
-            nbr = [_held(box.at(k)) for box in lk.nbr[i]]
-            lead_box = lk.lead[i]
-            lead = _held(lead_box.at(k)) if lead_box is not None else None
-            cmd = c.finish(qm, vm, c.rates_from(nbr, lead))
-            ts.qref[k, i], ts.vref[k, i] = refs[i]
+                c.reset(*(_present(lk.state[i].at(k)).value if lk is not None else (q[i], v[i])))
+        shared = [c.share() for c in ctrls]
+        lead_ref = _Ref(q0, v0)
+        if lk is not None:
+            for i, c in enumerate(ctrls):
+                for x, nb in enumerate(c.ctx.neighbours):
+                    lk.nbr[i][x].offer(k, k, shared[nb.index])
+                lead_box = lk.lead[i]
+                if lead_box is not None:
+                    lead_box.offer(k, k, lead_ref)
+        for i, c in enumerate(ctrls):
+            if lk is not None:
+                qm, vm = _present(lk.state[i].at(k)).value
+                nbr = [_held(box.at(k)) for box in lk.nbr[i]]
+                lead_box = lk.lead[i]
+                lead = _held(lead_box.at(k)) if lead_box is not None else None
+            else:
+                qm, vm = q[i], v[i]
+                nbr = [shared[nb.index] for nb in c.ctx.neighbours]
+                lead = lead_ref if c.ctx.pinned else None
+            cmd = finish(c, qm, vm, prepare(c, nbr, lead), self.dt)
+            ts.qref[k, i], ts.vref[k, i] = shared[i].q, shared[i].v
             ts.u[k, i], ts.thrust[k, i], ts.d_hat[k, i] = cmd.u, cmd.thrust, cmd.d_hat
-            lk.cmd[i].offer(k, k, (cmd.thrust, cmd.rpy))
-        for i, box in enumerate(lk.cmd):
-            held = _present(box.at(k))
-            thrust, rpy = held.value
-            self.plant.hold(i, thrust, rpy, held.send_tick)
+            if lk is not None:
+                lk.cmd[i].offer(k, k, (cmd.thrust, cmd.rpy))
+            else:
+                self.plant.hold(i, cmd.thrust, cmd.rpy, k)
+        if lk is not None:
+            for i, box in enumerate(lk.cmd):
+                held = _present(box.at(k))
+                thrust, rpy = held.value
+                self.plant.hold(i, thrust, rpy, held.send_tick)
 
     def fault_results(self) -> dict:
         """``link_counters`` and ``failsafe_events`` of a run with link faults ({} without)."""
@@ -173,12 +191,6 @@ def _present(h: Held | None) -> Held:
     message every tick from tick 0, which a :class:`zenswarm.linkfaults.Box` always delivers at once."""
     assert h is not None, "a state or command link holds nothing"
     return h
-
-
-def _ref_of(c: AgentCore) -> _Ref:
-    """The reference an agent sends to its neighbours this tick (its generator is started)."""
-    assert c.q_ref is not None and c.v_ref is not None, "reset() first"
-    return _Ref(c.q_ref, c.v_ref)
 
 
 class _Flight:

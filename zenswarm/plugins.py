@@ -221,5 +221,5 @@ def select(scenario: Scenario, controller: str | None = None, planner: str | Non
 def check_selection(scenario: Scenario) -> None:
     """Resolve the scenario's controller and planner and decode their params tables: a bad name
     or parameter raises ScenarioError naming it (exit 2), before any work starts."""
-    # CONTROLLER-CHECK
+    decode_params(resolve("controller", scenario.agents.controller), scenario.agents.params, "agents.params")
     decode_params(resolve("planner", planner_name(scenario)), scenario.leader.params, "leader.params")

@@ -16,7 +16,7 @@ Wire layout (``v`` is always :data:`SCHEMA_VERSION`; velocity travels as ``"vel"
 
     clock    {v, k:"clock",   t, seq}
     state    {v, k:"state",   t, seq, q[3], vel[3], rpy[3], w[3]}
-    ref      {v, k:"ref",     t, seq, q[3], vel[3]}              uav/<i>/ref and leader/ref
+    ref      {v, k:"ref",     t, seq, q[3], vel[3] [, x{name: [float...]}]}   uav/<i>/ref, leader/ref
     cmd      {v, k:"cmd",     t, seq, thrust, rpy[3], u[3], d_hat[3]}
     mission  {v, k:"mission", t, seq, scenario{...}}
     diag     {v, k:"diag",    t, seq, process, counters{str: number}, info{...}}
@@ -106,6 +106,8 @@ __all__ = [
     "Process",
     "PlainMap",
     "Counters",
+    "Extra",
+    "MAX_EXTRA",
     "encode",
     "decode",
     "Decoder",
@@ -119,6 +121,8 @@ MAX_MISSION_PAYLOAD: Final = 1024 * 1024
 MAX_T_NS: Final = 10 * 86_400 * 1_000_000_000
 """Largest accepted sim time: 10 days, ns."""
 MAX_SEQ: Final = 2**63 - 1
+MAX_EXTRA: Final = 64
+"""Most extra quantities a plug-in's reference (:attr:`Ref.extra`) carries."""
 MAX_DEPTH: Final = 16
 """Deepest nesting of containers accepted inside ``Mission.scenario`` and ``Diag.info``."""
 
@@ -414,6 +418,24 @@ def _mk_plain(name: str, value: Any, depth: int = 0) -> Any:
     raise MessageError(name, "type", f"{type(value).__name__} is not a plain type")
 
 
+def _mk_extra(name: str, value: Any) -> dict[str, tuple[float, ...]]:
+    """A plug-in's extra shared quantities: str -> flat sequence (or array) of finite numbers,
+    stored as tuples of float64 (what the wire carries)."""
+    if not isinstance(value, Mapping):
+        raise MessageError(name, "type", "expected a mapping of str to sequences of numbers")
+    if len(value) > MAX_EXTRA:
+        raise MessageError(name, "length", f"at most {MAX_EXTRA} extra quantities, got {len(value)}")
+    out: dict[str, tuple[float, ...]] = {}
+    for k, x in value.items():
+        if not isinstance(k, str):
+            raise MessageError(name, "type", f"key {k!r} is not a str")
+        flat = np.asarray(x).reshape(-1) if isinstance(x, np.ndarray) else x
+        if not isinstance(flat, (list, tuple, np.ndarray)):
+            raise MessageError(f"{name}.{k}", "type", "expected a sequence of numbers")
+        out[k] = tuple(_mk_float(f"{name}.{k}[{j}]", e) for j, e in enumerate(flat))
+    return out
+
+
 def _mk_map(name: str, value: Any) -> dict[str, Any]:
     if not isinstance(value, dict):
         raise MessageError(name, "type", "expected a dict")
@@ -497,6 +519,8 @@ PlainMap = Annotated[dict[str, Any], _Check(_mk_map, _d_plain, dict)]
 """Nested plain types: None, bool, int, finite float, str, list, dict with str keys, <= MAX_DEPTH deep."""
 Counters = Annotated[dict[str, int | _Finite], _Check(_mk_counters, None, dict)]
 """str -> int or finite float."""
+Extra = Annotated[dict[str, tuple[_Finite, ...]], Meta(max_length=MAX_EXTRA), _Check(_mk_extra, None, dict)]
+"""A plug-in's extra shared quantities: str -> flat tuple of finite float64 (at most MAX_EXTRA keys)."""
 if TYPE_CHECKING:
     Vec3: TypeAlias = npt.NDArray[np.float64]
 else:
@@ -620,16 +644,19 @@ class State(_Msg, frozen=True):
     w: Vec3
 
 
-class Ref(_Msg, frozen=True):
+class Ref(_Msg, frozen=True, omit_defaults=True):
     """Reference position and velocity: q*_i, v*_i of eqs. (16)-(17) on ``uav/<i>/ref``, or the
     leader's q0, v0 on ``leader/ref``. q: (3,) m, ENU; v: (3,) m/s, ENU (wire ``"vel"``);
-    t: sim time, ns."""
+    t: sim time, ns. extra (wire ``"x"``, optional): a controller plug-in's other shared
+    quantities (:attr:`zenswarm.agents.api.Controller.shares`), name -> flat float64 values;
+    left out of the payload when empty (the paper's controller shares none)."""
 
     kind: ClassVar[str] = "ref"
     t: TimeNs
     seq: Seq
     q: Vec3
     v: Vec3 = msgspec.field(name="vel")
+    extra: Extra = msgspec.field(default_factory=dict, name="x")
 
 
 class Cmd(_Msg, frozen=True):

@@ -1,0 +1,89 @@
+"""Test-only plug-ins (named ``plugin_fixtures:ConsensusController`` / ``plugin_fixtures:LinePlanner``
+with ``tests/`` on PYTHONPATH): a controller that shares an EXTRA quantity with its neighbours and
+draws from its seeded stream, and a planner; tests/test_plugins.py flies them in sim and lockstep up."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import msgspec
+import numpy as np
+
+from zenswarm.agents.api import Command, Controller, ControllerContext, Shared
+from zenswarm.inversion import invert_thrust_attitude
+from zenswarm.leader.planner import Planner, PlannerContext
+
+
+class ConsensusController(Controller):
+    """First-order consensus on the formation reference, PD tracking, no ESO; shares its
+    measured (q, v) as the extra quantity ``meas`` (2, 3) and damps with the neighbours' velocities."""
+
+    name = "test-consensus"
+    description = "test-only: first-order consensus + PD, shares an extra quantity"
+    shares = {"meas": (2, 3)}
+
+    class Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+        k_c: float = 1.0
+        kp: float = 6.0
+        kd: float = 4.0
+
+    def __init__(self, ctx: ControllerContext, params: Any) -> None:
+        super().__init__(ctx, params)
+        self.jitter = 1.0 + 0.01 * float(ctx.rng.random())  # the seeded stream: sim and swarm agree
+        self.qs: np.ndarray | None = None
+
+    @property
+    def initialised(self) -> bool:
+        return self.qs is not None
+
+    def reset(self, q: np.ndarray, v: np.ndarray) -> None:
+        self.qs = np.array(q, dtype=float)
+        self.vs = np.zeros(3)
+        self.meas = np.stack([np.asarray(q, float), np.asarray(v, float)])
+
+    def share(self) -> Shared:
+        assert self.qs is not None
+        return Shared(self.qs, self.vs, {"meas": self.meas})
+
+    def step(self, q: np.ndarray, v: np.ndarray, neighbours: Sequence[Shared | None], leader: Shared | None, dt: float) -> Command:
+        assert self.qs is not None
+        ctx, p = self.ctx, self.params
+        vel = np.zeros(3)
+        for nb, m in zip(ctx.neighbours, neighbours):
+            if m is not None:
+                vel -= p.k_c * nb.weight * ((self.qs - ctx.offset) - (m.q - nb.offset))
+                vel += 0.1 * nb.weight * (m.extra["meas"][1] - self.vs)
+        if leader is not None:
+            vel -= p.k_c * ctx.pinning * (self.qs - ctx.offset - leader.q)
+            vel += leader.v
+        vel *= self.jitter
+        u = p.kp * (self.qs - q) + p.kd * (vel - v)
+        u[2] += ctx.g
+        F, phi, theta = invert_thrust_attitude(u, ctx.mass, 0.0)
+        self.qs = self.qs + dt * vel
+        self.vs = vel
+        self.meas = np.stack([np.asarray(q, float), np.asarray(v, float)])
+        return Command(float(F), np.array([float(phi), float(theta), 0.0]), u)
+
+
+class LinePlanner(Planner):
+    """Straight line to the goal at ``speed`` m/s (no obstacle avoidance)."""
+
+    name = "test-line"
+    description = "test-only: straight line to the goal"
+
+    class Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+        speed: float = 0.2
+
+    def __init__(self, ctx: PlannerContext, params: Any) -> None:
+        super().__init__(ctx, params)
+        self.q0 = np.asarray(ctx.start, float).copy()
+
+    def ref(self) -> tuple[np.ndarray, np.ndarray]:
+        d = self.ctx.goal - self.q0
+        n = float(np.linalg.norm(d))
+        return self.q0, (d / n * min(self.params.speed, n / self.ctx.dt) if n > 0 else np.zeros(3))
+
+    def advance(self) -> None:
+        self.q0 = self.q0 + self.ctx.dt * self.ref()[1]
