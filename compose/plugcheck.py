@@ -51,8 +51,8 @@ from zenswarm.plugins import GROUPS, KINDS, PluginError, decode_params, plugin_r
 
 __all__ = ["add_check_parser", "run_check", "Check", "check_plugin"]
 
-TICKS = 200
-"""Ticks of the interface, determinism and purity checks (2 s at 100 Hz)."""
+TICKS = 100
+"""Ticks of the interface, determinism and purity checks (1 s at 100 Hz)."""
 
 DEFAULT_DURATION_S = 3.0
 """Sim seconds of the sim-versus-swarm flight."""
@@ -205,11 +205,13 @@ def _synthetic_state(sc: Scenario, k: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _tick_controllers(cls: type, params: Any, sc: Scenario, ticks: int, guard: bool) -> list[np.ndarray]:
-    """Every UAV's controller for ``ticks`` ticks on synthetic inputs; the outputs, flattened."""
-    from zenswarm.agents.api import Shared, context_of, received
+    """Every UAV's controller (built and ticked as every runner does: :func:`zenswarm.agents.api.make_controller`,
+    :func:`~zenswarm.agents.api.prepare`, :func:`~zenswarm.agents.api.finish`) for ``ticks``
+    ticks on synthetic inputs; the outputs, flattened."""
+    from zenswarm.agents.api import Shared, finish, make_controller, prepare
 
     mass, g = _mass_g(sc)
-    ctrls = [cls(context_of(sc, i, mass, g, plugin_rng(sc.seed, i + 1)), params) for i in range(sc.n)]
+    ctrls = [make_controller(sc, i, mass, g) for i in range(sc.n)]
     leads = _leader_refs(sc, ticks)
     shares = dict(getattr(cls, "shares", {}))
     out: list[np.ndarray] = []
@@ -231,9 +233,9 @@ def _tick_controllers(cls: type, params: Any, sc: Scenario, ticks: int, guard: b
         with cm():
             cmds = []
             for i, c in enumerate(ctrls):
-                nbrs = [received(shared[nb.index], shares) for nb in c.ctx.neighbours]
+                nbrs = [shared[nb.index] for nb in c.ctx.neighbours]
                 lead = Shared(*leads[k]) if c.ctx.pinned else None
-                cmds.append(c.step(q[i].copy(), v[i].copy(), nbrs, lead, dt))
+                cmds.append(finish(c, q[i].copy(), v[i].copy(), prepare(c, nbrs, lead), dt))
         for i, cmd in enumerate(cmds):
             t = _finite(cmd.thrust, (), f"UAV {i + 1} step().thrust at tick {k}")
             if t < 0:
@@ -335,8 +337,8 @@ def resolve_kind(name: str, kind: str | None) -> tuple[str, type]:
         raise ScenarioError("--kind", f"{name!r} names both a controller and a planner: say which with --kind")
     if not found:
         raise PluginError("NAME", f"no controller or planner named {name!r}: " + " / ".join(errors))
-    (k, cls), = found.items()
-    return k, cls
+    ((which, cls),) = found.items()
+    return which, cls
 
 
 def check_plugin(
