@@ -55,6 +55,7 @@ def test_bad_names_and_params_are_typed_errors() -> None:
         check_selection(replace(sc, leader=rt(sc.leader, planner="aapf", adaptive=False)))
 
 
+@pytest.mark.swarm  # CLI subprocesses
 def test_cli_bad_name_and_param_exit_2(tmp_path: Path) -> None:
     cp = zenswarm("sim", str(EX1), "--out", str(tmp_path / "o"), "--controller", "nosuch")
     assert cp.returncode == 2 and "nosuch" in cp.stdout and "agents.controller" in cp.stdout
@@ -65,17 +66,18 @@ def test_cli_bad_name_and_param_exit_2(tmp_path: Path) -> None:
     assert not (tmp_path / "u").exists()
 
 
+@pytest.mark.slow  # ~2 s of simulated ticks
 def test_paper_stacked_equals_per_agent_plugin_path() -> None:
     """The simulator's fast path (StackedAgents) and the generic per-agent controller path give
-    the same bits for the paper's controller (200 ticks of example 1)."""
+    the same bits for the paper's controller (100 ticks of example 1)."""
     sc = load_scenario(EX1)
     series = []
     for stacked in (True, False):
         sw = sim._Swarm(sc, None)
         if not stacked:
             sw.stacked = None
-        ts = TimeSeries.allocate(200, sc.n)
-        for k in range(200):
+        ts = TimeSeries.allocate(100, sc.n)
+        for k in range(100):
             sw.tick(k, ts)
         series.append(ts)
     for f in TimeSeries.FIELDS:
