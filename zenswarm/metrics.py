@@ -175,7 +175,9 @@ def flight_differences(a: TimeSeries, res_a: dict[str, Any], b: TimeSeries, res_
         elif not np.array_equal(x, y, equal_nan=True):
             bad = np.argwhere(~((x == y) | (np.isnan(x) & np.isnan(y))))
             tick = int(bad[0][0])
-            out.append(f"series.{f}: {len(bad)} values differ, first at tick {tick} (t = {float(a.t[tick]):.3f} s)")
+            gaps = int(np.sum(np.isnan(x) != np.isnan(y)))  # a value on one side, none (NaN) on the other
+            why = f"; {gaps} of them missing on one side" if gaps else ""
+            out.append(f"series.{f}: {len(bad)} values differ, first at tick {tick} (t = {float(a.t[tick]):.3f} s){why}")
     for key in FLIGHT_FIELDS:
         if res_a.get(key) != res_b.get(key):
             out.append(f"results.{key}: {res_a.get(key)!r} != {res_b.get(key)!r}")
