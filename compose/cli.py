@@ -112,8 +112,11 @@ def _add_plugins(sub: argparse._SubParsersAction) -> None:
             "zenswarm.planners), with a one-line description each. Any other plug-in is named module:attribute."
         ),
     )
-    psub = p.add_subparsers(dest="plugins_cmd", metavar="{list}")
+    psub = p.add_subparsers(dest="plugins_cmd", metavar="{list,check}")
     psub.add_parser("list", help="list them (the default)").set_defaults(func=_run_plugins)
+    from zenswarm.compose.plugcheck import add_check_parser
+
+    add_check_parser(psub)
     p.set_defaults(func=_run_plugins)
 
 

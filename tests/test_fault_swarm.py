@@ -7,19 +7,17 @@ in-process simulator with the same faults, bit for bit; the figures asserted her
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from zenswarm import api
 from zenswarm.compose.sim import simulate
 from zenswarm.config import load_scenario
-from zenswarm.linkfaults import plan_for
-from zenswarm.metrics import FLIGHT_FIELDS, TimeSeries
+from zenswarm.metrics import TimeSeries
 
-from swarmtest import SCENARIOS, read_results, unique_swarm
-from test_swarm import _up
+from swarmtest import SCENARIOS
 
 pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
 
@@ -36,44 +34,36 @@ def _formation_error(ts: TimeSeries, scenario, i: int) -> np.ndarray:
     return np.linalg.norm(ts.qref[:, i] - ts.q0 - h[i], axis=1)
 
 
-def _swarm_equals_sim(out: Path, seed: int, **faults) -> tuple[dict, TimeSeries]:
-    sc = replace(load_scenario(EX1), seed=seed)
-    ref = simulate(sc, faults=plan_for(sc, seed=seed, **faults))
-    got = TimeSeries.load(str(out / "timeseries.npz"))
-    for f in TimeSeries.FIELDS:
-        np.testing.assert_array_equal(getattr(got, f), getattr(ref.series, f), err_msg=f"{f}: swarm != simulator")
-    res = read_results(out)
-    for k in FLIGHT_FIELDS:
-        assert res[k] == ref.results[k], k
-    return ref.results, got
-
-
-def test_loss_and_delay_on_every_link(tmp_path: Path, fault_free: dict) -> None:
+def test_loss_and_delay_on_every_link(zenswarm_fly, fault_free: dict) -> None:
     """20 % independent loss and 50 ms delay on every link: goal, clearance > 0, formation error
-    at most twice the fault-free run's; and the swarm equals the simulator with the same faults."""
-    out = tmp_path / "out"
-    cp = _up(EX1, out, unique_swarm("f"), "--link-loss", "0.2", "--link-delay", "50ms", "--seed", "7")
-    assert cp.returncode == 0, cp.stdout[-3000:]
-    res, _ = _swarm_equals_sim(out, 7, link_loss="0.2", link_delay="50ms")
-    assert res["goal_reached"] and res["success"]
-    assert res["min_obstacle_clearance_m"] > 0
-    assert res["max_formation_error_m"] <= 2 * fault_free["max_formation_error_m"]
-    diag = read_results(out)["diagnostics"]
+    at most twice the fault-free run's; and the swarm equals the simulator with the same faults
+    (through the public API, zenswarm.api, and its pytest plugin's fixture)."""
+    faults = dict(link_loss=0.2, link_delay="50ms", seed=7)
+    swarm = zenswarm_fly(EX1, mode="swarm", **faults)
+    assert swarm.exit_code == 0, swarm.log[-3000:]
+    sim = zenswarm_fly(EX1, **faults)
+    assert api.differences(swarm, sim) == []
+    m = swarm.metrics
+    assert m.goal_reached and swarm.success, swarm.summary
+    assert m.min_obstacle_clearance_m is not None and m.min_obstacle_clearance_m > 0
+    assert m.max_formation_error_m is not None and m.max_formation_error_m <= 2 * fault_free["max_formation_error_m"]
+    diag = swarm.diagnostics
     drops = diag["agent:1"]["link:agent:2->agent:1:ref.dropped"]
     assert 0.15 * 7000 < drops < 0.25 * 7000  # about 20 % of 7000 refs, counted per link
     assert diag["plant"]["link:agent:2->plant:cmd.dropped"] > 0
-    print(f"\n20% loss + 50 ms: max formation error {res['max_formation_error_m']:.4f} m "
-          f"(fault-free {fault_free['max_formation_error_m']:.4f} m), clearance {res['min_obstacle_clearance_m']:.4f} m")
+    print(f"\n20% loss + 50 ms: max formation error {m.max_formation_error_m:.4f} m "
+          f"(fault-free {fault_free['max_formation_error_m']:.4f} m), clearance {m.min_obstacle_clearance_m:.4f} m")
 
 
-def test_partition_of_agent2_rejoins(tmp_path: Path) -> None:
+def test_partition_of_agent2_rejoins(zenswarm_fly) -> None:
     """Agent 2 cut off from 10 s to 13 s: it holds stale inputs, the plant's failsafe holds UAV 2,
     it rejoins at 13 s and its formation error then decays; the peak is reported."""
-    out = tmp_path / "out"
-    cp = _up(EX1, out, unique_swarm("p"), "--partition", "agent:2@10s-13s")
-    assert cp.returncode == 0, cp.stdout[-3000:]
-    res, ts = _swarm_equals_sim(out, 0, partitions=["agent:2@10s-13s"])
-    assert res["success"]
+    swarm = zenswarm_fly(EX1, mode="swarm", partitions=["agent:2@10s-13s"])
+    assert swarm.exit_code == 0, swarm.log[-3000:]
+    sim = zenswarm_fly(EX1, partitions=["agent:2@10s-13s"])
+    assert api.differences(swarm, sim) == []
+    res, ts = sim.results, swarm.series  # failsafe_events: the simulator's record of the plant's failsafe
+    assert swarm.success
     sc = load_scenario(EX1)
     free = simulate(sc).series
     err = _formation_error(ts, sc, 1)
@@ -96,36 +86,29 @@ def test_partition_of_agent2_rejoins(tmp_path: Path) -> None:
           f"{err[(t > 13) & (t < 14)].max():.3f} m, at 25 s {err[(t > 24) & (t < 26)].max():.3f} m; failsafe {events}")
 
 
-def test_sigkill_of_agent2_restarts_and_completes(tmp_path: Path) -> None:
+def test_sigkill_of_agent2_restarts_and_completes(zenswarm_fly, tmp_path: Path) -> None:
     """SIGKILL of agent 2 at 10 s: restarted within 2 s, mission completes without collision, and
-    the plant reports the failsafe interval of UAV 2."""
-    import tomllib
-
-    from zenswarm.generate import to_toml
-
-    # a 1 s restart delay: longer than the failsafe's 0.5 s, so the hover interval always shows
-    d = tomllib.loads(EX1.read_text())
-    d["restart"] = {"initial_delay_s": 1.0, "max_restarts": 2}
-    scenario = tmp_path / "ex1_restart.toml"
-    scenario.write_text(to_toml(d))
-    out = tmp_path / "out"
+    the plant reports the failsafe interval of UAV 2 (through the public API's process faults)."""
     rec = tmp_path / "flight.mcap"
-    cp = _up(scenario, out, unique_swarm("k"), "--kill", "agent:2@10s", "--restart", "--record", str(rec))
-    assert cp.returncode == 0, cp.stdout[-3000:]
-    res = read_results(out)
-    assert res["success"] and res["min_obstacle_clearance_m"] > 0 and res["min_inter_uav_distance_m"] > 0.05
-    assert res["restarts"] == {"agent:2": 1}
-    death = res["process_deaths"][0]
+    # a 1 s restart delay: longer than the failsafe's 0.5 s, so the hover interval always shows
+    f = zenswarm_fly(EX1, mode="swarm", kill=[("agent:2", 10.0)], restart=True, record=rec,
+                     overrides={"restart.initial_delay_s": 1.0, "restart.max_restarts": 2})
+    assert f.exit_code == 0, f.log[-3000:]
+    res = f.results
+    m = f.metrics
+    assert f.success and m.min_obstacle_clearance_m > 0 and m.min_inter_uav_distance_m > 0.05
+    assert f.restarts == {"agent:2": 1}
+    death = f.process_deaths[0]
     assert death["process"] == "agent:2" and "SIGKILL" in death["how"]
-    rejoin = [ln for ln in cp.stdout.splitlines() if "agent:2: joined at tick" in ln]
-    assert rejoin, cp.stdout[-3000:]
+    rejoin = [ln for ln in f.log.splitlines() if "agent:2: joined at tick" in ln]
+    assert rejoin, f.log[-3000:]
     t_join = float(rejoin[0].split("t = ")[1].split(" s")[0])
     # while an agent is down the lockstep clock runs at most at real time: sim time ~ wall time.
     # The acceptance figure is 2 s (1 s restart delay here + ~0.5 s to start Python, see README);
     # the bound is generous because a loaded CI machine starts Python slowly.
     assert 1.0 <= t_join - death["sim_time_s"] <= 4.0, (death, t_join)
     print(f"\nagent:2 killed at {death['sim_time_s']:.2f} s, rejoined at {t_join:.2f} s (sim time ~ wall time)")
-    fs = [ln for ln in cp.stdout.splitlines() if "UAV 2 failsafe" in ln]
+    fs = [ln for ln in f.log.splitlines() if "UAV 2 failsafe" in ln]
     assert any("nominal -> hover" in ln for ln in fs) and any("-> nominal" in ln for ln in fs), fs
     json.dumps(res)
     # the recording shows the failsafe interval: the plant's diag says UAV 2 hovered, then nominal

@@ -14,7 +14,7 @@ import numpy as np
 
 from .verdict import criteria_from_scenario, judge
 
-__all__ = ["TimeSeries", "compute_results", "add_failure", "RESULT_FIELDS", "FLIGHT_FIELDS", "RESULTS_SCHEMA_VERSION"]
+__all__ = ["TimeSeries", "compute_results", "add_failure", "flight_differences", "RESULT_FIELDS", "FLIGHT_FIELDS", "RESULTS_SCHEMA_VERSION"]
 
 RESULTS_SCHEMA_VERSION = 2
 """Version of ``results.json``'s layout. 2: the verdict from the vehicles' states (``failures``,
@@ -161,3 +161,24 @@ def add_failure(res: dict[str, Any], cause: str, detail: str, t_s: float | None 
     res["failures"] = [f for f in res["failures"] if f["cause"] not in ("incomplete", "no_data")]
     res["failures"].append({"cause": cause, "t_s": t_s, "detail": detail, "uavs": [], **more})
     res["success"] = False
+
+
+def flight_differences(a: TimeSeries, res_a: dict[str, Any], b: TimeSeries, res_b: dict[str, Any]) -> list[str]:
+    """What differs between two flights: every series compared bit for bit (NaN equal to NaN,
+    shapes included; the first differing tick named), then the :data:`FLIGHT_FIELDS` of their
+    results. Empty when they are the same flight (the lockstep swarm against the simulator)."""
+    out: list[str] = []
+    for f in TimeSeries.FIELDS:
+        x, y = getattr(a, f), getattr(b, f)
+        if x.shape != y.shape:
+            out.append(f"series.{f}: shape {x.shape} != {y.shape}")
+        elif not np.array_equal(x, y, equal_nan=True):
+            bad = np.argwhere(~((x == y) | (np.isnan(x) & np.isnan(y))))
+            tick = int(bad[0][0])
+            gaps = int(np.sum(np.isnan(x) != np.isnan(y)))  # a value on one side, none (NaN) on the other
+            why = f"; {gaps} of them missing on one side" if gaps else ""
+            out.append(f"series.{f}: {len(bad)} values differ, first at tick {tick} (t = {float(a.t[tick]):.3f} s){why}")
+    for key in FLIGHT_FIELDS:
+        if res_a.get(key) != res_b.get(key):
+            out.append(f"results.{key}: {res_a.get(key)!r} != {res_b.get(key)!r}")
+    return out

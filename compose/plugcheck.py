@@ -1,0 +1,449 @@
+"""``zenswarm plugins check NAME [SCENARIO]``: the conformance check of a controller or planner plug-in.
+
+What any plug-in author can run on their plug-in before flying it (and what the test suite runs on
+every built-in and on the example in ``examples/``). In order; a failed check skips the ones after
+it that need it:
+
+1. **interface**: the class resolves (:func:`zenswarm.plugins.resolve`), has a one-line ``name``
+   and ``description``, a ``Params`` that is a frozen :class:`msgspec.Struct` refusing unknown
+   keys (checked by decoding an unknown key), and the scenario's params table decodes; a
+   controller's ``shares`` maps names to shapes of positive ints.
+2. **outputs**: :data:`TICKS` ticks on synthetic, deterministic inputs (every UAV of the scenario,
+   each fed its neighbours' shared values and the leader's reference): a controller's shared q, v
+   are (3,) and finite, its declared extras have their shapes, its command has a finite thrust
+   >= 0, rpy (3,), u (3,), d_hat (3,); a planner's (q0, v0) are (3,) and finite and ``ref()``
+   does not change its state.
+3. **deterministic**: the same ticks again with fresh instances give identical outputs, bit for bit.
+4. **pure ticks**: during ``reset``/``share``/``step`` (``ref``/``advance``) the clock (``time``),
+   sockets, ``open`` and unseeded randomness (``random``, numpy's global generator) raise;
+   constructing the plug-in may do what it likes.
+5. **sim == swarm**: a short flight (:data:`DEFAULT_DURATION_S` of SCENARIO, link loss and delay
+   on every link) in the in-process simulator and as the lockstep swarm (``zenswarm up``), compared
+   bit for bit (:func:`zenswarm.metrics.flight_differences`).
+
+Exit status 0 every check passed, 1 a check failed, 2 bad input (an unknown name, a scenario that
+does not load).
+"""
+
+from __future__ import annotations
+
+import argparse
+import builtins
+import io
+import os
+import random
+import socket
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+from msgspec.structs import replace as replace_table
+
+from zenswarm.config import Scenario, load_scenario, scenario_to_dict
+from zenswarm.errors import ScenarioError
+from zenswarm.plugins import GROUPS, KINDS, PluginError, decode_params, plugin_rng, resolve, select
+
+__all__ = ["add_check_parser", "run_check", "Check", "check_plugin"]
+
+TICKS = 100
+"""Ticks of the interface, determinism and purity checks (1 s at 100 Hz)."""
+
+DEFAULT_DURATION_S = 3.0
+"""Sim seconds of the sim-versus-swarm flight."""
+
+FAULTS = {"link_loss": "0.2", "link_delay": "30ms", "link_jitter": "10ms"}
+"""The link faults of the sim-versus-swarm flight (on every link)."""
+
+
+@dataclass
+class Check:
+    """One line of the report: ``status`` PASS, FAIL or SKIP; ``detail`` says what was checked or
+    what went wrong."""
+
+    name: str
+    status: str
+    detail: str
+
+
+class Impure(RuntimeError):
+    """A plug-in touched the clock, a socket, a file or unseeded randomness during a tick."""
+
+
+# ----------------------------------------------------------------------------- purity guard
+
+
+def _raiser(what: str) -> Callable[..., Any]:
+    def refuse(*args: Any, **kwargs: Any) -> Any:
+        raise Impure(f"called {what} during a tick")
+
+    return refuse
+
+
+def _guarded() -> list[tuple[Any, str, str]]:
+    """(object, attribute, what) patched to raise while a plug-in ticks."""
+    out: list[tuple[Any, str, str]] = []
+    for f in ("time", "monotonic", "perf_counter", "process_time", "time_ns", "monotonic_ns", "perf_counter_ns", "sleep"):
+        out.append((time, f, f"time.{f}()"))
+    out += [(socket, "socket", "socket.socket()"), (socket, "create_connection", "socket.create_connection()")]
+    out += [(builtins, "open", "open()"), (io, "open", "io.open()"), (os, "open", "os.open()")]
+    for f in ("random", "randint", "uniform", "gauss", "choice", "shuffle", "normalvariate", "seed"):
+        out.append((random, f, f"random.{f}() (unseeded; use ctx.rng)"))
+    for f in ("rand", "randn", "random", "normal", "uniform", "randint", "choice", "shuffle", "seed"):
+        out.append((np.random, f, f"numpy.random.{f}() (the global generator; use ctx.rng)"))
+    return out
+
+
+@contextmanager
+def pure_ticks() -> Iterator[None]:
+    """While inside: the clock, sockets, ``open`` and unseeded randomness raise :class:`Impure`
+    (and ``numpy.random.default_rng()`` without a seed)."""
+    saved = [(obj, attr, getattr(obj, attr)) for obj, attr, _ in _guarded()]
+    real_rng = np.random.default_rng
+
+    def seeded_only(seed: Any = None) -> np.random.Generator:
+        if seed is None:
+            raise Impure("called numpy.random.default_rng() without a seed during a tick (use ctx.rng)")
+        return real_rng(seed)
+
+    try:
+        for obj, attr, what in _guarded():
+            setattr(obj, attr, _raiser(what))
+        np.random.default_rng = seeded_only  # type: ignore[assignment]
+        yield
+    finally:
+        for obj, attr, fn in saved:
+            setattr(obj, attr, fn)
+        np.random.default_rng = real_rng  # type: ignore[assignment]
+
+
+# ----------------------------------------------------------------------------- interface
+
+
+def _interface(kind: str, cls: type, sc: Scenario) -> tuple[list[str], Any]:
+    """Problems with the class's declared interface, and the decoded params."""
+    problems: list[str] = []
+    for attr in ("name", "description"):
+        v = getattr(cls, attr, None)
+        if not isinstance(v, str) or not v.strip() or "\n" in v.strip():
+            problems.append(f"{attr} must be a non-empty one-line string, got {v!r}")
+    P = getattr(cls, "Params", None)
+    params = None
+    if not (isinstance(P, type) and issubclass(P, msgspec.Struct)):
+        problems.append(f"Params must be a msgspec.Struct subclass, got {P!r}")
+    else:
+        cfg = P.__struct_config__
+        if not cfg.frozen:
+            problems.append("Params must be frozen (class Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True))")
+        if not cfg.forbid_unknown_fields:
+            problems.append("Params must refuse unknown keys (forbid_unknown_fields=True)")
+        try:
+            decode_params(cls, {"zz_not_a_parameter": 1}, "params")
+            problems.append("Params accepted an unknown key")
+        except ScenarioError:
+            pass
+        table = sc.agents.params if kind == "controller" else sc.leader.params
+        field = "agents.params" if kind == "controller" else "leader.params"
+        try:
+            params = decode_params(cls, table, field)
+        except ScenarioError as e:
+            problems.append(f"the scenario's [{field}] does not decode: {e} (give a SCENARIO with the plug-in's parameters)")
+    if kind == "controller":
+        shares = getattr(cls, "shares", {})
+        try:
+            ok = all(isinstance(k, str) and all(isinstance(d, int) and d > 0 for d in s) for k, s in dict(shares).items())
+        except TypeError:
+            ok = False
+        if not ok:
+            problems.append(f"shares must map names to shapes (tuples of positive ints), got {shares!r}")
+    return problems, params
+
+
+# ----------------------------------------------------------------------------- ticking
+
+
+def _finite(x: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
+    a = np.asarray(x, dtype=float)
+    if a.shape != shape:
+        raise AssertionError(f"{what}: shape {a.shape}, expected {shape}")
+    if not np.all(np.isfinite(a)):
+        raise AssertionError(f"{what}: not finite ({a.tolist()})")
+    return a
+
+
+def _mass_g(sc: Scenario) -> tuple[float, float]:
+    from zenswarm.params import QuadParams
+
+    p = QuadParams.from_vehicle(sc.vehicle)
+    return float(p.mass), float(p.g)
+
+
+def _leader_refs(sc: Scenario, ticks: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The scenario's own planner's (q0, v0) for ``ticks`` ticks (the controllers' leader input)."""
+    from zenswarm.leader.core import make_planner
+
+    pl = make_planner(sc)
+    out = []
+    for _ in range(ticks):
+        q0, v0 = pl.ref()
+        out.append((np.array(q0, dtype=float), np.array(v0, dtype=float)))
+        pl.advance()
+    return out
+
+
+def _synthetic_state(sc: Scenario, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Deterministic vehicle states (N, 3) for tick k: the initial positions drifting slowly."""
+    q0 = np.asarray(sc.initial_positions, dtype=float)
+    n = len(q0)
+    drift = np.array([0.01, 0.005, 0.002]) * np.sin(0.05 * k + np.arange(n))[:, None]
+    return q0 + drift, 0.05 * np.cos(0.05 * k + np.arange(n))[:, None] * np.array([1.0, 0.5, 0.2])
+
+
+def _tick_controllers(cls: type, params: Any, sc: Scenario, ticks: int, guard: bool) -> list[np.ndarray]:
+    """Every UAV's controller (built and ticked as every runner does: :func:`zenswarm.agents.api.make_controller`,
+    :func:`~zenswarm.agents.api.prepare`, :func:`~zenswarm.agents.api.finish`) for ``ticks``
+    ticks on synthetic inputs; the outputs, flattened."""
+    from zenswarm.agents.api import Shared, finish, make_controller, prepare
+
+    mass, g = _mass_g(sc)
+    ctrls = [make_controller(sc, i, mass, g) for i in range(sc.n)]
+    leads = _leader_refs(sc, ticks)
+    shares = dict(getattr(cls, "shares", {}))
+    out: list[np.ndarray] = []
+    dt = sc.timing.dt
+    cm = pure_ticks if guard else _nothing
+    for k in range(ticks):
+        q, v = _synthetic_state(sc, k)
+        with cm():
+            if k == 0:
+                for i, c in enumerate(ctrls):
+                    c.reset(q[i].copy(), v[i].copy())
+            shared = [c.share() for c in ctrls]
+        for i, s in enumerate(shared):
+            out += [_finite(s.q, (3,), f"UAV {i + 1} share().q at tick {k}"), _finite(s.v, (3,), f"UAV {i + 1} share().v at tick {k}")]
+            for name, shape in shares.items():
+                if name not in s.extra:
+                    raise AssertionError(f"UAV {i + 1} share() at tick {k}: declared extra {name!r} missing")
+                out.append(_finite(s.extra[name], tuple(shape), f"UAV {i + 1} share().extra[{name!r}] at tick {k}"))
+        with cm():
+            cmds = []
+            for i, c in enumerate(ctrls):
+                nbrs = [shared[nb.index] for nb in c.ctx.neighbours]
+                lead = Shared(*leads[k]) if c.ctx.pinned else None
+                cmds.append(finish(c, q[i].copy(), v[i].copy(), prepare(c, nbrs, lead), dt))
+        for i, cmd in enumerate(cmds):
+            t = _finite(cmd.thrust, (), f"UAV {i + 1} step().thrust at tick {k}")
+            if t < 0:
+                raise AssertionError(f"UAV {i + 1} step().thrust at tick {k}: negative ({float(t)} N)")
+            out += [t.reshape(1), _finite(cmd.rpy, (3,), f"UAV {i + 1} step().rpy at tick {k}")]
+            out.append(_finite(cmd.u, (3,), f"UAV {i + 1} step().u at tick {k}"))
+            out.append(_finite(cmd.d_hat, (3,), f"UAV {i + 1} step().d_hat at tick {k}"))
+    return out
+
+
+def _tick_planner(cls: type, params: Any, sc: Scenario, ticks: int, guard: bool) -> list[np.ndarray]:
+    """The planner for ``ticks`` ticks; its (q0, v0) of every tick."""
+    from zenswarm.leader.planner import PlannerContext
+
+    tm = sc.timing
+    ctx = PlannerContext(
+        start=np.asarray(sc.leader.start, dtype=float), goal=np.asarray(sc.leader.goal, dtype=float), obstacles=tuple(sc.obstacles),
+        r_f=sc.r_f, dt=tm.dt, substeps=tm.substeps, rng=plugin_rng(sc.seed, 0), leader=sc.leader,
+    )
+    pl = cls(ctx, params)
+    out: list[np.ndarray] = []
+    cm = pure_ticks if guard else _nothing
+    for k in range(ticks):
+        with cm():
+            q0, v0 = pl.ref()
+            q0, v0 = np.array(q0, dtype=float), np.array(v0, dtype=float)
+            again = [np.array(x, dtype=float) for x in pl.ref()]
+        out += [_finite(q0, (3,), f"ref().q0 at tick {k}"), _finite(v0, (3,), f"ref().v0 at tick {k}")]
+        if not (np.array_equal(again[0], q0) and np.array_equal(again[1], v0)):
+            raise AssertionError(f"ref() at tick {k} changed the state: a second call gave {again[0].tolist()}, {again[1].tolist()}")
+        with cm():
+            pl.advance()
+    return out
+
+
+@contextmanager
+def _nothing() -> Iterator[None]:
+    yield
+
+
+# ----------------------------------------------------------------------------- the check
+
+
+def _scenario_for(kind: str, name: str, sc: Scenario, duration: float) -> Scenario:
+    """SCENARIO with the plug-in selected (as --controller/--planner) and a short time limit."""
+    sc = select(sc, name if kind == "controller" else None, name if kind == "planner" else None)
+    return replace(sc, timing=replace_table(sc.timing, time_limit_s=min(duration, sc.timing.time_limit_s)))
+
+
+def _sim_vs_swarm(sc: Scenario, seed: int) -> str:
+    """Fly ``sc`` in-process and as the lockstep swarm with :data:`FAULTS`; "" when bit equal,
+    else what differs."""
+    from zenswarm.compose.launch import run_up
+    from zenswarm.compose.sim import simulate
+    from zenswarm.compose.supervisor import UpOptions
+    from zenswarm.generate import to_toml
+    from zenswarm.linkfaults import LinkFaults
+    from zenswarm.metrics import TimeSeries, flight_differences
+    from zenswarm.wire import Keys
+
+    faults = LinkFaults(FAULTS["link_delay"], FAULTS["link_jitter"], FAULTS["link_loss"], (), seed)
+    ref = simulate(sc, faults=faults.plan(sc))
+    import json
+    import uuid
+
+    from zenswarm.bus import free_port
+
+    with tempfile.TemporaryDirectory(prefix="zenswarm-check-") as tmp:
+        scen = Path(tmp) / "scenario.toml"
+        scen.write_text(to_toml(scenario_to_dict(sc)))
+        swarm = f"check{uuid.uuid4().hex[:10]}"
+        Keys(swarm)  # a valid swarm name
+        opts = UpOptions(scenario=scen, swarm=swarm, out=Path(tmp) / "out", faults=faults, listen=(f"tcp/127.0.0.1:{free_port()}",))
+        run = run_up(opts, timeout=600.0)
+        if run.timed_out or not (opts.out / "results.json").is_file():
+            tail = "\n".join(run.log.splitlines()[-15:])
+            return f"the lockstep swarm did not finish (exit status {run.exit_code}):\n{tail}"
+        got = TimeSeries.load(str(opts.out / "timeseries.npz"))
+        res = json.loads((opts.out / "results.json").read_text())
+    diffs = flight_differences(ref.series, ref.results, got, res)
+    if run.leftovers:
+        diffs.append(f"processes left behind (killed): {list(run.leftovers)}")
+    return "; ".join(diffs[:6])
+
+
+def resolve_kind(name: str, kind: str | None) -> tuple[str, type]:
+    """(kind, class) of the plug-in ``name``; without ``kind``, whichever kind has it (both:
+    ScenarioError asking for --kind). Raises :class:`PluginError` naming what was tried."""
+    if kind is not None:
+        return kind, resolve(kind, name, "NAME")
+    found: dict[str, type] = {}
+    errors: list[str] = []
+    for k in KINDS:
+        try:
+            found[k] = resolve(k, name, "NAME")
+        except PluginError as e:
+            errors.append(e.message)
+    if len(found) > 1:
+        raise ScenarioError("--kind", f"{name!r} names both a controller and a planner: say which with --kind")
+    if not found:
+        raise PluginError("NAME", f"no controller or planner named {name!r}: " + " / ".join(errors))
+    ((which, cls),) = found.items()
+    return which, cls
+
+
+def check_plugin(
+    name: str, sc: Scenario, kind: str | None = None, duration: float = DEFAULT_DURATION_S, swarm: bool = True
+) -> tuple[str, type, list[Check]]:
+    """Run the checks of the module docstring on plug-in ``name`` with scenario ``sc``; returns
+    (kind, class, the checks in order). Bad input (an unknown name) raises ScenarioError."""
+    kind, cls = resolve_kind(name, kind)
+    sc = _scenario_for(kind, name, sc, duration)
+    checks: list[Check] = []
+    problems, params = _interface(kind, cls, sc)
+    checks.append(Check("interface", "FAIL" if problems else "PASS", "; ".join(problems) or _interface_text(kind, cls)))
+    tick: Callable[[type, Any, Scenario, int, bool], list[np.ndarray]] = _tick_controllers if kind == "controller" else _tick_planner
+    ticks = min(TICKS, sc.timing.n_ticks)
+    first: list[np.ndarray] | None = None
+    if problems:
+        checks.append(Check("outputs", "SKIP", "the interface check failed"))
+    else:
+        try:
+            first = tick(cls, params, sc, ticks, False)
+            what = f"{ticks} ticks x {sc.n} UAVs" if kind == "controller" else f"{ticks} ticks"
+            checks.append(Check("outputs", "PASS", f"{what}: shapes and finiteness as declared"))
+        except Exception as e:  # noqa: BLE001 - a plug-in's own error is a failed check, reported
+            first = None
+            checks.append(Check("outputs", "FAIL", f"{type(e).__name__}: {e}"))
+    if first is None:
+        checks.append(Check("deterministic", "SKIP", "the outputs check failed"))
+        checks.append(Check("pure ticks", "SKIP", "the outputs check failed"))
+    else:
+        try:
+            again = tick(cls, params, sc, ticks, False)
+            same = len(again) == len(first) and all(np.array_equal(a, b) for a, b in zip(first, again, strict=True))
+            checks.append(Check("deterministic", "PASS" if same else "FAIL",
+                                "two fresh runs on the same inputs: identical, bit for bit" if same else _first_diff(first, again)))
+        except Exception as e:  # noqa: BLE001 - reported as the check's failure
+            checks.append(Check("deterministic", "FAIL", f"{type(e).__name__}: {e}"))
+        try:
+            guarded = tick(cls, params, sc, ticks, True)
+            same = len(guarded) == len(first) and all(np.array_equal(a, b) for a, b in zip(first, guarded, strict=True))
+            checks.append(Check("pure ticks", "PASS" if same else "FAIL", "no clock, socket, file or unseeded randomness during ticks"
+                                if same else "outputs change when the clock, sockets, files and global randomness are unavailable"))
+        except Impure as e:
+            checks.append(Check("pure ticks", "FAIL", str(e)))
+        except Exception as e:  # noqa: BLE001 - reported as the check's failure
+            checks.append(Check("pure ticks", "FAIL", f"{type(e).__name__}: {e}"))
+    if not swarm:
+        checks.append(Check("sim == swarm", "SKIP", "not asked (--no-swarm)"))
+    elif any(c.status != "PASS" for c in checks):
+        checks.append(Check("sim == swarm", "SKIP", "an earlier check failed"))
+    else:
+        seed = 1
+        diff = _sim_vs_swarm(replace(sc, seed=seed), seed)
+        faults = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in FAULTS.items())
+        what = f"{sc.timing.time_limit_s:g} s of {sc.name}, {faults}, seed {seed}"
+        checks.append(Check("sim == swarm", "FAIL" if diff else "PASS", f"{what}: {diff}" if diff else f"{what}: identical, bit for bit"))
+    return kind, cls, checks
+
+
+def _first_diff(a: list[np.ndarray], b: list[np.ndarray]) -> str:
+    if len(a) != len(b):
+        return f"the second run gave {len(b)} outputs, the first {len(a)}"
+    i = next(i for i, (x, y) in enumerate(zip(a, b, strict=True)) if not np.array_equal(x, y))
+    return f"output {i} differs between two fresh runs: {a[i].tolist()} != {b[i].tolist()}"
+
+
+def _interface_text(kind: str, cls: type) -> str:
+    shares = dict(getattr(cls, "shares", {})) if kind == "controller" else {}
+    extra = f", shares {shares}" if shares else ""
+    return f"name, description, Params (frozen msgspec Struct, unknown keys refused, the scenario's table decodes){extra}"
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def add_check_parser(psub: argparse._SubParsersAction) -> None:
+    """``zenswarm plugins check``."""
+    c = psub.add_parser(
+        "check",
+        help="conformance check of a controller or planner plug-in",
+        description=(
+            "Check plug-in NAME (a built-in name, module:attribute or an installed entry point of "
+            f"{', '.join(GROUPS.values())}): its interface, its outputs' shapes and finiteness, determinism, "
+            "no clock or I/O during ticks, then a short flight of SCENARIO (default: paper example 1) with link faults "
+            "in the in-process simulator and as the lockstep swarm, bit for bit. Prints PASS/FAIL per check. Exit "
+            "status 0 all passed, 1 a check failed, 2 bad input."
+        ),
+    )
+    c.add_argument("name", metavar="NAME", help="the plug-in")
+    c.add_argument("scenario", metavar="SCENARIO", type=Path, nargs="?", help="scenario TOML (default: the built-in paper_example1)")
+    c.add_argument("--kind", choices=KINDS, help="controller or planner (default: whichever NAME names)")
+    c.add_argument("--duration", type=float, default=DEFAULT_DURATION_S, metavar="S",
+                   help=f"sim seconds of the sim-versus-swarm flight (default {DEFAULT_DURATION_S:g})")
+    c.add_argument("--no-swarm", action="store_true", help="skip the sim-versus-swarm flight (no process started)")
+    c.set_defaults(func=run_check)
+
+
+def run_check(args: argparse.Namespace) -> int:
+    if not (args.duration > 0 and np.isfinite(args.duration)):
+        raise ScenarioError("--duration", f"must be a finite number > 0, got {args.duration!r}")
+    path = args.scenario or Path(__file__).resolve().parent / "scenarios" / "paper_example1.toml"
+    sc = load_scenario(path)
+    kind, cls, checks = check_plugin(args.name, sc, args.kind, args.duration, swarm=not args.no_swarm)
+    print(f"zenswarm plugins check {args.name}: {kind} {cls.__module__}:{cls.__qualname__}, scenario {sc.name} ({path})")
+    for ck in checks:
+        print(f"  {ck.status:<4}  {ck.name:<14} {ck.detail}")
+    failed = [ck.name for ck in checks if ck.status == "FAIL"]
+    print(f"result: {'FAIL (' + ', '.join(failed) + ')' if failed else 'PASS'}")
+    return 1 if failed else 0

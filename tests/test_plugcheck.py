@@ -1,0 +1,134 @@
+"""`zenswarm plugins check` (issue 15 item 4): every built-in plug-in passes it, with one short
+lockstep flight each (the example package's is in tests/test_examples.py); plug-ins that break
+the interface, are impure or not deterministic fail the check that says so; bad input exits 2."""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import msgspec
+import numpy as np
+import pytest
+
+from zenswarm.agents.api import Command, Shared
+from zenswarm.agents.paper import PaperController
+from zenswarm.compose.cli import main
+from zenswarm.compose.plugcheck import check_plugin
+from zenswarm.config import load_scenario
+from zenswarm.leader.planner import AapfPlanner
+from zenswarm.plugins import KINDS, available
+
+from swarmtest import SCENARIOS
+
+EX1 = load_scenario(SCENARIOS / "paper_example1.toml")
+BUILTINS = [(kind, p.name) for kind in KINDS for p in available(kind) if p.origin == "builtin"]
+
+# ----------------------------------------------------------------------------- plug-ins that break the rules
+
+
+class ClockController(PaperController):
+    two_phase = False  # ticked through step()
+    name = "clock"
+    description = "reads the clock in its tick"
+
+    def step(self, q: np.ndarray, v: np.ndarray, neighbours: Sequence[Shared | None], leader: Shared | None, dt: float) -> Command:
+        time.monotonic()
+        return super().step(q, v, neighbours, leader, dt)
+
+
+_COUNTER = itertools.count()
+
+
+class DriftController(PaperController):
+    two_phase = False  # ticked through step()
+    name = "drift"
+    description = "its output depends on how often any instance ran (a module-level counter)"
+
+    def step(self, q: np.ndarray, v: np.ndarray, neighbours: Sequence[Shared | None], leader: Shared | None, dt: float) -> Command:
+        cmd = super().step(q, v, neighbours, leader, dt)
+        return Command(cmd.thrust + 1e-9 * next(_COUNTER), cmd.rpy, cmd.u, cmd.d_hat)
+
+
+class NanController(PaperController):
+    two_phase = False  # ticked through step()
+    name = "nan"
+    description = "commands a NaN thrust from tick 5"
+
+    def step(self, q: np.ndarray, v: np.ndarray, neighbours: Sequence[Shared | None], leader: Shared | None, dt: float) -> Command:
+        self.k = getattr(self, "k", 0) + 1
+        cmd = super().step(q, v, neighbours, leader, dt)
+        return Command(float("nan") if self.k > 5 else cmd.thrust, cmd.rpy, cmd.u, cmd.d_hat)
+
+
+class MutableParamsController(PaperController):
+    name = "mutable"
+    description = "Params not frozen"
+
+    class Params(msgspec.Struct, forbid_unknown_fields=True):
+        gain: float = 1.0
+
+
+class FilePlanner(AapfPlanner):
+    name = "file"
+    description = "opens a file in its tick"
+
+    def advance(self) -> None:
+        open("/dev/null").close()
+        super().advance()
+
+
+class UnseededPlanner(AapfPlanner):
+    name = "unseeded"
+    description = "draws from numpy's global generator"
+
+    def advance(self) -> None:
+        np.random.random()
+        super().advance()
+
+
+def _status(name: str, **kw: Any) -> dict[str, str]:
+    _, _, checks = check_plugin(f"test_plugcheck:{name}", EX1, swarm=False, **kw)
+    return {c.name: f"{c.status} {c.detail}" for c in checks}
+
+
+@pytest.mark.parametrize(
+    ("plugin", "check", "needle"),
+    [
+        ("ClockController", "pure ticks", "time.monotonic()"),
+        ("FilePlanner", "pure ticks", "open()"),
+        ("UnseededPlanner", "pure ticks", "numpy.random.random()"),
+        ("DriftController", "deterministic", "differs between two fresh runs"),
+        ("NanController", "outputs", "step().thrust at tick 5: not finite"),
+        ("MutableParamsController", "interface", "Params must be frozen"),
+    ],
+)
+def test_a_plug_in_that_breaks_a_rule_fails_that_check(plugin: str, check: str, needle: str) -> None:
+    got = _status(plugin)
+    assert got[check].startswith("FAIL") and needle in got[check], got
+    assert got["sim == swarm"].startswith("SKIP"), got
+
+
+def test_exit_status_and_report(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["plugins", "check", "test_plugcheck:ClockController", "--no-swarm"]) == 1
+    out = capsys.readouterr().out
+    assert "FAIL  pure ticks" in out and out.rstrip().endswith("result: FAIL (pure ticks)")
+    assert main(["plugins", "check", "paper", "--no-swarm"]) == 0
+    assert capsys.readouterr().out.rstrip().endswith("result: PASS")
+    assert main(["plugins", "check", "no-such-plugin"]) == 2
+    assert "no controller or planner named 'no-such-plugin'" in capsys.readouterr().err
+    assert main(["plugins", "check", "paper", "--duration", "0"]) == 2
+    assert "--duration" in capsys.readouterr().err
+
+
+@pytest.mark.swarm
+@pytest.mark.parametrize(("kind", "name"), BUILTINS)
+def test_every_built_in_plug_in_passes(kind: str, name: str) -> None:
+    """One short lockstep flight each (2 s, link loss, delay and jitter), bit for bit."""
+    got_kind, _, checks = check_plugin(name, EX1, duration=2.0)
+    assert got_kind == kind
+    assert [(c.name, c.status) for c in checks] == [
+        ("interface", "PASS"), ("outputs", "PASS"), ("deterministic", "PASS"), ("pure ticks", "PASS"), ("sim == swarm", "PASS")
+    ], [(c.name, c.status, c.detail) for c in checks]

@@ -1,0 +1,533 @@
+"""The public Python API: fly a scenario in-process or as the lockstep swarm, get typed results.
+
+For users' own tests and scripts (the pytest plugin, :mod:`zenswarm.pytest_plugin`, builds on it)::
+
+    from zenswarm.api import fly
+
+    f = fly("paper_example1", mode="swarm", link_loss=0.2, link_delay="50ms", duration=5.0)
+    assert not f.failures_other_than("timeout"), f.summary
+    print(f.metrics.max_formation_error_m, f.series.q.shape)   # m; (T, N, 3)
+
+:func:`fly` runs the code the command line runs, nothing else: ``mode="sim"`` is
+:func:`zenswarm.compose.sim.simulate` in this process (``zenswarm sim``); ``mode="swarm"`` is
+``zenswarm up`` in lockstep (or realtime) as a child process group, one OS process per UAV
+over a Zenoh router on loopback. With the same scenario, seed and link faults both give the same
+flight bit for bit (lockstep); :func:`differences` checks it.
+
+Any scenario field can be overridden by its dotted path (``timing.time_limit_s``,
+``leader.goal``, ``obstacles[0].radius``, ``restart.initial_delay_s``): the scenario is then
+validated as a file would be, and a bad path or value raises :class:`OverrideError` naming it.
+Every bad input raises a :class:`zenswarm.errors.ScenarioError` (``field`` names the argument or
+the scenario field) before anything is flown or started.
+
+Units are SI, positions in the inertial ENU frame (z up); times are sim time unless named
+``wall``. This module is the top layer (beside ``__main__``): nothing in zenswarm imports it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import tomllib
+import uuid
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from zenswarm.bus import free_port
+from zenswarm.compose.launch import kill_processes_of, live_flights, processes_of, run_up, stop_flight
+from zenswarm.compose.sim import simulate, summary_line, write_outputs
+from zenswarm.compose.supervisor import UpOptions, check_up_args
+from zenswarm.config import Scenario, scenario_from_dict, scenario_to_dict
+from zenswarm.errors import ScenarioError, ZenswarmError
+from zenswarm.generate import to_toml
+from zenswarm.linkfaults import LinkFaults
+from zenswarm.metrics import TimeSeries, flight_differences
+from zenswarm.paths import check_output_dir
+from zenswarm.plugins import check_selection
+from zenswarm.wire import validate_process
+
+__all__ = [
+    "fly",
+    "Flight",
+    "Failure",
+    "Metrics",
+    "Mode",
+    "OverrideError",
+    "FlightError",
+    "differences",
+    "scenario_path",
+    "builtin_scenarios",
+    "load",
+    "unique_swarm_name",
+    "processes_of",
+    "kill_processes_of",
+    "live_flights",
+    "stop_flight",
+]
+
+Mode = Literal["sim", "swarm"]
+"""``sim``: the in-process simulator; ``swarm``: ``zenswarm up``, one OS process per role."""
+
+DEFAULT_SWARM_TIMEOUT_S = 600.0
+"""Wall seconds a swarm flight may take before :func:`fly` stops it (:class:`FlightError`)."""
+
+
+class OverrideError(ScenarioError):
+    """An override's path does not name a scenario field, or its value is refused.
+
+    ``field`` is the dotted path of the scenario field (as in :class:`ScenarioError`);
+    ``override`` the key given to :func:`fly` that caused it."""
+
+    def __init__(self, field: str, message: str, override: str) -> None:
+        super().__init__(field, message)
+        self.override = override
+
+
+class FlightError(ZenswarmError):
+    """A swarm flight could not be flown to its end: ``zenswarm up`` refused its input, timed out
+    or was interrupted. ``exit_code`` is the supervisor's (None on a timeout), ``log`` its output."""
+
+    def __init__(self, message: str, exit_code: int | None, log: str) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+        self.log = log
+
+
+# ----------------------------------------------------------------------------- results
+
+
+@dataclass(frozen=True)
+class Failure:
+    """One named failure of a flight's verdict (docs/verdict.md lists the causes).
+
+    cause: ``collision_obstacle``, ``collision_uav``, ``collision_ground``, ``uav_diverged``,
+    ``not_finite``, ``leader_stalled``, ``timeout``, ``off_slot``, ``process_died``,
+    ``interrupted``, ... t_s: sim time of the failure, s (None when it has none). uavs: the UAVs
+    concerned, 1-based. extra: the cause's other fields (``obstacle``, ``where``, ``process``)."""
+
+    cause: str
+    detail: str
+    t_s: float | None
+    uavs: tuple[int, ...]
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> Failure:
+        rest = {k: v for k, v in d.items() if k not in ("cause", "detail", "t_s", "uavs")}
+        return cls(str(d["cause"]), str(d.get("detail", "")), d.get("t_s"), tuple(int(u) for u in d.get("uavs") or ()), rest)
+
+
+@dataclass(frozen=True)
+class Metrics:
+    """The headline figures of a flight (``results.json``), judged on the vehicles' real states.
+    Distances in m, times in s; None where there was nothing to measure (no obstacle, one UAV,
+    no tick after ``timing.settle_time_s``)."""
+
+    goal_reached: bool
+    time_to_goal_s: float | None
+    final_leader_goal_distance_m: float | None
+    max_formation_error_m: float | None
+    """Largest distance of a vehicle from its slot q0 + h_i after the settle time."""
+    max_generator_formation_error_m: float | None
+    rms_tracking_error_m: float | None
+    max_final_slot_error_m: float | None
+    min_obstacle_clearance_m: float | None
+    """Smallest distance of a vehicle's centre to an obstacle's surface."""
+    min_obstacle_margin_m: float | None
+    """Clearance minus the vehicle radius (< 0: contact)."""
+    min_inter_uav_distance_m: float | None
+    min_inter_uav_margin_m: float | None
+    min_altitude_m: float | None
+    finite: bool
+    ended_early: bool
+    sim_time_s: float
+    wall_time_s: float | None
+
+    @classmethod
+    def from_results(cls, r: Mapping[str, Any]) -> Metrics:
+        values: dict[str, Any] = {f: r.get(f) for f in cls.__dataclass_fields__}
+        return cls(**values)
+
+
+@dataclass(frozen=True)
+class Flight:
+    """A flown scenario: its verdict, figures and time series.
+
+    series: one sample per control tick (:class:`zenswarm.metrics.TimeSeries`: ``t`` (T,) s,
+    ``q0``/``v0`` (T, 3) leader, ``qref``/``vref`` (T, N, 3) references, ``q``/``v``/``rpy``
+    (T, N, 3) vehicle states, ``u`` (T, N, 3) m/s^2, ``thrust`` (T, N) N, ``d_hat`` (T, N, 3)).
+    results: ``results.json`` as a dict (schema in docs/verdict.md). exit_code: what the command
+    line would have returned (0 success, 1 mission failed, 3 a process died, 130 interrupted).
+    out: where results.json and timeseries.npz were written (None: not kept). log: the
+    supervisor's output (swarm mode). leftovers: processes of the swarm found alive after the
+    flight and killed (empty unless something went wrong)."""
+
+    mode: Mode
+    scenario: Scenario
+    success: bool
+    failures: tuple[Failure, ...]
+    metrics: Metrics
+    series: TimeSeries
+    results: Mapping[str, Any]
+    exit_code: int
+    out: Path | None = None
+    swarm: str | None = None
+    log: str = ""
+    leftovers: tuple[str, ...] = ()
+
+    @property
+    def causes(self) -> tuple[str, ...]:
+        """The failures' causes, in the verdict's order."""
+        return tuple(f.cause for f in self.failures)
+
+    def failure(self, cause: str) -> Failure | None:
+        """The first failure with this cause, if any."""
+        return next((f for f in self.failures if f.cause == cause), None)
+
+    def failures_other_than(self, *causes: str) -> tuple[Failure, ...]:
+        """The failures whose cause is not one of ``causes`` (e.g. ``"timeout"``, ``"off_slot"``
+        for a flight cut short by ``duration``)."""
+        return tuple(f for f in self.failures if f.cause not in causes)
+
+    @property
+    def summary(self) -> str:
+        """The verdict and headline figures in the words of ``zenswarm sim`` (for assertion messages)."""
+        return summary_line(dict(self.results))
+
+    @property
+    def restarts(self) -> dict[str, int]:
+        """Swarm mode: restarts per process (``--restart``)."""
+        return dict(self.results.get("restarts") or {})
+
+    @property
+    def process_deaths(self) -> list[dict[str, Any]]:
+        """Swarm mode: every process death the supervisor saw (process, how, sim_time_s)."""
+        return list(self.results.get("process_deaths") or [])
+
+    @property
+    def diagnostics(self) -> dict[str, dict[str, Any]]:
+        """Swarm mode: each process's final diagnostics (link counters, subscriptions, ...)."""
+        return dict(self.results.get("diagnostics") or {})
+
+
+def differences(a: Flight, b: Flight) -> list[str]:
+    """What differs between two flights of the same scenario: the time series compared bit for
+    bit (NaN equal to NaN, shapes included) and the flight fields of the verdict
+    (:data:`zenswarm.metrics.FLIGHT_FIELDS`). Empty when the flights are identical (the
+    lockstep swarm's guarantee against the simulator)."""
+    return flight_differences(a.series, dict(a.results), b.series, dict(b.results))
+
+
+# ----------------------------------------------------------------------------- scenarios
+
+
+def builtin_scenarios() -> list[str]:
+    """Names of the scenarios shipped with zenswarm (``paper_example1``, ...)."""
+    return sorted(p.stem for p in _scenario_dir().glob("*.toml"))
+
+
+def _scenario_dir() -> Path:
+    import zenswarm.compose as compose
+
+    return Path(compose.__file__).resolve().parent / "scenarios"
+
+
+def scenario_path(name: str | Path) -> Path:
+    """The file of a scenario: a path to a TOML file, or the name of a built-in one
+    (``paper_example1``). Raises :class:`ScenarioError` (field ``scenario``) if there is none."""
+    p = Path(name)
+    if p.suffix == ".toml" or p.exists() or os.sep in str(name):
+        if not p.is_file():
+            raise ScenarioError("scenario", f"scenario file not found: {p}")
+        return p
+    q = _scenario_dir() / f"{name}.toml"
+    if not q.is_file():
+        raise ScenarioError("scenario", f"no built-in scenario {str(name)!r} (built in: {', '.join(builtin_scenarios())}) and no such file")
+    return q
+
+
+def _document(scenario: str | Path | Scenario | Mapping[str, Any]) -> dict[str, Any]:
+    """The scenario as a TOML document (nested dicts), as a file holds it."""
+    if isinstance(scenario, Scenario):
+        return scenario_to_dict(scenario)
+    if isinstance(scenario, Mapping):
+        copied: dict[str, Any] = _copy(dict(scenario))
+        return copied
+    p = scenario_path(scenario)
+    try:
+        doc: dict[str, Any] = tomllib.loads(p.read_text(encoding="utf-8"))
+        return doc
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ScenarioError("file", f"{p} is not valid TOML: {e}") from None
+
+
+def _copy(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _copy(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_copy(v) for v in x]
+    return x
+
+
+def _tokens(path: str) -> list[str | int]:
+    """``obstacles[0].radius`` -> ["obstacles", 0, "radius"]; ScenarioError on bad syntax."""
+    import re
+
+    if not isinstance(path, str) or not re.fullmatch(r"[A-Za-z_][\w-]*(\[\d+\]|\.[A-Za-z_][\w-]*)*", path):
+        raise OverrideError(str(path), "not a dotted path to a scenario field (e.g. timing.time_limit_s, obstacles[0].radius)", str(path))
+    return [t if t else int(i) for t, i in re.findall(r"([A-Za-z_][\w-]*)|\[(\d+)\]", path)]
+
+
+def _set(doc: dict[str, Any], path: str, value: Any) -> None:
+    """Set ``value`` at ``path`` in the document, creating missing tables (the schema then
+    refuses keys that are not fields). A path into a list must name an existing element."""
+    toks = _tokens(path)
+    cur: Any = doc
+    for pos, (tok, nxt) in enumerate(zip(toks, [*toks[1:], None], strict=True)):
+        here = "".join(f"[{t}]" if isinstance(t, int) else f".{t}" for t in toks[: pos + 1]).lstrip(".")
+        last = nxt is None
+        if isinstance(tok, int):
+            if not isinstance(cur, list) or tok >= len(cur):
+                n = len(cur) if isinstance(cur, list) else 0
+                raise OverrideError(here, f"no element {tok} (the scenario has {n})", path)
+            if last:
+                cur[tok] = _plain(value)
+            else:
+                cur = cur[tok]
+            continue
+        if not isinstance(cur, dict):
+            raise OverrideError(here, "is not a table", path)
+        if last:
+            cur[tok] = _plain(value)
+        else:
+            if tok not in cur:
+                cur[tok] = [] if isinstance(nxt, int) else {}
+            cur = cur[tok]
+
+
+def _plain(value: Any) -> Any:
+    """A Python value as TOML would hold it: tuples and arrays as lists, numpy scalars as numbers."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    return value
+
+
+def _related(a: str, b: str) -> bool:
+    """One dotted path is the other or lies below it."""
+    return a == b or a.startswith(b + ".") or a.startswith(b + "[") or b.startswith(a + ".") or b.startswith(a + "[")
+
+
+def load(
+    scenario: str | Path | Scenario | Mapping[str, Any],
+    overrides: Mapping[str, Any] | None = None,
+) -> tuple[Scenario, dict[str, Any]]:
+    """The scenario with ``overrides`` applied and validated, and its TOML document.
+
+    scenario: a built-in name, a TOML file, a :class:`Scenario` or a parsed document. overrides:
+    ``{"dotted.path": value}``, applied in order. Errors of the scenario itself raise
+    :class:`ScenarioError`; errors an override caused raise :class:`OverrideError` naming the
+    field and the override."""
+    doc = _document(scenario)
+    base = scenario_from_dict(_copy(doc))  # the scenario's own errors first, as such
+    if not overrides:
+        return base, doc
+    for path, value in overrides.items():
+        _set(doc, path, value)
+    try:
+        sc = scenario_from_dict(_copy(doc))
+    except OverrideError:
+        raise
+    except ScenarioError as e:
+        culprit = next((p for p in overrides if _related(e.field, str(p))), None)
+        if culprit is None:  # a cross-field check (leader.k_rep_max >= k_rep_min, ...)
+            given = ", ".join(map(str, overrides))
+            raise OverrideError(e.field, f"{e.message} (after the overrides {given})", given) from None
+        raise OverrideError(e.field, e.message, str(culprit)) from None
+    return sc, doc
+
+
+# ----------------------------------------------------------------------------- processes
+
+
+def unique_swarm_name(prefix: str = "api") -> str:
+    """A swarm name no other flight uses (the key prefix ``swarm/<name>``)."""
+    return f"{prefix}{uuid.uuid4().hex[:10]}"
+
+
+# ----------------------------------------------------------------------------- flying
+
+
+def _duration_text(value: float | str | None, name: str) -> str | None:
+    """A duration argument (seconds as a number, or a text such as ``"50ms"``) as the CLI's text."""
+    if value is None or isinstance(value, str):
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
+        raise ScenarioError(name, f"expected a duration >= 0 in seconds or a text such as '50ms', got {value!r}")
+    return f"{float(value)!r}s" if value else "0"
+
+
+def _kills(kill: Iterable[tuple[str, float] | str]) -> tuple[tuple[str, float], ...]:
+    """``[("agent:2", 1.0), "leader@2s"]`` -> ((process, sim time s), ...), checked."""
+    from zenswarm.compose.supervisor import _parse_kill
+
+    out = []
+    for k in kill:
+        if isinstance(k, str):
+            import argparse
+
+            try:
+                out.append(_parse_kill(k))
+            except argparse.ArgumentTypeError as e:
+                raise ScenarioError("kill", str(e)) from None
+            continue
+        try:
+            role, t = k
+            validate_process(role)
+            t = float(t)
+        except (TypeError, ValueError, ZenswarmError):
+            raise ScenarioError("kill", f"{k!r}: expected (process, sim time s) such as ('agent:2', 1.0) or 'agent:2@1s'") from None
+        if not (np.isfinite(t) and t >= 0):
+            raise ScenarioError("kill", f"{k!r}: time must be >= 0")
+        out.append((role, t))
+    return tuple(out)
+
+
+def fly(
+    scenario: str | Path | Scenario | Mapping[str, Any],
+    *,
+    mode: Mode = "sim",
+    overrides: Mapping[str, Any] | None = None,
+    duration: float | None = None,
+    seed: int | None = None,
+    controller: str | None = None,
+    planner: str | None = None,
+    link_loss: float | str | None = None,
+    link_delay: float | str | None = None,
+    link_jitter: float | str | None = None,
+    partitions: Sequence[str] = (),
+    kill: Iterable[tuple[str, float] | str] = (),
+    restart: bool = False,
+    realtime: bool = False,
+    full_time: bool = False,
+    record: Path | None = None,
+    out: Path | None = None,
+    swarm: str | None = None,
+    port: int | None = None,
+    lockstep_timeout: float = 5.0,
+    timeout: float = DEFAULT_SWARM_TIMEOUT_S,
+) -> Flight:
+    """Fly ``scenario`` and return the judged :class:`Flight`.
+
+    scenario: a built-in name (``"paper_example1"``), a TOML file, a :class:`Scenario` or a
+    parsed document. mode: ``"sim"`` (in this process, as ``zenswarm sim``) or ``"swarm"``
+    (``zenswarm up``: a router and one process per role, lockstep unless ``realtime``).
+
+    Scenario: ``overrides`` ``{"dotted.path": value}`` (:func:`load`); ``duration`` (s) sets
+    ``timing.time_limit_s``; ``seed`` sets ``scenario.seed`` (disturbances and fault decisions);
+    ``controller`` / ``planner`` set ``agents.controller`` / ``leader.planner`` (a plug-in name).
+
+    Link faults on every link (docs/faults.md), as ``--link-loss`` and friends: ``link_loss``
+    probability in [0, 1] (or ``"20%"``), ``link_delay`` / ``link_jitter`` seconds (or ``"50ms"``),
+    ``partitions`` (``"agent:2@1s-2s"``). Process faults (swarm mode only): ``kill`` SIGKILLs a
+    process at a sim time (``("agent:2", 1.0)`` or ``"agent:2@1s"``), ``restart`` restarts it
+    with the scenario's ``[restart]`` backoff.
+
+    Runs: ``full_time`` flies the whole time limit after the outcome is decided; ``out`` keeps
+    results.json and timeseries.npz there (default: not kept); ``record`` writes an MCAP
+    recording (swarm mode); ``swarm`` / ``port`` name the swarm and its router's TCP port on
+    127.0.0.1 (default: a unique name, a free port); ``timeout`` bounds a swarm flight's wall
+    time (s). A swarm flight's processes are all stopped when :func:`fly` returns or raises.
+
+    Raises :class:`ScenarioError` / :class:`OverrideError` naming the argument or field on bad
+    input (nothing flown), :class:`FlightError` when the swarm could not fly to its end.
+    A failed mission is not an error: see ``Flight.success`` and ``Flight.failures``.
+    """
+    if mode not in ("sim", "swarm"):
+        raise ScenarioError("mode", f"expected 'sim' or 'swarm', got {mode!r}")
+    ov: dict[str, Any] = dict(overrides or {})
+    shortcuts = {"timing.time_limit_s": duration, "scenario.seed": seed, "agents.controller": controller, "leader.planner": planner}
+    ov.update({key: value for key, value in shortcuts.items() if value is not None})
+    if planner is not None:  # as --planner: the named planner decides ([leader] adaptive is its older spelling)
+        ov["leader.adaptive"] = planner != "apf"
+    sc, doc = load(scenario, ov)
+    check_selection(sc)  # the controller and planner resolve, their params decode (PluginError naming them)
+    loss = None if link_loss is None else (link_loss if isinstance(link_loss, str) else repr(float(link_loss)))
+    faults = LinkFaults(_duration_text(link_delay, "link_delay"), _duration_text(link_jitter, "link_jitter"), loss, tuple(partitions))
+    plan = faults.plan(sc)  # bad values: ScenarioError naming the flag, before any work
+    kills = _kills(kill)
+    if mode == "sim":
+        for name, given in (("kill", kills), ("restart", restart), ("realtime", realtime), ("record", record is not None)):
+            if given:
+                raise ScenarioError(name, "process faults, realtime and recordings need mode='swarm' (the simulator has no processes)")
+        if out is not None:
+            check_output_dir(out, "out")
+        res = simulate(sc, faults=plan, full_time=full_time)
+        if out is not None:
+            write_outputs(out, res.series, res.results)
+        code = 0 if res.results["success"] else 1
+        return _flight("sim", sc, res.results, res.series, code, out)
+    return _fly_swarm(sc, doc, faults, kills, restart, realtime, full_time, record, out, swarm, port, lockstep_timeout, timeout)
+
+
+def _flight(
+    mode: Mode, sc: Scenario, results: Mapping[str, Any], series: TimeSeries, code: int,
+    out: Path | None, swarm: str | None = None, log: str = "", leftovers: tuple[str, ...] = (),
+) -> Flight:
+    return Flight(
+        mode=mode,
+        scenario=sc,
+        success=bool(results["success"]),
+        failures=tuple(Failure.from_json(f) for f in results["failures"]),
+        metrics=Metrics.from_results(results),
+        series=series,
+        results=results,
+        exit_code=code,
+        out=out,
+        swarm=swarm,
+        log=log,
+        leftovers=leftovers,
+    )
+
+
+def _fly_swarm(
+    sc: Scenario, doc: dict[str, Any], faults: LinkFaults, kills: tuple[tuple[str, float], ...], restart: bool,
+    realtime: bool, full_time: bool, record: Path | None, out: Path | None, swarm: str | None, port: int | None,
+    lockstep_timeout: float, timeout: float,
+) -> Flight:
+    """``zenswarm up`` as a child process group; its results read back from its output directory."""
+    swarm = swarm or unique_swarm_name()
+    port = port or free_port()
+    with tempfile.TemporaryDirectory(prefix="zenswarm-fly-") as tmp:
+        run_dir = Path(tmp)
+        out_dir = out if out is not None else run_dir / "out"
+        scen_file = run_dir / "scenario.toml"
+        scen_file.write_text(to_toml(doc))
+        opts = UpOptions(
+            scenario=scen_file, swarm=swarm, out=out_dir, realtime=realtime, record=record, lockstep_timeout=lockstep_timeout,
+            kill=kills, restart=restart, full_time=full_time, faults=faults, listen=(f"tcp/127.0.0.1:{port}",),
+        )
+        check_up_args(opts, sc)  # the supervisor's own checks, here: bad input raises before anything starts
+        run = run_up(opts, timeout)
+        code, log, leftovers = run.exit_code, run.log, run.leftovers
+        if run.timed_out:
+            raise FlightError(f"the swarm flight took more than {timeout:g} s of wall time; stopped", None, log)
+        if code not in (0, 1, 3) or not (out_dir / "results.json").is_file():
+            tail = "\n".join(log.splitlines()[-20:])
+            raise FlightError(f"zenswarm up ended with exit status {code} and no results:\n{tail}", code, log)
+        results = json.loads((out_dir / "results.json").read_text())
+        series = TimeSeries.load(str(out_dir / "timeseries.npz"))
+    return _flight("swarm", sc, results, series, code, out, swarm, log, leftovers)
+
+
+
