@@ -108,6 +108,7 @@ def ardupilot_params(sysid: int, hover_throttle: float, land_speed: float | None
         ParamSpec("LAND_SPEED", REAL32, 50.0 if land_speed is None else 100.0 * float(land_speed), 30.0, 200.0, "cm/s", params_cpp),
         # Auto-disarm after this long landed with the motors idle (default 10 s)
         ParamSpec("DISARM_DELAY", INT32, 10.0, 0, 127, "s", params_cpp),
+        ParamSpec("MOT_SPOOL_TIME", REAL32, 0.5, 0.0, 2.0, "s", "libraries/AP_Motors/AP_MotorsMulticopter.cpp"),
         # RTL: climb to at least this altitude above home (default 1500 cm), return, land
         ParamSpec("RTL_ALT", INT32, 1500.0, 200, 300000, "cm", params_cpp),
         # Learnt hover throttle (libraries/AP_Motors/AP_MotorsMulticopter.cpp, default 0.35)

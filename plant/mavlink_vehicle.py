@@ -245,6 +245,7 @@ class SimVehicle:
         self.land_complete = True  # ArduCopter ap.land_complete (the land detector's verdict)
         self.landed_since = boot
         self.takeoff_z = math.nan  # takeoff target, m ENU
+        self.takeoff_t0 = -math.inf  # when the last ArduCopter takeoff was accepted, s
         self._pending: list[str] = []  # messages requested (MAV_CMD_REQUEST_MESSAGE), sent next tick
         self.rtl_phase = ""
         self.climb_rate = 0.0  # ArduCopter angle control: climb rate from SET_ATTITUDE_TARGET.thrust, m/s
@@ -463,7 +464,9 @@ class SimVehicle:
         self.takeoff_z = float(self.home_enu[2] + alt)
         self.guided_sub = SUB_TAKEOFF
         self.hold_enu = np.array([q[0], q[1], self.takeoff_z])
-        self.land_complete = False
+        # still landed: takeoff.cpp keeps land_complete until the motors have spooled up
+        # (MOT_SPOOL_TIME), so a target sent meanwhile finds a landed vehicle (see _ap_guided)
+        self.takeoff_t0 = now
         self.last_sp = now
         return mavlink.MAV_RESULT_ACCEPTED
 
@@ -718,6 +721,10 @@ class SimVehicle:
         timed_out = now - self.last_sp > self.ap_params["GUID_TIMEOUT"]
         thrust_as_thrust = bool(int(self.ap_params["GUID_OPTIONS"]) & _GUID_THRUST_AS_THRUST)
         if sub == SUB_TAKEOFF:
+            if self.land_complete:
+                if now - self.takeoff_t0 < self.ap_params["MOT_SPOOL_TIME"]:
+                    return 0.0, level  # spooling up, still landed (takeoff.cpp auto_takeoff_run)
+                self.land_complete = False
             return self._climb(now, q, v, rpy, self.ap_params["WPNAV_SPEED_UP"] / 100.0)
         if sub == SUB_ANGLE:
             if timed_out:
