@@ -246,8 +246,14 @@ class _LockstepAgent:
                     _mark_timeout(b, k)
         got = {key: b.at(k) for key, b in boxes.items()}
         held_state = got.pop(self.a.state_key)
-        assert held_state is not None, "ready(k): the state of tick k is in"
-        return held_state.value, {key: h.value for key, h in got.items() if h is not None}
+        inputs = {key: h.value for key, h in got.items() if h is not None}
+        if held_state is None:
+            # A (re)joined agent whose first state has not come through its faulty link yet: it
+            # ticks on the state it joined with, as received (ready(k): state(k) is in).
+            st = self.proc.inbox.get(self.a.state_key, k)
+            assert st is not None, "ready(k): the state of tick k is in"
+            return st, inputs
+        return held_state.value, inputs
 
     def _held_inputs(self, k: int) -> tuple[wire.State, list[Any], Mapping[str, Any]]:
         """State, the messages of tick k (None: missing) and the inputs with the newest earlier

@@ -124,3 +124,16 @@ def test_sigkill_of_agent2_restarts_and_completes(zenswarm_fly, tmp_path: Path) 
     back = [t for t, f in marks if f == "none" and hover and t > hover[0]]
     assert hover and back, marks
     assert death["sim_time_s"] <= hover[0] < back[0] <= t_join + 0.1, (death, marks, t_join)
+
+
+def test_sigkill_with_restart_under_link_faults_rejoins(zenswarm_fly) -> None:
+    """SIGKILL + restart of agent 2 with loss and delay on every link: the restarted agent joins
+    before its first state has come through its delayed link (it once died on an assertion at
+    every restart until the restart limit aborted the mission) and flies to the time limit."""
+    f = zenswarm_fly(EX1, mode="swarm", duration=3.0, kill=[("agent:2", 1.0)], restart=True,
+                     link_loss=0.2, link_delay="50ms", seed=3, lockstep_timeout=2.0, timeout=120.0)
+    assert f.exit_code in (0, 1), f.log[-3000:]
+    assert f.restarts == {"agent:2": 1}, f.log[-3000:]
+    assert [d["process"] for d in f.process_deaths] == ["agent:2"], f.process_deaths
+    assert any("agent:2: joined at tick" in ln for ln in f.log.splitlines()), f.log[-3000:]
+    assert [x.cause for x in f.failures] == ["timeout"], f.failures
