@@ -536,7 +536,8 @@ def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: 
     diag_pub = session.declare_publisher(keys.diag(PROCESS_NAME)) if args.diag_interval > 0 else None
     diag_seq = 0
     next_diag = time.monotonic() + (args.diag_interval if diag_pub is not None else 1e18)
-    gc_startup_done()  # subscribed, writer running: see zenswarm.runtime.GcPolicy
+    if args.realtime or getattr(args, "mode", None) == "realtime":
+        gc_startup_done()  # subscribed, writer running: see zenswarm.runtime.GcPolicy (realtime only)
     while not stop.event.is_set():
         gc_safe_point()
         now = time.monotonic()

@@ -378,7 +378,8 @@ class Supervisor:
                 self.spawn("recorder")  # first: the plant waits for it, so no tick goes unrecorded
             for role in self.roles():
                 self.spawn(role)
-            gc_startup_done()  # the children are started: see zenswarm.runtime.GcPolicy
+            if a.realtime:
+                gc_startup_done()  # the children are started: see zenswarm.runtime.GcPolicy (realtime only)
             code = self._watch(collector)
         finally:
             self.terminate_all()

@@ -122,7 +122,8 @@ class GcPolicy:
     CPython's automatic collector runs whenever allocations outnumber frees by 700, in the middle
     of whatever the process is doing; every few hundred of those it scans every object the
     process holds (numpy, zenoh, msgpack, the scenario: a few hundred thousand objects) and stalls
-    a realtime loop for tens of milliseconds. The swarm processes instead:
+    a realtime loop for tens of milliseconds. The swarm processes of a realtime flight instead
+    (a lockstep flight has no deadline and keeps CPython's collector, faster there):
 
     1. after start-up (:meth:`startup_done`: imports, scenario, session, subscriptions), collect
        once, then ``gc.freeze()``: everything alive then is moved to the permanent generation and
@@ -1055,7 +1056,8 @@ class SwarmProcess:
         if self.check_sender and self._zid_token is None:
             self._zid_token = session.liveliness().declare_token(f"{self.keys.alive(self.name)}/{session.zid()}")
         self._token = session.liveliness().declare_token(self.keys.alive(self.name))
-        gc_startup_done()  # subscribed and announced: start-up is over (see GcPolicy)
+        if self.options.realtime:
+            gc_startup_done()  # subscribed and announced: start-up is over (see GcPolicy; realtime only)
 
     def wait_for_alive(self, names: list[str], timeout_s: float = 60.0) -> list[str]:
         """Block until every named process has announced itself; return those still missing."""
