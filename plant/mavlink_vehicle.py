@@ -382,8 +382,20 @@ class SimVehicle:
             self._count("peer_heartbeats")
         elif mtype in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET"):
             self._param(m)
+        elif mtype == "TIMESYNC":
+            self._timesync(m, now)
         else:
             self._count("ignored")
+
+    def _timesync(self, m: Any, now: float) -> None:
+        """MAVLink timesync protocol (https://mavlink.io/en/services/timesync.html): a request
+        (tc1 = 0) is answered with tc1 = this vehicle's time since boot, ns, and the request's ts1
+        echoed; both autopilots do (PX4 src/modules/mavlink/mavlink_timesync.cpp via
+        lib/timesync/Timesync.cpp, ArduPilot GCS_MAVLINK::handle_timesync). An answer is ignored."""
+        self._count("timesync_requests")
+        if m.tc1 != 0 or self.muted(now):
+            return
+        self.conn.mav.timesync_send(int((now - self.boot) * 1e9), int(m.ts1))
 
     def _param(self, m: Any) -> None:
         """The parameter protocol (see :mod:`zenswarm.plant.mavlink_params`)."""

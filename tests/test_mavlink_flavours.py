@@ -124,6 +124,9 @@ def test_px4_own_origins_and_sitl_port_direction():
             st = b.state_enu(lk, now)
             assert st is not None
             np.testing.assert_allclose(st[0], fleet.state.q[k], atol=0.05)  # published = true, common frame
+        # the vehicles answer TIMESYNC as PX4 does: the bridge measures the link's latency
+        assert all(lk.tel.rtt_s is not None for lk in b.links), [lk.tel.rtt_s for lk in b.links]
+        assert 0.0 <= b.info(time.monotonic())["max_latency_ms"] < 100.0
     finally:
         b.close()
         fleet.stop()
