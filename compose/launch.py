@@ -20,7 +20,7 @@ from pathlib import Path
 
 from zenswarm.compose.supervisor import UpOptions
 
-__all__ = ["UpRun", "up_argv", "run_up", "processes_of", "kill_processes_of", "live_flights", "stop_flight"]
+__all__ = ["UpRun", "up_argv", "run_up", "processes_mentioning", "processes_of", "kill_processes_of", "live_flights", "stop_flight"]
 
 
 @dataclass(frozen=True)
@@ -48,11 +48,10 @@ def up_argv(o: UpOptions) -> list[str]:
     return argv + o.faults.argv()
 
 
-def processes_of(swarm: str) -> list[tuple[int, str]]:
-    """(pid, command line) of the live processes of ``swarm`` (``--swarm NAME`` on their command
-    line; not zombies)."""
+def processes_mentioning(text: str) -> list[tuple[int, str]]:
+    """(pid, command line) of the live processes (not zombies) whose command line, its
+    arguments joined by spaces and followed by one, contains ``text``."""
     found = []
-    needle = f"--swarm {swarm} "
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
             continue
@@ -61,9 +60,15 @@ def processes_of(swarm: str) -> list[tuple[int, str]]:
             stat = (Path("/proc") / entry / "stat").read_text()
         except OSError:
             continue
-        if needle in cmd + " " and ") Z " not in stat:
+        if text in cmd + " " and ") Z " not in stat:
             found.append((int(entry), cmd.strip()))
     return found
+
+
+def processes_of(swarm: str) -> list[tuple[int, str]]:
+    """(pid, command line) of the live processes of ``swarm`` (``--swarm NAME`` on their command
+    line; not zombies)."""
+    return processes_mentioning(f"--swarm {swarm} ")
 
 
 def kill_processes_of(swarm: str) -> list[str]:

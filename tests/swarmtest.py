@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 import tomllib
 import uuid
 from pathlib import Path
@@ -34,18 +33,9 @@ def scenario_variant(tmp: Path, base: str = "paper_example1", **timing: Any) -> 
 
 def processes_mentioning(text: str) -> list[tuple[int, str]]:
     """(pid, cmdline) of live processes whose command line contains ``text`` (not zombies)."""
-    found = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            cmd = (Path("/proc") / entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            stat = (Path("/proc") / entry / "stat").read_text()
-        except OSError:
-            continue
-        if text in cmd and ") Z " not in stat:
-            found.append((int(entry), cmd))
-    return found
+    from zenswarm.compose.launch import processes_mentioning as found
+
+    return found(text)
 
 
 def kill_mentioning(text: str) -> None:
@@ -101,15 +91,6 @@ def read_results(out: Path) -> dict:
 
 def wait_port_free(port: int, timeout: float = 10.0) -> bool:
     """True once nothing listens on 127.0.0.1:port (connections in TIME_WAIT do not count)."""
-    import socket
+    from zenswarm.pytest_plugin import port_free
 
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                s.bind(("127.0.0.1", port))
-                return True
-            except OSError:
-                time.sleep(0.1)
-    return False
+    return port_free(port, timeout)

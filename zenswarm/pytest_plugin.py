@@ -31,13 +31,13 @@ import pytest
 from zenswarm import api
 from zenswarm.bus import free_port
 
-__all__ = ["zenswarm_fly", "zenswarm_port", "zenswarm_swarm", "FlyFactory"]
+__all__ = ["zenswarm_fly", "zenswarm_port", "zenswarm_swarm", "FlyFactory", "port_free"]
 
 PORT_FREE_TIMEOUT_S = 10.0
 """Wall seconds a finished swarm's router port may take to be free again."""
 
 
-def _port_free(port: int, timeout: float = PORT_FREE_TIMEOUT_S) -> bool:
+def port_free(port: int, timeout: float = PORT_FREE_TIMEOUT_S) -> bool:
     """True once nothing listens on 127.0.0.1:port (connections in TIME_WAIT do not count)."""
     deadline = time.monotonic() + timeout
     while True:
@@ -86,7 +86,7 @@ class FlyFactory:
             problems += [f"swarm {f.swarm}: process left behind after the flight and killed: {cmd}" for cmd in f.leftovers]
         for swarm, port in self.swarms:
             problems += _check_swarm(swarm)
-            if not _port_free(port):
+            if not port_free(port):
                 problems.append(f"swarm {swarm}: router port {port} still bound")
         return problems
 
