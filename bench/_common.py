@@ -381,14 +381,10 @@ def free_port() -> int:
 
 
 def port_is_free(port: int) -> bool:
-    """No socket listens on 127.0.0.1:port (SO_REUSEADDR: connections in TIME_WAIT don't count)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind(("127.0.0.1", port))
-            return True
-        except OSError:
-            return False
+    """No socket listens on 127.0.0.1:port now (TIME_WAIT doesn't count): the pytest plugin's check, without waiting."""
+    from zenswarm.pytest_plugin import port_free
+
+    return port_free(port, 0.0)
 
 
 @dataclass
