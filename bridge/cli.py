@@ -1,7 +1,8 @@
 """Subcommands of the flight recorder, wired into ``zenswarm`` by :func:`add_parsers`.
 
 ``record`` (:mod:`zenswarm.bridge.recorder`), ``replay`` and ``verify`` (:mod:`zenswarm.bridge.replay`),
-``recover`` (:mod:`zenswarm.bridge.mcapio`); ``report`` (:mod:`zenswarm.bridge.report`) and ``export``
+``recover`` (:mod:`zenswarm.bridge.mcapio`), ``info`` (:mod:`zenswarm.bridge.info`);
+``report`` (:mod:`zenswarm.bridge.report`) and ``export``
 (:mod:`zenswarm.bridge.foxglove`) when those modules are present.
 """
 
@@ -64,12 +65,13 @@ def _add_recover(sub: argparse._SubParsersAction) -> None:
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
-    """Register ``record``, ``replay``, ``verify``, ``recover`` (and ``report``/``export``
+    """Register ``record``, ``replay``, ``verify``, ``recover``, ``info`` (and ``report``/``export``
     when :mod:`zenswarm.bridge.report` / :mod:`zenswarm.bridge.foxglove` exist)."""
-    from zenswarm.bridge import recorder, replay
+    from zenswarm.bridge import info, recorder, replay
 
     recorder.add_parser(sub)
     replay.add_parsers(sub)
+    info.add_parser(sub)
     _add_recover(sub)
     from zenswarm.bridge import mavlink
 

@@ -24,7 +24,9 @@ A zenswarm recording (written by :mod:`zenswarm.bridge.recorder`) is an MCAP fil
   key -> ``{"count", "bytes", "largest", "limit"}``, cumulative, rewritten while they change)
   and ``payload_limit_bytes`` / ``mission_payload_limit_bytes``; for a file without summary,
   records met while reading the messages are merged as they are met
-  (:attr:`Recording.dropped_oversize`, :meth:`Recording.notes`);
+  (:attr:`Recording.dropped_oversize`, :meth:`Recording.notes`); on a clean stop the recorder
+  writes a last ``zenswarm`` record, its end marker (:data:`RECORDER_END`:
+  ``recorder_end_unix_ns``, ``recorder_stop_reason``, ``recorder_stats_json``);
 * small zstd chunks closed at least every :data:`zenswarm.bridge.recorder.DEFAULT_FLUSH_INTERVAL_S`, and
   on a clean stop a summary section (statistics, channels, chunk and metadata indexes) + footer.
 
@@ -78,6 +80,7 @@ __all__ = [
     "METADATA_NAME",
     "MESSAGE_ENCODING",
     "DROPPED_OVERSIZE",
+    "RECORDER_END",
     "RecordedMessage",
     "Recording",
     "RecoverStats",
@@ -94,6 +97,11 @@ MESSAGE_ENCODING = MessageEncoding.MessagePack  # "msgpack"
 DROPPED_OVERSIZE = "dropped_oversize_json"
 """``zenswarm`` metadata value: the payloads the recorder did not record because they were over
 the decoders' size bound, json of key -> ``{"count", "bytes", "largest", "limit"}``."""
+RECORDER_END = "recorder_end_unix_ns"
+"""``zenswarm`` metadata value written last by a recorder that stopped cleanly (its end marker):
+the wall time it stopped (ns since the Unix epoch), with ``recorder_stop_reason`` and
+``recorder_stats_json`` (json of the recorder's counters: recorded, channels, payload_bytes,
+undecodable, dropped_oversize, flushes, peak_backlog, ...)."""
 RECORDER_LIBRARIES = ("zenswarm-recorder/", "zenswarm-recover/")
 """Header ``library`` prefixes of files whose message ``sequence`` is the running count per
 channel (1, 2, ...), so a gap in it is a lost message."""

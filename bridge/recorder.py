@@ -35,8 +35,11 @@ Threads and crash safety
   four times a second for a guarantee that the goal does not ask for). Compression is zstd per
   chunk; small chunks compress a little worse, which is the price of the bound.
 * A clean stop (SIGTERM, SIGINT, ``--duration``): undeclare the token and the subscriber,
-  close the session, let the writer drain the queue, then ``Writer.finish()`` writes the
-  summary (statistics, channels, chunk/message/metadata indexes) and the footer.
+  close the session, let the writer drain the queue, write the end marker (a last ``zenswarm``
+  metadata record: ``recorder_end_unix_ns``, ``recorder_stop_reason`` and
+  ``recorder_stats_json``, the counters of :class:`RecorderStats`), then ``Writer.finish()``
+  writes the summary (statistics, channels, chunk/message/metadata indexes) and the footer.
+  ``zenswarm info`` shows all three.
 
 Metadata: a ``zenswarm`` record is written right after the header (swarm, mode, version and,
 with ``--scenario``, the scenario). Without ``--scenario`` a helper thread asks the leader's
@@ -67,7 +70,7 @@ import msgpack
 
 from zenswarm import __version__, bus, security, wire
 from zenswarm.bridge.args import add_fault_args, add_plugin_args, add_security_args, client_security, link_faults
-from zenswarm.bridge.mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME
+from zenswarm.bridge.mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME, RECORDER_END
 from zenswarm.paths import check_output_file
 from zenswarm.runtime import gc_policy, gc_safe_point, gc_startup_done
 
@@ -259,6 +262,8 @@ class McapSink:
         self.flush_interval_s = flush_interval_s
         self.stats = RecorderStats()
         self.error: BaseException | None = None
+        self.stop_reason = "stopped"
+        """Why the recording ended, stored in the end marker (set before :meth:`close`)."""
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -319,6 +324,7 @@ class McapSink:
             # _STOP is queued after the session is closed, so every sample precedes it (FIFO)
             if st.dropped_oversize != ws.dropped_written:
                 self._write_metadata(self._dropped_metadata())
+            self._write_metadata(self._end_metadata())
         except BaseException as e:  # noqa: BLE001 - report, and still try to finish the file
             self.error = e
         finally:
@@ -415,6 +421,19 @@ class McapSink:
             DROPPED_OVERSIZE: json.dumps(st.dropped_by_key, sort_keys=True),
             "payload_limit_bytes": str(wire.MAX_PAYLOAD),
             "mission_payload_limit_bytes": str(wire.MAX_MISSION_PAYLOAD),
+        }
+
+    def _end_metadata(self) -> dict[str, str]:
+        """The recorder's end marker (:data:`zenswarm.bridge.mcapio.RECORDER_END`), written on a
+        clean stop after the last message: when and why it stopped, and its statistics."""
+        st = self.stats
+        stats = {**st.counters(0), "first_log_time_ns": st.first_log_time, "last_log_time_ns": st.last_log_time,
+                 "last_sim_t_ns": st.last_sim_t, "dropped_oversize_bytes": st.dropped_oversize_bytes}
+        stats.pop("backlog", None)
+        return {
+            RECORDER_END: str(time.time_ns()),
+            "recorder_stop_reason": self.stop_reason,
+            "recorder_stats_json": json.dumps(stats, sort_keys=True),
         }
 
     def _write_metadata(self, values: dict[str, str]) -> None:
@@ -641,6 +660,7 @@ def run(args: argparse.Namespace) -> int:
         stop.event.set()
         session_cm.__exit__(None, None, None)  # closes the session: no callback runs after this
         if sink is not None:
+            sink.stop_reason = stop.why
             sink.close()
     st = sink.stats
     log(f"recorder: {stop.why}; wrote {out}: {st.line()}")

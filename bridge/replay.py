@@ -14,26 +14,29 @@ from __future__ import annotations
 
 import argparse
 import bisect
+import contextlib
+import math
 import signal
 import struct
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import numpy as np
 
 from zenswarm import wire
+from zenswarm.bridge.info import RecordingInfo, scan
 from zenswarm.bridge.mcapio import Recording, read_recording
+from zenswarm.bridge.playback import Controls, KeyboardControls, Pacer, TopicFilter, restamp
 from zenswarm.errors import RecordingError, ScenarioError
-from zenswarm.runtime import sleep_until
 
 __all__ = [
     "ReplayStats",
-    "check_window",
     "replay",
     "Difference",
     "VerifyResult",
@@ -43,6 +46,11 @@ __all__ = [
 ]
 
 PROGRESS_EVERY_S = 1.0
+CLOCKS = ("sim", "wall")
+WAIT_FOR_TIMEOUT_S = 60.0
+"""How long ``--wait-for`` waits for the named processes' liveliness tokens, s."""
+END_SLACK_NS = 1_000_000_000
+"""Reading stops this much sim time after ``--end`` (later messages may still carry older times)."""
 
 
 # --------------------------------------------------------------------------- replay
@@ -50,6 +58,11 @@ PROGRESS_EVERY_S = 1.0
 
 @dataclass
 class ReplayStats:
+    """What a replay did. ``span_s``: the timestamps played (sim or receive time, by ``clock``),
+    s; ``wall_s``: how long it took; ``loops``: passes started; ``restamped``: payloads whose
+    ``t``/``seq`` were moved on for a loop pass (``not_restamped``: payloads that carry none,
+    published as recorded); ``clocks``: clock messages published by ``--clock-rate``."""
+
     published: int = 0
     skipped: int = 0
     loops: int = 0
@@ -57,6 +70,10 @@ class ReplayStats:
     wall_s: float = 0.0
     max_lag_s: float = 0.0
     stopped_by: str = ""
+    clock: str = ""
+    restamped: int = 0
+    not_restamped: int = 0
+    clocks: int = 0
     problems: list[str] = field(default_factory=list)
 
 
@@ -80,154 +97,186 @@ def rewrite_topic(topic: str, orig: str | None, new: str | None) -> str:
     return topic
 
 
-def _topic_filter(expr: str | None) -> Callable[[str], bool] | None:
-    if not expr:
-        return None
-    import zenoh
-
-    try:
-        ke = zenoh.KeyExpr(expr)
-    except Exception as e:  # noqa: BLE001 - zenoh raises ZError
-        raise ScenarioError("--topics", f"invalid key expression {expr!r}: {e}") from None
-    cache: dict[str, bool] = {}
-
-    def match(topic: str) -> bool:
-        r = cache.get(topic)
-        if r is None:
-            try:
-                r = ke.intersects(zenoh.KeyExpr(topic))
-            except Exception:  # noqa: BLE001 - a topic that is not a valid key
-                r = False
-            cache[topic] = r
-        return r
-
-    return match
+def _finite(flag: str, v: float | None, lo: float, what: str) -> None:
+    if v is not None and not (math.isfinite(v) and v >= lo):
+        raise ScenarioError(flag, f"must be {what}, got {v:g}")
 
 
-def _span_and_topics(rec: Recording, path: str | Path) -> tuple[float | None, list[str]]:
-    """The recording's span in seconds (last minus first log time; None if it holds no message)
-    and its recorded topics: from the summary of a complete file, else by reading it once."""
-    st = rec.statistics
-    if rec.complete and st is not None:
-        span = (st.message_end_time - st.message_start_time) / 1e9 if st.message_count else None
-        return span, rec.topics()
-    first: int | None = None
-    last = 0
-    topics: set[str] = set()
-    for m in read_recording(path, strict=False).messages():
-        if first is None:
-            first = m.log_time
-        last = m.log_time
-        topics.add(m.topic)
-    return (None if first is None else (last - first) / 1e9), sorted(topics)
+@dataclass
+class _Plan:
+    """A replay checked against its recording: the window (ns of sim time), the clock, the
+    filter, the tick (ns) and what the scan found."""
+
+    info: RecordingInfo
+    rec: Recording
+    clock: str
+    t_lo: int | None
+    t_hi: int | None
+    match: TopicFilter
+    dt_ns: int | None
+    orig: str | None
 
 
-def _check_window_flags(start_s: float | None, end_s: float | None) -> None:
-    """``--start``/``--end`` on their own: finite, >= 0, end not before start (ScenarioError)."""
-    import math
-
-    for flag, v in (("--start", start_s), ("--end", end_s)):
-        if v is not None and not (math.isfinite(v) and v >= 0):
-            raise ScenarioError(flag, f"must be a number of seconds >= 0 after the first recorded message, got {v:g}")
+def _plan(path: str | Path, *, clock: str | None, start_s: float | None, end_s: float | None,
+          topics: Sequence[str], exclude: Sequence[str]) -> _Plan:  # fmt: skip
+    """Check the options against the recording (ScenarioError naming the flag, before anything
+    is published): the window within the recording's sim-time range, every filter matching a
+    recorded key, a sim clock only for a recording with sim times."""
+    _finite("--start", start_s, 0.0, "a number of sim seconds >= 0")
+    _finite("--end", end_s, 0.0, "a number of sim seconds >= 0")
     if start_s is not None and end_s is not None and end_s < start_s:
         raise ScenarioError("--end", f"{end_s:g} s is before --start {start_s:g} s")
-
-
-def check_window(
-    rec: Recording, path: str | Path, start_s: float | None, end_s: float | None, topics: str | None
-) -> float | None:
-    """Bad ``--start``/``--end``/``--topics`` for this recording raise :class:`ScenarioError`
-    naming the flag and the recording's actual span (exit 2 from the CLI, before anything is
-    published): a negative or non-finite time, ``--end`` before ``--start``, ``--start`` beyond
-    the last message, a key expression that matches none of the recorded keys. Returns the span (s)."""
-    _check_window_flags(start_s, end_s)
-    match = _topic_filter(topics)
-    if start_s is None and end_s is None and match is None:
-        return None
-    span, recorded = _span_and_topics(rec, path)
-    where = "it holds no message" if span is None else f"it spans 0 to {span:.3f} s from its first message"
-    if start_s is not None and (span is None or start_s > span):
+    if clock is not None and clock not in CLOCKS:
+        raise ScenarioError("--clock", f"expected sim or wall, got {clock!r}")
+    info = scan(path)
+    rec = read_recording(path, strict=False)
+    topics_rec = [c.topic for c in info.channels]
+    match = TopicFilter(topics, exclude)
+    match.validate(topics_rec, path)
+    lo, hi = info.first_sim_ns, info.last_sim_ns
+    where = "it holds no message with a sim time" if lo is None or hi is None else (
+        f"it spans {lo / 1e9:g} to {hi / 1e9:.3f} s of sim time"
+    )
+    if start_s is not None and (hi is None or start_s * 1e9 > hi):
         raise ScenarioError("--start", f"{start_s:g} s is beyond the end of the recording {path}: {where}")
-    if match is not None and not any(match(t) for t in recorded):
-        shown = ", ".join(recorded[:8]) + (f", ... ({len(recorded)} keys)" if len(recorded) > 8 else "")
-        raise ScenarioError(
-            "--topics", f"{topics!r} matches none of the keys recorded in {path} ({shown or 'none'}); nothing to replay"
-        )
-    return span
+    if end_s is not None and (lo is None or end_s * 1e9 < lo):
+        raise ScenarioError("--end", f"{end_s:g} s is before the start of the recording {path}: {where}")
+    if clock is None:
+        clock = "sim" if rec.mode == "lockstep" and lo is not None else "wall"
+    if clock == "sim" and lo is None:
+        raise ScenarioError("--clock", f"sim: the recording {path} holds no message with a sim time; use --clock wall")
+    dt_ns = None
+    if info.control_rate_hz:
+        dt_ns = wire.t_ns(1.0 / info.control_rate_hz)
+    first_topic = topics_rec[0] if topics_rec else None
+    return _Plan(
+        info, rec, clock, None if start_s is None else round(start_s * 1e9), None if end_s is None else round(end_s * 1e9),
+        match, dt_ns, _original_swarm(rec, first_topic),
+    )  # fmt: skip
 
 
 class _Player:
     """One replay's publishing side: a publisher per (rewritten) key, declared at first use,
-    pacing at ``rate`` (0 = as fast as possible), progress lines; counts in ``stats``.
-    Times: ``time.monotonic()`` s; log times ns."""
+    paced by :class:`zenswarm.bridge.playback.Pacer`, progress lines; counts in ``stats``."""
 
-    def __init__(
-        self,
-        session: Any,
-        rec: Recording,
-        *,
-        swarm: str | None,
-        rate: float,
-        match: Callable[[str], bool] | None,
-        stop: threading.Event,
-        stats: ReplayStats,
-        progress: Callable[[str], None] | None,
-        wait_subscribers_s: float,
-        wall0: float,
-    ) -> None:
+    def __init__(self, session: Any, plan: _Plan, *, swarm: str | None, pacer: Pacer, stop: threading.Event,
+                 stats: ReplayStats, progress: Callable[[str], None] | None, wait_subscribers_s: float,
+                 skip_topic: str | None, loop: bool) -> None:  # fmt: skip
         self.session = session
-        self.rec = rec
+        self.plan = plan
         self.swarm = swarm
-        self.rate = rate
-        self.match = match
+        self.pacer = pacer
         self.stop = stop
         self.stats = stats
         self.progress = progress
         self.wait_subscribers_s = wait_subscribers_s
-        self.wall0 = wall0
-        self.total_s: float | None = None  # the recording's span, s (complete files), for progress
-        if rec.statistics is not None and rec.statistics.message_count:
-            self.total_s = (rec.statistics.message_end_time - rec.statistics.message_start_time) / 1e9
+        self.skip_topic = skip_topic  # the recorded clock, replaced by --clock-rate
+        self.loop = loop
         self.pubs: dict[str, Any] = {}
         self.rewritten: dict[str, str] = {}
         self.waited = False
-        self.last_progress = time.monotonic()
+        self.wall0 = time.monotonic()
+        self.last_progress = self.wall0
+        self.position: int | None = None
+        """Sim time played (restamped), ns: what ``--clock-rate`` publishes."""
+        # what pass 0 saw, for re-stamping the next passes
+        self.sim_lo: int | None = None
+        self.sim_hi: int | None = None
+        self.max_seq = 0
+        self.min_step: int | None = None
+        self.shift_t = 0
+        self.shift_seq = 0
+        self.played_lo: int | None = None
+        self.played_hi = 0
+        info = plan.info
+        self.total = (info.sim_s if plan.clock == "sim" else info.wall_s) or 0.0
 
-    def play_once(self, path: str | Path, t_lo: int | None, t_hi: int | None) -> bool:
-        """Publish the recording once, within [t_lo, t_hi] ns from its first message; False if
-        it holds no message."""
-        stats = self.stats
-        file_t0: int | None = None
-        play_t0: int | None = None
-        wall_t0 = 0.0
-        orig: str | None = None
+    def next_pass(self) -> bool:
+        """Move the re-stamping on by one pass: sim time by the played span plus one tick, seq
+        by the largest seq played plus one. False if there is nothing to move on by."""
+        if self.sim_lo is None or self.sim_hi is None:
+            return False
+        tick = self.plan.dt_ns or self.min_step or 1
+        self.shift_t += self.sim_hi - self.sim_lo + tick
+        self.shift_seq += self.max_seq + 1
+        return True
+
+    def play_once(self, path: str | Path, first_pass: bool) -> bool:
+        """Publish the recording's selected messages once; False if none was selected."""
+        plan, stats = self.plan, self.stats
+        sim_clock = plan.clock == "sim"
+        pos: int | None = None  # the recorded sim time reached (the largest so far), ns
+        published = False
         for m in read_recording(path, strict=False).messages():
-            if self.stop.is_set():
+            if self.stop.is_set() or self.pacer.controls.quit:
                 break
-            if file_t0 is None:
-                file_t0 = m.log_time
-                orig = _original_swarm(self.rec, m.topic)
-            rel = m.log_time - file_t0
-            if t_lo is not None and rel < t_lo:
+            sim = m.publish_time if m.publish_time <= wire.MAX_T_NS else None
+            if sim is not None:
+                if pos is not None and sim > pos and first_pass and (self.min_step is None or sim - pos < self.min_step):
+                    self.min_step = sim - pos
+                pos = sim if pos is None else max(pos, sim)
+            where = self._window(sim if sim is not None else pos, pos)
+            if where == "past":
+                break
+            if where == "out":
                 continue
-            if t_hi is not None and rel > t_hi:
-                break
-            if self.match is not None and not self.match(m.topic):
+            if not plan.match(m.topic) or m.topic == self.skip_topic:
                 stats.skipped += 1
                 continue
-            pub = self._publisher(m.topic, orig)
-            if play_t0 is None:
-                play_t0 = m.log_time
-                wall_t0 = time.monotonic()
-            if self.rate > 0:
-                self._wait_until(wall_t0 + (m.log_time - play_t0) / 1e9 / self.rate)
-            pub.put(m.payload)
+            payload = self._stamped(m.payload, sim, first_pass)
+            pub = self._publisher(m.topic)
+            ts = (None if pos is None else pos + self.shift_t) if sim_clock else m.log_time
+            if ts is not None:
+                if not self.pacer.wait(ts):
+                    break
+                if self.played_lo is None:
+                    self.played_lo = ts
+                self.played_hi = max(self.played_hi, ts)
+            if pos is not None:
+                self.position = pos + self.shift_t
+            pub.put(payload)
+            published = True
             stats.published += 1
-            stats.span_s = max(stats.span_s, (m.log_time - play_t0) / 1e9)
-            self._report(rel)
-        return file_t0 is not None
+            self._report(pos)
+        return published
 
-    def _publisher(self, topic: str, orig: str | None) -> Any:
+    def _window(self, at: int | None, pos: int | None) -> str:
+        """``"in"`` the --start/--end window, ``"out"`` or ``"past"`` it (nothing more to read);
+        ``at``: the message's sim time (its own, else the largest so far ``pos``), ns."""
+        plan = self.plan
+        if plan.t_lo is not None and (at is None or at < plan.t_lo):
+            return "out"
+        if plan.t_hi is not None and at is not None and at > plan.t_hi:
+            return "past" if pos is not None and pos > plan.t_hi + END_SLACK_NS else "out"
+        return "in"
+
+    def _stamped(self, payload: bytes, sim: int | None, first_pass: bool) -> bytes:
+        """The payload to publish: as recorded in the first pass (noted for the next ones when
+        looping), re-stamped in the next ones."""
+        if first_pass:
+            if self.loop:
+                self._note(payload, sim)
+            return payload
+        new = restamp(payload, self.shift_t, self.shift_seq)
+        if new is None:
+            self.stats.not_restamped += 1
+            return payload
+        self.stats.restamped += 1
+        return new
+
+    def _note(self, payload: bytes, sim: int | None) -> None:
+        """Pass 0 of a loop: the sim-time range and the largest seq played."""
+        if sim is not None:
+            self.sim_lo = sim if self.sim_lo is None else min(self.sim_lo, sim)
+            self.sim_hi = sim if self.sim_hi is None else max(self.sim_hi, sim)
+        try:
+            o = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+        except Exception:  # noqa: BLE001 - not msgpack: published as is
+            return
+        if type(o) is dict and type(o.get("seq")) is int and o["seq"] > self.max_seq:
+            self.max_seq = o["seq"]
+
+    def _publisher(self, topic: str) -> Any:
         """The publisher of ``topic`` under the replay's swarm; before the first put, waits for a
         subscriber to match (puts before that would be lost)."""
         import zenoh
@@ -236,7 +285,7 @@ class _Player:
 
         key = self.rewritten.get(topic)
         if key is None:
-            key = self.rewritten[topic] = rewrite_topic(topic, orig, self.swarm)
+            key = self.rewritten[topic] = rewrite_topic(topic, self.plan.orig, self.swarm)
         pub = self.pubs.get(key)
         if pub is None:
             pub = self.pubs[key] = self.session.declare_publisher(
@@ -248,24 +297,93 @@ class _Player:
                     self.progress(f"replay: no subscriber on {key} after {self.wait_subscribers_s:g} s; publishing anyway")
         return pub
 
-    def _wait_until(self, target: float) -> None:
-        """Sleep until ``target`` (or a stop); note how late it was."""
-        sleep_until(target, self.stop, slice_s=0.1)
-        lag = time.monotonic() - target
-        if lag > self.stats.max_lag_s:
-            self.stats.max_lag_s = lag
-
-    def _report(self, rel: int) -> None:
-        """A progress line every PROGRESS_EVERY_S (``rel``: ns since the first message)."""
+    def _report(self, pos: int | None) -> None:
+        """A progress line every PROGRESS_EVERY_S."""
         now = time.monotonic()
-        if self.progress is not None and now - self.last_progress >= PROGRESS_EVERY_S:
-            self.last_progress = now
-            stats = self.stats
-            of = f"/{self.total_s:.1f}" if self.total_s is not None else ""
-            self.progress(
-                f"replay: loop {stats.loops}  t={rel / 1e9:.1f}{of} s  {stats.published} published  "
-                f"{stats.published / max(now - self.wall0, 1e-9):.0f} msg/s"
-            )
+        if self.progress is None or now - self.last_progress < PROGRESS_EVERY_S:
+            return
+        self.last_progress = now
+        st = self.stats
+        if self.plan.clock == "sim" and pos is not None:
+            first = self.plan.info.first_sim_ns or 0
+            done = (pos - first) / 1e9
+            where = f"sim t={pos / 1e9:.2f} s"
+        else:
+            done = (self.played_hi - (self.played_lo or 0)) / 1e9
+            where = f"wall +{done:.2f} s"
+        pct = f" ({min(100.0, 100 * done / self.total):.0f} %)" if self.total > 0 else ""
+        paused = "  [paused]" if self.pacer.controls.paused else ""
+        self.progress(
+            f"replay: pass {st.loops}  {where} of {self.total:.2f} s{pct}  {st.published} published  "
+            f"{st.published / max(now - self.wall0, 1e-9):.0f} msg/s{paused}"
+        )
+
+
+def _clock_thread(player: _Player, session: Any, key: str, hz: float, dt_ns: int | None, stop: threading.Event,
+                  stats: ReplayStats) -> threading.Thread:  # fmt: skip
+    """Publish ``clock`` messages on ``key`` at ``hz`` (wall time) while the replay runs: ``t`` =
+    the sim time played, rounded down to a tick, ``seq`` counting up; nothing while the sim time
+    stands still (paused), since a receiver would reject the repeat as stale."""
+    import zenoh
+
+    pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+
+    def run() -> None:
+        last: int | None = None
+        seq = 0
+        period = 1.0 / hz
+        nxt = time.monotonic()
+        while not stop.is_set():
+            pos = player.position
+            if pos is not None:
+                t = pos - pos % dt_ns if dt_ns else pos
+                if t != last:
+                    last = t
+                    seq += 1
+                    pub.put(wire.encode(wire.Clock(t=t, seq=seq)))
+                    stats.clocks += 1
+            nxt += period
+            stop.wait(max(0.0, nxt - time.monotonic()))
+
+    th = threading.Thread(target=run, name="replay-clock", daemon=True)
+    th.start()
+    return th
+
+
+def _wait_for_processes(session: Any, keys_prefix: str, names: Sequence[str], timeout_s: float,
+                        stop: threading.Event, progress: Callable[[str], None] | None) -> None:  # fmt: skip
+    """Block until every process in ``names`` holds its ``alive/<name>`` token (it subscribed
+    to what it needs), at most ``timeout_s``; ScenarioError naming ``--wait-for`` otherwise."""
+    want = {f"{keys_prefix}/alive/{n}": n for n in names}
+    deadline = time.monotonic() + timeout_s
+    while not stop.is_set():
+        seen = set()
+        for reply in session.liveliness().get(f"{keys_prefix}/alive/*", timeout=1.0):
+            ok = getattr(reply, "ok", None)
+            if ok is not None:
+                seen.add(str(ok.key_expr))
+        missing = [n for k, n in want.items() if k not in seen]
+        if not missing:
+            return
+        if time.monotonic() > deadline:
+            raise ScenarioError("--wait-for", f"{', '.join(missing)} did not appear ({keys_prefix}/alive/...) within {timeout_s:g} s")
+        time.sleep(0.05)
+
+
+def _check_flags(rate: float, clock_rate: float | None, loops: int | None, swarm: str | None, wait_for: Sequence[str]) -> None:
+    """The options that need no recording (ScenarioError naming the flag)."""
+    _finite("--rate", rate, 0.0, "a finite number >= 0")
+    if clock_rate is not None and not (math.isfinite(clock_rate) and clock_rate > 0):
+        raise ScenarioError("--clock-rate", f"must be a finite number of Hz > 0, got {clock_rate:g}")
+    if loops is not None and loops < 1:
+        raise ScenarioError("--loops", f"must be >= 1, got {loops}")
+    if swarm is not None:
+        wire.validate_swarm_name(swarm)
+    for name in wait_for:
+        try:
+            wire.validate_process(name)
+        except wire.InvalidKeyError as e:
+            raise ScenarioError("--wait-for", str(e)) from None
 
 
 def replay(
@@ -275,57 +393,94 @@ def replay(
     swarm: str | None = None,
     rate: float = 1.0,
     loop: bool = False,
-    topics: str | None = None,
+    loops: int | None = None,
+    topics: Sequence[str] = (),
+    exclude: Sequence[str] = (),
     start_s: float | None = None,
     end_s: float | None = None,
+    clock: str | None = None,
+    clock_rate: float | None = None,
+    controls: Controls | None = None,
+    wait_for: Sequence[str] = (),
+    wait_for_timeout_s: float = WAIT_FOR_TIMEOUT_S,
     wait_subscribers_s: float = 2.0,
     linger_s: float = 0.5,
     stop: threading.Event | None = None,
     progress: Callable[[str], None] | None = None,
+    session: Any = None,
 ) -> ReplayStats:
-    """Republish the recorded payloads of ``path`` onto Zenoh (client of ``connect``).
+    """Republish the recorded payloads of ``path`` onto Zenoh (client of ``connect``, or the
+    open ``session``).
 
-    rate: playback speed (2 = twice as fast; 0 = as fast as possible). start_s/end_s: window in
-    seconds from the first recorded message. topics: zenoh key expression matched against the
-    recorded topics. swarm: replay under ``swarm/<swarm>/`` instead of the recorded prefix.
-    loop: start over at the end until ``stop`` is set. Before the first put, waits up to
-    ``wait_subscribers_s`` for a subscriber to match (puts before that would be lost). A window
-    or filter that does not fit the recording raises :class:`ScenarioError` first
-    (:func:`check_window`).
+    clock: ``"sim"`` paces by the payloads' sim time, ``"wall"`` by receive time; None: sim for a
+    lockstep recording, wall otherwise. rate: playback speed (2 = twice as fast; 0 = as fast as
+    possible). start_s/end_s: window in sim seconds. topics/exclude: :class:`TopicFilter`
+    patterns. swarm: replay under ``swarm/<swarm>/`` instead of the recorded prefix. loop: start
+    over at the end until ``stop`` is set (loops: after that many passes); each pass after the
+    first moves every payload's ``t`` on by the played sim span plus one tick and its ``seq`` by
+    the largest seq played plus one, so live receivers take it as the stream going on.
+    clock_rate: publish ``clock`` messages at this rate (Hz, wall) on the swarm's clock key,
+    instead of the recorded ones. controls: pause/step/quit (:class:`Controls`). wait_for:
+    process names whose liveliness tokens to wait for first. Before the first put, waits up to
+    ``wait_subscribers_s`` for a subscriber to match. Options that do not fit the recording
+    raise :class:`ScenarioError` first.
     """
     from zenswarm import bus
 
-    if rate < 0:
-        raise ScenarioError("--rate", f"must be >= 0, got {rate}")
-    if swarm is not None:
-        wire.validate_swarm_name(swarm)
-    match = _topic_filter(topics)
+    _check_flags(rate, clock_rate, loops, swarm, wait_for)
+    plan = _plan(path, clock=clock, start_s=start_s, end_s=end_s, topics=topics, exclude=exclude)
+    if clock_rate is not None and plan.info.first_sim_ns is None:
+        raise ScenarioError("--clock-rate", f"the recording {path} holds no sim time to publish")
     stop = stop or threading.Event()
-    stats = ReplayStats()
-    rec = read_recording(path, strict=False)
-    check_window(rec, path, start_s, end_s, topics)
-    stats.problems += rec.problems
-    t_lo = None if start_s is None else round(start_s * 1e9)
-    t_hi = None if end_s is None else round(end_s * 1e9)
+    controls = controls or Controls()
+    stats = ReplayStats(clock=plan.clock)
+    stats.problems += plan.info.problems
     wall0 = time.monotonic()
-    with bus.open_session(bus.client_config(connect), handle_signals=False) as session:
+    target_swarm = swarm or plan.orig
+    prefix = f"swarm/{target_swarm}" if target_swarm else None
+    clock_key = f"{prefix}/clock" if prefix else None
+    skip = f"swarm/{plan.orig}/clock" if clock_rate is not None and plan.orig else None
+    own = session is None
+    cm = bus.open_session(bus.client_config(connect), handle_signals=False) if own else contextlib.nullcontext(session)
+    repeat = loop or loops is not None
+    with cm as sess:
+        if wait_for:
+            if prefix is None:
+                raise ScenarioError("--wait-for", f"the swarm of {path} is unknown: give --swarm")
+            _wait_for_processes(sess, prefix, wait_for, wait_for_timeout_s, stop, progress)
+        pacer = Pacer(rate, stop, controls)
         player = _Player(
-            session, rec, swarm=swarm, rate=rate, match=match, stop=stop, stats=stats, progress=progress,
-            wait_subscribers_s=wait_subscribers_s, wall0=wall0,
-        )
-        while not stop.is_set():
-            stats.loops += 1
-            if not player.play_once(path, t_lo, t_hi):
-                stats.stopped_by = "empty recording"
-                break
-            if not loop:
-                stats.stopped_by = "end of recording" if not stop.is_set() else "interrupted"
-                break
-        else:
-            stats.stopped_by = "interrupted"
-        if linger_s > 0 and not stop.is_set():
-            time.sleep(linger_s)  # let the last batches leave before the session closes
-    stats.wall_s = time.monotonic() - wall0
+            sess, plan, swarm=swarm, pacer=pacer, stop=stop, stats=stats, progress=progress,
+            wait_subscribers_s=wait_subscribers_s, skip_topic=skip, loop=repeat,
+        )  # fmt: skip
+        clock_stop = threading.Event()
+        th = None
+        if clock_rate is not None and clock_key is not None:
+            th = _clock_thread(player, sess, clock_key, clock_rate, plan.dt_ns, clock_stop, stats)
+        try:
+            while not stop.is_set() and not controls.quit:
+                stats.loops += 1
+                if not player.play_once(path, stats.loops == 1):
+                    stats.stopped_by = "nothing selected in the window" if stats.loops == 1 else "interrupted"
+                    break
+                if not repeat or (loops is not None and stats.loops >= loops):
+                    stats.stopped_by = "end of recording" if not (stop.is_set() or controls.quit) else "interrupted"
+                    break
+                if not player.next_pass():
+                    stats.stopped_by = "end of recording (no sim time to loop on)"
+                    break
+                pacer.anchor = None  # the next pass starts at once
+            else:
+                stats.stopped_by = "interrupted"
+            stats.wall_s = time.monotonic() - wall0
+            if linger_s > 0 and not stop.is_set():
+                time.sleep(linger_s)  # let the last batches (and clock messages) leave before the session closes
+        finally:
+            clock_stop.set()
+            if th is not None:
+                th.join(2.0)
+    stats.max_lag_s = pacer.max_lag_s
+    stats.span_s = (player.played_hi - (player.played_lo or 0)) / 1e9 if player.played_lo is not None else 0.0
     return stats
 
 
@@ -337,31 +492,35 @@ def _run_replay(args: argparse.Namespace) -> int:
     def on_signal(signum: int, frame: Any) -> None:
         stop.set()
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, on_signal)
-
     def progress(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
+    tty = sys.stdin is not None and sys.stdin.isatty()
+    if args.start_paused and not tty:
+        raise ScenarioError("--start-paused", "stdin is not a terminal: nothing could resume (space) or step (s) the replay")
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
+    controls = Controls(paused=args.start_paused)
+    controls.on_change = lambda text: progress(f"replay: {text}")
     connect = args.connect or ["tcp/127.0.0.1:7447"]
-    st = replay(
-        args.file,
-        connect=connect,
-        swarm=args.swarm,
-        rate=args.rate,
-        loop=args.loop,
-        topics=args.topics,
-        start_s=args.start,
-        end_s=args.end,
-        wait_subscribers_s=args.wait_subscribers,
-        stop=stop,
-        progress=progress,
-    )
+    keyboard = KeyboardControls(controls, sys.stdin.fileno()) if tty else contextlib.nullcontext()
+    if tty:
+        progress("replay: keys: space = pause/resume, s or right arrow = step, q = quit")
+    with keyboard:
+        st = replay(
+            args.file, connect=connect, swarm=args.swarm, rate=args.rate, loop=args.loop, loops=args.loops,
+            topics=args.topic or (), exclude=args.exclude or (), start_s=args.start, end_s=args.end,
+            clock=args.clock, clock_rate=args.clock_rate, controls=controls, wait_for=args.wait_for or (),
+            wait_subscribers_s=args.wait_subscribers, stop=stop, progress=progress,
+        )  # fmt: skip
     for p in st.problems:
         progress(f"replay: warning: {args.file}: {p}")
+    extra = f", {st.restamped} re-stamped" if st.restamped or st.not_restamped else ""
+    extra += f", {st.clocks} clock messages" if st.clocks else ""
     progress(
-        f"replay: {st.stopped_by}: {st.published} messages published ({st.skipped} filtered out) in "
-        f"{st.loops} loop(s), {st.wall_s:.2f} s wall, max lag {1e3 * st.max_lag_s:.1f} ms"
+        f"replay: {st.stopped_by}: {st.published} messages published ({st.skipped} filtered out{extra}) in "
+        f"{st.loops} pass(es), by {st.clock} time, {st.span_s:.3f} s played in {st.wall_s:.2f} s wall, "
+        f"max lag {1e3 * st.max_lag_s:.1f} ms"
     )
     return 0
 
@@ -782,36 +941,65 @@ def _run_verify(args: argparse.Namespace) -> int:
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "replay",
-        help="republish a recording onto Zenoh, or verify an agent against it (--verify)",
+        help="republish a recording onto Zenoh (with ros2 bag play's controls), or verify an agent against it (--verify)",
         description=(
-            "Republish the payloads recorded in FILE, byte for byte, with their original timing "
-            "(log-time deltas / --rate), optionally under another swarm name and filtered by a key "
-            "expression. Progress goes to stderr. A window outside the recording (--start beyond its "
-            "last message, --end before --start, a negative time) or a --topics that matches no recorded "
-            "key is bad input: exit 2, naming the flag and the recording's span, before anything is "
-            "published. With --verify, no Zenoh: rebuild agent I's "
-            "controller from the recorded scenario, feed it its recorded inputs tick by tick as in "
-            "lockstep, and check its commands and references bit for bit; exit 1 and name the first "
-            "difference otherwise."
+            "Republish the payloads recorded in FILE, byte for byte, paced by their sim time (--clock sim, the "
+            "default for lockstep recordings) or by their receive time (--clock wall, the default otherwise), "
+            "divided by --rate; optionally a window of sim time, a subset of keys, under another swarm name, in "
+            "a loop, publishing the swarm clock. On a terminal: space pauses and resumes, s or the right arrow "
+            "steps (one tick of sim time while paused), q quits. Progress goes to stderr. Options that do not fit "
+            "the recording (a window outside its sim-time range, a filter that matches no recorded key) are bad "
+            "input: exit 2 naming the flag (and listing the recorded keys), before anything is published. "
+            "With --verify, no Zenoh: rebuild agent I's controller from the recorded scenario, feed it its "
+            "recorded inputs tick by tick as in lockstep, and check its commands and references bit for bit; "
+            "exit 1 and name the first difference otherwise. See docs/replay.md."
         ),
     )
     p.add_argument("file", type=Path, metavar="FILE", help="recording (.mcap)")
     p.add_argument("--swarm", help="publish under swarm/<NAME>/ instead of the recorded swarm name")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="Zenoh router (repeatable; default tcp/127.0.0.1:7447)")
+    p.add_argument(
+        "--clock", choices=CLOCKS, default=None,
+        help="pace by the payloads' sim time (sim) or by the recorder's receive time (wall); "
+        "default: sim for a lockstep recording, wall for a realtime one (from the file's metadata)",
+    )  # fmt: skip
     p.add_argument("--rate", type=float, default=1.0, metavar="R", help="playback speed factor; 0 = as fast as possible (default 1)")
-    p.add_argument("--loop", action="store_true", help="start over at the end, until interrupted")
     p.add_argument(
-        "--topics",
-        metavar="KEYEXPR",
-        help="replay only recorded topics that intersect this key expression (exit 2 if it matches none)",
-    )
+        "--start", type=float, metavar="S",
+        help="start at sim time S seconds (within the recording's sim-time range, else exit 2)",
+    )  # fmt: skip
+    p.add_argument("--end", type=float, metavar="S", help="stop after sim time S seconds (>= --start and the recording's start)")
     p.add_argument(
-        "--start",
-        type=float,
-        metavar="S",
-        help="start S seconds after the first recorded message (0 <= S <= the recording's span, else exit 2)",
-    )
-    p.add_argument("--end", type=float, metavar="S", help="stop S seconds after the first recorded message (>= --start)")
+        "--topic", action="append", metavar="PATTERN",
+        help="replay only the recorded keys matching PATTERN: a Zenoh key expression (uav/*/ref, swarm/x/**) or a "
+        "shell glob (*/state, uav/[13]/ref), against the full key or the key without swarm/<name>/; repeatable "
+        "(any may match); a pattern matching no recorded key is exit 2",
+    )  # fmt: skip
+    p.add_argument("--topics", dest="topic", action="append", help=argparse.SUPPRESS)  # the old spelling
+    p.add_argument(
+        "--exclude", action="append", metavar="PATTERN",
+        help="leave out the recorded keys matching PATTERN (as --topic; repeatable; applied after --topic)",
+    )  # fmt: skip
+    p.add_argument(
+        "--loop", action="store_true",
+        help="start over at the end, until interrupted; each new pass moves every payload's t on by the played sim span "
+        "plus one tick and its seq by the largest seq played, so live processes accept it as the stream going on",
+    )  # fmt: skip
+    p.add_argument("--loops", type=int, metavar="N", help="like --loop, but stop after N passes")
+    p.add_argument(
+        "--start-paused", action="store_true",
+        help="start paused (needs a terminal on stdin: space resumes, s or right arrow steps)",
+    )  # fmt: skip
+    p.add_argument(
+        "--clock-rate", type=float, metavar="HZ",
+        help="publish clock messages on swarm/<name>/clock at HZ (wall time) with the sim time played, "
+        "instead of the recorded clock",
+    )  # fmt: skip
+    p.add_argument(
+        "--wait-for", action="append", metavar="PROCESS",
+        help="before publishing, wait for PROCESS (e.g. agent:2) to hold its liveliness token alive/PROCESS, "
+        f"i.e. to have subscribed (repeatable; up to {WAIT_FOR_TIMEOUT_S:g} s, else exit 2)",
+    )  # fmt: skip
     p.add_argument(
         "--wait-subscribers",
         type=float,
