@@ -324,6 +324,7 @@ class McapSink:
             # _STOP is queued after the session is closed, so every sample precedes it (FIFO)
             if st.dropped_oversize != ws.dropped_written:
                 self._write_metadata(self._dropped_metadata())
+            self._writer.flush()  # the open chunk first: the end marker comes after every message
             self._write_metadata(self._end_metadata())
         except BaseException as e:  # noqa: BLE001 - report, and still try to finish the file
             self.error = e
