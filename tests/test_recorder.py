@@ -342,7 +342,7 @@ def test_record_replay_record_gives_the_same_payloads(tmp_path: Path) -> None:
         span_pub = time.monotonic() - t0
         time.sleep(0.5)
         assert rec1.stop() == 0, rec1.output
-        replay = Proc("replay", first, "--swarm", b, "--connect", ep)
+        replay = Proc("replay", first, "--swarm", b, "--connect", ep, "--clock", "wall")  # receive-time pacing
         procs.append(replay)
         assert replay.popen.wait(timeout=60) == 0, replay.output
         assert "replay: end of recording" in replay.output, replay.output
@@ -372,7 +372,7 @@ def test_replay_filters_topics_and_window(tmp_path: Path) -> None:
     with router() as ep, processes() as procs, open_session(client_config([ep]), handle_signals=False) as s:
         rec = start_recorder(procs, ep, b, out, "--diag-interval", "0")
         wait_alive(s, b)
-        replay = Proc("replay", path, "--swarm", b, "--connect", ep, "--topics", f"swarm/{a}/uav/2/**", "--start", "100e-6", "--rate", "0")
+        replay = Proc("replay", path, "--swarm", b, "--connect", ep, "--topic", f"swarm/{a}/uav/2/**", "--start", "1.0", "--rate", "0")
         procs.append(replay)
         assert replay.popen.wait(timeout=60) == 0, replay.output
         time.sleep(0.3)
@@ -407,11 +407,11 @@ def test_replay_rejects_a_window_or_filter_that_does_not_fit_the_recording(tmp_p
         wait_alive(s, swarm)
         for f in (path, cut):
             for flags, flag, words in (
-                (["--start", "1000"], "--start", ["1000 s is beyond the end of the recording", "it spans 0 to 2.990 s"]),
+                (["--start", "1000"], "--start", ["1000 s is beyond the end of the recording", "it spans 0 to 2.990 s of sim time"]),
                 (["--start", "5", "--end", "2"], "--end", ["2 s is before --start 5 s"]),
-                (["--start", "-5"], "--start", ["must be a number of seconds >= 0", "got -5"]),
-                (["--end", "nan"], "--end", ["must be a number of seconds >= 0"]),
-                (["--topics", f"swarm/{swarm}/uav/*/state"], "--topics", ["matches none of the keys recorded", keys.clock]),
+                (["--start", "-5"], "--start", ["must be a number of sim seconds >= 0", "got -5"]),
+                (["--end", "nan"], "--end", ["must be a number of sim seconds >= 0"]),
+                (["--topic", f"swarm/{swarm}/uav/*/state"], "--topic", ["matches none of the keys recorded", keys.clock]),
             ):
                 cli = subprocess.run(
                     [sys.executable, "-m", "zenswarm", "replay", str(f), "--connect", ep, "--rate", "0", *flags],
