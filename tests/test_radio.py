@@ -131,6 +131,18 @@ def test_box_waits_for_the_geometry() -> None:
     assert unstamped.decision(1).dropped  # no stamp: as if beyond range
 
 
+def test_box_stays_ready_through_a_long_outage() -> None:
+    """A link out of range for many ticks (more than the box keeps decisions for) still names
+    its held message as due and is ready every tick (the lockstep swarm once waited forever)."""
+    plan = plan_with_radio(FaultPlan(seed=2), "1m", None)
+    box = Box(FaultState(plan), "agent:2", "agent:1", "ref", 0.01)
+    for k in range(400):
+        box.own_position(k, (0.0, 0.0, 0.0))
+        box.offer(k, k, k, (0.5 if k < 5 else 5.0, 0.0, 0.0))  # stamps in range up to tick 4
+        assert box.ready(k), k
+        assert box.at(k).value == min(k, 4)
+
+
 def test_ref_wire_stamp_is_optional() -> None:
     """Without a stamp the ref's bytes are the paper's (no "p" key); with one it round-trips; a
     stamp of another length is refused."""
@@ -213,7 +225,7 @@ def test_effective_graph_of_a_lossless_plan() -> None:
 def test_radio_swarm_equals_sim(zenswarm_fly, rng: str) -> None:
     """sim equals lockstep up bit for bit with a range that cuts links part of the time and a
     fall-off, on a short flight; the effective graph is the same."""
-    kw = dict(link_range=rng, link_fade="0.28m,0.03m", seed=5, duration=2.0)
+    kw = dict(link_range=rng, link_fade="0.28m,0.03m", link_delay="30ms", seed=5, duration=2.0)
     swarm = zenswarm_fly(EX1, mode="swarm", **kw)
     assert swarm.exit_code in (0, 1), swarm.log[-3000:]
     sim = api.fly(EX1, **kw)

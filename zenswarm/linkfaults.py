@@ -109,7 +109,9 @@ class Box(LinkInbox):
 
     def known(self, send_tick: int) -> bool:
         """Is the fate of the message of ``send_tick`` known (always, without a radio model)?"""
-        return self.radio is None or send_tick == 0 or send_tick in self._radio_drop
+        # a message offered and not parked was decided when it was offered (its entry in
+        # _radio_drop may since have been pruned: the held one, long ago)
+        return self.radio is None or send_tick == 0 or send_tick in self._radio_drop or LinkInbox.has(self, send_tick)
 
     def offer(self, send_tick: int, seq: int, value: Any, pos: Any = None) -> Delivery:
         """:meth:`LinkInbox.offer`; on a radio link ``pos`` is the sender's position stamp (m, (3,)):
