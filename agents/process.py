@@ -107,6 +107,8 @@ class _Agent:
         self.n_ticks = sc.timing.n_ticks
         self.seq = 0
         self.boxes: dict[str, Box] = {}
+        self.radio = False  # a radio model is active: stamp refs with the position (zenswarm.radio)
+        self.stamp: Any = None  # the position stamped on the next ref: the raw state of the tick it is sent on
 
     def links(self) -> dict[str, tuple[str, str, str]]:
         """key -> (sender, receiver, link kind) of every input."""
@@ -119,6 +121,7 @@ class _Agent:
         plan = proc.options.fault_plan(self.sc)
         if plan is None:
             return
+        self.radio = plan.radio_active
         if proc.options.realtime:
             proc.use_delay_line(FaultState(plan), self.links())
             return
@@ -133,8 +136,11 @@ class _Agent:
     def publish_ref(self, t_ns: int) -> None:
         sh = self.ctrl.share()
         self.seq += 1
+        pos = tuple(self.stamp) if self.radio and self.stamp is not None else ()
         if sh.extra:
-            self.proc.publish(self.ref_key, wire.Ref(t=t_ns, seq=self.seq, q=sh.q, v=sh.v, extra=dict(sh.extra)))  # type: ignore[arg-type]
+            self.proc.publish(self.ref_key, wire.Ref(t=t_ns, seq=self.seq, q=sh.q, v=sh.v, extra=dict(sh.extra), pos=pos))  # type: ignore[arg-type]
+        elif pos:
+            self.proc.publish(self.ref_key, wire.Ref(t=t_ns, seq=self.seq, q=sh.q, v=sh.v, pos=pos))
         else:
             self.proc.publish(self.ref_key, wire.Ref(t=t_ns, seq=self.seq, q=sh.q, v=sh.v))
 
@@ -146,6 +152,7 @@ class _Agent:
         """(Re)start the controller from a measured state and share ref(k)."""
         self.gen += 1
         self.ctrl.reset(st.q, st.v)
+        self.stamp = st.q
         self.publish_ref(k * self.dt_ns)
         if k > 0:
             self.proc.log(f"{self.me}: joined at tick {k} (t = {k * self.dt:.2f} s), generator restarted from the measured state")
@@ -198,7 +205,14 @@ class _LockstepAgent:
     def on_msg(self, key: str, k: int, msg: Any) -> None:  # under the lockstep lock
         a = self.a
         if a.boxes:
-            a.boxes[key].offer(k, msg.seq, msg)
+            if key == a.state_key:
+                a.boxes[key].offer(k, msg.seq, msg)
+                for b in a.boxes.values():  # the receiver's true position of tick k (radio links)
+                    b.own_position(k, msg.q)
+            elif key == a.keys.leader_ref:
+                a.boxes[key].offer(k, msg.seq, msg, msg.q)  # the leader flies q0 (zenswarm.radio)
+            else:
+                a.boxes[key].offer(k, msg.seq, msg, msg.pos)
         if key == a.state_key and not a.ctrl.initialised and k > self.ls.k:
             self.ls.k = self.join_tick = k  # a (re)started agent joins at the first state it sees
 
@@ -283,6 +297,8 @@ class _LockstepAgent:
                 prepared = a.prepare(held)
         if forced:
             proc.counters["input_timeouts"] += 1
+        raw = proc.inbox.get(a.state_key, k)  # the plant's state of tick k as sent (true position)
+        a.stamp = raw.q if raw is not None else st.q
         a.tick(k, st, prepared)
         proc.inbox.forget_before(k - 2)
         if k % 500 == 0:
@@ -339,6 +355,7 @@ def _run_realtime(a: _Agent) -> int:
         if dt is not None and k_prev is not None:
             proc.counters["skipped_ticks"] += k - k_prev - 1
             proc.counters["max_gap_ticks"] = max(proc.counters["max_gap_ticks"], k - k_prev)
+        a.stamp = st.q
         a.tick(k, st, a.prepare({key: m for key in a.input_keys if (m := proc.inbox.latest.get(key)) is not None}), dt)
         k_prev = k
         proc.inbox.forget_before(k - 2)  # only the latest values are used: keep memory flat

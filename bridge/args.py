@@ -60,6 +60,16 @@ def add_fault_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--link-jitter", metavar="DUR", help="uniform jitter +-DUR on every link's delay, e.g. 10ms")
     g.add_argument("--link-loss", metavar="P", help="independent loss probability on every link, e.g. 0.2 or 20%%")
     g.add_argument(
+        "--link-range",
+        metavar="DIST",
+        help="radio range of the links between vehicles and from the leader, e.g. 1.5m: beyond it nothing is delivered",
+    )
+    g.add_argument(
+        "--link-fade",
+        metavar="R50,WIDTH",
+        help="radio delivery falling off with distance (logistic: 50%% at R50, width WIDTH), e.g. 1.2m,0.1m",
+    )
+    g.add_argument(
         "--partition",
         action="append",
         default=[],
@@ -76,7 +86,8 @@ def add_fault_args(p: argparse.ArgumentParser) -> None:
 
 def link_faults(args: argparse.Namespace) -> LinkFaults:
     """The flags of :func:`add_fault_args` as a typed value."""
-    return LinkFaults(args.link_delay, args.link_jitter, args.link_loss, tuple(args.partition or ()), args.seed)
+    return LinkFaults(args.link_delay, args.link_jitter, args.link_loss, tuple(args.partition or ()), args.seed,
+                      args.link_range, args.link_fade)
 
 
 def add_security_args(p: argparse.ArgumentParser) -> None:

@@ -44,7 +44,7 @@ from zenswarm.agents.paper import PaperController
 from zenswarm.config import Scenario
 from zenswarm.faults import FaultPlan, FaultState, Held
 from zenswarm.leader.core import LeaderCore
-from zenswarm.linkfaults import Box, box_counters
+from zenswarm.linkfaults import Box, box_counters, effective_graph
 from zenswarm.metrics import TimeSeries, add_failure, compute_results
 from zenswarm.plant.core import PlantCore
 from zenswarm.verdict import criteria_from_scenario, decide_end
@@ -83,6 +83,19 @@ class _Links:
         self.nbr = [[Box(fs, f"agent:{j + 1}", f"agent:{i + 1}", "ref", dt) for j in r.neighbours] for i, r in enumerate(rows)]
         self.lead = [Box(fs, "leader", f"agent:{i + 1}", "leader", dt) if r.pinned else None for i, r in enumerate(rows)]
         self.cmd = [Box(fs, f"agent:{i + 1}", "plant", "cmd", dt) for i in range(n)]
+        self.radio = plan.radio_active
+        self.prev_q: np.ndarray | None = None  # the plant's positions of the previous tick (radio geometry of refs)
+
+    def geometry(self, k: int, q: np.ndarray) -> None:
+        """Tell every radio box its receiver's true position at tick k (the plant's)."""
+        if not self.radio:
+            return
+        for i in range(len(self.nbr)):
+            for box in self.nbr[i]:
+                box.own_position(k, q[i])
+            lead = self.lead[i]
+            if lead is not None:
+                lead.own_position(k, q[i])
 
     def counters(self) -> dict[str, int]:
         boxes = [*self.state, *self.cmd, *(b for b in self.lead if b), *(b for lst in self.nbr for b in lst)]
@@ -145,12 +158,16 @@ class _Swarm:
         shared = [c.share() for c in ctrls]
         lead_ref = _Ref(q0, v0)
         if lk is not None:
+            lk.geometry(k, q)
+            # a ref of tick k was sent at tick k - 1: stamped with its sender's position then
+            prev = lk.prev_q if lk.radio and lk.prev_q is not None else None
             for i, c in enumerate(ctrls):
                 for x, nb in enumerate(c.ctx.neighbours):
-                    lk.nbr[i][x].offer(k, k, shared[nb.index])
+                    lk.nbr[i][x].offer(k, k, shared[nb.index], None if prev is None else prev[nb.index])
                 lead_box = lk.lead[i]
                 if lead_box is not None:
-                    lead_box.offer(k, k, lead_ref)
+                    lead_box.offer(k, k, lead_ref, q0)
+            lk.prev_q = q
         for i, c in enumerate(ctrls):
             if lk is not None:
                 qm, vm = _present(lk.state[i].at(k)).value
@@ -179,6 +196,18 @@ class _Swarm:
         if self.links is None:
             return {}
         return {"link_counters": self.links.counters(), "failsafe_events": [list(e) for e in self.plant.failsafe.events]}
+
+
+def radio_results(scenario: Scenario, faults: FaultPlan | None, series: TimeSeries) -> dict:
+    """``effective_graph`` of a run with a radio model (:func:`zenswarm.linkfaults.effective_graph`;
+    {} without one): the same figures for ``sim`` and ``up``, computed from the recorded series."""
+    if faults is None or not faults.radio_active:
+        return {}
+    A = np.asarray(scenario.graph.adjacency, dtype=float)
+    nbrs = [[int(j) for j in np.flatnonzero(A[i])] for i in range(scenario.n)]
+    pinned = [float(b) > 0 for b in scenario.graph.pinning]
+    graph = effective_graph(faults, nbrs, pinned, series.q, series.q0, scenario.timing.dt)
+    return {"effective_graph": graph}
 
 
 def _held(h: Held | None) -> Any:
@@ -266,6 +295,7 @@ def simulate(
     if interrupted:
         add_failure(results, "interrupted", f"interrupted (Ctrl-C) at sim time {flown * dt:.2f} s", flown * dt)
     results.update(swarm.fault_results())
+    results.update(radio_results(scenario, faults, ts))
     return SimResult(ts, results)
 
 

@@ -794,6 +794,9 @@ class Supervisor:
         ts = collector.series(self._judged_ticks(collector, code, fill), fill=fill)
         res = compute_results(ts, sc, wall_time_s=time.monotonic() - self.t_start, early_end=not self.args.full_time)
         self._add_run_facts(res, collector)
+        from zenswarm.compose.sim import radio_results
+
+        res.update(radio_results(sc, self.args.faults.plan(sc), ts))
         if collector.foreign:
             self.say(f"ignored {collector.foreign} messages from sessions that are not their key's process "
                      f"(on {len(collector.foreign_by_key)} keys; results.json: foreign_samples)")

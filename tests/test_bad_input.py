@@ -183,6 +183,7 @@ def test_path_checks_create_nothing_and_accept_new_paths(tmp_path: Path) -> None
         (("--external", "garbage"), ("--external", "'garbage'", "agent:3")),
         (("--external", "recorder"), ("--external", "'recorder'")),
         (("--only", "agent:4"), ("--only", "'agent:4'")),
+        (("--link-range=-1m",), ("--link-range", "> 0")),
         (("--lockstep-timeout", "0"), ("--lockstep-timeout", "> 0")),
         (("--lockstep-timeout", "-1"), ("--lockstep-timeout",)),
         (("--lockstep-timeout", "nan"), ("--lockstep-timeout",)),
@@ -207,6 +208,8 @@ def test_up_flags_naming_what_does_not_exist(tmp_path: Path, args: tuple[str, ..
         (("--fixed-gain", "-1"), ("--fixed-gain",)),
         (("--fixed-gain", "nan"), ("--fixed-gain",)),
         (("--partition", "agent:9@1s-2s"), ("--partition", "agent:9 does not exist")),
+        (("--link-range", "0"), ("--link-range", "> 0")),
+        (("--link-fade", "1m,-1m"), ("--link-fade", "> 0")),
     ],
 )
 @pytest.mark.swarm

@@ -416,6 +416,8 @@ def fly(
     link_delay: float | str | None = None,
     link_jitter: float | str | None = None,
     partitions: Sequence[str] = (),
+    link_range: float | str | None = None,
+    link_fade: str | None = None,
     kill: Iterable[tuple[str, float] | str] = (),
     restart: bool = False,
     realtime: bool = False,
@@ -439,7 +441,8 @@ def fly(
 
     Link faults on every link (docs/faults.md), as ``--link-loss`` and friends: ``link_loss``
     probability in [0, 1] (or ``"20%"``), ``link_delay`` / ``link_jitter`` seconds (or ``"50ms"``),
-    ``partitions`` (``"agent:2@1s-2s"``). Process faults (swarm mode only): ``kill`` SIGKILLs a
+    ``partitions`` (``"agent:2@1s-2s"``), ``link_range`` metres (or ``"1.5m"``) and ``link_fade``
+    (``"1.2m,0.1m"``) the radio models of :mod:`zenswarm.radio`. Process faults (swarm mode only): ``kill`` SIGKILLs a
     process at a sim time (``("agent:2", 1.0)`` or ``"agent:2@1s"``), ``restart`` restarts it
     with the scenario's ``[restart]`` backoff.
 
@@ -463,7 +466,9 @@ def fly(
     sc, doc = load(scenario, ov)
     check_selection(sc)  # the controller and planner resolve, their params decode (PluginError naming them)
     loss = None if link_loss is None else (link_loss if isinstance(link_loss, str) else repr(float(link_loss)))
-    faults = LinkFaults(_duration_text(link_delay, "link_delay"), _duration_text(link_jitter, "link_jitter"), loss, tuple(partitions))
+    rng = None if link_range is None else (link_range if isinstance(link_range, str) else repr(float(link_range)))
+    faults = LinkFaults(_duration_text(link_delay, "link_delay"), _duration_text(link_jitter, "link_jitter"), loss, tuple(partitions),
+                        None, rng, link_fade)
     plan = faults.plan(sc)  # bad values: ScenarioError naming the flag, before any work
     kills = _kills(kill)
     if mode == "sim":

@@ -106,7 +106,8 @@ from typing import Any
 import numpy as np
 
 from .errors import ScenarioError
-from .schema import BurstTable, FaultsTable, LinkFaultsTable, PartitionTable, convert
+from .radio import RADIO_KINDS, RadioModel, parse_distance, parse_fade
+from .schema import BurstTable, FadeTable, FaultsTable, LinkFaultsTable, PartitionTable, convert
 
 __all__ = [
     "KINDS",
@@ -129,6 +130,7 @@ __all__ = [
     "parse_loss",
     "plan_from_cli",
     "plan_from_scenario",
+    "plan_with_radio",
     "check_exists",
     "agent_links",
     "plant_links",
@@ -393,13 +395,16 @@ class Partition:
 @dataclass(frozen=True)
 class LinkFaultSpec:
     """Faults on one directed link. delay_s, jitter_s >= 0 s; loss in [0, 1]; optional burst
-    loss; partitions (each only applies where it matches the link, see :class:`Partition`)."""
+    loss; partitions (each only applies where it matches the link, see :class:`Partition`);
+    radio: a geometry-dependent model (:class:`zenswarm.radio.RadioModel`), applied by the
+    receive boxes of the radio kinds only (``ref``, ``leader``; :data:`zenswarm.radio.RADIO_KINDS`)."""
 
     delay_s: float = 0.0
     jitter_s: float = 0.0
     loss: float = 0.0
     burst: GilbertElliott | None = None
     partitions: tuple[Partition, ...] = ()
+    radio: RadioModel | None = None
 
     def __post_init__(self) -> None:
         for name in ("delay_s", "jitter_s"):
@@ -417,6 +422,8 @@ class LinkFaultSpec:
             if not isinstance(p, Partition):
                 raise ValueError(f"partitions must hold Partition objects, got {p!r}")
         object.__setattr__(self, "partitions", parts)
+        if self.radio is not None and not isinstance(self.radio, RadioModel):
+            raise ValueError(f"radio must be a RadioModel or None, got {self.radio!r}")
 
     @property
     def max_delay_s(self) -> float:
@@ -424,7 +431,12 @@ class LinkFaultSpec:
 
     @property
     def active(self) -> bool:
-        return bool(self.delay_s or self.jitter_s or self.loss or self.burst is not None or self.partitions)
+        return bool(self.delay_s or self.jitter_s or self.loss or self.burst is not None or self.partitions or self.radio_active)
+
+    @property
+    def radio_active(self) -> bool:
+        """A radio model that can drop a message is set."""
+        return self.radio is not None and self.radio.active
 
 
 def _norm_link_key(key: Any) -> tuple[str, str, str]:
@@ -503,6 +515,19 @@ class FaultPlan:
     def active(self) -> bool:
         """False when no link of the run can be delayed or dropped."""
         return bool(self.partitions) or self.default.active or any(s.active for s in self.per_link.values())
+
+    @property
+    def radio_active(self) -> bool:
+        """True when some link has a radio model (:mod:`zenswarm.radio`): senders then stamp
+        their positions and receivers decide with the geometry."""
+        return self.default.radio_active or any(s.radio_active for s in self.per_link.values())
+
+    def radio_for(self, src: str, dst: str, kind: str) -> RadioModel | None:
+        """The active radio model of a link, or None (always None for ``state`` and ``cmd``)."""
+        if kind not in RADIO_KINDS:
+            return None
+        spec = self.spec_for(src, dst, kind)
+        return spec.radio if spec.radio_active else None
 
     def spec_for(self, src: str, dst: str, kind: str) -> LinkFaultSpec:
         """The spec of the directed link ``src -> dst`` carrying ``kind``."""
@@ -1089,6 +1114,32 @@ def _link_key(p: str, e: LinkFaultsTable, n_uavs: int | None) -> tuple[str, str,
     return src, dst, kind
 
 
+def _distance_field(path: str, x: Any, allow_inf: bool = True) -> float:
+    if isinstance(x, bool) or not isinstance(x, (str, int, float)):
+        raise ScenarioError(path, f"expected a distance such as \"1.5m\" (or metres), got {x!r}")
+    try:
+        return parse_distance(x, allow_inf=allow_inf)
+    except ValueError as e:
+        raise ScenarioError(path, str(e)) from None
+
+
+def _radio_field(p: str, e: FaultsTable | LinkFaultsTable, inherit: RadioModel | None) -> RadioModel | None:
+    """The radio model of table ``e`` at ``p`` (keys ``range``, ``fade``), inheriting the rest."""
+    if e.range is None and e.fade is None:
+        return inherit
+    base = inherit if inherit is not None else RadioModel()
+    rng = base.range_m if e.range is None else _distance_field(f"{p}.range", e.range)
+    r50, width = base.fade_50_m, base.fade_width_m
+    if e.fade is False:
+        r50, width = math.inf, 1.0
+    elif isinstance(e.fade, FadeTable):
+        r50 = _distance_field(f"{p}.fade.r50", e.fade.r50, allow_inf=False)
+        width = _distance_field(f"{p}.fade.width", e.fade.width, allow_inf=False)
+    elif e.fade is not None:
+        raise ScenarioError(f"{p}.fade", f"expected a table {{ r50, width }} or false, got {e.fade!r}")
+    return RadioModel(rng, r50, width)
+
+
 def _spec(p: str, e: FaultsTable | LinkFaultsTable, inherit: LinkFaultSpec) -> LinkFaultSpec:
     """The link spec of table ``e`` at path ``p``; keys it does not set come from ``inherit``."""
     return LinkFaultSpec(
@@ -1096,6 +1147,7 @@ def _spec(p: str, e: FaultsTable | LinkFaultsTable, inherit: LinkFaultSpec) -> L
         inherit.jitter_s if e.jitter is None else _duration_field(f"{p}.jitter", e.jitter),
         inherit.loss if e.loss is None else float(e.loss),
         inherit.burst if e.burst is None else _burst_field(f"{p}.burst", e.burst),
+        radio=_radio_field(p, e, inherit.radio),
     )
 
 
@@ -1124,6 +1176,41 @@ def plan_from_scenario(section: FaultsTable | Mapping[str, Any] | None, seed: in
     for n, entry in enumerate(t.links):
         p = f"faults.links[{n}]"
         key = _link_key(p, entry, n_uavs)
+        if (entry.range is not None or entry.fade is not None) and key[2] in ("state", "cmd"):
+            field_ = "range" if entry.range is not None else "fade"
+            raise ScenarioError(f"{p}.{field_}", f"a {key[2]!r} link is on board (agent <-> its own autopilot), not radio")
         per.pop(key, None)
         per[key] = _spec(p, entry, default)
     return FaultPlan(default, per, seed, tuple(parts))
+
+
+def plan_with_radio(plan: FaultPlan, link_range: str | None = None, link_fade: str | None = None) -> FaultPlan:
+    """The whole-swarm radio shortcuts ``--link-range 1.5m`` and ``--link-fade 1.2m,0.1m``
+    (:mod:`zenswarm.radio`) applied to ``plan``: they replace the range / fall-off of its
+    default spec, keeping the ``[[faults.links]]`` entries, as the other shortcuts do
+    (:func:`plan_from_cli`). Raises :class:`ScenarioError` whose field is the flag."""
+    if link_range is None and link_fade is None:
+        return plan
+    rng: float | None = None
+    fade: tuple[float, float] | None = None
+    try:
+        if link_range is not None:
+            rng = parse_distance(link_range)
+    except ValueError as e:
+        raise ScenarioError("--link-range", str(e)) from None
+    try:
+        if link_fade is not None:
+            fade = parse_fade(link_fade)
+    except ValueError as e:
+        raise ScenarioError("--link-fade", str(e)) from None
+
+    def with_radio(spec: LinkFaultSpec) -> LinkFaultSpec:
+        r = spec.radio if spec.radio is not None else RadioModel()
+        model = RadioModel(
+            r.range_m if rng is None else rng,
+            r.fade_50_m if fade is None else fade[0],
+            r.fade_width_m if fade is None else fade[1],
+        )
+        return LinkFaultSpec(spec.delay_s, spec.jitter_s, spec.loss, spec.burst, spec.partitions, model)
+
+    return FaultPlan(with_radio(plan.default), dict(plan.per_link), plan.seed, plan.partitions)

@@ -19,34 +19,147 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from .config import Scenario
-from .faults import Delivery, FaultPlan, FaultState, LinkInbox, plan_from_cli, plan_from_scenario
+import numpy as np
 
-__all__ = ["Box", "LinkFaults", "plan_for", "DelayLine", "box_counters"]
+from .config import Scenario
+from .faults import Delivery, FaultPlan, FaultState, LinkInbox, plan_from_cli, plan_from_scenario, plan_with_radio
+from .radio import GEOMETRY_TICK_OFFSET, components, leader_reaches_all, radio_reason
+
+__all__ = ["Box", "LinkFaults", "plan_for", "DelayLine", "box_counters", "distance", "effective_graph"]
+
+
+def distance(a: Any, b: Any) -> float:
+    """Euclidean distance (m) between two positions (3,): ``sqrt((dx*dx + dy*dy) + dz*dz)``,
+    the one formula every side of a radio link uses (so they agree to the last bit)."""
+    dx, dy, dz = float(a[0]) - float(b[0]), float(a[1]) - float(b[1]), float(a[2]) - float(b[2])
+    return math.sqrt((dx * dx + dy * dy) + dz * dz)
 
 
 class Box(LinkInbox):
-    """:class:`LinkInbox` whose tick-0 message is always delivered at once (start-up exchange)."""
+    """:class:`LinkInbox` whose tick-0 message is always delivered at once (start-up exchange).
+
+    On a link with a radio model (:meth:`zenswarm.faults.FaultPlan.radio_for`) a message's fate
+    also depends on the distance between the sender's position (given to :meth:`offer` as
+    ``pos``) and the receiver's own position at the message's geometry tick (given to
+    :meth:`own_position`; :data:`zenswarm.radio.GEOMETRY_TICK_OFFSET`). An offered message
+    whose geometry is not known yet waits (parked) until it is; :meth:`due` names a message
+    whose radio fate is unknown as the one to wait for. Extra counters ``dropped_range`` and
+    ``dropped_fade``.
+    """
+
+    def __init__(self, faults: FaultPlan | FaultState, src: str, dst: str, kind: str, dt: float, **kw: Any) -> None:
+        super().__init__(faults, src, dst, kind, dt, **kw)
+        self.radio = self.state.plan.radio_for(src, dst, kind)
+        self.geo_offset = GEOMETRY_TICK_OFFSET.get(kind, 0)
+        self._radio_drop: dict[int, str | None] = {}  # send tick -> radio reason (None: delivered)
+        self._own: dict[int, tuple[float, float, float]] = {}  # geometry tick -> own position
+        self._parked: dict[int, tuple[int, Any, tuple[float, float, float]]] = {}  # send tick -> (seq, value, pos)
+        self._rmemo: tuple[int, int | None] | None = None
+        if self.radio is not None:
+            self._n["dropped_range"] = 0
+            self._n["dropped_fade"] = 0
 
     def _fate(self, j: int) -> tuple[bool, int]:
         if j == 0:
             return False, 0
-        return super()._fate(j)
+        dropped, dtick = super()._fate(j)
+        if not dropped and self.radio is not None and self._radio_drop.get(j) is not None:
+            return True, dtick
+        return dropped, dtick
 
     def decision(self, send_tick: int) -> Delivery:
         d = super().decision(send_tick)
         if send_tick == 0 and d.dropped:
             return type(d)(False, 0.0, "ok")
+        if send_tick > 0 and not d.dropped and self.radio is not None:
+            why = self._radio_drop.get(send_tick)
+            if why is not None:
+                return type(d)(True, d.delay_s, why)
         return d
 
+    # -- geometry
+    def own_position(self, tick: int, q: Any) -> None:
+        """The receiver's own true position (m) at ``tick``; decides the parked messages whose
+        geometry tick it is. No-op on a link without a radio model."""
+        if self.radio is None:
+            return
+        pos = (float(q[0]), float(q[1]), float(q[2]))
+        self._own[int(tick)] = pos
+        for j in [j for j in self._parked if j + self.geo_offset == tick]:
+            seq, value, spos = self._parked.pop(j)
+            self._resolve(j, spos)
+            super().offer(j, seq, value)
+        if len(self._own) > 4 * (self.horizon + 8):
+            for g in sorted(self._own)[: len(self._own) // 2]:
+                del self._own[g]
+
+    def _resolve(self, j: int, spos: tuple[float, float, float]) -> None:
+        assert self.radio is not None
+        own = self._own[j + self.geo_offset]
+        u = self.state.uniform(self.link, "radio", j) if self.radio.uses_uniform else 0.0
+        self._radio_drop[j] = radio_reason(self.radio, distance(spos, own), u)
+        if len(self._radio_drop) > 4 * (self.horizon + 8) + 64:
+            for x in sorted(self._radio_drop)[: len(self._radio_drop) // 2]:
+                del self._radio_drop[x]
+
+    def known(self, send_tick: int) -> bool:
+        """Is the fate of the message of ``send_tick`` known (always, without a radio model)?"""
+        # a message offered and not parked was decided when it was offered (its entry in
+        # _radio_drop may since have been pruned: the held one, long ago)
+        return self.radio is None or send_tick == 0 or send_tick in self._radio_drop or LinkInbox.has(self, send_tick)
+
+    def offer(self, send_tick: int, seq: int, value: Any, pos: Any = None) -> Delivery:
+        """:meth:`LinkInbox.offer`; on a radio link ``pos`` is the sender's position stamp (m, (3,)):
+        without one (an unstamped message) the message counts as beyond range."""
+        j = int(send_tick)
+        if self.radio is None or j == 0 or j in self._radio_drop:
+            return super().offer(j, seq, value)
+        if j in self._parked:
+            self._n["duplicates"] += 1
+            return Delivery(False, 0.0, "ok")
+        spos = (math.inf, math.inf, math.inf) if pos is None or len(pos) != 3 else (float(pos[0]), float(pos[1]), float(pos[2]))
+        if j + self.geo_offset not in self._own:
+            self._parked[j] = (int(seq), value, spos)
+            return Delivery(False, 0.0, "ok")  # not decided yet
+        self._resolve(j, spos)
+        return super().offer(j, seq, value)
+
+    def has(self, send_tick: int) -> bool:
+        return super().has(send_tick) or send_tick in self._parked
+
+    def due(self, k: int) -> int | None:
+        """:meth:`LinkInbox.due`; on a radio link a message whose fate is not known yet counts as
+        deliverable (it is the one to wait for), and the scan goes on below it once it is known."""
+        if self.radio is None:
+            return super().due(k)
+        k = int(k)
+        lo = self.first_tick
+        best: int | None = None
+        memo = self._rmemo
+        if memo is not None and k >= memo[0]:
+            k0, best = memo
+            lo = max(lo, k0 - self.horizon + 1, (best + 1) if best is not None else lo)
+        for j in range(k, lo - 1, -1):
+            dropped, dtick = self._fate(j)
+            if dropped or dtick > k:
+                continue
+            if not self.known(j):
+                return j  # wait for it (memo not updated: its fate is still open)
+            best = j
+            break
+        self._rmemo = (k, best)
+        return best
+
     def ready(self, k: int) -> bool:
-        """True when the message this link must deliver by tick k (if any) has been offered."""
+        """True when the message this link must deliver by tick k (if any) has been offered and
+        its fate is known."""
         j = self.due(k)
-        return j is None or self.has(j)
+        return j is None or (self.has(j) and self.known(j))
 
 
 def plan_for(
@@ -56,8 +169,11 @@ def plan_for(
     link_loss: str | None = None,
     partitions: list[str] | tuple[str, ...] = (),
     seed: int | None = None,
+    link_range: str | None = None,
+    link_fade: str | None = None,
 ) -> FaultPlan | None:
-    """The fault plan of a run: the scenario's ``[faults]`` table, then the CLI shortcuts.
+    """The fault plan of a run: the scenario's ``[faults]`` table, then the CLI shortcuts
+    (``link_range``, ``link_fade``: :func:`zenswarm.faults.plan_with_radio`).
 
     ``seed`` defaults to the scenario's. Returns None when no fault is active (the fast path).
     Raises :class:`zenswarm.errors.ScenarioError` naming the field or flag.
@@ -65,13 +181,15 @@ def plan_for(
     seed = scenario.seed if seed is None else int(seed)
     base = plan_from_scenario(scenario.faults, seed, scenario.n)
     plan = plan_from_cli(link_delay, link_jitter, link_loss, list(partitions or ()), seed=seed, base=base, n=scenario.n)
+    plan = plan_with_radio(plan, link_range, link_fade)
     return plan if plan.active else None
 
 
 @dataclass(frozen=True)
 class LinkFaults:
     """The whole-swarm fault shortcuts of a run, as given on the command line (``--link-delay``,
-    ``--link-jitter``, ``--link-loss``, ``--partition``, ``--seed``; the edges parse them, see
+    ``--link-jitter``, ``--link-loss``, ``--partition``, ``--seed``, ``--link-range``,
+    ``--link-fade``; the edges parse them, see
     :mod:`zenswarm.bridge.args`). Texts are checked by :meth:`plan` (``ScenarioError`` naming
     the flag); ``seed`` None means the scenario's."""
 
@@ -80,16 +198,20 @@ class LinkFaults:
     link_loss: str | None = None
     partitions: tuple[str, ...] = ()
     seed: int | None = None
+    link_range: str | None = None
+    link_fade: str | None = None
 
     def plan(self, scenario: Scenario) -> FaultPlan | None:
         """The fault plan of a run of ``scenario`` with these shortcuts (:func:`plan_for`)."""
-        return plan_for(scenario, self.link_delay, self.link_jitter, self.link_loss, self.partitions, self.seed)
+        return plan_for(scenario, self.link_delay, self.link_jitter, self.link_loss, self.partitions, self.seed,
+                        self.link_range, self.link_fade)
 
     def argv(self) -> list[str]:
         """These shortcuts as command-line words (the supervisor passes them on to its processes;
         the recorder stores them for ``replay --verify``)."""
         out: list[str] = []
-        for flag, v in (("--link-delay", self.link_delay), ("--link-jitter", self.link_jitter), ("--link-loss", self.link_loss)):
+        for flag, v in (("--link-delay", self.link_delay), ("--link-jitter", self.link_jitter), ("--link-loss", self.link_loss),
+                        ("--link-range", self.link_range), ("--link-fade", self.link_fade)):
             if v is not None:
                 out += [flag, str(v)]
         for part in self.partitions:
@@ -123,12 +245,24 @@ class DelayLine:
         self._heap: list[tuple[float, int, str, int, Any]] = []
         self._count = itertools.count()
         self.dropped: dict[str, int] = {}
+        self._own_q: Any = None  # the receiver's newest own position (its raw state), for radio links
 
     def offer(self, now: float, link: tuple[str, str, str], key: str, tick: int, msg: Any) -> None:
+        if link[2] == "state":
+            self._own_q = msg.q
         if tick == 0:
             heapq.heappush(self._heap, (now, next(self._count), key, tick, msg))
             return
         d = self.state.decide(link[0], link[1], link[2], tick, tick * self.dt)
+        model = self.state.plan.radio_for(*link)
+        if not d.dropped and model is not None and self._own_q is not None:
+            # realtime: the sender's stamp (the leader's q0) against the newest own state
+            pos = msg.q if link[2] == "leader" else getattr(msg, "pos", ())
+            dist = distance(pos, self._own_q) if len(pos) == 3 else math.inf
+            u = self.state.uniform(link, "radio", tick) if model.uses_uniform else 0.0
+            why = radio_reason(model, dist, u)
+            if why is not None:
+                d = Delivery(True, d.delay_s, why)
         if d.dropped:
             name = f"link:{link[0]}->{link[1]}:{link[2]}.dropped"
             self.dropped[name] = self.dropped.get(name, 0) + 1
@@ -139,3 +273,68 @@ class DelayLine:
         while self._heap and self._heap[0][0] <= now:
             _, _, key, tick, msg = heapq.heappop(self._heap)
             deliver(key, tick, msg)
+
+
+def effective_graph(plan: FaultPlan, neighbours: list[list[int]], pinned: list[bool], q: Any, q0: Any, dt: float) -> dict[str, Any]:
+    """The effective communication graph of a flight, from its fault plan and its time series.
+
+    Link ``src -> dst`` (a ``ref`` link ``agent:j -> agent:i`` for every neighbour j of agent i,
+    a ``leader`` link for every pinned agent) is *up* at tick k when its message of tick k is
+    delivered: not dropped by any fault (:meth:`zenswarm.faults.FaultState.decide_batch`) nor by
+    its radio model at the geometry of that tick (the plant's positions ``q`` (T, n, 3) and the
+    leader's ``q0`` (T, 3), as recorded; :mod:`zenswarm.radio`), the same decision the receive
+    boxes make (:class:`Box`). Tick 0 is always up (start-up exchange).
+
+    neighbours: per agent (0-based), its neighbours' 0-based indices; pinned: per agent.
+    Returns ``link_up_fraction`` (``"src->dst"`` -> fraction of ticks up), ``components``
+    (number of connected components of the undirected graph of the leader and the agents over
+    the links up, per tick, as a run-length list ``[[first_tick, count], ...]``),
+    ``max_components``, ``spanning_tree_fraction`` (fraction of ticks with a directed spanning
+    tree rooted at the leader over the links up: Lemma 1's assumption) and ``ticks``.
+    """
+    fs = FaultState(plan)
+    q = np.asarray(q, dtype=float)
+    q0 = np.asarray(q0, dtype=float)
+    T = int(q.shape[0])
+    n = len(neighbours)
+    ticks = np.arange(T, dtype=np.int64)
+    links: list[tuple[int, int, str, np.ndarray]] = []  # (src node, dst node, name, up (T,)); node 0 the leader
+    for i in range(n):
+        rows = [(j + 1, f"agent:{j + 1}", "ref") for j in neighbours[i]]
+        if pinned[i]:
+            rows.append((0, "leader", "leader"))
+        for node, src, kind in rows:
+            dst = f"agent:{i + 1}"
+            up = ~fs.decide_batch(src, dst, kind, ticks, ticks * dt).dropped if T else np.zeros(0, dtype=bool)
+            model = plan.radio_for(src, dst, kind)
+            if model is not None and T:
+                off = GEOMETRY_TICK_OFFSET[kind]
+                for k in range(1, T):
+                    g = k + off
+                    if not up[k] or g < 0:
+                        continue
+                    a = q0[k] if kind == "leader" else q[g, node - 1]
+                    u = fs.uniform((src, dst, kind), "radio", k) if model.uses_uniform else 0.0
+                    d = distance(a, q[g, i])
+                    if radio_reason(model, d if math.isfinite(d) else math.inf, u) is not None:
+                        up[k] = False
+            if T:
+                up[0] = True
+            links.append((node, i + 1, f"{src}->{dst}", up))
+    comps: list[list[int]] = []
+    tree = 0
+    max_c = 0
+    for k in range(T):
+        edges = [(a, b) for a, b, _, up in links if up[k]]
+        c = components(n + 1, edges)
+        max_c = max(max_c, c)
+        if not comps or comps[-1][1] != c:
+            comps.append([k, c])
+        tree += leader_reaches_all(n, edges)
+    return {
+        "ticks": T,
+        "link_up_fraction": {name: float(np.mean(up)) if T else 0.0 for _, _, name, up in links},
+        "components": comps,
+        "max_components": max_c,
+        "spanning_tree_fraction": tree / T if T else 0.0,
+    }

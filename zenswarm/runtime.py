@@ -682,7 +682,8 @@ class ProcessOptions:
     ``swarm/<swarm>``. connect: Zenoh router endpoints (empty: ``tcp/127.0.0.1:7447``).
     realtime: wall clock, latest value wins (else lockstep). lockstep_timeout: wall seconds an
     input is waited for before it counts as a drop. keys, tls: credentials of a secured router
-    (:mod:`zenswarm.security`). link_delay, link_jitter, link_loss, partition: the whole-swarm
+    (:mod:`zenswarm.security`). link_delay, link_jitter, link_loss, partition, link_range,
+    link_fade: the whole-swarm
     link faults (:mod:`zenswarm.linkfaults`); seed: disturbances and fault decisions (None: the
     scenario's). controller, planner: plug-in names overriding the scenario's
     (:func:`zenswarm.plugins.select`; None: the scenario's).
@@ -700,6 +701,8 @@ class ProcessOptions:
     link_loss: str | None = None
     partition: tuple[str, ...] = ()
     seed: int | None = None
+    link_range: str | None = None
+    link_fade: str | None = None
     controller: str | None = None
     planner: str | None = None
 
@@ -727,6 +730,8 @@ class ProcessOptions:
             link_loss=get("link_loss", None),
             partition=tuple(get("partition", ())),
             seed=get("seed", None),
+            link_range=get("link_range", None),
+            link_fade=get("link_fade", None),
             controller=get("controller", None),
             planner=get("planner", None),
         )
@@ -736,7 +741,8 @@ class ProcessOptions:
         fault is active. Raises :class:`zenswarm.errors.ScenarioError` naming the bad field."""
         from .linkfaults import plan_for
 
-        return plan_for(scenario, self.link_delay, self.link_jitter, self.link_loss, self.partition, self.seed)
+        return plan_for(scenario, self.link_delay, self.link_jitter, self.link_loss, self.partition, self.seed,
+                        self.link_range, self.link_fade)
 
 
 class SwarmProcess:

@@ -315,6 +315,14 @@ class BurstTable(Table, frozen=True):
             raise ValueError("@p_bad_to_good: p_good_to_bad and p_bad_to_good cannot both be 0")
 
 
+class FadeTable(Table, frozen=True):
+    """A logistic fall-off of delivery with distance (:class:`zenswarm.radio.RadioModel`): its
+    50 % range ``r50`` and ``width`` (distances such as ``"1.2m"`` or metres, > 0)."""
+
+    r50: str | float
+    width: str | float
+
+
 class PartitionTable(Table, frozen=True):
     """A partition as a table: target (``agent:2`` or ``agent:1->agent:2``), start, end (durations;
     end may be ``inf`` or ``end``)."""
@@ -336,6 +344,8 @@ class LinkFaultsTable(Table, frozen=True):
     jitter: Duration | None = None
     loss: Prob | None = None
     burst: BurstTable | bool | None = None
+    range: str | float | None = None
+    fade: FadeTable | bool | None = None
 
 
 class FaultsTable(Table, frozen=True):
@@ -345,6 +355,8 @@ class FaultsTable(Table, frozen=True):
     jitter: Duration | None = None
     loss: Prob | None = None
     burst: BurstTable | bool | None = None
+    range: str | float | None = None
+    fade: FadeTable | bool | None = None
     partitions: tuple[str | PartitionTable, ...] = ()
     links: tuple[LinkFaultsTable, ...] = ()
 

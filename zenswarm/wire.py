@@ -436,6 +436,22 @@ def _mk_extra(name: str, value: Any) -> dict[str, tuple[float, ...]]:
     return out
 
 
+def _mk_pos(name: str, value: Any) -> tuple[float, ...]:
+    """A sender's position stamp: 3 finite numbers, or none (no stamp)."""
+    flat = np.asarray(value).reshape(-1) if isinstance(value, np.ndarray) else value
+    if not isinstance(flat, (list, tuple, np.ndarray)):
+        raise MessageError(name, "type", "expected 3 numbers (or none)")
+    if len(flat) not in (0, 3):
+        raise MessageError(name, "length", f"expected 3 numbers (or none), got {len(flat)}")
+    return tuple(_mk_float(f"{name}[{j}]", e) for j, e in enumerate(flat))
+
+
+def _d_pos(name: str, x: Any, depth: int) -> None:
+    """Check a decoded position stamp: 0 or 3 numbers (msgspec checked they are finite)."""
+    if len(x) not in (0, 3):
+        raise WireDecodeError("length", f"expected 3 numbers (or none), got {len(x)}", name)
+
+
 def _mk_map(name: str, value: Any) -> dict[str, Any]:
     if not isinstance(value, dict):
         raise MessageError(name, "type", "expected a dict")
@@ -521,6 +537,8 @@ Counters = Annotated[dict[str, int | _Finite], _Check(_mk_counters, None, dict)]
 """str -> int or finite float."""
 Extra = Annotated[dict[str, tuple[_Finite, ...]], Meta(max_length=MAX_EXTRA), _Check(_mk_extra, None, dict)]
 """A plug-in's extra shared quantities: str -> flat tuple of finite float64 (at most MAX_EXTRA keys)."""
+Pos = Annotated[tuple[_Finite, ...], Meta(max_length=3), _Check(_mk_pos, _d_pos, tuple)]
+"""A position stamp: 3 finite float64 (m, ENU), or the empty tuple (no stamp)."""
 if TYPE_CHECKING:
     Vec3: TypeAlias = npt.NDArray[np.float64]
 else:
@@ -649,7 +667,9 @@ class Ref(_Msg, frozen=True, omit_defaults=True):
     leader's q0, v0 on ``leader/ref``. q: (3,) m, ENU; v: (3,) m/s, ENU (wire ``"vel"``);
     t: sim time, ns. extra (wire ``"x"``, optional): a controller plug-in's other shared
     quantities (:attr:`zenswarm.agents.api.Controller.shares`), name -> flat float64 values;
-    left out of the payload when empty (the paper's controller shares none)."""
+    left out of the payload when empty (the paper's controller shares none). pos (wire ``"p"``,
+    optional): the sender's true position (m, ENU; its plant's state of the tick it sent this on),
+    stamped only when a radio model is active (:mod:`zenswarm.radio`); left out when empty."""
 
     kind: ClassVar[str] = "ref"
     t: TimeNs
@@ -657,6 +677,7 @@ class Ref(_Msg, frozen=True, omit_defaults=True):
     q: Vec3
     v: Vec3 = msgspec.field(name="vel")
     extra: Extra = msgspec.field(default_factory=dict, name="x")
+    pos: Pos = msgspec.field(default_factory=tuple, name="p")
 
 
 class Cmd(_Msg, frozen=True):
