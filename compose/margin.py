@@ -269,12 +269,12 @@ def _lambda(M: np.ndarray) -> tuple[float, float]:
 
 def default_duration(scenario: Scenario, max_delay_s: float) -> float:
     """Run length (s) by default: 6 of the slowest delay-free time constants,
-    1 / (min(mu1, mu2) lambda_min(M)), plus twice the largest delay, at least 30 s, at most 600 s."""
+    1 / (min(mu1, mu2) lambda_min(M)), plus twice the largest delay, at least 30 s, at most 1200 s."""
     M = graph_matrix(np.asarray(scenario.graph.adjacency), np.asarray(scenario.graph.pinning))
     lam_min, _ = _lambda(M)
     g = scenario.generator
     slow = 1.0 / (min(g.mu1, g.mu2) * lam_min)
-    return float(min(600.0, max(30.0, 6.0 * slow + 2.0 * max_delay_s)))
+    return float(min(1200.0, max(30.0, 6.0 * slow + 2.0 * max_delay_s)))
 
 
 def analytic_summary(scenario: Scenario, max_ticks: int) -> dict[str, Any]:
@@ -415,7 +415,7 @@ def build_parser(prog: str = "zenswarm sweep margin") -> argparse.ArgumentParser
     p.add_argument(
         "--duration",
         default=None,
-        help="length of each run, a duration (default: 6 slowest delay-free time constants + 2 x max delay, 30-600 s)",
+        help="length of each run, a duration (default: 6 slowest delay-free time constants + 2 x max delay, 30-1200 s)",
     )
     p.add_argument("--speed", default=str(DEFAULT_SPEED), help=f"constant leader speed along start->goal, m/s (default: {DEFAULT_SPEED})")
     p.add_argument("--scan", type=int, default=8, help="delays scanned before bisecting, to check monotonicity (default: 8, >= 2)")
