@@ -63,14 +63,15 @@ def one(label: str, sc: Scenario, searches: list[float]) -> dict[str, Any]:
             "duration_s": info["duration_s"],
             "runs": len(res.tried),
             "wall_s": time.perf_counter() - t0,
-            "first_failure": None
-            if res.at_least
-            else {
-                "ticks": min(d for d, ok in res.tried if not ok),
-                "reason": info["judgements"][min(d for d, ok in res.tried if not ok)]["reason"],
-            },
+            "first_failure": _first_failure(res.tried, info["judgements"]),
         }
     return row
+
+
+def _first_failure(tried: list[tuple[int, bool]], judgements: dict[int, Any]) -> dict[str, Any] | None:
+    """The smallest delay (ticks) that did not converge, with the criterion's reason."""
+    fails = [d for d, ok in tried if not ok]
+    return None if not fails else {"ticks": min(fails), "reason": judgements[min(fails)]["reason"]}
 
 
 def _emp(e: dict[str, Any]) -> str:
