@@ -682,9 +682,9 @@ class ProcessOptions:
     ``swarm/<swarm>``. connect: Zenoh router endpoints (empty: ``tcp/127.0.0.1:7447``).
     realtime: wall clock, latest value wins (else lockstep). lockstep_timeout: wall seconds an
     input is waited for before it counts as a drop. keys, tls: credentials of a secured router
-    (:mod:`zenswarm.security`). link_delay, link_jitter, link_loss, partition: the whole-swarm
-    link faults (:mod:`zenswarm.linkfaults`); seed: disturbances and fault decisions (None: the
-    scenario's). controller, planner: plug-in names overriding the scenario's
+    (:mod:`zenswarm.security`). link_delay, link_jitter, link_loss, partition, link_capacity,
+    link_queue, link_medium, link_trace: the whole-swarm link faults (:mod:`zenswarm.linkfaults`);
+    seed: disturbances and fault decisions (None: the scenario's). controller, planner: plug-in names overriding the scenario's
     (:func:`zenswarm.plugins.select`; None: the scenario's).
     """
 
@@ -701,6 +701,10 @@ class ProcessOptions:
     partition: tuple[str, ...] = ()
     seed: int | None = None
     controller: str | None = None
+    link_capacity: str | None = None
+    link_queue: str | None = None
+    link_medium: str | None = None
+    link_trace: str | None = None
     planner: str | None = None
 
     @classmethod
@@ -729,6 +733,10 @@ class ProcessOptions:
             seed=get("seed", None),
             controller=get("controller", None),
             planner=get("planner", None),
+            link_capacity=get("link_capacity", None),
+            link_queue=get("link_queue", None),
+            link_medium=get("link_medium", None),
+            link_trace=get("link_trace", None),
         )
 
     def fault_plan(self, scenario: Scenario) -> FaultPlan | None:
@@ -736,7 +744,10 @@ class ProcessOptions:
         fault is active. Raises :class:`zenswarm.errors.ScenarioError` naming the bad field."""
         from .linkfaults import plan_for
 
-        return plan_for(scenario, self.link_delay, self.link_jitter, self.link_loss, self.partition, self.seed)
+        return plan_for(
+            scenario, self.link_delay, self.link_jitter, self.link_loss, self.partition, self.seed,
+            self.link_capacity, self.link_queue, self.link_medium, self.link_trace,
+        )  # fmt: skip
 
 
 class SwarmProcess:
