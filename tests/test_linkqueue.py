@@ -3,8 +3,6 @@ bad-input checks of `zenswarm sim` (exit 2 naming the field or the CSV line)."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -207,22 +205,38 @@ def test_scenario_trace_is_relative_to_the_scenario_file(tmp_path: Path) -> None
         (["--link-capacity", "0kB/s"], "--link-capacity"),
         (["--link-capacity", "1kB/s", "--link-queue", "0"], "--link-queue"),
         (["--link-trace", "nonexistent.csv"], "--link-trace"),
+        (["--link-trace", "BAD"], "bad.csv:3"),
     ],
 )
-def test_cli_bad_input_exits_2(args: list[str], needle: str, tmp_path: Path) -> None:
-    r = subprocess.run(
-        [sys.executable, "-m", "zenswarm", "sim", str(EX1), "--out", str(tmp_path), "--quiet", *args],
-        capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
-    assert r.returncode == 2, r.stderr
-    assert needle in r.stderr
+def test_cli_bad_input_exits_2(args: list[str], needle: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`zenswarm sim` (its main, in this process) refuses bad capacities and traces with exit 2,
+    naming the flag or the CSV line, and flies nothing."""
+    from zenswarm.compose.cli import main
 
-
-def test_cli_trace_line_error_exits_2(tmp_path: Path) -> None:
     bad = tmp_path / "bad.csv"
     bad.write_text("time,link,delay,delivered\n0,agent:1->agent:2,0,1\n0,agent:2->agent:3,0,1\n")
-    r = subprocess.run(
-        [sys.executable, "-m", "zenswarm", "sim", str(EX1), "--out", str(tmp_path), "--quiet", "--link-trace", str(bad)],
-        capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
-    assert r.returncode == 2 and "bad.csv:3" in r.stderr and "agent:2->agent:3" in r.stderr, r.stderr
+    args = [str(bad) if a == "BAD" else a for a in args]
+    out = tmp_path / "out"
+    assert main(["sim", str(EX1), "--out", str(out), "--quiet", *args]) == 2
+    assert needle in capsys.readouterr().err
+    assert not (out / "results.json").exists()
+
+
+@pytest.mark.swarm
+def test_swarm_equals_sim_with_capacity_and_trace(zenswarm_fly) -> None:
+    """Lockstep `zenswarm up` equals `zenswarm sim` bit for bit with a per-sender capacity that
+    congests (20 kB/s, 3-message queue: queue drops and waits on every link) and the example trace
+    on four links; the queue drops are counted per link."""
+    faults = dict(link_capacity="20kB/s", link_queue=3, link_trace=TRACE, seed=5)
+    swarm = zenswarm_fly(EX1, mode="swarm", duration=2.0, **faults)
+    assert swarm.exit_code in (0, 1), swarm.log[-3000:]
+    sim = zenswarm_fly(EX1, duration=2.0, **faults)
+    from zenswarm import api
+
+    assert api.differences(swarm, sim) == []
+    lc = sim.results["link_counters"]
+    assert lc["link:plant->agent:3:state.dropped_queue"] > 0
+    assert lc["link:agent:1->agent:2:ref.dropped_trace"] > 0
+    # the agent process also receives the final state (t = the time limit), one message more
+    got = swarm.diagnostics["agent:3"]["link:plant->agent:3:state.dropped_queue"]
+    assert got - lc["link:plant->agent:3:state.dropped_queue"] in (0, 1)

@@ -416,6 +416,10 @@ def fly(
     link_delay: float | str | None = None,
     link_jitter: float | str | None = None,
     partitions: Sequence[str] = (),
+    link_capacity: str | None = None,
+    link_queue: str | int | None = None,
+    link_medium: str | None = None,
+    link_trace: str | Path | None = None,
     kill: Iterable[tuple[str, float] | str] = (),
     restart: bool = False,
     realtime: bool = False,
@@ -439,7 +443,9 @@ def fly(
 
     Link faults on every link (docs/faults.md), as ``--link-loss`` and friends: ``link_loss``
     probability in [0, 1] (or ``"20%"``), ``link_delay`` / ``link_jitter`` seconds (or ``"50ms"``),
-    ``partitions`` (``"agent:2@1s-2s"``). Process faults (swarm mode only): ``kill`` SIGKILLs a
+    ``partitions`` (``"agent:2@1s-2s"``); ``link_capacity`` (``"20kB/s"``), ``link_queue`` (8 or
+    ``"4kB"``), ``link_medium`` (``"sender"`` or ``"link"``) and ``link_trace`` (a CSV file) as
+    ``--link-capacity`` and friends. Process faults (swarm mode only): ``kill`` SIGKILLs a
     process at a sim time (``("agent:2", 1.0)`` or ``"agent:2@1s"``), ``restart`` restarts it
     with the scenario's ``[restart]`` backoff.
 
@@ -463,7 +469,11 @@ def fly(
     sc, doc = load(scenario, ov)
     check_selection(sc)  # the controller and planner resolve, their params decode (PluginError naming them)
     loss = None if link_loss is None else (link_loss if isinstance(link_loss, str) else repr(float(link_loss)))
-    faults = LinkFaults(_duration_text(link_delay, "link_delay"), _duration_text(link_jitter, "link_jitter"), loss, tuple(partitions))
+    faults = LinkFaults(
+        _duration_text(link_delay, "link_delay"), _duration_text(link_jitter, "link_jitter"), loss, tuple(partitions), None,
+        link_capacity, None if link_queue is None else str(link_queue), link_medium,
+        None if link_trace is None else str(Path(link_trace).absolute()),
+    )  # fmt: skip
     plan = faults.plan(sc)  # bad values: ScenarioError naming the flag, before any work
     kills = _kills(kill)
     if mode == "sim":

@@ -543,6 +543,16 @@ class FaultPlan:
         d = self.trace.max_delay_s(link) if self.trace is not None and link in self.trace else self.spec_for(*link).max_delay_s
         return d + (self.queues.max_wait_s(link) if self.queues is not None else 0.0)
 
+    def worst_delay_s(self) -> float:
+        """Largest delay of any link of the run, s (an upper bound): the specs' delay + jitter or
+        the trace's largest delay, plus the most a capacity queue can add."""
+        worst = max(spec.max_delay_s for spec in [self.default, *self.per_link.values()])
+        if self.trace is not None and self.trace.links:
+            worst = max(worst, max(self.trace.max_delay_s(lk) for lk in self.trace.links))
+        if self.queues is not None and self.queues.links:
+            worst += max(self.queues.max_wait_s(lk) for lk in self.queues.links)
+        return worst
+
     def horizon_ticks(self, src: str, dst: str, kind: str, dt: float) -> int:
         """Largest delay of the link in ticks: no message is delivered later than send + this."""
         return delivery_tick(0, self.max_delay_s(src, dst, kind), dt)

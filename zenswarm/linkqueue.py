@@ -264,7 +264,7 @@ class LinkQueues:
         spec = self.gspec[g]
         big = max(self.size(k, _WIDE_TICK, self.dt) for k in {lk[2] for lk in self.groups[g]})
         held = spec.limit * big if spec.limit_unit == "msg" else spec.limit
-        return (held + big) / spec.capacity_Bps
+        return (held + big) / spec.capacity_Bps + 1e-9 * (spec.limit + 1 if spec.limit_unit == "msg" else held + 1)  # + ns rounding
 
     def _chunk_sizes(self, kind: str, c: int) -> list[int]:
         key = (kind, c)

@@ -940,7 +940,7 @@ class SwarmProcess:
             return 0
         from .faults import delivery_tick
 
-        worst = max(spec.max_delay_s for spec in [plan.default, *plan.per_link.values()])
+        worst = plan.worst_delay_s()
         return delivery_tick(0, worst, self.scenario.timing.dt) + 1 if worst > 0 else 0
 
     def _now_tick(self) -> int | None:
