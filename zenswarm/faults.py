@@ -42,6 +42,12 @@ Per decision, in order of precedence for the reported reason:
 3. ``loss``: ``u_loss[seq] < loss``;
 4. otherwise ``ok``.
 
+On a link named by the plan's trace (:mod:`zenswarm.linktrace`) rules 2-3, the delay and the jitter
+are replaced by the trace's row in force at ``t_send_s`` (a dropped row: reason ``trace``).
+Then, on a link with a capacity (:mod:`zenswarm.linkqueue`, ``seq`` is the tick), the queue's
+wait and serialization time are added to the delay, and a message a full queue refused is
+dropped with reason ``queue`` whatever the other rules said.
+
 Every stream is drawn whether or not an earlier rule already dropped the message, so changing one
 kind of fault never reshuffles another. The delay is
 ``max(0, delay_s + jitter_s * (2 u_jitter[seq] - 1))`` (uniform in ``[delay - jitter,
@@ -90,6 +96,11 @@ Configuration
     delay = "100ms"
     loss = 0.0
     burst = false             # no burst loss on this link (overrides an inherited burst)
+
+Capacity and queue (``capacity``, ``queue``, ``medium`` in ``[faults]`` and ``[[faults.links]]``,
+``--link-capacity``, ``--link-queue``, ``--link-medium``): :mod:`zenswarm.linkqueue`; traces
+(``[faults] trace``, ``--link-trace``): :mod:`zenswarm.linktrace`, loaded with the scenario's graph
+by :func:`zenswarm.linkfaults.plan_for`.
 """
 
 from __future__ import annotations
