@@ -76,6 +76,10 @@ def add_fault_args(p: argparse.ArgumentParser) -> None:
         metavar="WHO@T1-T2",
         help="cut every link of a process (agent:2@10s-13s) or one directed link (agent:1->agent:2@1s-2s); repeatable",
     )
+    g.add_argument("--link-capacity", metavar="RATE", help="capacity of every link's queue, e.g. 20kB/s (docs/faults.md)")
+    g.add_argument("--link-queue", metavar="N|SIZE", help="queue bound behind the capacity: messages (8) or bytes (4kB); default 16")
+    g.add_argument("--link-medium", choices=("sender", "link"), help="one queue per sender (shared medium, default) or per link")
+    g.add_argument("--link-trace", metavar="CSV", help="replay per-link delay/delivery from a CSV trace (time,link,delay,delivered)")
     g.add_argument(
         "--seed",
         type=seed_arg,
@@ -86,8 +90,14 @@ def add_fault_args(p: argparse.ArgumentParser) -> None:
 
 def link_faults(args: argparse.Namespace) -> LinkFaults:
     """The flags of :func:`add_fault_args` as a typed value."""
-    return LinkFaults(args.link_delay, args.link_jitter, args.link_loss, tuple(args.partition or ()), args.seed,
-                      args.link_range, args.link_fade)
+    trace = getattr(args, "link_trace", None)
+    return LinkFaults(
+        args.link_delay, args.link_jitter, args.link_loss, tuple(args.partition or ()), args.seed,
+        link_range=args.link_range, link_fade=args.link_fade,
+        link_capacity=getattr(args, "link_capacity", None), link_queue=getattr(args, "link_queue", None),
+        link_medium=getattr(args, "link_medium", None),
+        link_trace=None if trace is None else str(Path(trace).absolute()),
+    )  # fmt: skip
 
 
 def add_security_args(p: argparse.ArgumentParser) -> None:

@@ -418,6 +418,10 @@ def fly(
     partitions: Sequence[str] = (),
     link_range: float | str | None = None,
     link_fade: str | None = None,
+    link_capacity: str | None = None,
+    link_queue: str | int | None = None,
+    link_medium: str | None = None,
+    link_trace: str | Path | None = None,
     kill: Iterable[tuple[str, float] | str] = (),
     restart: bool = False,
     realtime: bool = False,
@@ -442,7 +446,9 @@ def fly(
     Link faults on every link (docs/faults.md), as ``--link-loss`` and friends: ``link_loss``
     probability in [0, 1] (or ``"20%"``), ``link_delay`` / ``link_jitter`` seconds (or ``"50ms"``),
     ``partitions`` (``"agent:2@1s-2s"``), ``link_range`` metres (or ``"1.5m"``) and ``link_fade``
-    (``"1.2m,0.1m"``) the radio models of :mod:`zenswarm.radio`. Process faults (swarm mode only): ``kill`` SIGKILLs a
+    (``"1.2m,0.1m"``) the radio models of :mod:`zenswarm.radio`; ``link_capacity`` (``"20kB/s"``),
+    ``link_queue`` (8 or ``"4kB"``), ``link_medium`` (``"sender"`` or ``"link"``) and ``link_trace``
+    (a CSV file) as ``--link-capacity`` and friends. Process faults (swarm mode only): ``kill`` SIGKILLs a
     process at a sim time (``("agent:2", 1.0)`` or ``"agent:2@1s"``), ``restart`` restarts it
     with the scenario's ``[restart]`` backoff.
 
@@ -467,8 +473,12 @@ def fly(
     check_selection(sc)  # the controller and planner resolve, their params decode (PluginError naming them)
     loss = None if link_loss is None else (link_loss if isinstance(link_loss, str) else repr(float(link_loss)))
     rng = None if link_range is None else (link_range if isinstance(link_range, str) else repr(float(link_range)))
-    faults = LinkFaults(_duration_text(link_delay, "link_delay"), _duration_text(link_jitter, "link_jitter"), loss, tuple(partitions),
-                        None, rng, link_fade)
+    faults = LinkFaults(
+        _duration_text(link_delay, "link_delay"), _duration_text(link_jitter, "link_jitter"), loss, tuple(partitions), None,
+        link_range=rng, link_fade=link_fade,
+        link_capacity=link_capacity, link_queue=None if link_queue is None else str(link_queue), link_medium=link_medium,
+        link_trace=None if link_trace is None else str(Path(link_trace).absolute()),
+    )  # fmt: skip
     plan = faults.plan(sc)  # bad values: ScenarioError naming the flag, before any work
     kills = _kills(kill)
     if mode == "sim":

@@ -48,6 +48,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from .errors import ScenarioError
@@ -332,6 +333,7 @@ def failsafe_config(section: FailsafeConfig | dict[str, Any] | None) -> Failsafe
 def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario TOML file.
 
+    A relative ``[faults] trace`` path is made relative to the scenario file's directory.
     Raises :class:`ScenarioError` (field ``file``) when the file is missing or not valid TOML.
     """
     p = Path(path)
@@ -345,7 +347,10 @@ def load_scenario(path: str | Path) -> Scenario:
         doc = tomllib.loads(raw.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise ScenarioError("file", f"{p} is not valid TOML: {e}") from None
-    return scenario_from_dict(doc)
+    sc = scenario_from_dict(doc)
+    if sc.faults is not None and sc.faults.trace is not None and not Path(sc.faults.trace).is_absolute():
+        sc = replace(sc, faults=msgspec.structs.replace(sc.faults, trace=str(p.parent.absolute() / sc.faults.trace)))
+    return sc
 
 
 def scenario_to_dict(s: Scenario) -> dict[str, Any]:

@@ -42,6 +42,12 @@ Per decision, in order of precedence for the reported reason:
 3. ``loss``: ``u_loss[seq] < loss``;
 4. otherwise ``ok``.
 
+On a link named by the plan's trace (:mod:`zenswarm.linktrace`) rules 2-3, the delay and the jitter
+are replaced by the trace's row in force at ``t_send_s`` (a dropped row: reason ``trace``).
+Then, on a link with a capacity (:mod:`zenswarm.linkqueue`, ``seq`` is the tick), the queue's
+wait and serialization time are added to the delay, and a message a full queue refused is
+dropped with reason ``queue`` whatever the other rules said.
+
 Every stream is drawn whether or not an earlier rule already dropped the message, so changing one
 kind of fault never reshuffles another. The delay is
 ``max(0, delay_s + jitter_s * (2 u_jitter[seq] - 1))`` (uniform in ``[delay - jitter,
@@ -90,6 +96,11 @@ Configuration
     delay = "100ms"
     loss = 0.0
     burst = false             # no burst loss on this link (overrides an inherited burst)
+
+Capacity and queue (``capacity``, ``queue``, ``medium`` in ``[faults]`` and ``[[faults.links]]``,
+``--link-capacity``, ``--link-queue``, ``--link-medium``): :mod:`zenswarm.linkqueue`; traces
+(``[faults] trace``, ``--link-trace``): :mod:`zenswarm.linktrace`, loaded with the scenario's graph
+by :func:`zenswarm.linkfaults.plan_for`.
 """
 
 from __future__ import annotations
@@ -100,14 +111,18 @@ import math
 import re
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .errors import ScenarioError
+from .linkqueue import LinkQueues, QueueSpec, queue_spec
 from .radio import RADIO_KINDS, RadioModel, parse_distance, parse_fade
 from .schema import BurstTable, FadeTable, FaultsTable, LinkFaultsTable, PartitionTable, convert
+
+if TYPE_CHECKING:  # traces are read by zenswarm.linkfaults.plan_for (zenswarm.linktrace imports this module)
+    from .linktrace import LinkTrace
 
 __all__ = [
     "KINDS",
@@ -145,7 +160,7 @@ _KIND_ROLES = {"ref": ("agent", "agent"), "leader": ("leader", "agent"), "state"
 BLOCK = 1024
 
 _STREAMS = ("loss", "jitter", "ge_trans", "ge_loss", "ge_init")
-_REASONS = ("ok", "loss", "burst", "partition")
+_REASONS = ("ok", "loss", "burst", "partition", "trace", "queue")
 _TWO_M53 = 2.0**-53
 _EPS_TICK = 1e-9
 _CHUNK = 256  # LinkInbox computes decisions in batches of this many ticks (a cache, not a definition)
@@ -397,7 +412,8 @@ class LinkFaultSpec:
     """Faults on one directed link. delay_s, jitter_s >= 0 s; loss in [0, 1]; optional burst
     loss; partitions (each only applies where it matches the link, see :class:`Partition`);
     radio: a geometry-dependent model (:class:`zenswarm.radio.RadioModel`), applied by the
-    receive boxes of the radio kinds only (``ref``, ``leader``; :data:`zenswarm.radio.RADIO_KINDS`)."""
+    receive boxes of the radio kinds only (``ref``, ``leader``; :data:`zenswarm.radio.RADIO_KINDS`);
+    queue: optional capacity and bounded queue (:class:`zenswarm.linkqueue.QueueSpec`)."""
 
     delay_s: float = 0.0
     jitter_s: float = 0.0
@@ -405,6 +421,7 @@ class LinkFaultSpec:
     burst: GilbertElliott | None = None
     partitions: tuple[Partition, ...] = ()
     radio: RadioModel | None = None
+    queue: QueueSpec | None = None
 
     def __post_init__(self) -> None:
         for name in ("delay_s", "jitter_s"):
@@ -431,7 +448,7 @@ class LinkFaultSpec:
 
     @property
     def active(self) -> bool:
-        return bool(self.delay_s or self.jitter_s or self.loss or self.burst is not None or self.partitions or self.radio_active)
+        return bool(self.delay_s or self.jitter_s or self.loss or self.burst is not None or self.partitions or self.radio_active or self.queue)
 
     @property
     def radio_active(self) -> bool:
@@ -466,12 +483,18 @@ class FaultPlan:
       the spec replaces the default entirely.
     seed: keys every random draw (the run's ``--seed``).
     partitions: timed cuts that apply whatever spec a link resolves to (``--partition``).
+    trace: per-link delay/delivery replayed in place of the model on the links it names
+      (:class:`zenswarm.linktrace.LinkTrace`, ``--link-trace``).
+    queues: the capacity queues of the run's links (:class:`zenswarm.linkqueue.LinkQueues`, built
+      from the specs' ``queue`` and the scenario's graph by :func:`zenswarm.linkfaults.plan_for`).
     """
 
     default: LinkFaultSpec = field(default_factory=LinkFaultSpec)
     per_link: Mapping[Any, LinkFaultSpec] = field(default_factory=dict)
     seed: int = 0
     partitions: tuple[Partition, ...] = ()
+    trace: LinkTrace | None = None
+    queues: LinkQueues | None = None
     _resolved: dict[tuple[str, str, str], LinkFaultSpec] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -496,7 +519,7 @@ class FaultPlan:
         object.__setattr__(self, "partitions", parts)
 
     def _key(self) -> tuple[object, ...]:
-        return (self.default, tuple(self.per_link.items()), self.seed, self.partitions)
+        return (self.default, tuple(self.per_link.items()), self.seed, self.partitions, id(self.trace), id(self.queues))
 
     def __eq__(self, other: object) -> bool:  # per_link order matters (the last match wins)
         if not isinstance(other, FaultPlan):
@@ -514,7 +537,12 @@ class FaultPlan:
     @property
     def active(self) -> bool:
         """False when no link of the run can be delayed or dropped."""
-        return bool(self.partitions) or self.default.active or any(s.active for s in self.per_link.values())
+        return (
+            bool(self.partitions)
+            or self.trace is not None
+            or self.default.active
+            or any(s.active for s in self.per_link.values())
+        )
 
     @property
     def radio_active(self) -> bool:
@@ -544,9 +572,26 @@ class FaultPlan:
             self._resolved[key] = spec
         return spec
 
+    def max_delay_s(self, src: str, dst: str, kind: str) -> float:
+        """Largest delay of the link, s: its trace's (or its spec's delay + jitter) plus the most
+        its capacity queue can add."""
+        link = (src, dst, kind)
+        d = self.trace.max_delay_s(link) if self.trace is not None and link in self.trace else self.spec_for(*link).max_delay_s
+        return d + (self.queues.max_wait_s(link) if self.queues is not None else 0.0)
+
+    def worst_delay_s(self) -> float:
+        """Largest delay of any link of the run, s (an upper bound): the specs' delay + jitter or
+        the trace's largest delay, plus the most a capacity queue can add."""
+        worst = max(spec.max_delay_s for spec in [self.default, *self.per_link.values()])
+        if self.trace is not None and self.trace.links:
+            worst = max(worst, max(self.trace.max_delay_s(lk) for lk in self.trace.links))
+        if self.queues is not None and self.queues.links:
+            worst += max(self.queues.max_wait_s(lk) for lk in self.queues.links)
+        return worst
+
     def horizon_ticks(self, src: str, dst: str, kind: str, dt: float) -> int:
         """Largest delay of the link in ticks: no message is delivered later than send + this."""
-        return delivery_tick(0, self.spec_for(src, dst, kind).max_delay_s, dt)
+        return delivery_tick(0, self.max_delay_s(src, dst, kind), dt)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -556,7 +601,8 @@ class FaultPlan:
 @dataclass(frozen=True)
 class Delivery:
     """Fate of one message. dropped; delay_s >= 0 (s, also given when dropped); reason:
-    ``ok``, ``loss``, ``burst`` or ``partition``."""
+    ``ok``, ``loss``, ``burst``, ``partition``, ``trace`` (dropped by a replayed trace) or ``queue``
+    (dropped by a full capacity queue at the sender)."""
 
     dropped: bool
     delay_s: float
@@ -566,7 +612,7 @@ class Delivery:
 @dataclass(frozen=True)
 class BatchDelivery:
     """:meth:`FaultState.decide_batch` result: arrays of shape (m,). reason codes index
-    :attr:`REASONS` (0 ok, 1 loss, 2 burst, 3 partition)."""
+    :attr:`REASONS` (0 ok, 1 loss, 2 burst, 3 partition, 4 trace, 5 queue)."""
 
     dropped: np.ndarray
     delay_s: np.ndarray
@@ -685,11 +731,23 @@ class FaultState:
         seq = _check_seq(seq)
         if kind not in _KIND_ROLES:
             raise ValueError(f"unknown message kind {kind!r} (allowed: {', '.join(KINDS)})")
+        d = self._decide_model(src, dst, kind, seq, t_send_s)
+        queues = self.plan.queues
+        if queues is not None and (src, dst, kind) in queues:
+            q_drop, q_wait = queues.one((src, dst, kind), seq)
+            d = Delivery(True, q_wait + d.delay_s, "queue") if q_drop else Delivery(d.dropped, q_wait + d.delay_s, d.reason)
+        return d
+
+    def _decide_model(self, src: str, dst: str, kind: str, seq: int, t_send_s: float) -> Delivery:
         plan = self.plan
         spec = plan.spec_for(src, dst, kind)
         link = (src, dst, kind)
         delay = spec.delay_s
-        if spec.jitter_s > 0.0:
+        traced = plan.trace is not None and link in plan.trace
+        if traced:
+            assert plan.trace is not None
+            delay, delivered = plan.trace.lookup(link, t_send_s)
+        elif spec.jitter_s > 0.0:
             delay = max(0.0, delay + spec.jitter_s * (2.0 * self.uniform(link, "jitter", seq) - 1.0))
         t = float(t_send_s)
         for p in plan.partitions:
@@ -698,6 +756,8 @@ class FaultState:
         for p in spec.partitions:
             if p.covers(src, dst, t):
                 return Delivery(True, delay, "partition")
+        if traced:
+            return Delivery(not delivered, delay, "ok" if delivered else "trace")
         ge = spec.burst
         if ge is not None:
             b, i = divmod(seq, BLOCK)
@@ -736,10 +796,15 @@ class FaultState:
             return out
 
         delay = np.full(m, spec.delay_s)
+        reason = np.zeros(m, dtype=np.uint8)
+        trace = self.plan.trace
+        if trace is not None and link in trace:
+            delay, delivered = trace.lookup_batch(link, t)
+            reason[~delivered] = 4
+            spec = replace(spec, jitter_s=0.0, loss=0.0, burst=None)
         if spec.jitter_s > 0.0:
             u = gather(lambda b: self.uniform_block(link, "jitter", b))
             delay = np.maximum(0.0, spec.delay_s + spec.jitter_s * (2.0 * u - 1.0))
-        reason = np.zeros(m, dtype=np.uint8)
         if spec.loss > 0.0:
             u = gather(lambda b: self.uniform_block(link, "loss", b))
             reason[u < spec.loss] = 1
@@ -752,6 +817,11 @@ class FaultState:
         for p in tuple(self.plan.partitions) + spec.partitions:
             if p.applies_to(src, dst):
                 reason[(p.t_start_s <= t) & (t < p.t_end_s)] = 3
+        queues = self.plan.queues
+        if queues is not None and link in queues:
+            q_drop, q_wait = queues.batch(link, seqs)
+            delay = q_wait + delay
+            reason[q_drop] = 5
         return BatchDelivery(reason > 0, delay, reason)
 
 
@@ -843,7 +913,7 @@ class LinkInbox:
         self.first_tick = _check_seq(first_tick)
         self.capacity = max(1, int(capacity))
         self.spec = self.state.plan.spec_for(src, dst, kind)
-        self.horizon = delivery_tick(0, self.spec.max_delay_s, self.dt)
+        self.horizon = self.state.plan.horizon_ticks(src, dst, kind, self.dt)
         self._pending: dict[int, tuple[int, Any, int]] = {}  # send_tick -> (seq, value, delivery tick)
         self._seen: OrderedDict[int, None] = OrderedDict()
         self._held: tuple[int, int, Any] | None = None  # (send_tick, seq, value)
@@ -857,6 +927,8 @@ class LinkInbox:
             "dropped_loss": 0,
             "dropped_burst": 0,
             "dropped_partition": 0,
+            "dropped_trace": 0,
+            "dropped_queue": 0,
             "late": 0,
             "duplicates": 0,
             "overflow": 0,
@@ -1006,9 +1078,12 @@ def plan_from_cli(
     seed: int = 0,
     base: FaultPlan | None = None,
     n: int | None = None,
+    link_capacity: str | None = None,
+    link_queue: str | None = None,
+    link_medium: str | None = None,
 ) -> FaultPlan:
     """The whole-swarm shortcuts ``--link-delay 50ms --link-jitter 10ms --link-loss 0.2
-    --partition agent:2@10s-13s`` as a plan.
+    --partition agent:2@10s-13s --link-capacity 20kB/s --link-queue 8 --link-medium sender`` as a plan.
 
     Given values replace the fields of ``base.default`` (a plan from the scenario; its per-link
     entries and partitions are kept); partitions are added. ``seed`` replaces ``base.seed``.
@@ -1040,8 +1115,9 @@ def plan_from_cli(
         except ValueError as e:
             raise ScenarioError("--partition", str(e)) from None
         check_exists("--partition", parts[-1].process_or_link, n)
-    default = LinkFaultSpec(delay, jitter, loss, d.burst, d.partitions)
-    return FaultPlan(default, dict(base.per_link), seed, tuple(parts))
+    queue = queue_spec(("--link-capacity", "--link-queue", "--link-medium"), link_capacity, link_queue, link_medium, d.queue)
+    default = LinkFaultSpec(delay, jitter, loss, d.burst, d.partitions, queue)
+    return FaultPlan(default, dict(base.per_link), seed, tuple(parts), base.trace, base.queues)
 
 
 def _duration_field(path: str, x: Any) -> float:
@@ -1148,6 +1224,7 @@ def _spec(p: str, e: FaultsTable | LinkFaultsTable, inherit: LinkFaultSpec) -> L
         inherit.loss if e.loss is None else float(e.loss),
         inherit.burst if e.burst is None else _burst_field(f"{p}.burst", e.burst),
         radio=_radio_field(p, e, inherit.radio),
+        queue=queue_spec((f"{p}.capacity", f"{p}.queue", f"{p}.medium"), e.capacity, e.queue, e.medium, inherit.queue),
     )
 
 

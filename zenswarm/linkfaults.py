@@ -21,16 +21,19 @@ import heapq
 import itertools
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from .config import Scenario
-from .faults import Delivery, FaultPlan, FaultState, LinkInbox, plan_from_cli, plan_from_scenario, plan_with_radio
+from .errors import ScenarioError
+from .faults import Delivery, FaultPlan, FaultState, LinkInbox, agent_links, plan_from_cli, plan_from_scenario, plan_with_radio, plant_links
+from .linkqueue import LinkQueues
+from .linktrace import LinkTrace, load_trace
 from .radio import GEOMETRY_TICK_OFFSET, components, leader_reaches_all, radio_reason
 
-__all__ = ["Box", "LinkFaults", "plan_for", "DelayLine", "box_counters", "distance", "effective_graph"]
+__all__ = ["Box", "LinkFaults", "plan_for", "scenario_links", "DelayLine", "box_counters", "distance", "effective_graph"]
 
 
 def distance(a: Any, b: Any) -> float:
@@ -162,6 +165,33 @@ class Box(LinkInbox):
         return j is None or (self.has(j) and self.known(j))
 
 
+def scenario_links(scenario: Scenario) -> list[tuple[str, str, str]]:
+    """Every directed link ``(src, dst, kind)`` of the scenario: each agent's state, its
+    neighbours' refs and (if pinned) the leader's ref, then every agent's command to the plant."""
+    g = scenario.graph
+    links = [lk for i in range(scenario.n) for lk in agent_links(i + 1, [j + 1 for j in g.neighbours(i)], g.pinning[i] > 0)]
+    return links + plant_links(scenario.n)
+
+
+def _trace(scenario: Scenario, link_trace: str | None) -> LinkTrace | None:
+    """The run's trace: ``--link-trace`` (relative to the working directory) or the scenario's
+    ``[faults] trace`` (resolved against the scenario file by :func:`zenswarm.config.load_scenario`)."""
+    if link_trace is not None:
+        field, path = "--link-trace", link_trace
+    elif scenario.faults is not None and scenario.faults.trace is not None:
+        field, path = "faults.trace", scenario.faults.trace
+    else:
+        return None
+    try:
+        trace = load_trace(path)
+    except ScenarioError as e:
+        if e.field == str(path):  # unreadable file: name the setting
+            raise ScenarioError(field, e.message) from None
+        raise
+    trace.check_links(scenario_links(scenario))
+    return trace
+
+
 def plan_for(
     scenario: Scenario,
     link_delay: str | None = None,
@@ -171,17 +201,34 @@ def plan_for(
     seed: int | None = None,
     link_range: str | None = None,
     link_fade: str | None = None,
+    link_capacity: str | None = None,
+    link_queue: str | None = None,
+    link_medium: str | None = None,
+    link_trace: str | None = None,
 ) -> FaultPlan | None:
     """The fault plan of a run: the scenario's ``[faults]`` table, then the CLI shortcuts
-    (``link_range``, ``link_fade``: :func:`zenswarm.faults.plan_with_radio`).
+    (``link_range``, ``link_fade``: :func:`zenswarm.faults.plan_with_radio`); the capacity queues
+    of the scenario's links (:class:`zenswarm.linkqueue.LinkQueues`) and the trace
+    (:mod:`zenswarm.linktrace`; ``link_trace`` replaces the scenario's).
 
     ``seed`` defaults to the scenario's. Returns None when no fault is active (the fast path).
-    Raises :class:`zenswarm.errors.ScenarioError` naming the field or flag.
+    Raises :class:`zenswarm.errors.ScenarioError` naming the field, flag or trace line.
     """
     seed = scenario.seed if seed is None else int(seed)
     base = plan_from_scenario(scenario.faults, seed, scenario.n)
-    plan = plan_from_cli(link_delay, link_jitter, link_loss, list(partitions or ()), seed=seed, base=base, n=scenario.n)
+    plan = plan_from_cli(
+        link_delay, link_jitter, link_loss, list(partitions or ()), seed=seed, base=base, n=scenario.n,
+        link_capacity=link_capacity, link_queue=link_queue, link_medium=link_medium,
+    )  # fmt: skip
     plan = plan_with_radio(plan, link_range, link_fade)
+    trace = _trace(scenario, link_trace)
+    specs = {lk: q for lk in scenario_links(scenario) if (q := plan.spec_for(*lk).queue) is not None}
+    try:
+        queues = LinkQueues(specs, scenario.timing.dt) if specs else None
+    except ValueError as e:
+        raise ScenarioError("--link-capacity" if link_capacity is not None else "faults.capacity", str(e)) from None
+    if trace is not None or queues is not None:
+        plan = replace(plan, trace=trace, queues=queues)
     return plan if plan.active else None
 
 
@@ -189,7 +236,8 @@ def plan_for(
 class LinkFaults:
     """The whole-swarm fault shortcuts of a run, as given on the command line (``--link-delay``,
     ``--link-jitter``, ``--link-loss``, ``--partition``, ``--seed``, ``--link-range``,
-    ``--link-fade``; the edges parse them, see
+    ``--link-fade``, ``--link-capacity``, ``--link-queue``, ``--link-medium``, ``--link-trace``;
+    the edges parse them, see
     :mod:`zenswarm.bridge.args`). Texts are checked by :meth:`plan` (``ScenarioError`` naming
     the flag); ``seed`` None means the scenario's."""
 
@@ -200,11 +248,18 @@ class LinkFaults:
     seed: int | None = None
     link_range: str | None = None
     link_fade: str | None = None
+    link_capacity: str | None = None
+    link_queue: str | None = None
+    link_medium: str | None = None
+    link_trace: str | None = None
 
     def plan(self, scenario: Scenario) -> FaultPlan | None:
         """The fault plan of a run of ``scenario`` with these shortcuts (:func:`plan_for`)."""
-        return plan_for(scenario, self.link_delay, self.link_jitter, self.link_loss, self.partitions, self.seed,
-                        self.link_range, self.link_fade)
+        return plan_for(
+            scenario, self.link_delay, self.link_jitter, self.link_loss, self.partitions, self.seed,
+            link_range=self.link_range, link_fade=self.link_fade, link_capacity=self.link_capacity,
+            link_queue=self.link_queue, link_medium=self.link_medium, link_trace=self.link_trace,
+        )  # fmt: skip
 
     def argv(self) -> list[str]:
         """These shortcuts as command-line words (the supervisor passes them on to its processes;
@@ -212,6 +267,14 @@ class LinkFaults:
         out: list[str] = []
         for flag, v in (("--link-delay", self.link_delay), ("--link-jitter", self.link_jitter), ("--link-loss", self.link_loss),
                         ("--link-range", self.link_range), ("--link-fade", self.link_fade)):
+            if v is not None:
+                out += [flag, str(v)]
+        for flag, v in (
+            ("--link-capacity", self.link_capacity),
+            ("--link-queue", self.link_queue),
+            ("--link-medium", self.link_medium),
+            ("--link-trace", self.link_trace),
+        ):
             if v is not None:
                 out += [flag, str(v)]
         for part in self.partitions:

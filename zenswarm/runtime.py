@@ -683,8 +683,8 @@ class ProcessOptions:
     realtime: wall clock, latest value wins (else lockstep). lockstep_timeout: wall seconds an
     input is waited for before it counts as a drop. keys, tls: credentials of a secured router
     (:mod:`zenswarm.security`). link_delay, link_jitter, link_loss, partition, link_range,
-    link_fade: the whole-swarm
-    link faults (:mod:`zenswarm.linkfaults`); seed: disturbances and fault decisions (None: the
+    link_fade, link_capacity, link_queue, link_medium, link_trace: the whole-swarm link faults
+    (:mod:`zenswarm.linkfaults`); seed: disturbances and fault decisions (None: the
     scenario's). controller, planner: plug-in names overriding the scenario's
     (:func:`zenswarm.plugins.select`; None: the scenario's).
     """
@@ -704,6 +704,10 @@ class ProcessOptions:
     link_range: str | None = None
     link_fade: str | None = None
     controller: str | None = None
+    link_capacity: str | None = None
+    link_queue: str | None = None
+    link_medium: str | None = None
+    link_trace: str | None = None
     planner: str | None = None
 
     @classmethod
@@ -734,6 +738,10 @@ class ProcessOptions:
             link_fade=get("link_fade", None),
             controller=get("controller", None),
             planner=get("planner", None),
+            link_capacity=get("link_capacity", None),
+            link_queue=get("link_queue", None),
+            link_medium=get("link_medium", None),
+            link_trace=get("link_trace", None),
         )
 
     def fault_plan(self, scenario: Scenario) -> FaultPlan | None:
@@ -741,8 +749,11 @@ class ProcessOptions:
         fault is active. Raises :class:`zenswarm.errors.ScenarioError` naming the bad field."""
         from .linkfaults import plan_for
 
-        return plan_for(scenario, self.link_delay, self.link_jitter, self.link_loss, self.partition, self.seed,
-                        self.link_range, self.link_fade)
+        return plan_for(
+            scenario, self.link_delay, self.link_jitter, self.link_loss, self.partition, self.seed,
+            link_range=self.link_range, link_fade=self.link_fade, link_capacity=self.link_capacity,
+            link_queue=self.link_queue, link_medium=self.link_medium, link_trace=self.link_trace,
+        )  # fmt: skip
 
 
 class SwarmProcess:
@@ -935,7 +946,7 @@ class SwarmProcess:
             return 0
         from .faults import delivery_tick
 
-        worst = max(spec.max_delay_s for spec in [plan.default, *plan.per_link.values()])
+        worst = plan.worst_delay_s()
         return delivery_tick(0, worst, self.scenario.timing.dt) + 1 if worst > 0 else 0
 
     def _now_tick(self) -> int | None:

@@ -335,7 +335,8 @@ class PartitionTable(Table, frozen=True):
 class LinkFaultsTable(Table, frozen=True):
     """One ``[[faults.links]]`` entry: src, dst (process names or globs), kind (``ref``,
     ``leader``, ``state``, ``cmd`` or ``*``); omitted fields inherit the ``[faults]`` values;
-    ``burst = false`` turns an inherited burst off."""
+    ``burst = false`` turns an inherited burst off, ``capacity = false`` an inherited capacity
+    (:mod:`zenswarm.linkqueue`)."""
 
     src: str = "*"
     dst: str = "*"
@@ -346,10 +347,15 @@ class LinkFaultsTable(Table, frozen=True):
     burst: BurstTable | bool | None = None
     range: str | float | None = None
     fade: FadeTable | bool | None = None
+    capacity: str | float | bool | None = None
+    queue: str | int | None = None
+    medium: str | None = None
 
 
 class FaultsTable(Table, frozen=True):
-    """``[faults]``: link faults (see :func:`zenswarm.faults.plan_from_scenario` and docs/faults.md)."""
+    """``[faults]``: link faults (see :func:`zenswarm.faults.plan_from_scenario` and docs/faults.md);
+    capacity, queue, medium: :mod:`zenswarm.linkqueue`; trace: a CSV file (:mod:`zenswarm.linktrace`),
+    relative to the scenario file."""
 
     delay: Duration | None = None
     jitter: Duration | None = None
@@ -359,6 +365,10 @@ class FaultsTable(Table, frozen=True):
     fade: FadeTable | bool | None = None
     partitions: tuple[str | PartitionTable, ...] = ()
     links: tuple[LinkFaultsTable, ...] = ()
+    capacity: str | float | bool | None = None
+    queue: str | int | None = None
+    medium: str | None = None
+    trace: str | None = None
 
 
 class MavlinkTable(Table, frozen=True):
