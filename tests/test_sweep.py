@@ -1,0 +1,223 @@
+"""Issue 17 points 1-3: `zenswarm sweep` (docs/campaigns.md).
+
+Pure: the expansion of a campaign (run order, cells, seeds, durations in seconds, sampled draws),
+campaign files, and validation (bad paths and values exit 2 naming them, before anything runs or
+is written). Processes (short flights of paper example 1, ``--duration 2``): a local campaign
+interrupted with SIGINT, resumed, resumed again with nothing left, its rows equal to individual
+``fly()`` results; a crashing run recorded with its error after a retry; a real loopback Dask
+cluster (``dask scheduler`` and two ``dask worker``) giving the same rows as the local pool.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from zenswarm.api import fly
+from zenswarm.bus import free_port
+from zenswarm.campaign import GridAxis, Plan, SampleAxis, check_plan, expand, parse_grid, parse_sample, plan_from_toml
+from zenswarm.errors import ScenarioError
+from zenswarm.pytest_plugin import port_free
+from zenswarm.sweep import main, metric_columns
+
+from swarmtest import ROOT
+
+pq = pytest.importorskip("pyarrow.parquet", reason="zenswarm[sweep] is in the test extra")
+
+EX1 = "paper_example1"
+TESTS = Path(__file__).parent
+
+
+def _table(out: Path) -> list[dict[str, Any]]:
+    return pq.read_table(out / "runs.parquet").to_pylist()
+
+
+def _same(x: Any, y: Any) -> bool:
+    return x == y or isinstance(x, float) and isinstance(y, float) and math.isnan(x) and math.isnan(y)
+
+
+def _key(row: dict[str, Any], inputs: list[str]) -> tuple:
+    return tuple(row[k] for k in ["run", "cell", "seed", *inputs, *metric_columns(), "error", "attempts", "mode"])
+
+
+# ----------------------------------------------------------------------------- pure
+
+
+def test_expansion_order_cells_and_units() -> None:
+    plan = Plan(EX1, grid=(parse_grid("faults.loss=0,0.1,0.2"), parse_grid("faults.delay=0ms,50ms,100ms")), seeds=10, base_seed=5)
+    check_plan(plan)
+    runs = expand(plan)
+    assert len(runs) == 90 and [r.run for r in runs] == list(range(90))
+    assert [r.seed for r in runs[:10]] == list(range(5, 15))
+    r = runs[10 * 4 + 3]  # cell 4: loss 0.1 (middle), delay 50ms (middle); seed base + 3
+    assert r.inputs == {"faults.loss": 0.1, "faults.delay": "50ms"} and r.seed == 8
+    assert r.columns["faults.delay"] == pytest.approx(0.05) and r.cell == f"faults.loss=0.1,faults.delay={r.columns['faults.delay']!r}"
+    assert expand(plan) == runs  # the same command, the same indices
+    assert plan.axes_json()[1]["values"] == [0.0, r.columns["faults.delay"], runs[20].columns["faults.delay"]]
+
+
+def test_values_and_samples() -> None:
+    g = parse_grid("leader.goal=[2.4, 1.4, 0.6],[2, 1, 0.5]")
+    assert g.values == ([2.4, 1.4, 0.6], [2, 1, 0.5])
+    assert parse_grid("agents.controller=paper,plugin_fixtures:X").values == ("paper", "plugin_fixtures:X")
+    assert parse_grid("eso.enabled=true,false").values == (True, False)
+    plan = Plan(EX1, grid=(g,), samples=(parse_sample("faults.loss=0:0.3"), parse_sample("faults.delay=0ms:20ms")), n_samples=4, seeds=2)
+    check_plan(plan)
+    runs = expand(plan)
+    assert len(runs) == 2 * 4 * 2
+    draws = [r.columns["faults.loss"] for r in runs[::2]]
+    assert draws[:4] == draws[4:]  # the same draws in every grid cell
+    assert all(0 <= d <= 0.3 for d in draws) and len(set(draws[:4])) == 4
+    assert all(0 <= r.columns["faults.delay"] <= 0.02 and r.inputs["faults.delay"].endswith("s") for r in runs)
+    assert [r.columns for r in expand(plan)] == [r.columns for r in runs]  # seeded by base_seed
+    n = expand(Plan("generate", samples=(SampleAxis("n", 3, 5),), n_samples=6))
+    assert {r.columns["n"] for r in n} <= {3, 4, 5} and all(isinstance(r.columns["n"], int) for r in n)
+
+
+@pytest.mark.parametrize(
+    ("plan", "field"),
+    [
+        (Plan(EX1, seeds=0), "--seeds"),
+        (Plan(EX1, grid=(GridAxis("n", (3,)),)), "n"),
+        (Plan(EX1, grid=(GridAxis("faults.loss", (0,)), GridAxis("faults.loss", (1,)))), "faults.loss"),
+        (Plan(EX1, grid=(GridAxis("scenario.seed", (1,)),)), "scenario.seed"),
+        (Plan(EX1, samples=(SampleAxis("faults.loss", 0.3, 0.1),), n_samples=2), "faults.loss"),
+        (Plan(EX1, samples=(SampleAxis("faults.loss", 0, 1),)), "--samples"),
+        (Plan(EX1, mode="swarm", check_swarm=1), "--check-swarm"),
+        (Plan("generate", grid=(GridAxis("n", ("three",)),)), "n"),
+    ],
+)
+def test_plan_errors_name_the_field(plan: Plan, field: str) -> None:
+    with pytest.raises(ScenarioError) as e:
+        check_plan(plan)
+    assert e.value.field == field
+
+
+def test_campaign_file() -> None:
+    doc = {"campaign": {"scenario": EX1, "seeds": 3, "duration": 2}, "grid": {"faults.loss": [0, 0.1]},
+           "sample": {"faults.jitter": ["0ms", "10ms"]}}
+    plan, out = plan_from_toml(doc)
+    assert out is None and plan.seeds == 3 and plan.duration == 2.0 and plan.grid[0] == GridAxis("faults.loss", (0, 0.1))
+    with pytest.raises(ScenarioError, match="campaign.sedes"):
+        plan_from_toml({"campaign": {"scenario": EX1, "sedes": 3}})
+
+
+@pytest.mark.parametrize(
+    ("args", "named"),
+    [
+        (["--grid", "faults.nosuch=1,2"], "faults.nosuch"),
+        (["--grid", "timing.bogus=1"], "timing.bogus"),
+        (["--grid", "faults.loss=0,1.5"], "faults.loss"),
+        (["--grid", "faults.delay=0ms,50parsecs"], "faults.delay"),
+        (["--grid", "obstacles[7].radius=0.1"], "obstacles[7]"),
+        (["--grid", "agents.controller=paper,nosuch_ctrl"], "nosuch_ctrl"),
+        (["--grid", "n=3,5"], "n"),
+        (["--grid", "faults.loss"], "--grid"),
+        (["--sample", "faults.loss=0:x", "--samples", "2"], "faults.loss"),
+    ],
+)
+def test_bad_input_exit_2_before_anything(tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], named: str) -> None:
+    out = tmp_path / "c"
+    assert main([EX1, *args, "--seeds", "2", "--duration", "2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert named in err and "error" in err
+    assert not out.exists()
+
+
+def test_generated_scenario_bad_value_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["generate", "--grid", "topology=ring,moebius", "--out", str(tmp_path / "c")]) == 2
+    assert "moebius" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- processes
+
+
+def _sweep_cmd(out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "zenswarm", "sweep", EX1, "--grid", "faults.loss=0,0.3", "--grid", "faults.delay=0ms,50ms",
+            "--seeds", "2", "--duration", "2", "--out", str(out), *extra]
+
+
+@pytest.mark.swarm  # CLI subprocesses and a process pool
+def test_local_campaign_interrupt_resume_and_rows_equal_fly(tmp_path: Path) -> None:
+    out = tmp_path / "camp"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    p = subprocess.Popen(_sweep_cmd(out, "--workers", "1"), cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    journal = out / "runs.jsonl"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and p.poll() is None and not (journal.is_file() and journal.read_text().count("\n") >= 2):
+        time.sleep(0.05)
+    os.killpg(p.pid, signal.SIGINT)  # as Ctrl-C in a terminal: the whole foreground group
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == 130, err
+    first = _table(out)
+    assert 2 <= len(first) < 8 and "resume" in err
+    cp = subprocess.run(_sweep_cmd(out, "--workers", "2"), cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert cp.returncode == 0, cp.stderr
+    rows = _table(out)
+    assert [r["run"] for r in rows] == list(range(8))  # no duplicates, nothing missing
+    assert [r for r in rows if r["run"] in {f["run"] for f in first}] == first  # finished runs not flown again
+    meta = json.loads((out / "campaign.json").read_text())
+    assert meta["runs"] == 8 and meta["axes"][1] == {"path": "faults.delay", "values": [0.0, 0.05]} and meta["seeds"] == 2
+    cols = list(pq.read_table(out / "runs.parquet").schema.names)
+    for c in ("run", "cell", "seed", "faults.loss", "faults.delay", "success", "causes", "error", "attempts", "max_formation_error_m",
+              "min_obstacle_clearance_m", "time_to_goal_s", "goal_reached", "sim_time_s", "wall_s", "zenswarm_version", "mode"):
+        assert c in cols
+    lines = journal.read_text().count("\n")
+    again = subprocess.run(_sweep_cmd(out), cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert again.returncode == 0 and journal.read_text().count("\n") == lines and "0 to fly" in again.stderr
+    changed = subprocess.run(_sweep_cmd(out, "--base-seed", "4"), cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert changed.returncode == 2 and "different campaign" in changed.stderr and "base_seed" in changed.stderr
+    for r in (rows[0], rows[5]):  # each row is the flight fly() gives
+        f = fly(EX1, seed=r["seed"], duration=2.0, overrides={"faults.loss": r["faults.loss"], "faults.delay": f"{r['faults.delay']!r}s"})
+        assert r["success"] == f.success and r["causes"] == ",".join(f.causes) and r["error"] is None and r["attempts"] == 1
+        for k in ("max_formation_error_m", "rms_tracking_error_m", "min_obstacle_clearance_m", "min_inter_uav_distance_m", "sim_time_s"):
+            assert _same(r[k], getattr(f.metrics, k)), k
+    assert rows[5]["faults.loss"] == 0.3 and rows[5]["seed"] == 1 and r["mode"] == "sim"
+
+
+@pytest.mark.swarm  # a process pool
+def test_crashing_run_recorded_with_error_after_retry(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.syspath_prepend(str(TESTS))
+    out = tmp_path / "crash"
+    code = main([EX1, "--grid", "agents.controller=plugin_fixtures:CrashingController", "--duration", "1", "--workers", "1",
+                 "--quiet", "--out", str(out)])
+    assert code == 1
+    (row,) = _table(out)
+    assert row["attempts"] == 2 and "deliberate failure" in row["error"] and row["success"] is False
+    assert row["agents.controller"] == "plugin_fixtures:CrashingController" and row["max_formation_error_m"] is None
+
+
+@pytest.mark.swarm  # a real Dask scheduler and two workers on loopback
+def test_dask_cluster_gives_the_local_rows(tmp_path: Path) -> None:
+    port = free_port()
+    addr = f"tcp://127.0.0.1:{port}"
+    dask = [sys.executable, "-m", "distributed.cli.dask_scheduler"]
+    worker = [sys.executable, "-m", "distributed.cli.dask_worker"]
+    logs = [open(tmp_path / f"dask{i}.log", "w") for i in range(3)]
+    procs = [subprocess.Popen([*dask, "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"], stdout=logs[0],
+                              stderr=subprocess.STDOUT, start_new_session=True)]
+    try:
+        procs += [subprocess.Popen([*worker, addr, "--nthreads", "1", "--no-dashboard", "--no-nanny"], stdout=logs[i],
+                                   stderr=subprocess.STDOUT, start_new_session=True, cwd=ROOT) for i in (1, 2)]
+        args = [EX1, "--grid", "faults.loss=0,0.3", "--grid", "faults.delay=0ms,50ms", "--duration", "1", "--quiet"]
+        assert main([*args, "--scheduler", addr, "--out", str(tmp_path / "dask")]) == 0
+        assert main([*args, "--workers", "2", "--out", str(tmp_path / "local")]) == 0
+    finally:
+        for p in procs:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait(10)
+        for f in logs:
+            f.close()
+    assert port_free(port)
+    inputs = ["faults.loss", "faults.delay"]
+    d, loc = _table(tmp_path / "dask"), _table(tmp_path / "local")
+    assert len(d) == 4 and [_key(r, inputs) for r in d] == [_key(r, inputs) for r in loc]
