@@ -141,16 +141,15 @@ def test_generated_scenario_bad_value_exit_2(tmp_path: Path, capsys: pytest.Capt
 # ----------------------------------------------------------------------------- processes
 
 
-def _sweep_cmd(out: Path, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "zenswarm", "sweep", EX1, "--grid", "faults.loss=0,0.3", "--grid", "faults.delay=0ms,50ms",
-            "--seeds", "2", "--duration", "2", "--out", str(out), *extra]
+def _sweep_args(out: Path, *extra: str) -> list[str]:
+    return [EX1, "--grid", "faults.loss=0,0.3", "--grid", "faults.delay=0ms,50ms", "--seeds", "2", "--duration", "1", "--out", str(out), *extra]
 
 
 @pytest.mark.swarm  # CLI subprocesses and a process pool
-def test_local_campaign_interrupt_resume_and_rows_equal_fly(tmp_path: Path) -> None:
+def test_local_campaign_interrupt_resume_and_rows_equal_fly(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "camp"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    p = subprocess.Popen(_sweep_cmd(out, "--workers", "1"), cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    p = subprocess.Popen([sys.executable, "-m", "zenswarm", "sweep", *_sweep_args(out, "--workers", "1")], cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True)
     journal = out / "runs.jsonl"
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and p.poll() is None and not (journal.is_file() and journal.read_text().count("\n") >= 2):
@@ -160,8 +159,7 @@ def test_local_campaign_interrupt_resume_and_rows_equal_fly(tmp_path: Path) -> N
     assert p.returncode == 130, err
     first = _table(out)
     assert 2 <= len(first) < 8 and "resume" in err
-    cp = subprocess.run(_sweep_cmd(out, "--workers", "2"), cwd=ROOT, capture_output=True, text=True, timeout=120)
-    assert cp.returncode == 0, cp.stderr
+    assert main(_sweep_args(out, "--workers", "2")) == 0  # resumes
     rows = _table(out)
     assert [r["run"] for r in rows] == list(range(8))  # no duplicates, nothing missing
     assert [r for r in rows if r["run"] in {f["run"] for f in first}] == first  # finished runs not flown again
@@ -172,12 +170,14 @@ def test_local_campaign_interrupt_resume_and_rows_equal_fly(tmp_path: Path) -> N
               "min_obstacle_clearance_m", "time_to_goal_s", "goal_reached", "sim_time_s", "wall_s", "zenswarm_version", "mode"):
         assert c in cols
     lines = journal.read_text().count("\n")
-    again = subprocess.run(_sweep_cmd(out), cwd=ROOT, capture_output=True, text=True, timeout=60)
-    assert again.returncode == 0 and journal.read_text().count("\n") == lines and "0 to fly" in again.stderr
-    changed = subprocess.run(_sweep_cmd(out, "--base-seed", "4"), cwd=ROOT, capture_output=True, text=True, timeout=60)
-    assert changed.returncode == 2 and "different campaign" in changed.stderr and "base_seed" in changed.stderr
+    capsys.readouterr()
+    assert main(_sweep_args(out)) == 0
+    assert journal.read_text().count("\n") == lines and "0 to fly" in capsys.readouterr().err
+    assert main(_sweep_args(out, "--base-seed", "4")) == 2
+    err = capsys.readouterr().err
+    assert "different campaign" in err and "base_seed" in err
     for r in (rows[0], rows[5]):  # each row is the flight fly() gives
-        f = fly(EX1, seed=r["seed"], duration=2.0, overrides={"faults.loss": r["faults.loss"], "faults.delay": f"{r['faults.delay']!r}s"})
+        f = fly(EX1, seed=r["seed"], duration=1.0, overrides={"faults.loss": r["faults.loss"], "faults.delay": f"{r['faults.delay']!r}s"})
         assert r["success"] == f.success and r["causes"] == ",".join(f.causes) and r["error"] is None and r["attempts"] == 1
         for k in ("max_formation_error_m", "rms_tracking_error_m", "min_obstacle_clearance_m", "min_inter_uav_distance_m", "sim_time_s"):
             assert _same(r[k], getattr(f.metrics, k)), k
@@ -210,7 +210,7 @@ def test_dask_cluster_gives_the_local_rows(tmp_path: Path) -> None:
                                    stderr=subprocess.STDOUT, start_new_session=True, cwd=ROOT) for i in (1, 2)]
         args = [EX1, "--grid", "faults.loss=0,0.3", "--grid", "faults.delay=0ms,50ms", "--duration", "1", "--quiet"]
         assert main([*args, "--scheduler", addr, "--out", str(tmp_path / "dask")]) == 0
-        assert main([*args, "--workers", "2", "--out", str(tmp_path / "local")]) == 0
+        assert main([*args, "--workers", "1", "--out", str(tmp_path / "local")]) == 0
     finally:
         for p in procs:
             os.killpg(p.pid, signal.SIGKILL)

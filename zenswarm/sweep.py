@@ -484,6 +484,7 @@ def run_campaign(plan: Plan, out: Path, argv: Sequence[str], workers: int | None
         diffs = _check_swarm(backend, plan, runs, doc, rows, out) if plan.check_swarm else []
     except KeyboardInterrupt:
         backend.cancel()
+        rows = {k: v for k, v in read_rows(out).items() if k < len(runs)}  # the journal is the record (Ctrl-C may hit on_row)
         _write_parquet(out, rows.values(), columns)
         progress.show(final=True)
         print(f"sweep: interrupted: {len(rows)}/{len(runs)} runs recorded in {out}; run the same command again to resume",
