@@ -142,14 +142,16 @@ def test_generated_scenario_bad_value_exit_2(tmp_path: Path, capsys: pytest.Capt
 
 
 def _sweep_args(out: Path, *extra: str) -> list[str]:
-    return [EX1, "--grid", "faults.loss=0,0.3", "--grid", "faults.delay=0ms,50ms", "--seeds", "2", "--duration", "1", "--out", str(out), *extra]
+    axes = ["--grid", "faults.loss=0,0.3", "--grid", "faults.delay=0ms,50ms"]
+    return [EX1, *axes, "--seeds", "2", "--duration", "1", "--out", str(out), *extra]
 
 
 @pytest.mark.swarm  # CLI subprocesses and a process pool
 def test_local_campaign_interrupt_resume_and_rows_equal_fly(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "camp"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    p = subprocess.Popen([sys.executable, "-m", "zenswarm", "sweep", *_sweep_args(out, "--workers", "1")], cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    cmd = [sys.executable, "-m", "zenswarm", "sweep", *_sweep_args(out, "--workers", "1")]
+    p = subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True)
     journal = out / "runs.jsonl"
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and p.poll() is None and not (journal.is_file() and journal.read_text().count("\n") >= 2):
