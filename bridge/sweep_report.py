@@ -655,7 +655,7 @@ def _heatmaps(c: Campaign, r: _Runs, plots: Path) -> list[tuple[str, str]]:
         ax.set_yticks(range(len(ly)), [_fmt_value(v) for v in ly])
         ax.set_xlabel(ax_x.path)
         ax.set_ylabel(ax_y.path)
-        ax.set_title(f"{title}, {pooled}", fontsize=9)
+        ax.set_title(f"{title}, {pooled.replace('`', '')}", fontsize=9)
         _save(fig, plots / name)
         out.append((name, f"{title.capitalize()} over `{ax_x.path}` x `{ax_y.path}`, {pooled} (finished runs; grey: no finished run)."))
     return out
@@ -715,7 +715,7 @@ def _curve(c: Campaign, r: _Runs, a: Axis, plots: Path) -> tuple[str, str]:
         ax_s.legend(fontsize=8)
     used = (a.path,) + ((series_axis.path,) if series_axis else ())
     pooled = _pooled_note(c, used)
-    fig.suptitle(f"against {a.path}, {pooled}", fontsize=9)
+    fig.suptitle(f"against {a.path}, {pooled.replace('`', '')}", fontsize=9)
     name = f"curve_{_slug(a.path)}.png"
     _save(fig, plots / name)
     per = f", one line per value of `{series_axis.path}`" if series_axis else ""
@@ -809,7 +809,10 @@ def write_report(out_dir: Path) -> Path:
     figures = _plots(c, c.directory / "plots")
     lines += ["", "## Plots", ""]
     if len(c.grid_axes) > 2:
-        lines += [f"The heatmaps are over the first two grid axes; the other {len(c.grid_axes) - 2} are pooled.", ""]
+        g = c.grid_axes
+        rest = ", ".join(f"`{a.path}`" for a in g[2:])
+        lines += [f"The heatmaps are over the first two grid axes, `{g[0].path}` and `{g[1].path}`; "
+                  f"the runs of every value of {rest} are pooled in each square.", ""]
     for name, caption in figures:
         lines += [f"![{name}](plots/{name})", "", f"*{caption}*", ""]
     lines += ["The table behind this report: `runs.parquet` (docs/campaigns.md, Reading a campaign's report)."]

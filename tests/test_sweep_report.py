@@ -300,6 +300,7 @@ def test_string_axis_three_axes_and_a_sampled_field(tmp_path: Path) -> None:
     text = write_report(d).read_text()
     assert "pooled over seeds and over `n`, `disturbance.wind`" in text
     assert "`disturbance.wind` sampled uniformly in [0, 3], 1 draws" in text
+    assert "the runs of every value of `n` are pooled in each square" in text
     got = table_rows(text, "`agents.controller`")
     # the controller in campaign order (not alphabetical), the loss numerically
     assert [(c[0], c[1], c[2]) for c in got] == [(a, b, c) for a in ("paper", "pid", "lqr") for b in ("0", "0.2") for c in ("4", "5")]
