@@ -35,6 +35,7 @@ PURE_MODULES = [
     "zenswarm/verdict.py",
     "zenswarm/geometry.py",
     "zenswarm/inversion.py",
+    "zenswarm/delaymargin.py",
 ]
 ALLOWED_IMPORTS = {"numpy", "math", "dataclasses", "typing", "__future__", "zenswarm"}
 
