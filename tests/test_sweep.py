@@ -138,6 +138,38 @@ def test_generated_scenario_bad_value_exit_2(tmp_path: Path, capsys: pytest.Capt
     assert "moebius" in capsys.readouterr().err
 
 
+def test_campaign_file_is_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from zenswarm.sweep import _plan_from_args, build_parser
+
+    f = tmp_path / "c.toml"
+    f.write_text('[campaign]\nscenario = "paper_example1"\nseeds = 3\nduration = 2\nout = "o"\n'
+                 '[grid]\n"faults.loss" = [0, 0.1]\n"faults.delay" = ["0ms", "50ms"]\n')
+    from_file, out = _plan_from_args(build_parser().parse_args([str(f)]))
+    cli, _ = _plan_from_args(build_parser().parse_args(
+        [EX1, "--grid", "faults.loss=0,0.1", "--grid", "faults.delay=0ms,50ms", "--seeds", "3", "--duration", "2", "--out", "x"]))
+    assert out == tmp_path / "o" and expand(from_file) == expand(cli) and from_file.axes_json() == cli.axes_json()
+    f.write_text('[campaign]\nscenario = "paper_example1"\n[grid]\n"faults.nosuch" = [1]\n')
+    assert main([str(f), "--out", str(tmp_path / "x")]) == 2 and "faults.nosuch" in capsys.readouterr().err
+    assert main([str(f), "--grid", "faults.loss=0", "--out", str(tmp_path / "x")]) == 2 and "--grid" in capsys.readouterr().err
+
+
+def test_generated_scenarios_and_plugins_validate() -> None:
+    from zenswarm.sweep import _validate
+
+    plan = Plan("generate", grid=(parse_grid("n=2,4"), parse_grid("topology=ring,complete"), parse_grid("leader.planner=aapf,apf")),
+                seeds=2, duration=2.0)
+    check_plan(plan)
+    runs = expand(plan)
+    assert len(runs) == 16 and runs[-1].columns == {"n": 4, "topology": "complete", "leader.planner": "apf"}
+    _validate(plan, runs, None)  # no error: apf also sets leader.adaptive, as --planner does
+
+
+def test_without_the_extra_exit_2(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setitem(sys.modules, "pyarrow", None)  # import pyarrow -> ImportError
+    assert main([EX1, "--out", str(tmp_path / "c")]) == 2
+    assert "pip install zenswarm[sweep]" in capsys.readouterr().err and not (tmp_path / "c").exists()
+
+
 # ----------------------------------------------------------------------------- processes
 
 

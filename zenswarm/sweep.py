@@ -28,6 +28,7 @@ import os
 import random
 import signal
 import sys
+import threading
 import time
 import tomllib
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -179,6 +180,16 @@ def _worker_init() -> None:
     # Ctrl-C is the driver's: it cancels and stops the pool. A no-op handler (not SIG_IGN) so the
     # processes a swarm run starts get the default again.
     signal.signal(signal.SIGINT, lambda *_: None)
+    # A pool worker outlives a driver killed with SIGKILL (it holds its own queue's write end):
+    # it ends itself once its parent is gone.
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="zenswarm-sweep-parent-watch", daemon=True).start()
 
 
 class LocalBackend(Backend):
