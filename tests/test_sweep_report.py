@@ -224,6 +224,7 @@ def test_wilson_rejects_impossible_counts() -> None:
 GRID = [{"path": "faults.loss", "values": [0.0, 0.1, 0.2]}, {"path": "faults.delay", "values": [0.0, 0.05, 0.1]}]
 
 
+@pytest.mark.slow  # ~2 s of CPU: 5-7 figures
 def test_grid_3x3x10(tmp_path: Path) -> None:
     rows = synth_rows(GRID, 10, np.random.default_rng(7), crash_every=13)
     d = make_campaign(tmp_path / "camp", GRID, rows)
@@ -283,6 +284,7 @@ def test_seeds_only(tmp_path: Path) -> None:
     assert_png(d / "plots" / "formation_error_hist.png")
 
 
+@pytest.mark.slow  # ~2 s of CPU: 5-7 figures
 def test_string_axis_three_axes_and_a_sampled_field(tmp_path: Path) -> None:
     axes = [
         {"path": "agents.controller", "values": ["paper", "pid", "lqr"]},
