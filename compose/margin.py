@@ -486,7 +486,7 @@ def run(args: argparse.Namespace, out: Any = None) -> dict[str, Any]:
         f">= {emp_s:.3f} s (converged at every delay tried up to --max-delay)"
         if res.at_least
         else (
-            "< 1 tick (does not converge without delay)"
+            f"none: even without delay the formation does not converge within the {info['duration_s']:.0f} s run (a longer --duration?)"
             if res.margin_ticks < 0
             else f"{emp_s:.3f} s ({res.margin_ticks} ticks, +/- {tol} tick)"
         )
