@@ -130,6 +130,23 @@ def _run_plugins(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_sweep(sub: argparse._SubParsersAction) -> None:
+    # Listed here for `zenswarm --help`; the console command (zenswarm.__main__) hands `sweep` to
+    # zenswarm.sweep before this parser (it flies through zenswarm.api, above this layer).
+    p = sub.add_parser(
+        "sweep",
+        help="experiment campaigns: grids, samples and seeds in parallel (local pool or Dask); sweep report, sweep margin",
+        add_help=False,
+    )
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+    p.set_defaults(func=_run_sweep_here)
+
+
+def _run_sweep_here(args: argparse.Namespace) -> int:
+    print("zenswarm: error: sweep runs through the zenswarm command (zenswarm.__main__, python -m zenswarm sweep ...)", file=sys.stderr)
+    return 2
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="zenswarm",
@@ -145,6 +162,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_sim(sub)
     _add_scenario(sub)
     _add_plugins(sub)
+    _add_sweep(sub)
     for modname in ("zenswarm.compose.supervisor", "zenswarm.compose.roles", "zenswarm.bridge.cli", "zenswarm.compose.keys"):
         try:
             mod = __import__(modname, fromlist=["add_parsers"])

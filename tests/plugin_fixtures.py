@@ -1,4 +1,5 @@
 """Test-only plug-ins (named ``plugin_fixtures:ConsensusController`` / ``plugin_fixtures:LinePlanner``
+/ ``plugin_fixtures:CrashingController``
 with ``tests/`` on PYTHONPATH): a controller that shares an EXTRA quantity with its neighbours and
 draws from its seeded stream, and a planner; tests/test_plugins.py flies them in sim and lockstep up."""
 
@@ -87,3 +88,13 @@ class LinePlanner(Planner):
 
     def advance(self) -> None:
         self.q0 = self.q0 + self.ctx.dt * self.ref()[1]
+
+
+class CrashingController(ConsensusController):
+    """Raises on its first step (tests/test_sweep.py: a crashing run is recorded with its error)."""
+
+    name = "test-crash"
+    description = "test-only: raises RuntimeError on its first step"
+
+    def step(self, q: np.ndarray, v: np.ndarray, neighbours: Sequence[Shared | None], leader: Shared | None, dt: float) -> Command:
+        raise RuntimeError("test-crash controller: deliberate failure")

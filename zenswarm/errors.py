@@ -26,3 +26,7 @@ class ProcessFailure(ZenswarmError):
 
 class RecordingError(ZenswarmError):
     """An MCAP recording is missing, truncated or corrupted."""
+
+
+class CampaignError(ZenswarmError):
+    """A campaign directory (``zenswarm sweep --out DIR``) is missing, unreadable or malformed."""

@@ -448,7 +448,8 @@ class LinkFaultSpec:
 
     @property
     def active(self) -> bool:
-        return bool(self.delay_s or self.jitter_s or self.loss or self.burst is not None or self.partitions or self.radio_active or self.queue)
+        return bool(self.delay_s or self.jitter_s or self.loss or self.burst is not None or self.partitions
+                    or self.radio_active or self.queue)
 
     @property
     def radio_active(self) -> bool:
@@ -1116,7 +1117,7 @@ def plan_from_cli(
             raise ScenarioError("--partition", str(e)) from None
         check_exists("--partition", parts[-1].process_or_link, n)
     queue = queue_spec(("--link-capacity", "--link-queue", "--link-medium"), link_capacity, link_queue, link_medium, d.queue)
-    default = LinkFaultSpec(delay, jitter, loss, d.burst, d.partitions, queue)
+    default = LinkFaultSpec(delay, jitter, loss, d.burst, d.partitions, radio=d.radio, queue=queue)
     return FaultPlan(default, dict(base.per_link), seed, tuple(parts), base.trace, base.queues)
 
 
@@ -1288,6 +1289,6 @@ def plan_with_radio(plan: FaultPlan, link_range: str | None = None, link_fade: s
             r.fade_50_m if fade is None else fade[0],
             r.fade_width_m if fade is None else fade[1],
         )
-        return LinkFaultSpec(spec.delay_s, spec.jitter_s, spec.loss, spec.burst, spec.partitions, model)
+        return replace(spec, radio=model)
 
-    return FaultPlan(with_radio(plan.default), dict(plan.per_link), plan.seed, plan.partitions)
+    return replace(plan, default=with_radio(plan.default), per_link=dict(plan.per_link))

@@ -1,0 +1,254 @@
+"""Issue 17 points 1-3: `zenswarm sweep` (docs/campaigns.md).
+
+Pure: the expansion of a campaign (run order, cells, seeds, durations in seconds, sampled draws),
+campaign files, and validation (bad paths and values exit 2 naming them, before anything runs or
+is written). Processes (short flights of paper example 1, ``--duration 2``): a local campaign
+interrupted with SIGINT, resumed, resumed again with nothing left, its rows equal to individual
+``fly()`` results; a real loopback Dask cluster (``dask scheduler`` and two ``dask worker``)
+giving the same rows as the local pool, a crashing run recorded with its error after a retry on both.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from zenswarm.api import fly
+from zenswarm.bus import free_port
+from zenswarm.campaign import GridAxis, Plan, SampleAxis, check_plan, expand, parse_grid, parse_sample, plan_from_toml
+from zenswarm.errors import ScenarioError
+from zenswarm.pytest_plugin import port_free
+from zenswarm.sweep import main, metric_columns
+
+from swarmtest import ROOT
+
+pq = pytest.importorskip("pyarrow.parquet", reason="zenswarm[sweep] is in the test extra")
+
+EX1 = "paper_example1"
+TESTS = Path(__file__).parent
+CRASH = "plugin_fixtures:CrashingController"
+
+
+def _table(out: Path) -> list[dict[str, Any]]:
+    return pq.read_table(out / "runs.parquet").to_pylist()
+
+
+def _same(x: Any, y: Any) -> bool:
+    return x == y or isinstance(x, float) and isinstance(y, float) and math.isnan(x) and math.isnan(y)
+
+
+def _key(row: dict[str, Any], inputs: list[str]) -> tuple:
+    return tuple(row[k] for k in ["run", "cell", "seed", *inputs, *metric_columns(), "error", "attempts", "mode"])
+
+
+# ----------------------------------------------------------------------------- pure
+
+
+def test_expansion_order_cells_and_units() -> None:
+    plan = Plan(EX1, grid=(parse_grid("faults.loss=0,0.1,0.2"), parse_grid("faults.delay=0ms,50ms,100ms")), seeds=10, base_seed=5)
+    check_plan(plan)
+    runs = expand(plan)
+    assert len(runs) == 90 and [r.run for r in runs] == list(range(90))
+    assert [r.seed for r in runs[:10]] == list(range(5, 15))
+    r = runs[10 * 4 + 3]  # cell 4: loss 0.1 (middle), delay 50ms (middle); seed base + 3
+    assert r.inputs == {"faults.loss": 0.1, "faults.delay": "50ms"} and r.seed == 8
+    assert r.columns["faults.delay"] == pytest.approx(0.05) and r.cell == f"faults.loss=0.1,faults.delay={r.columns['faults.delay']!r}"
+    assert expand(plan) == runs  # the same command, the same indices
+    assert plan.axes_json()[1]["values"] == [0.0, r.columns["faults.delay"], runs[20].columns["faults.delay"]]
+
+
+def test_values_and_samples() -> None:
+    g = parse_grid("leader.goal=[2.4, 1.4, 0.6],[2, 1, 0.5]")
+    assert g.values == ([2.4, 1.4, 0.6], [2, 1, 0.5])
+    assert parse_grid("agents.controller=paper,plugin_fixtures:X").values == ("paper", "plugin_fixtures:X")
+    assert parse_grid("eso.enabled=true,false").values == (True, False)
+    plan = Plan(EX1, grid=(g,), samples=(parse_sample("faults.loss=0:0.3"), parse_sample("faults.delay=0ms:20ms")), n_samples=4, seeds=2)
+    check_plan(plan)
+    runs = expand(plan)
+    assert len(runs) == 2 * 4 * 2
+    draws = [r.columns["faults.loss"] for r in runs[::2]]
+    assert draws[:4] == draws[4:]  # the same draws in every grid cell
+    assert all(0 <= d <= 0.3 for d in draws) and len(set(draws[:4])) == 4
+    assert all(0 <= r.columns["faults.delay"] <= 0.02 and r.inputs["faults.delay"].endswith("s") for r in runs)
+    assert [r.columns for r in expand(plan)] == [r.columns for r in runs]  # seeded by base_seed
+    n = expand(Plan("generate", samples=(SampleAxis("n", 3, 5),), n_samples=6))
+    assert {r.columns["n"] for r in n} <= {3, 4, 5} and all(isinstance(r.columns["n"], int) for r in n)
+
+
+@pytest.mark.parametrize(
+    ("plan", "field"),
+    [
+        (Plan(EX1, seeds=0), "--seeds"),
+        (Plan(EX1, grid=(GridAxis("n", (3,)),)), "n"),
+        (Plan(EX1, grid=(GridAxis("faults.loss", (0,)), GridAxis("faults.loss", (1,)))), "faults.loss"),
+        (Plan(EX1, grid=(GridAxis("scenario.seed", (1,)),)), "scenario.seed"),
+        (Plan(EX1, samples=(SampleAxis("faults.loss", 0.3, 0.1),), n_samples=2), "faults.loss"),
+        (Plan(EX1, samples=(SampleAxis("faults.loss", 0, 1),)), "--samples"),
+        (Plan(EX1, mode="swarm", check_swarm=1), "--check-swarm"),
+        (Plan("generate", grid=(GridAxis("n", ("three",)),)), "n"),
+    ],
+)
+def test_plan_errors_name_the_field(plan: Plan, field: str) -> None:
+    with pytest.raises(ScenarioError) as e:
+        check_plan(plan)
+    assert e.value.field == field
+
+
+def test_campaign_file() -> None:
+    doc = {"campaign": {"scenario": EX1, "seeds": 3, "duration": 2}, "grid": {"faults.loss": [0, 0.1]},
+           "sample": {"faults.jitter": ["0ms", "10ms"]}}
+    plan, out = plan_from_toml(doc)
+    assert out is None and plan.seeds == 3 and plan.duration == 2.0 and plan.grid[0] == GridAxis("faults.loss", (0, 0.1))
+    with pytest.raises(ScenarioError, match="campaign.sedes"):
+        plan_from_toml({"campaign": {"scenario": EX1, "sedes": 3}})
+
+
+@pytest.mark.parametrize(
+    ("args", "named"),
+    [
+        (["--grid", "faults.nosuch=1,2"], "faults.nosuch"),
+        (["--grid", "timing.bogus=1"], "timing.bogus"),
+        (["--grid", "faults.loss=0,1.5"], "faults.loss"),
+        (["--grid", "faults.delay=0ms,50parsecs"], "faults.delay"),
+        (["--grid", "obstacles[7].radius=0.1"], "obstacles[7]"),
+        (["--grid", "agents.controller=paper,nosuch_ctrl"], "nosuch_ctrl"),
+        (["--grid", "n=3,5"], "n"),
+        (["--grid", "faults.loss"], "--grid"),
+        (["--sample", "faults.loss=0:x", "--samples", "2"], "faults.loss"),
+    ],
+)
+def test_bad_input_exit_2_before_anything(tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], named: str) -> None:
+    out = tmp_path / "c"
+    assert main([EX1, *args, "--seeds", "2", "--duration", "2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert named in err and "error" in err
+    assert not out.exists()
+
+
+def test_generated_scenario_bad_value_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["generate", "--grid", "topology=ring,moebius", "--out", str(tmp_path / "c")]) == 2
+    assert "moebius" in capsys.readouterr().err
+
+
+def test_campaign_file_is_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from zenswarm.sweep import _plan_from_args, build_parser
+
+    f = tmp_path / "c.toml"
+    f.write_text('[campaign]\nscenario = "paper_example1"\nseeds = 3\nduration = 2\nout = "o"\n'
+                 '[grid]\n"faults.loss" = [0, 0.1]\n"faults.delay" = ["0ms", "50ms"]\n')
+    from_file, out = _plan_from_args(build_parser().parse_args([str(f)]))
+    cli, _ = _plan_from_args(build_parser().parse_args(
+        [EX1, "--grid", "faults.loss=0,0.1", "--grid", "faults.delay=0ms,50ms", "--seeds", "3", "--duration", "2", "--out", "x"]))
+    assert out == tmp_path / "o" and expand(from_file) == expand(cli) and from_file.axes_json() == cli.axes_json()
+    f.write_text('[campaign]\nscenario = "paper_example1"\n[grid]\n"faults.nosuch" = [1]\n')
+    assert main([str(f), "--out", str(tmp_path / "x")]) == 2 and "faults.nosuch" in capsys.readouterr().err
+    assert main([str(f), "--grid", "faults.loss=0", "--out", str(tmp_path / "x")]) == 2 and "--grid" in capsys.readouterr().err
+
+
+def test_generated_scenarios_and_plugins_validate() -> None:
+    from zenswarm.sweep import _validate
+
+    plan = Plan("generate", grid=(parse_grid("n=2,4"), parse_grid("topology=ring,complete"), parse_grid("leader.planner=aapf,apf")),
+                seeds=2, duration=2.0)
+    check_plan(plan)
+    runs = expand(plan)
+    assert len(runs) == 16 and runs[-1].columns == {"n": 4, "topology": "complete", "leader.planner": "apf"}
+    _validate(plan, runs, None)  # no error: apf also sets leader.adaptive, as --planner does
+
+
+def test_without_the_extra_exit_2(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setitem(sys.modules, "pyarrow", None)  # import pyarrow -> ImportError
+    assert main([EX1, "--out", str(tmp_path / "c")]) == 2
+    assert "pip install zenswarm[sweep]" in capsys.readouterr().err and not (tmp_path / "c").exists()
+
+
+# ----------------------------------------------------------------------------- processes
+
+
+def _sweep_args(out: Path, *extra: str) -> list[str]:
+    return [EX1, "--grid", "faults.loss=0,0.3", "--seeds", "2", "--duration", "1", "--out", str(out), *extra]
+
+
+@pytest.mark.swarm  # CLI subprocesses and a process pool
+def test_local_campaign_interrupt_resume_and_rows_equal_fly(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "camp"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    cmd = [sys.executable, "-m", "zenswarm", "sweep", *_sweep_args(out, "--workers", "1")]
+    p = subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    journal = out / "runs.jsonl"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and p.poll() is None and not (journal.is_file() and journal.read_text().count("\n") >= 1):
+        time.sleep(0.05)
+    os.killpg(p.pid, signal.SIGINT)  # as Ctrl-C in a terminal: the whole foreground group
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == 130, err
+    first = _table(out)
+    assert 1 <= len(first) < 4 and "resume" in err
+    assert main(_sweep_args(out, "--workers", "1")) == 0  # resumes
+    rows = _table(out)
+    assert [r["run"] for r in rows] == list(range(4))  # no duplicates, nothing missing
+    assert [r for r in rows if r["run"] in {f["run"] for f in first}] == first  # finished runs not flown again
+    meta = json.loads((out / "campaign.json").read_text())
+    assert meta["runs"] == 4 and meta["axes"] == [{"path": "faults.loss", "values": [0.0, 0.3]}] and meta["seeds"] == 2
+    cols = list(pq.read_table(out / "runs.parquet").schema.names)
+    for c in ("run", "cell", "seed", "faults.loss", "success", "causes", "error", "attempts", "max_formation_error_m",
+              "min_obstacle_clearance_m", "time_to_goal_s", "goal_reached", "sim_time_s", "wall_s", "zenswarm_version", "mode"):
+        assert c in cols
+    lines = journal.read_text().count("\n")
+    capsys.readouterr()
+    assert main(_sweep_args(out)) == 0
+    assert journal.read_text().count("\n") == lines and "0 to fly" in capsys.readouterr().err
+    assert main(_sweep_args(out, "--base-seed", "4")) == 2
+    err = capsys.readouterr().err
+    assert "different campaign" in err and "base_seed" in err
+    for r in (rows[0], rows[3]):  # each row is the flight fly() gives
+        f = fly(EX1, seed=r["seed"], duration=1.0, overrides={"faults.loss": r["faults.loss"]})
+        assert r["success"] == f.success and r["causes"] == ",".join(f.causes) and r["error"] is None and r["attempts"] == 1
+        for k in ("max_formation_error_m", "rms_tracking_error_m", "min_obstacle_clearance_m", "min_inter_uav_distance_m", "sim_time_s"):
+            assert _same(r[k], getattr(f.metrics, k)), k
+    assert rows[3]["faults.loss"] == 0.3 and rows[3]["seed"] == 1 and r["mode"] == "sim"
+
+
+@pytest.mark.swarm  # a real Dask scheduler and two workers on loopback
+def test_dask_cluster_gives_the_local_rows_and_crashes_are_recorded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A crashing run (a test plug-in that raises) is recorded with its error after one retry, on
+    both backends; every other row is the same on the cluster as on the local pool."""
+    monkeypatch.syspath_prepend(str(TESTS))  # plugin_fixtures, in the driver and the pool (spawn copies sys.path)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}  # and the Dask workers
+    port = free_port()
+    addr = f"tcp://127.0.0.1:{port}"
+    dask = [sys.executable, "-m", "distributed.cli.dask_scheduler"]
+    worker = [sys.executable, "-m", "distributed.cli.dask_worker"]
+    logs = [open(tmp_path / f"dask{i}.log", "w") for i in range(3)]
+    procs = [subprocess.Popen([*dask, "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"], stdout=logs[0],
+                              stderr=subprocess.STDOUT, start_new_session=True)]
+    try:
+        procs += [subprocess.Popen([*worker, addr, "--nthreads", "1", "--no-dashboard", "--no-nanny"], stdout=logs[i],
+                                   stderr=subprocess.STDOUT, start_new_session=True, cwd=ROOT, env=env) for i in (1, 2)]
+        args = [EX1, "--grid", f"agents.controller=paper,{CRASH}", "--grid", "faults.delay=0ms,50ms", "--duration", "1", "--quiet"]
+        assert main([*args, "--scheduler", addr, "--out", str(tmp_path / "dask")]) == 1  # 1: runs crashed
+        assert main([*args, "--workers", "1", "--out", str(tmp_path / "local")]) == 1
+    finally:
+        for p in procs:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait(10)
+        for f in logs:
+            f.close()
+    assert port_free(port)
+    inputs = ["agents.controller", "faults.delay"]
+    d, loc = _table(tmp_path / "dask"), _table(tmp_path / "local")
+    assert len(d) == 4 and [_key(r, inputs) for r in d] == [_key(r, inputs) for r in loc]
+    for r in d + loc:
+        crashed = r["agents.controller"] == CRASH
+        assert r["attempts"] == (2 if crashed else 1) and (r["error"] is not None) == crashed
+        assert not crashed or "deliberate failure" in r["error"] and r["success"] is False and r["rms_tracking_error_m"] is None
+    assert d[0]["rms_tracking_error_m"] is not None
