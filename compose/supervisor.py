@@ -358,7 +358,7 @@ class Supervisor:
             bus.router_config(listen, connect=list(a.router_connect), settings=settings), handle_signals=False
         )
         session = session_cm.__enter__()
-        collector = self.collector = Collector(sc, self.keys)
+        collector = self.collector = Collector(sc, self.keys, spool_dir=out)  # spool: flat memory
         self._bus_sub: Any = None
         subs = []
         try:
@@ -514,7 +514,7 @@ class Supervisor:
         ``self.upto`` (the ticks to judge). Cheap: the leader's series (decoded as it arrives) and
         each UAV's newest state; the exact decision is taken again on the whole series after."""
         c = self.criteria
-        q0 = collector.ts.q0
+        q0 = collector.q0
         lead_known = collector.leader_ticks
         if not self.args.full_time:
             k = verdict.leader_stall_tick(q0, c, self._stall_checked, lead_known)
@@ -792,6 +792,7 @@ class Supervisor:
         # realtime, or a process that was down: a tick without a message holds the previous value
         fill = self.args.realtime or bool(self.deaths)
         ts = collector.series(self._judged_ticks(collector, code, fill), fill=fill)
+        collector.close()  # every sample is in the series: free the spool
         res = compute_results(ts, sc, wall_time_s=time.monotonic() - self.t_start, early_end=not self.args.full_time)
         self._add_run_facts(res, collector)
         if collector.foreign:
