@@ -28,7 +28,9 @@ vehicle with system id ``sysid_i`` and then:
 5. once every UAV is ready (or ``start_timeout_s`` passed) and, unless ``--no-wait-alive``, the
    leader and the agents hold liveliness tokens, starts the mission clock: every control tick it
    publishes ``clock`` and each ready UAV's ``uav/<i>/state`` (from LOCAL_POSITION_NED and
-   ATTITUDE/ATTITUDE_QUATERNION, converted to ENU/FLU by :mod:`zenswarm.frames`), as the realtime
+   ATTITUDE/ATTITUDE_QUATERNION, converted to ENU/FLU by :mod:`zenswarm.frames`; stamped ``ts``
+   with the vehicle's ``time_boot_ms`` on the mission clock once TIMESYNC gave its clock offset,
+   :meth:`Bridge.sample_time`), as the realtime
    plant does (mission time is wall time since the start: a tick the loop missed on an overloaded
    host is skipped and counted in ``ticks_skipped``, never caught up in a burst), and forwards
    each agent's ``uav/<i>/cmd`` as SET_ATTITUDE_TARGET
@@ -1080,6 +1082,17 @@ class Bridge:
         w = frames.frd_to_flu(t.rates_frd)
         return q, v, rpy, w
 
+    def sample_time(self, link: UavLink) -> float | None:
+        """When the vehicle measured its latest position and velocity, on the bridge's clock, s:
+        ``LOCAL_POSITION_NED.time_boot_ms`` (the vehicle's own clock) minus the clock offset that
+        TIMESYNC measured (half the round trip assumed each way). None until the vehicle has
+        answered a TIMESYNC request: the fallback offset (the fastest delivery taken as
+        instantaneous) serves the ``max_state_age_ms`` diagnostic but is not put on the wire."""
+        t = link.tel
+        if t.pos_boot_s is None or t.clock_offset_s is None or not t.clock_from_timesync:
+            return None
+        return t.pos_boot_s - t.clock_offset_s
+
     def info(self, now: float) -> dict[str, Any]:
         """The diag ``info`` map: ``uav`` (per-UAV details), plus flat scalars that survive into
         the supervisor's results.json (``phases`` = ``"1:ready,2:ready,..."``, ``armed_uavs`` =
@@ -1307,12 +1320,25 @@ class _BridgeLoop:
             st = self.bridge.state_enu(link, now)
             if st is not None:
                 q, v, rpy, w = st
-                proc.publish(proc.keys.state(link.uav), wire.State(t=t, seq=seq, q=q, v=v, rpy=rpy, w=w))
+                proc.publish(
+                    proc.keys.state(link.uav), wire.State(t=t, seq=seq, q=q, v=v, rpy=rpy, w=w, stamp=self.stamp_ns(link))
+                )
                 proc.counters["states_published"] += 1
         proc.inbox.forget_before(self.k_tick - 2)
         if self.k_tick >= self.n_ticks:
             self.finished = True
         return self.finished
+
+    def stamp_ns(self, link: UavLink) -> int | None:
+        """The state's ``stamp`` (wire ``ts``): :meth:`Bridge.sample_time` on the mission clock
+        (ns since mission time 0, negative for a sample measured before the start; clipped to
+        +-``wire.MAX_T_NS``), or None (left out) without a TIMESYNC clock offset."""
+        from zenswarm import wire
+
+        ts = self.bridge.sample_time(link)
+        if ts is None or not math.isfinite(self.t0):
+            return None
+        return max(-wire.MAX_T_NS, min(wire.MAX_T_NS, round((ts - self.t0) * 1e9)))
 
     def _diag(self, now: float, extra: dict[str, Any], with_stats: bool = False) -> None:
         """``diag/bridge`` once a second, and at once after a phase or health change."""

@@ -658,6 +658,9 @@ def test_bridge_arms_takes_off_and_publishes_enu_state(flight):
     np.testing.assert_allclose(rpy_true, rpy_cmd, atol=0.01)  # the vehicle flies the commanded attitude
     np.testing.assert_allclose(st.rpy, rpy_true, atol=0.01)  # and the bus reports it in ENU
     assert f.fleet.vehicles[0].counters.get("setpoints", 0) > 50
+    # the vehicles answer TIMESYNC: a state carries when the vehicle measured it, on the mission
+    # clock (t is the tick, taken at or before publishing: the age may be negative by < 1 tick)
+    assert st.stamp is not None and -0.05e9 < st.t - st.stamp < 0.5e9, (st.t, st.stamp)
 
 
 @pytest.mark.swarm
