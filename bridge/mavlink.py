@@ -382,6 +382,7 @@ class Bridge:
         self.links: list[UavLink] = []
         self.boot = clock()
         self.changed = False  # a phase or health transition since the last diag (publish it now)
+        self.warned_grounded = False  # the ArduCopter takeoff = false + position warning was given
         for i in range(settings.n):
             url = settings.connections[i]
             ep = self.endpoints.get(url)
@@ -832,6 +833,29 @@ class Bridge:
         else:
             link.engaged_once = True
             self._set_phase(link, READY, now, "")
+            self._warn_grounded_position(link)
+
+    def _warn_grounded_position(self, link: UavLink) -> None:
+        """ArduCopter armed on the ground by the bridge with ``takeoff = false`` and position
+        setpoints: GUIDED's position controller never lifts a landed vehicle off (ArduCopter
+        ``mode_guided.cpp``: ``pos_control_run`` only does ground handling while
+        ``is_disarmed_or_landed()``), so it stays on the ground and auto-disarms (``DISARM_DELAY``).
+        Said once per bridge (counted per vehicle: ``grounded_position``), not refused: a vehicle
+        lifted off by other means (a pilot, a script) flies the targets."""
+        if link.autopilot != "ardupilot" or self.s.setpoint != "position" or self._airborne(link):
+            return
+        self._count("grounded_position")
+        if self.warned_grounded:
+            return
+        self.warned_grounded = True
+        self.log(
+            f"bridge: WARNING: uav {link.uav} (and any other ArduCopter on the ground) will not take off: "
+            "takeoff = false with setpoint = \"position\" sends GUIDED position targets to a landed vehicle, "
+            "which ArduCopter's GUIDED position controller never lifts off (ground handling only while landed, "
+            "mode_guided.cpp); it will auto-disarm after DISARM_DELAY. Set takeoff = true (the bridge then "
+            "sends MAV_CMD_NAV_TAKEOFF first), or have the vehicles airborne before the bridge starts (it "
+            "adopts an armed vehicle in place). See docs/mavlink.md, ArduCopter modes."
+        )
 
     def _still_engaged(self, link: UavLink, now: float) -> bool:
         """READY/TAKEOFF: False (and the phase moved to MODE, GROUNDED or RELEASED) if the vehicle

@@ -46,6 +46,8 @@ COLLECTOR_QUEUE = 4_000_000
 """Capacity of the supervisor's bus queue, in messages (drained every ~50 ms, so it never fills)."""
 
 EXIT_OK, EXIT_MISSION_FAILED, EXIT_BAD_INPUT, EXIT_PROCESS_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+SITL_SEND_OFFSET = 40
+"""With ``--plant mavlink`` simulated vehicle i sends from UDP P+40+i (PX4 SITL: 14580+i -> 14540+i)."""
 
 DEFAULT_EXTERNAL_TIMEOUT_S = 60.0
 """``--external-timeout``: how long an external role may take to announce itself (the plant
@@ -197,7 +199,8 @@ class Supervisor:
         self._in_slots_since: int | None = None
         self._deciding = False  # the live look saw the outcome decided; waiting for the exact tick
         self.recording_loss: dict | None = None  # the recorder died mid-flight (_recorder_died)
-        self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n)
+        # the vehicles' ports P+i (the bridge listens) and their send ports P+40+i, all free
+        self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n, also=(SITL_SEND_OFFSET,))
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
 
     # ------------------------------------------------------------------ output
@@ -858,9 +861,27 @@ def check_up_args(args: UpOptions, sc: Scenario) -> None:
         if r not in names:
             raise ScenarioError("--external", f"unknown role {r!r}: this swarm's roles are {', '.join(names)}")
     _check_kills(args, sc, names)
+    if args.plant == "mavlink" and args.mavlink_base_port is not None:
+        check_mavlink_ports(args.mavlink_base_port, sc.n)
     check_output_dir(args.out, "--out")
     if args.record is not None:
         check_output_file(args.record, "--record")
+
+
+def check_mavlink_ports(base: int, n: int, host: str = "127.0.0.1") -> None:
+    """``--plant mavlink --mavlink-base-port P``: the simulated vehicle i (0-based) sends from UDP
+    P+40+i to P+i, where the bridge listens (PX4 SITL's direction): all 2n ports must be free on
+    ``host``, else :class:`ScenarioError` naming the flag and the first busy port (exit 2, before
+    anything starts; a busy port would otherwise kill the vehicles' process mid-start)."""
+    ports = [(base + i, f"where the bridge hears vehicle {i + 1}, P+{i}") for i in range(n)]
+    ports += [(base + SITL_SEND_OFFSET + i, f"vehicle {i + 1}'s send port, P+{SITL_SEND_OFFSET}+{i}") for i in range(n)]
+    for port, what in ports:
+        if bus.udp_ports_in_use([port], host):
+            raise ScenarioError(
+                "--mavlink-base-port",
+                f"UDP port {port} on {host} ({what}) is in use or not a port; the simulated vehicles need "
+                f"P..P+{n - 1} and P+{SITL_SEND_OFFSET}..P+{SITL_SEND_OFFSET + n - 1} free (P = {base})",
+            )
 
 
 def _check_kills(args: UpOptions, sc: Scenario, names: list[str]) -> None:
@@ -961,7 +982,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="sim: the simulated plant process (default); mavlink: simulated MAVLink vehicles over UDP flown "
         "through the MAVLink bridge (zenswarm bridge mavlink), realtime",
     )
-    p.add_argument("--mavlink-base-port", type=int, metavar="P", help="with --plant mavlink: vehicle i on UDP P+i-1 (default: free ports)")
+    p.add_argument(
+        "--mavlink-base-port", type=int, metavar="P",
+        help="with --plant mavlink: vehicle i on UDP P+i-1, sending from P+40+i-1; all checked free (default: free ports)",
+    )
     p.add_argument(
         "--external",
         action="append",

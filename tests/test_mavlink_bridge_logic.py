@@ -377,3 +377,28 @@ def test_origin_flag_overrides_one_uav():
     assert e.value.field == "--origin"
     with pytest.raises(ScenarioError):
         mavlink_settings(_sc({}), {"origin": {1: (0.0, math.nan, 0.0)}})
+
+
+def test_ardupilot_without_takeoff_and_position_setpoints_warns_once():
+    """ArduCopter, takeoff = false, setpoint = "position": the bridge arms the vehicle on the
+    ground and sends position targets, which GUIDED never lifts off with; it says so once, clearly
+    (and counts each such vehicle), and not for PX4, attitude setpoints or a vehicle in the air."""
+    b, _, logs = _bridge({"takeoff": False, "setpoint": "position"})
+    for lk in b.links:
+        lk.autopilot, lk.armed_by_us = "ardupilot", True
+    b._armed(b.links[0], 1.0)
+    b._armed(b.links[1], 1.0)
+    warn = [line for line in logs if "WARNING" in line]
+    assert len(warn) == 1 and "uav 1" in warn[0] and "will not take off" in warn[0] and "takeoff = true" in warn[0], logs
+    assert b.counters["grounded_position"] == 2 and b.links[0].phase == "ready"
+    b2, _, logs2 = _bridge({"takeoff": False, "setpoint": "position"})
+    b2.links[0].autopilot, b2.links[0].armed_by_us = "px4", True  # PX4 offboard takes off by itself
+    b2.links[1].autopilot, b2.links[1].armed_by_us = "ardupilot", True
+    b2._handle(b2.links[1].endpoint, _msg("EXTENDED_SYS_STATE", src=2, vtol_state=0, landed_state=mavlink.MAV_LANDED_STATE_IN_AIR), 1.0)
+    assert b2.links[1].tel.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
+    b2._armed(b2.links[0], 1.0)
+    b2._armed(b2.links[1], 1.0)  # already in the air: flies the targets
+    b3, _, logs3 = _bridge({"takeoff": False})  # attitude setpoints: GUIDED_NOGPS, the agents' thrust lifts it
+    b3.links[0].autopilot, b3.links[0].armed_by_us = "ardupilot", True
+    b3._armed(b3.links[0], 1.0)
+    assert not [line for line in logs2 + logs3 if "WARNING" in line] and "grounded_position" not in b2.counters
