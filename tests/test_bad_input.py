@@ -351,10 +351,11 @@ def test_up_refuses_duplicate_mavlink_sysids(tmp_path: Path) -> None:
     _up_refused(tmp_path, "--plant", "mavlink", scenario=p, needles=("mavlink.sysids", "UAV 2 and UAV 3"))
 
 
+@pytest.mark.swarm
 def test_up_refuses_busy_simulated_vehicle_ports(tmp_path: Path) -> None:
     """``--plant mavlink --mavlink-base-port P``: simulated vehicle i sends from UDP P+40+i (PX4
-    SITL's direction); a busy one is named, exit 2, before anything starts (it used to kill the
-    vehicles' process mid-start, exit 3)."""
+    SITL's direction); a busy one is named, exit 2, before anything starts (it used to fail in the
+    vehicles' process, after the swarm had started)."""
     import socket
 
     base = bus.free_udp_block(3, also=(40,))
