@@ -119,12 +119,20 @@ def wire_json_schema(kind: str) -> dict[str, Any]:
         props["process"] = {"type": "string", "description": "process name (plant, leader, agent:<i>, ...)"}
         props["counters"] = {"type": "object", "additionalProperties": {"type": "number"}, "description": "counters"}
         props["info"] = {"type": "object", "description": "free-form information"}
+    required = list(props)
+    if kind == "state":  # optional: the MAVLink bridge's vehicle time of the measurement
+        props["ts"] = {
+            "type": "integer",
+            "minimum": -wire.MAX_T_NS,
+            "maximum": wire.MAX_T_NS,
+            "description": "when the vehicle measured q and vel, on the sim-time clock, ns (t - ts: the state's age)",
+        }
     return {
         "title": _KIND_TITLES[kind],
         "description": _KIND_DESCRIPTIONS[kind],
         "type": "object",
         "properties": props,
-        "required": list(props),
+        "required": required,
         "additionalProperties": False,
     }
 

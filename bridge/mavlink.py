@@ -28,7 +28,9 @@ vehicle with system id ``sysid_i`` and then:
 5. once every UAV is ready (or ``start_timeout_s`` passed) and, unless ``--no-wait-alive``, the
    leader and the agents hold liveliness tokens, starts the mission clock: every control tick it
    publishes ``clock`` and each ready UAV's ``uav/<i>/state`` (from LOCAL_POSITION_NED and
-   ATTITUDE/ATTITUDE_QUATERNION, converted to ENU/FLU by :mod:`zenswarm.frames`), as the realtime
+   ATTITUDE/ATTITUDE_QUATERNION, converted to ENU/FLU by :mod:`zenswarm.frames`; stamped ``ts``
+   with the vehicle's ``time_boot_ms`` on the mission clock once TIMESYNC gave its clock offset,
+   :meth:`Bridge.sample_time`), as the realtime
    plant does (mission time is wall time since the start: a tick the loop missed on an overloaded
    host is skipped and counted in ``ticks_skipped``, never caught up in a burst), and forwards
    each agent's ``uav/<i>/cmd`` as SET_ATTITUDE_TARGET
@@ -380,6 +382,7 @@ class Bridge:
         self.links: list[UavLink] = []
         self.boot = clock()
         self.changed = False  # a phase or health transition since the last diag (publish it now)
+        self.warned_grounded = False  # the ArduCopter takeoff = false + position warning was given
         for i in range(settings.n):
             url = settings.connections[i]
             ep = self.endpoints.get(url)
@@ -830,6 +833,29 @@ class Bridge:
         else:
             link.engaged_once = True
             self._set_phase(link, READY, now, "")
+            self._warn_grounded_position(link)
+
+    def _warn_grounded_position(self, link: UavLink) -> None:
+        """ArduCopter armed on the ground by the bridge with ``takeoff = false`` and position
+        setpoints: GUIDED's position controller never lifts a landed vehicle off (ArduCopter
+        ``mode_guided.cpp``: ``pos_control_run`` only does ground handling while
+        ``is_disarmed_or_landed()``), so it stays on the ground and auto-disarms (``DISARM_DELAY``).
+        Said once per bridge (counted per vehicle: ``grounded_position``), not refused: a vehicle
+        lifted off by other means (a pilot, a script) flies the targets."""
+        if link.autopilot != "ardupilot" or self.s.setpoint != "position" or self._airborne(link):
+            return
+        self._count("grounded_position")
+        if self.warned_grounded:
+            return
+        self.warned_grounded = True
+        self.log(
+            f"bridge: WARNING: uav {link.uav} (and any other ArduCopter on the ground) will not take off: "
+            "takeoff = false with setpoint = \"position\" sends GUIDED position targets to a landed vehicle, "
+            "which ArduCopter's GUIDED position controller never lifts off (ground handling only while landed, "
+            "mode_guided.cpp); it will auto-disarm after DISARM_DELAY. Set takeoff = true (the bridge then "
+            "sends MAV_CMD_NAV_TAKEOFF first), or have the vehicles airborne before the bridge starts (it "
+            "adopts an armed vehicle in place). See docs/mavlink.md, ArduCopter modes."
+        )
 
     def _still_engaged(self, link: UavLink, now: float) -> bool:
         """READY/TAKEOFF: False (and the phase moved to MODE, GROUNDED or RELEASED) if the vehicle
@@ -1080,6 +1106,17 @@ class Bridge:
         w = frames.frd_to_flu(t.rates_frd)
         return q, v, rpy, w
 
+    def sample_time(self, link: UavLink) -> float | None:
+        """When the vehicle measured its latest position and velocity, on the bridge's clock, s:
+        ``LOCAL_POSITION_NED.time_boot_ms`` (the vehicle's own clock) minus the clock offset that
+        TIMESYNC measured (half the round trip assumed each way). None until the vehicle has
+        answered a TIMESYNC request: the fallback offset (the fastest delivery taken as
+        instantaneous) serves the ``max_state_age_ms`` diagnostic but is not put on the wire."""
+        t = link.tel
+        if t.pos_boot_s is None or t.clock_offset_s is None or not t.clock_from_timesync:
+            return None
+        return t.pos_boot_s - t.clock_offset_s
+
     def info(self, now: float) -> dict[str, Any]:
         """The diag ``info`` map: ``uav`` (per-UAV details), plus flat scalars that survive into
         the supervisor's results.json (``phases`` = ``"1:ready,2:ready,..."``, ``armed_uavs`` =
@@ -1307,12 +1344,25 @@ class _BridgeLoop:
             st = self.bridge.state_enu(link, now)
             if st is not None:
                 q, v, rpy, w = st
-                proc.publish(proc.keys.state(link.uav), wire.State(t=t, seq=seq, q=q, v=v, rpy=rpy, w=w))
+                proc.publish(
+                    proc.keys.state(link.uav), wire.State(t=t, seq=seq, q=q, v=v, rpy=rpy, w=w, stamp=self.stamp_ns(link))
+                )
                 proc.counters["states_published"] += 1
         proc.inbox.forget_before(self.k_tick - 2)
         if self.k_tick >= self.n_ticks:
             self.finished = True
         return self.finished
+
+    def stamp_ns(self, link: UavLink) -> int | None:
+        """The state's ``stamp`` (wire ``ts``): :meth:`Bridge.sample_time` on the mission clock
+        (ns since mission time 0, negative for a sample measured before the start; clipped to
+        +-``wire.MAX_T_NS``), or None (left out) without a TIMESYNC clock offset."""
+        from zenswarm import wire
+
+        ts = self.bridge.sample_time(link)
+        if ts is None or not math.isfinite(self.t0):
+            return None
+        return max(-wire.MAX_T_NS, min(wire.MAX_T_NS, round((ts - self.t0) * 1e9)))
 
     def _diag(self, now: float, extra: dict[str, Any], with_stats: bool = False) -> None:
         """``diag/bridge`` once a second, and at once after a phase or health change."""

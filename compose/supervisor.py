@@ -46,6 +46,8 @@ COLLECTOR_QUEUE = 4_000_000
 """Capacity of the supervisor's bus queue, in messages (drained every ~50 ms, so it never fills)."""
 
 EXIT_OK, EXIT_MISSION_FAILED, EXIT_BAD_INPUT, EXIT_PROCESS_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+SITL_SEND_OFFSET = 40
+"""With ``--plant mavlink`` simulated vehicle i sends from UDP P+40+i (PX4 SITL: 14580+i -> 14540+i)."""
 
 DEFAULT_EXTERNAL_TIMEOUT_S = 60.0
 """``--external-timeout``: how long an external role may take to announce itself (the plant
@@ -197,7 +199,8 @@ class Supervisor:
         self._in_slots_since: int | None = None
         self._deciding = False  # the live look saw the outcome decided; waiting for the exact tick
         self.recording_loss: dict | None = None  # the recorder died mid-flight (_recorder_died)
-        self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n)
+        # the vehicles' ports P+i (the bridge listens) and their send ports P+40+i, all free
+        self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n, also=(SITL_SEND_OFFSET,))
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
 
     # ------------------------------------------------------------------ output
@@ -358,7 +361,7 @@ class Supervisor:
             bus.router_config(listen, connect=list(a.router_connect), settings=settings), handle_signals=False
         )
         session = session_cm.__enter__()
-        collector = self.collector = Collector(sc, self.keys)
+        collector = self.collector = Collector(sc, self.keys, spool_dir=out)  # spool: flat memory
         self._bus_sub: Any = None
         subs = []
         try:
@@ -514,7 +517,7 @@ class Supervisor:
         ``self.upto`` (the ticks to judge). Cheap: the leader's series (decoded as it arrives) and
         each UAV's newest state; the exact decision is taken again on the whole series after."""
         c = self.criteria
-        q0 = collector.ts.q0
+        q0 = collector.q0
         lead_known = collector.leader_ticks
         if not self.args.full_time:
             k = verdict.leader_stall_tick(q0, c, self._stall_checked, lead_known)
@@ -792,6 +795,7 @@ class Supervisor:
         # realtime, or a process that was down: a tick without a message holds the previous value
         fill = self.args.realtime or bool(self.deaths)
         ts = collector.series(self._judged_ticks(collector, code, fill), fill=fill)
+        collector.close()  # every sample is in the series: free the spool
         res = compute_results(ts, sc, wall_time_s=time.monotonic() - self.t_start, early_end=not self.args.full_time)
         self._add_run_facts(res, collector)
         from zenswarm.compose.sim import radio_results
@@ -860,9 +864,27 @@ def check_up_args(args: UpOptions, sc: Scenario) -> None:
         if r not in names:
             raise ScenarioError("--external", f"unknown role {r!r}: this swarm's roles are {', '.join(names)}")
     _check_kills(args, sc, names)
+    if args.plant == "mavlink" and args.mavlink_base_port is not None:
+        check_mavlink_ports(args.mavlink_base_port, sc.n)
     check_output_dir(args.out, "--out")
     if args.record is not None:
         check_output_file(args.record, "--record")
+
+
+def check_mavlink_ports(base: int, n: int, host: str = "127.0.0.1") -> None:
+    """``--plant mavlink --mavlink-base-port P``: the simulated vehicle i (0-based) sends from UDP
+    P+40+i to P+i, where the bridge listens (PX4 SITL's direction): all 2n ports must be free on
+    ``host``, else :class:`ScenarioError` naming the flag and the first busy port (exit 2, before
+    anything starts; a busy port would otherwise kill the vehicles' process mid-start)."""
+    ports = [(base + i, f"where the bridge hears vehicle {i + 1}, P+{i}") for i in range(n)]
+    ports += [(base + SITL_SEND_OFFSET + i, f"vehicle {i + 1}'s send port, P+{SITL_SEND_OFFSET}+{i}") for i in range(n)]
+    for port, what in ports:
+        if bus.udp_ports_in_use([port], host):
+            raise ScenarioError(
+                "--mavlink-base-port",
+                f"UDP port {port} on {host} ({what}) is in use or not a port; the simulated vehicles need "
+                f"P..P+{n - 1} and P+{SITL_SEND_OFFSET}..P+{SITL_SEND_OFFSET + n - 1} free (P = {base})",
+            )
 
 
 def _check_kills(args: UpOptions, sc: Scenario, names: list[str]) -> None:
@@ -963,7 +985,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="sim: the simulated plant process (default); mavlink: simulated MAVLink vehicles over UDP flown "
         "through the MAVLink bridge (zenswarm bridge mavlink), realtime",
     )
-    p.add_argument("--mavlink-base-port", type=int, metavar="P", help="with --plant mavlink: vehicle i on UDP P+i-1 (default: free ports)")
+    p.add_argument(
+        "--mavlink-base-port", type=int, metavar="P",
+        help="with --plant mavlink: vehicle i on UDP P+i-1, sending from P+40+i-1; all checked free (default: free ports)",
+    )
     p.add_argument(
         "--external",
         action="append",

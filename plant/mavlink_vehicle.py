@@ -88,6 +88,7 @@ from zenswarm.autopilot import (
     px4_custom_mode,
     px4_decode,
 )
+from zenswarm.errors import ScenarioError
 from zenswarm.params import QuadParams
 from zenswarm.plant.disturbance import DisturbanceModel
 from zenswarm.plant.mavlink_params import ParamStore, ardupilot_params, px4_params
@@ -207,6 +208,11 @@ class VehicleOptions:
         return None
 
 
+SITL_SEND_OFFSET = 40
+"""With ``sitl_ports``, vehicle i (0-based) sends from UDP ``base_port + 40 + i`` (PX4 SITL:
+14580+i -> 14540+i)."""
+
+
 class SimVehicle:
     """One simulated vehicle: its MAVLink endpoint and its autopilot's logic (not its physics,
     which :class:`MavlinkFleet` integrates for all vehicles at once). Row ``index`` of the fleet."""
@@ -235,11 +241,25 @@ class SimVehicle:
             self.conn = mavutil.mavlink_connection(
                 f"udpout:{opts.host}:{port}", source_system=sysid, source_component=mavlink.MAV_COMP_ID_AUTOPILOT1
             )
-            self.conn.port.bind((opts.host, port + 40))
+            try:
+                self.conn.port.bind((opts.host, port + SITL_SEND_OFFSET))
+            except OSError as e:
+                self.conn.close()
+                raise ScenarioError(
+                    "--base-port",
+                    f"UDP port {opts.host}:{port + SITL_SEND_OFFSET} (vehicle {index + 1}'s send port, base port + "
+                    f"{SITL_SEND_OFFSET} + {index}, PX4 SITL's direction) cannot be bound: {e.strerror or e}",
+                ) from None
         else:
-            self.conn = mavutil.mavlink_connection(
-                f"udpin:{opts.host}:{port}", source_system=sysid, source_component=mavlink.MAV_COMP_ID_AUTOPILOT1, udp_timeout=5
-            )
+            try:
+                self.conn = mavutil.mavlink_connection(
+                    f"udpin:{opts.host}:{port}", source_system=sysid, source_component=mavlink.MAV_COMP_ID_AUTOPILOT1, udp_timeout=5
+                )
+            except OSError as e:
+                raise ScenarioError(
+                    "--base-port",
+                    f"UDP port {opts.host}:{port} (vehicle {index + 1}'s port, base port + {index}) cannot be bound: {e.strerror or e}",
+                ) from None
         self.armed = False
         self.guided_sub: str | None = None  # ArduCopter GUIDED sub-mode
         self.land_complete = True  # ArduCopter ap.land_complete (the land detector's verdict)
@@ -949,6 +969,22 @@ class SimVehicle:
             pass
 
 
+def vehicle_options(sc: Any) -> VehicleOptions:
+    """The :class:`VehicleOptions` of a scenario's ``[mavlink]`` table (``autopilot``,
+    ``telemetry_hz``, ``offboard_loss_s``, ``failsafe_land_s``, ``ground_z``, ``hover_throttle``,
+    ``host``)."""
+    ms = mavlink_settings(sc)
+    return VehicleOptions(
+        autopilot="ardupilot" if ms.autopilot == "ardupilot" else "px4",
+        telemetry_hz=ms.telemetry_hz,
+        offboard_loss_s=ms.offboard_loss_s,
+        failsafe_land_s=ms.failsafe_land_s,
+        ground_z=ms.ground_z,
+        hover_throttle=ms.hover_throttle,
+        host=ms.host,
+    )
+
+
 class MavlinkFleet:
     """N simulated quadrotors as MAVLink vehicles, integrated in real time.
 
@@ -1031,15 +1067,7 @@ class MavlinkFleet:
         ``hover_throttle``); ``opts`` given explicitly wins over the table."""
         ms = mavlink_settings(sc)
         if opts is None:
-            opts = VehicleOptions(
-                autopilot="ardupilot" if ms.autopilot == "ardupilot" else "px4",
-                telemetry_hz=ms.telemetry_hz,
-                offboard_loss_s=ms.offboard_loss_s,
-                failsafe_land_s=ms.failsafe_land_s,
-                ground_z=ms.ground_z,
-                hover_throttle=ms.hover_throttle,
-                host=ms.host,
-            )
+            opts = vehicle_options(sc)
         params = QuadParams.from_vehicle(sc.vehicle)
         dist = (sc.disturbance, np.random.default_rng(sc.seed)) if sc.disturbance.active else None
         return cls(
@@ -1219,18 +1247,16 @@ def run_fleet(
     from zenswarm.runtime import gc_policy, gc_startup_done
 
     gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work
-    fleet = MavlinkFleet.from_scenario(sc, base_port=base_port)
-    if autopilot or telemetry_hz or own_origin or sitl_ports:
-        opts = fleet.opts
-        fleet.close()
-        opts = replace(
-            opts,
-            autopilot=autopilot or opts.autopilot,
-            telemetry_hz=telemetry_hz or opts.telemetry_hz,
-            own_origin=own_origin or opts.own_origin,
-            sitl_ports=sitl_ports or opts.sitl_ports,
-        )
-        fleet = MavlinkFleet.from_scenario(sc, base_port=base_port, opts=opts)
+    opts = vehicle_options(sc)
+    opts = replace(
+        opts,
+        autopilot=autopilot or opts.autopilot,
+        telemetry_hz=telemetry_hz or opts.telemetry_hz,
+        own_origin=own_origin or opts.own_origin,
+        sitl_ports=sitl_ports or opts.sitl_ports,
+    )
+    # one fleet, its ports bound once (a busy port: ScenarioError naming it, exit 2)
+    fleet = MavlinkFleet.from_scenario(sc, base_port=base_port, opts=opts)
     stop = threading.Event()
 
     def on_signal(signum: int, frame: Any) -> None:

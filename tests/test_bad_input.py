@@ -352,3 +352,20 @@ def test_bridge_refuses_bad_ids_and_timeouts_before_connecting(flags: tuple[str,
 def test_up_refuses_duplicate_mavlink_sysids(tmp_path: Path) -> None:
     p = _variant(tmp_path, "dupids", lambda d: d.__setitem__("mavlink", {"sysids": [1, 2, 2]}))
     _up_refused(tmp_path, "--plant", "mavlink", scenario=p, needles=("mavlink.sysids", "UAV 2 and UAV 3"))
+
+
+@pytest.mark.swarm
+def test_up_refuses_busy_simulated_vehicle_ports(tmp_path: Path) -> None:
+    """``--plant mavlink --mavlink-base-port P``: simulated vehicle i sends from UDP P+40+i (PX4
+    SITL's direction); a busy one is named, exit 2, before anything starts (it used to fail in the
+    vehicles' process, after the swarm had started)."""
+    import socket
+
+    base = bus.free_udp_block(3, also=(40,))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", base + 41))
+        assert bus.udp_ports_in_use([base, base + 41, base + 42]) == [base + 41]
+        _up_refused(
+            tmp_path, "--plant", "mavlink", "--mavlink-base-port", str(base),
+            needles=("--mavlink-base-port", f"UDP port {base + 41}", "vehicle 2's send port, P+40+1"),
+        )

@@ -344,6 +344,31 @@ def test_vehicle_time_stamps_and_latency():
     assert b.info(11.02)["max_latency_ms"] == pytest.approx(10.0)
 
 
+def test_state_stamp_is_the_vehicle_time_on_the_mission_clock():
+    """The published state's ``ts``: LOCAL_POSITION_NED.time_boot_ms through the TIMESYNC clock
+    offset, in ns since mission time 0; none before a TIMESYNC answer (the fallback offset is for
+    the diagnostic only)."""
+    from zenswarm import wire
+    from zenswarm.bridge.mavlink import _BridgeLoop
+
+    b, _, _ = _bridge({})
+    lk = b.links[0]
+    _heartbeat(b, 1, mavlink.MAV_AUTOPILOT_PX4, 0, now=10.0)
+    b._handle(lk.endpoint, _msg("LOCAL_POSITION_NED", time_boot_ms=5100, x=0.0, y=0.0, z=-1.0, vx=0.0, vy=0.0, vz=0.0), 10.13)
+    loop = SimpleNamespace(bridge=b, t0=10.0)
+    assert b.sample_time(lk) is None and _BridgeLoop.stamp_ns(loop, lk) is None  # type: ignore[arg-type]
+    # the vehicle's clock read 5.95 s at bridge time 11.01 (the middle of the round trip)
+    b._timesync(lk, 11.0)
+    b._handle(lk.endpoint, _msg("TIMESYNC", tc1=int(5.95e9), ts1=int(11.0 * 1e9)), 11.02)
+    assert b.sample_time(lk) == pytest.approx(11.01 - 0.85)  # measured 0.85 s of vehicle time earlier
+    assert _BridgeLoop.stamp_ns(loop, lk) == round((11.01 - 0.85 - 10.0) * 1e9)  # type: ignore[arg-type]
+    loop.t0 = 10.5  # measured before mission time 0: negative
+    stamp = _BridgeLoop.stamp_ns(loop, lk)  # type: ignore[arg-type]
+    assert stamp is not None and stamp == pytest.approx(-0.34e9, abs=1e3)
+    st = wire.State(t=0, seq=1, q=[0, 0, 1], v=[0, 0, 0], rpy=[0, 0, 0], w=[0, 0, 0], stamp=stamp)
+    assert wire.decode("state", wire.encode(st)).stamp == stamp
+
+
 def test_origin_flag_overrides_one_uav():
     s = mavlink_settings(_sc({"origins": [[0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [2.0, 2.0, 0.0]]}), {"origin": {2: (5.0, -1.0, 0.25)}})
     assert s.origins == ((0.0, 0.0, 0.0), (5.0, -1.0, 0.25), (2.0, 2.0, 0.0))
@@ -352,3 +377,28 @@ def test_origin_flag_overrides_one_uav():
     assert e.value.field == "--origin"
     with pytest.raises(ScenarioError):
         mavlink_settings(_sc({}), {"origin": {1: (0.0, math.nan, 0.0)}})
+
+
+def test_ardupilot_without_takeoff_and_position_setpoints_warns_once():
+    """ArduCopter, takeoff = false, setpoint = "position": the bridge arms the vehicle on the
+    ground and sends position targets, which GUIDED never lifts off with; it says so once, clearly
+    (and counts each such vehicle), and not for PX4, attitude setpoints or a vehicle in the air."""
+    b, _, logs = _bridge({"takeoff": False, "setpoint": "position"})
+    for lk in b.links:
+        lk.autopilot, lk.armed_by_us = "ardupilot", True
+    b._armed(b.links[0], 1.0)
+    b._armed(b.links[1], 1.0)
+    warn = [line for line in logs if "WARNING" in line]
+    assert len(warn) == 1 and "uav 1" in warn[0] and "will not take off" in warn[0] and "takeoff = true" in warn[0], logs
+    assert b.counters["grounded_position"] == 2 and b.links[0].phase == "ready"
+    b2, _, logs2 = _bridge({"takeoff": False, "setpoint": "position"})
+    b2.links[0].autopilot, b2.links[0].armed_by_us = "px4", True  # PX4 offboard takes off by itself
+    b2.links[1].autopilot, b2.links[1].armed_by_us = "ardupilot", True
+    b2._handle(b2.links[1].endpoint, _msg("EXTENDED_SYS_STATE", src=2, vtol_state=0, landed_state=mavlink.MAV_LANDED_STATE_IN_AIR), 1.0)
+    assert b2.links[1].tel.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
+    b2._armed(b2.links[0], 1.0)
+    b2._armed(b2.links[1], 1.0)  # already in the air: flies the targets
+    b3, _, logs3 = _bridge({"takeoff": False})  # attitude setpoints: GUIDED_NOGPS, the agents' thrust lifts it
+    b3.links[0].autopilot, b3.links[0].armed_by_us = "ardupilot", True
+    b3._armed(b3.links[0], 1.0)
+    assert not [line for line in logs2 + logs3 if "WARNING" in line] and "grounded_position" not in b2.counters

@@ -85,6 +85,25 @@ def vehicle(request: pytest.FixtureRequest) -> Iterator[tuple[MavlinkFleet, Gcs]
 # =========================================================================== pure
 
 
+@pytest.mark.parametrize("sitl_ports", [True, False])
+def test_busy_vehicle_port_is_named(sitl_ports: bool) -> None:
+    """A port a simulated vehicle cannot bind (its send port P+40+i with PX4 SITL's direction,
+    else its own P+i) is a ScenarioError naming it (exit 2 from the command line), and the
+    vehicles built before it are closed."""
+    from zenswarm.bus import free_udp_block
+    from zenswarm.errors import ScenarioError
+
+    base = free_udp_block(2, also=(40,))
+    busy = base + (41 if sitl_ports else 1)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", busy))
+        with pytest.raises(ScenarioError) as e:
+            MavlinkFleet([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], P, base, VehicleOptions(sitl_ports=sitl_ports))
+    assert e.value.field == "--base-port" and f"127.0.0.1:{busy}" in str(e.value) and "vehicle 2" in str(e.value)
+    fleet = MavlinkFleet([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], P, base, VehicleOptions(sitl_ports=sitl_ports))  # vehicle 1 was closed
+    fleet.close()
+
+
 def test_param_encoding_px4_bytewise_and_ardupilot_cast() -> None:
     """PX4 carries an INT32's bytes in the float; ArduPilot casts; REAL32 is the value."""
     assert encode(8, INT32, bytewise=False) == 8.0

@@ -226,6 +226,28 @@ def test_wire_bytes_unchanged() -> None:
         assert w.decode(kind, old) == msg
 
 
+def test_state_stamp_is_optional_and_left_out_when_absent() -> None:
+    """``state.ts`` (the MAVLink bridge's vehicle time): absent, the payload is the golden one;
+    present, it round-trips, signed, within +-MAX_T_NS; a bad one is rejected naming the field."""
+    base = dict(t=10, seq=1, q=[0.1, -0.2, 0.3], v=[1, 2, 3], rpy=[0, 0, 0], w=[0, 0, 0])
+    assert w.State(**base).stamp is None and w.encode(w.State(**base, stamp=None)) == bytes.fromhex(GOLDEN["state"])
+    for stamp in (0, -3, 9, w.MAX_T_NS, -w.MAX_T_NS):
+        m = w.State(**base, stamp=stamp)
+        data = w.encode(m)
+        assert data.startswith(b"\x89") and data.endswith(b"\xa2ts" + msgpack.packb(stamp))
+        back = w.decode("state", data)
+        assert back.stamp == stamp and back == m and back != w.State(**base)
+    with pytest.raises(w.MessageError, match="stamp"):
+        w.State(**base, stamp=1.5)
+    with pytest.raises(w.MessageError, match="out_of_range"):
+        w.State(**base, stamp=w.MAX_T_NS + 1)
+    for bad, reason in ((1.5, "type"), (-w.MAX_T_NS - 1, "out_of_range"), ("x", "type")):
+        payload = msgpack.packb({**_VALID["state"], "ts": bad})
+        with pytest.raises(w.WireDecodeError) as e:
+            w.decode("state", payload)
+        assert e.value.reason == reason and e.value.field == "ts"
+
+
 def test_messages_are_immutable_and_copied() -> None:
     src = np.array([1.0, 2.0, 3.0])
     r = w.Ref(t=1, seq=2, q=src, v=src)

@@ -140,20 +140,40 @@ def free_port(host: str = "127.0.0.1") -> int:
         return int(s.getsockname()[1])
 
 
-def free_udp_block(n: int, host: str = "127.0.0.1") -> int:
-    """A UDP port p on ``host`` with p .. p+n-1 free a moment ago (all bound once, then closed)."""
+def udp_ports_in_use(ports: Sequence[int], host: str = "127.0.0.1") -> list[int]:
+    """Those of ``ports`` that cannot be bound on ``host`` for UDP now (in use, or outside
+    1..65535), in the given order. Each is bound once and closed."""
+    busy = []
+    for p in ports:
+        if not 0 < int(p) <= 65535:
+            busy.append(int(p))
+            continue
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind((host, int(p)))
+            except OSError:
+                busy.append(int(p))
+    return busy
+
+
+def free_udp_block(n: int, host: str = "127.0.0.1", also: Sequence[int] = ()) -> int:
+    """A UDP port p on ``host`` with p .. p+n-1 free a moment ago (all bound once, then closed),
+    and p+d .. p+d+n-1 too for each offset d in ``also`` (e.g. 40: the simulated vehicles' send
+    ports with PX4 SITL's direction)."""
+    top = max([0, *also]) + n
     for _ in range(200):
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s0:
             s0.bind((host, 0))
             base = int(s0.getsockname()[1])
-        if base + n >= 65535:
+        if base + top >= 65535:
             continue
         socks = []
         try:
-            for k in range(n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind((host, base + k))
+            for d in (0, *also):
+                for k in range(n):
+                    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                    socks.append(s)
+                    s.bind((host, base + d + k))
             return base
         except OSError:
             continue

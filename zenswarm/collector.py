@@ -6,12 +6,24 @@ processes' input guard does), decodes the clock, the leader's reference and diag
 and the rest after the flight, and fills a :class:`zenswarm.metrics.TimeSeries` indexed by tick
 (the same one the in-process simulator writes), so ``results.json`` is computed by the same code
 for both.
+
+Memory stays flat however long the flight: the samples decoded after the flight wait, raw and in
+arrival order, in a :class:`Spool` (an anonymous temporary file, written in 1 MiB blocks, read
+back block by block), not in a list; the per-UAV series (``(T, N, 3)`` arrays sized by the
+scenario's tick count) are allocated only when first needed (the end of the flight, or an early
+decision). The leader's series, the clock and the diagnostics, which progress and the live verdict
+read, stay in memory as before. The samples are applied in the same order as before, so the
+series (``results.json``, ``timeseries.npz``) is the same to the bit.
 """
 
 from __future__ import annotations
 
+import struct
+import tempfile
 import threading
-from typing import Any
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO, Any
 
 import numpy as np
 
@@ -21,18 +33,123 @@ from zenswarm.errors import ZenswarmError
 from zenswarm.metrics import TimeSeries
 from zenswarm.runtime import expected_senders, sample_sender
 
-__all__ = ["Collector"]
+__all__ = ["Collector", "Spool"]
+
+SPOOL_BLOCK_BYTES = 1 << 20
+"""A :class:`Spool` writes its buffer to its file once it holds this many bytes (and reads back
+in blocks of this size)."""
+
+
+class Spool:
+    """Raw samples (key, payload), kept in arrival order in an anonymous temporary file, so that
+    memory does not grow with the flight.
+
+    Records are ``<u32 key id><u32 payload length><payload>``, buffered in memory up to
+    :data:`SPOOL_BLOCK_BYTES` and then appended to the file. :meth:`take` yields every record
+    appended since the previous :meth:`take`, in order, reading the file block by block, and then
+    empties the file (its disk space is freed). The file is created in ``directory`` (default: the
+    system's temporary directory) without a name (``tempfile.TemporaryFile``): nothing is left
+    behind, even when the process is killed. Disk use: the raw samples not yet taken (about
+    18 MB per minute for 8 UAVs at 100 Hz: states, refs and commands).
+    """
+
+    _HEAD = struct.Struct("<II")
+
+    def __init__(self, directory: str | Path | None = None, block_bytes: int = SPOOL_BLOCK_BYTES) -> None:
+        self.directory = None if directory is None else str(directory)
+        self.block_bytes = int(block_bytes)
+        self._file: IO[bytes] | None = None
+        self._buf = bytearray()
+        self._ids: dict[str, int] = {}
+        self._keys: list[str] = []
+        self.records = 0  # records waiting (appended, not yet taken)
+        self.file_bytes = 0  # bytes in the file, not yet taken
+
+    def append(self, key: str, payload: bytes) -> None:
+        """Keep one sample (cheap: no decoding; a write to the file once per block)."""
+        kid = self._ids.get(key)
+        if kid is None:
+            kid = self._ids[key] = len(self._keys)
+            self._keys.append(key)
+        buf = self._buf
+        buf += self._HEAD.pack(kid, len(payload))
+        buf += payload
+        self.records += 1
+        if len(buf) >= self.block_bytes:
+            self._write()
+
+    def _write(self) -> None:
+        if not self._buf:
+            return
+        if self._file is None:
+            if self.directory is not None:
+                Path(self.directory).mkdir(parents=True, exist_ok=True)
+            self._file = tempfile.TemporaryFile(dir=self.directory, prefix=".zenswarm-collector-")
+        self._file.seek(0, 2)
+        self._file.write(self._buf)
+        self.file_bytes += len(self._buf)
+        self._buf = bytearray()
+
+    def take(self) -> Iterator[tuple[str, bytes]]:
+        """Every sample appended since the last take, in arrival order; consume it whole (the file
+        is emptied at the end). Memory: one block at a time."""
+        head, keys = self._HEAD, self._keys
+        hn = head.size
+        if self._file is not None and self.file_bytes:
+            f = self._file
+            f.flush()
+            f.seek(0)
+            carry = b""
+            while True:
+                block = f.read(self.block_bytes)
+                if not block:
+                    break
+                data = carry + block if carry else block
+                pos, end = 0, len(data)
+                while pos + hn <= end:
+                    kid, n = head.unpack_from(data, pos)
+                    if pos + hn + n > end:
+                        break
+                    yield keys[kid], data[pos + hn : pos + hn + n]
+                    pos += hn + n
+                carry = data[pos:]
+            if carry:
+                raise RuntimeError(f"collector spool: {len(carry)} bytes of a truncated record")
+            f.seek(0)
+            f.truncate()
+            self.file_bytes = 0
+        buf, self._buf = bytes(self._buf), bytearray()
+        pos = 0
+        while pos < len(buf):
+            kid, n = head.unpack_from(buf, pos)
+            yield keys[kid], buf[pos + hn : pos + hn + n]
+            pos += hn + n
+        self.records = 0
+
+    def close(self) -> None:
+        """Drop what is waiting and close the file."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        self._buf = bytearray()
+        self.records = self.file_bytes = 0
 
 
 class Collector:
     """Assembles the flight's time series from the bus (callback on the supervisor's session)."""
 
-    def __init__(self, scenario: Scenario, keys: wire.Keys) -> None:
+    def __init__(
+        self, scenario: Scenario, keys: wire.Keys, spool_dir: str | Path | None = None, spool_block_bytes: int = SPOOL_BLOCK_BYTES
+    ) -> None:
+        """``spool_dir``: where the :class:`Spool`'s anonymous file goes (the supervisor's output
+        directory; default: the system's temporary directory); ``spool_block_bytes``: its block."""
         self.sc = scenario
         self.keys = keys
         self.T = scenario.timing.n_ticks
-        self.ts = TimeSeries.allocate(self.T, scenario.n)
-        self.ts.t[:] = np.arange(self.T) * scenario.timing.dt
+        self.t = np.arange(self.T) * scenario.timing.dt
+        self.q0 = np.full((self.T, 3), np.nan)  # the leader's series (decoded as it arrives)
+        self.v0 = np.full((self.T, 3), np.nan)
+        self._ts: TimeSeries | None = None  # the whole series, allocated when first needed
         self.dt_ns = wire.t_ns(scenario.timing.dt)
         self.decoder = wire.Decoder()
         self.lock = threading.Lock()
@@ -46,7 +163,7 @@ class Collector:
         self.diag: dict[str, dict[str, Any]] = {}
         self.counts: dict[str, int] = {}
         self._eager = {keys.clock, keys.leader_ref}
-        self._pending: list[tuple[str, bytes]] = []
+        self._spool = Spool(spool_dir, spool_block_bytes)  # samples decoded later, raw, in arrival order
         # for the live verdict: each UAV's newest state and ref message, decoded only when asked
         self._live_keys = {k: (kind, i) for i in range(1, scenario.n + 1) for kind, k in (("state", keys.state(i)), ("ref", keys.ref(i)))}
         self._last: dict[tuple[str, int], bytes] = {}
@@ -110,7 +227,7 @@ class Collector:
         if key in self._eager or "/diag/" in key:
             self._apply(key, payload)
         else:
-            self._pending.append((key, payload))
+            self._spool.append(key, payload)
             live = self._live_keys.get(key)
             if live is not None:
                 self._last[live] = payload
@@ -138,9 +255,30 @@ class Collector:
             out[i] = ((msg.t + self.dt_ns // 2) // self.dt_ns, np.asarray(msg.q, dtype=float))
         return out
 
+    @property
+    def ts(self) -> TimeSeries:
+        """The whole series (t, the leader's and the UAVs' fields, NaN where nothing arrived),
+        allocated on first use; the samples still in the spool are not in it (see :meth:`series`)."""
+        if self._ts is None:
+            ts = TimeSeries.allocate(self.T, self.sc.n)
+            ts.t, ts.q0, ts.v0 = self.t, self.q0, self.v0
+            self._ts = ts
+        return self._ts
+
+    @property
+    def spooled(self) -> int:
+        """Samples waiting in the spool (received, not yet decoded)."""
+        return self._spool.records
+
+    def close(self) -> None:
+        """Drop the samples still in the spool and free its file."""
+        self._spool.close()
+
     def _drain(self) -> None:
-        pending, self._pending = self._pending, []
-        for key, payload in pending:
+        if not self._spool.records:
+            return
+        _ = self.ts  # the series the spooled samples go into
+        for key, payload in self._spool.take():
             self._apply(key, payload)
 
     def _apply(self, key: str, payload: bytes) -> None:
@@ -167,15 +305,16 @@ class Collector:
                 return
             if not 0 <= k < self.T:
                 return
-            ts = self.ts
             if kind == "leader_ref" and isinstance(msg, wire.Ref):
-                ts.q0[k] = msg.q
-                ts.v0[k] = msg.v
+                self.q0[k] = msg.q
+                self.v0[k] = msg.v
                 self.leader_q = msg.q
                 self.leader_ticks = max(self.leader_ticks, int(k) + 1)
                 if self.goal_tick is None and float(np.linalg.norm(msg.q - self._goal)) <= self._goal_tol:
                     self.goal_tick = int(k)
-            elif isinstance(msg, wire.Ref) and idx is not None:
+                return
+            ts = self.ts
+            if isinstance(msg, wire.Ref) and idx is not None:
                 ts.qref[k, idx - 1] = msg.q
                 ts.vref[k, idx - 1] = msg.v
             elif isinstance(msg, wire.State) and idx is not None:

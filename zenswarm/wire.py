@@ -374,6 +374,19 @@ def _mk_t(name: str, value: Any) -> int:
     return _mk_int(name, value, MAX_T_NS)
 
 
+def _mk_stamp(name: str, value: Any) -> int | None:
+    """None (absent), or a signed time in ns within +-MAX_T_NS (a measurement before the
+    mission's start is negative)."""
+    if value is None:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise MessageError(name, "type", f"expected an int or None, got {type(value).__name__}")
+    v = int(value)
+    if not -MAX_T_NS <= v <= MAX_T_NS:
+        raise MessageError(name, "out_of_range", f"|{v}| > {MAX_T_NS}")
+    return v
+
+
 def _mk_seq(name: str, value: Any) -> int:
     return _mk_int(name, value, MAX_SEQ)
 
@@ -524,6 +537,8 @@ _FMAX: Final = sys.float_info.max
 _Finite = Annotated[float, Meta(ge=-_FMAX, le=_FMAX)]  # NaN fails both bounds, +-inf one of them
 TimeNs = Annotated[int, Meta(ge=0, le=MAX_T_NS), _Check(_mk_t)]
 """Sim time, integer ns in [0, MAX_T_NS]."""
+Stamp = Annotated[Annotated[int, Meta(ge=-MAX_T_NS, le=MAX_T_NS)] | None, _Check(_mk_stamp, None, lambda: None)]
+"""An optional signed time, integer ns in [-MAX_T_NS, MAX_T_NS], or None (left out of the payload)."""
 Seq = Annotated[int, Meta(ge=0, le=MAX_SEQ), _Check(_mk_seq)]
 """Sequence number in [0, MAX_SEQ]."""
 Number = Annotated[float, Meta(ge=-_FMAX, le=_FMAX), _Check(_mk_float)]
@@ -646,11 +661,16 @@ class Clock(_Msg, frozen=True):
     seq: Seq
 
 
-class State(_Msg, frozen=True):
+class State(_Msg, frozen=True, omit_defaults=True):
     """State of UAV i (plant -> agent i; eq. (1)-(5)).
 
     q: (3,) m, ENU position; v: (3,) m/s, ENU velocity (wire ``"vel"``); rpy: (3,) rad,
-    roll/pitch/yaw; w: (3,) rad/s, body (FLU) angular rate. t: sim time, ns.
+    roll/pitch/yaw; w: (3,) rad/s, body (FLU) angular rate. t: sim time, ns (the tick).
+    stamp (wire ``"ts"``, optional): when the vehicle measured q and v, on the same mission
+    clock as t, ns, signed (the MAVLink bridge: the vehicle's ``time_boot_ms`` mapped through
+    the TIMESYNC clock offset), so ``t - stamp`` is the state's age by the vehicle's clock;
+    None (left out of the payload) when the publisher has no such clock (the simulated plant:
+    its states are exact at t).
     """
 
     kind: ClassVar[str] = "state"
@@ -660,6 +680,7 @@ class State(_Msg, frozen=True):
     v: Vec3 = msgspec.field(name="vel")
     rpy: Vec3
     w: Vec3
+    stamp: Stamp = msgspec.field(default=None, name="ts")
 
 
 class Ref(_Msg, frozen=True, omit_defaults=True):
@@ -775,7 +796,7 @@ def _reason(text: str) -> tuple[str, str | None]:
             reason = "nonfinite"  # only NaN and +-inf fail the bounds of a finite float
         elif text.startswith("Expected `int` >= 0"):
             reason = "negative"
-        elif text.startswith("Expected `int` <="):
+        elif text.startswith(("Expected `int` <=", "Expected `int` >= -")):
             reason = "out_of_range"
         elif "matching regex" in text:
             reason = "value"
