@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from zenswarm import wire
+from zenswarm.bridge import live
 from zenswarm.bridge.mcapio import Recording, read_recording
 from zenswarm.errors import RecordingError, ScenarioError
 from zenswarm.runtime import sleep_until
@@ -344,6 +345,7 @@ def _run_replay(args: argparse.Namespace) -> int:
         print(text, file=sys.stderr, flush=True)
 
     connect = args.connect or ["tcp/127.0.0.1:7447"]
+    viewer = live.replay_viewer(args.file, args.swarm, args.live, connect) if args.live is not None else None  # port in use: exit 2 now
     st = replay(
         args.file,
         connect=connect,
@@ -357,6 +359,8 @@ def _run_replay(args: argparse.Namespace) -> int:
         stop=stop,
         progress=progress,
     )
+    if viewer is not None:
+        viewer.close()
     for p in st.problems:
         progress(f"replay: warning: {args.file}: {p}")
     progress(
@@ -818,6 +822,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         default=2.0,
         metavar="S",
         help="before the first message, wait up to S s for a subscriber to match (default 2)",
+    )
+    p.add_argument(
+        "--live", nargs="?", const=live.DEFAULT_PORT, type=live.live_port, metavar="PORT",
+        help=f"also serve the replayed swarm to the Foxglove app on ws://127.0.0.1:PORT (default {live.DEFAULT_PORT}; docs/live.md)",
     )
     p.add_argument("--verify", action="store_true", help="verify agent --agent against the recording instead of publishing")
     p.add_argument("--agent", type=_agents_arg, metavar="I", help="with --verify: UAV number I (1..N) or 'all'")
