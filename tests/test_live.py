@@ -1,7 +1,8 @@
 """The live view (bridge/live.py, `zenswarm up --live`): a Foxglove WebSocket client, headless.
 
 A short lockstep flight of paper example 1 with ``--live PORT``: a client speaking the Foxglove
-WebSocket protocol (``foxglove.websocket.v1``, named ``foxglove.sdk.v1`` by the SDK) connects, checks the advertised channels and schemas (/scene and /tf
+WebSocket protocol (``foxglove.websocket.v1``, named ``foxglove.sdk.v1`` by the SDK) connects,
+checks the advertised channels and schemas (/scene and /tf
 with Foxglove's official protobuf descriptors, the SDK's; /metrics with its JSON Schema),
 subscribes to them, and decodes what it receives with those schemas. The flight itself equals
 the in-process simulator bit for bit, as without --live.
@@ -111,17 +112,19 @@ def test_live_view_serves_the_flight_to_a_foxglove_client(tmp_path: Path) -> Non
         assert got[topic], f"no message on {topic}"
     # the messages, decoded with the advertised (official) schemas
     metrics = jsonschema.Draft202012Validator(json.loads(by_topic["/metrics"]["schema"]))
-    t_last = -1.0
+    t_last, bases = -1.0, []
     for stamp, data in got["/metrics"]:
         m = json.loads(data)
         metrics.validate(m)
         assert 0.0 <= m["t"] <= 2.0 and m["t"] >= t_last and len(m["uavs"]) == 3
         assert m["min_clearance_m"] is not None and m["min_clearance_m"] > 0
         t_last = m["t"]
+        bases.append(stamp - m["t"] * 1e9)
+    assert max(bases) - min(bases) < 1e3, "stamped base + sim time"
     ids: set[str] = set()
     for topic in ("/scene", "/tf"):
         ch = by_topic[topic]
-        for stamp, data in got[topic]:
+        for _, data in got[topic]:
             obj = foxglove_check.decode(ch["schemaName"], base64.b64decode(ch["schema"]), data)
             if topic == "/scene":
                 ids |= {e["id"] for e in obj["entities"]}
