@@ -31,9 +31,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import _common as C
-
 from zenswarm.metrics import TimeSeries
+
+import _common as C
 
 SCENARIO = C.REPO / "compose" / "scenarios" / "paper_example1.toml"
 
