@@ -30,6 +30,7 @@ import msgpack
 import numpy as np
 
 from zenswarm import wire
+from zenswarm.bridge import live
 from zenswarm.bridge.info import RecordingInfo, scan
 from zenswarm.bridge.mcapio import Recording, read_recording
 from zenswarm.bridge.playback import Controls, KeyboardControls, Pacer, TopicFilter, restamp
@@ -503,16 +504,21 @@ def _run_replay(args: argparse.Namespace) -> int:
     controls = Controls(paused=args.start_paused)
     controls.on_change = lambda text: progress(f"replay: {text}")
     connect = args.connect or ["tcp/127.0.0.1:7447"]
+    viewer = live.replay_viewer(args.file, args.swarm, args.live, connect) if args.live is not None else None  # port in use: exit 2 now
     keyboard = KeyboardControls(controls, sys.stdin.fileno()) if tty else contextlib.nullcontext()
     if tty:
         progress("replay: keys: space = pause/resume, s or right arrow = step, q = quit")
-    with keyboard:
-        st = replay(
-            args.file, connect=connect, swarm=args.swarm, rate=args.rate, loop=args.loop, loops=args.loops,
-            topics=args.topic or (), exclude=args.exclude or (), start_s=args.start, end_s=args.end,
-            clock=args.clock, clock_rate=args.clock_rate, controls=controls, wait_for=args.wait_for or (),
-            wait_subscribers_s=args.wait_subscribers, stop=stop, progress=progress,
-        )  # fmt: skip
+    try:
+        with keyboard:
+            st = replay(
+                args.file, connect=connect, swarm=args.swarm, rate=args.rate, loop=args.loop, loops=args.loops,
+                topics=args.topic or (), exclude=args.exclude or (), start_s=args.start, end_s=args.end,
+                clock=args.clock, clock_rate=args.clock_rate, controls=controls, wait_for=args.wait_for or (),
+                wait_subscribers_s=args.wait_subscribers, stop=stop, progress=progress,
+            )  # fmt: skip
+    finally:
+        if viewer is not None:
+            viewer.close()
     for p in st.problems:
         progress(f"replay: warning: {args.file}: {p}")
     extra = f", {st.restamped} re-stamped" if st.restamped or st.not_restamped else ""
@@ -1006,6 +1012,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         default=2.0,
         metavar="S",
         help="before the first message, wait up to S s for a subscriber to match (default 2)",
+    )
+    p.add_argument(
+        "--live", nargs="?", const=live.DEFAULT_PORT, type=live.live_port, metavar="PORT",
+        help=f"also serve the replayed swarm to the Foxglove app on ws://127.0.0.1:PORT (default {live.DEFAULT_PORT}; docs/live.md)",
     )
     p.add_argument("--verify", action="store_true", help="verify agent --agent against the recording instead of publishing")
     p.add_argument("--agent", type=_agents_arg, metavar="I", help="with --verify: UAV number I (1..N) or 'all'")

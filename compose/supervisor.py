@@ -27,6 +27,8 @@ import zenoh
 
 from zenswarm import bus, security, verdict, wire
 from zenswarm.bridge.args import add_fault_args, add_plugin_args, link_faults, positive_float
+from zenswarm.bridge.live import DEFAULT_PORT as DEFAULT_LIVE_PORT
+from zenswarm.bridge.live import live_port
 from zenswarm.collector import Collector
 from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import ScenarioError, ZenswarmError
@@ -114,6 +116,7 @@ class UpOptions:
     faults: LinkFaults = field(default_factory=LinkFaults)
     controller: str | None = None  # plug-in names overriding the scenario's (zenswarm.plugins.select)
     planner: str | None = None
+    live: int | None = None  # --live PORT: serve the flight to the Foxglove app (zenswarm.bridge.live)
 
     def plugin_argv(self) -> list[str]:
         """``--controller NAME`` / ``--planner NAME`` for the processes (those given)."""
@@ -156,6 +159,7 @@ def up_options(args: argparse.Namespace) -> UpOptions:
         faults=link_faults(args),
         controller=args.controller,
         planner=args.planner,
+        live=args.live,
     )
 
 
@@ -202,6 +206,7 @@ class Supervisor:
         # the vehicles' ports P+i (the bridge listens) and their send ports P+40+i, all free
         self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n, also=(SITL_SEND_OFFSET,))
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
+        self.live: Any = None  # --live: the zenswarm.bridge.live.LiveView, bound by _run_up before run()
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -387,7 +392,9 @@ class Supervisor:
         finally:
             self.terminate_all()
             if self._bus_sub is not None:
-                collector.poll(self._bus_sub)  # what arrived after the last loop
+                collector.poll(self._bus_sub, self._live_tap())  # what arrived after the last loop
+            if self.live is not None:
+                self.live.publish()  # the flight's last frame
             for s in subs:
                 try:
                     s.undeclare()
@@ -685,8 +692,11 @@ class Supervisor:
         """Watch the flight until it ends; returns the exit code so far (see :meth:`_finish`)."""
         last_print = last_check = 0.0
         wall0 = time.monotonic()
+        tap = self._live_tap()
         while True:
-            collector.poll(self._bus_sub)
+            collector.poll(self._bus_sub, tap)
+            if self.live is not None:
+                self.live.maybe_publish(time.monotonic())
             if self.stop.is_set():
                 self.say(f"stopping: {self.stop_reason}")
                 return EXIT_INTERRUPTED
@@ -711,6 +721,10 @@ class Supervisor:
                 self._progress(collector, now - wall0)
             gc_safe_point()
             time.sleep(0.05)
+
+    def _live_tap(self) -> Any:
+        """The live view's feed (``--live``), else None."""
+        return self.live.feed if self.live is not None else None
 
     def _check_children(self, collector: Collector, now: float) -> tuple[bool, int | None]:
         """One look at the processes started here (restarting those due): (all done, exit code
@@ -911,10 +925,21 @@ def _run_up(ns: argparse.Namespace) -> int:
     check_up_args(args, sc)
     gc_policy()  # a bad ZENSWARM_GC: exit 2 now
     if args.only:
+        if args.live is not None:
+            raise ScenarioError("--live", "not with --only: the live view runs beside the supervisor of the whole swarm")
         return _run_only(args)
     sup = Supervisor(args, sc)
-    sup.t_start = time.monotonic()
-    return sup.run()
+    if args.live is not None:  # bound now: a port in use is exit 2 before any process starts
+        from zenswarm.bridge.live import LiveView, open_in_app
+
+        sup.live = LiveView(sc, args.swarm, args.live)
+        sup.say(open_in_app(sup.live.url))
+    try:
+        sup.t_start = time.monotonic()
+        return sup.run()
+    finally:
+        if sup.live is not None:
+            sup.live.close()
 
 
 def _run_only(args: UpOptions) -> int:
@@ -1089,6 +1114,16 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--progress-every", type=float, default=1.0, metavar="S", help="seconds between progress lines")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--quiet-children", action="store_true", help="do not echo the processes' own output")
+    p.add_argument(
+        "--live",
+        nargs="?",
+        const=DEFAULT_LIVE_PORT,
+        type=live_port,
+        metavar="PORT",
+        help=f"serve the flight to the Foxglove app over its WebSocket protocol on ws://127.0.0.1:PORT (default "
+        f"{DEFAULT_LIVE_PORT}): 3D scene, transforms, errors, clearance, failsafe, links (docs/live.md); run by this "
+        "supervisor, not by the swarm's processes. A port in use: exit 2 before the flight",
+    )
     add_fault_args(p)
     add_plugin_args(p)
     p.set_defaults(func=_run_up)

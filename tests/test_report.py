@@ -29,6 +29,8 @@ from zenswarm.config import scenario_from_dict, scenario_to_dict
 from zenswarm.errors import RecordingError
 from zenswarm.metrics import FLIGHT_FIELDS, compute_results
 
+import foxglove_check
+
 EX1 = Path(__file__).resolve().parents[1] / "compose" / "scenarios" / "paper_example1.toml"
 SWARM = "demo"
 WALL0 = 1_700_000_000_000_000_000  # receive wall time of the first sample, ns
@@ -197,6 +199,9 @@ def _toml(d: dict) -> str:
 
 @pytest.mark.slow
 def test_export_foxglove_validates_against_its_schemas(flight, recording, tmp_path, capsys):
+    """Recorded topics: JSON, each valid against its JSON Schema; /scene and /tf: protobuf with
+    Foxglove's official descriptors (the SDK's, byte for byte), each message decoded with them;
+    /metrics: JSON valid against its schema, its figures those of the flight."""
     sc, sim = flight
     path, n_written = recording
     out = tmp_path / "fox.mcap"
@@ -206,18 +211,32 @@ def test_export_foxglove_validates_against_its_schemas(flight, recording, tmp_pa
     validators: dict[int, object] = {}
     per_topic: dict[str, int] = {}
     scene_ids: set[str] = set()
-    last_state = None
+    last_state = last_tf = last_metrics = None
     with open(out, "rb") as f:
         r = make_reader(f)
         summary = r.get_summary()
         assert summary is not None and summary.chunk_indexes, "a complete, indexed file"
         for ch in summary.channels.values():
-            assert ch.message_encoding == "json", ch.topic
-            assert ch.schema_id != 0, ch.topic
-            assert summary.schemas[ch.schema_id].encoding == "jsonschema", ch.topic
+            schema = summary.schemas[ch.schema_id]
+            if ch.topic in (fx.SCENE_TOPIC, fx.TF_TOPIC):
+                assert ch.message_encoding == "protobuf", ch.topic
+                foxglove_check.check_official(schema.name, schema.encoding, schema.data)
+            else:
+                assert ch.message_encoding == "json", ch.topic
+                assert ch.schema_id != 0 and schema.encoding == "jsonschema", ch.topic
         meta = {m.name: m.metadata for m in r.iter_metadata()}
         assert json.loads(meta["zenswarm"]["scenario_json"]) == scenario_to_dict(sc)
         for schema, ch, msg in r.iter_messages(log_time_order=True):
+            per_topic[ch.topic] = per_topic.get(ch.topic, 0) + 1
+            if ch.message_encoding == "protobuf":
+                obj = foxglove_check.decode(schema.name, schema.data, msg.data)
+                if ch.topic == fx.SCENE_TOPIC:
+                    assert schema.name == "foxglove.SceneUpdate"
+                    scene_ids |= {e["id"] for e in obj["entities"]}
+                else:
+                    assert schema.name == "foxglove.FrameTransforms"
+                    last_tf = (msg, obj)
+                continue
             v = validators.get(schema.id)
             if v is None:
                 s = json.loads(schema.data)
@@ -225,27 +244,38 @@ def test_export_foxglove_validates_against_its_schemas(flight, recording, tmp_pa
                 v = validators[schema.id] = jsonschema.validators.validator_for(s)(s)
             obj = json.loads(msg.data)
             v.validate(obj)
-            per_topic[ch.topic] = per_topic.get(ch.topic, 0) + 1
-            if ch.topic == fx.SCENE_TOPIC:
-                assert schema.name == "foxglove.SceneUpdate"
-                scene_ids |= {e["id"] for e in obj["entities"]}
-            elif ch.topic == fx.TF_TOPIC:
-                assert schema.name == "foxglove.FrameTransforms"
-            elif ch.topic == f"swarm/{SWARM}/uav/1/state":
+            if ch.topic == f"swarm/{SWARM}/uav/1/state":
                 assert schema.name == "zenswarm.State"
                 last_state = (msg, obj)
+            elif ch.topic == fx.METRICS_TOPIC:
+                assert schema.name == "zenswarm.Metrics"
+                last_metrics = (msg, obj)
     # every decodable recorded message is there (only the garbage payload is skipped)
     n_scene = per_topic.pop(fx.SCENE_TOPIC)
-    assert per_topic.pop(fx.TF_TOPIC) == n_scene
+    assert per_topic.pop(fx.TF_TOPIC) == per_topic.pop(fx.METRICS_TOPIC) == n_scene
     assert sum(per_topic.values()) == n_written - 1
     assert n_scene == len(range(0, len(sim.series.t), 5))  # 20 Hz of a 100 Hz control loop
-    assert {"leader", "trails", "goal", "start", "obstacle/1", "obstacle/2", "uav/1", "uav/2", "uav/3"} <= scene_ids
+    assert {"leader", "trails", "links", "goal", "start", "obstacle/1", "obstacle/2", "d0_band/1", "d0_band/2",
+            "uav/1", "uav/2", "uav/3"} <= scene_ids
     # JSON carries the wire fields exactly; log time = base + sim time
     msg, obj = last_state
     k = len(sim.series.t) - 1
     assert obj["t"] == k * 10_000_000 and obj["k"] == "state" and obj["v"] == wire.SCHEMA_VERSION
     assert obj["q"] == sim.series.q[k, 0].tolist()
     assert msg.log_time == WALL0 + obj["t"]
+    # the last frame (tick 295): its transforms and figures are the flight's
+    kf = (len(sim.series.t) - 1) // 5 * 5
+    msg, tf = last_tf
+    assert msg.log_time == WALL0 + kf * 10_000_000
+    uav3 = next(x for x in tf["transforms"] if x["child_frame_id"] == "uav3")
+    assert [uav3["translation"][a] for a in "xyz"] == sim.series.q[kf, 2].tolist()
+    msg, m = last_metrics
+    h = np.asarray(sc.offsets).reshape(-1, 3)
+    fe = np.linalg.norm(sim.series.q[kf] - sim.series.q0[kf] - h, axis=1)
+    assert m["t"] == pytest.approx(kf * sc.timing.dt)
+    assert [u["formation_error_m"] for u in m["uavs"]] == pytest.approx(fe.tolist())
+    assert m["max_tracking_error_m"] == pytest.approx(float(np.max(np.linalg.norm(sim.series.qref[kf] - sim.series.q[kf], axis=1))))
+    assert m["failsafe_uavs"] == 0 and m["links"] == []
 
 
 def test_wire_schemas_reject_what_the_decoder_rejects():

@@ -21,7 +21,7 @@ from __future__ import annotations
 import struct
 import tempfile
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
@@ -208,15 +208,19 @@ class Collector:
             self.foreign_by_key[key] = self.foreign_by_key.get(key, 0) + 1
             return False
 
-    def poll(self, sub: Any) -> int:
+    def poll(self, sub: Any, tap: Callable[[str, bytes], None] | None = None) -> int:
         """Take every sample queued on ``sub`` (a subscriber with a channel handler); returns
         how many. Called from the supervisor's own loop, so the swarm's messages cost the
-        supervisor no Python thread wake-up each (they wait in zenoh's channel between polls)."""
+        supervisor no Python thread wake-up each (they wait in zenoh's channel between polls).
+        ``tap`` (the live view's feed) also gets each sample taken, as (key, payload)."""
         n = 0
         while (s := sub.try_recv()) is not None:
             key = str(s.key_expr)
             if self.sender_ok(key, sample_sender(s)):
-                self.on_sample(key, s.payload.to_bytes())
+                payload = s.payload.to_bytes()
+                self.on_sample(key, payload)
+                if tap is not None:
+                    tap(key, payload)
             n += 1
         return n
 

@@ -1,0 +1,196 @@
+"""The live view: a flying (or replayed) swarm served to the Foxglove app over its WebSocket
+protocol (subprotocol ``foxglove.websocket.v1``), by the ``foxglove-sdk`` package's server.
+
+:class:`LiveView` keeps the newest message of each key it is fed (:meth:`LiveView.feed`, a dict
+store per message: cheap enough for the supervisor's bus loop) and, at most ``hz`` times per wall
+second (:meth:`LiveView.maybe_publish`), decodes the newest states, references and diagnostics
+into a :class:`zenswarm.bridge.scene.Frame` and logs it on ``/scene``, ``/tf`` and ``/metrics``
+with the scene code ``zenswarm export --foxglove`` writes files with
+(:class:`zenswarm.bridge.scene.SceneChannels`). Frames are stamped ``base + sim time``, base the
+wall time the server started, so the app's plots run in sim time.
+
+It runs where the swarm's messages already arrive and never in a swarm process: in the
+supervisor of ``zenswarm up --live`` (fed from its bus loop; the flight's processes do not know
+it exists, so a lockstep flight is the same bit for bit), or beside a replay (``zenswarm replay
+--live``: a Zenoh session of its own, subscribed to the replayed swarm, see :class:`BusViewer`).
+The server listens on 127.0.0.1 only: anyone who reaches it sees the flight.
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from zenswarm import wire
+from zenswarm.errors import ScenarioError
+
+__all__ = ["DEFAULT_PORT", "LIVE_HZ", "live_port", "LiveView", "BusViewer", "open_in_app"]
+
+DEFAULT_PORT = 8765
+"""``--live`` without a port: the Foxglove app's default WebSocket port."""
+
+LIVE_HZ = 20.0
+"""Frames per wall second at most (the newest state at each; a lockstep flight computes faster
+than real time, so its frames are further apart in sim time)."""
+
+HOST = "127.0.0.1"
+
+
+def live_port(text: str) -> int:
+    """argparse type of ``--live [PORT]``: a TCP port 1..65535."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a TCP port number (1..65535)") from None
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port}: a TCP port is 1..65535")
+    return port
+
+
+def open_in_app(url: str) -> str:
+    """How to open ``url`` in the Foxglove app (the line the commands print)."""
+    return f"live view on {url}: in the Foxglove app, Open connection -> Foxglove WebSocket -> {url} (layout: docs/foxglove_layout.json)"
+
+
+class LiveView:
+    """A Foxglove WebSocket server showing scenario ``sc`` flown by swarm ``swarm``. Binds at
+    construction: a port in use raises :class:`ScenarioError` naming ``flag`` (exit 2, before
+    the flight). ``port`` 0: any free port (see :attr:`port`)."""
+
+    def __init__(self, sc: Any, swarm: str, port: int, *, flag: str = "--live", hz: float = LIVE_HZ, trail_s: float = 10.0) -> None:
+        import foxglove
+
+        from zenswarm.bridge.scene import SceneChannels, Trails
+
+        self.sc = sc
+        self.keys = wire.Keys(swarm)
+        self.context = foxglove.Context()  # the server's own: no other channel of this process on it
+        # the channels first: a client that connects at once is advertised all three in one go
+        # (a channel created after the server started can race a client's subscription to it)
+        self.channels = SceneChannels(sc, self.context, trail_s)
+        try:
+            self.server = foxglove.start_server(name=f"zenswarm {swarm}", host=HOST, port=port, context=self.context)
+        except RuntimeError as e:  # the SDK's FoxgloveError: "Failed to bind port: Address already in use"
+            raise ScenarioError(flag, f"cannot serve the live view on {HOST}:{port}: {e}") from None
+        self.port: int = self.server.port
+        self.url = f"ws://{HOST}:{self.port}"
+        self.trails = Trails(sc.n, trail_s)
+        self.period = 1.0 / hz
+        self.base_ns = time.time_ns()
+        self.frames = 0
+        self._last: dict[str, bytes] = {}
+        self._next = 0.0
+        self._shown = -1  # sim time of the last frame, ns
+        n = sc.n
+        self._state_keys = [self.keys.state(i) for i in range(1, n + 1)]
+        self._ref_keys = [self.keys.ref(i) for i in range(1, n + 1)]
+        self._diag_prefix = self.keys.prefix + "/diag/"
+
+    def feed(self, key: str, payload: bytes) -> None:
+        """Take one message of the swarm (the newest of each key is kept)."""
+        self._last[key] = payload
+
+    def maybe_publish(self, now: float) -> bool:
+        """Publish a frame if one is due at ``now`` (monotonic s) and something new arrived."""
+        if now < self._next:
+            return False
+        self._next = now + self.period
+        return self.publish()
+
+    def _decode(self, key: str, kind: str) -> Any:
+        payload = self._last.get(key)
+        if payload is None:
+            return None
+        try:
+            return wire.decode(kind, payload)
+        except wire.WireDecodeError:
+            return None
+
+    def publish(self) -> bool:
+        """Log a frame of the newest messages (False: no state yet, or none newer than the last frame)."""
+        from zenswarm.bridge.scene import Frame, diag_view
+
+        n = self.sc.n
+        nan = np.full((n, 3), np.nan)
+        q, v, rpy, qref = nan.copy(), nan.copy(), nan.copy(), nan.copy()
+        t_ns = -1
+        for i, key in enumerate(self._state_keys):
+            st = self._decode(key, "state")
+            if isinstance(st, wire.State):
+                q[i], v[i], rpy[i] = st.q, st.v, st.rpy
+                t_ns = max(t_ns, st.t)
+        for i, key in enumerate(self._ref_keys):
+            r = self._decode(key, "ref")
+            if isinstance(r, wire.Ref):
+                qref[i] = r.q
+        lead = self._decode(self.keys.leader_ref, "ref")
+        q0 = np.asarray(lead.q, dtype=float) if isinstance(lead, wire.Ref) else np.full(3, np.nan)
+        if t_ns < 0 or t_ns == self._shown:
+            return False
+        self._shown = t_ns
+        diag = {}
+        for key in [k for k in self._last if k.startswith(self._diag_prefix)]:
+            d = self._decode(key, "diag")
+            if isinstance(d, wire.Diag):
+                diag[d.process] = diag_view(d)
+        trail0, trails = self.trails.add(t_ns, q0, q)
+        self.channels.put(Frame(t_ns, q0, q, v, rpy, qref, trail0, trails), self.base_ns + t_ns, diag)
+        self.frames += 1
+        return True
+
+    def close(self) -> None:
+        """Stop the server (clients are disconnected)."""
+        self.server.stop()
+
+
+class BusViewer:
+    """A :class:`LiveView` fed from a Zenoh session of its own (``zenswarm replay --live``): a
+    client of ``connect`` subscribed to ``swarm/<swarm>/**``, drained by a thread that publishes
+    frames at the view's rate. :meth:`close` stops it."""
+
+    def __init__(self, view: LiveView, connect: list[str]) -> None:
+        import zenoh
+
+        from zenswarm import bus
+
+        self.view = view
+        self._cm = bus.open_session(bus.client_config(connect), handle_signals=False)
+        session = self._cm.__enter__()
+        self._sub = session.declare_subscriber(view.keys.all, zenoh.handlers.FifoChannel(1_000_000))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="live-view", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            while (s := self._sub.try_recv()) is not None:
+                self.view.feed(str(s.key_expr), s.payload.to_bytes())
+            self.view.maybe_publish(time.monotonic())
+            self._stop.wait(0.02)
+
+    def close(self) -> None:
+        """Publish the last frame, stop the thread, the subscriber, the session and the server."""
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        self.view.publish()
+        try:
+            self._sub.undeclare()
+        finally:
+            self._cm.__exit__(None, None, None)
+            self.view.close()
+
+
+def replay_viewer(path: Path, swarm: str | None, port: int, connect: list[str]) -> BusViewer:
+    """``zenswarm replay FILE --live PORT``: the live view of the swarm the replay publishes
+    (``swarm``, or the recorded one), scenario from the recording's metadata."""
+    from zenswarm.bridge.report import load_recording
+
+    rec = load_recording(path)
+    view = LiveView(rec.scenario, swarm or rec.swarm, port)
+    print(open_in_app(view.url), flush=True)
+    return BusViewer(view, connect)
