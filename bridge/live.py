@@ -1,5 +1,6 @@
 """The live view: a flying (or replayed) swarm served to the Foxglove app over its WebSocket
-protocol (subprotocol ``foxglove.websocket.v1``), by the ``foxglove-sdk`` package's server.
+protocol, by the ``foxglove-sdk`` package's server, under both names of the protocol
+(subprotocols ``foxglove.sdk.v1`` and ``foxglove.websocket.v1``, see :class:`SubprotocolRelay`).
 
 :class:`LiveView` keeps the newest message of each key it is fed (:meth:`LiveView.feed`, a dict
 store per message: cheap enough for the supervisor's bus loop) and, at most ``hz`` times per wall
@@ -14,11 +15,24 @@ supervisor of ``zenswarm up --live`` (fed from its bus loop; the flight's proces
 it exists, so a lockstep flight is the same bit for bit), or beside a replay (``zenswarm replay
 --live``: a Zenoh session of its own, subscribed to the replayed swarm, see :class:`BusViewer`).
 The server listens on 127.0.0.1 only: anyone who reaches it sees the flight.
+
+Why a relay: the SDK's server (every foxglove-sdk release on PyPI, 0.5.0 to 0.30.3, tried) accepts
+a client only if it offers ``foxglove.sdk.v1``, the protocol's current name, and answers HTTP 400 to
+one offering only ``foxglove.websocket.v1``, its first name (the same messages, renamed by
+Foxglove); no option of ``start_server`` changes that. The Foxglove app offers both, but other
+clients of the protocol (older Lichtblick releases, roslibjs-foxglove, ws-protocol's clients, tests
+written against the specification) offer only the old name. So the SDK's server listens on a
+free loopback port of its own and :class:`SubprotocolRelay`, built on the maintained
+``websockets`` package, listens on the port the user asked for, accepts either name and passes
+every WebSocket message both ways unchanged to a connection of its own to the SDK's server.
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
+import concurrent.futures
+import os
 import threading
 import time
 from pathlib import Path
@@ -29,7 +43,16 @@ import numpy as np
 from zenswarm import wire
 from zenswarm.errors import ScenarioError
 
-__all__ = ["DEFAULT_PORT", "LIVE_HZ", "live_port", "LiveView", "BusViewer", "open_in_app"]
+__all__ = [
+    "DEFAULT_PORT",
+    "LIVE_HZ",
+    "SUBPROTOCOLS",
+    "live_port",
+    "LiveView",
+    "SubprotocolRelay",
+    "BusViewer",
+    "open_in_app",
+]
 
 DEFAULT_PORT = 8765
 """``--live`` without a port: the Foxglove app's default WebSocket port."""
@@ -39,6 +62,13 @@ LIVE_HZ = 20.0
 than real time, so its frames are further apart in sim time)."""
 
 HOST = "127.0.0.1"
+
+SDK_SUBPROTOCOL = "foxglove.sdk.v1"
+"""The only subprotocol the foxglove-sdk server accepts."""
+
+SUBPROTOCOLS = (SDK_SUBPROTOCOL, "foxglove.websocket.v1")
+"""The names of the protocol the live view accepts, the preferred first: a client offering both
+(the Foxglove app) gets ``foxglove.sdk.v1``; one offering only the old name gets that."""
 
 
 def live_port(text: str) -> int:
@@ -73,11 +103,15 @@ class LiveView:
         # the channels first: a client that connects at once is advertised all three in one go
         # (a channel created after the server started can race a client's subscription to it)
         self.channels = SceneChannels(sc, self.context, trail_s)
+        # the SDK's server on a free loopback port; clients come through the relay (module docstring)
+        self.server = foxglove.start_server(name=f"zenswarm {swarm}", host=HOST, port=0, context=self.context)
         try:
-            self.server = foxglove.start_server(name=f"zenswarm {swarm}", host=HOST, port=port, context=self.context)
-        except RuntimeError as e:  # the SDK's FoxgloveError: "Failed to bind port: Address already in use"
-            raise ScenarioError(flag, f"cannot serve the live view on {HOST}:{port}: {e}") from None
-        self.port: int = self.server.port
+            self.relay = SubprotocolRelay(HOST, port, f"ws://{HOST}:{self.server.port}")
+        except OSError as e:  # "address already in use"
+            self.server.stop()
+            reason = os.strerror(e.errno) if e.errno else str(e)
+            raise ScenarioError(flag, f"cannot serve the live view on {HOST}:{port}: {reason}") from None
+        self.port: int = self.relay.port
         self.url = f"ws://{HOST}:{self.port}"
         self.trails = Trails(sc.n, trail_s)
         self.period = 1.0 / hz
@@ -144,8 +178,83 @@ class LiveView:
         return True
 
     def close(self) -> None:
-        """Stop the server (clients are disconnected)."""
-        self.server.stop()
+        """Stop the relay and the server (clients are disconnected)."""
+        try:
+            self.relay.close()
+        finally:
+            self.server.stop()
+
+
+async def _pipe(src: Any, dst: Any) -> None:
+    """Send every message of WebSocket ``src`` to ``dst``, unchanged, until either closes."""
+    import websockets
+
+    try:
+        async for message in src:
+            await dst.send(message)
+    except websockets.ConnectionClosed:
+        pass
+
+
+class SubprotocolRelay:
+    """A WebSocket server (the ``websockets`` package's) on ``host``:``port`` (0: any free port,
+    see :attr:`port`) accepting the subprotocols :data:`SUBPROTOCOLS`; each client it accepts
+    gets a connection of its own to ``upstream`` (the foxglove-sdk server, subprotocol
+    ``foxglove.sdk.v1``) and every message passes both ways unchanged, text and binary alike:
+    the protocol is the same under both names. A slow client slows its upstream connection, so
+    the SDK's per-client backlog drops the oldest messages as it does for a direct client. Runs
+    an event loop in a daemon thread; binds at construction (``OSError`` if it cannot);
+    :meth:`close` disconnects every client and stops it."""
+
+    def __init__(self, host: str, port: int, upstream: str) -> None:
+        from websockets.asyncio.server import serve
+
+        self.upstream = upstream
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name="live-relay", daemon=True)
+        self._thread.start()
+
+        async def start() -> Any:
+            return await serve(self._handle, host, port, subprotocols=list(SUBPROTOCOLS), compression=None, max_size=None)  # type: ignore[arg-type]
+
+        try:
+            self._server = asyncio.run_coroutine_threadsafe(start(), self._loop).result(timeout=10.0)
+        except BaseException:
+            self._stop_loop()
+            raise
+        self.port: int = self._server.sockets[0].getsockname()[1]
+
+    async def _handle(self, client: Any) -> None:
+        from websockets import WebSocketException
+        from websockets.asyncio.client import connect
+
+        try:
+            async with connect(self.upstream, subprotocols=[SDK_SUBPROTOCOL], compression=None, max_size=None) as up:  # type: ignore[list-item]
+                tasks = [asyncio.ensure_future(_pipe(client, up)), asyncio.ensure_future(_pipe(up, client))]
+                _, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+                for t in pending:
+                    t.cancel()
+        except (OSError, WebSocketException, TimeoutError):
+            pass  # the SDK's server stopped: the client is closed as this returns
+
+    def _stop_loop(self) -> None:
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(timeout=5.0)
+        if not self._thread.is_alive():
+            self._loop.close()
+
+    def close(self) -> None:
+        """Disconnect every client and stop listening."""
+        async def stop() -> None:
+            self._server.close()
+            await self._server.wait_closed()
+
+        try:
+            asyncio.run_coroutine_threadsafe(stop(), self._loop).result(timeout=10.0)
+        except (concurrent.futures.TimeoutError, TimeoutError):
+            pass
+        finally:
+            self._stop_loop()
 
 
 class BusViewer:

@@ -1,8 +1,8 @@
 """The live view (bridge/live.py, `zenswarm up --live`): a Foxglove WebSocket client, headless.
 
 A short lockstep flight of paper example 1 with ``--live PORT``: a client speaking the Foxglove
-WebSocket protocol (``foxglove.websocket.v1``, named ``foxglove.sdk.v1`` by the SDK) connects,
-checks the advertised channels and schemas (/scene and /tf
+WebSocket protocol under its first name only (subprotocol ``foxglove.websocket.v1``, which the
+foxglove-sdk server itself refuses: bridge/live.py's relay accepts it) connects, checks the advertised channels and schemas (/scene and /tf
 with Foxglove's official protobuf descriptors, the SDK's; /metrics with its JSON Schema),
 subscribes to them, and decodes what it receives with those schemas. The flight itself equals
 the in-process simulator bit for bit, as without --live.
@@ -16,6 +16,7 @@ import json
 import socket
 import struct
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import jsonschema
@@ -29,21 +30,22 @@ import foxglove_check
 from swarmtest import ROOT, processes_mentioning, scenario_variant, start_zenswarm, stop_swarm, unique_swarm
 from test_swarm import _assert_equal_to_sim
 
-SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
-"""The client offers both names of the protocol: the foxglove-sdk server (0.30) speaks it as
-``foxglove.sdk.v1`` only (the same messages as ``foxglove.websocket.v1``, renamed; a client that
-offers only the old name gets HTTP 400), as the current Foxglove app does."""
+WS_V1 = "foxglove.websocket.v1"
+"""The subprotocol the flight's client offers, alone: the protocol's name in its specification
+(ws-protocol's docs/spec.md), which independent clients speak."""
 
 TOPICS = {"/scene": "foxglove.SceneUpdate", "/tf": "foxglove.FrameTransforms", "/metrics": "zenswarm.Metrics"}
 
 
-async def _watch(url: str, deadline: float) -> tuple[dict[int, dict], dict[str, list[tuple[int, bytes]]]]:
-    """Connect (retrying until the server listens), take the advertisements, subscribe to
-    TOPICS, and collect messages until the server closes the connection or ``deadline``
-    (monotonic s)."""
+async def watch(
+    url: str, deadline: float, on_subscribed: Callable[[], None] | None = None
+) -> tuple[dict[int, dict], dict[str, list[tuple[int, bytes]]]]:
+    """Connect offering only ``foxglove.websocket.v1`` (retrying until the server listens), take
+    the advertisements, subscribe to TOPICS (then call ``on_subscribed``, once), and collect
+    messages until the server closes the connection or ``deadline`` (monotonic s)."""
     while True:
         try:
-            ws = await websockets.connect(url, subprotocols=SUBPROTOCOLS, max_size=None)
+            ws = await websockets.connect(url, subprotocols=[WS_V1], max_size=None)
             break
         except OSError:
             if time.monotonic() > deadline:
@@ -53,7 +55,7 @@ async def _watch(url: str, deadline: float) -> tuple[dict[int, dict], dict[str, 
     got: dict[str, list[tuple[int, bytes]]] = {t: [] for t in TOPICS}
     subs: dict[int, str] = {}
     async with ws:
-        assert ws.subprotocol == "foxglove.sdk.v1"
+        assert ws.subprotocol == WS_V1, ws.subprotocol  # the server selected the name offered
         while time.monotonic() < deadline:  # until the server closes, at the end of the flight
             try:
                 raw = await asyncio.wait_for(ws.recv(), timeout=max(0.05, deadline - time.monotonic()))
@@ -71,6 +73,9 @@ async def _watch(url: str, deadline: float) -> tuple[dict[int, dict], dict[str, 
                             new.append({"id": sid, "channelId": ch["id"]})
                     if new:
                         await ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                    if on_subscribed is not None and set(subs.values()) == set(TOPICS):
+                        on_subscribed()
+                        on_subscribed = None
                 continue
             assert raw[0] == 0x01, f"opcode {raw[0]}: expected message data"
             sid, stamp = struct.unpack_from("<IQ", raw, 1)
@@ -78,7 +83,7 @@ async def _watch(url: str, deadline: float) -> tuple[dict[int, dict], dict[str, 
     return channels, got
 
 
-def _check_channels(channels: dict[int, dict]) -> dict[str, dict]:
+def check_channels(channels: dict[int, dict]) -> dict[str, dict]:
     by_topic = {ch["topic"]: ch for ch in channels.values()}
     assert set(TOPICS) <= set(by_topic), sorted(by_topic)
     for topic, name in TOPICS.items():
@@ -102,13 +107,13 @@ def test_live_view_serves_the_flight_to_a_foxglove_client(tmp_path: Path) -> Non
         "--progress-every", "5", "--live", str(live),
     )
     try:
-        channels, got = asyncio.run(_watch(f"ws://127.0.0.1:{live}", time.monotonic() + 120.0))
+        channels, got = asyncio.run(watch(f"ws://127.0.0.1:{live}", time.monotonic() + 120.0))
         text, _ = proc.communicate(timeout=180)
     finally:
         stop_swarm([proc], swarm, port)
     assert proc.returncode in (0, 1), text[-3000:]  # 1: a 2 s flight does not reach the goal (nor does the simulator's)
     assert f"ws://127.0.0.1:{live}" in text and "Foxglove" in text
-    by_topic = _check_channels(channels)
+    by_topic = check_channels(channels)
     for topic in TOPICS:
         assert got[topic], f"no message on {topic}"
     # the messages, decoded with the advertised (official) schemas
@@ -141,6 +146,34 @@ def test_live_view_serves_the_flight_to_a_foxglove_client(tmp_path: Path) -> Non
     # the same flight as without --live: the in-process simulator's, bit for bit
     _assert_equal_to_sim(scenario, out)
     assert not processes_mentioning(f"ws://127.0.0.1:{live}")
+
+
+def test_live_view_accepts_both_names_of_the_protocol() -> None:
+    """In this process, no flight: the relay in front of the SDK's server selects the name the
+    client offers (``foxglove.sdk.v1`` when both are), relays the server's first messages, and
+    refuses a client offering neither (HTTP 400, as the SDK does)."""
+    from zenswarm.bridge.live import LiveView
+    from zenswarm.config import load_scenario
+
+    view = LiveView(load_scenario(ROOT / "compose" / "scenarios" / "paper_example1.toml"), "names", 0)
+
+    async def handshake(offer: list[str]) -> tuple[str | None, list[str]]:
+        async with websockets.connect(view.url, subprotocols=offer, open_timeout=10) as ws:
+            ops = [json.loads(await asyncio.wait_for(ws.recv(), 10))["op"] for _ in range(2)]
+            return ws.subprotocol, ops
+
+    try:
+        first = ["serverInfo", "advertise"]
+        assert asyncio.run(handshake([WS_V1])) == (WS_V1, first)
+        assert asyncio.run(handshake(["foxglove.sdk.v1"])) == ("foxglove.sdk.v1", first)
+        assert asyncio.run(handshake([WS_V1, "foxglove.sdk.v1"])) == ("foxglove.sdk.v1", first)
+        with pytest.raises(websockets.InvalidStatus) as e:
+            asyncio.run(handshake(["not.foxglove"]))
+        assert e.value.response.status_code == 400
+    finally:
+        view.close()
+    with pytest.raises(OSError):  # closed: nothing listens any more
+        socket.create_connection(("127.0.0.1", view.port), timeout=2).close()
 
 
 def test_live_port_in_use_or_invalid_is_exit_2_before_the_flight(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
