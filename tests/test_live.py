@@ -157,10 +157,13 @@ def test_live_view_accepts_both_names_of_the_protocol() -> None:
 
     view = LiveView(load_scenario(ROOT / "compose" / "scenarios" / "paper_example1.toml"), "names", 0)
 
+    advertised: set[str] = set()
+
     async def handshake(offer: list[str]) -> tuple[str | None, list[str]]:
         async with websockets.connect(view.url, subprotocols=offer, open_timeout=10) as ws:
-            ops = [json.loads(await asyncio.wait_for(ws.recv(), 10))["op"] for _ in range(2)]
-            return ws.subprotocol, ops
+            ops = [json.loads(await asyncio.wait_for(ws.recv(), 10)) for _ in range(2)]
+            advertised.update(ch["topic"] for op in ops if op["op"] == "advertise" for ch in op["channels"])
+            return ws.subprotocol, [op["op"] for op in ops]
 
     try:
         first = ["serverInfo", "advertise"]
@@ -174,6 +177,54 @@ def test_live_view_accepts_both_names_of_the_protocol() -> None:
         view.close()
     with pytest.raises(OSError):  # closed: nothing listens any more
         socket.create_connection(("127.0.0.1", view.port), timeout=2).close()
+    assert advertised == set(TOPICS)
+    assert _layout_topics() <= advertised, "docs/foxglove_layout.json shows a topic the live view does not advertise"
+
+
+LAYOUT = ROOT / "docs" / "foxglove_layout.json"
+
+
+def _layout_topics() -> set[str]:
+    """The topics docs/foxglove_layout.json refers to (3D panel topics, plot paths, raw message paths)."""
+    config = json.loads(LAYOUT.read_text())["configById"]
+    topics = set()
+    for panel in config.values():
+        topics |= set(panel.get("topics", {}))
+        paths = [p["value"] for p in panel.get("paths", [])] + ([panel["topicPath"]] if "topicPath" in panel else [])
+        topics |= {p.split(".")[0] for p in paths}
+    return topics
+
+
+def test_layout_file_refers_only_to_what_the_live_view_and_export_publish() -> None:
+    """docs/foxglove_layout.json, in the format the Foxglove app exports and imports (Layout ->
+    Import from file): every panel of the tree configured and every configured panel placed; its
+    topics published (the handshake test checks they are advertised); every /metrics field a plot
+    reads is in the metrics' JSON Schema; the 3D panel follows the scene's frame."""
+    from zenswarm.bridge.scene import METRICS_SCHEMA, WORLD
+
+    layout = json.loads(LAYOUT.read_text())
+    config = layout["configById"]
+
+    def leaves(node: object) -> list[str]:
+        if isinstance(node, str):
+            return [node]
+        assert isinstance(node, dict) and node["direction"] in ("row", "column") and 0 < node["splitPercentage"] < 100, node
+        return leaves(node["first"]) + leaves(node["second"])
+
+    placed = leaves(layout["layout"])
+    assert sorted(placed) == sorted(config), (placed, sorted(config))
+    assert _layout_topics() == set(TOPICS)
+    props = METRICS_SCHEMA["properties"]
+    for panel_id, panel in config.items():
+        for p in panel.get("paths", []):
+            topic, *fields = p["value"].split(".")
+            assert topic == "/metrics" and len(fields) in (1, 2), (panel_id, p["value"])
+            head = fields[0].removesuffix("[:]")
+            assert head in props, (panel_id, p["value"])
+            if len(fields) == 2:  # an array's items: uavs[:].formation_error_m
+                assert fields[0].endswith("[:]") and fields[1] in props[head]["items"]["properties"], (panel_id, p["value"])
+        if panel_id.startswith("3D!"):
+            assert panel["followTf"] == WORLD and set(panel["topics"]) == {"/scene", "/tf"}
 
 
 def test_live_port_in_use_or_invalid_is_exit_2_before_the_flight(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

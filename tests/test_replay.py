@@ -295,20 +295,51 @@ def flight(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, Path]:
 
 
 @pytest.mark.swarm
-def test_cli_rate_paces_a_lockstep_flight_by_sim_time(flight: tuple[Path, str, Path]) -> None:
-    path, _, _ = flight
+def test_cli_rate_paces_a_lockstep_flight_by_sim_time_and_live_serves_it(flight: tuple[Path, str, Path]) -> None:
+    """``--rate 4``: 2 s of sim time in about 0.5 s. With ``--live PORT`` (one replay for both,
+    to keep the suite short): a Foxglove client offering ``foxglove.websocket.v1`` only connects
+    and subscribes; only then does the test declare the liveliness token the replay's
+    ``--wait-for bridge`` waits for, so the client sees the whole replay. Its frames show the
+    recorded flight in sim time, up to its end; the server stops with the replay."""
+    import asyncio
+
+    from test_live import TOPICS, check_channels, watch
+
+    from zenswarm.bus import client_config, free_port, open_session
+
+    path, swarm, _ = flight
     info = scan(path)
     assert info.complete and info.end_marker and info.mode == "lockstep" and info.sim_s == 2.0
-    with router() as ep:
-        cp = subprocess.run(
-            [sys.executable, "-m", "zenswarm", "replay", str(path), "--connect", ep, "--rate", "4", "--wait-subscribers", "0"],
-            cwd=ROOT, capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
+    port = free_port()
+    tokens: list[Any] = []
+    with router() as ep, open_session(client_config([ep]), handle_signals=False) as s:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "zenswarm", "replay", str(path), "--connect", ep, "--rate", "4", "--wait-subscribers", "0",
+             "--live", str(port), "--wait-for", "bridge"],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL,
         )  # fmt: skip
-    assert cp.returncode == 0, cp.stderr
-    line = cp.stderr.strip().splitlines()[-1]
+        try:
+            on_subscribed = lambda: tokens.append(s.liveliness().declare_token(wire.Keys(swarm).alive("bridge")))  # noqa: E731
+            channels, got = asyncio.run(watch(f"ws://127.0.0.1:{port}", time.monotonic() + 60.0, on_subscribed))
+            out, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+            for tok in tokens:
+                tok.undeclare()
+    assert proc.returncode == 0, err
+    line = err.strip().splitlines()[-1]
     assert "by sim time, 2.000 s played in" in line, line
     wall = float(line.split(" played in ")[1].split(" s wall")[0])
     assert 0.4 < wall < 1.2, line  # 2 s of sim time at 4x
+    # --live
+    assert tokens, "the client never subscribed to every topic"
+    assert f"ws://127.0.0.1:{port}" in out and "Foxglove" in out, out
+    check_channels(channels)
+    assert all(got[t] for t in TOPICS), {t: len(m) for t, m in got.items()}
+    ts = [json.loads(data)["t"] for _, data in got["/metrics"]]
+    assert ts == sorted(ts) and ts[0] >= 0.0 and ts[-1] == pytest.approx(2.0, abs=0.02), ts  # the last frame: the end
 
 
 @pytest.mark.swarm
@@ -355,42 +386,3 @@ def test_replay_into_one_live_agent_reproduces_its_references_and_loops_are_acce
     rest = [wire.decode("cmd", p).t for p in got[keys.cmd(2)][n_cmd:]]
     assert rest == [k * DT for k in range(200, 402)], (len(rest), rest[:3])
 
-
-@pytest.mark.swarm
-def test_replay_live_serves_the_replayed_flight_to_a_foxglove_client(flight: tuple[Path, str, Path]) -> None:
-    """``zenswarm replay F.mcap --live PORT``: a Foxglove client (offering ``foxglove.websocket.v1``
-    only) connects and subscribes; only then does the test declare the liveliness token the
-    replay's ``--wait-for bridge`` waits for, so the whole replay (2 s of sim time at 4x) is
-    seen. Its frames show the recorded flight in sim time; the server stops with the replay."""
-    import asyncio
-
-    from test_live import TOPICS, check_channels, watch
-
-    from zenswarm.bus import client_config, free_port, open_session
-
-    path, swarm, _ = flight
-    port = free_port()
-    with router() as ep, open_session(client_config([ep]), handle_signals=False) as s:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "zenswarm", "replay", str(path), "--connect", ep, "--rate", "4", "--live", str(port),
-             "--wait-for", "bridge", "--wait-subscribers", "0"],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, stdin=subprocess.DEVNULL,
-        )  # fmt: skip
-        tokens: list[Any] = []
-        try:
-            on_subscribed = lambda: tokens.append(s.liveliness().declare_token(wire.Keys(swarm).alive("bridge")))  # noqa: E731
-            channels, got = asyncio.run(watch(f"ws://127.0.0.1:{port}", time.monotonic() + 60.0, on_subscribed))
-            text, _ = proc.communicate(timeout=60)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(10)
-            for tok in tokens:
-                tok.undeclare()
-    assert proc.returncode == 0, text[-3000:]
-    assert tokens, "the client never subscribed to every topic"
-    assert f"ws://127.0.0.1:{port}" in text and "end of recording" in text, text[-3000:]
-    check_channels(channels)
-    assert all(got[t] for t in TOPICS), {t: len(m) for t, m in got.items()}
-    ts = [json.loads(data)["t"] for _, data in got["/metrics"]]
-    assert ts == sorted(ts) and 0.0 <= ts[0] and ts[-1] == pytest.approx(2.0, abs=0.02), ts  # up to the last frame
