@@ -252,3 +252,115 @@ def test_dask_cluster_gives_the_local_rows_and_crashes_are_recorded(tmp_path: Pa
         assert r["attempts"] == (2 if crashed else 1) and (r["error"] is not None) == crashed
         assert not crashed or "deliberate failure" in r["error"] and r["success"] is False and r["rms_tracking_error_m"] is None
     assert d[0]["rms_tracking_error_m"] is not None
+
+
+# ----------------------------------------------------------------------------- --check-swarm (no swarm flown)
+
+
+def test_check_swarm_names_the_differing_run_and_figure(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--check-swarm K`` through the command line, without flying a swarm: the runs go to an
+    in-process backend, and the "swarm" flight is the simulator's own (so equal), then the same
+    with one figure of one run moved by one ulp (exit 1 naming the run and the figure), then a
+    swarm flight that cannot be flown (exit 1 naming the run and the error)."""
+    import concurrent.futures as cf
+    import dataclasses
+
+    from zenswarm import sweep
+    from zenswarm.api import FlightError
+
+    class Inline(sweep.Backend):  # the local pool's interface, in this process
+        def __init__(self, workers: int) -> None:
+            pass
+
+        def submit(self, task: dict[str, Any]) -> Any:
+            f: cf.Future[dict[str, Any]] = cf.Future()
+            f.set_result(sweep.run_one(task))
+            return f
+
+        def wait_first(self, futures: Any) -> set[Any]:
+            return set(futures)
+
+        def cancel(self) -> None:
+            pass
+
+        def close(self) -> None:
+            pass
+
+    calls: list[tuple[str, int]] = []
+    swarm = {"bump": None, "fail": False}  # what the fake swarm flight does differently
+
+    def fake_fly(doc: Any, *, mode: str, seed: int, **kw: Any) -> Any:
+        calls.append((mode, seed))
+        if mode == "swarm" and swarm["fail"]:
+            raise FlightError("zenswarm up exited 3", 3, "")
+        f = fly(doc, mode="sim", seed=seed, **kw)  # the simulator stands in for the lockstep swarm
+        if mode == "swarm" and seed == swarm["bump"]:
+            r = dict(f.results)
+            r["rms_tracking_error_m"] = math.nextafter(r["rms_tracking_error_m"], math.inf)
+            f = dataclasses.replace(f, results=r)
+        return f
+
+    monkeypatch.setattr(sweep, "LocalBackend", Inline)
+    monkeypatch.setattr(sweep, "fly", fake_fly)
+    monkeypatch.setattr(sweep, "_maybe_report", lambda out: None)  # the report has its own tests
+    out = tmp_path / "c"
+    args = [EX1, "--seeds", "3", "--duration", "0.5", "--check-swarm", "2", "--quiet", "--out", str(out)]
+    assert main(args) == 0, capsys.readouterr().err
+    picked = json.loads((out / "check_swarm.json").read_text())["runs"]
+    assert len(picked) == 2 and calls[:3] == [("sim", 0), ("sim", 1), ("sim", 2)]
+    assert sorted(calls[3:]) == [("swarm", r) for r in picked]  # seed == run index here (base seed 0, one cell)
+    err = capsys.readouterr().err
+    assert "flying runs" in err and "check-swarm: run" not in err
+
+    swarm["bump"] = picked[1]
+    calls.clear()
+    assert main(args) == 1  # the same command: nothing to fly again, the check flies again
+    assert [m for m, _ in calls] == ["swarm", "swarm"]
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if "check-swarm: run" in ln]
+    assert len(lines) == 1 and f"run {picked[1]} " in lines[0] and "rms_tracking_error_m" in lines[0], lines
+    assert json.loads((out / "check_swarm.json").read_text())["differences"] == [lines[0].split("check-swarm: ", 1)[1]]
+
+    swarm["fail"] = True
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert all(f"check-swarm: run {r} " in err for r in picked) and "the swarm flight failed: FlightError" in err
+
+
+# ----------------------------------------------------------------------------- the installed command
+
+
+@pytest.mark.swarm  # two runs of the console script (about 1.5 s each); the rest in this process
+def test_console_script_help_and_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``zenswarm sweep --help`` names every option and the subcommands; ``sweep report`` on a
+    missing directory exits 2 with the message (both through the installed ``zenswarm`` script);
+    ``sweep report`` on a directory that is no campaign, ``sweep margin --help`` and bad
+    ``sweep margin`` input through :func:`main`."""
+    import sysconfig
+
+    exe = Path(sysconfig.get_path("scripts")) / "zenswarm"
+    assert exe.is_file(), f"the console script {exe} (pip install -e .)"
+    helped = subprocess.run([str(exe), "sweep", "--help"], capture_output=True, text=True, timeout=60)
+    assert helped.returncode == 0, helped.stderr
+    text = " ".join(helped.stdout.split())
+    for word in ("--grid", "--sample PATH=LOW:HIGH", "--samples K", "--seeds N", "--base-seed", "--workers W",
+                 "--scheduler tcp://HOST:PORT", "--mode {sim,swarm}", "--check-swarm K", "--duration", "--out DIR",
+                 "zenswarm sweep report DIR", "zenswarm sweep margin SCENARIO", "dask scheduler", "2 bad input"):
+        assert word in text, word
+    missing = tmp_path / "nosuch"
+    rep = subprocess.run([str(exe), "sweep", "report", str(missing)], capture_output=True, text=True, timeout=60)
+    assert rep.returncode == 2 and "not a campaign directory" in rep.stderr and str(missing) in rep.stderr, rep.stderr
+    assert not missing.exists()
+
+    (tmp_path / "empty").mkdir()
+    assert main(["report", str(tmp_path / "empty")]) == 2
+    assert "campaign.json" in capsys.readouterr().err and not (tmp_path / "empty" / "report.md").exists()
+    assert main(["margin", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "--max-delay" in out and "--tol" in out and "docs/delay_margin.md" in out
+    for bad, named in ((["--scan", "1"], "--scan"), (["--max-delay", "5parsecs"], "--max-delay"), ([], "scenario")):
+        scenario = ["nosuch_scenario"] if named == "scenario" else [EX1]
+        code = main(["margin", *scenario, *bad])
+        err = capsys.readouterr().err
+        assert code == 2 and named in err and "error" in err, (bad, err)
