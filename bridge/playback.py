@@ -248,9 +248,12 @@ class Pacer:
         self.anchor: tuple[float, int] | None = None
         self.max_lag_s = 0.0
         self.step_until: int | None = None  # while stepping: the timestamp of the group let through
+        self.started: float | None = None  # monotonic time of the first message let through
 
     def reanchor(self, ts: int) -> None:
         self.anchor = (time.monotonic(), ts)
+        if self.started is None:
+            self.started = self.anchor[0]
 
     def wait(self, ts: int) -> bool:
         """Block until the message of timestamp ``ts`` is due; False if the replay is to stop."""

@@ -60,7 +60,8 @@ END_SLACK_NS = 1_000_000_000
 @dataclass
 class ReplayStats:
     """What a replay did. ``span_s``: the timestamps played (sim or receive time, by ``clock``),
-    s; ``wall_s``: how long it took; ``loops``: passes started; ``restamped``: payloads whose
+    s; ``wall_s``: how long playing took, from the first message published (the session and the wait
+    for subscribers before it not counted); ``loops``: passes started; ``restamped``: payloads whose
     ``t``/``seq`` were moved on for a loop pass (``not_restamped``: payloads that carry none,
     published as recorded); ``clocks``: clock messages published by ``--clock-rate``."""
 
@@ -473,7 +474,8 @@ def replay(
                 pacer.anchor = None  # the next pass starts at once
             else:
                 stats.stopped_by = "interrupted"
-            stats.wall_s = time.monotonic() - wall0
+            # from the first message published: the session's start and the wait for subscribers are not playing time
+            stats.wall_s = time.monotonic() - (pacer.started if pacer.started is not None else wall0)
             if linger_s > 0 and not stop.is_set():
                 time.sleep(linger_s)  # let the last batches (and clock messages) leave before the session closes
         finally:
