@@ -68,6 +68,7 @@ __all__ = [
     "report_recording",
     "report_from_series",
     "plot_effective_graph",
+    "network_plan",
     "recorded_fault_plan",
     "add_parsers",
 ]

@@ -152,10 +152,11 @@ def test_report_writes_every_figure_and_the_runs_results(flight, recording, tmp_
 
 
 @pytest.mark.slow
-def test_report_plots_the_effective_graph_of_a_radio_run(flight, tmp_path):
+def test_report_plots_the_effective_graph_of_a_radio_run(flight, recording, tmp_path):
     """A recording whose run had --link-range and --link-capacity (the recorder's fault flags):
-    the report adds effective_graph.png, from the same per-tick graph as results.json's
-    effective_graph (its summary is recomputed here from graph_series)."""
+    the report's fault plan has them (the fault-free recording's has none: no figure, see above),
+    effective_graph.png is drawn, from the same per-tick graph as results.json's effective_graph
+    (its summary is recomputed here from graph_series)."""
     from zenswarm.bridge.args import add_fault_args, link_faults
     from zenswarm.linkfaults import effective_graph, graph_series
 
@@ -163,16 +164,17 @@ def test_report_plots_the_effective_graph_of_a_radio_run(flight, tmp_path):
     words = ["--link-range", "0.25m", "--link-capacity", "20kB/s", "--link-jitter", "5ms"]
     p = tmp_path / "radio.mcap"
     write_recording(p, sc, sim.series, extra_metadata={"fault_args": json.dumps(words)})
-    out = tmp_path / "report"
-    files = report.report_recording(p, out)
-    f = out / "effective_graph.png"
-    assert f in files and f.stat().st_size > 20_000
+    rec = report.load_recording(p)
+    recorded = report.recorded_fault_plan(rec)  # what report_recording passes to report_from_series
+    assert recorded is not None and report.network_plan(sc, recorded) is recorded
+    assert report.network_plan(sc, report.recorded_fault_plan(report.load_recording(recording[0]))) is None
+    f = report.plot_effective_graph(sim.series, sc, recorded, tmp_path / "effective_graph.png")
+    assert f.stat().st_size > 20_000
     w, h = _png_size(f)
     assert w >= 800 and h >= 600, (w, h)
     ap = argparse.ArgumentParser()
     add_fault_args(ap)
     plan = link_faults(ap.parse_args(words)).plan(sc)
-    assert report.recorded_fault_plan(report.load_recording(p)) is not None
     A = np.asarray(sc.graph.adjacency, dtype=float)
     nbrs = [[int(j) for j in np.flatnonzero(A[i])] for i in range(sc.n)]
     pinned = [float(b) > 0 for b in sc.graph.pinning]
