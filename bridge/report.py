@@ -22,6 +22,13 @@ run's compute time). Figures (PNG, matplotlib Agg, no display needed), after the
 ``links.png``            messages per key in the recording (and how many the report's decoder
                          rejected), and the drop/reject/timeout counters each process reported in
                          its last ``diag`` message (recordings only).
+``effective_graph.png``  runs with a radio model, a capacity queue or a link trace only: the
+                         effective communication graph over time (connected components per tick,
+                         where the leader-rooted spanning tree of Lemma 1 held, each ref/leader
+                         link up/down per tick as a raster), each link's delivery ratio and the
+                         histogram of the delivered messages' delays; recomputed from the fault
+                         plan (scenario ``[faults]`` + the recorded fault flags) and the series,
+                         as ``results.json``'s ``effective_graph``.
 
 ``zenswarm report --series RUN/timeseries.npz --scenario SCENARIO.toml --out DIR`` plots the
 output of ``zenswarm sim`` (or of ``zenswarm up``) the same way, without ``links.png`` and without
@@ -44,7 +51,9 @@ import numpy as np
 from zenswarm import wire
 from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import RecordingError, ScenarioError, ZenswarmError
+from zenswarm.faults import FaultPlan
 from zenswarm.geometry import d_obs_many, obstacle_clearance_many
+from zenswarm.linkfaults import graph_series, plan_for
 from zenswarm.metrics import TimeSeries, compute_results
 from zenswarm.paths import check_output_dir
 
@@ -58,6 +67,9 @@ __all__ = [
     "flight_from_recording",
     "report_recording",
     "report_from_series",
+    "plot_effective_graph",
+    "network_plan",
+    "recorded_fault_plan",
     "add_parsers",
 ]
 
@@ -591,23 +603,122 @@ def _proc_order(proc: str) -> tuple[int, int, str]:
     return (0 if proc in ("plant", "leader") else 2, 0, proc)
 
 
+# =========================================================================== effective graph
+
+
+def network_plan(sc: Scenario, faults: FaultPlan | None) -> FaultPlan | None:
+    """``faults`` if the run has a radio model, a capacity queue or a trace (the faults that make
+    the effective graph worth a figure), else None."""
+    if faults is None:
+        return None
+    return faults if (faults.radio_active or faults.queues is not None or faults.trace is not None) else None
+
+
+def recorded_fault_plan(rec: Recording) -> FaultPlan | None:
+    """The link-fault plan of a recorded run: the scenario's ``[faults]`` table plus the fault
+    flags the recorder was given (metadata ``fault_args``, as ``replay --verify`` reads them)."""
+    from zenswarm.bridge.args import add_fault_args, link_faults
+
+    p = argparse.ArgumentParser(add_help=False)
+    add_fault_args(p)
+    try:
+        words = json.loads(rec.metadata.get("fault_args", "[]"))
+        return link_faults(p.parse_args([str(w) for w in words])).plan(rec.scenario)
+    except (ValueError, SystemExit, ZenswarmError) as e:
+        raise RecordingError(f"{rec.path}: metadata fault_args unusable ({e})") from None
+
+
+def plot_effective_graph(ts: TimeSeries, sc: Scenario, faults: FaultPlan, path: Path) -> Path:
+    """The effective communication graph over time (:func:`zenswarm.linkfaults.graph_series`,
+    recomputed from the fault plan and the flown series, as ``results.json``'s ``effective_graph``):
+    the connected components per tick with the ticks where the leader-rooted spanning tree of
+    Lemma 1 held, each ref/leader link up or down per tick (raster), each link's delivery ratio
+    (ticks >= 1: the start-up exchange is never faulted) and the histogram of the delivered
+    messages' delays (queue wait + serialization + delay/jitter or trace), in ms."""
+    A = np.asarray(sc.graph.adjacency, dtype=float)
+    nbrs = [[int(j) for j in np.flatnonzero(A[i])] for i in range(sc.n)]
+    pinned = [float(b) > 0 for b in sc.graph.pinning]
+    T = _last_data_tick(ts) + 1
+    gs = graph_series(faults, nbrs, pinned, ts.q[:T], ts.q0[:T], sc.timing.dt)
+    t = np.arange(T) * sc.timing.dt
+    links = gs.links
+    nl = len(links)
+    fig = _figure((13.0, max(6.5, 0.13 * nl + 4.0)), layout="constrained")
+    gsp = fig.add_gridspec(2, 2, width_ratios=(2.2, 1.0), height_ratios=(1.0, max(1.5, 0.05 * nl + 1.0)))
+    ax_c = fig.add_subplot(gsp[0, 0])
+    ax_r = fig.add_subplot(gsp[1, 0], sharex=ax_c)
+    ax_h = fig.add_subplot(gsp[0, 1])
+    ax_d = fig.add_subplot(gsp[1, 1])
+
+    ax_c.step(t, gs.components, where="post", color="tab:blue", label="connected components")
+    held = gs.tree.astype(float)
+    ax_c.fill_between(t, 0, held * 0.5, step="post", color="tab:green", alpha=0.3, label="spanning tree from the leader held")
+    ax_c.set_ylim(0, max(2, int(gs.components.max(initial=1))) + 0.5)
+    ax_c.set_ylabel("components")
+    frac = float(np.mean(gs.tree)) if T else 0.0
+    cmax = int(gs.components.max(initial=0))
+    ax_c.set_title(f"effective graph: up to {cmax} components, spanning tree {100 * frac:.1f} % of ticks", fontsize=10)
+    ax_c.legend(fontsize=8, loc="upper right")
+    ax_c.grid(True, alpha=0.3)
+
+    if nl:
+        up = np.array([ls.up for ls in links], dtype=float)
+        ax_r.imshow(up, aspect="auto", interpolation="nearest", cmap="RdYlGn", vmin=0, vmax=1,
+                    extent=(0.0, T * sc.timing.dt, nl - 0.5, -0.5))  # fmt: skip
+        ax_r.set_yticks(np.arange(nl), [ls.name for ls in links], fontsize=6 if nl > 20 else 8)
+    ax_r.set_xlabel("t (s)")
+    ax_r.set_title("links up (green) / down (red), per tick", fontsize=10)
+
+    ratio = np.array([float(np.mean(ls.up[1:])) if T > 1 else 1.0 for ls in links])
+    y = np.arange(nl)
+    ax_d.barh(y, ratio, color=["tab:red" if r < 1.0 else "tab:green" for r in ratio])
+    ax_d.set_yticks(y, [ls.name for ls in links], fontsize=6 if nl > 20 else 8)
+    ax_d.invert_yaxis()
+    ax_d.set_xlim(0, 1.05)
+    ax_d.set_xlabel("delivery ratio (ticks >= 1)")
+    ax_d.set_title(f"per-link delivery: mean {float(ratio.mean()) if nl else 1.0:.3f}", fontsize=10)
+    ax_d.grid(True, axis="x", alpha=0.3)
+
+    for kind, color in (("ref", "tab:blue"), ("leader", "tab:orange")):
+        d = [ls.delay_s[1:][ls.up[1:]] for ls in links if ls.kind == kind]
+        ms = np.concatenate(d) * 1e3 if d else np.zeros(0)
+        if ms.size:
+            ax_h.hist(ms, bins=40, color=color, alpha=0.6,
+                      label=f"{kind}: {ms.size} msgs, mean {ms.mean():.2f} ms, p95 {np.percentile(ms, 95):.2f} ms")  # fmt: skip
+    ax_h.set_xlabel("delay of delivered messages (ms)")
+    ax_h.set_ylabel("messages")
+    ax_h.set_title("latency histogram", fontsize=10)
+    if ax_h.get_legend_handles_labels()[0]:
+        ax_h.legend(fontsize=7)
+    ax_h.grid(True, alpha=0.3)
+    fig.suptitle("communication: effective graph, delivery and latency")
+    fig.savefig(path, dpi=_DPI)
+    return path
+
+
 # =========================================================================== reports
 
 
-def report_from_series(ts: TimeSeries, scenario: Scenario, out_dir: str | Path) -> list[Path]:
+def report_from_series(ts: TimeSeries, scenario: Scenario, out_dir: str | Path, faults: FaultPlan | None = None) -> list[Path]:
     """Write the figures that need only the time series (trajectories, formation and tracking
-    errors, clearance) into ``out_dir`` (created); returns their paths."""
+    errors, clearance) into ``out_dir`` (created); returns their paths. With ``faults`` (the run's
+    link-fault plan) that has a radio model, a capacity queue or a trace, also
+    ``effective_graph.png`` (:func:`plot_effective_graph`)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if len(ts.t) == 0:
         raise ZenswarmError("the time series is empty: nothing to plot")
-    return [
+    files = [
         plot_trajectories(ts, scenario, out / "trajectories_3d.png"),
         plot_formation_errors(ts, scenario, out / "formation_errors.png"),
         plot_vehicle_formation_errors(ts, scenario, out / "formation_errors_vehicles.png"),
         plot_tracking_errors(ts, scenario, out / "tracking_errors.png"),
         plot_clearance(ts, scenario, out / "clearance.png"),
     ]
+    net = network_plan(scenario, faults)
+    if net is not None:
+        files.append(plot_effective_graph(ts, scenario, net, out / "effective_graph.png"))
+    return files
 
 
 def results_from_flight(fl: Flight, full_time: bool = False) -> dict[str, Any]:
@@ -625,7 +736,9 @@ def results_from_flight(fl: Flight, full_time: bool = False) -> dict[str, Any]:
 def report_recording(
     path: str | Path, out_dir: str | Path, full_time: bool = False, warn: Callable[[str], None] | None = None
 ) -> list[Path]:
-    """The full report of a recording: every figure of :data:`FIGURES` and ``results.json``.
+    """The full report of a recording: every figure of :data:`FIGURES` and ``results.json``, and
+    ``effective_graph.png`` when the run had a radio model, a capacity queue or a trace (the
+    scenario's ``[faults]`` and the fault flags in the recording's metadata).
 
     full_time: judge every recorded tick, as ``--full-time`` runs do. warn: called with each
     thing the reader must know (:attr:`Recording.notes`): a truncated or damaged recording (then
@@ -639,7 +752,7 @@ def report_recording(
             sc = rec.scenario
             warn(f"the report covers sim time 0 to {len(fl.series.t) * sc.timing.dt:.2f} s of the {sc.timing.time_limit_s:g} s time limit")
     out = Path(out_dir)
-    files = report_from_series(fl.series, fl.scenario, out)
+    files = report_from_series(fl.series, fl.scenario, out, faults=recorded_fault_plan(rec))
     files.append(plot_links(fl, out / "links.png"))
     res = results_from_flight(fl, full_time=full_time)
     res["recording"] = str(rec.path)
@@ -670,7 +783,7 @@ def _run_report(args: argparse.Namespace) -> int:
         if ts.q.ndim != 3 or ts.q.shape[1] != sc.n:
             got = ts.q.shape[1] if ts.q.ndim == 3 else "?"
             raise ScenarioError("--scenario", f"{args.scenario} has {sc.n} UAVs but {args.series} has {got}")
-        files = report_from_series(ts, sc, args.out)
+        files = report_from_series(ts, sc, args.out, faults=plan_for(sc))
     else:
         import sys
 
@@ -691,7 +804,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         description=(
             "Write the flight report of a recording into OUT: trajectories_3d.png, "
             "formation_errors.png (generator), formation_errors_vehicles.png, tracking_errors.png, clearance.png, "
-            "links.png and results.json (the same fields as `zenswarm sim`). Works from the MCAP file alone; a "
+            "links.png, effective_graph.png (runs with a radio model, capacity queue or link trace) and results.json "
+            "(the same fields as `zenswarm sim`). Works from the MCAP file alone; a "
             "truncated or damaged recording is reported from what can be read, with a warning on stderr (also for "
             "payloads the recorder did not record). With --series, plot a `zenswarm sim` time series instead (no "
             "links.png, no results.json)."

@@ -199,9 +199,10 @@ class _Swarm:
 
 
 def radio_results(scenario: Scenario, faults: FaultPlan | None, series: TimeSeries) -> dict:
-    """``effective_graph`` of a run with a radio model (:func:`zenswarm.linkfaults.effective_graph`;
-    {} without one): the same figures for ``sim`` and ``up``, computed from the recorded series."""
-    if faults is None or not faults.radio_active:
+    """``effective_graph`` of a run with a radio model, a capacity queue or a link trace
+    (:func:`zenswarm.linkfaults.effective_graph`; {} without any): the same figures for ``sim`` and
+    ``up``, computed from the recorded series."""
+    if faults is None or not (faults.radio_active or faults.queues is not None or faults.trace is not None):
         return {}
     A = np.asarray(scenario.graph.adjacency, dtype=float)
     nbrs = [[int(j) for j in np.flatnonzero(A[i])] for i in range(scenario.n)]

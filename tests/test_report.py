@@ -9,6 +9,7 @@ publish_time = sim time) plus the ``zenswarm`` metadata record.
 
 from __future__ import annotations
 
+import argparse
 import json
 import struct
 import tomllib
@@ -147,6 +148,45 @@ def test_report_writes_every_figure_and_the_runs_results(flight, recording, tmp_
     assert res["decoder_rejects"]["rejected"] == 1
     assert res["diagnostics"]["agent:2"]["dropped.agent:1"] == 3
     assert res["message_counts"][f"swarm/{SWARM}/uav/2/ref"] == len(sim.series.t) + 1
+    assert not (out / "effective_graph.png").exists()  # no radio, queue or trace: no such figure
+
+
+@pytest.mark.slow
+def test_report_plots_the_effective_graph_of_a_radio_run(flight, recording, tmp_path):
+    """A recording whose run had --link-range and --link-capacity (the recorder's fault flags):
+    the report's fault plan has them (the fault-free recording's has none: no figure, see above),
+    effective_graph.png is drawn, from the same per-tick graph as results.json's effective_graph
+    (its summary is recomputed here from graph_series)."""
+    from zenswarm.bridge.args import add_fault_args, link_faults
+    from zenswarm.linkfaults import effective_graph, graph_series
+
+    sc, sim = flight
+    words = ["--link-range", "0.25m", "--link-capacity", "20kB/s", "--link-jitter", "5ms"]
+    p = tmp_path / "radio.mcap"
+    write_recording(p, sc, sim.series, extra_metadata={"fault_args": json.dumps(words)})
+    rec = report.load_recording(p)
+    recorded = report.recorded_fault_plan(rec)  # what report_recording passes to report_from_series
+    assert recorded is not None and report.network_plan(sc, recorded) is recorded
+    assert report.network_plan(sc, report.recorded_fault_plan(report.load_recording(recording[0]))) is None
+    f = report.plot_effective_graph(sim.series, sc, recorded, tmp_path / "effective_graph.png")
+    assert f.stat().st_size > 20_000
+    w, h = _png_size(f)
+    assert w >= 800 and h >= 600, (w, h)
+    ap = argparse.ArgumentParser()
+    add_fault_args(ap)
+    plan = link_faults(ap.parse_args(words)).plan(sc)
+    A = np.asarray(sc.graph.adjacency, dtype=float)
+    nbrs = [[int(j) for j in np.flatnonzero(A[i])] for i in range(sc.n)]
+    pinned = [float(b) > 0 for b in sc.graph.pinning]
+    gs = graph_series(plan, nbrs, pinned, sim.series.q, sim.series.q0, sc.timing.dt)
+    eg = effective_graph(plan, nbrs, pinned, sim.series.q, sim.series.q0, sc.timing.dt)
+    assert eg["link_up_fraction"] == {ls.name: float(np.mean(ls.up)) for ls in gs.links}
+    assert eg["max_components"] == int(gs.components.max())
+    assert 0.0 < eg["spanning_tree_fraction"] == float(np.mean(gs.tree)) < 1.0  # 0.25 m cuts some links, not all
+    ups = np.concatenate([ls.up[1:] for ls in gs.links])
+    delays = np.concatenate([ls.delay_s[1:][ls.up[1:]] for ls in gs.links])
+    assert 0 < ups.sum() < ups.size  # the figure's delivery ratios are neither all 0 nor all 1
+    assert delays.min() >= 0.0 and delays.max() > 0.0  # queue wait + serialization + jitter
 
 
 @pytest.mark.slow

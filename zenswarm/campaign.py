@@ -15,7 +15,8 @@ the scenario is the word ``generate``, a parameter of :func:`zenswarm.generate.g
 (:data:`GENERATOR_FIELDS`: ``n``, ``shape``, ``topology``, ``k``, ``pinning``, ``n_obstacles``,
 ``spacing``). Values are TOML values (``0.1``, ``3``, ``true``, ``"ring"``, ``[1, 2, 0.5]``) or
 bare words (``ring``, ``50ms``). Durations with a unit (``50ms``) reach the scenario as written and
-are stored in the table in seconds.
+are stored in the table in seconds; distances (``0.3m``: ``faults.range``) in metres, rates
+(``64kB/s``: ``faults.capacity``) in bytes/s.
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ import numpy as np
 
 from .errors import ScenarioError
 from .faults import parse_duration
+from .linkqueue import parse_capacity
+from .radio import parse_distance
 from .schema import MAX_SEED
 
 __all__ = [
@@ -171,11 +174,30 @@ def _duration_s(v: Any) -> float | None:
         return None
 
 
+def _unit_number(v: Any) -> float | None:
+    """Metres of a distance with a unit (``"0.3m"``, ``"150cm"``: ``faults.range``) or bytes/s of a
+    rate with a unit (``"64kB/s"``, ``"1Mbps"``: ``faults.capacity``); None for anything else (a
+    bare number, a word, a queue in bytes such as ``"4kB"``)."""
+    if not isinstance(v, str) or not v.strip() or v.strip()[-1].isdigit():
+        return None
+    for parse in (parse_distance, parse_capacity):
+        try:
+            x = parse(v)
+        except ValueError:
+            continue
+        return x if math.isfinite(x) else None
+    return None
+
+
 def column_value(v: Any) -> Any:
-    """A value as the table stores it: durations in seconds, lists and tables as JSON text."""
+    """A value as the table stores it: durations in seconds, distances with a unit in metres,
+    rates with a unit in bytes/s, lists and tables as JSON text."""
     d = _duration_s(v)
     if d is not None:
         return d
+    u = _unit_number(v)
+    if u is not None:
+        return u
     if isinstance(v, (list, dict)):
         return json.dumps(v, separators=(",", ":"))
     return v

@@ -33,7 +33,10 @@ from .linkqueue import LinkQueues
 from .linktrace import LinkTrace, load_trace
 from .radio import GEOMETRY_TICK_OFFSET, components, leader_reaches_all, radio_reason
 
-__all__ = ["Box", "LinkFaults", "plan_for", "scenario_links", "DelayLine", "box_counters", "distance", "effective_graph"]
+__all__ = [
+    "Box", "LinkFaults", "plan_for", "scenario_links", "DelayLine", "box_counters", "distance",
+    "effective_graph", "graph_series", "GraphSeries", "LinkSeries",
+]  # fmt: skip
 
 
 def distance(a: Any, b: Any) -> float:
@@ -338,22 +341,46 @@ class DelayLine:
             deliver(key, tick, msg)
 
 
-def effective_graph(plan: FaultPlan, neighbours: list[list[int]], pinned: list[bool], q: Any, q0: Any, dt: float) -> dict[str, Any]:
-    """The effective communication graph of a flight, from its fault plan and its time series.
+@dataclass(frozen=True)
+class LinkSeries:
+    """Per-tick fate of one link of the effective graph (:func:`graph_series`).
+
+    name: ``"src->dst"``; kind: ``ref`` or ``leader``; up: (T,) bool, its message of tick k was
+    delivered; delay_s: (T,) float, s, the delay of that message (queue wait + serialization +
+    the link's delay and jitter, or its trace's; meaningful where ``up``; 0 at tick 0)."""
+
+    name: str
+    kind: str
+    up: np.ndarray
+    delay_s: np.ndarray
+
+
+@dataclass(frozen=True)
+class GraphSeries:
+    """The effective communication graph of a flight, per tick (:func:`graph_series`).
+
+    links: the ref and leader links; components: (T,) int, connected components of the
+    undirected graph of the leader and the agents over the links up; tree: (T,) bool, a directed
+    spanning tree rooted at the leader exists over the links up (Lemma 1's assumption)."""
+
+    links: tuple[LinkSeries, ...]
+    components: np.ndarray
+    tree: np.ndarray
+
+
+def graph_series(plan: FaultPlan, neighbours: list[list[int]], pinned: list[bool], q: Any, q0: Any, dt: float) -> GraphSeries:
+    """The effective communication graph of a flight, tick by tick, from its fault plan and its
+    time series.
 
     Link ``src -> dst`` (a ``ref`` link ``agent:j -> agent:i`` for every neighbour j of agent i,
     a ``leader`` link for every pinned agent) is *up* at tick k when its message of tick k is
-    delivered: not dropped by any fault (:meth:`zenswarm.faults.FaultState.decide_batch`) nor by
-    its radio model at the geometry of that tick (the plant's positions ``q`` (T, n, 3) and the
-    leader's ``q0`` (T, 3), as recorded; :mod:`zenswarm.radio`), the same decision the receive
-    boxes make (:class:`Box`). Tick 0 is always up (start-up exchange).
+    delivered: not dropped by any fault (:meth:`zenswarm.faults.FaultState.decide_batch`: loss,
+    burst, partition, trace, full queue) nor by its radio model at the geometry of that tick (the
+    plant's positions ``q`` (T, n, 3) and the leader's ``q0`` (T, 3), as recorded;
+    :mod:`zenswarm.radio`), the same decision the receive boxes make (:class:`Box`). Tick 0 is
+    always up (start-up exchange, delay 0).
 
-    neighbours: per agent (0-based), its neighbours' 0-based indices; pinned: per agent.
-    Returns ``link_up_fraction`` (``"src->dst"`` -> fraction of ticks up), ``components``
-    (number of connected components of the undirected graph of the leader and the agents over
-    the links up, per tick, as a run-length list ``[[first_tick, count], ...]``),
-    ``max_components``, ``spanning_tree_fraction`` (fraction of ticks with a directed spanning
-    tree rooted at the leader over the links up: Lemma 1's assumption) and ``ticks``.
+    neighbours: per agent (0-based), its neighbours' 0-based indices; pinned: per agent; dt: s.
     """
     fs = FaultState(plan)
     q = np.asarray(q, dtype=float)
@@ -361,14 +388,18 @@ def effective_graph(plan: FaultPlan, neighbours: list[list[int]], pinned: list[b
     T = int(q.shape[0])
     n = len(neighbours)
     ticks = np.arange(T, dtype=np.int64)
-    links: list[tuple[int, int, str, np.ndarray]] = []  # (src node, dst node, name, up (T,)); node 0 the leader
+    links: list[tuple[int, int, LinkSeries]] = []  # (src node, dst node, series); node 0 the leader
     for i in range(n):
         rows = [(j + 1, f"agent:{j + 1}", "ref") for j in neighbours[i]]
         if pinned[i]:
             rows.append((0, "leader", "leader"))
         for node, src, kind in rows:
             dst = f"agent:{i + 1}"
-            up = ~fs.decide_batch(src, dst, kind, ticks, ticks * dt).dropped if T else np.zeros(0, dtype=bool)
+            if T:
+                d = fs.decide_batch(src, dst, kind, ticks, ticks * dt)
+                up, delay = ~d.dropped, np.array(d.delay_s, dtype=float)
+            else:
+                up, delay = np.zeros(0, dtype=bool), np.zeros(0)
             model = plan.radio_for(src, dst, kind)
             if model is not None and T:
                 off = GEOMETRY_TICK_OFFSET[kind]
@@ -378,26 +409,42 @@ def effective_graph(plan: FaultPlan, neighbours: list[list[int]], pinned: list[b
                         continue
                     a = q0[k] if kind == "leader" else q[g, node - 1]
                     u = fs.uniform((src, dst, kind), "radio", k) if model.uses_uniform else 0.0
-                    d = distance(a, q[g, i])
-                    if radio_reason(model, d if math.isfinite(d) else math.inf, u) is not None:
+                    dd = distance(a, q[g, i])
+                    if radio_reason(model, dd if math.isfinite(dd) else math.inf, u) is not None:
                         up[k] = False
             if T:
                 up[0] = True
-            links.append((node, i + 1, f"{src}->{dst}", up))
-    comps: list[list[int]] = []
-    tree = 0
-    max_c = 0
+                delay[0] = 0.0
+            links.append((node, i + 1, LinkSeries(f"{src}->{dst}", kind, up, delay)))
+    comps = np.zeros(T, dtype=np.int64)
+    tree = np.zeros(T, dtype=bool)
     for k in range(T):
-        edges = [(a, b) for a, b, _, up in links if up[k]]
-        c = components(n + 1, edges)
-        max_c = max(max_c, c)
+        edges = [(a, b) for a, b, ls in links if ls.up[k]]
+        comps[k] = components(n + 1, edges)
+        tree[k] = leader_reaches_all(n, edges)
+    return GraphSeries(tuple(ls for _, _, ls in links), comps, tree)
+
+
+def effective_graph(plan: FaultPlan, neighbours: list[list[int]], pinned: list[bool], q: Any, q0: Any, dt: float) -> dict[str, Any]:
+    """The effective communication graph of a flight, summarised (:func:`graph_series` per tick).
+
+    Returns ``link_up_fraction`` (``"src->dst"`` -> fraction of ticks up), ``components``
+    (number of connected components of the undirected graph of the leader and the agents over
+    the links up, per tick, as a run-length list ``[[first_tick, count], ...]``),
+    ``max_components``, ``spanning_tree_fraction`` (fraction of ticks with a directed spanning
+    tree rooted at the leader over the links up: Lemma 1's assumption) and ``ticks``.
+    """
+    gs = graph_series(plan, neighbours, pinned, q, q0, dt)
+    T = int(gs.components.shape[0])
+    comps: list[list[int]] = []
+    for k in range(T):
+        c = int(gs.components[k])
         if not comps or comps[-1][1] != c:
             comps.append([k, c])
-        tree += leader_reaches_all(n, edges)
     return {
         "ticks": T,
-        "link_up_fraction": {name: float(np.mean(up)) if T else 0.0 for _, _, name, up in links},
+        "link_up_fraction": {ls.name: float(np.mean(ls.up)) if T else 0.0 for ls in gs.links},
         "components": comps,
-        "max_components": max_c,
-        "spanning_tree_fraction": tree / T if T else 0.0,
+        "max_components": int(gs.components.max()) if T else 0,
+        "spanning_tree_fraction": int(np.count_nonzero(gs.tree)) / T if T else 0.0,
     }
