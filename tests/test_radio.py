@@ -226,11 +226,61 @@ def test_effective_graph_of_a_lossless_plan() -> None:
 def test_radio_swarm_equals_sim(zenswarm_fly, rng: str) -> None:
     """sim equals lockstep up bit for bit with a range that cuts links part of the time and a
     fall-off, on a short flight; the effective graph is the same."""
-    kw = dict(link_range=rng, link_fade="0.28m,0.03m", link_delay="30ms", seed=5, duration=2.0)
+    kw = dict(link_range=rng, link_fade="0.28m,0.03m", link_delay="30ms", seed=5, duration=2.0, overrides={"faults.hold": "0.04s"})
     swarm = zenswarm_fly(EX1, mode="swarm", **kw)
     assert swarm.exit_code in (0, 1), swarm.log[-3000:]
     sim = api.fly(EX1, **kw)
     assert api.differences(swarm, sim) == []
+    assert _expired(sim.results) > 0  # the hold horizon acted
     assert swarm.results["effective_graph"] == sim.results["effective_graph"]
     up = sim.results["effective_graph"]["link_up_fraction"]
     assert min(up.values()) < 1.0  # the radio did act
+
+
+# ------------------------------------------------------------------------------ hold horizon
+
+
+def _expired(results: dict) -> int:
+    """Ticks beyond the hold horizon, over every link (``link_counters``: ``link:<src>-><dst>:<kind>.<counter>``)."""
+    return sum(v for k, v in results["link_counters"].items() if k.endswith(".expired"))
+
+
+def _box_after_silence(kind: str, hold: str | None) -> list[bool]:
+    """A link whose messages of ticks 0..2 arrive and then nothing: is something held at 3..10?"""
+    plan = plan_from_scenario({} if hold is None else {"hold": hold}, 0, 3)
+    box = Box(FaultState(plan), "agent:2" if kind == "ref" else "plant", "agent:1", kind, 0.01)
+    for j in range(3):
+        box.offer(j, j, ("value", j))
+    return [box.at(k) is not None for k in range(3, 11)]
+
+
+def test_hold_horizon_expires_references_only() -> None:
+    """hold 0.05 s at dt 0.01 s = 5 ticks: the tick-2 message is held while 5 or fewer ticks old
+    (ticks 3..7), then not heard; without a horizon it is held forever; a state never expires."""
+    assert _box_after_silence("ref", "0.05s") == [True] * 5 + [False] * 3
+    assert _box_after_silence("ref", None) == [True] * 8
+    assert _box_after_silence("state", "0.05s") == [True] * 8
+    plan = plan_from_scenario({"hold": "0.05s"}, 0, 3)
+    box = Box(FaultState(plan), "agent:2", "agent:1", "ref", 0.01)
+    box.offer(0, 0, "v")
+    [box.at(k) for k in range(0, 9)]
+    assert box.counters()["expired"] == 3
+
+
+@pytest.mark.parametrize("bad", ["0s", "-1s", "soon", 5])
+def test_hold_horizon_bad_values_name_the_field(bad: object) -> None:
+    with pytest.raises(ScenarioError) as e:
+        plan_from_scenario({"hold": bad}, 0, 3)
+    assert e.value.field == "faults.hold"
+
+
+def test_hold_horizon_lets_a_cut_neighbour_go() -> None:
+    """A range that cuts UAV 3 off its neighbours after take-off: without a horizon the others
+    keep its tick-0 reference in (16)-(17) for the whole flight; with one they leave it out, so
+    the generator's formation differs (and the link counters say how many ticks expired)."""
+    kw = dict(link_range="0.21m", seed=1, duration=3.0)
+    forever = api.fly(EX1, **kw)
+    held = api.fly(EX1, overrides={"faults.hold": "0.2s"}, **kw)
+    assert _expired(held.results) > 0
+    assert not any(k.endswith(".expired") for k in forever.results["link_counters"])
+    assert not np.array_equal(forever.series.qref, held.series.qref)

@@ -488,6 +488,10 @@ class FaultPlan:
       (:class:`zenswarm.linktrace.LinkTrace`, ``--link-trace``).
     queues: the capacity queues of the run's links (:class:`zenswarm.linkqueue.LinkQueues`, built
       from the specs' ``queue`` and the scenario's graph by :func:`zenswarm.linkfaults.plan_for`).
+    hold_s: the hold horizon of the references, s (``[faults] hold``; None: forever). On the
+      ``ref`` and ``leader`` links a receive box holds its newest message only while it is at
+      most ``ceil(hold_s / dt)`` ticks old (counted from its send tick); older, :meth:`LinkInbox.at`
+      returns None: the neighbour (or leader) is not heard and eqs (16)-(17) leave it out.
     """
 
     default: LinkFaultSpec = field(default_factory=LinkFaultSpec)
@@ -496,6 +500,7 @@ class FaultPlan:
     partitions: tuple[Partition, ...] = ()
     trace: LinkTrace | None = None
     queues: LinkQueues | None = None
+    hold_s: float | None = None
     _resolved: dict[tuple[str, str, str], LinkFaultSpec] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -518,9 +523,18 @@ class FaultPlan:
             if not isinstance(p, Partition):
                 raise ValueError(f"partitions must hold Partition objects, got {p!r}")
         object.__setattr__(self, "partitions", parts)
+        if self.hold_s is not None and not (isinstance(self.hold_s, (int, float)) and math.isfinite(self.hold_s) and self.hold_s > 0):
+            raise ValueError(f"hold_s must be a finite number > 0 s or None, got {self.hold_s!r}")
+
+    def hold_ticks(self, kind: str, dt: float) -> int | None:
+        """The hold horizon of a link of ``kind`` in ticks of ``dt`` s (None: no horizon; only the
+        references, ``ref`` and ``leader``, expire: the state and the command are always held)."""
+        if self.hold_s is None or kind not in ("ref", "leader"):
+            return None
+        return max(1, math.ceil(self.hold_s / dt - 1e-9))
 
     def _key(self) -> tuple[object, ...]:
-        return (self.default, tuple(self.per_link.items()), self.seed, self.partitions, id(self.trace), id(self.queues))
+        return (self.default, tuple(self.per_link.items()), self.seed, self.partitions, id(self.trace), id(self.queues), self.hold_s)
 
     def __eq__(self, other: object) -> bool:  # per_link order matters (the last match wins)
         if not isinstance(other, FaultPlan):
@@ -882,8 +896,9 @@ class LinkInbox:
     waiting for dropped ones. The wire ``seq`` is kept only for information.
 
     Policy: ``at(k)`` holds the newest (largest send tick) offered message that was not dropped
-    and whose :func:`delivery_tick` is ``<= k``; it never returns to an older message; no value
-    expires (the age says how stale it is; the caller decides what is too old). ``None`` until
+    and whose :func:`delivery_tick` is ``<= k``; it never returns to an older message. A value
+    expires only with a hold horizon (:attr:`FaultPlan.hold_s`, references only): beyond it ``at``
+    returns None (counted in ``expired``); otherwise the age says how stale it is. ``None`` until
     the first message is delivered.
 
     Counters (:meth:`counters`), all deterministic when ``at`` is called every tick after the
@@ -915,6 +930,7 @@ class LinkInbox:
         self.capacity = max(1, int(capacity))
         self.spec = self.state.plan.spec_for(src, dst, kind)
         self.horizon = self.state.plan.horizon_ticks(src, dst, kind, self.dt)
+        self.hold_ticks = self.state.plan.hold_ticks(kind, self.dt)  # None: a held value never expires
         self._pending: dict[int, tuple[int, Any, int]] = {}  # send_tick -> (seq, value, delivery tick)
         self._seen: OrderedDict[int, None] = OrderedDict()
         self._held: tuple[int, int, Any] | None = None  # (send_tick, seq, value)
@@ -937,6 +953,8 @@ class LinkInbox:
             "age_ticks": -1,
             "max_age_ticks": -1,
         }
+        if self.hold_ticks is not None:
+            self._n["expired"] = 0  # ticks the held reference was beyond the hold horizon
 
     @property
     def link(self) -> tuple[str, str, str]:
@@ -1056,6 +1074,9 @@ class LinkInbox:
         self._n["age_ticks"] = age
         if age > self._n["max_age_ticks"]:
             self._n["max_age_ticks"] = age
+        if self.hold_ticks is not None and age > self.hold_ticks:
+            self._n["expired"] += 1  # beyond the hold horizon: not heard this tick
+            return None
         return Held(self._held[2], self._held[0], self._held[1], age)
 
     def mark_timeout(self, send_tick: int) -> None:
@@ -1118,7 +1139,7 @@ def plan_from_cli(
         check_exists("--partition", parts[-1].process_or_link, n)
     queue = queue_spec(("--link-capacity", "--link-queue", "--link-medium"), link_capacity, link_queue, link_medium, d.queue)
     default = LinkFaultSpec(delay, jitter, loss, d.burst, d.partitions, radio=d.radio, queue=queue)
-    return FaultPlan(default, dict(base.per_link), seed, tuple(parts), base.trace, base.queues)
+    return FaultPlan(default, dict(base.per_link), seed, tuple(parts), base.trace, base.queues, base.hold_s)
 
 
 def _duration_field(path: str, x: Any) -> float:
@@ -1259,7 +1280,12 @@ def plan_from_scenario(section: FaultsTable | Mapping[str, Any] | None, seed: in
             raise ScenarioError(f"{p}.{field_}", f"a {key[2]!r} link is on board (agent <-> its own autopilot), not radio")
         per.pop(key, None)
         per[key] = _spec(p, entry, default)
-    return FaultPlan(default, per, seed, tuple(parts))
+    hold = None
+    if t.hold is not None:
+        hold = _duration_field("faults.hold", t.hold)
+        if not (math.isfinite(hold) and hold > 0):
+            raise ScenarioError("faults.hold", f"the hold horizon must be a duration > 0 such as \"0.5s\", got {t.hold!r}")
+    return FaultPlan(default, per, seed, tuple(parts), hold_s=hold)
 
 
 def plan_with_radio(plan: FaultPlan, link_range: str | None = None, link_fade: str | None = None) -> FaultPlan:

@@ -355,7 +355,8 @@ class LinkFaultsTable(Table, frozen=True):
 class FaultsTable(Table, frozen=True):
     """``[faults]``: link faults (see :func:`zenswarm.faults.plan_from_scenario` and docs/faults.md);
     capacity, queue, medium: :mod:`zenswarm.linkqueue`; trace: a CSV file (:mod:`zenswarm.linktrace`),
-    relative to the scenario file."""
+    relative to the scenario file; hold: the hold horizon of the references (a duration, e.g.
+    ``"0.5s"``: a neighbour or leader last heard longer ago is left out of eqs (16)-(17))."""
 
     delay: Duration | None = None
     jitter: Duration | None = None
@@ -369,6 +370,7 @@ class FaultsTable(Table, frozen=True):
     queue: str | int | None = None
     medium: str | None = None
     trace: str | None = None
+    hold: Duration | None = None
 
 
 class MavlinkTable(Table, frozen=True):
