@@ -57,7 +57,7 @@ __all__ = [
 DEFAULT_PORT = 8765
 """``--live`` without a port: the Foxglove app's default WebSocket port."""
 
-LIVE_HZ = 20.0
+LIVE_HZ = 10.0
 """Frames per wall second at most (the newest state at each; a lockstep flight computes faster
 than real time, so its frames are further apart in sim time)."""
 
