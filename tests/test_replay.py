@@ -15,7 +15,7 @@ import sys
 import termios
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -191,15 +191,24 @@ def test_start_paused_then_step_and_resume(rec: Path) -> None:
     time.sleep(0.3)
     assert s.log == []  # paused: nothing yet
     parse_keys(b"s", c)
-    time.sleep(0.2)
+    _wait_until(lambda: len(s.log) >= 3)
+    time.sleep(0.1)  # a wrong step would let more through meanwhile
     assert sorted(sim_t(p) for _, _, p in s.log) == [0, 0, 0]  # one step = one tick (3 states)
     parse_keys(b"\x1b[C", c)
-    time.sleep(0.2)
+    _wait_until(lambda: len(s.log) >= 6)
+    time.sleep(0.1)
     assert len(s.log) == 6
     parse_keys(b" ", c)  # resume
     assert done.wait(10)
     th.join()
     assert out["st"].published == 3 * 201
+
+
+def _wait_until(cond: Callable[[], bool], timeout_s: float = 5.0) -> None:
+    """Poll ``cond`` until it holds (a generous bound: the machine may be loaded)."""
+    deadline = time.monotonic() + timeout_s
+    while not cond() and time.monotonic() < deadline:
+        time.sleep(0.01)
 
 
 def test_keyboard_controls_restore_the_terminal() -> None:

@@ -18,6 +18,7 @@ Exit status: 0 every run recorded without a crash, 1 some run crashed (``error``
 
 from __future__ import annotations
 
+import abc
 import argparse
 import concurrent.futures as cf
 import hashlib
@@ -159,21 +160,21 @@ def _validate(plan: Plan, runs: Sequence[Run], doc: dict[str, Any] | None) -> No
 # ----------------------------------------------------------------------------- backends
 
 
-class Backend:
+class Backend(abc.ABC):
     """Where runs fly: ``submit(task)`` -> a future with ``result()``; ``wait_first(futures)`` ->
     the finished ones; ``cancel()`` drops what has not finished (Ctrl-C)."""
 
-    def submit(self, task: dict[str, Any]) -> Any:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def submit(self, task: dict[str, Any]) -> Any: ...
 
-    def wait_first(self, futures: Iterable[Any]) -> set[Any]:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def wait_first(self, futures: Iterable[Any]) -> set[Any]: ...
 
-    def cancel(self) -> None:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def cancel(self) -> None: ...
 
-    def close(self) -> None:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def close(self) -> None: ...
 
 
 def _worker_init() -> None:
