@@ -17,6 +17,7 @@ from zenswarm.linkfaults import LinkFaults
 from zenswarm.security import ClientSecurity
 
 __all__ = [
+    "add_rt_priority_arg",
     "positive_float",
     "seed_arg",
     "add_fault_args",
@@ -137,7 +138,8 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
     """The flags every swarm process takes (read back with
     :meth:`zenswarm.runtime.ProcessOptions.of`): ``--scenario``, ``--swarm``, ``--connect``,
     ``--realtime``, the credentials (:func:`add_security_args`), the link faults
-    (:func:`add_fault_args`), the plug-ins (:func:`add_plugin_args`) and ``--lockstep-timeout``."""
+    (:func:`add_fault_args`), the plug-ins (:func:`add_plugin_args`), ``--lockstep-timeout`` and
+    ``--rt-priority`` (:func:`add_rt_priority_arg`)."""
     from zenswarm.runtime import DEFAULT_LOCKSTEP_TIMEOUT_S
 
     p.add_argument("--scenario", type=Path, help="scenario TOML; if omitted, fetched from the leader's mission key")
@@ -159,4 +161,18 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
         default=DEFAULT_LOCKSTEP_TIMEOUT_S,
         metavar="S",
         help=f"lockstep: wall seconds to wait for an input before it counts as a drop (default {DEFAULT_LOCKSTEP_TIMEOUT_S})",
+    )
+    add_rt_priority_arg(p)
+
+
+def add_rt_priority_arg(p: argparse.ArgumentParser) -> None:
+    """``--rt-priority P`` (:mod:`zenswarm.rtsched`)."""
+    p.add_argument(
+        "--rt-priority",
+        type=int,
+        default=None,
+        metavar="P",
+        help="realtime only: once start-up is over, run this process's threads under SCHED_FIFO priority P (1-99), "
+        "so its loop preempts normally scheduled work the moment it wakes; needs root or an RLIMIT_RTPRIO >= P "
+        "(default: the normal scheduler)",
     )

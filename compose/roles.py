@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-from zenswarm.bridge.args import add_process_args
+from zenswarm.bridge.args import add_process_args, add_rt_priority_arg
 from zenswarm.runtime import ProcessOptions
 
 __all__ = ["add_parsers", "agent_options", "plant_options", "process_options"]
@@ -75,6 +75,7 @@ def _main_mavlink_fleet(args: argparse.Namespace) -> int:
         duration=args.duration,
         own_origin=bool(getattr(args, "own_origin", False)),
         sitl_ports=bool(getattr(args, "sitl_ports", False)),
+        rt_priority=getattr(args, "rt_priority", None),
     )
 
 
@@ -128,6 +129,7 @@ def add_vehicles_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scenario", type=Path, help="scenario TOML (N vehicles, [vehicle], [timing], [mavlink])")
     add_vehicle_args(p)
     p.add_argument("--seed", type=int, default=None, help="seed of the disturbances (default: the scenario's)")
+    add_rt_priority_arg(p)
     p.set_defaults(func=_main_mavlink_fleet)
 
 

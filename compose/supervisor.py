@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from zenswarm import bus, security, verdict, wire
-from zenswarm.bridge.args import add_fault_args, add_plugin_args, link_faults, positive_float
+from zenswarm import bus, rtsched, security, verdict, wire
+from zenswarm.bridge.args import add_fault_args, add_plugin_args, add_rt_priority_arg, link_faults, positive_float
 from zenswarm.bridge.live import DEFAULT_PORT as DEFAULT_LIVE_PORT
 from zenswarm.bridge.live import live_port
 from zenswarm.collector import Collector
@@ -117,6 +117,11 @@ class UpOptions:
     controller: str | None = None  # plug-in names overriding the scenario's (zenswarm.plugins.select)
     planner: str | None = None
     live: int | None = None  # --live PORT: serve the flight to the Foxglove app (zenswarm.bridge.live)
+    rt_priority: int | None = None  # --rt-priority P: the flying processes under SCHED_FIFO P (zenswarm.rtsched)
+
+    def rt_argv(self) -> list[str]:
+        """``--rt-priority P`` for the flying processes (if given)."""
+        return [] if self.rt_priority is None else ["--rt-priority", str(self.rt_priority)]
 
     def plugin_argv(self) -> list[str]:
         """``--controller NAME`` / ``--planner NAME`` for the processes (those given)."""
@@ -160,6 +165,7 @@ def up_options(args: argparse.Namespace) -> UpOptions:
         controller=args.controller,
         planner=args.planner,
         live=args.live,
+        rt_priority=args.rt_priority,
     )
 
 
@@ -235,7 +241,7 @@ class Supervisor:
             # vehicle i sending from P+40+i to P+i where the bridge listens (udpin)
             return argv + [
                 "mavlink-vehicle", str(a.scenario), "--base-port", str(self.mav_base_port), "--telemetry-hz", "100",
-                "--own-origin", "--sitl-ports",
+                "--own-origin", "--sitl-ports", *a.rt_argv(),
             ]
         if role == "bridge":
             return argv + self._bridge_argv()
@@ -267,7 +273,7 @@ class Supervisor:
         gz = self.sc.mavlink.ground_z if self.sc.mavlink is not None else 0.0
         for i, q in enumerate(self.sc.initial_positions):
             argv += ["--conn", f"{i + 1}=udpin:127.0.0.1:{self.mav_base_port + i}", "--origin", f"{i + 1}={q[0]!r},{q[1]!r},{gz!r}"]
-        return argv + a.faults.argv() + (["--expect", "recorder"] if a.record is not None else [])
+        return argv + a.faults.argv() + (["--expect", "recorder"] if a.record is not None else []) + a.rt_argv()
 
     def _role_argv(self, role: str) -> list[str]:
         """plant, leader, agent:<i>: the plant waits for the recorder with ``--record``."""
@@ -284,7 +290,7 @@ class Supervisor:
             argv.append("--realtime")
         if self.keys_dir is not None:
             argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
-        return argv + a.faults.argv() + a.plugin_argv()
+        return argv + a.faults.argv() + a.plugin_argv() + a.rt_argv()
 
     def spawn(self, role: str) -> Child:
         env = dict(os.environ)
@@ -869,6 +875,7 @@ def check_up_args(args: UpOptions, sc: Scenario) -> None:
     bus.check_endpoint_syntax(list(args.listen), "--listen", listen=True)
     bus.check_endpoint_syntax(list(args.connect), "--connect")
     bus.check_endpoint_syntax(list(args.router_connect), "--router-connect")
+    check_rt_priority(args)
     if args.only:
         if args.only not in role_names(sc.n):
             raise ScenarioError("--only", f"unknown role {args.only!r}: this swarm's roles are {', '.join(role_names(sc.n))}")
@@ -883,6 +890,20 @@ def check_up_args(args: UpOptions, sc: Scenario) -> None:
     check_output_dir(args.out, "--out")
     if args.record is not None:
         check_output_file(args.record, "--record")
+
+
+def check_rt_priority(args: UpOptions) -> None:
+    """``--rt-priority P``: 1-99, a realtime flight (``--realtime`` or ``--plant mavlink``), and
+    permitted to this user (:func:`zenswarm.rtsched.probe`): else :class:`ScenarioError` naming the
+    flag and the remedy, before anything starts."""
+    if args.rt_priority is None:
+        return
+    p = rtsched.check_priority(args.rt_priority)
+    if not (args.realtime or args.plant == "mavlink"):
+        raise rtsched.RtPriorityError(
+            "--rt-priority", "only for realtime flights (--realtime or --plant mavlink): lockstep has no deadline"
+        )
+    rtsched.probe(p)
 
 
 def check_mavlink_ports(base: int, n: int, host: str = "127.0.0.1") -> None:
@@ -961,7 +982,7 @@ def _run_only(args: UpOptions) -> int:
         argv.append("--realtime")
     if args.keys is not None:
         argv += ["--keys", str(args.keys)] + (["--tls"] if args.tls else [])
-    return cli_main(argv + args.plugin_argv())
+    return cli_main(argv + args.plugin_argv() + args.rt_argv())
 
 
 def _parse_kill(text: str) -> tuple[str, float]:
@@ -1124,6 +1145,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         f"{DEFAULT_LIVE_PORT}): 3D scene, transforms, errors, clearance, failsafe, links (docs/live.md); run by this "
         "supervisor, not by the swarm's processes. A port in use: exit 2 before the flight",
     )
+    add_rt_priority_arg(p)
     add_fault_args(p)
     add_plugin_args(p)
     p.set_defaults(func=_run_up)

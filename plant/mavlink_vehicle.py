@@ -1237,16 +1237,23 @@ def run_fleet(
     duration: float | None = None,
     own_origin: bool = False,
     sitl_ports: bool = False,
+    rt_priority: int | None = None,
 ) -> int:
     """Run the fleet of scenario ``sc`` in the calling thread until SIGTERM/SIGINT (or
     ``duration`` s). ``base_port``: vehicle i listens on UDP base_port + i - 1 (None: the
     scenario's ``mavlink.base_port``); ``autopilot`` (``px4`` or ``ardupilot``) and
     ``telemetry_hz`` override the scenario's vehicle options; ``own_origin`` and ``sitl_ports`` set
-    the options of the same names (:class:`VehicleOptions`). The command line (``zenswarm
+    the options of the same names (:class:`VehicleOptions`); ``rt_priority``: run under
+    ``SCHED_FIFO`` at this priority once the fleet is built (:mod:`zenswarm.rtsched`; checked
+    first, exit 2 if not permitted). The command line (``zenswarm
     mavlink-vehicle``, ``zenswarm plant --mavlink``) is parsed in :mod:`zenswarm.compose.roles`."""
+    from zenswarm import rtsched
     from zenswarm.runtime import gc_policy, gc_startup_done
 
     gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work
+    if rt_priority is not None:  # out of range or not permitted: exit 2 before any work
+        rtsched.probe(rtsched.check_priority(rt_priority))
+        rtsched.set_requested(rt_priority)
     opts = vehicle_options(sc)
     opts = replace(
         opts,
@@ -1272,6 +1279,7 @@ def run_fleet(
             flush=True,
         )
         gc_startup_done()  # sockets open, vehicles built: see zenswarm.runtime.GcPolicy (safe points: WallClock.wait)
+        rtsched.apply_after_startup(lambda text: print(f"mavlink-vehicle: {text}", flush=True))
         why = fleet.run(stop, duration)
         print(f"mavlink-vehicle: stopped ({why}); overruns {fleet.overruns}; {gc_policy().counters()}; " + str(fleet.status()),
               flush=True)

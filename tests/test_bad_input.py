@@ -193,6 +193,9 @@ def test_path_checks_create_nothing_and_accept_new_paths(tmp_path: Path) -> None
         (("--connect", "carrier-pigeon/127.0.0.1:7447"), ("--connect", "unknown protocol")),
         (("--listen", "tcp/127.0.0.1:99999"), ("--listen", "port in 0..65535")),
         (("--router-connect", "garbage"), ("--router-connect",)),
+        (("--rt-priority", "5"), ("--rt-priority", "only for realtime flights")),
+        (("--realtime", "--rt-priority", "0"), ("--rt-priority", "1-99")),
+        (("--realtime", "--rt-priority", "100"), ("--rt-priority", "1-99")),
     ],
     ids=lambda v: " ".join(v) if isinstance(v, tuple) and v and v[0].startswith("--") else None,
 )

@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
-from . import bus, security, wire
+from . import bus, rtsched, security, wire
 from .config import Scenario, load_scenario, scenario_from_dict
 from .errors import ScenarioError, ZenswarmError
 
@@ -270,7 +270,13 @@ class Inbox:
 
 
 class LoopStats:
-    """Realtime loop timing: period jitter and missed deadlines."""
+    """Realtime loop timing: period jitter and missed deadlines.
+
+    A loop's figures cover its flight: a loop that starts before it has anything to act on (an
+    agent before the plant's first state, the leader before the first clock) calls
+    :meth:`flight_started` when it first has, which drops the waiting ticks (counted in
+    ``idle_ticks``): they are start-up, while the other processes still import and connect,
+    not control deadlines."""
 
     def __init__(self, period_s: float) -> None:
         self.period = period_s
@@ -278,6 +284,17 @@ class LoopStats:
         self.missed = 0
         self.max_jitter_s = 0.0
         self._sum_jitter = 0.0
+        self.idle_ticks = 0
+        self._flying = False
+
+    def flight_started(self) -> None:
+        """The loop has work from now on: start the figures afresh (once; later calls do nothing)."""
+        if self._flying:
+            return
+        self._flying = True
+        self.idle_ticks += self.ticks
+        self.ticks = self.missed = 0
+        self.max_jitter_s = self._sum_jitter = 0.0
 
     def record(self, lateness_s: float) -> None:
         self.ticks += 1
@@ -293,6 +310,7 @@ class LoopStats:
             "missed_deadlines": self.missed,
             "jitter_max_ms": 1e3 * self.max_jitter_s,
             "jitter_mean_ms": 1e3 * self._sum_jitter / self.ticks if self.ticks else 0.0,
+            "idle_ticks": self.idle_ticks,
         }
 
 
@@ -686,7 +704,9 @@ class ProcessOptions:
     link_fade, link_capacity, link_queue, link_medium, link_trace: the whole-swarm link faults
     (:mod:`zenswarm.linkfaults`); seed: disturbances and fault decisions (None: the
     scenario's). controller, planner: plug-in names overriding the scenario's
-    (:func:`zenswarm.plugins.select`; None: the scenario's).
+    (:func:`zenswarm.plugins.select`; None: the scenario's). rt_priority: realtime only, run
+    the process's threads under ``SCHED_FIFO`` at this priority once start-up is over
+    (:mod:`zenswarm.rtsched`; None: the fair scheduler).
     """
 
     scenario: Path | None = None
@@ -709,6 +729,7 @@ class ProcessOptions:
     link_medium: str | None = None
     link_trace: str | None = None
     planner: str | None = None
+    rt_priority: int | None = None
 
     @classmethod
     def of(cls, obj: Any) -> ProcessOptions:
@@ -742,6 +763,7 @@ class ProcessOptions:
             link_queue=get("link_queue", None),
             link_medium=get("link_medium", None),
             link_trace=get("link_trace", None),
+            rt_priority=get("rt_priority", None),
         )
 
     def fault_plan(self, scenario: Scenario) -> FaultPlan | None:
@@ -834,6 +856,7 @@ class SwarmProcess:
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> SwarmProcess:
         gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work
+        self._check_rt_priority()  # a bad or forbidden --rt-priority: exit 2 before any work
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
@@ -856,6 +879,19 @@ class SwarmProcess:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+    def _check_rt_priority(self) -> None:
+        """``--rt-priority``: an integer 1-99, realtime only, and permitted to this user; what
+        :meth:`announce` applies once start-up is over (:mod:`zenswarm.rtsched`)."""
+        p = self.options.rt_priority
+        if p is None:
+            rtsched.set_requested(None)
+            return
+        p = rtsched.check_priority(p)
+        if not self.options.realtime:
+            raise rtsched.RtPriorityError("--rt-priority", "only for realtime flights (--realtime): lockstep has no deadline")
+        rtsched.probe(p)
+        rtsched.set_requested(p)
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         self.stop.set()
@@ -1075,6 +1111,7 @@ class SwarmProcess:
         self._token = session.liveliness().declare_token(self.keys.alive(self.name))
         if self.options.realtime:
             gc_startup_done()  # subscribed and announced: start-up is over (see GcPolicy; realtime only)
+            rtsched.apply_after_startup(self.log)  # --rt-priority: the loops under SCHED_FIFO from now on
 
     def wait_for_alive(self, names: list[str], timeout_s: float = 60.0) -> list[str]:
         """Block until every named process has announced itself; return those still missing."""
@@ -1177,6 +1214,7 @@ class SwarmProcess:
             counters["rejected"] = self.decoder.rejected + self._guard.rejected
             counters["accepted"] = self._guard.accepted
         counters.update(gc_policy().counters())
+        counters.update(rtsched.counters())
         if self.extra_counters is not None:
             counters.update(self.extra_counters())
         if self._delay_line is not None:
