@@ -349,6 +349,7 @@ def _run_realtime(a: _Agent) -> int:
         if not a.ctrl.initialised:
             a.start(st, k)
             k_prev = None
+            clock.stats.flight_started()  # the loop's figures cover the flight (LoopStats)
         # Integrate over the time that elapsed since the state we last ticked on (states we
         # never saw, or saw too late, were skipped): the generator keeps pace with the leader.
         dt = elapsed_dt(k, k_prev, a.dt)

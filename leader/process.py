@@ -97,6 +97,8 @@ class _Leader:
             if clk is not None and not proc.is_alive("plant"):
                 break  # the plant is gone: the flight is over
             target = 0 if clk is None else int(round(clk.t / self.dt_ns)) + 1
+            if clk is not None:
+                clock.stats.flight_started()  # the loop's figures cover the flight (LoopStats)
             while core.k < target:
                 core.advance()
             proc.inbox.forget_before(target - 2)  # only the latest clock is used: keep memory flat
