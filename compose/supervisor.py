@@ -896,14 +896,7 @@ def check_rt_priority(args: UpOptions) -> None:
     """``--rt-priority P``: 1-99, a realtime flight (``--realtime`` or ``--plant mavlink``), and
     permitted to this user (:func:`zenswarm.rtsched.probe`): else :class:`ScenarioError` naming the
     flag and the remedy, before anything starts."""
-    if args.rt_priority is None:
-        return
-    p = rtsched.check_priority(args.rt_priority)
-    if not (args.realtime or args.plant == "mavlink"):
-        raise rtsched.RtPriorityError(
-            "--rt-priority", "only for realtime flights (--realtime or --plant mavlink): lockstep has no deadline"
-        )
-    rtsched.probe(p)
+    rtsched.validate(args.rt_priority, realtime=args.realtime or args.plant == "mavlink", how="--realtime or --plant mavlink")
 
 
 def check_mavlink_ports(base: int, n: int, host: str = "127.0.0.1") -> None:

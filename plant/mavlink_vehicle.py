@@ -1251,9 +1251,7 @@ def run_fleet(
     from zenswarm.runtime import gc_policy, gc_startup_done
 
     gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work
-    if rt_priority is not None:  # out of range or not permitted: exit 2 before any work
-        rtsched.probe(rtsched.check_priority(rt_priority))
-        rtsched.set_requested(rt_priority)
+    rtsched.set_requested(rtsched.validate(rt_priority, realtime=True))  # out of range or not permitted: exit 2 now
     opts = vehicle_options(sc)
     opts = replace(
         opts,

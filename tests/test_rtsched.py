@@ -55,6 +55,22 @@ def test_good_priorities(value: object) -> None:
     assert rtsched.check_priority(value) == int(str(value).strip())
 
 
+def test_validate_refuses_lockstep_and_passes_none() -> None:
+    assert rtsched.validate(None, realtime=False) is None
+    with pytest.raises(rtsched.RtPriorityError, match=r"--rt-priority: only for realtime flights \(--realtime\)"):
+        rtsched.validate(5, realtime=False)
+    with pytest.raises(rtsched.RtPriorityError, match="1-99"):
+        rtsched.validate(0, realtime=False)  # the value is checked first
+
+
+def test_a_process_started_with_rt_priority_in_lockstep_exits_2() -> None:
+    r = subprocess.run([sys.executable, "-m", "zenswarm", "leader", "--scenario", "compose/scenarios/paper_example1.toml",
+                        "--swarm", "rt-lockstep", "--connect", "tcp/127.0.0.1:1", "--rt-priority", "5"],
+                       capture_output=True, text=True, timeout=60, cwd=Path(__file__).resolve().parents[1])
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "--rt-priority: only for realtime flights" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
 def test_probe_says_how_to_get_the_privilege(monkeypatch: pytest.MonkeyPatch) -> None:
     calls: list[tuple] = []
 

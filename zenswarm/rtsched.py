@@ -31,7 +31,7 @@ from collections.abc import Callable
 
 from .errors import ScenarioError
 
-__all__ = ["RT_PRIORITY_MIN", "RT_PRIORITY_MAX", "RtPriorityError", "check_priority", "probe", "apply_to_process",
+__all__ = ["RT_PRIORITY_MIN", "RT_PRIORITY_MAX", "RtPriorityError", "check_priority", "probe", "validate", "apply_to_process",
            "apply_after_startup", "current_policy", "set_requested", "requested", "process_policy", "counters"]
 
 RT_PRIORITY_MIN = 1
@@ -86,6 +86,20 @@ def probe(priority: int, field: str = "--rt-priority") -> None:
     except OSError as e:
         raise RtPriorityError(field, f"SCHED_FIFO priority {priority} refused by the kernel: {e}") from None
     os.sched_setscheduler(0, old_policy, old_param)
+
+
+def validate(value: object, *, realtime: bool, how: str = "--realtime", field: str = "--rt-priority") -> int | None:
+    """What a process checks of ``--rt-priority`` before any work: None stays None; otherwise an
+    integer 1-99 (:func:`check_priority`), a realtime flight (``how`` says how to ask for one) and
+    permitted to this user (:func:`probe`). Returns the priority; :class:`RtPriorityError` naming
+    ``field`` otherwise."""
+    if value is None:
+        return None
+    p = check_priority(value, field)
+    if not realtime:
+        raise RtPriorityError(field, f"only for realtime flights ({how}): lockstep has no deadline")
+    probe(p, field)
+    return p
 
 
 def _thread_ids() -> list[int]:

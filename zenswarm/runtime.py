@@ -883,15 +883,7 @@ class SwarmProcess:
     def _check_rt_priority(self) -> None:
         """``--rt-priority``: an integer 1-99, realtime only, and permitted to this user; what
         :meth:`announce` applies once start-up is over (:mod:`zenswarm.rtsched`)."""
-        p = self.options.rt_priority
-        if p is None:
-            rtsched.set_requested(None)
-            return
-        p = rtsched.check_priority(p)
-        if not self.options.realtime:
-            raise rtsched.RtPriorityError("--rt-priority", "only for realtime flights (--realtime): lockstep has no deadline")
-        rtsched.probe(p)
-        rtsched.set_requested(p)
+        rtsched.set_requested(rtsched.validate(self.options.rt_priority, realtime=self.options.realtime))
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         self.stop.set()
