@@ -38,14 +38,14 @@ class UpRun:
 def up_argv(o: UpOptions) -> list[str]:
     """The command line of ``zenswarm up`` for these options (this interpreter's). Covers the
     options a programmatic flight uses: swarm, out, listen, lockstep timeout, kills, restart,
-    realtime, full time, record, link faults; progress every 5 s."""
+    realtime, real-time priority, full time, record, link faults; progress every 5 s."""
     argv = [sys.executable, "-m", "zenswarm", "up", str(o.scenario), "--out", str(o.out), "--swarm", o.swarm]
     argv += [w for ep in o.listen for w in ("--listen", ep)]
     argv += ["--progress-every", "5", "--lockstep-timeout", repr(o.lockstep_timeout)]
     argv += [w for role, t in o.kill for w in ("--kill", f"{role}@{t!r}s")]
     argv += ["--restart"] * o.restart + ["--realtime"] * o.realtime + ["--full-time"] * o.full_time
     argv += ["--record", str(o.record)] if o.record is not None else []
-    return argv + o.faults.argv()
+    return argv + o.rt_argv() + o.faults.argv()
 
 
 def processes_mentioning(text: str) -> list[tuple[int, str]]:

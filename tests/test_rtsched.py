@@ -19,9 +19,8 @@ from pathlib import Path
 import pytest
 
 from zenswarm import rtsched
+from zenswarm.api import fly
 from zenswarm.errors import ScenarioError
-
-from swarmtest import read_results, scenario_variant, unique_swarm, zenswarm
 
 PRIORITY = 7
 
@@ -154,24 +153,30 @@ def test_every_thread_is_raised_after_startup_and_new_threads_inherit() -> None:
 
 
 @pytest.mark.swarm
-def test_realtime_flight_under_sched_fifo(tmp_path: Path) -> None:
-    """``zenswarm up --realtime --rt-priority P``: every flying process reports P and its raised
-    threads in its diagnostics; the supervisor (router, recorder) stays under the fair scheduler;
-    the flight keeps its verdict."""
+def test_realtime_flight_under_sched_fifo() -> None:
+    """``zenswarm.api.fly(..., realtime=True, rt_priority=P)`` (``zenswarm up --realtime
+    --rt-priority P``): every flying process reports P and its raised threads in its diagnostics,
+    and says so in the log; the calling process is not raised; no collision, no process left."""
     _need_privilege()
-    scenario = scenario_variant(tmp_path, time_limit_s=4.0, settle_time_s=1.0)
-    out = tmp_path / "out"
-    r = zenswarm("up", str(scenario), "--out", str(out), "--swarm", unique_swarm("rt"), "--realtime", "--quiet",
-                 "--rt-priority", str(PRIORITY), timeout=120)
-    assert r.returncode in (0, 1), r.stdout[-3000:]
-    res = read_results(out)
+    flight = fly("paper_example1", mode="swarm", realtime=True, rt_priority=PRIORITY, duration=4.0,
+                 overrides={"timing.settle_time_s": 1.0}, timeout=120)
+    res = flight.results
     diag = res["diagnostics"]
     flying = ["plant", "leader"] + [f"agent:{i}" for i in range(1, res["n_uav"] + 1)]
     for name in flying:
         assert diag[name]["rt.priority"] == PRIORITY, (name, diag[name])
         assert diag[name]["rt.threads"] >= 2, (name, diag[name])  # the main thread and zenoh's
         assert diag[name]["loop_ticks"] > 0 and "idle_ticks" in diag[name], (name, diag[name])
-    assert f"SCHED_FIFO priority {PRIORITY}" in r.stdout
+    assert f"SCHED_FIFO priority {PRIORITY}" in flight.log
     assert rtsched.current_policy() == ("other", 0)  # this test process was never raised
-    assert not res["uav_collision"] and res["finite"]
+    assert not res["uav_collision"] and res["finite"] and not flight.leftovers
 
+
+@pytest.mark.parametrize(("kw", "needle"), [
+    ({"mode": "sim", "realtime": False}, "mode='swarm', realtime=True"),
+    ({"mode": "swarm", "realtime": False}, "only for realtime flights"),
+])
+def test_fly_refuses_rt_priority_without_a_realtime_swarm(kw: dict, needle: str) -> None:
+    with pytest.raises(ScenarioError) as e:
+        fly("paper_example1", rt_priority=5, **kw)
+    assert e.value.field == "rt_priority" and needle in str(e.value)

@@ -38,6 +38,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from zenswarm import rtsched
 from zenswarm.bus import free_port
 from zenswarm.compose.launch import kill_processes_of, live_flights, processes_of, run_up, stop_flight
 from zenswarm.compose.sim import simulate, summary_line, write_outputs
@@ -432,6 +433,7 @@ def fly(
     port: int | None = None,
     lockstep_timeout: float = 5.0,
     timeout: float = DEFAULT_SWARM_TIMEOUT_S,
+    rt_priority: int | None = None,
 ) -> Flight:
     """Fly ``scenario`` and return the judged :class:`Flight`.
 
@@ -457,6 +459,9 @@ def fly(
     recording (swarm mode); ``swarm`` / ``port`` name the swarm and its router's TCP port on
     127.0.0.1 (default: a unique name, a free port); ``timeout`` bounds a swarm flight's wall
     time (s). A swarm flight's processes are all stopped when :func:`fly` returns or raises.
+    ``rt_priority`` (realtime swarm flights only): the flying processes under ``SCHED_FIFO`` at
+    this priority once started, as ``zenswarm up --rt-priority`` (:mod:`zenswarm.rtsched`; needs
+    root or an ``RLIMIT_RTPRIO``, else :class:`ScenarioError` naming ``rt_priority``).
 
     Raises :class:`ScenarioError` / :class:`OverrideError` naming the argument or field on bad
     input (nothing flown), :class:`FlightError` when the swarm could not fly to its end.
@@ -481,6 +486,7 @@ def fly(
     )  # fmt: skip
     plan = faults.plan(sc)  # bad values: ScenarioError naming the flag, before any work
     kills = _kills(kill)
+    rtsched.validate(rt_priority, realtime=realtime and mode == "swarm", how="mode='swarm', realtime=True", field="rt_priority")
     if mode == "sim":
         for name, given in (("kill", kills), ("restart", restart), ("realtime", realtime), ("record", record is not None)):
             if given:
@@ -492,7 +498,8 @@ def fly(
             write_outputs(out, res.series, res.results)
         code = 0 if res.results["success"] else 1
         return _flight("sim", sc, res.results, res.series, code, out)
-    return _fly_swarm(sc, doc, faults, kills, restart, realtime, full_time, record, out, swarm, port, lockstep_timeout, timeout)
+    return _fly_swarm(sc, doc, faults, kills, restart, realtime, full_time, record, out, swarm, port, lockstep_timeout, timeout,
+                      rt_priority)
 
 
 def _flight(
@@ -518,7 +525,7 @@ def _flight(
 def _fly_swarm(
     sc: Scenario, doc: dict[str, Any], faults: LinkFaults, kills: tuple[tuple[str, float], ...], restart: bool,
     realtime: bool, full_time: bool, record: Path | None, out: Path | None, swarm: str | None, port: int | None,
-    lockstep_timeout: float, timeout: float,
+    lockstep_timeout: float, timeout: float, rt_priority: int | None = None,
 ) -> Flight:
     """``zenswarm up`` as a child process group; its results read back from its output directory."""
     swarm = swarm or unique_swarm_name()
@@ -531,6 +538,7 @@ def _fly_swarm(
         opts = UpOptions(
             scenario=scen_file, swarm=swarm, out=out_dir, realtime=realtime, record=record, lockstep_timeout=lockstep_timeout,
             kill=kills, restart=restart, full_time=full_time, faults=faults, listen=(f"tcp/127.0.0.1:{port}",),
+            rt_priority=rt_priority,
         )
         check_up_args(opts, sc)  # the supervisor's own checks, here: bad input raises before anything starts
         run = run_up(opts, timeout)
