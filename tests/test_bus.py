@@ -23,6 +23,7 @@ import zenoh
 
 from zenswarm import wire
 from zenswarm.bus import (
+    TX_QUEUE_BATCHES,
     ZENOH_RUNTIME_DEFAULT,
     ZENOH_RUNTIME_ROUTER,
     AliveWatcher,
@@ -187,6 +188,9 @@ def test_configs() -> None:
     assert json.loads(c.get_json("mode")) == "client"
     assert json.loads(c.get_json("connect/endpoints")) == ["tcp/127.0.0.1:2"]
     assert json.loads(c.get_json("connect/timeout_ms")) == 1500
+    # a lockstep process that ticks through a backlog queues its output until zenoh's only
+    # thread gets round to sending it: the room of 16 batches, not zenoh's 2 (TX_QUEUE_BATCHES)
+    assert json.loads(c.get_json("transport/link/tx/queue/size/data")) == TX_QUEUE_BATCHES == 16
     for conf in (r, c):
         assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
         assert json.loads(conf.get_json("scouting/gossip/enabled")) is False

@@ -49,6 +49,7 @@ from .wire import InvalidKeyError, Keys, validate_process
 
 __all__ = [
     "DEFAULT_CONNECT_TIMEOUT_S",
+    "TX_QUEUE_BATCHES",
     "ZENOH_RUNTIME_DEFAULT",
     "use_swarm_runtime",
     "zenoh_threads",
@@ -113,6 +114,21 @@ one thread, a flood of 64 KiB garbage messages froze example 1 every time (4 of 
 
 DEFAULT_CONNECT_TIMEOUT_S: Final = 5.0
 """How long a client keeps trying to reach its router before ``zenoh.open`` fails, s."""
+
+
+TX_QUEUE_BATCHES: Final = 16
+"""Batches (64 kB each) in a client session's sending queue for data, zenoh's maximum (its
+default is 2). zenoh allocates them only when they are needed.
+
+A lockstep tick runs on zenoh's only thread (:func:`direct_callback`, :data:`ZENOH_RUNTIME_DEFAULT`)
+and puts there; zenoh's sending task runs on that same thread, once the reading task finds the
+socket empty. A process that has fallen behind a flood of input (a replay at ``--rate 0`` into a
+live agent on a loaded machine) can tick hundreds of times before that happens, and each tick
+queues its messages. With 2 batches an agent's queue was full at tick 354 of such a backlog: the
+put then waited for a sending task that could not run, until zenoh closed the link 5 s later
+(``block/wait_before_close``) and the rest was lost (seen in CI, ``tests/test_replay.py``). With
+16 batches it holds about 2,800 ticks of an agent's output (a ref and a cmd, ~185 bytes each on
+the wire). Lockstep speed unchanged (BENCHMARKS.md, "The sending queue of a client")."""
 
 
 class BusError(ZenswarmError):
@@ -275,7 +291,8 @@ def client_config(
     connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S,
     settings: Mapping[str, Any] | None = None,
 ) -> zenoh.Config:
-    """Config of a swarm process: a client of the router(s) at ``connect``.
+    """Config of a swarm process: a client of the router(s) at ``connect``, with a sending queue
+    of :data:`TX_QUEUE_BATCHES` batches.
 
     ``zenoh.open`` keeps retrying for ``connect_timeout_s`` seconds (so a process may start
     before its router), then fails; 0 fails at once. settings: see :func:`apply_settings`.
@@ -289,6 +306,7 @@ def client_config(
             "connect/endpoints": list(connect),
             "connect/timeout_ms": max(0, round(connect_timeout_s * 1000)),
             "listen/endpoints": [],
+            "transport/link/tx/queue/size/data": TX_QUEUE_BATCHES,
         },
     )
     return apply_settings(conf, settings or {})
