@@ -121,8 +121,8 @@ def client_security(args: argparse.Namespace) -> ClientSecurity:
 
 
 def add_plugin_args(p: argparse.ArgumentParser) -> None:
-    """``--controller NAME`` and ``--planner NAME``: override the scenario's ``[agents] controller``
-    and ``[leader] planner`` (:func:`zenswarm.plugins.select`)."""
+    """``--controller NAME``, ``--planner NAME`` and ``--plant-model NAME``: override the scenario's
+    ``[agents] controller``, ``[leader] planner`` and ``[plant] model`` (:func:`zenswarm.plugins.select`)."""
     p.add_argument(
         "--controller", metavar="NAME", default=None,
         help="agent controller plug-in: a built-in name, module:attribute or an installed entry point "
@@ -131,6 +131,11 @@ def add_plugin_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--planner", metavar="NAME", default=None,
         help="leader planner plug-in, named the same ways (default: the scenario's [leader] planner)",
+    )
+    p.add_argument(
+        "--plant-model", metavar="NAME", default=None,
+        help="plant model plug-in (the vehicles' dynamics: quadrotor, rotorpy, ...), named the same ways "
+        "(default: the scenario's [plant] model, else quadrotor)",
     )
 
 

@@ -65,7 +65,7 @@ def _run_sim(args: argparse.Namespace) -> int:
     from zenswarm.paths import check_output_dir
     from zenswarm.plugins import check_selection, select
 
-    sc = select(load_scenario(args.scenario), args.controller, args.planner)
+    sc = select(load_scenario(args.scenario), args.controller, args.planner, args.plant_model)
     sc = apply_overrides(sc, no_eso=args.no_eso, fixed_gain=args.fixed_gain)
     if args.seed is not None:
         sc = replace(sc, seed=args.seed)

@@ -177,9 +177,9 @@ def _finite(x: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
 
 
 def _mass_g(sc: Scenario) -> tuple[float, float]:
-    from zenswarm.params import QuadParams
+    from zenswarm.plugins import plant_vehicle
 
-    p = QuadParams.from_vehicle(sc.vehicle)
+    p = plant_vehicle(sc)
     return float(p.mass), float(p.g)
 
 
