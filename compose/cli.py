@@ -12,6 +12,7 @@ from pathlib import Path
 
 from zenswarm.bridge.args import add_fault_args, add_plugin_args, link_faults, positive_float
 from zenswarm.errors import ZenswarmError
+from zenswarm.plugins import PluginFailure
 
 EPILOG = """\
 Quick start:
@@ -19,7 +20,9 @@ Quick start:
   zenswarm up  compose/scenarios/paper_example1.toml --out runs/ex1
 
 Exit codes: 0 success, 1 mission failed, 2 bad input (the message names the field, flag or file;
-checked before any work starts, output paths included), 3 a swarm process failed, 130 interrupted.
+checked before any work starts, output paths included), 3 a swarm process failed, 4 a plug-in failed
+mid-flight (:class:`zenswarm.plugins.PluginFailure`: it raised, or e.g. a plant model's state went
+non-finite; the message names the plug-in, its kind, the tick and the field), 130 interrupted.
 """
 
 
@@ -105,11 +108,12 @@ def _run_check(args: argparse.Namespace) -> int:
 def _add_plugins(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "plugins",
-        help="list the available agent controllers and leader planners",
+        help="list the available agent controllers, leader planners and plant models",
         description=(
-            "List the controllers and planners a scenario can name ([agents] controller, [leader] planner, "
-            "--controller, --planner): the built-ins and the installed entry points (groups zenswarm.controllers, "
-            "zenswarm.planners), with a one-line description each. Any other plug-in is named module:attribute."
+            "List the controllers, planners and plant models a scenario can name ([agents] controller, [leader] planner, "
+            "[plant] model, --controller, --planner, --plant-model): the built-ins and the installed entry points (groups "
+            "zenswarm.controllers, zenswarm.planners, zenswarm.plants), with a one-line description each. Any other "
+            "plug-in is named module:attribute."
         ),
     )
     psub = p.add_subparsers(dest="plugins_cmd", metavar="{list,check}")
@@ -209,6 +213,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ZenswarmError as e:
         print(f"zenswarm: error: {e}", file=sys.stderr)
         return 2
+    except PluginFailure as e:  # a plug-in raised or returned garbage mid-flight: named, exit 4
+        print(f"zenswarm: error: {e}", file=sys.stderr)
+        return 4
     except KeyboardInterrupt:
         print("zenswarm: interrupted", file=sys.stderr)
         return 130
