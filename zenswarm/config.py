@@ -377,8 +377,8 @@ def scenario_to_dict(s: Scenario) -> dict[str, Any]:
     agents = to_builtins(s.agents, omit_defaults=True)
     if agents:
         d["agents"] = agents
-    plant = to_builtins(s.plant, omit_defaults=True)
-    if plant:
+    plant = {k: v for k, v in to_builtins(s.plant, omit_defaults=True).items() if not (k == "params" and not v)}
+    if plant:  # the default model without parameters is not written (scenarios as before plant models)
         d["plant"] = plant
     veh = {k: v for k, v in to_builtins(s.vehicle).items() if v is not None}
     if veh:
