@@ -19,7 +19,7 @@ import numpy as np
 from zenswarm.plant.api import PlantContext, PlantModel, VehicleStates
 from zenswarm.plant.disturbance import DisturbanceModel
 from zenswarm.plant.failsafe import FailsafeState, failsafe_config
-from zenswarm.plugins import PLANT_ROLE, PluginFailure, plant_selection, plugin_rng
+from zenswarm.plugins import PLANT_ROLE, PluginFailure, plant_selection, plant_vehicle, plugin_rng
 
 __all__ = ["PlantCore", "make_plant_model", "STATE_FIELDS"]
 
@@ -33,7 +33,7 @@ def make_plant_model(scenario: Any) -> PlantModel:
     parameter, PluginFailure (field ``__init__``) when constructing it raises."""
     cls, params = plant_selection(scenario)
     tm = scenario.timing
-    vehicle = cls.vehicle(scenario, params)
+    vehicle = plant_vehicle(scenario)
     ctx = PlantContext(
         n=scenario.n, dt=tm.dt, substeps=tm.substeps, h=tm.dt / tm.substeps,
         initial_positions=np.asarray(scenario.initial_positions, dtype=float).copy(), yaw=scenario.controller.yaw,
@@ -114,7 +114,7 @@ class PlantCore:
         for name in STATE_FIELDS:
             a = getattr(st, name, None)
             shape = np.shape(a) if a is not None else None
-            if shape != (self.n, 3):
+            if a is None or shape != (self.n, 3):
                 raise PluginFailure(self.model_name, "plant", "plant", k, f"state.{name}", f"shape {shape}, expected ({self.n}, 3)")
             ok = np.isfinite(a)
             if not ok.all():

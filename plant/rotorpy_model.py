@@ -111,7 +111,8 @@ class RotorPyModel(PlantModel):
         for key in ("wind", "wind_amplitude", "wind_freq_hz"):
             x = np.asarray(getattr(params, key), dtype=float)
             if not np.all(np.isfinite(x)) or (key == "wind_freq_hz" and np.any(x < 0)):
-                raise PluginError(f"plant.params.{key}", f"must be 3 finite numbers{' >= 0' if key == 'wind_freq_hz' else ''}, got {x.tolist()}")
+                what = "3 finite numbers >= 0" if key == "wind_freq_hz" else "3 finite numbers"
+                raise PluginError(f"plant.params.{key}", f"must be {what}, got {x.tolist()}")
         base = QuadParams()
         max_thrust = float(qp["num_rotors"] * qp["k_eta"] * qp["rotor_speed_max"] ** 2)
         # the command clamp of the built-in (max_tilt) is kept; the rest is RotorPy's vehicle

@@ -147,7 +147,8 @@ def _scenario_file(tmp: Path, plant: dict[str, Any]) -> Path:
         ({}, ["--plant-model", "nosuch"], "plant.model: no plant named 'nosuch'"),
         ({"model": "no_module_xyz:Model"}, [], "plant.model: plant 'no_module_xyz:Model': cannot load"),
         ({"model": "rotorpy", "params": {"bogus": 1}}, [], "plant.params"),
-        ({"model": "rotorpy", "params": {"steps_per_tick": 3}}, [], "plant.params.steps_per_tick: must be >= 1 and divide timing.substeps (10)"),
+        ({"model": "rotorpy", "params": {"steps_per_tick": 3}}, [],
+         "plant.params.steps_per_tick: must be >= 1 and divide timing.substeps (10)"),
         ({"params": {"tau": 1}}, [], "plant.params"),  # the built-in takes no parameters
     ],
 )

@@ -282,7 +282,7 @@ def plant_vehicle(scenario: Scenario) -> QuadParams:
     A model that cannot be used (e.g. its package is not installed) raises PluginError naming
     ``plant.model``."""
     cls, params = plant_selection(scenario)
-    vehicle = cls.vehicle(scenario, params)
+    vehicle = getattr(cls, "vehicle")(scenario, params)  # noqa: B009 - a PlantModel (resolve checked it); the base imports no role
     if not isinstance(vehicle, QuadParams):
         got = type(vehicle).__name__
         raise PluginError("plant.model", f"plant {scenario.plant.model!r}: vehicle() must return a QuadParams, got {got}")
