@@ -9,7 +9,8 @@ process (``time.process_time_ns``, so other jobs on the machine matter less) div
 ticks x N x sub-steps: microseconds per vehicle per physics step of 1 ms of sim time (RotorPy
 takes one adaptive RK45 step per control tick, ``steps_per_tick = 1``; the normalisation is per
 1 ms of flight either way, so the two figures compare what a second of flight costs). Median of
-``--runs`` runs.
+``--runs`` runs. The first row is the built-in's step as it was before plant models were plug-ins
+(the failsafe, then ``step_held``), for the cost of the plug-in layer.
 
     python bench/plant_speed.py
     python bench/plant_speed.py --runs 7 --ticks 300 --json bench/results/plant_speed.json
@@ -48,6 +49,30 @@ def run_once(model: str, ticks: int, n: int | None) -> float:
     return cpu / (ticks * N * sc.timing.substeps)
 
 
+def run_direct(ticks: int) -> float:
+    """The same for the plant step before plant models were plug-ins: the failsafe then
+    ``step_held`` on a ``PlantState`` (what ``PlantCore.step`` ran), no model call, no state check."""
+    import numpy as np
+
+    from zenswarm.config import load_scenario
+    from zenswarm.plant.core import PlantCore
+    from zenswarm.plant.quadrotor import initial_state, step_held
+
+    sc = load_scenario(C.PAPER["example1"])
+    core = PlantCore(sc)
+    p, N, h, nsub = core.params, sc.n, core.h, core.nsub
+    st = initial_state(np.asarray(sc.initial_positions, dtype=float))
+    t0 = time.process_time_ns()
+    for k in range(ticks):
+        thrust = p.mass * p.g * (1.0 + 0.05 * np.sin(0.07 * k + np.arange(N)))
+        rpy = 0.05 * np.sin(0.05 * k + np.arange(3 * N)).reshape(N, 3)
+        core.hold_all(thrust, rpy, k)
+        f, r = core.failsafe.apply(k, [0.0] * N, st.q, st.v, core.thrust, core.rpy_cmd, p.mass, p.g, core.yaw)
+        step_held(st, f, r, p, h, nsub, core.dist.sampler(k * core.dt, h))
+    cpu = (time.process_time_ns() - t0) / 1e3
+    return cpu / (ticks * N * sc.timing.substeps)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5)
@@ -57,9 +82,14 @@ def main() -> int:
     info = C.machine_info()
     print("\n".join(C.machine_lines(info)))
     rows, out = [], {}
-    for model in ("quadrotor", "rotorpy"):
-        run_once(model, 5, None)  # warm-up: imports, caches
-        xs = [run_once(model, args.ticks, None) for _ in range(args.runs)]
+    for model in ("quadrotor (direct, before plug-ins)", "quadrotor", "rotorpy"):
+        direct = model.startswith("quadrotor (")
+
+        def one(ticks: int, model: str = model, direct: bool = direct) -> float:
+            return run_direct(ticks) if direct else run_once(model, ticks, None)
+
+        one(5)  # warm-up: imports, caches
+        xs = [one(args.ticks) for _ in range(args.runs)]
         med = C.median(xs)
         out[model] = {"us_per_vehicle_physics_step": xs, "median": med}
         rows.append([model, C.fmt(med, 2), C.fmt(min(xs), 2), C.fmt(max(xs), 2), C.fmt(med * 10.0 / 1e3, 3)])
