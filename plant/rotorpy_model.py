@@ -13,7 +13,10 @@ copied: the model calls its functions.
 
 Per control tick of ``dt`` the model takes ``steps_per_tick`` RotorPy steps (default 1: RotorPy's
 usual 100 Hz at zenswarm's 100 Hz control rate); RotorPy's controller computes the rotor speed
-command once per step and holds it, as :meth:`Multirotor.step` does.
+command once per step and holds it, as :meth:`Multirotor.step` does. The model calls the pieces of
+``Multirotor.step`` rather than ``step`` itself: ``step`` draws motor noise from numpy's global
+generator on every call (even at zero noise), which a plug-in must not touch (determinism), and
+takes no external disturbance.
 
 Frames: RotorPy's world frame is z up and its body frame has z along the thrust, as zenswarm's
 (ENU / FLU); quaternions are [x, y, z, w] (scalar last, :mod:`scipy.spatial.transform`).
@@ -215,7 +218,10 @@ class RotorPyModel(PlantModel):
 
                 sol = self._solve_ivp(rhs, (0.0, self.t_step), s, **veh.integrator_kwargs)
                 s_new = sol["y"][:, -1]
-                s_new[6:10] /= np.linalg.norm(s_new[6:10])  # RotorPy renormalises the quaternion after each step
+                # as Multirotor.step after its integration: the quaternion renormalised, the rotor
+                # speeds clipped to their range (its motor noise and ground contact left out)
+                s_new[6:10] /= np.linalg.norm(s_new[6:10])
+                s_new[16:] = np.clip(s_new[16:], veh.rotor_speed_min, veh.rotor_speed_max)
                 self.s[i] = s_new
         self.tick += 1
         self._publish()
