@@ -44,10 +44,10 @@ from zenswarm.compose.launch import kill_processes_of, live_flights, processes_o
 from zenswarm.compose.sim import simulate, summary_line, write_outputs
 from zenswarm.compose.supervisor import UpOptions, check_up_args
 from zenswarm.config import Scenario, scenario_from_dict, scenario_to_dict
-from zenswarm.errors import ScenarioError, ZenswarmError
+from zenswarm.errors import EXIT_PLUGIN_FAILED, ScenarioError, ZenswarmError
 from zenswarm.generate import to_toml
 from zenswarm.linkfaults import LinkFaults
-from zenswarm.metrics import TimeSeries, flight_differences
+from zenswarm.metrics import TimeSeries, exit_code_of, flight_differences
 from zenswarm.paths import check_output_dir
 from zenswarm.plugins import check_selection
 from zenswarm.wire import validate_process
@@ -496,8 +496,7 @@ def fly(
         res = simulate(sc, faults=plan, full_time=full_time)
         if out is not None:
             write_outputs(out, res.series, res.results)
-        code = 0 if res.results["success"] else 1
-        return _flight("sim", sc, res.results, res.series, code, out)
+        return _flight("sim", sc, res.results, res.series, exit_code_of(res.results), out)
     return _fly_swarm(sc, doc, faults, kills, restart, realtime, full_time, record, out, swarm, port, lockstep_timeout, timeout,
                       rt_priority)
 
@@ -545,7 +544,7 @@ def _fly_swarm(
         code, log, leftovers = run.exit_code, run.log, run.leftovers
         if run.timed_out:
             raise FlightError(f"the swarm flight took more than {timeout:g} s of wall time; stopped", None, log)
-        if code not in (0, 1, 3) or not (out_dir / "results.json").is_file():
+        if code not in (0, 1, 3, EXIT_PLUGIN_FAILED) or not (out_dir / "results.json").is_file():
             tail = "\n".join(log.splitlines()[-20:])
             raise FlightError(f"zenswarm up ended with exit status {code} and no results:\n{tail}", code, log)
         results = json.loads((out_dir / "results.json").read_text())

@@ -7,11 +7,13 @@ the same flight gives the same JSON.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from .errors import EXIT_PLUGIN_FAILED
 from .verdict import criteria_from_scenario, judge
 
 __all__ = ["TimeSeries", "compute_results", "add_failure", "flight_differences", "RESULT_FIELDS", "FLIGHT_FIELDS", "RESULTS_SCHEMA_VERSION"]
@@ -161,6 +163,28 @@ def add_failure(res: dict[str, Any], cause: str, detail: str, t_s: float | None 
     res["failures"] = [f for f in res["failures"] if f["cause"] not in ("incomplete", "no_data")]
     res["failures"].append({"cause": cause, "t_s": t_s, "detail": detail, "uavs": [], **more})
     res["success"] = False
+
+
+def add_plugin_failures(res: dict[str, Any], failures: Sequence[Any], dt: float) -> None:
+    """Add the ``plugin_error`` failures a run ended on (:class:`zenswarm.errors.PluginFailure`
+    each, at sim time tick * dt, ``dt`` the control tick in s) to a results dict, in place of the
+    ``incomplete`` or ``no_data`` they explain; the run is then not a success."""
+    res["failures"] = [f for f in res["failures"] if f["cause"] not in ("incomplete", "no_data")]
+    res["failures"].extend(f.failure(dt) for f in failures)
+    res["success"] = False
+
+
+def exit_code_of(res: dict[str, Any]) -> int:
+    """The exit status a results dict stands for: 130 interrupted, 4 a plug-in failed
+    (``plugin_error``), 3 a process died, 0 success, else 1 (the mission failed)."""
+    causes = {f["cause"] for f in res.get("failures") or ()}
+    if "interrupted" in causes:
+        return 130
+    if "plugin_error" in causes:
+        return EXIT_PLUGIN_FAILED
+    if "process_died" in causes:
+        return 3
+    return 0 if res["success"] else 1
 
 
 def flight_differences(a: TimeSeries, res_a: dict[str, Any], b: TimeSeries, res_b: dict[str, Any]) -> list[str]:

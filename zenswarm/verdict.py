@@ -61,12 +61,15 @@ CAUSES = (
     "timeout",
     "incomplete",
     "process_died",
+    "plugin_error",
     "interrupted",
     "no_data",
 )
-"""Every cause a failure can have. ``process_died`` and ``interrupted`` are added by the tools
-that run the flight (a swarm process died; Ctrl-C) in place of ``incomplete`` (a flight that stopped
-before its time limit, undecided); the rest come from the UAVs' states."""
+"""Every cause a failure can have. ``process_died``, ``plugin_error`` and ``interrupted`` are
+added by the tools that run the flight (a swarm process died; a plug-in raised or gave a
+non-finite or wrongly shaped output, :class:`zenswarm.errors.PluginFailure`; Ctrl-C) in place of
+``incomplete`` (a flight that stopped before its time limit, undecided); the rest come from the
+UAVs' states."""
 
 TERMINAL = ("leader_stalled", "uav_diverged", "non_finite")
 """Causes that end a run early (unless the whole time limit is asked for)."""
