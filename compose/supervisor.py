@@ -26,16 +26,24 @@ import numpy as np
 import zenoh
 
 from zenswarm import bus, rtsched, security, verdict, wire
-from zenswarm.bridge.args import add_fault_args, add_plugin_args, add_rt_priority_arg, link_faults, positive_float
+from zenswarm.bridge.args import (
+    add_fault_args,
+    add_override_args,
+    add_plugin_args,
+    add_rt_priority_arg,
+    link_faults,
+    positive_float,
+    scenario_of,
+)
 from zenswarm.bridge.live import DEFAULT_PORT as DEFAULT_LIVE_PORT
 from zenswarm.bridge.live import live_port
 from zenswarm.collector import Collector
-from zenswarm.config import Scenario, load_scenario
+from zenswarm.config import Scenario
 from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
 from zenswarm.linkfaults import LinkFaults
 from zenswarm.metrics import add_failure, add_plugin_failures, compute_results
 from zenswarm.paths import check_output_dir, check_output_file
-from zenswarm.plugins import STAGE_BUILD, STAGE_SHARE, STAGE_STEP, check_selection, first_failures, select
+from zenswarm.plugins import STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
 from zenswarm.policy import restart_policy
 from zenswarm.runtime import PLUGIN_FAILURE_MARK, gc_policy, gc_safe_point, gc_startup_done
 
@@ -1011,10 +1019,11 @@ def _check_kills(args: UpOptions, sc: Scenario, names: list[str]) -> None:
 
 def _run_up(ns: argparse.Namespace) -> int:
     args = up_options(ns)
-    sc = select(load_scenario(args.scenario), args.controller, args.planner)
-    check_selection(sc)  # a bad plug-in name or parameter: exit 2 now
+    sc, overrides = scenario_of(ns)  # --set, --duration, a bad plug-in name or parameter: exit 2 now
     args.faults.plan(sc)  # bad flags: exit 2 now
     check_up_args(args, sc)
+    if overrides:  # every process reads the scenario as overridden: OUT/scenario.toml
+        args = replace(args, scenario=_write_effective(args, overrides))
     gc_policy()  # a bad ZENSWARM_GC: exit 2 now
     if args.only:
         if args.live is not None:
@@ -1032,6 +1041,25 @@ def _run_up(ns: argparse.Namespace) -> int:
     finally:
         if sup.live is not None:
             sup.live.close()
+
+
+def _write_effective(args: UpOptions, overrides: dict[str, Any]) -> Path:
+    """The scenario file with the overrides applied (``--set``, ``--duration``), written as
+    OUT/scenario.toml for the swarm's processes (``--only``: beside the scenario, named by swarm)."""
+    import tomllib
+
+    from zenswarm.generate import to_toml
+    from zenswarm.overrides import apply
+
+    doc = apply(tomllib.loads(Path(args.scenario).read_text(encoding="utf-8")), overrides)
+    trace = (doc.get("faults") or {}).get("trace")
+    if isinstance(trace, str) and not Path(trace).is_absolute():  # relative to the original file
+        doc["faults"]["trace"] = str(Path(args.scenario).parent.absolute() / trace)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / (f"scenario-{args.swarm}.toml" if args.only else "scenario.toml")
+    path.write_text(to_toml(doc))
+    return path
 
 
 def _run_only(args: UpOptions) -> int:
@@ -1088,7 +1116,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
             "Start a Zenoh router inside this process, then the plant, the leader and one agent "
             "process per UAV; show progress, merge their logs, stop everything on Ctrl-C, and write "
             "OUT/results.json and OUT/timeseries.npz. Exit status: 0 mission succeeded, 1 mission "
-            "failed (goal not reached, collision), 2 bad input, 3 a process died, 130 interrupted."
+            "failed (goal not reached, collision), 2 bad input, 3 a process died, 4 a plug-in failed "
+            "(plugin_error: it raised, or gave a non-finite or wrongly shaped output), 130 interrupted."
         ),
     )
     p.add_argument("scenario", type=Path, help="scenario TOML file")
@@ -1219,4 +1248,5 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     add_rt_priority_arg(p)
     add_fault_args(p)
     add_plugin_args(p)
+    add_override_args(p)
     p.set_defaults(func=_run_up)

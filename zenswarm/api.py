@@ -43,13 +43,13 @@ from zenswarm.bus import free_port
 from zenswarm.compose.launch import kill_processes_of, live_flights, processes_of, run_up, stop_flight
 from zenswarm.compose.sim import simulate, summary_line, write_outputs
 from zenswarm.compose.supervisor import UpOptions, check_up_args
-from zenswarm.config import Scenario, scenario_from_dict, scenario_to_dict
+from zenswarm.config import Scenario, scenario_to_dict
 from zenswarm.errors import EXIT_PLUGIN_FAILED, ScenarioError, ZenswarmError
 from zenswarm.generate import to_toml
 from zenswarm.linkfaults import LinkFaults
 from zenswarm.metrics import TimeSeries, exit_code_of, flight_differences
+from zenswarm.overrides import OverrideError, apply, copy_document, validated
 from zenswarm.paths import check_output_dir
-from zenswarm.plugins import check_selection
 from zenswarm.wire import validate_process
 
 __all__ = [
@@ -76,17 +76,6 @@ Mode = Literal["sim", "swarm"]
 
 DEFAULT_SWARM_TIMEOUT_S = 600.0
 """Wall seconds a swarm flight may take before :func:`fly` stops it (:class:`FlightError`)."""
-
-
-class OverrideError(ScenarioError):
-    """An override's path does not name a scenario field, or its value is refused.
-
-    ``field`` is the dotted path of the scenario field (as in :class:`ScenarioError`);
-    ``override`` the key given to :func:`fly` that caused it."""
-
-    def __init__(self, field: str, message: str, override: str) -> None:
-        super().__init__(field, message)
-        self.override = override
 
 
 class FlightError(ZenswarmError):
@@ -257,7 +246,7 @@ def _document(scenario: str | Path | Scenario | Mapping[str, Any]) -> dict[str, 
     if isinstance(scenario, Scenario):
         return scenario_to_dict(scenario)
     if isinstance(scenario, Mapping):
-        copied: dict[str, Any] = _copy(dict(scenario))
+        copied: dict[str, Any] = copy_document(dict(scenario))
         return copied
     p = scenario_path(scenario)
     try:
@@ -265,68 +254,6 @@ def _document(scenario: str | Path | Scenario | Mapping[str, Any]) -> dict[str, 
         return doc
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise ScenarioError("file", f"{p} is not valid TOML: {e}") from None
-
-
-def _copy(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {k: _copy(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_copy(v) for v in x]
-    return x
-
-
-def _tokens(path: str) -> list[str | int]:
-    """``obstacles[0].radius`` -> ["obstacles", 0, "radius"]; ScenarioError on bad syntax."""
-    import re
-
-    if not isinstance(path, str) or not re.fullmatch(r"[A-Za-z_][\w-]*(\[\d+\]|\.[A-Za-z_][\w-]*)*", path):
-        raise OverrideError(str(path), "not a dotted path to a scenario field (e.g. timing.time_limit_s, obstacles[0].radius)", str(path))
-    return [t if t else int(i) for t, i in re.findall(r"([A-Za-z_][\w-]*)|\[(\d+)\]", path)]
-
-
-def _set(doc: dict[str, Any], path: str, value: Any) -> None:
-    """Set ``value`` at ``path`` in the document, creating missing tables (the schema then
-    refuses keys that are not fields). A path into a list must name an existing element."""
-    toks = _tokens(path)
-    cur: Any = doc
-    for pos, (tok, nxt) in enumerate(zip(toks, [*toks[1:], None], strict=True)):
-        here = "".join(f"[{t}]" if isinstance(t, int) else f".{t}" for t in toks[: pos + 1]).lstrip(".")
-        last = nxt is None
-        if isinstance(tok, int):
-            if not isinstance(cur, list) or tok >= len(cur):
-                n = len(cur) if isinstance(cur, list) else 0
-                raise OverrideError(here, f"no element {tok} (the scenario has {n})", path)
-            if last:
-                cur[tok] = _plain(value)
-            else:
-                cur = cur[tok]
-            continue
-        if not isinstance(cur, dict):
-            raise OverrideError(here, "is not a table", path)
-        if last:
-            cur[tok] = _plain(value)
-        else:
-            if tok not in cur:
-                cur[tok] = [] if isinstance(nxt, int) else {}
-            cur = cur[tok]
-
-
-def _plain(value: Any) -> Any:
-    """A Python value as TOML would hold it: tuples and arrays as lists, numpy scalars as numbers."""
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    return value
-
-
-def _related(a: str, b: str) -> bool:
-    """One dotted path is the other or lies below it."""
-    return a == b or a.startswith(b + ".") or a.startswith(b + "[") or b.startswith(a + ".") or b.startswith(a + "[")
 
 
 def load(
@@ -340,22 +267,8 @@ def load(
     :class:`ScenarioError`; errors an override caused raise :class:`OverrideError` naming the
     field and the override."""
     doc = _document(scenario)
-    base = scenario_from_dict(_copy(doc))  # the scenario's own errors first, as such
-    if not overrides:
-        return base, doc
-    for path, value in overrides.items():
-        _set(doc, path, value)
-    try:
-        sc = scenario_from_dict(_copy(doc))
-    except OverrideError:
-        raise
-    except ScenarioError as e:
-        culprit = next((p for p in overrides if _related(e.field, str(p))), None)
-        if culprit is None:  # a cross-field check (leader.k_rep_max >= k_rep_min, ...)
-            given = ", ".join(map(str, overrides))
-            raise OverrideError(e.field, f"{e.message} (after the overrides {given})", given) from None
-        raise OverrideError(e.field, e.message, str(culprit)) from None
-    return sc, doc
+    ov = dict(overrides or {})
+    return validated(doc, ov), apply(doc, ov)
 
 
 # ----------------------------------------------------------------------------- processes
@@ -474,8 +387,7 @@ def fly(
     ov.update({key: value for key, value in shortcuts.items() if value is not None})
     if planner is not None:  # as --planner: the named planner decides ([leader] adaptive is its older spelling)
         ov["leader.adaptive"] = planner != "apf"
-    sc, doc = load(scenario, ov)
-    check_selection(sc)  # the controller and planner resolve, their params decode (PluginError naming them)
+    sc, doc = load(scenario, ov)  # the controller and planner resolve, their params decode (errors naming them)
     loss = None if link_loss is None else (link_loss if isinstance(link_loss, str) else repr(float(link_loss)))
     rng = None if link_range is None else (link_range if isinstance(link_range, str) else repr(float(link_range)))
     faults = LinkFaults(

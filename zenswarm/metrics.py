@@ -201,7 +201,10 @@ def flight_differences(a: TimeSeries, res_a: dict[str, Any], b: TimeSeries, res_
             tick = int(bad[0][0])
             gaps = int(np.sum(np.isnan(x) != np.isnan(y)))  # a value on one side, none (NaN) on the other
             why = f"; {gaps} of them missing on one side" if gaps else ""
-            out.append(f"series.{f}: {len(bad)} values differ, first at tick {tick} (t = {float(a.t[tick]):.3f} s){why}")
+            uav = f", UAV {int(bad[0][1]) + 1}" if x.ndim >= 2 and f not in ("q0", "v0") else ""
+            at = tuple(int(i) for i in bad[0])
+            vals = f": {float(x[at])!r} != {float(y[at])!r}"
+            out.append(f"series.{f}: {len(bad)} values differ, first at tick {tick} (t = {float(a.t[tick]):.3f} s{uav}){vals}{why}")
     for key in FLIGHT_FIELDS:
         if res_a.get(key) != res_b.get(key):
             out.append(f"results.{key}: {res_a.get(key)!r} != {res_b.get(key)!r}")

@@ -151,10 +151,11 @@ def resolve(kind: str, name: str, field: str | None = None) -> type:
         if ep is not None:
             target = ep.value
     if target is None:
-        raise PluginError(where, f"no {kind} named {name!r} (tried {'; '.join(tried)}); `zenswarm plugins` lists them")
+        hint = _did_you_mean(kind, name)
+        raise PluginError(where, f"no {kind} named {name!r}{hint} (tried {'; '.join(tried)}); `zenswarm plugins` lists them")
     try:
         obj = _load_target(target)
-    except (ImportError, AttributeError) as e:
+    except Exception as e:  # noqa: BLE001 - ImportError, AttributeError, or whatever its module raised on import
         raise PluginError(where, f"{kind} {name!r}: cannot load {target} ({type(e).__name__}: {e}); tried {'; '.join(tried)}") from None
     base = _base(kind)
     if not (isinstance(obj, type) and issubclass(obj, base)):
@@ -164,6 +165,22 @@ def resolve(kind: str, name: str, field: str | None = None) -> type:
         missing = ", ".join(sorted(abstract))
         raise PluginError(where, f"{kind} {name!r}: {target} does not implement {missing}")
     return obj
+
+
+def _did_you_mean(kind: str, name: str) -> str:
+    """``; did you mean 'aapf'?`` for a name close to a known one of ``kind`` (any kind's, named), else ""."""
+    import difflib
+
+    known = {n: kind for n in [*BUILTINS[kind], *_entry_points(kind)]}
+    for other in KINDS:
+        if other != kind:
+            for n in [*BUILTINS[other], *_entry_points(other)]:
+                known.setdefault(n, other)
+    close = difflib.get_close_matches(name, list(known), n=3, cutoff=0.6)
+    if not close:
+        return ""
+    shown = ", ".join(repr(n) if known[n] == kind else f"{n!r} (a {known[n]})" for n in close)
+    return f"; did you mean {shown}?"
 
 
 def available(kind: str) -> list[PluginInfo]:
@@ -233,11 +250,13 @@ def select(scenario: Scenario, controller: str | None = None, planner: str | Non
     return scenario
 
 
-def check_selection(scenario: Scenario) -> None:
+def check_selection(scenario: Scenario, controller_field: str | None = None, planner_field: str | None = None) -> None:
     """Resolve the scenario's controller and planner and decode their params tables: a bad name
-    or parameter raises ScenarioError naming it (exit 2), before any work starts."""
-    decode_params(resolve("controller", scenario.agents.controller), scenario.agents.params, "agents.params")
-    decode_params(resolve("planner", planner_name(scenario)), scenario.leader.params, "leader.params")
+    or parameter raises ScenarioError naming it (exit 2), before any work starts. A bad name is
+    named by ``controller_field`` / ``planner_field`` when given (the flag it came from, e.g.
+    ``--controller``), else by its scenario field."""
+    decode_params(resolve("controller", scenario.agents.controller, controller_field), scenario.agents.params, "agents.params")
+    decode_params(resolve("planner", planner_name(scenario), planner_field), scenario.leader.params, "leader.params")
 
 
 # ----------------------------------------------------------------------------- the plug-in boundary
