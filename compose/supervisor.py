@@ -232,6 +232,16 @@ class Supervisor:
         assert child.popen.stdout is not None
         for raw in child.popen.stdout:
             line = raw.rstrip("\n")
+            at = line.find(PLUGIN_FAILURE_MARK)
+            if at >= 0:  # a plug-in failed in this child (zenswarm.runtime.report_plugin_failure)
+                try:
+                    f = PluginFailure.from_dict(json.loads(line[at + len(PLUGIN_FAILURE_MARK) :]))
+                except (ValueError, KeyError, TypeError, AssertionError):
+                    pass
+                else:
+                    self.plugin_failures.append(f)
+                    self.say(f"plug-in failed: {f}")
+                    continue
             child.lines.append(line)
             del child.lines[:-50]
             if not self.args.quiet_children:
@@ -717,7 +727,7 @@ class Supervisor:
                 return EXIT_INTERRUPTED
             now = time.monotonic()
             done, code = self._check_children(collector, now)
-            if code == EXIT_PLUGIN_FAILED:
+            if code == EXIT_PLUGIN_FAILED or self.plugin_failures:
                 return self._drain_plugin_failures(collector)
             if code is None:
                 code = self._watch_external(collector, now, wall0)
@@ -773,22 +783,11 @@ class Supervisor:
         return done, None
 
     def _took_plugin_failure(self, c: Child) -> bool:
-        """A child that exited with 4: read the plug-in failure it reported
-        (:data:`zenswarm.runtime.PLUGIN_FAILURE_MARK`); False if it reported none (then it died)."""
+        """A child that exited with 4: did it report its plug-in's failure
+        (:data:`zenswarm.runtime.PLUGIN_FAILURE_MARK`, read by :meth:`_pump`)? If not, it died."""
         if c.reader is not None:
             c.reader.join(timeout=5.0)  # its last lines: the pipe ends with the process
-        got = []
-        for line in c.lines:
-            at = line.find(PLUGIN_FAILURE_MARK)
-            if at >= 0:
-                try:
-                    got.append(PluginFailure.from_dict(json.loads(line[at + len(PLUGIN_FAILURE_MARK) :])))
-                except (ValueError, KeyError, TypeError, AssertionError):
-                    continue
-        self.plugin_failures.extend(got)
-        for f in got:
-            self.say(f"plug-in failed: {f}")
-        return bool(got)
+        return any(f.process == c.name for f in self.plugin_failures)
 
     def _drain_plugin_failures(self, collector: Collector) -> int:
         """A plug-in failed: wait until the flight before it is complete and every process
@@ -804,7 +803,7 @@ class Supervisor:
                 if rc is not None and c.returncode is None:
                     c.returncode = rc
                     if rc == EXIT_PLUGIN_FAILED:
-                        self._took_plugin_failure(c)
+                        self._took_plugin_failure(c)  # its last lines read
             first = first_failures(self.plugin_failures)
             if self._resolved(collector, first) or self.stop.is_set():
                 break

@@ -189,9 +189,12 @@ def exit_code_of(res: dict[str, Any]) -> int:
 
 def flight_differences(a: TimeSeries, res_a: dict[str, Any], b: TimeSeries, res_b: dict[str, Any]) -> list[str]:
     """What differs between two flights: every series compared bit for bit (NaN equal to NaN,
-    shapes included; the first differing tick named), then the :data:`FLIGHT_FIELDS` of their
-    results. Empty when they are the same flight (the lockstep swarm against the simulator)."""
+    shapes included; the first differing tick, the UAV and the two values named), the series
+    that differ earliest first (the field order of :class:`TimeSeries` among those of one tick),
+    then the :data:`FLIGHT_FIELDS` of their results. Empty when they are the same flight (the
+    lockstep swarm against the simulator)."""
     out: list[str] = []
+    series: list[tuple[int, str]] = []
     for f in TimeSeries.FIELDS:
         x, y = getattr(a, f), getattr(b, f)
         if x.shape != y.shape:
@@ -204,7 +207,8 @@ def flight_differences(a: TimeSeries, res_a: dict[str, Any], b: TimeSeries, res_
             uav = f", UAV {int(bad[0][1]) + 1}" if x.ndim >= 2 and f not in ("q0", "v0") else ""
             at = tuple(int(i) for i in bad[0])
             vals = f": {float(x[at])!r} != {float(y[at])!r}"
-            out.append(f"series.{f}: {len(bad)} values differ, first at tick {tick} (t = {float(a.t[tick]):.3f} s{uav}){vals}{why}")
+            series.append((tick, f"series.{f}: {len(bad)} values differ, first at tick {tick} (t = {float(a.t[tick]):.3f} s{uav}){vals}{why}"))
+    out += [text for _, text in sorted(series, key=lambda s: s[0])]
     for key in FLIGHT_FIELDS:
         if res_a.get(key) != res_b.get(key):
             out.append(f"results.{key}: {res_a.get(key)!r} != {res_b.get(key)!r}")

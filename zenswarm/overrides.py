@@ -141,7 +141,8 @@ def validated(doc: dict[str, Any], overrides: Mapping[str, Any], plugins: bool =
 
 def parse_assignment(text: str, flag: str = "--set") -> tuple[str, Any]:
     """``KEY=VALUE`` of the command line: VALUE read as a TOML value (``0.5``, ``[1, 2, 3]``,
-    ``true``, ``"text"``), else taken as a string (``agents.controller=my_pkg.ctl:Mine``).
+    ``true``, ``"text"``), else taken as a string (``agents.controller=my_pkg.ctl:Mine``; also
+    ``nan`` and ``inf``, which no field takes as a number).
     ScenarioError naming ``flag`` when there is no ``=`` or no key."""
     key, eq, raw = text.partition("=")
     key, raw = key.strip(), raw.strip()
@@ -152,6 +153,8 @@ def parse_assignment(text: str, flag: str = "--set") -> tuple[str, Any]:
         value = tomllib.loads(f"v = {raw}")["v"]
     except tomllib.TOMLDecodeError:
         value = raw
+    if isinstance(value, float) and not np.isfinite(value) and raw.lstrip("+-").isalpha():
+        value = raw  # TOML's nan and inf: hardly ever meant; a field that is a number refuses the text
     return key, value
 
 

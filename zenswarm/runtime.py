@@ -1223,9 +1223,16 @@ before it exits with :data:`zenswarm.errors.EXIT_PLUGIN_FAILED`: how its supervi
 which plug-in failed, where and when."""
 
 
+PLUGIN_FAILURE_LINGER_S = 30.0
+"""Wall seconds a process whose plug-in failed stays up at most (its token held), until the plant
+is gone or it is stopped: what it published last reaches its receivers, and they never mistake
+it for a crash."""
+
+
 def report_plugin_failure(proc: SwarmProcess | None, e: PluginFailure) -> None:
     """Say that a plug-in failed: a line for humans, the machine-readable line
-    (:data:`PLUGIN_FAILURE_MARK`) for the supervisor, and a diagnostic on the bus (best effort)."""
+    (:data:`PLUGIN_FAILURE_MARK`) for the supervisor, and a diagnostic on the bus (best effort);
+    then linger (:data:`PLUGIN_FAILURE_LINGER_S`) until the flight is over."""
     import json
 
     print(f"{e.process}: plugin_error: {e}", file=sys.stderr, flush=True)
@@ -1236,6 +1243,8 @@ def report_plugin_failure(proc: SwarmProcess | None, e: PluginFailure) -> None:
             proc.publish_diag(e.tick * dt_ns, {"plugin_failure": str(e)})
         except Exception:  # noqa: BLE001 - the line above is what counts
             pass
+        if proc.name != "plant":
+            proc.linger_until_gone("plant", PLUGIN_FAILURE_LINGER_S)
 
 
 def run_process(fn: Callable[[SwarmProcess], int], name: str, options: ProcessOptions | Any) -> int:
