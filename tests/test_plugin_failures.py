@@ -165,3 +165,14 @@ def test_unknown_names_say_did_you_mean_and_the_flag(capsys: pytest.CaptureFixtu
     assert main(["scenario", "check", ex1, "--controller", "aapf"]) == 2
     err = capsys.readouterr().err
     assert "--controller" in err and "'aapf' (a planner)" in err, err
+
+
+def test_formation_error_is_a_time_series_whose_late_maximum_is_the_verdict_s() -> None:
+    f = api.fly("paper_example1", duration=3.0, overrides={"timing.settle_time_s": 1.0})
+    e = f.formation_error
+    assert e.shape == (len(f.series.t), f.scenario.n) and np.isfinite(e).all()
+    late = f.series.t >= 1.0
+    assert float(e[late].max()) == f.metrics.max_formation_error_m
+    h = np.asarray(f.scenario.offsets)
+    k, i = 123, 1  # one value by hand
+    assert e[k, i] == pytest.approx(float(np.linalg.norm(f.series.q[k, i] - f.series.q0[k] - h[i])), rel=0, abs=0)

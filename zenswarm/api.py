@@ -152,7 +152,8 @@ class Flight:
     ``q0``/``v0`` (T, 3) leader, ``qref``/``vref`` (T, N, 3) references, ``q``/``v``/``rpy``
     (T, N, 3) vehicle states, ``u`` (T, N, 3) m/s^2, ``thrust`` (T, N) N, ``d_hat`` (T, N, 3)).
     results: ``results.json`` as a dict (schema in docs/verdict.md). exit_code: what the command
-    line would have returned (0 success, 1 mission failed, 3 a process died, 130 interrupted).
+    line would have returned (0 success, 1 mission failed, 3 a process died, 4 a plug-in failed:
+    ``plugin_error``, 130 interrupted). ``formation_error``: (T, N) m, per tick.
     out: where results.json and timeseries.npz were written (None: not kept). log: the
     supervisor's output (swarm mode). leftovers: processes of the swarm found alive after the
     flight and killed (empty unless something went wrong)."""
@@ -188,6 +189,13 @@ class Flight:
     def summary(self) -> str:
         """The verdict and headline figures in the words of ``zenswarm sim`` (for assertion messages)."""
         return summary_line(dict(self.results))
+
+    @property
+    def formation_error(self) -> np.ndarray:
+        """The vehicles' formation error ||q_i - q0 - h_i|| per tick and UAV, (T, N) m
+        (:meth:`zenswarm.metrics.TimeSeries.formation_error`; its maximum from
+        ``timing.settle_time_s`` on is ``metrics.max_formation_error_m``)."""
+        return self.series.formation_error(self.scenario.offsets)
 
     @property
     def restarts(self) -> dict[str, int]:

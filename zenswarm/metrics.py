@@ -72,6 +72,22 @@ class TimeSeries:
 
     FIELDS = ("t", "q0", "v0", "qref", "vref", "q", "v", "rpy", "u", "thrust", "d_hat")
 
+    def formation_error(self, offsets: Any) -> np.ndarray:
+        """The vehicles' formation error per tick and UAV: ||q_i - q0 - h_i||, (T, N) m, from
+        the formation offsets h (N, 3) m (``scenario.offsets``). Its maximum over the ticks at or
+        after ``timing.settle_time_s`` is the verdict's ``max_formation_error_m``."""
+        h = np.asarray(offsets, dtype=float)
+        return np.asarray(np.linalg.norm(self.q - (self.q0[:, None, :] + h[None]), axis=2))
+
+    def generator_formation_error(self, offsets: Any) -> np.ndarray:
+        """The references' formation error ||q*_i - q0 - h_i||, (T, N) m (the generator's, eqs 16-17)."""
+        h = np.asarray(offsets, dtype=float)
+        return np.asarray(np.linalg.norm(self.qref - (self.q0[:, None, :] + h[None]), axis=2))
+
+    def tracking_error(self) -> np.ndarray:
+        """The vehicles' tracking error ||q*_i - q_i||, (T, N) m."""
+        return np.asarray(np.linalg.norm(self.qref - self.q, axis=2))
+
     @classmethod
     def allocate(cls, T: int, n: int) -> TimeSeries:
 
