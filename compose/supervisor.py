@@ -727,6 +727,7 @@ class Supervisor:
                 return EXIT_INTERRUPTED
             now = time.monotonic()
             done, code = self._check_children(collector, now)
+            self._external_plugin_failures(collector)
             if code == EXIT_PLUGIN_FAILED or self.plugin_failures:
                 return self._drain_plugin_failures(collector)
             if code is None:
@@ -789,6 +790,20 @@ class Supervisor:
             c.reader.join(timeout=5.0)  # its last lines: the pipe ends with the process
         return any(f.process == c.name for f in self.plugin_failures)
 
+    def _external_plugin_failures(self, collector: Collector) -> None:
+        """A role on another host (``--external``) reports its plug-in's failure in its
+        diagnostics (:func:`zenswarm.runtime.report_plugin_failure`): take it as a child's line."""
+        for name in self.external_roles():
+            text = (collector.diag.get(name) or {}).get("plugin_failure")
+            if not isinstance(text, str) or any(f.process == name for f in self.plugin_failures):
+                continue
+            try:
+                f = PluginFailure.from_dict(json.loads(text))
+            except (ValueError, KeyError, TypeError, AssertionError):
+                continue
+            self.plugin_failures.append(f)
+            self.say(f"plug-in failed on {name}: {f}")
+
     def _drain_plugin_failures(self, collector: Collector) -> int:
         """A plug-in failed: wait until the flight before it is complete and every process
         that could fail in the same (tick, stage) has either given its output of that stage or
@@ -804,6 +819,7 @@ class Supervisor:
                     c.returncode = rc
                     if rc == EXIT_PLUGIN_FAILED:
                         self._took_plugin_failure(c)  # its last lines read
+            self._external_plugin_failures(collector)
             first = first_failures(self.plugin_failures)
             if self._resolved(collector, first) or self.stop.is_set():
                 break

@@ -1240,7 +1240,7 @@ def report_plugin_failure(proc: SwarmProcess | None, e: PluginFailure) -> None:
     if proc is not None and proc.session is not None:
         try:
             dt_ns = wire.t_ns(proc.scenario.timing.dt) if proc.scenario is not None else 0
-            proc.publish_diag(e.tick * dt_ns, {"plugin_failure": str(e)})
+            proc.publish_diag(e.tick * dt_ns, {"plugin_failure": json.dumps(e.to_dict(), sort_keys=True)})
         except Exception:  # noqa: BLE001 - the line above is what counts
             pass
         if proc.name != "plant":
