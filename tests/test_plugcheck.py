@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import itertools
 import time
-from pathlib import Path
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import msgspec
