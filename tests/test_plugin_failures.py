@@ -49,14 +49,17 @@ def _named(f: api.Flight) -> list[dict[str, Any]]:
 CASES = {
     "raise": ("controller", {"how": "raise", "tick": 50, "uav": 2},
               [("agent:2", [2], 50, "finish", None, "RuntimeError: misbehaving controller: deliberate error at tick 50")]),
-    "nan-thrust": ("controller", {"how": "nan", "tick": 37, "uav": 3}, [("agent:3", [3], 37, "finish", "thrust", "thrust: nan is not finite")]),
-    "wrong-shape": ("controller", {"how": "shape", "tick": 20, "uav": 1}, [("agent:1", [1], 20, "finish", "rpy", "rpy: shape (2,) != (3,)")]),
+    "nan-thrust": ("controller", {"how": "nan", "tick": 37, "uav": 3},
+                   [("agent:3", [3], 37, "finish", "thrust", "thrust: nan is not finite")]),
+    "wrong-shape": ("controller", {"how": "shape", "tick": 20, "uav": 1},
+                    [("agent:1", [1], 20, "finish", "rpy", "rpy: shape (2,) != (3,)")]),
     "share-inf": ("controller", {"how": "share", "tick": 30, "uav": 2}, [("agent:2", [2], 30, "share", "v", "is not finite")]),
     "every-uav": ("controller", {"how": "raise", "tick": 25, "uav": 0},
                   [(f"agent:{i}", [i], 25, "finish", None, "deliberate error at tick 25") for i in (1, 2, 3)]),
     "constructor": ("controller", {"how": "init", "uav": 3}, [("agent:3", [3], 0, "__init__", None, "ValueError: misbehaving controller")]),
     "planner-nan": ("planner", {"how": "nan", "tick": 40}, [("leader", [], 40, "ref", "q0", "q0: [nan nan nan] is not finite")]),
-    "planner-raise": ("planner", {"how": "raise", "tick": 60}, [("leader", [], 60, "advance", None, "ZeroDivisionError: misbehaving planner")]),
+    "planner-raise": ("planner", {"how": "raise", "tick": 60},
+                      [("leader", [], 60, "advance", None, "ZeroDivisionError: misbehaving planner")]),
 }
 
 
@@ -98,7 +101,8 @@ def test_the_swarm_names_the_same_failure_as_the_simulator(case: str, on_path: N
 def test_with_link_faults_too(on_path: None) -> None:
     """Through the links' receive boxes (20 % loss, 30 ms delay): still the same flight and failure."""
     kw = {"link_loss": 0.2, "link_delay": "30ms", "seed": 3}
-    sim, swarm = _fly("sim", "controller", {"how": "nan", "tick": 60, "uav": 1}, **kw), _fly("swarm", "controller", {"how": "nan", "tick": 60, "uav": 1}, **kw)
+    bad = {"how": "nan", "tick": 60, "uav": 1}
+    sim, swarm = _fly("sim", "controller", bad, **kw), _fly("swarm", "controller", bad, **kw)
     _check_named(sim, "controller", [("agent:1", [1], 60, "finish", "thrust", "not finite")])
     assert swarm.results["failures"] == sim.results["failures"] and api.differences(sim, swarm) == []
 

@@ -223,7 +223,8 @@ def flight_differences(a: TimeSeries, res_a: dict[str, Any], b: TimeSeries, res_
             uav = f", UAV {int(bad[0][1]) + 1}" if x.ndim >= 2 and f not in ("q0", "v0") else ""
             at = tuple(int(i) for i in bad[0])
             vals = f": {float(x[at])!r} != {float(y[at])!r}"
-            series.append((tick, f"series.{f}: {len(bad)} values differ, first at tick {tick} (t = {float(a.t[tick]):.3f} s{uav}){vals}{why}"))
+            when = f"first at tick {tick} (t = {float(a.t[tick]):.3f} s{uav})"
+            series.append((tick, f"series.{f}: {len(bad)} values differ, {when}{vals}{why}"))
     out += [text for _, text in sorted(series, key=lambda s: s[0])]
     for key in FLIGHT_FIELDS:
         if res_a.get(key) != res_b.get(key):
