@@ -17,10 +17,11 @@ from typing import Any
 
 import numpy as np
 
+from zenswarm.errors import PluginFailure
 from zenswarm.plant.api import PlantContext, PlantModel, VehicleStates
 from zenswarm.plant.disturbance import DisturbanceModel
 from zenswarm.plant.failsafe import FailsafeState, failsafe_config
-from zenswarm.plugins import PLANT_ROLE, PluginFailure, plant_selection, plant_vehicle, plugin_rng
+from zenswarm.plugins import PLANT_ROLE, STAGE_BUILD, STAGE_PLANT, Boundary, plant_selection, plant_vehicle, plugin_rng
 
 __all__ = ["PlantCore", "make_plant_model", "STATE_FIELDS"]
 
@@ -31,7 +32,8 @@ STATE_FIELDS = ("q", "v", "rpy", "w")
 def make_plant_model(scenario: Any) -> PlantModel:
     """The scenario's plant model (``[plant] model``, ``[plant.params]``), built with its
     :class:`zenswarm.plant.api.PlantContext`; PluginError naming the field for a bad name or
-    parameter, PluginFailure (field ``__init__``) when constructing it raises."""
+    parameter; :class:`zenswarm.errors.PluginFailure` (kind ``plant``, process ``plant``, stage
+    build, call ``__init__``) when constructing it raises."""
     cls, params = plant_selection(scenario)
     tm = scenario.timing
     vehicle = plant_vehicle(scenario)
@@ -40,11 +42,14 @@ def make_plant_model(scenario: Any) -> PlantModel:
         initial_positions=np.asarray(scenario.initial_positions, dtype=float).copy(), yaw=scenario.controller.yaw,
         vehicle=vehicle, rng=plugin_rng(scenario.seed, PLANT_ROLE), scenario=scenario,
     )  # fmt: skip
-    try:
-        model: PlantModel = cls(ctx, params)
-    except Exception as e:
-        raise PluginFailure(scenario.plant.model, "plant", "plant", 0, "__init__", f"{type(e).__name__}: {e}") from e
+    model: PlantModel = boundary(scenario).call(0, STAGE_BUILD, "__init__", cls, ctx, params)
     return model
+
+
+def boundary(scenario: Any) -> Boundary:
+    """Where the plant model is called (:class:`zenswarm.plugins.Boundary`): kind ``plant``, the
+    name it was selected by, process ``plant``, every UAV."""
+    return Boundary("plant", str(scenario.plant.model), "plant", tuple(range(1, scenario.n + 1)))
 
 
 class PlantCore:
@@ -61,7 +66,7 @@ class PlantCore:
         tm = scenario.timing
         self.n = n
         self.model = make_plant_model(scenario)
-        self.model_name = str(scenario.plant.model)
+        self.bound = boundary(scenario)
         self.params = self.model.ctx.vehicle
         self.dt = tm.dt
         self.nsub = tm.substeps
@@ -69,7 +74,7 @@ class PlantCore:
         self.yaw = scenario.controller.yaw
         self.dist = DisturbanceModel(scenario.disturbance, n, np.random.default_rng(scenario.seed))
         self._shape = (n, 3)
-        self._check_state(0)
+        self._check_state(0, STAGE_BUILD)
         self.failsafe = FailsafeState(n, failsafe_config(scenario.failsafe))
         self.thrust = np.full(n, self.params.mass * self.params.g)
         self.rpy_cmd = np.zeros((n, 3))
@@ -97,21 +102,20 @@ class PlantCore:
         """Step 7 of tick k: failsafe on the commands' ages, then the model's control period to
         tick k + 1 (in place). Returns the failsafe events of this tick (tick, UAV 1-based, from,
         to). A model that raises, or leaves a state that is not (N, 3) and finite, raises
-        :class:`zenswarm.plugins.PluginFailure` (kind ``plant``, process ``plant``, tick k)."""
+        :class:`zenswarm.errors.PluginFailure` (kind ``plant``, process ``plant``, tick k, stage
+        :data:`zenswarm.plugins.STAGE_PLANT`, call ``step``; the field ``state.<name>`` and the
+        UAVs whose rows are not finite)."""
         p = self.params
         fs = self.failsafe
         before = len(fs.events)
         ages = [(k - self.last_cmd_tick[i]) * self.dt for i in range(self.n)]
         st = self.model.state
         f_app, r_app = fs.apply(k, ages, st.q, st.v, self.thrust, self.rpy_cmd, p.mass, p.g, self.yaw)
-        try:
-            self.model.step(f_app, r_app, self.dist.sampler(k * self.dt, self.h))
-        except Exception as e:
-            raise PluginFailure(self.model_name, "plant", "plant", k, "step", f"{type(e).__name__}: {e}") from e
+        self.bound.call(k, STAGE_PLANT, "step", self.model.step, f_app, r_app, self.dist.sampler(k * self.dt, self.h))
         self._check_state(k)
         return fs.events[before:]
 
-    def _check_state(self, k: int) -> None:
+    def _check_state(self, k: int, stage: int = STAGE_PLANT) -> None:
         st = self.model.state
         try:  # the fast path: four (N, 3) arrays whose sum is finite (a sum that overflows takes the slow one)
             if all(getattr(st, f).shape == self._shape for f in STATE_FIELDS) and math.isfinite(
@@ -120,13 +124,16 @@ class PlantCore:
                 return
         except (AttributeError, TypeError, ValueError):
             pass  # not arrays: the slow path names what is wrong
+        call = "step" if stage == STAGE_PLANT else "__init__"
         for name in STATE_FIELDS:
             a = getattr(st, name, None)
             shape = np.shape(a) if a is not None else None
             if a is None or shape != (self.n, 3):
-                raise PluginFailure(self.model_name, "plant", "plant", k, f"state.{name}", f"shape {shape}, expected ({self.n}, 3)")
-            ok = np.isfinite(a)
+                raise self.bound.fail(k, stage, call, f"state.{name}", f"shape {shape} != ({self.n}, 3)")
+            ok = np.isfinite(a).all(axis=1)
             if not ok.all():
-                i = int(np.argwhere(~ok)[0][0])
-                raise PluginFailure(self.model_name, "plant", "plant", k, f"state.{name}",
-                                    f"not finite for UAV {i + 1}: {np.asarray(a)[i].tolist()}")
+                b = self.bound
+                bad = tuple(int(i) + 1 for i in np.flatnonzero(~ok))
+                i = bad[0] - 1
+                detail = f"state.{name}: not finite for UAV {', '.join(map(str, bad))} ({np.asarray(a)[i].tolist()} for UAV {bad[0]})"
+                raise PluginFailure(b.kind, b.plugin, b.process, bad, k, stage, call, detail, f"state.{name}")

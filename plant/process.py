@@ -26,7 +26,6 @@ from zenswarm import wire
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters
 from zenswarm.plant.core import PlantCore
-from zenswarm.plugins import PluginFailure
 from zenswarm.runtime import (
     CLOCK_EVERY_TICKS,
     Lockstep,
@@ -244,15 +243,8 @@ def _run(proc: SwarmProcess, expect: tuple[str, ...]) -> int:
     return _run_realtime(plant) if lockstep is None else lockstep.run()
 
 
-def _run_guarded(proc: SwarmProcess, expect: tuple[str, ...]) -> int:
-    try:
-        return _run(proc, expect)
-    except PluginFailure as e:  # the plant model raised or went non-finite: named, exit 4
-        proc.log(f"plant: error: {e}")
-        return 4
-
-
 def run(options: PlantOptions) -> int:
     """Run the plant until the flight ends; the exit code (2: bad input, 3: a process never came,
-    4: the plant model failed, :class:`zenswarm.plugins.PluginFailure`)."""
-    return run_process(lambda proc: _run_guarded(proc, options.expect), "plant", options.process)
+    4: the plant model failed, :class:`zenswarm.errors.PluginFailure`, reported by
+    :func:`zenswarm.runtime.run_process`)."""
+    return run_process(lambda proc: _run(proc, options.expect), "plant", options.process)

@@ -35,7 +35,7 @@ from zenswarm.plant.api import QuadrotorModel
 from zenswarm.plant.core import PlantCore
 from zenswarm.plant.disturbance import DisturbanceModel
 from zenswarm.plant.quadrotor import initial_state, step_held
-from zenswarm.plugins import DEFAULTS, GROUPS, KINDS, PluginFailure, available, check_selection, plant_vehicle, resolve, select
+from zenswarm.plugins import DEFAULTS, GROUPS, KINDS, STAGE_PLANT, available, check_selection, plant_vehicle, resolve, select
 
 from swarmtest import SCENARIOS, read_results, scenario_variant, unique_swarm, zenswarm
 
@@ -144,7 +144,7 @@ def _scenario_file(tmp: Path, plant: dict[str, Any]) -> Path:
 @pytest.mark.parametrize(
     ("plant", "flags", "needle"),
     [
-        ({}, ["--plant-model", "nosuch"], "plant.model: no plant named 'nosuch'"),
+        ({}, ["--plant-model", "nosuch"], "--plant-model: no plant named 'nosuch'"),
         ({"model": "no_module_xyz:Model"}, [], "plant.model: plant 'no_module_xyz:Model': cannot load"),
         ({"model": "rotorpy", "params": {"bogus": 1}}, [], "plant.params"),
         ({"model": "rotorpy", "params": {"steps_per_tick": 3}}, [],
@@ -175,18 +175,48 @@ def test_rotorpy_not_installed_is_named_with_the_remedy(monkeypatch: pytest.Monk
 
 
 def test_a_model_that_returns_nan_or_raises_is_a_named_plugin_failure(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    with pytest.raises(PluginFailure) as e:
-        sim.simulate(select(SC, plant_model="test_plants:NanPlant"), n_ticks=50)
-    assert e.value.as_dict() == {
-        "plugin": "test_plants:NanPlant", "kind": "plant", "process": "plant", "tick": 5, "field": "state.v",
-        "detail": e.value.detail,
+    """The plug-in failure contract (issue 27) with kind plant: the run ends at the failed tick,
+    the failure ``plugin_error`` names the model, the process, the tick, the field and the UAV;
+    results are written and ``zenswarm sim`` exits 4."""
+    res = sim.simulate(select(SC, plant_model="test_plants:NanPlant"), n_ticks=50)
+    (f,) = [f for f in res.results["failures"] if f["cause"] == "plugin_error"]
+    assert {k: f[k] for k in ("plugin", "kind", "process", "tick", "stage", "call", "field", "uavs")} == {
+        "plugin": "test_plants:NanPlant", "kind": "plant", "process": "plant", "tick": 5, "stage": STAGE_PLANT, "call": "step",
+        "field": "state.v", "uavs": [2],
     }  # fmt: skip
-    assert "not finite for UAV 2" in e.value.detail
-    with pytest.raises(PluginFailure) as e:
-        sim.simulate(select(SC, plant_model="test_plants:RaisingPlant"), n_ticks=50)
-    assert (e.value.tick, e.value.field, e.value.detail) == (3, "step", "ZeroDivisionError: the model's own bug")
-    assert main(["sim", str(EX1), "--plant-model", "test_plants:NanPlant", "--out", str(tmp_path / "o"), "--quiet"]) == 4
-    assert "plant plug-in 'test_plants:NanPlant' failed in plant at tick 5: state.v: not finite for UAV 2" in capsys.readouterr().err
+    assert "not finite for UAV 2" in f["detail"] and f["t_s"] == 5 * SC.timing.dt
+    assert len(res.series.t) == 5 and not res.results["success"]  # the ticks before the failed one are judged
+    res = sim.simulate(select(SC, plant_model="test_plants:RaisingPlant"), n_ticks=50)
+    (f,) = [f for f in res.results["failures"] if f["cause"] == "plugin_error"]
+    assert (f["tick"], f["call"], f["field"], f["uavs"]) == (3, "step", None, [1, 2, 3])
+    assert "raised ZeroDivisionError: the model's own bug" in f["detail"]
+    out = tmp_path / "o"
+    assert main(["sim", str(EX1), "--plant-model", "test_plants:NanPlant", "--out", str(out), "--quiet"]) == 4
+    assert "plugin_error" in capsys.readouterr().out
+    assert read_results(out)["failures"][0]["kind"] == "plant"
+
+
+@pytest.mark.swarm
+def test_a_failing_plant_model_fails_the_lockstep_swarm_as_the_simulator(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`zenswarm up --plant-model test_plants:NanPlant`: exit 4, the same plugin_error and the
+    same flight as the simulator, bit for bit."""
+    import os
+
+    from test_swarm import _up
+
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")]))
+    scen = scenario_variant(tmp_path, time_limit_s=1.0)
+    out = tmp_path / "out"
+    cp = _up(scen, out, unique_swarm("np"), "--plant-model", "test_plants:NanPlant")
+    assert cp.returncode == 4, cp.stdout[-3000:]
+    ref = sim.simulate(select(load_scenario(scen), plant_model="test_plants:NanPlant"))
+    got = TimeSeries.load(str(out / "timeseries.npz"))
+    for name in TimeSeries.FIELDS:
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref.series, name), err_msg=f"{name}: swarm != simulator")
+    res = read_results(out)
+    for k in FLIGHT_FIELDS:
+        assert res[k] == ref.results[k], k
+    assert res["failures"][0]["cause"] == "plugin_error" and res["failures"][0]["kind"] == "plant"
 
 
 @pytest.mark.parametrize(("name", "check", "needle"), [
