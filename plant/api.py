@@ -25,8 +25,10 @@ commands the failsafe let through, ``thrust`` (N,) N (collective, along body z) 
 (N, 3) rad (the attitude setpoint of the inversion after eq. 28, the same commands the agents
 send on ``uav/<i>/cmd``), and :meth:`PlantModel.step` advances every vehicle by one control
 period ``ctx.dt``. Afterwards the core checks :attr:`PlantModel.state`: every array (N, 3) and
-finite, else the flight stops with :class:`zenswarm.plugins.PluginFailure` naming the model, the
-tick and the field (a model that raises is reported the same way).
+finite, else the flight ends with the plug-in failure ``plugin_error``
+(:class:`zenswarm.errors.PluginFailure`: kind ``plant``, process ``plant``, stage
+:data:`zenswarm.plugins.STAGE_PLANT`, the tick, the field, the UAVs; docs/plugins.md); a model
+that raises (constructor or step) is reported the same way.
 
 A model must be deterministic (no clock, no I/O, randomness only from ``ctx.rng``), as
 ``zenswarm plugins check`` verifies.
