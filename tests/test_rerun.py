@@ -1,0 +1,339 @@
+"""Rerun (bridge/rerun_scene.py): ``zenswarm export FILE --rerun OUT.rrd`` read back with Rerun's
+own reader and checked against the recording and the Foxglove export of the same frames; the
+live view ``--live rerun`` (Rerun's web viewer and gRPC server, the rerun-sdk wheel's) loaded in
+a real browser, headless Chromium (Debian package ``chromium``, which ``.ci/run`` installs),
+screenshotted and checked for the UAVs' colours; a flight with ``up --live rerun``; and the
+missing extra (exit 2 naming ``zenswarm[rerun]``).
+
+Ports: 25000-25999 (this file's range), each checked free before use.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import tomllib
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from test_report import EX1, SWARM, write_recording
+
+from zenswarm import wire
+from zenswarm.compose.cli import main as cli_main
+from zenswarm.compose.sim import simulate
+from zenswarm.config import scenario_from_dict
+
+from swarmtest import ROOT, processes_mentioning, scenario_variant, start_zenswarm, stop_swarm, unique_swarm
+from test_swarm import _assert_equal_to_sim
+
+rr = pytest.importorskip("rerun", reason="rerun-sdk is not installed: pip install -e '.[rerun]' (.ci/run installs it)")
+
+
+def port() -> int:
+    """A TCP port of this file's range (25000-25999) free on loopback now."""
+    import random
+
+    for p in random.sample(range(25000, 26000), 1000):
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", p))
+            except OSError:
+                continue
+            return p
+    raise RuntimeError("no free port in 25000-25999")
+
+
+@pytest.fixture(scope="module")
+def flight():
+    doc = tomllib.loads(EX1.read_text())
+    doc["timing"]["time_limit_s"] = 3.0
+    doc["timing"]["settle_time_s"] = 1.0
+    sc = scenario_from_dict(doc)
+    return sc, simulate(sc)
+
+
+def rrd_rows(path: Path) -> dict[str, list[dict]]:
+    """Every row of the .rrd's recording, per entity path, read with Rerun's own reader
+    (rerun.chunk.RrdReader); rows in sim-time order (static rows first), time as ns."""
+    store = rr.chunk.RrdReader(path).stream().collect()
+    rows: dict[str, list[dict]] = {}
+    for chunk in store.stream().to_chunks():
+        rb = chunk.to_record_batch()
+        cols = {name: rb.column(name) for name in rb.schema.names if name != "rerun.controls.RowId"}
+        if "sim_time" in cols:
+            cols["sim_time"] = cols["sim_time"].cast("int64")
+        for i in range(rb.num_rows):
+            rows.setdefault(chunk.entity_path, []).append({k: c[i].as_py() for k, c in cols.items()})
+    for r in rows.values():
+        r.sort(key=lambda row: row.get("sim_time", -1))
+    return rows
+
+
+def recorded_states(path: Path, n: int) -> dict[int, dict[int, wire.State]]:
+    """The recording's states: sim t ns -> UAV i (1..n) -> State."""
+    out: dict[int, dict[int, wire.State]] = {}
+    keys = wire.Keys(SWARM)
+    with open(path, "rb") as f:
+        for _, ch, msg in make_reader(f).iter_messages():
+            for i in range(1, n + 1):
+                if ch.topic == keys.state(i):
+                    st = wire.decode("state", msg.data)
+                    out.setdefault(st.t, {})[i] = st
+    return out
+
+
+@pytest.mark.slow
+def test_rrd_export_holds_the_scene_and_figures_of_the_recording(flight, tmp_path, capsys):
+    """One command writes both exports; the .rrd, read back with Rerun's reader, has the scene's
+    entities, one frame per 50 ms of sim time on the sim_time timeline (its only timeline), each
+    UAV where the recording has it, with its attitude, and the same figures as the Foxglove
+    export's /metrics (one scene code, two encoders)."""
+    from zenswarm.bridge.scene import quat_rpy
+
+    sc, sim = flight
+    rec = tmp_path / "flight.mcap"
+    write_recording(rec, sc, sim.series)
+    fox, rrd = tmp_path / "fox.mcap", tmp_path / "flight.rrd"
+    assert cli_main(["export", str(rec), "--out", str(fox), "--rerun", str(rrd)]) == 0
+    assert str(rrd) in capsys.readouterr().out.split()
+    rows = rrd_rows(rrd)
+
+    for path in ["/world", "/world/obstacle/1/cylinders", "/world/obstacle/1/spheres", "/world/d0_band/2/cylinders_faint",
+                 "/world/goal/spheres", "/world/start/cubes", "/world/leader/spheres", "/world/leader/spheres_faint",
+                 "/world/uav/3/spheres", "/world/uav/3/spheres_faint", "/world/uav/3/arrows", "/world/uav/3/labels",
+                 "/world/links/lines", "/world/trails/lines", "/world/frames/uav1", "/world/frames/leader",
+                 "/metrics/formation_error_m/uav2", "/metrics/clearance_m/uav1", "/metrics/max_tracking_error_m"]:
+        assert path in rows, f"{path} not in the .rrd: {sorted(rows)}"
+    for path, r in rows.items():
+        timelines = {k for row in r for k in row if ":" not in k}
+        assert timelines <= {"sim_time"}, (path, timelines)
+    # the obstacles: static, as the scenario has them (Rerun stores float32)
+    (cyl,) = rows["/world/obstacle/2/cylinders"]
+    ob = sc.obstacles[1]
+    assert "sim_time" not in cyl
+    assert cyl["Cylinders3D:radii"] == pytest.approx([ob.radius], rel=1e-6)
+    assert cyl["Cylinders3D:lengths"] == pytest.approx([ob.height], rel=1e-6)
+    assert cyl["Cylinders3D:centers"][0] == pytest.approx(np.add(ob.center, (0, 0, 0.5 * ob.height)).tolist(), rel=1e-6)
+
+    # every frame: each UAV where the recording has it, with its attitude
+    frame_times = [k * 10_000_000 for k in range(0, len(sim.series.t), 5)]
+    states = recorded_states(rec, sc.n)
+    for i in range(1, sc.n + 1):
+        spheres = rows[f"/world/uav/{i}/spheres"]
+        assert [r["sim_time"] for r in spheres] == frame_times
+        tf = rows[f"/world/frames/uav{i}"]
+        assert [r["sim_time"] for r in tf] == frame_times
+        for s, t in zip(spheres, tf):
+            st = states[s["sim_time"]][i]
+            assert s["Ellipsoids3D:centers"][0] == pytest.approx(list(st.q), rel=1e-6, abs=1e-7)
+            assert t["Transform3D:translation"][0] == pytest.approx(list(st.q), rel=1e-6, abs=1e-7)
+            assert t["Transform3D:quaternion"][0] == pytest.approx(list(quat_rpy(st.rpy)), abs=1e-6)
+    # the figures: those of the Foxglove export's /metrics, frame by frame (float64 both)
+    fox_metrics = []
+    with open(fox, "rb") as f:
+        for _, _ch, msg in make_reader(f).iter_messages(topics=["/metrics"], log_time_order=True):
+            fox_metrics.append(json.loads(msg.data))
+    assert len(fox_metrics) == len(frame_times)
+    for i in range(1, sc.n + 1):
+        for fig in ("formation_error_m", "tracking_error_m", "clearance_m"):
+            got = {r["sim_time"]: r["Scalars:scalars"][0] for r in rows[f"/metrics/{fig}/uav{i}"] if "Scalars:scalars" in r}
+            want = {round(m["t"] * 1e9): m["uavs"][i - 1][fig] for m in fox_metrics if m["uavs"][i - 1][fig] is not None}
+            assert got == want, (fig, i)
+    got = [r["Scalars:scalars"][0] for r in rows["/metrics/min_clearance_m"]]
+    assert got == [m["min_clearance_m"] for m in fox_metrics]
+    assert 0 < min(got) < 2.0
+
+
+def test_missing_rerun_sdk_is_exit_2_naming_the_extra(tmp_path, capsys, monkeypatch):
+    """Without rerun-sdk (its import fails): export --rerun and up --live rerun stop with exit 2
+    naming the flag and the extra, before any work (nothing written, no flight)."""
+    monkeypatch.setitem(sys.modules, "rerun", None)  # `import rerun` raises ImportError
+    out = tmp_path / "x.rrd"
+    assert cli_main(["export", str(tmp_path / "missing.mcap"), "--rerun", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--rerun" in err and "zenswarm[rerun]" in err, err
+    assert not out.exists()
+    scenario = ROOT / "compose" / "scenarios" / "paper_example1.toml"
+    assert cli_main(["up", str(scenario), "--out", str(tmp_path / "o"), "--live", "rerun:25999"]) == 2
+    err = capsys.readouterr().err
+    assert "--live" in err and "zenswarm[rerun]" in err, err
+    assert not (tmp_path / "o").exists()
+    with pytest.raises(SystemExit):
+        cli_main(["up", str(scenario), "--live", "rerun:0x"])
+    assert "--live" in capsys.readouterr().err
+
+
+# =========================================================================== a real browser
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+class Browser:
+    """Headless Chromium (software WebGL: SwiftShader through ANGLE) driven over the Chrome
+    DevTools protocol (its JSON endpoints and a WebSocket, the ``websockets`` package)."""
+
+    def __init__(self, profile: Path, size: tuple[int, int] = (1200, 720)) -> None:
+        self.debug_port = port()
+        self.log = profile / "chromium.log"
+        self.proc = subprocess.Popen(
+            [CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+             "--no-first-run", "--no-default-browser-check", "--disable-extensions", f"--window-size={size[0]},{size[1]}",
+             "--remote-debugging-address=127.0.0.1", f"--remote-debugging-port={self.debug_port}", f"--user-data-dir={profile / 'profile'}",
+             "about:blank"],
+            stdout=subprocess.DEVNULL, stderr=open(self.log, "w"), start_new_session=True,
+        )
+        from websockets.sync.client import connect
+
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                targets = json.load(urllib.request.urlopen(f"http://127.0.0.1:{self.debug_port}/json", timeout=2))
+                break
+            except OSError:
+                if time.monotonic() > deadline or self.proc.poll() is not None:
+                    raise RuntimeError(f"chromium did not start: {self.log.read_text()[-2000:]}") from None
+                time.sleep(0.2)
+        page = next(t for t in targets if t["type"] == "page")
+        self.ws = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=10)
+        self._id = 0
+
+    def call(self, method: str, timeout: float = 60.0, **params) -> dict:
+        self._id += 1
+        self.ws.send(json.dumps({"id": self._id, "method": method, "params": params}))
+        deadline = time.monotonic() + timeout
+        while True:
+            m = json.loads(self.ws.recv(timeout=max(0.1, deadline - time.monotonic())))
+            if m.get("id") == self._id:
+                assert "error" not in m, m
+                return m["result"]
+
+    def screenshot(self) -> bytes:
+        return base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
+
+    def close(self) -> None:
+        try:
+            self.ws.close()
+        finally:
+            self.proc.terminate()
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+
+
+def uav_pixels(png: bytes, colors: list[tuple[float, float, float]], region: tuple[float, float, float, float]) -> list[int]:
+    """Per UAV colour, how many pixels of ``region`` (left, top, right, bottom, fractions of the
+    image) are within 30 (of 255, per channel) of it."""
+    from PIL import Image
+
+    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=int)
+    h, w, _ = img.shape
+    x0, y0, x1, y1 = region
+    img = img[int(y0 * h) : int(y1 * h), int(x0 * w) : int(x1 * w)]
+    return [int(np.sum(np.all(np.abs(img - np.array(c) * 255) <= 30, axis=2))) for c in colors]
+
+
+SCENE_REGION = (0.0, 0.08, 0.58, 0.93)
+"""Where the blueprint puts the 3D view (the left three fifths, below the top bar, above the time panel)."""
+
+
+def _feed_flight(view, sc, series, keys: wire.Keys, every: int = 5) -> None:
+    """Feed the live view the wire messages of a simulated flight, a frame every ``every`` ticks."""
+    zero = np.zeros(3)
+    for k in range(len(series.t)):
+        t = wire.t_ns(float(series.t[k]))
+        for i in range(sc.n):
+            view.feed(keys.state(i + 1), wire.encode(wire.State(t, k, series.q[k, i], series.v[k, i], series.rpy[k, i], zero)))
+            view.feed(keys.ref(i + 1), wire.encode(wire.Ref(t, k, series.qref[k, i], series.vref[k, i])))
+        view.feed(keys.leader_ref, wire.encode(wire.Ref(t, k, series.q0[k], series.v0[k])))
+        if k % every == 0:
+            assert view.publish()
+
+
+@pytest.mark.swarm
+def test_rerun_web_viewer_renders_the_flight_in_a_real_browser(flight, tmp_path):
+    """The live view's server (the rerun-sdk wheel's web viewer and gRPC server, loopback only),
+    fed a simulated flight of paper example 1 as wire messages; headless Chromium opens the
+    printed URL and, once the viewer has rendered, its 3D view shows each UAV's colour."""
+    if CHROMIUM is None:
+        print("SKIP reason: chromium is not installed (.ci/run installs the Debian package as root: apt-get install -y chromium)")
+        pytest.skip("chromium is not installed and could not be installed here (.ci/run: apt-get install -y chromium, as root)")
+    import psutil
+
+    from zenswarm.bridge.rerun_scene import RerunLiveView
+    from zenswarm.bridge.scene import palette
+
+    sc, sim = flight
+    swarm = unique_swarm("rr")
+    view = RerunLiveView(sc, swarm, port())
+    browser = None
+    shot = tmp_path / "rerun_live.png"
+    try:
+        assert view.how_to_open().startswith(f"live view (Rerun) on http://127.0.0.1:{view.port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A")
+        listening = {c.laddr for c in psutil.Process(view.server.proc.pid).net_connections("tcp") if c.status == psutil.CONN_LISTEN}
+        assert {a.port for a in listening} == {view.server.web_port, view.server.grpc_port}, listening
+        assert {a.ip for a in listening} == {"127.0.0.1"}, f"not loopback only: {listening}"
+        _feed_flight(view, sc, sim.series, wire.Keys(swarm))
+        view.rec.flush(timeout_sec=10.0)
+        browser = Browser(tmp_path)
+        browser.call("Page.enable")
+        browser.call("Page.navigate", url=view.url)
+        colors = palette(sc.n)
+        deadline = time.monotonic() + 150
+        counts: list[int] = []
+        while time.monotonic() < deadline:
+            time.sleep(1.0)
+            png = browser.screenshot()
+            shot.write_bytes(png)
+            counts = uav_pixels(png, colors, SCENE_REGION)
+            if min(counts) >= 20:
+                break
+        assert min(counts) >= 20, f"UAV colours in the 3D view: {counts} pixels (last screenshot {shot}; chromium log {browser.log})"
+        print(f"screenshot: {shot} (UAV colour pixels {counts})")
+    finally:
+        if browser is not None:
+            browser.close()
+        view.close()
+    assert view.server.proc.poll() is not None, "the viewer's process was stopped"
+
+
+@pytest.mark.swarm
+def test_up_live_rerun_serves_the_flight(tmp_path):
+    """``zenswarm up --live rerun:PORT``: the URL printed before the flight, the web viewer there
+    (loopback), the flight the simulator's bit for bit, and the viewer's process gone afterwards."""
+    scenario = scenario_variant(tmp_path, time_limit_s=2.0)
+    out, swarm, router, web = tmp_path / "out", unique_swarm("rrup"), port(), port()
+    proc = start_zenswarm(
+        "up", str(scenario), "--out", str(out), "--swarm", swarm, "--listen", f"tcp/127.0.0.1:{router}",
+        "--progress-every", "5", "--live", f"rerun:{web}",
+    )
+    lines: list[str] = []
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            lines.append(line)
+            if "live view (Rerun) on " in line:
+                break
+        url = lines[-1].split("live view (Rerun) on ", 1)[1].split()[0]
+        assert url.startswith(f"http://127.0.0.1:{web}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A"), url
+        with urllib.request.urlopen(url, timeout=10) as r:  # the viewer's page, while the swarm starts
+            assert r.status == 200 and b"<html" in r.read().lower()
+        rest, _ = proc.communicate(timeout=180)
+    finally:
+        stop_swarm([proc], swarm, router)
+    text = "".join(lines) + rest
+    assert proc.returncode in (0, 1), text[-3000:]  # 1: a 2 s flight does not reach the goal
+    _assert_equal_to_sim(scenario, out)
+    assert not processes_mentioning(f"--web-viewer-port {web}"), "the viewer's process outlived the flight"
+    with pytest.raises(OSError):
+        socket.create_connection(("127.0.0.1", web), timeout=2).close()
