@@ -91,8 +91,10 @@ def _u8(c: tuple[float, float, float, float]) -> list[int]:
     return [int(round(255.0 * min(1.0, max(0.0, x)))) for x in c]
 
 
-def _fill(faint: bool) -> str:
-    return "TransparentFillMajorWireframe" if faint else "Solid"
+def _fill(faint: bool) -> Any:
+    from rerun.components import FillMode
+
+    return FillMode.TransparentFillMajorWireframe if faint else FillMode.Solid
 
 
 def _parts(e: Any) -> dict[str, Any]:
@@ -124,7 +126,7 @@ def _parts(e: Any) -> dict[str, Any]:
             centers=[np.asarray(c.center, dtype=float) for c in e.cubes],
             sizes=[[c.size] * 3 for c in e.cubes],
             colors=[_u8(c.color) for c in e.cubes],
-            fill_mode="Solid",
+            fill_mode=_fill(False),
         )
     if e.arrows:
         out["arrows"] = rr.Arrows3D(
@@ -313,10 +315,11 @@ _WEB_RE = re.compile(r"Hosting a web-viewer at http://[0-9.]+:(\d+)")
 
 def _rerun_executable() -> list[str]:
     """The wheel's ``rerun`` executable (rerun_cli), run as ``python -m rerun_cli`` when not on disk."""
-    import rerun_cli  # type: ignore[import-not-found]
+    import importlib.util
 
-    exe = Path(rerun_cli.__file__).parent / "rerun"
-    return [str(exe)] if exe.is_file() else [sys.executable, "-m", "rerun_cli"]
+    spec = importlib.util.find_spec("rerun_cli")
+    exe = Path(spec.origin).parent / "rerun" if spec is not None and spec.origin else None
+    return [str(exe)] if exe is not None and exe.is_file() else [sys.executable, "-m", "rerun_cli"]
 
 
 class RerunServer:

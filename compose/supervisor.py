@@ -949,7 +949,17 @@ def _run_up(ns: argparse.Namespace) -> int:
         sup.say(sup.live.how_to_open())
     try:
         sup.t_start = time.monotonic()
-        return sup.run()
+        rc = sup.run()
+        if sup.live is not None and sup.live.viewer == "rerun" and sys.stdin is not None and sys.stdin.isatty():
+            # Rerun's server holds the whole flight: a browser opened now still gets all of it
+            sup.say(f"flight over; Rerun keeps serving it on {sup.live.url} until you press Enter (or Ctrl-C)")
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, signal.default_int_handler)  # raise KeyboardInterrupt here, not set the flight's stop flag
+            try:
+                input()
+            except (EOFError, KeyboardInterrupt):
+                pass
+        return rc
     finally:
         if sup.live is not None:
             sup.live.close()

@@ -203,7 +203,8 @@ class Browser:
                     raise RuntimeError(f"chromium did not start: {self.log.read_text()[-2000:]}") from None
                 time.sleep(0.2)
         page = next(t for t in targets if t["type"] == "page")
-        self.ws = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=10)
+        self._conn = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=10)
+        self.ws = self._conn.__enter__()
         self._id = 0
 
     def call(self, method: str, timeout: float = 60.0, **params) -> dict:
@@ -221,7 +222,7 @@ class Browser:
 
     def close(self) -> None:
         try:
-            self.ws.close()
+            self._conn.__exit__(None, None, None)
         finally:
             self.proc.terminate()
             try:
@@ -233,14 +234,15 @@ class Browser:
 
 def uav_pixels(png: bytes, colors: list[tuple[float, float, float]], region: tuple[float, float, float, float]) -> list[int]:
     """Per UAV colour, how many pixels of ``region`` (left, top, right, bottom, fractions of the
-    image) are within 30 (of 255, per channel) of it."""
+    image) are within 12 (of 255, per channel) of it: close enough that the scene's other colours
+    (the d0 bands' orange, the goal's green, the leader's blue) do not count."""
     from PIL import Image
 
     img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=int)
     h, w, _ = img.shape
     x0, y0, x1, y1 = region
     img = img[int(y0 * h) : int(y1 * h), int(x0 * w) : int(x1 * w)]
-    return [int(np.sum(np.all(np.abs(img - np.array(c) * 255) <= 30, axis=2))) for c in colors]
+    return [int(np.sum(np.all(np.abs(img - np.array(c) * 255) <= 12, axis=2))) for c in colors]
 
 
 SCENE_REGION = (0.0, 0.08, 0.58, 0.93)
@@ -296,9 +298,9 @@ def test_rerun_web_viewer_renders_the_flight_in_a_real_browser(flight, tmp_path)
             png = browser.screenshot()
             shot.write_bytes(png)
             counts = uav_pixels(png, colors, SCENE_REGION)
-            if min(counts) >= 20:
+            if min(counts) >= 10:
                 break
-        assert min(counts) >= 20, f"UAV colours in the 3D view: {counts} pixels (last screenshot {shot}; chromium log {browser.log})"
+        assert min(counts) >= 10, f"UAV colours in the 3D view: {counts} pixels (last screenshot {shot}; chromium log {browser.log})"
         print(f"screenshot: {shot} (UAV colour pixels {counts})")
     finally:
         if browser is not None:
