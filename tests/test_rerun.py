@@ -13,6 +13,7 @@ from __future__ import annotations
 import base64
 import io
 import json
+import os
 import shutil
 import socket
 import subprocess
@@ -302,6 +303,13 @@ def test_rerun_web_viewer_renders_the_flight_in_a_real_browser(flight, tmp_path)
                 break
         assert min(counts) >= 10, f"UAV colours in the 3D view: {counts} pixels (last screenshot {shot}; chromium log {browser.log})"
         print(f"screenshot: {shot} (UAV colour pixels {counts})")
+        docs_shot = os.environ.get("ZENSWARM_SCREENSHOT")
+        if docs_shot:  # docs/rerun_live.png: once the viewer has taken in the whole flight (two equal screenshots)
+            last = b""
+            while time.monotonic() < deadline + 120 and png != last:
+                last, png = png, (time.sleep(3.0), browser.screenshot())[1]
+            Path(docs_shot).write_bytes(png)
+            print(f"screenshot for the docs: {docs_shot}")
     finally:
         if browser is not None:
             browser.close()
