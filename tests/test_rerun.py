@@ -20,6 +20,7 @@ import subprocess
 import sys
 import time
 import tomllib
+import urllib.parse
 import urllib.request
 from pathlib import Path
 
@@ -70,8 +71,9 @@ def rrd_rows(path: Path) -> dict[str, list[dict]]:
     for chunk in store.stream().to_chunks():
         rb = chunk.to_record_batch()
         cols = {name: rb.column(name) for name in rb.schema.names if name != "rerun.controls.RowId"}
-        if "sim_time" in cols:
-            cols["sim_time"] = cols["sim_time"].cast("int64")
+        for name in ("sim_time", "log_time"):  # durations and timestamps as ns
+            if name in cols:
+                cols[name] = cols[name].cast("int64")
         for i in range(rb.num_rows):
             rows.setdefault(chunk.entity_path, []).append({k: c[i].as_py() for k, c in cols.items()})
     for r in rows.values():
@@ -116,7 +118,7 @@ def test_rrd_export_holds_the_scene_and_figures_of_the_recording(flight, tmp_pat
         assert path in rows, f"{path} not in the .rrd: {sorted(rows)}"
     for path, r in rows.items():
         timelines = {k for row in r for k in row if ":" not in k}
-        assert timelines <= {"sim_time"}, (path, timelines)
+        assert timelines <= {"sim_time"}, (path, timelines)  # the export logs no wall time
     # the obstacles: static, as the scenario has them (Rerun stores float32)
     (cyl,) = rows["/world/obstacle/2/cylinders"]
     ob = sc.obstacles[1]
@@ -319,15 +321,22 @@ def test_rerun_web_viewer_renders_the_flight_in_a_real_browser(flight, tmp_path)
 
 @pytest.mark.swarm
 def test_up_live_rerun_serves_the_flight(tmp_path):
-    """``zenswarm up --live rerun:PORT``: the URL printed before the flight, the web viewer there
-    (loopback), the flight the simulator's bit for bit, and the viewer's process gone afterwards."""
+    """``zenswarm up --live rerun:PORT``: the URL printed before the flight, the web viewer's page
+    there; Rerun's own client (``rerun URL --save F.rrd``, the wheel's executable, itself bound to
+    loopback) receives the flight from the gRPC server: each UAV where the flight had it, in sim
+    time; the flight is the simulator's bit for bit, and the viewer's process is gone afterwards."""
+    from zenswarm.bridge.rerun_scene import _rerun_executable
+    from zenswarm.metrics import TimeSeries
+
     scenario = scenario_variant(tmp_path, time_limit_s=2.0)
     out, swarm, router, web = tmp_path / "out", unique_swarm("rrup"), port(), port()
+    saved = tmp_path / "live.rrd"
     proc = start_zenswarm(
         "up", str(scenario), "--out", str(out), "--swarm", swarm, "--listen", f"tcp/127.0.0.1:{router}",
         "--progress-every", "5", "--live", f"rerun:{web}",
     )
     lines: list[str] = []
+    saver = None
     try:
         assert proc.stdout is not None
         for line in proc.stdout:
@@ -336,14 +345,40 @@ def test_up_live_rerun_serves_the_flight(tmp_path):
                 break
         url = lines[-1].split("live view (Rerun) on ", 1)[1].split()[0]
         assert url.startswith(f"http://127.0.0.1:{web}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A"), url
+        grpc_url = urllib.parse.unquote(url.split("?url=", 1)[1])
+        saver = subprocess.Popen(
+            _rerun_executable() + [grpc_url, "--save", str(saved), "--bind", "127.0.0.1", "--port", str(port())],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+        )
         with urllib.request.urlopen(url, timeout=10) as r:  # the viewer's page, while the swarm starts
             assert r.status == 200 and b"<html" in r.read().lower()
         rest, _ = proc.communicate(timeout=180)
+        saver_log, _ = saver.communicate(timeout=30)  # it stops when the server does, at the end of the flight
     finally:
-        stop_swarm([proc], swarm, router)
+        stop_swarm([proc, saver], swarm, router)
     text = "".join(lines) + rest
     assert proc.returncode in (0, 1), text[-3000:]  # 1: a 2 s flight does not reach the goal
     _assert_equal_to_sim(scenario, out)
     assert not processes_mentioning(f"--web-viewer-port {web}"), "the viewer's process outlived the flight"
     with pytest.raises(OSError):
         socket.create_connection(("127.0.0.1", web), timeout=2).close()
+    # what the live view served: frames of the flight, each UAV at its state of that tick
+    assert saver.returncode == 0 and saved.is_file(), saver_log[-2000:]
+    rows = rrd_rows(saved)
+    ts = TimeSeries.load(str(out / "timeseries.npz"))
+    dt_ns = round(float(ts.t[1] - ts.t[0]) * 1e9)
+    for i in range(1, 4):
+        spheres = [r for r in rows[f"/world/uav/{i}/spheres"] if "sim_time" in r]
+        assert len(spheres) >= 2, f"uav {i}: {len(spheres)} frames"
+        times = [r["sim_time"] for r in spheres]
+        # the last frame: the flight's end (the plant's state after the last tick the series judges)
+        assert times == sorted(set(times)) and times[-1] >= round(float(ts.t[-1]) * 1e9), times[-3:]
+        checked = 0
+        for r in spheres:
+            k = r["sim_time"] // dt_ns
+            if k < len(ts.t):
+                assert r["sim_time"] == k * dt_ns
+                assert r["Ellipsoids3D:centers"][0] == pytest.approx(ts.q[k, i - 1].tolist(), rel=1e-6, abs=1e-7)
+                checked += 1
+        assert checked >= 1, times
+    assert "/world/obstacle/1/cylinders" in rows and "/metrics/formation_error_m/uav3" in rows
