@@ -147,9 +147,18 @@ class Trails:
 
 
 class LatestFrames:
-    """The newest message of each key of swarm ``swarm`` flying scenario ``sc`` (:meth:`feed`,
-    a dict store per message: cheap enough for the supervisor's bus loop), and the frame they
-    make (:meth:`frame`): what both live views (Foxglove's, Rerun's) show."""
+    """The newest messages of swarm ``swarm`` flying scenario ``sc`` (:meth:`feed`: an append to
+    a short queue per key, cheap enough for the supervisor's bus loop) and the frame they make
+    (:meth:`frame`): what both live views (Foxglove's, Rerun's) show.
+
+    A frame shows one instant: the newest tick every UAV's state has reached (the oldest of their
+    newest states, leaving out a UAV more than :data:`STALE_S` behind the newest, which is shown
+    at its last state), each UAV's state and reference at that tick (the newest not after it, of
+    its last :data:`HISTORY`), the leader's likewise. Messages of one tick arrive one by one, so
+    taking each key's newest would mix ticks (UAV 1 at tick k, UAV 2 still at k - 1)."""
+
+    HISTORY = 8
+    STALE_S = 0.25
 
     def __init__(self, sc: Any, swarm: str, trail_s: float = 10.0) -> None:
         self.sc = sc
@@ -160,45 +169,70 @@ class LatestFrames:
         n = sc.n
         self._state_keys = [self.keys.state(i) for i in range(1, n + 1)]
         self._ref_keys = [self.keys.ref(i) for i in range(1, n + 1)]
+        self._hist: dict[str, deque[bytes]] = {
+            k: deque(maxlen=self.HISTORY) for k in [*self._state_keys, *self._ref_keys, self.keys.leader_ref]
+        }
         self._diag_prefix = self.keys.prefix + "/diag/"
+        self._stale_ns = wire.t_ns(self.STALE_S)
 
     def feed(self, key: str, payload: bytes) -> None:
-        """Take one message of the swarm (the newest of each key is kept)."""
-        self._last[key] = payload
+        """Take one message of the swarm."""
+        h = self._hist.get(key)
+        if h is not None:
+            h.append(payload)
+        else:
+            self._last[key] = payload
 
-    def _decode(self, key: str, kind: str) -> Any:
-        payload = self._last.get(key)
-        if payload is None:
-            return None
-        try:
-            return wire.decode(kind, payload)
-        except wire.WireDecodeError:
-            return None
+    def _decoded(self, key: str, kind: str, cls: type) -> list[Any]:
+        out = []
+        for payload in self._hist[key]:
+            try:
+                m = wire.decode(kind, payload)
+            except wire.WireDecodeError:
+                continue
+            if isinstance(m, cls):
+                out.append(m)
+        return out
+
+    @staticmethod
+    def _at(msgs: list[Any], t_ns: int) -> Any:
+        """The newest of ``msgs`` not after ``t_ns`` (else the oldest; None without any)."""
+        best = None
+        for m in msgs:
+            if m.t <= t_ns and (best is None or m.t >= best.t):
+                best = m
+        return best if best is not None else (min(msgs, key=lambda m: m.t) if msgs else None)
 
     def frame(self) -> tuple[Frame, dict[str, dict[str, Any]]] | None:
         """The frame of the newest messages and the newest diagnostics per process (None: no state
-        yet, or none newer than the last frame)."""
+        yet, or no tick newer than the last frame's)."""
         n = self.sc.n
-        nan = np.full((n, 3), np.nan)
-        q, v, rpy, qref = nan.copy(), nan.copy(), nan.copy(), nan.copy()
-        t_ns = -1
-        for i, key in enumerate(self._state_keys):
-            st = self._decode(key, "state")
-            if isinstance(st, wire.State):
-                q[i], v[i], rpy[i] = st.q, st.v, st.rpy
-                t_ns = max(t_ns, st.t)
-        for i, key in enumerate(self._ref_keys):
-            r = self._decode(key, "ref")
-            if isinstance(r, wire.Ref):
-                qref[i] = r.q
-        lead = self._decode(self.keys.leader_ref, "ref")
-        q0 = np.asarray(lead.q, dtype=float) if isinstance(lead, wire.Ref) else np.full(3, np.nan)
-        if t_ns < 0 or t_ns == self._shown:
+        states = [self._decoded(k, "state", wire.State) for k in self._state_keys]
+        newest = [max(m.t for m in ms) for ms in states if ms]
+        if not newest:
+            return None
+        t_max = max(newest)
+        t_ns = min(t for t in newest if t >= t_max - self._stale_ns)
+        if t_ns == self._shown:
             return None
         self._shown = t_ns
+        nan = np.full((n, 3), np.nan)
+        q, v, rpy, qref = nan.copy(), nan.copy(), nan.copy(), nan.copy()
+        for i in range(n):
+            st = self._at(states[i], t_ns)
+            if st is not None:
+                q[i], v[i], rpy[i] = st.q, st.v, st.rpy
+            r = self._at(self._decoded(self._ref_keys[i], "ref", wire.Ref), t_ns)
+            if r is not None:
+                qref[i] = r.q
+        lead = self._at(self._decoded(self.keys.leader_ref, "ref", wire.Ref), t_ns)
+        q0 = np.asarray(lead.q, dtype=float) if lead is not None else np.full(3, np.nan)
         diag = {}
         for key in [k for k in self._last if k.startswith(self._diag_prefix)]:
-            d = self._decode(key, "diag")
+            try:
+                d = wire.decode("diag", self._last[key])
+            except wire.WireDecodeError:
+                continue
             if isinstance(d, wire.Diag):
                 diag[d.process] = diag_view(d)
         trail0, trails = self.trails.add(t_ns, q0, q)

@@ -382,3 +382,98 @@ def test_up_live_rerun_serves_the_flight(tmp_path):
                 checked += 1
         assert checked >= 1, times
     assert "/world/obstacle/1/cylinders" in rows and "/metrics/formation_error_m/uav3" in rows
+
+
+@pytest.mark.swarm
+def test_replay_live_rerun_serves_the_recorded_flight(flight, tmp_path):
+    """``zenswarm replay F.mcap --live rerun:PORT --rate 4``: Rerun's own client (``rerun URL
+    --save``) connects to the printed server before the replay starts (held by ``--wait-for``
+    until then) and receives the recorded flight in sim time up to its end, each UAV where the
+    recording has it; the viewer's process stops with the replay."""
+    from test_replay import router
+
+    from zenswarm.bridge.rerun_scene import _rerun_executable
+    from zenswarm.bus import client_config, open_session
+
+    sc, sim = flight
+    rec = tmp_path / "flight.mcap"
+    write_recording(rec, sc, sim.series)
+    swarm, web, saved = unique_swarm("rrrp"), port(), tmp_path / "replayed.rrd"
+    tokens: list = []
+    saver = None
+    with router() as ep, open_session(client_config([ep]), handle_signals=False) as s:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "zenswarm", "replay", str(rec), "--connect", ep, "--swarm", swarm, "--rate", "4",
+             "--wait-subscribers", "0", "--live", f"rerun:{web}", "--wait-for", "bridge"],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL,
+        )  # fmt: skip
+        try:
+            assert proc.stdout is not None
+            line = proc.stdout.readline()
+            assert "live view (Rerun) on " in line, line
+            url = line.split("live view (Rerun) on ", 1)[1].split()[0]
+            assert url.startswith(f"http://127.0.0.1:{web}/?url="), url
+            saver = subprocess.Popen(
+                _rerun_executable() + [urllib.parse.unquote(url.split("?url=", 1)[1]), "--save", str(saved),
+                                       "--bind", "127.0.0.1", "--port", str(port())],
+                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+            )  # fmt: skip
+            time.sleep(1.5)  # the client connects (the server keeps everything for late clients anyway)
+            tokens.append(s.liveliness().declare_token(wire.Keys(swarm).alive("bridge")))
+            out, err = proc.communicate(timeout=60)
+            saver_log, _ = saver.communicate(timeout=30)
+        finally:
+            for p in (proc, saver):
+                if p is not None and p.poll() is None:
+                    p.kill()
+                    p.wait(10)
+            for tok in tokens:
+                tok.undeclare()
+    assert proc.returncode == 0, err
+    assert not processes_mentioning(f"--web-viewer-port {web}"), "the viewer's process outlived the replay"
+    assert saver.returncode == 0 and saved.is_file(), saver_log[-2000:]
+    rows = rrd_rows(saved)
+    states = recorded_states(rec, sc.n)
+    for i in range(1, sc.n + 1):
+        spheres = [r for r in rows[f"/world/uav/{i}/spheres"] if "sim_time" in r]
+        times = [r["sim_time"] for r in spheres]
+        assert len(times) >= 2 and times == sorted(set(times)), times
+        assert times[-1] == max(states), "the last frame: the recording's end"
+        for r in spheres:
+            assert r["Ellipsoids3D:centers"][0] == pytest.approx(list(states[r["sim_time"]][i].q), rel=1e-6, abs=1e-7)
+
+
+def test_live_frames_show_one_tick_not_a_mix(flight):
+    """The live views' frames (scene.LatestFrames, both viewers'): messages of a tick arrive one
+    by one; a frame built between them shows the tick every UAV has reached, each UAV and the
+    leader at that tick; a UAV far behind (stale) does not hold the others back."""
+    from zenswarm.bridge.scene import LatestFrames
+
+    sc, sim = flight
+    ts, keys = sim.series, wire.Keys("mix")
+    lf = LatestFrames(sc, "mix")
+    zero = np.zeros(3)
+
+    def put(k: int, i: int) -> None:
+        t = wire.t_ns(float(ts.t[k]))
+        lf.feed(keys.state(i), wire.encode(wire.State(t, k, ts.q[k, i - 1], ts.v[k, i - 1], ts.rpy[k, i - 1], zero)))
+        lf.feed(keys.ref(i), wire.encode(wire.Ref(t, k, ts.qref[k, i - 1], ts.vref[k, i - 1])))
+
+    for k in (10, 11):
+        for i in (1, 2, 3):
+            put(k, i)
+        lf.feed(keys.leader_ref, wire.encode(wire.Ref(wire.t_ns(float(ts.t[k])), k, ts.q0[k], ts.v0[k])))
+    put(12, 1)  # tick 12 half way: UAV 1 only (and no leader reference yet)
+    f, _ = lf.frame()
+    assert f.t_ns == wire.t_ns(float(ts.t[11]))
+    np.testing.assert_array_equal(f.q, ts.q[11])
+    np.testing.assert_array_equal(f.qref, ts.qref[11])
+    np.testing.assert_array_equal(f.q0, ts.q0[11])
+    assert lf.frame() is None  # nothing newer every UAV has reached
+    for k in range(12, 50):  # UAV 3 goes silent at tick 11: 0.39 s behind, stale
+        put(k, 1)
+        put(k, 2)
+    f, _ = lf.frame()
+    assert f.t_ns == wire.t_ns(float(ts.t[49]))
+    np.testing.assert_array_equal(f.q[:2], ts.q[49, :2])
+    np.testing.assert_array_equal(f.q[2], ts.q[11, 2])  # shown where it was last
