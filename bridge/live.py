@@ -1,20 +1,24 @@
-"""The live view: a flying (or replayed) swarm served to the Foxglove app over its WebSocket
-protocol, by the ``foxglove-sdk`` package's server, under both names of the protocol
-(subprotocols ``foxglove.sdk.v1`` and ``foxglove.websocket.v1``, see :class:`SubprotocolRelay`).
+"""The live views: a flying (or replayed) swarm served to a viewer while it flies.
 
-:class:`LiveView` keeps the newest message of each key it is fed (:meth:`LiveView.feed`, a dict
-store per message: cheap enough for the supervisor's bus loop) and, at most ``hz`` times per wall
-second (:meth:`LiveView.maybe_publish`), decodes the newest states, references and diagnostics
-into a :class:`zenswarm.bridge.scene.Frame` and logs it on ``/scene``, ``/tf`` and ``/metrics``
-with the scene code ``zenswarm export --foxglove`` writes files with
-(:class:`zenswarm.bridge.scene.SceneChannels`). Frames are stamped ``base + sim time``, base the
-wall time the server started, so the app's plots run in sim time.
+``--live [PORT]``: the Foxglove app, over its WebSocket protocol, by the ``foxglove-sdk``
+package's server, under both names of the protocol (subprotocols ``foxglove.sdk.v1`` and
+``foxglove.websocket.v1``, see :class:`SubprotocolRelay`). ``--live rerun[:PORT]``: Rerun's own
+web viewer and gRPC server (:class:`zenswarm.bridge.rerun_scene.RerunLiveView`, extra
+``zenswarm[rerun]``). :func:`open_view` makes either from a :class:`LiveTarget`.
+
+Both keep the newest messages of the swarm (:class:`zenswarm.bridge.scene.LatestFrames`, fed
+per message: cheap enough for the supervisor's bus loop) and, at most ``hz`` times per wall
+second (``maybe_publish``), make a :class:`zenswarm.bridge.scene.Frame` of one tick and log it:
+here on ``/scene``, ``/tf`` and ``/metrics`` with the scene code ``zenswarm export --foxglove``
+writes files with (:class:`zenswarm.bridge.foxglove_scene.SceneChannels`). Foxglove frames are
+stamped ``base + sim time``, base the wall time the server started, so the app's plots run in
+sim time; Rerun's are on its ``sim_time`` timeline.
 
 It runs where the swarm's messages already arrive and never in a swarm process: in the
 supervisor of ``zenswarm up --live`` (fed from its bus loop; the flight's processes do not know
 it exists, so a lockstep flight is the same bit for bit), or beside a replay (``zenswarm replay
 --live``: a Zenoh session of its own, subscribed to the replayed swarm, see :class:`BusViewer`).
-The server listens on 127.0.0.1 only: anyone who reaches it sees the flight.
+The servers listen on 127.0.0.1 only: anyone who reaches them sees the flight.
 
 Why a relay: the SDK's server (every foxglove-sdk release on PyPI, 0.5.0 to 0.30.3, tried) accepts
 a client only if it offers ``foxglove.sdk.v1``, the protocol's current name, and answers HTTP 400 to
