@@ -291,8 +291,11 @@ def export_rerun(recording: str | Path, out: str | Path, *, scene_hz: float = 20
         summary.frames = scene.frames
         summary.entities = set(scene._logged)
         stream.flush()
-    finally:
+    except BaseException:
         stream.disconnect()
+        tmp.unlink(missing_ok=True)  # no half file left behind
+        raise
+    stream.disconnect()
     os.replace(tmp, out)
     return summary
 

@@ -477,3 +477,54 @@ def test_live_frames_show_one_tick_not_a_mix(flight):
     assert f.t_ns == wire.t_ns(float(ts.t[49]))
     np.testing.assert_array_equal(f.q[:2], ts.q[49, :2])
     np.testing.assert_array_equal(f.q[2], ts.q[11, 2])  # shown where it was last
+
+
+def test_export_flags_are_checked_before_any_work(tmp_path, capsys):
+    """``zenswarm export``: the recording once (positional or --foxglove), something to write,
+    --foxglove with --out, an --rerun path that can be written: else exit 2 naming the flag."""
+    rec = tmp_path / "missing.mcap"
+    cases = [
+        ([str(rec)], "--out"),  # nothing to write
+        (["--foxglove", str(rec), "--rerun", str(tmp_path / "a.rrd")], "--out"),
+        ([str(rec), "--foxglove", str(rec), "--out", str(tmp_path / "a.mcap")], "--foxglove"),
+        ([], "FILE"),
+        ([str(rec), "--rerun", str(tmp_path)], "--rerun"),  # a directory
+        ([str(rec), "--out", str(tmp_path / "same"), "--rerun", str(tmp_path / "same")], "--rerun"),
+    ]
+    for args, flag in cases:
+        assert cli_main(["export", *args]) == 2, args
+        err = capsys.readouterr().err
+        assert flag in err, (args, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [], "nothing written"
+    assert cli_main(["export", str(rec), "--rerun", str(tmp_path / "b.rrd")]) == 2  # the recording is missing
+    assert "missing.mcap" in capsys.readouterr().err and not (tmp_path / "b.rrd").exists()
+
+
+def test_link_health_and_failsafe_are_series(flight, tmp_path):
+    """With link faults the agents count per link; the Rerun scene logs each link's delivery ratio
+    and age, and the failsafe count, as scalar series (read back with Rerun's reader)."""
+    from zenswarm.bridge.rerun_scene import RerunScene
+    from zenswarm.bridge.scene import frame_from_series
+
+    sc, sim = flight
+    path = tmp_path / "links.rrd"
+    stream = rr.RecordingStream("zenswarm-test")
+    stream.save(path)
+    scene = RerunScene(sc, stream)
+    diag = {
+        "agent:2": {
+            "link:1->2:ref.received": 40, "link:1->2:ref.delivered": 30, "link:1->2:ref.age_ticks": 3, "link:1->2:ref.max_age_ticks": 7,
+        },
+        "plant": {"failsafe": "2:hover"},
+    }
+    scene.put(frame_from_series(sim.series, 10, 100, 5), diag)
+    stream.flush()
+    stream.disconnect()
+    rows = rrd_rows(path)
+    dt = sc.timing.dt
+    link = "1-\\>2\\:ref"  # Rerun's escaping of "1->2:ref" in an entity path
+    assert rows[f"/metrics/link_delivery/{link}"][0]["Scalars:scalars"] == [0.75]
+    assert rows[f"/metrics/link_age_s/{link}"][0]["Scalars:scalars"] == pytest.approx([3 * dt])
+    assert rows[f"/metrics/link_max_age_s/{link}"][0]["Scalars:scalars"] == pytest.approx([7 * dt])
+    assert rows["/metrics/failsafe_uavs"][0]["Scalars:scalars"] == [1.0]
+    assert rows[f"/metrics/link_delivery/{link}"][0]["sim_time"] == wire.t_ns(float(sim.series.t[10]))
