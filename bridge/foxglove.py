@@ -164,10 +164,13 @@ class ExportSummary:
         self.skipped[why] = self.skipped.get(why, 0) + 1
 
 
-def _json_items(rec: Any, keys: wire.Keys, summary: ExportSummary) -> tuple[list[tuple[int, int, str, str, bytes]], int]:
+def _json_items(
+    rec: Any, keys: wire.Keys, summary: ExportSummary, kinds: frozenset[str] | None = None
+) -> tuple[list[tuple[int, int, str, str, bytes]], int]:
     """The recorded messages as JSON: ``(sim t ns, file order, topic, kind, json)`` (what cannot
     be exported is counted in ``summary.skipped``), and the time base, ns: the first received
-    message's receive time minus its sim time (0 without messages)."""
+    message's receive time minus its sim time (0 without messages). ``kinds``: only messages of
+    these kinds (the others are left out, uncounted, and do not set the time base)."""
     items: list[tuple[int, int, str, str, bytes]] = []  # (sim t, order, topic, kind, json)
     first_rx: tuple[int, int] | None = None  # (receive time, sim t) of the first message received
     for order, m in enumerate(rec.messages):
@@ -182,6 +185,8 @@ def _json_items(rec: Any, keys: wire.Keys, summary: ExportSummary) -> tuple[list
         kind = wire.message_kind(key_kind)
         if kind is None:
             summary.skip("liveliness token")
+            continue
+        if kinds is not None and kind not in kinds:
             continue
         try:
             data = wire_to_json(kind, m.data)

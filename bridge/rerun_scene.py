@@ -267,7 +267,7 @@ def export_rerun(recording: str | Path, out: str | Path, *, scene_hz: float = 20
         raise ZenswarmError(f"--trail-s must be >= 0, got {trail_s}")
     rec_in = load_recording(recording)
     out = Path(out)
-    items, _ = _json_items(rec_in, wire.Keys(rec_in.swarm), ExportSummary(out))
+    items, _ = _json_items(rec_in, wire.Keys(rec_in.swarm), ExportSummary(out), frozenset({"diag"}))  # the figures need the diagnostics
     items.sort(key=lambda it: (it[0], it[1]))
     try:
         ts = flight_from_recording(rec_in).series

@@ -15,6 +15,7 @@ import io
 import json
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -233,6 +234,10 @@ class Browser:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(10)
+            try:  # its helpers (renderer, GPU process) are in its session
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
 
 
 def uav_pixels(png: bytes, colors: list[tuple[float, float, float]], region: tuple[float, float, float, float]) -> list[int]:
@@ -317,6 +322,7 @@ def test_rerun_web_viewer_renders_the_flight_in_a_real_browser(flight, tmp_path)
             browser.close()
         view.close()
     assert view.server.proc.poll() is not None, "the viewer's process was stopped"
+    assert not processes_mentioning(f"--remote-debugging-port={browser.debug_port}"), "chromium left behind"
 
 
 @pytest.mark.swarm
