@@ -35,8 +35,7 @@ from zenswarm.bridge.args import (
     positive_float,
     scenario_of,
 )
-from zenswarm.bridge.live import DEFAULT_PORT as DEFAULT_LIVE_PORT
-from zenswarm.bridge.live import live_port
+from zenswarm.bridge.live import FOXGLOVE_DEFAULT, LIVE_HELP, LiveTarget, live_target
 from zenswarm.collector import Collector
 from zenswarm.config import Scenario
 from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
@@ -125,7 +124,7 @@ class UpOptions:
     controller: str | None = None  # plug-in names overriding the scenario's (zenswarm.plugins.select)
     planner: str | None = None
     plant_model: str | None = None
-    live: int | None = None  # --live PORT: serve the flight to the Foxglove app (zenswarm.bridge.live)
+    live: LiveTarget | None = None  # --live [PORT|rerun[:PORT]]: serve the flight to a viewer (zenswarm.bridge.live)
     rt_priority: int | None = None  # --rt-priority P: the flying processes under SCHED_FIFO P (zenswarm.rtsched)
 
     def rt_argv(self) -> list[str]:
@@ -223,7 +222,7 @@ class Supervisor:
         # the vehicles' ports P+i (the bridge listens) and their send ports P+40+i, all free
         self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n, also=(SITL_SEND_OFFSET,))
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
-        self.live: Any = None  # --live: the zenswarm.bridge.live.LiveView, bound by _run_up before run()
+        self.live: Any = None  # --live: the view (zenswarm.bridge.live.open_view), bound by _run_up before run()
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -1054,13 +1053,23 @@ def _run_up(ns: argparse.Namespace) -> int:
         return _run_only(args)
     sup = Supervisor(args, sc)
     if args.live is not None:  # bound now: a port in use is exit 2 before any process starts
-        from zenswarm.bridge.live import LiveView, open_in_app
+        from zenswarm.bridge.live import open_view
 
-        sup.live = LiveView(sc, args.swarm, args.live)
-        sup.say(open_in_app(sup.live.url))
+        sup.live = open_view(args.live, sc, args.swarm)
+        sup.say(sup.live.how_to_open())
     try:
         sup.t_start = time.monotonic()
-        return sup.run()
+        rc = sup.run()
+        if sup.live is not None and sup.live.viewer == "rerun" and sys.stdin is not None and sys.stdin.isatty():
+            # Rerun's server holds the whole flight: a browser opened now still gets all of it
+            sup.say(f"flight over; Rerun keeps serving it on {sup.live.url} until you press Enter (or Ctrl-C)")
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, signal.default_int_handler)  # raise KeyboardInterrupt here, not set the flight's stop flag
+            try:
+                input()
+            except (EOFError, KeyboardInterrupt):
+                pass
+        return rc
     finally:
         if sup.live is not None:
             sup.live.close()
@@ -1261,12 +1270,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--live",
         nargs="?",
-        const=DEFAULT_LIVE_PORT,
-        type=live_port,
-        metavar="PORT",
-        help=f"serve the flight to the Foxglove app over its WebSocket protocol on ws://127.0.0.1:PORT (default "
-        f"{DEFAULT_LIVE_PORT}): 3D scene, transforms, errors, clearance, failsafe, links (docs/live.md); run by this "
-        "supervisor, not by the swarm's processes. A port in use: exit 2 before the flight",
+        const=FOXGLOVE_DEFAULT,
+        type=live_target,
+        metavar="PORT|rerun[:PORT]",
+        help=f"watch the flight live. {LIVE_HELP}. Run by this supervisor, not by the swarm's processes; "
+        "a port in use: exit 2 before the flight",
     )
     add_rt_priority_arg(p)
     add_fault_args(p)
