@@ -50,7 +50,7 @@ from zenswarm.agents.api import (
 from zenswarm.agents.core import AgentRow, elapsed_dt
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters
-from zenswarm.params import QuadParams
+from zenswarm.plugins import plant_vehicle
 from zenswarm.runtime import (
     Lockstep,
     ProcessOptions,
@@ -100,7 +100,7 @@ class _Agent:
         self.proc = proc
         self.index = index
         self.me = wire.agent(index)
-        self.quad = params = QuadParams.from_vehicle(sc.vehicle)
+        self.quad = params = plant_vehicle(sc)  # the plant model's vehicle (mass, g)
         self.row = AgentRow.from_scenario(sc, index - 1, params.mass, params.g)
         self.bound = boundary_of(sc, index - 1)  # where the controller is called: its failures are named
         self.ctrl: Controller = build_controller(sc, index - 1, params.mass, params.g)

@@ -122,8 +122,8 @@ def client_security(args: argparse.Namespace) -> ClientSecurity:
 
 
 def add_plugin_args(p: argparse.ArgumentParser) -> None:
-    """``--controller NAME`` and ``--planner NAME``: override the scenario's ``[agents] controller``
-    and ``[leader] planner`` (:func:`zenswarm.plugins.select`)."""
+    """``--controller NAME``, ``--planner NAME`` and ``--plant-model NAME``: override the scenario's
+    ``[agents] controller``, ``[leader] planner`` and ``[plant] model`` (:func:`zenswarm.plugins.select`)."""
     p.add_argument(
         "--controller", metavar="NAME", default=None,
         help="agent controller plug-in: a built-in name, module:attribute or an installed entry point "
@@ -132,6 +132,11 @@ def add_plugin_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--planner", metavar="NAME", default=None,
         help="leader planner plug-in, named the same ways (default: the scenario's [leader] planner)",
+    )
+    p.add_argument(
+        "--plant-model", metavar="NAME", default=None,
+        help="plant model plug-in (the vehicles' dynamics: quadrotor, rotorpy, ...), named the same ways "
+        "(default: the scenario's [plant] model, else quadrotor)",
     )
 
 
@@ -209,13 +214,15 @@ def overrides_of(args: argparse.Namespace) -> dict[str, Any]:
 
 def scenario_of(args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
     """``args.scenario`` with ``--set`` / ``--duration`` applied, then ``--controller`` /
-    ``--planner`` (:func:`zenswarm.plugins.select`), the plug-ins resolved and their parameters
+    ``--planner`` / ``--plant-model`` (:func:`zenswarm.plugins.select`), the plug-ins resolved and their parameters
     decoded: bad input is a ScenarioError (an OverrideError for what an override caused) naming
     the field or flag, before any work. Returns (scenario, the overrides)."""
     from zenswarm.overrides import check_plugins, load_file
     from zenswarm.plugins import select
 
     ov = overrides_of(args)
-    sc = select(load_file(args.scenario, ov), args.controller, args.planner)
-    check_plugins(sc, ov, "--controller" if args.controller else None, "--planner" if args.planner else None)
+    plant_model = getattr(args, "plant_model", None)
+    sc = select(load_file(args.scenario, ov), args.controller, args.planner, plant_model)
+    check_plugins(sc, ov, "--controller" if args.controller else None, "--planner" if args.planner else None,
+                  plant_field="--plant-model" if plant_model else None)
     return sc, ov

@@ -601,7 +601,7 @@ def run(args: argparse.Namespace) -> int:
     if args.scenario is not None:
         from zenswarm.plugins import select
 
-        scenario = scenario_to_dict(select(load_scenario(args.scenario), args.controller, args.planner))
+        scenario = scenario_to_dict(select(load_scenario(args.scenario), args.controller, args.planner, getattr(args, "plant_model", None)))
     connect = args.connect or ["tcp/127.0.0.1:7447"]
     out: Path = check_output_file(args.out, "--out")  # before joining: exit 2, nothing recorded in vain
     conf = bus.client_config(

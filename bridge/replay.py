@@ -709,13 +709,13 @@ class _Verifier:
 
     def __init__(self, rec: Recording, sc: Any, agent: int) -> None:
         from zenswarm.agents.core import AgentRow
-        from zenswarm.params import QuadParams
+        from zenswarm.plugins import plant_vehicle
 
         self.sc = sc
         self.res = VerifyResult(agent=agent, mode=rec.mode)
         self.keys = keys = wire.Keys(_swarm_of(rec))
         self.me = wire.agent(agent)
-        params = QuadParams.from_vehicle(sc.vehicle)
+        params = plant_vehicle(sc)  # the plant model's vehicle (mass, g), as the agent process
         self.row = AgentRow.from_scenario(sc, agent - 1, params.mass, params.g)
         self.quad = params
         self.ctrl = self._new_controller()

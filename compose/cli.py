@@ -112,11 +112,12 @@ def _run_check(args: argparse.Namespace) -> int:
 def _add_plugins(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "plugins",
-        help="list the available agent controllers and leader planners",
+        help="list the available agent controllers, leader planners and plant models",
         description=(
-            "List the controllers and planners a scenario can name ([agents] controller, [leader] planner, "
-            "--controller, --planner): the built-ins and the installed entry points (groups zenswarm.controllers, "
-            "zenswarm.planners), with a one-line description each. Any other plug-in is named module:attribute."
+            "List the controllers, planners and plant models a scenario can name ([agents] controller, [leader] planner, "
+            "[plant] model, --controller, --planner, --plant-model): the built-ins and the installed entry points (groups "
+            "zenswarm.controllers, zenswarm.planners, zenswarm.plants), with a one-line description each. Any other "
+            "plug-in is named module:attribute."
         ),
     )
     psub = p.add_subparsers(dest="plugins_cmd", metavar="{list,check}")

@@ -1,4 +1,4 @@
-"""``zenswarm plugins check NAME [SCENARIO]``: the conformance check of a controller or planner plug-in.
+"""``zenswarm plugins check NAME [SCENARIO]``: the conformance check of a controller, planner or plant model plug-in.
 
 What any plug-in author can run on their plug-in before flying it (and what the test suite runs on
 every built-in and on the example in ``examples/``). In order; a failed check skips the ones after
@@ -7,17 +7,21 @@ it that need it:
 1. **interface**: the class resolves (:func:`zenswarm.plugins.resolve`), has a one-line ``name``
    and ``description``, a ``Params`` that is a frozen :class:`msgspec.Struct` refusing unknown
    keys (checked by decoding an unknown key), and the scenario's params table decodes; a
-   controller's ``shares`` maps names to shapes of positive ints; the methods the runners call
+   controller's ``shares`` maps names to shapes of positive ints; a plant model's ``vehicle()``
+   gives a :class:`zenswarm.params.QuadParams`; the methods the runners call
    take the arguments they are called with (``step(q, v, neighbours, leader, dt)``, a two-phase
    controller's ``prepare(neighbours, leader)`` and ``finish(q, v, prepared, dt)``, ``reset(q,
-   v)``, ``share()``; a planner's ``ref()`` and ``advance()``).
+   v)``, ``share()``; a planner's ``ref()`` and ``advance()``; a plant model's
+   ``step(thrust, rpy, disturbance)``).
 2. **outputs**: every tick of the (shortened) flight on synthetic, deterministic inputs (every UAV of the scenario,
    each fed its neighbours' shared values and the leader's reference): a controller's shared q, v
    are (3,) and finite, its declared extras have their shapes, its command has a finite thrust
    >= 0, rpy (3,), u (3,), d_hat (3,); a planner's (q0, v0) are (3,) and finite and ``ref()``
-   does not change its state.
+   does not change its state; a plant model, stepped by :class:`zenswarm.plant.core.PlantCore` with
+   synthetic commands about hover (thrust, attitude setpoints within +-0.1 rad) and the scenario's
+   disturbance, keeps its state (q, v, rpy, w) (N, 3) and finite.
 3. **deterministic**: the same ticks again with fresh instances give identical outputs, bit for bit.
-4. **pure ticks**: during ``reset``/``share``/``step`` (``ref``/``advance``) the clock (``time``),
+4. **pure ticks**: during ``reset``/``share``/``step`` (``ref``/``advance``; a plant model's ``step``) the clock (``time``),
    sockets, ``open`` and unseeded randomness (``random``, numpy's global generator) raise;
    constructing the plug-in may do what it likes.
 5. **flight**: the short flight (:data:`DEFAULT_DURATION_S` of SCENARIO) in the in-process
@@ -55,7 +59,7 @@ from msgspec.structs import replace as replace_table
 
 from zenswarm.config import Scenario, load_scenario, scenario_to_dict
 from zenswarm.errors import ScenarioError
-from zenswarm.plugins import GROUPS, KINDS, PluginError, decode_params, plugin_rng, resolve, select
+from zenswarm.plugins import GROUPS, KINDS, PluginError, decode_params, plant_vehicle, plugin_rng, resolve, select
 
 __all__ = ["add_check_parser", "run_check", "Check", "check_plugin"]
 
@@ -161,12 +165,19 @@ def _interface(kind: str, cls: type, sc: Scenario) -> tuple[list[str], Any]:
             problems.append("Params accepted an unknown key")
         except ScenarioError:
             pass
-        table = sc.agents.params if kind == "controller" else sc.leader.params
-        field = "agents.params" if kind == "controller" else "leader.params"
+        table = {"controller": sc.agents.params, "planner": sc.leader.params, "plant": sc.plant.params}[kind]
+        field = {"controller": "agents.params", "planner": "leader.params", "plant": "plant.params"}[kind]
         try:
             params = decode_params(cls, table, field)
         except ScenarioError as e:
             problems.append(f"the scenario's [{field}] does not decode: {e} (give a SCENARIO with the plug-in's parameters)")
+        if kind == "plant" and params is not None:
+            try:
+                plant_vehicle(sc)
+            except ScenarioError as e:
+                problems.append(f"vehicle(): {e}")
+            except Exception as e:  # noqa: BLE001 - a plug-in's own error is a failed check, reported
+                problems.append(f"vehicle() raised {type(e).__name__}: {e}")
     problems += _signatures(kind, cls)
     if kind == "controller":
         shares = getattr(cls, "shares", {})
@@ -188,6 +199,8 @@ def _signatures(kind: str, cls: type) -> list[str]:
         calls = {"reset": ("q", "v"), "share": (), "step": ("q", "v", "neighbours", "leader", "dt")}
         if getattr(cls, "two_phase", False):
             calls.update({"prepare": ("neighbours", "leader"), "finish": ("q", "v", "prepared", "dt")})
+    elif kind == "plant":
+        calls = {"step": ("thrust", "rpy", "disturbance")}
     else:
         calls = {"ref": (), "advance": ()}
     problems = []
@@ -219,9 +232,9 @@ def _finite(x: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
 
 
 def _mass_g(sc: Scenario) -> tuple[float, float]:
-    from zenswarm.params import QuadParams
+    from zenswarm.plugins import plant_vehicle
 
-    p = QuadParams.from_vehicle(sc.vehicle)
+    p = plant_vehicle(sc)
     return float(p.mass), float(p.g)
 
 
@@ -288,6 +301,28 @@ def _tick_controllers(cls: type, params: Any, sc: Scenario, ticks: int, guard: b
     return out
 
 
+def _tick_plant(cls: type, params: Any, sc: Scenario, ticks: int, guard: bool) -> list[np.ndarray]:
+    """The plant model (in a :class:`zenswarm.plant.core.PlantCore`, as every runner has it) for
+    ``ticks`` ticks of synthetic commands about hover; its state of every tick."""
+    from zenswarm.plant.core import STATE_FIELDS, PlantCore
+
+    core = PlantCore(sc)  # PluginFailure (a non-finite or mis-shaped state) is the check's failure
+    n, p = sc.n, core.params
+    out: list[np.ndarray] = []
+    cm = pure_ticks if guard else _nothing
+    phase = np.arange(n)[:, None] + np.array([0.0, 1.0, 2.0])
+    for k in range(ticks):
+        thrust = p.mass * p.g * (1.0 + 0.05 * np.sin(0.07 * k + np.arange(n)))
+        rpy = 0.1 * np.sin(0.05 * k + phase)
+        rpy[:, 2] = sc.controller.yaw
+        core.hold_all(thrust, rpy, k)
+        with cm():
+            core.step(k)
+        st = core.state
+        out += [_finite(getattr(st, f), (n, 3), f"state.{f} after tick {k}").copy() for f in STATE_FIELDS]
+    return out
+
+
 def _tick_planner(cls: type, params: Any, sc: Scenario, ticks: int, guard: bool) -> list[np.ndarray]:
     """The planner for ``ticks`` ticks; its (q0, v0) of every tick."""
     from zenswarm.leader.planner import PlannerContext
@@ -322,8 +357,8 @@ def _nothing() -> Iterator[None]:
 
 
 def _scenario_for(kind: str, name: str, sc: Scenario, duration: float) -> Scenario:
-    """SCENARIO with the plug-in selected (as --controller/--planner) and a short time limit."""
-    sc = select(sc, name if kind == "controller" else None, name if kind == "planner" else None)
+    """SCENARIO with the plug-in selected (as --controller/--planner/--plant-model) and a short time limit."""
+    sc = select(sc, name if kind == "controller" else None, name if kind == "planner" else None, name if kind == "plant" else None)
     return replace(sc, timing=replace_table(sc.timing, time_limit_s=min(duration, sc.timing.time_limit_s)))
 
 
@@ -393,9 +428,9 @@ def resolve_kind(name: str, kind: str | None) -> tuple[str, type]:
         except PluginError as e:
             errors.append(e.message)
     if len(found) > 1:
-        raise ScenarioError("--kind", f"{name!r} names both a controller and a planner: say which with --kind")
+        raise ScenarioError("--kind", f"{name!r} names more than one kind of plug-in ({', '.join(found)}): say which with --kind")
     if not found:
-        raise PluginError("NAME", f"no controller or planner named {name!r}: " + " / ".join(errors))
+        raise PluginError("NAME", f"no controller, planner or plant model named {name!r}: " + " / ".join(errors))
     ((which, cls),) = found.items()
     return which, cls
 
@@ -414,7 +449,10 @@ def check_plugin(
     except Exception as e:  # noqa: BLE001 - a plug-in's own error is a failed check, reported
         problems, params = [f"{type(e).__name__}: {e}"], None
     checks.append(Check("interface", "FAIL" if problems else "PASS", "; ".join(problems) or _interface_text(kind, cls)))
-    tick: Callable[[type, Any, Scenario, int, bool], list[np.ndarray]] = _tick_controllers if kind == "controller" else _tick_planner
+    ticker: dict[str, Callable[[type, Any, Scenario, int, bool], list[np.ndarray]]] = {
+        "controller": _tick_controllers, "planner": _tick_planner, "plant": _tick_plant,
+    }  # fmt: skip
+    tick = ticker[kind]
     ticks = sc.timing.n_ticks
     first: list[np.ndarray] | None = None
     if problems:
@@ -422,7 +460,7 @@ def check_plugin(
     else:
         try:
             first = tick(cls, params, sc, ticks, False)
-            what = f"{ticks} ticks x {sc.n} UAVs" if kind == "controller" else f"{ticks} ticks"
+            what = f"{ticks} ticks x {sc.n} UAVs" if kind != "planner" else f"{ticks} ticks"
             checks.append(Check("outputs", "PASS", f"{what}: shapes and finiteness as declared"))
         except Exception as e:  # noqa: BLE001 - a plug-in's own error is a failed check, reported
             first = None
@@ -513,7 +551,7 @@ def add_check_parser(psub: argparse._SubParsersAction) -> None:
     """``zenswarm plugins check``."""
     c = psub.add_parser(
         "check",
-        help="conformance check of a controller or planner plug-in",
+        help="conformance check of a controller, planner or plant model plug-in",
         description=(
             "Check plug-in NAME (a built-in name, module:attribute or an installed entry point of "
             f"{', '.join(GROUPS.values())}): its interface, its outputs' shapes and finiteness, determinism, "
@@ -524,7 +562,7 @@ def add_check_parser(psub: argparse._SubParsersAction) -> None:
     )
     c.add_argument("name", metavar="NAME", help="the plug-in")
     c.add_argument("scenario", metavar="SCENARIO", type=Path, nargs="?", help="scenario TOML (default: the built-in paper_example1)")
-    c.add_argument("--kind", choices=KINDS, help="controller or planner (default: whichever NAME names)")
+    c.add_argument("--kind", choices=KINDS, help="controller, planner or plant (default: whichever NAME names)")
     c.add_argument("--duration", type=float, default=DEFAULT_DURATION_S, metavar="S",
                    help=f"sim seconds of the sim-versus-swarm flight (default {DEFAULT_DURATION_S:g})")
     c.add_argument("--no-swarm", action="store_true", help="skip the sim-versus-swarm flight (no process started)")

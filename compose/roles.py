@@ -61,10 +61,17 @@ def _main_mavlink_fleet(args: argparse.Namespace) -> int:
     from zenswarm.config import load_scenario
     from zenswarm.errors import ScenarioError
     from zenswarm.plant.mavlink_vehicle import run_fleet
+    from zenswarm.plugins import DEFAULTS
 
     if args.scenario is None:
         raise ScenarioError("--scenario", "plant --mavlink needs the scenario file (it has no bus to fetch it from)")
     sc = load_scenario(args.scenario)
+    model = getattr(args, "plant_model", None) or sc.plant.model
+    if model != DEFAULTS["plant"]:
+        raise ScenarioError(
+            "--plant-model" if getattr(args, "plant_model", None) else "plant.model",
+            f"plant model {model!r} cannot fly as MAVLink vehicles: they fly zenswarm's own model ({DEFAULTS['plant']!r})",
+        )
     if args.seed is not None:
         sc = replace(sc, seed=int(args.seed))
     return run_fleet(

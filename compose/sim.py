@@ -58,7 +58,7 @@ from zenswarm.leader.core import LeaderCore
 from zenswarm.linkfaults import Box, box_counters, effective_graph
 from zenswarm.metrics import TimeSeries, add_failure, add_plugin_failures, compute_results, exit_code_of
 from zenswarm.plant.core import PlantCore
-from zenswarm.plugins import STAGE_SHARE, STAGE_STEP, Boundary, first_failures
+from zenswarm.plugins import STAGE_SHARE, STAGE_STEP, Boundary, first_failures, plant_vehicle
 from zenswarm.verdict import criteria_from_scenario, decide_end
 
 __all__ = ["simulate", "SimResult", "run_sim_cli"]
@@ -161,14 +161,15 @@ class _Swarm:
         self.dt = scenario.timing.dt
         failed: list[PluginFailure] = []  # every plug-in's constructor runs, as in the swarm's processes
         leader = _collect(failed, LeaderCore.from_scenario, scenario)
-        self.plant = PlantCore(scenario)
-        p = self.plant.params
+        plant = _collect(failed, PlantCore, scenario)  # the plant model's constructor
+        p = plant_vehicle(scenario)  # the model's vehicle, as the agent processes build their controllers with
         rows = [AgentRow.from_scenario(scenario, i, p.mass, p.g) for i in range(scenario.n)]
         self.links = _Links(faults, rows, self.dt) if faults is not None and faults.active else None
         ctrls = [_collect(failed, build_controller, scenario, i, p.mass, p.g) for i in range(scenario.n)]
         if failed:
             raise PluginsFailed(failed)
         self.leader: LeaderCore = leader
+        self.plant: PlantCore = plant
         self.ctrls: list[Controller] = ctrls
         self.bounds: list[Boundary] = [boundary_of(scenario, i) for i in range(scenario.n)]
         self.stacked = StackedAgents(rows) if self.links is None and all(type(c) is PaperController for c in self.ctrls) else None

@@ -42,7 +42,7 @@ from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, Ze
 from zenswarm.linkfaults import LinkFaults
 from zenswarm.metrics import add_failure, add_plugin_failures, compute_results
 from zenswarm.paths import check_output_dir, check_output_file
-from zenswarm.plugins import STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
+from zenswarm.plugins import DEFAULTS, STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
 from zenswarm.policy import restart_policy
 from zenswarm.runtime import PLUGIN_FAILURE_MARK, gc_policy, gc_safe_point, gc_startup_done
 
@@ -123,6 +123,7 @@ class UpOptions:
     faults: LinkFaults = field(default_factory=LinkFaults)
     controller: str | None = None  # plug-in names overriding the scenario's (zenswarm.plugins.select)
     planner: str | None = None
+    plant_model: str | None = None
     live: LiveTarget | None = None  # --live [PORT|rerun[:PORT]]: serve the flight to a viewer (zenswarm.bridge.live)
     rt_priority: int | None = None  # --rt-priority P: the flying processes under SCHED_FIFO P (zenswarm.rtsched)
 
@@ -131,9 +132,9 @@ class UpOptions:
         return [] if self.rt_priority is None else ["--rt-priority", str(self.rt_priority)]
 
     def plugin_argv(self) -> list[str]:
-        """``--controller NAME`` / ``--planner NAME`` for the processes (those given)."""
+        """``--controller NAME`` / ``--planner NAME`` / ``--plant-model NAME`` for the processes (those given)."""
         words: list[str] = []
-        for flag, name in (("--controller", self.controller), ("--planner", self.planner)):
+        for flag, name in (("--controller", self.controller), ("--planner", self.planner), ("--plant-model", self.plant_model)):
             if name is not None:
                 words += [flag, name]
         return words
@@ -171,6 +172,7 @@ def up_options(args: argparse.Namespace) -> UpOptions:
         faults=link_faults(args),
         controller=args.controller,
         planner=args.planner,
+        plant_model=args.plant_model,
         live=args.live,
         rt_priority=args.rt_priority,
     )
@@ -985,6 +987,12 @@ def check_up_args(args: UpOptions, sc: Scenario) -> None:
         if r not in names:
             raise ScenarioError("--external", f"unknown role {r!r}: this swarm's roles are {', '.join(names)}")
     _check_kills(args, sc, names)
+    if args.plant == "mavlink" and sc.plant.model != DEFAULTS["plant"]:
+        where = "--plant-model" if args.plant_model is not None else "plant.model"
+        raise ScenarioError(
+            where, f"plant model {sc.plant.model!r} cannot fly with --plant mavlink: the simulated MAVLink vehicles "
+            f"fly zenswarm's own model ({DEFAULTS['plant']!r}); drop --plant mavlink, or the plant model"
+        )
     if args.plant == "mavlink" and args.mavlink_base_port is not None:
         check_mavlink_ports(args.mavlink_base_port, sc.n)
     check_output_dir(args.out, "--out")

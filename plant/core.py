@@ -1,51 +1,90 @@
 """The plant's tick (numpy only): THE plant step of the plant process and the in-process
 simulator alike.
 
-:class:`PlantCore` holds every UAV's rigid-body state, the commands it holds (zero-order hold,
+:class:`PlantCore` holds the scenario's plant model (:class:`zenswarm.plant.api.PlantModel`, a
+plug-in: ``[plant] model``, default ``quadrotor``), the commands every UAV holds (zero-order hold,
 with the tick each was sent at), the failsafe and the disturbance model. Step 7 of a control tick
 (see :mod:`zenswarm.compose.sim`) is :meth:`PlantCore.step`: the failsafe decides, from each
-command's age, what is applied (:mod:`zenswarm.plant.failsafe`), then ``timing.substeps`` physics
-sub-steps run with it held (:func:`zenswarm.plant.quadrotor.step_held`).
+command's age, what is applied (:mod:`zenswarm.plant.failsafe`), then the model advances one
+control period with it held (the built-in: ``timing.substeps`` physics sub-steps of
+:func:`zenswarm.plant.quadrotor.step_held`), and its state is checked (shapes, finite).
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
-from zenswarm.params import QuadParams
+from zenswarm.errors import PluginFailure
+from zenswarm.plant.api import PlantContext, PlantModel, VehicleStates
 from zenswarm.plant.disturbance import DisturbanceModel
 from zenswarm.plant.failsafe import FailsafeState, failsafe_config
-from zenswarm.plant.quadrotor import PlantState, initial_state, step_held
+from zenswarm.plugins import PLANT_ROLE, STAGE_BUILD, STAGE_PLANT, Boundary, plant_selection, plant_vehicle, plugin_rng
 
-__all__ = ["PlantCore"]
+__all__ = ["PlantCore", "make_plant_model", "STATE_FIELDS"]
+
+STATE_FIELDS = ("q", "v", "rpy", "w")
+"""The state arrays a plant model exposes, each (N, 3) (:class:`zenswarm.plant.api.VehicleStates`)."""
+
+
+def make_plant_model(scenario: Any) -> PlantModel:
+    """The scenario's plant model (``[plant] model``, ``[plant.params]``), built with its
+    :class:`zenswarm.plant.api.PlantContext`; PluginError naming the field for a bad name or
+    parameter; :class:`zenswarm.errors.PluginFailure` (kind ``plant``, process ``plant``, stage
+    build, call ``__init__``) when constructing it raises."""
+    cls, params = plant_selection(scenario)
+    tm = scenario.timing
+    vehicle = plant_vehicle(scenario)
+    ctx = PlantContext(
+        n=scenario.n, dt=tm.dt, substeps=tm.substeps, h=tm.dt / tm.substeps,
+        initial_positions=np.asarray(scenario.initial_positions, dtype=float).copy(), yaw=scenario.controller.yaw,
+        vehicle=vehicle, rng=plugin_rng(scenario.seed, PLANT_ROLE), scenario=scenario,
+    )  # fmt: skip
+    model: PlantModel = boundary(scenario).call(0, STAGE_BUILD, "__init__", cls, ctx, params)
+    return model
+
+
+def boundary(scenario: Any) -> Boundary:
+    """Where the plant model is called (:class:`zenswarm.plugins.Boundary`): kind ``plant``, the
+    name it was selected by, process ``plant``, every UAV."""
+    return Boundary("plant", str(scenario.plant.model), "plant", tuple(range(1, scenario.n + 1)))
 
 
 class PlantCore:
-    """N simulated quadrotors and the commands they hold.
+    """N simulated vehicles (the scenario's plant model) and the commands they hold.
 
     ``thrust`` (N,) N and ``rpy_cmd`` (N, 3) rad: the held commands (hover thrust, level, yaw =
     controller.yaw before the first); ``last_cmd_tick`` (N,): the tick each was sent at.
-    ``state``: :class:`zenswarm.plant.quadrotor.PlantState` (q, v, rpy, w: (N, 3) each).
+    ``state``: the model's :class:`zenswarm.plant.api.VehicleStates` (q, v, rpy, w: (N, 3) each).
+    ``params``: the model's vehicle (:meth:`zenswarm.plant.api.PlantModel.vehicle`).
     """
 
     def __init__(self, scenario: Any) -> None:
         n = scenario.n
         tm = scenario.timing
         self.n = n
-        self.params = QuadParams.from_vehicle(scenario.vehicle)
+        self.model = make_plant_model(scenario)
+        self.bound = boundary(scenario)
+        self.params = self.model.ctx.vehicle
         self.dt = tm.dt
         self.nsub = tm.substeps
         self.h = tm.dt / tm.substeps
         self.yaw = scenario.controller.yaw
         self.dist = DisturbanceModel(scenario.disturbance, n, np.random.default_rng(scenario.seed))
-        self.state: PlantState = initial_state(np.asarray(scenario.initial_positions, dtype=float))
+        self._shape = (n, 3)
+        self._check_state(0, STAGE_BUILD)
         self.failsafe = FailsafeState(n, failsafe_config(scenario.failsafe))
         self.thrust = np.full(n, self.params.mass * self.params.g)
         self.rpy_cmd = np.zeros((n, 3))
         self.rpy_cmd[:, 2] = self.yaw
         self.last_cmd_tick = [0] * n
+
+    @property
+    def state(self) -> VehicleStates:
+        """The model's state (q, v, rpy, w: (N, 3) each; read it, do not write it)."""
+        return self.model.state
 
     def hold(self, i: int, thrust: float, rpy: np.ndarray, k_cmd: int) -> None:
         """UAV i (0-based) holds this command (thrust N, rpy (3,) rad), sent at tick ``k_cmd``."""
@@ -60,12 +99,41 @@ class PlantCore:
         self.last_cmd_tick = [k_cmd] * self.n
 
     def step(self, k: int) -> list[tuple[int, int, str, str]]:
-        """Step 7 of tick k: failsafe on the commands' ages, then the physics sub-steps to tick
-        k + 1 (in place). Returns the failsafe events of this tick (tick, UAV 1-based, from, to)."""
+        """Step 7 of tick k: failsafe on the commands' ages, then the model's control period to
+        tick k + 1 (in place). Returns the failsafe events of this tick (tick, UAV 1-based, from,
+        to). A model that raises, or leaves a state that is not (N, 3) and finite, raises
+        :class:`zenswarm.errors.PluginFailure` (kind ``plant``, process ``plant``, tick k, stage
+        :data:`zenswarm.plugins.STAGE_PLANT`, call ``step``; the field ``state.<name>`` and the
+        UAVs whose rows are not finite)."""
         p = self.params
         fs = self.failsafe
         before = len(fs.events)
         ages = [(k - self.last_cmd_tick[i]) * self.dt for i in range(self.n)]
-        f_app, r_app = fs.apply(k, ages, self.state.q, self.state.v, self.thrust, self.rpy_cmd, p.mass, p.g, self.yaw)
-        step_held(self.state, f_app, r_app, p, self.h, self.nsub, self.dist.sampler(k * self.dt, self.h))
+        st = self.model.state
+        f_app, r_app = fs.apply(k, ages, st.q, st.v, self.thrust, self.rpy_cmd, p.mass, p.g, self.yaw)
+        self.bound.call(k, STAGE_PLANT, "step", self.model.step, f_app, r_app, self.dist.sampler(k * self.dt, self.h))
+        self._check_state(k)
         return fs.events[before:]
+
+    def _check_state(self, k: int, stage: int = STAGE_PLANT) -> None:
+        st = self.model.state
+        try:  # the fast path: four (N, 3) arrays whose sum is finite (a sum that overflows takes the slow one)
+            if all(getattr(st, f).shape == self._shape for f in STATE_FIELDS) and math.isfinite(
+                float(st.q.sum()) + float(st.v.sum()) + float(st.rpy.sum()) + float(st.w.sum())
+            ):
+                return
+        except (AttributeError, TypeError, ValueError):
+            pass  # not arrays: the slow path names what is wrong
+        call = "step" if stage == STAGE_PLANT else "__init__"
+        for name in STATE_FIELDS:
+            a = getattr(st, name, None)
+            shape = np.shape(a) if a is not None else None
+            if a is None or shape != (self.n, 3):
+                raise self.bound.fail(k, stage, call, f"state.{name}", f"shape {shape} != ({self.n}, 3)")
+            ok = np.isfinite(a).all(axis=1)
+            if not ok.all():
+                b = self.bound
+                bad = tuple(int(i) + 1 for i in np.flatnonzero(~ok))
+                i = bad[0] - 1
+                detail = f"state.{name}: not finite for UAV {', '.join(map(str, bad))} ({np.asarray(a)[i].tolist()} for UAV {bad[0]})"
+                raise PluginFailure(b.kind, b.plugin, b.process, bad, k, stage, call, detail, f"state.{name}")

@@ -244,5 +244,7 @@ def _run(proc: SwarmProcess, expect: tuple[str, ...]) -> int:
 
 
 def run(options: PlantOptions) -> int:
-    """Run the plant until the flight ends; the exit code (2: bad input, 3: a process never came)."""
+    """Run the plant until the flight ends; the exit code (2: bad input, 3: a process never came,
+    4: the plant model failed, :class:`zenswarm.errors.PluginFailure`, reported by
+    :func:`zenswarm.runtime.run_process`)."""
     return run_process(lambda proc: _run(proc, options.expect), "plant", options.process)

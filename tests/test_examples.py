@@ -1,10 +1,11 @@
-"""The example plug-in package outside zenswarm (examples/consensus_controller) and a user's test
-module for it (examples/user_tests/test_consensus.py), as a user would run them.
+"""The example plug-in packages outside zenswarm (examples/consensus_controller, a controller, and
+examples/lag_plant, a plant model) and a user's test module for the controller
+(examples/user_tests/test_consensus.py), as a user would run them.
 
 The example is installed into a fresh virtual environment that sees what this interpreter has
 installed (``--system-site-packages``, and this interpreter's own site-packages added by a
-``.pth`` file, as zenswarm itself usually lives in a venv): only the example is installed, from
-its directory, without build isolation and without the package index. Then the README's two
+``.pth`` file, as zenswarm itself usually lives in a venv): only the examples are installed, from
+their directories, without build isolation and without the package index. Then the README's two
 commands, ``zenswarm plugins`` and ``zenswarm plugins check`` (the simulator against a short
 lockstep ``zenswarm up``, bit for bit), and the user's test file, copied to a directory outside
 the repository and run with that environment's pytest.
@@ -24,6 +25,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "consensus_controller"
+PLANT_EXAMPLE = ROOT / "examples" / "lag_plant"
 USER_TESTS = ROOT / "examples" / "user_tests" / "test_consensus.py"
 
 pytestmark = pytest.mark.swarm  # installs a package, starts processes
@@ -37,7 +39,7 @@ def _env() -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A venv with the example installed (and nothing else); its bin/ directory."""
+    """A venv with the examples installed (and nothing else); its bin/ directory."""
     d = tmp_path_factory.mktemp("venv") / "v"
     subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(d)], check=True, timeout=120)
     py = d / "bin" / "python"
@@ -45,9 +47,11 @@ def venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
                              capture_output=True, text=True, check=True).stdout.strip()
     parents = [p for p in site.getsitepackages() if Path(p).is_dir()]
     (Path(purelib) / "_zenswarm_parent.pth").write_text("".join(f"import site; site.addsitedir({p!r})\n" for p in parents))
-    build = tmp_path_factory.mktemp("src") / "consensus_controller"  # a copy: the build writes into its source tree
-    shutil.copytree(EXAMPLE, build, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
-    cp = subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-build-isolation", str(build)],
+    src = tmp_path_factory.mktemp("src")
+    builds = [src / ex.name for ex in (EXAMPLE, PLANT_EXAMPLE)]  # copies: the build writes into its source tree
+    for ex, build in zip((EXAMPLE, PLANT_EXAMPLE), builds, strict=True):
+        shutil.copytree(ex, build, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
+    cp = subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-build-isolation", *map(str, builds)],
                         capture_output=True, text=True, timeout=300, env=_env())
     assert cp.returncode == 0, cp.stdout + cp.stderr
     return d / "bin"
@@ -81,6 +85,28 @@ def test_conformance_check_passes_sim_equals_lockstep_up(venv: Path, tmp_path: P
     assert cp.returncode == 0, cp.stdout[-3000:]
     assert re.search(r"PASS\s+sim == swarm\s+2 s of paper_example1, link loss 0.2", cp.stdout), cp.stdout
     assert cp.stdout.rstrip().endswith("result: PASS")
+
+
+def test_plant_model_package_listed_checked_and_flown(venv: Path, tmp_path: Path) -> None:
+    """examples/lag_plant: `zenswarm plugins` lists it under zenswarm.plants, `zenswarm plugins
+    check lag` passes every check (the short lockstep swarm bit for bit), and the README's command
+    flies paper example 1 on it to success."""
+    listed = _run([str(venv / "python"), "-m", "zenswarm", "plugins"], cwd=tmp_path)
+    assert "entry point zenswarm.plants: zenswarm_lagplant.model:LagPlant" in listed.stdout, listed.stdout
+    cp = _run([str(venv / "python"), "-m", "zenswarm", "plugins", "check", "lag", "--duration", "2"], cwd=tmp_path)
+    assert cp.returncode == 0, cp.stdout[-3000:]
+    assert re.search(r"plant zenswarm_lagplant.model:LagPlant", cp.stdout), cp.stdout
+    assert re.search(r"PASS\s+sim == swarm\s+2 s of paper_example1, link loss 0.2", cp.stdout), cp.stdout
+    assert cp.stdout.rstrip().endswith("result: PASS")
+    block = re.search(r"```sh\n(.*?)```", (PLANT_EXAMPLE / "README.md").read_text(), re.S)
+    assert block is not None
+    install, fly = block.group(1).strip().splitlines()
+    assert install == "pip install ./examples/lag_plant"  # done by the fixture, from a copy
+    words = fly.split()
+    assert words[:2] == ["zenswarm", "sim"] and words[words.index("--plant-model") + 1] == "lag"
+    words[words.index("--out") + 1] = str(tmp_path / "out")
+    cp = _run([str(venv / "python"), "-m", "zenswarm", *words[1:], "--quiet"], cwd=ROOT)
+    assert cp.returncode == 0 and "paper_example1: SUCCESS" in cp.stdout, cp.stdout[-3000:]
 
 
 def test_users_test_module_passes_outside_the_repository(venv: Path, tmp_path: Path) -> None:

@@ -188,7 +188,7 @@ def test_exit_status_and_report(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["plugins", "check", "paper", "--no-swarm"]) == 0
     assert capsys.readouterr().out.rstrip().endswith("result: PASS")
     assert main(["plugins", "check", "no-such-plugin"]) == 2
-    assert "no controller or planner named 'no-such-plugin'" in capsys.readouterr().err
+    assert "no controller, planner or plant model named 'no-such-plugin'" in capsys.readouterr().err
     assert main(["plugins", "check", "paper", "--duration", "0"]) == 2
     assert "--duration" in capsys.readouterr().err
 

@@ -334,6 +334,7 @@ def fly(
     seed: int | None = None,
     controller: str | None = None,
     planner: str | None = None,
+    plant_model: str | None = None,
     link_loss: float | str | None = None,
     link_delay: float | str | None = None,
     link_jitter: float | str | None = None,
@@ -364,7 +365,9 @@ def fly(
 
     Scenario: ``overrides`` ``{"dotted.path": value}`` (:func:`load`); ``duration`` (s) sets
     ``timing.time_limit_s``; ``seed`` sets ``scenario.seed`` (disturbances and fault decisions);
-    ``controller`` / ``planner`` set ``agents.controller`` / ``leader.planner`` (a plug-in name).
+    ``controller`` / ``planner`` / ``plant_model`` set ``agents.controller`` / ``leader.planner`` /
+    ``plant.model`` (a plug-in name; a plant model that fails mid-flight raises
+    :class:`zenswarm.plugins.PluginFailure` in sim mode).
 
     Link faults on every link (docs/faults.md), as ``--link-loss`` and friends: ``link_loss``
     probability in [0, 1] (or ``"20%"``), ``link_delay`` / ``link_jitter`` seconds (or ``"50ms"``),
@@ -391,7 +394,10 @@ def fly(
     if mode not in ("sim", "swarm"):
         raise ScenarioError("mode", f"expected 'sim' or 'swarm', got {mode!r}")
     ov: dict[str, Any] = dict(overrides or {})
-    shortcuts = {"timing.time_limit_s": duration, "scenario.seed": seed, "agents.controller": controller, "leader.planner": planner}
+    shortcuts = {
+        "timing.time_limit_s": duration, "scenario.seed": seed, "agents.controller": controller, "leader.planner": planner,
+        "plant.model": plant_model,
+    }  # fmt: skip
     ov.update({key: value for key, value in shortcuts.items() if value is not None})
     if planner is not None:  # as --planner: the named planner decides ([leader] adaptive is its older spelling)
         ov["leader.adaptive"] = planner != "apf"

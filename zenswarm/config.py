@@ -22,6 +22,7 @@ The sections and their meaning (see ``compose/scenarios/paper_example1.toml`` fo
 ``[eso]``        beta = [beta1, beta2, beta3], enabled (eq. 27)
 ``[controller]`` kp (3,), kd (3,), yaw (eq. 28 and the inversion after it)
 ``[agents]``     controller (plug-in name, default ``paper``) and ``[agents.params]`` (its parameters)
+``[plant]``      model (plant model plug-in name, default ``quadrotor``) and ``[plant.params]`` (its parameters)
 ``[vehicle]``    optional overrides of the Crazyflie 2.1 parameters (see :mod:`zenswarm.params`), and
                  radius (the contact radius the verdict uses; default :data:`CRAZYFLIE_RADIUS_M`)
 ``[mission]``    how the flight is judged (:mod:`zenswarm.verdict`): slot_tolerance_m,
@@ -67,6 +68,7 @@ from .schema import (
     MavlinkTable,
     MissionConfig,
     Obstacle,
+    PlantConfig,
     RestartTable,
     ScenarioFile,
     Timing,
@@ -86,6 +88,7 @@ __all__ = [
     "EsoConfig",
     "ControllerConfig",
     "AgentsConfig",
+    "PlantConfig",
     "VehicleConfig",
     "DisturbanceConfig",
     "MissionConfig",
@@ -142,6 +145,7 @@ class Scenario:
     eso: EsoConfig = field(default_factory=EsoConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     agents: AgentsConfig = field(default_factory=AgentsConfig)
+    plant: PlantConfig = field(default_factory=PlantConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     disturbance: DisturbanceConfig = field(default_factory=DisturbanceConfig)
     mission: MissionConfig = field(default_factory=MissionConfig)
@@ -203,6 +207,7 @@ def scenario_from_dict(d: dict[str, Any]) -> Scenario:
         eso=doc.eso,
         controller=doc.controller,
         agents=doc.agents,
+        plant=doc.plant,
         vehicle=doc.vehicle,
         disturbance=doc.disturbance,
         mission=doc.mission,
@@ -372,6 +377,9 @@ def scenario_to_dict(s: Scenario) -> dict[str, Any]:
     agents = to_builtins(s.agents, omit_defaults=True)
     if agents:
         d["agents"] = agents
+    plant = {k: v for k, v in to_builtins(s.plant, omit_defaults=True).items() if not (k == "params" and not v)}
+    if plant:  # the default model without parameters is not written (scenarios as before plant models)
+        d["plant"] = plant
     veh = {k: v for k, v in to_builtins(s.vehicle).items() if v is not None}
     if veh:
         d["vehicle"] = veh

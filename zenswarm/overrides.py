@@ -167,14 +167,14 @@ def _tokens_checked(key: str, flag: str) -> None:
 
 def check_plugins(
     sc: Scenario, overrides: Mapping[str, Any], controller_field: str | None = None, planner_field: str | None = None,
-    flag: str = "--set",
+    flag: str = "--set", plant_field: str | None = None,
 ) -> None:
     """:func:`zenswarm.plugins.check_selection` of ``sc``; an error in a field an override set is
     an :class:`OverrideError` naming ``flag KEY`` (the override)."""
     from .plugins import check_selection
 
     try:
-        check_selection(sc, controller_field, planner_field)
+        check_selection(sc, controller_field, planner_field, plant_field)
     except OverrideError:
         raise
     except ScenarioError as e:

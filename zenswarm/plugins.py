@@ -1,15 +1,17 @@
-"""Plug-in registry: which agent controller and which leader planner a flight runs.
+"""Plug-in registry: which agent controller, leader planner and plant model a flight runs.
 
-A plug-in is a class implementing :class:`zenswarm.agents.api.Controller` (kind ``"controller"``)
-or :class:`zenswarm.leader.planner.Planner` (kind ``"planner"``). It is named, in the scenario
-(``[agents] controller = NAME``, ``[leader] planner = NAME``) or on the command line
-(``--controller NAME``, ``--planner NAME``), by one of:
+A plug-in is a class implementing :class:`zenswarm.agents.api.Controller` (kind ``"controller"``),
+:class:`zenswarm.leader.planner.Planner` (kind ``"planner"``) or
+:class:`zenswarm.plant.api.PlantModel` (kind ``"plant"``: the vehicles' dynamics). It is named, in
+the scenario (``[agents] controller = NAME``, ``[leader] planner = NAME``, ``[plant] model = NAME``)
+or on the command line (``--controller NAME``, ``--planner NAME``, ``--plant-model NAME``), by one of:
 
-* a built-in name (:data:`BUILTINS`: ``paper`` for the controller; ``aapf``, ``apf``, ``escape`` for the planner);
+* a built-in name (:data:`BUILTINS`: ``paper`` for the controller; ``aapf``, ``apf``, ``escape`` for
+  the planner; ``quadrotor`` (zenswarm's own, the default) and ``rotorpy`` (extra ``rotorpy``) for the plant);
 * ``module:attribute``, e.g. ``my_pkg.control:Consensus`` (imported as is; the module must be
   importable, e.g. installed or on ``PYTHONPATH``);
 * the name of an installed entry point in the group :data:`GROUPS` ``[kind]``
-  (``zenswarm.controllers`` / ``zenswarm.planners``), e.g. in a plug-in package's pyproject::
+  (``zenswarm.controllers`` / ``zenswarm.planners`` / ``zenswarm.plants``), e.g. in a plug-in package's pyproject::
 
       [project.entry-points."zenswarm.controllers"]
       consensus = "my_pkg.control:Consensus"
@@ -20,7 +22,7 @@ naming the name and what was tried, before any work starts.
 
 Deterministic randomness (:func:`plugin_rng`): a plug-in gets a :class:`numpy.random.Generator`
 seeded from the scenario's seed and its role (0: the leader's planner, i: UAV i's controller,
-1-based), the same in the simulator, the swarm's processes and ``zenswarm verify``.
+1-based; :data:`PLANT_ROLE` for the plant model), the same in the simulator, the swarm's processes and ``zenswarm verify``.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ import msgspec
 import numpy as np
 
 from .errors import PluginFailure, ScenarioError
+from .params import QuadParams
 from .schema import convert
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -46,6 +49,7 @@ __all__ = [
     "BUILTINS",
     "DEFAULTS",
     "PluginError",
+    "PluginFailure",
     "PluginInfo",
     "resolve",
     "available",
@@ -55,6 +59,9 @@ __all__ = [
     "planner_name",
     "select",
     "check_selection",
+    "PLANT_ROLE",
+    "plant_vehicle",
+    "plant_selection",
     "PluginFailure",
     "Boundary",
     "STAGES",
@@ -68,10 +75,10 @@ __all__ = [
     "first_failures",
 ]
 
-Kind = Literal["controller", "planner"]
-KINDS: Final[tuple[Kind, ...]] = ("controller", "planner")
+Kind = Literal["controller", "planner", "plant"]
+KINDS: Final[tuple[Kind, ...]] = ("controller", "planner", "plant")
 
-GROUPS: Final[Mapping[str, str]] = {"controller": "zenswarm.controllers", "planner": "zenswarm.planners"}
+GROUPS: Final[Mapping[str, str]] = {"controller": "zenswarm.controllers", "planner": "zenswarm.planners", "plant": "zenswarm.plants"}
 """Entry point group of each kind (fixed: installed plug-in packages register under these)."""
 
 BUILTINS: Final[Mapping[str, Mapping[str, str]]] = {
@@ -81,16 +88,30 @@ BUILTINS: Final[Mapping[str, Mapping[str, str]]] = {
         "apf": "zenswarm.leader.planner:ApfPlanner",
         "escape": "zenswarm.leader.planner:EscapePlanner",
     },
+    "plant": {
+        "quadrotor": "zenswarm.plant.api:QuadrotorModel",
+        "rotorpy": "zenswarm.plant.rotorpy_model:RotorPyModel",
+    },
 }
 """Built-in plug-ins: kind -> name -> ``module:attribute``."""
 
-DEFAULTS: Final[Mapping[str, str]] = {"controller": "paper", "planner": "aapf"}
+DEFAULTS: Final[Mapping[str, str]] = {"controller": "paper", "planner": "aapf", "plant": "quadrotor"}
 """The plug-in of each kind when the scenario names none."""
 
 PLUGIN_STREAM: Final = 0x706C7567
 """Spawn key of the plug-ins' random streams (``"plug"``), apart from the other seeded streams."""
 
-_BASES: Final[Mapping[str, str]] = {"controller": "zenswarm.agents.api:Controller", "planner": "zenswarm.leader.planner:Planner"}
+PLANT_ROLE: Final = 1 << 32
+"""Role of the plant model's random stream in :func:`plugin_rng` (apart from every UAV number)."""
+
+FIELDS: Final[Mapping[str, str]] = {"controller": "agents.controller", "planner": "leader.planner", "plant": "plant.model"}
+"""Where each kind is named in a scenario (the field a bad name is reported under)."""
+
+_BASES: Final[Mapping[str, str]] = {
+    "controller": "zenswarm.agents.api:Controller",
+    "planner": "zenswarm.leader.planner:Planner",
+    "plant": "zenswarm.plant.api:PlantModel",
+}
 
 
 class PluginError(ScenarioError):
@@ -128,13 +149,13 @@ def _base(kind: str) -> type:
 
 
 def resolve(kind: str, name: str, field: str | None = None) -> type:
-    """The plug-in class ``name`` of ``kind`` ("controller" or "planner"): a built-in name,
+    """The plug-in class ``name`` of ``kind`` ("controller", "planner" or "plant"): a built-in name,
     ``module:attribute`` or an entry point of :data:`GROUPS` ``[kind]``, in that order.
-    ``field`` names where it was given (default ``agents.controller`` / ``leader.planner``).
+    ``field`` names where it was given (default :data:`FIELDS` ``[kind]``).
     Raises :class:`PluginError` naming the name and what was tried."""
     if kind not in GROUPS:
         raise PluginError("kind", f"unknown plug-in kind {kind!r}; expected one of {KINDS}")
-    where = field or ("agents.controller" if kind == "controller" else "leader.planner")
+    where = field or FIELDS[kind]
     if not isinstance(name, str) or not name:
         raise PluginError(where, f"expected a {kind} name (built-in, module:attribute or entry point), got {name!r}")
     tried: list[str] = []
@@ -235,10 +256,10 @@ def planner_name(scenario: Scenario) -> str:
     return ld.planner
 
 
-def select(scenario: Scenario, controller: str | None = None, planner: str | None = None) -> Scenario:
-    """The scenario with the command line's ``--controller`` / ``--planner`` applied (None: the
-    scenario's). They override ``[agents] controller`` and ``[leader] planner`` (and
-    ``adaptive``: the named planner decides); the params tables stay."""
+def select(scenario: Scenario, controller: str | None = None, planner: str | None = None, plant_model: str | None = None) -> Scenario:
+    """The scenario with the command line's ``--controller`` / ``--planner`` / ``--plant-model``
+    applied (None: the scenario's). They override ``[agents] controller``, ``[leader] planner``
+    (and ``adaptive``: the named planner decides) and ``[plant] model``; the params tables stay."""
     from dataclasses import replace
 
     from msgspec.structs import replace as replace_table
@@ -247,16 +268,23 @@ def select(scenario: Scenario, controller: str | None = None, planner: str | Non
         scenario = replace(scenario, agents=replace_table(scenario.agents, controller=controller))
     if planner is not None:
         scenario = replace(scenario, leader=replace_table(scenario.leader, planner=planner, adaptive=planner != "apf"))
+    if plant_model is not None:
+        scenario = replace(scenario, plant=replace_table(scenario.plant, model=plant_model))
     return scenario
 
 
-def check_selection(scenario: Scenario, controller_field: str | None = None, planner_field: str | None = None) -> None:
-    """Resolve the scenario's controller and planner and decode their params tables: a bad name
-    or parameter raises ScenarioError naming it (exit 2), before any work starts. A bad name is
-    named by ``controller_field`` / ``planner_field`` when given (the flag it came from, e.g.
-    ``--controller``), else by its scenario field."""
+def check_selection(
+    scenario: Scenario, controller_field: str | None = None, planner_field: str | None = None, plant_field: str | None = None
+) -> None:
+    """Resolve the scenario's controller, planner and plant model and decode their params tables
+    (and the plant model's vehicle): a bad name or parameter raises ScenarioError naming it
+    (exit 2), before any work starts. A bad name is named by ``controller_field`` /
+    ``planner_field`` / ``plant_field`` when given (the flag it came from, e.g. ``--controller``),
+    else by its scenario field."""
     decode_params(resolve("controller", scenario.agents.controller, controller_field), scenario.agents.params, "agents.params")
     decode_params(resolve("planner", planner_name(scenario), planner_field), scenario.leader.params, "leader.params")
+    resolve("plant", scenario.plant.model, plant_field)
+    plant_vehicle(scenario)
 
 
 # ----------------------------------------------------------------------------- the plug-in boundary
@@ -353,3 +381,25 @@ def first_failures(failures: list[PluginFailure]) -> list[PluginFailure]:
         return (int(name.split(":")[1]), name) if name.startswith("agent:") and name.split(":")[1].isdigit() else (0, name)
 
     return sorted((f for f in failures if f.order == first), key=by_process)
+def plant_selection(scenario: Scenario) -> tuple[type, Any]:
+    """The scenario's plant model class (``[plant] model``) and its decoded ``[plant.params]``
+    (PluginError / ScenarioError naming the field, exit 2)."""
+    cls = resolve("plant", scenario.plant.model)
+    return cls, decode_params(cls, scenario.plant.params, "plant.params")
+
+
+def plant_vehicle(scenario: Scenario) -> QuadParams:
+    """The vehicle the scenario's plant model flies (its ``vehicle`` classmethod): mass, g,
+    inertia and thrust bound as :class:`zenswarm.params.QuadParams`. The agents' controllers are
+    built with its mass and g (thrust = m |u|, eq. 28), the failsafe hovers with them, so the
+    scheme uses the plant model's vehicle in the simulator, the processes and ``verify`` alike.
+    A model that cannot be used (e.g. its package is not installed) raises PluginError naming
+    ``plant.model``."""
+    cls, params = plant_selection(scenario)
+    vehicle = getattr(cls, "vehicle")(scenario, params)  # noqa: B009 - a PlantModel (resolve checked it); the base imports no role
+    if not isinstance(vehicle, QuadParams):
+        got = type(vehicle).__name__
+        raise PluginError("plant.model", f"plant {scenario.plant.model!r}: vehicle() must return a QuadParams, got {got}")
+    return vehicle
+
+

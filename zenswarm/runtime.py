@@ -703,7 +703,7 @@ class ProcessOptions:
     (:mod:`zenswarm.security`). link_delay, link_jitter, link_loss, partition, link_range,
     link_fade, link_capacity, link_queue, link_medium, link_trace: the whole-swarm link faults
     (:mod:`zenswarm.linkfaults`); seed: disturbances and fault decisions (None: the
-    scenario's). controller, planner: plug-in names overriding the scenario's
+    scenario's). controller, planner, plant_model: plug-in names overriding the scenario's
     (:func:`zenswarm.plugins.select`; None: the scenario's). rt_priority: realtime only, run
     the process's threads under ``SCHED_FIFO`` at this priority once start-up is over
     (:mod:`zenswarm.rtsched`; None: the fair scheduler).
@@ -730,6 +730,7 @@ class ProcessOptions:
     link_trace: str | None = None
     planner: str | None = None
     rt_priority: int | None = None
+    plant_model: str | None = None
 
     @classmethod
     def of(cls, obj: Any) -> ProcessOptions:
@@ -764,6 +765,7 @@ class ProcessOptions:
             link_medium=get("link_medium", None),
             link_trace=get("link_trace", None),
             rt_priority=get("rt_priority", None),
+            plant_model=get("plant_model", None),
         )
 
     def fault_plan(self, scenario: Scenario) -> FaultPlan | None:
@@ -912,7 +914,7 @@ class SwarmProcess:
         sc = self._fetch_scenario()
         seed = self.options.seed
         sc = sc if seed is None else replace(sc, seed=int(seed))
-        sc = select(sc, self.options.controller, self.options.planner)
+        sc = select(sc, self.options.controller, self.options.planner, self.options.plant_model)
         check_selection(sc)  # a bad plug-in name or parameter: exit 2 before any work
         return sc
 

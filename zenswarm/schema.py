@@ -39,6 +39,7 @@ __all__ = [
     "EsoConfig",
     "ControllerConfig",
     "AgentsConfig",
+    "PlantConfig",
     "VehicleConfig",
     "MissionConfig",
     "DisturbanceConfig",
@@ -154,6 +155,15 @@ class AgentsConfig(Table, frozen=True):
     (``[agents.params]``, decoded into the controller's ``Params``)."""
 
     controller: str = "paper"
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+class PlantConfig(Table, frozen=True):
+    """``[plant]``: the plant model plug-in (:mod:`zenswarm.plugins`, kind ``plant``: the vehicles'
+    dynamics; default ``quadrotor``, zenswarm's own) and its parameters (``[plant.params]``,
+    decoded into the model's ``Params``)."""
+
+    model: str = "quadrotor"
     params: dict[str, Any] = field(default_factory=dict)
 
 
@@ -421,6 +431,7 @@ class ScenarioFile(Table, frozen=True, kw_only=True):
     eso: EsoConfig = field(default_factory=EsoConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     agents: AgentsConfig = field(default_factory=AgentsConfig)
+    plant: PlantConfig = field(default_factory=PlantConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     mission: MissionConfig = field(default_factory=MissionConfig)
     disturbance: DisturbanceConfig = field(default_factory=DisturbanceConfig)
