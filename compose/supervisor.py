@@ -74,12 +74,18 @@ def swarm_roles(n: int, plant: str = "sim") -> list[str]:
     return ["vehicles", "bridge"] + names[1:] if plant == "mavlink" else names
 
 
-def _pdeathsig() -> None:  # runs in the child between fork and exec
+def _pdeathsig(sig: int = signal.SIGKILL) -> None:  # runs in the child between fork and exec
     try:
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG: die with the supervisor
+        libc.prctl(1, sig)  # PR_SET_PDEATHSIG: die with the supervisor
     except OSError:
         pass
+
+
+def _pdeathsig_term() -> None:
+    """The recorder's: a SIGTERM when the supervisor dies, so it closes its MCAP file (summary
+    and footer written: readable as it is) before it exits; the flying roles get a SIGKILL."""
+    _pdeathsig(signal.SIGTERM)
 
 
 @dataclass(frozen=True)
@@ -304,7 +310,7 @@ class Supervisor:
             stdin=subprocess.DEVNULL,
             text=True,
             start_new_session=True,  # Ctrl-C reaches the supervisor only; it stops the children
-            preexec_fn=_pdeathsig,
+            preexec_fn=_pdeathsig_term if role == "recorder" else _pdeathsig,
             env=env,
         )
         c = Child(role, p, time.monotonic())
@@ -825,6 +831,10 @@ class Supervisor:
             self.say(f"ignored {collector.foreign} messages from sessions that are not their key's process "
                      f"(on {len(collector.foreign_by_key)} keys; results.json: foreign_samples)")
         self._add_stop_failure(res, code)
+        for e in res["failsafe"]:
+            until = f"{e['to_s']:.2f} s" if e["to_s"] is not None else "the end"
+            self.say(f"failsafe: UAV {e['uav']} flown by the plant ({' then '.join(e['modes'])}) from sim time "
+                     f"{e['from_s']:.2f} s to {until}: agent:{e['uav']}'s commands were stale")
         out.mkdir(parents=True, exist_ok=True)
         ts.save(str(out / "timeseries.npz"))
         (out / "results.json").write_text(json.dumps(res, indent=2, sort_keys=True, default=str) + "\n")
@@ -852,6 +862,7 @@ class Supervisor:
             if self.recording_loss is not None:
                 res["recording_loss"] = self.recording_loss
         res["restarts"] = self.restarts
+        res["failsafe"] = collector.failsafe_intervals()  # UAVs the plant held: their agents' commands were stale
         res["diagnostics"] = collector.diag
         res["supervisor_zenoh_threads"] = bus.zenoh_threads()  # the router's (ZENOH_RUNTIME_ROUTER)
         res["decoder_rejects"] = collector.decoder.counters()

@@ -1,0 +1,193 @@
+"""Issue 30: what real machines do to a swarm. Real processes, a real router on loopback (or in a
+network namespace the test creates), real MCAP files.
+
+* the supervisor SIGKILLed mid-flight: no process of the swarm outlives it by 10 s, and a second
+  ``up`` on the same router port right after works;
+* a frozen agent (SIGSTOP for 3 s, then SIGCONT): lockstep waits for it and succeeds; realtime
+  names what happened (the plant's failsafe held the UAV, results.json ``failsafe_events``);
+* two flights at once with default settings (one ``--secure``) never see each other's traffic.
+
+See docs/faults.md ("Machine faults") and docs/security.md for what is guaranteed.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from zenswarm.bus import free_port
+
+from swarmtest import ROOT, SCENARIOS, kill_mentioning, processes_mentioning, read_results, scenario_variant, unique_swarm, wait_port_free
+
+pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
+
+EX1 = SCENARIOS / "paper_example1.toml"
+FREEZE_S = 3.0  # wall seconds an agent stays frozen (SIGSTOP)
+
+
+class Up:
+    """A ``zenswarm up`` run in the background, its output read line by line (sim time parsed
+    from the progress lines)."""
+
+    def __init__(self, *args: str) -> None:
+        self.p = subprocess.Popen(
+            [sys.executable, "-m", "zenswarm", "up", *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            text=True, cwd=ROOT,
+        )
+        self.lines: list[str] = []
+        self.sim_t = 0.0
+        self.t0 = time.monotonic()
+        self.reader = threading.Thread(target=self._pump, daemon=True)
+        self.reader.start()
+
+    def _pump(self) -> None:
+        assert self.p.stdout is not None
+        for line in self.p.stdout:
+            self.lines.append(f"{time.monotonic() - self.t0:7.2f} {line.rstrip()}")
+            m = re.search(r"t=\s*([\d.]+)/", line)
+            if m:
+                self.sim_t = float(m.group(1))
+
+    def wait_sim_time(self, t: float, timeout: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout
+        while self.sim_t < t and self.p.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert self.sim_t >= t, self.log()
+
+    def wait(self, timeout: float) -> int:
+        rc = self.p.wait(timeout=timeout)
+        self.reader.join(timeout=5)
+        return rc
+
+    def log(self, n: int = 60) -> str:
+        return "\n".join(self.lines[-n:])
+
+    def kill(self) -> None:
+        if self.p.poll() is None:
+            self.p.kill()
+            self.p.wait()
+
+
+def _pid_of(swarm: str, role_words: str) -> int:
+    """The pid of the swarm's process whose command line has ``role_words`` (e.g. ``agent --id 2``)."""
+    found = [pid for pid, cmd in processes_mentioning(f"--swarm {swarm}") if role_words in cmd and " up " not in cmd]
+    assert len(found) == 1, (role_words, processes_mentioning(f"--swarm {swarm}"))
+    return found[0]
+
+
+def _freeze(pid: int, seconds: float) -> None:
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        time.sleep(seconds)
+    finally:
+        os.kill(pid, signal.SIGCONT)
+
+
+def _no_leftovers(swarm: str) -> None:
+    left = processes_mentioning(f"--swarm {swarm}")
+    kill_mentioning(f"--swarm {swarm}")
+    assert not left, f"processes left behind: {left}"
+
+
+def test_supervisor_sigkill_takes_the_swarm_down_and_frees_its_ports(tmp_path: Path) -> None:
+    """SIGKILL of the supervisor of a realtime flight (plant, leader, 3 agents, recorder): every
+    child is gone within 10 s (PR_SET_PDEATHSIG), the recording is readable up to the kill, and a
+    second ``up`` on the same router port right after flies."""
+    swarm, port = unique_swarm("k"), free_port()
+    rec = tmp_path / "flight.mcap"
+    scenario = scenario_variant(tmp_path, time_limit_s=30.0)
+    up = Up(str(scenario), "--swarm", swarm, "--out", str(tmp_path / "a"), "--realtime", "--listen",
+            f"tcp/127.0.0.1:{port}", "--record", str(rec), "--progress-every", "0.2", "--quiet-children")
+    try:
+        up.wait_sim_time(1.0)
+        children = [pid for pid, cmd in processes_mentioning(f"--swarm {swarm}") if pid != up.p.pid]
+        assert len(children) == 6, children  # plant, leader, 3 agents, recorder
+        up.p.send_signal(signal.SIGKILL)
+        up.wait(10)
+        t_kill = time.monotonic()
+        while processes_mentioning(f"--swarm {swarm}") and time.monotonic() - t_kill < 10.0:
+            time.sleep(0.05)
+        gone_after = time.monotonic() - t_kill
+        left = processes_mentioning(f"--swarm {swarm}")
+    finally:
+        up.kill()
+        kill_mentioning(f"--swarm {swarm}")
+    assert not left, f"outlived the supervisor by 10 s: {left}"
+    assert wait_port_free(port, 5.0), f"router port {port} still bound after the supervisor's death"
+    from zenswarm.bridge.mcapio import read_recording
+
+    n_msgs = sum(1 for _ in read_recording(rec).messages(lambda topic: topic.endswith("/state")))
+    assert n_msgs > 0
+    # a second flight right after, on the same port, with the same swarm name
+    short = scenario_variant(tmp_path, time_limit_s=2.0)
+    again = Up(str(short), "--swarm", swarm, "--out", str(tmp_path / "b"), "--listen", f"tcp/127.0.0.1:{port}",
+               "--quiet-children")
+    try:
+        rc = again.wait(120)
+    finally:
+        again.kill()
+        _no_leftovers(swarm)
+    assert rc in (0, 1), again.log()  # 2 s do not reach the goal: 1 (mission failed) is the verdict
+    res = read_results(tmp_path / "b")
+    assert res["process_deaths"] == [] and res["sim_time_s"] == pytest.approx(2.0), again.log()
+    print(f"\nsupervisor SIGKILLed: its children gone {gone_after:.2f} s later; recording kept {n_msgs} states; "
+          f"a second up on port {port} flew (exit {rc})")
+
+
+def test_frozen_agent_in_lockstep_succeeds(tmp_path: Path) -> None:
+    """Agent 2 frozen (SIGSTOP) for 3 s at sim time 5 s, then resumed (SIGCONT), in lockstep: the
+    swarm waits for it (a frozen process keeps its liveliness token and its TCP link, and 3 s
+    are under the 5 s lockstep timeout), nothing is dropped and the mission succeeds."""
+    swarm = unique_swarm("f")
+    out = tmp_path / "out"
+    up = Up(str(EX1), "--swarm", swarm, "--out", str(out), "--progress-every", "0.2", "--quiet-children", "--stop-at-goal")
+    try:
+        up.wait_sim_time(5.0)
+        _freeze(_pid_of(swarm, "agent --id 2"), FREEZE_S)
+        rc = up.wait(240)
+    finally:
+        up.kill()
+        _no_leftovers(swarm)
+    assert rc == 0, up.log()
+    res = read_results(out)
+    assert res["success"] and res["process_deaths"] == [], up.log()
+    assert res["diagnostics"]["plant"].get("cmd_timeouts", 0) == 0, res["diagnostics"]["plant"]
+
+
+def test_frozen_agent_in_realtime_is_named(tmp_path: Path) -> None:
+    """Agent 2 frozen for 3 s in a realtime flight: the clock does not wait for it. The plant's
+    failsafe holds UAV 2 (its commands are stale), gives it back when they are fresh again, and
+    results.json names the interval (``failsafe``) and agent 2's stalled loop (``jitter_max_ms``);
+    the flight ends at its time limit, never hangs."""
+    swarm = unique_swarm("r")
+    out = tmp_path / "out"
+    scenario = scenario_variant(tmp_path, time_limit_s=10.0, settle_time_s=5.0)
+    up = Up(str(scenario), "--swarm", swarm, "--out", str(out), "--realtime", "--progress-every", "0.2")
+    try:
+        up.wait_sim_time(3.0)
+        t_freeze = up.sim_t
+        _freeze(_pid_of(swarm, "agent --id 2"), FREEZE_S)
+        rc = up.wait(60)
+    finally:
+        up.kill()
+        _no_leftovers(swarm)
+    assert rc in (0, 1), up.log()  # 10 s do not reach the goal: 1 is the verdict, not a crash
+    res = read_results(out)
+    assert res["sim_time_s"] == pytest.approx(10.0, abs=0.05) and res["process_deaths"] == [], up.log()
+    fs = res["failsafe"]
+    assert [e["uav"] for e in fs] == [2], (fs, up.log())
+    e = fs[0]
+    assert e["modes"][0] == "hover" and e["to_s"] is not None, fs
+    # held from about hover_after_s after the freeze until agent 2's commands came back
+    assert t_freeze < e["from_s"] < t_freeze + 1.5 and FREEZE_S - 1.0 < e["to_s"] - e["from_s"] < FREEZE_S + 1.5, (t_freeze, fs)
+    assert res["diagnostics"]["agent:2"]["jitter_max_ms"] > 1e3 * (FREEZE_S - 0.5), res["diagnostics"]["agent:2"]
+    assert any("failsafe: UAV 2 flown by the plant (hover" in ln for ln in up.lines), up.log()
+    print(f"\nrealtime freeze of agent 2 at sim {t_freeze:.2f} s for {FREEZE_S:g} s: failsafe {fs}, exit {rc}")
