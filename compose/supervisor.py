@@ -124,6 +124,7 @@ class UpOptions:
     planner: str | None = None
     live: int | None = None  # --live PORT: serve the flight to the Foxglove app (zenswarm.bridge.live)
     rt_priority: int | None = None  # --rt-priority P: the flying processes under SCHED_FIFO P (zenswarm.rtsched)
+    router_lost_timeout: float | None = None  # --only: give up on a lost router after S s (zenswarm.runtime)
 
     def rt_argv(self) -> list[str]:
         """``--rt-priority P`` for the flying processes (if given)."""
@@ -172,6 +173,7 @@ def up_options(args: argparse.Namespace) -> UpOptions:
         planner=args.planner,
         live=args.live,
         rt_priority=args.rt_priority,
+        router_lost_timeout=args.router_lost_timeout,
     )
 
 
@@ -382,38 +384,42 @@ class Supervisor:
         self._bus_sub: Any = None
         subs = []
         try:
-            # A channel, drained by _watch every loop: no Python callback per message (each would
-            # wake a thread of this process, on the cores the swarm shares). The capacity holds
-            # minutes of a large swarm's traffic, so the router never waits on this queue.
-            self._bus_sub = session.declare_subscriber(self.keys.all, zenoh.handlers.FifoChannel(COLLECTOR_QUEUE))
-            subs.append(self._bus_sub)
-            subs.append(session.liveliness().declare_subscriber(self.keys.alive_all, self._on_liveliness, history=True))
-            subs.append(session.liveliness().declare_subscriber(self.keys.alive_all + "/*", self._on_sender_token, history=True))
-            self.say(
-                f"swarm '{a.swarm}': router on {', '.join(listen)}; {sc.n} UAVs; "
-                f"{'realtime' if a.realtime else 'lockstep'}; scenario {sc.name}"
-            )
-            if a.record is not None:
-                a.record.parent.mkdir(parents=True, exist_ok=True)
-                self.spawn("recorder")  # first: the plant waits for it, so no tick goes unrecorded
-            for role in self.roles():
-                self.spawn(role)
-            if a.realtime:
-                gc_startup_done()  # the children are started: see zenswarm.runtime.GcPolicy (realtime only)
-            code = self._watch(collector)
+            try:
+                # A channel, drained by _watch every loop: no Python callback per message (each would
+                # wake a thread of this process, on the cores the swarm shares). The capacity holds
+                # minutes of a large swarm's traffic, so the router never waits on this queue.
+                self._bus_sub = session.declare_subscriber(self.keys.all, zenoh.handlers.FifoChannel(COLLECTOR_QUEUE))
+                subs.append(self._bus_sub)
+                subs.append(session.liveliness().declare_subscriber(self.keys.alive_all, self._on_liveliness, history=True))
+                subs.append(session.liveliness().declare_subscriber(self.keys.alive_all + "/*", self._on_sender_token, history=True))
+                self.say(
+                    f"swarm '{a.swarm}': router on {', '.join(listen)}; {sc.n} UAVs; "
+                    f"{'realtime' if a.realtime else 'lockstep'}; scenario {sc.name}"
+                )
+                if a.record is not None:
+                    a.record.parent.mkdir(parents=True, exist_ok=True)
+                    self.spawn("recorder")  # first: the plant waits for it, so no tick goes unrecorded
+                for role in self.roles():
+                    self.spawn(role)
+                if a.realtime:
+                    gc_startup_done()  # the children are started: see zenswarm.runtime.GcPolicy (realtime only)
+                code = self._watch(collector)
+            finally:
+                self.terminate_all()
+                if self._bus_sub is not None:
+                    collector.poll(self._bus_sub, self._live_tap())  # what arrived after the last loop
+                if self.live is not None:
+                    self.live.publish()  # the flight's last frame
+                for s in subs:
+                    try:
+                        s.undeclare()
+                    except Exception:  # noqa: BLE001 - best effort on shutdown
+                        pass
+            # results first, then the router's close: with a link to a host that is gone (a cut
+            # cable, a dead remote role) zenoh's close waits about 10 s for it to time out
+            return self._finish(collector, code, out)
         finally:
-            self.terminate_all()
-            if self._bus_sub is not None:
-                collector.poll(self._bus_sub, self._live_tap())  # what arrived after the last loop
-            if self.live is not None:
-                self.live.publish()  # the flight's last frame
-            for s in subs:
-                try:
-                    s.undeclare()
-                except Exception:  # noqa: BLE001 - best effort on shutdown
-                    pass
             session_cm.__exit__(None, None, None)
-        return self._finish(collector, code, out)
 
     def _security(self, listen: list[str], out: Path) -> tuple[dict, list[str]]:
         """Router settings and listen endpoints for --secure/--tls (secure by default off loopback)."""
@@ -986,6 +992,8 @@ def _run_only(args: UpOptions) -> int:
         argv.append("--realtime")
     if args.keys is not None:
         argv += ["--keys", str(args.keys)] + (["--tls"] if args.tls else [])
+    if args.router_lost_timeout is not None:
+        argv += ["--router-lost-timeout", repr(args.router_lost_timeout)]
     return cli_main(argv + args.plugin_argv() + args.rt_argv())
 
 
@@ -1101,6 +1109,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--only",
         metavar="ROLE",
         help="run a single role here (plant, leader, agent:<i>) against a router elsewhere (--connect)",
+    )
+    p.add_argument(
+        "--router-lost-timeout",
+        type=positive_float,
+        default=None,
+        metavar="S",
+        help="with --only: seconds to wait for the remote router to come back once zenoh closed the link to it "
+        "(its 10 s lease ran out) before the role gives up and exits 3 (default 30)",
     )
     p.add_argument(
         "--lockstep-timeout",

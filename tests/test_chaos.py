@@ -31,6 +31,8 @@ pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm process
 
 EX1 = SCENARIOS / "paper_example1.toml"
 FREEZE_S = 3.0  # wall seconds an agent stays frozen (SIGSTOP)
+LEASE_S = 10.0  # zenoh's session lease: a cut link is noticed this long after the cut
+LOST_HOST_EXIT_S = 2 * LEASE_S + 10.0  # lease, then zenoh's close of the dead link (~10 s), and margin
 
 
 class Up:
@@ -191,3 +193,78 @@ def test_frozen_agent_in_realtime_is_named(tmp_path: Path) -> None:
     assert res["diagnostics"]["agent:2"]["jitter_max_ms"] > 1e3 * (FREEZE_S - 0.5), res["diagnostics"]["agent:2"]
     assert any("failsafe: UAV 2 flown by the plant (hover" in ln for ln in up.lines), up.log()
     print(f"\nrealtime freeze of agent 2 at sim {t_freeze:.2f} s for {FREEZE_S:g} s: failsafe {fs}, exit {rc}")
+
+
+@pytest.fixture
+def netns():
+    import shutil
+
+    from test_netsplit import Netns
+
+    if shutil.which("ip") is None:
+        pytest.skip("no `ip` command (iproute2) on this machine")
+    ns = Netns()
+    try:
+        ns.create()
+        yield ns
+    finally:
+        ns.remove()
+        assert not ns.exists(), f"namespace {ns.name} or its veth left behind"
+
+
+def test_remote_host_lost_for_good(tmp_path: Path, netns) -> None:
+    """Agent 2 on another host (a network namespace, over a veth pair); mid-flight its link is cut
+    for good. The supervisor ends with exit 3 (agent 2's token goes when the session lease, 10 s,
+    runs out), the recording closed and readable, results.json written; the remote agent, which
+    lost the router, ends too."""
+    scenario = scenario_variant(tmp_path, time_limit_s=60.0)
+    swarm = unique_swarm("h")
+    port, lport = free_port(netns.root_ip), free_port()
+    out, rec = tmp_path / "out", tmp_path / "flight.mcap"
+    up = Up(str(scenario), "--out", str(out), "--swarm", swarm, "--record", str(rec),
+            "--listen", f"tcp/{netns.root_ip}:{port}", "--listen", f"tcp/127.0.0.1:{lport}",
+            "--connect", f"tcp/127.0.0.1:{lport}", "--external", "agent:2", "--insecure", "--progress-every", "0.2",
+            "--quiet-children", "--lockstep-timeout", "0.5")
+    agent = subprocess.Popen(
+        ["ip", "netns", "exec", netns.name, sys.executable, "-m", "zenswarm", "up", str(scenario),
+         "--only", "agent:2", "--connect", f"tcp/{netns.root_ip}:{port}", "--swarm", swarm, "--lockstep-timeout", "0.5",
+         "--router-lost-timeout", "2"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT,
+    )
+    ended: dict[str, float] = {}
+    try:
+        up.wait_sim_time(3.0)
+        netns.link(False)
+        t_cut = time.monotonic()
+        while len(ended) < 2 and time.monotonic() - t_cut < 60:
+            for tag, p in (("up", up.p), ("agent", agent)):
+                if tag not in ended and p.poll() is not None:
+                    ended[tag] = time.monotonic() - t_cut
+            if "results" not in ended and (out / "results.json").exists():
+                ended["results"] = time.monotonic() - t_cut
+            time.sleep(0.05)
+        up.wait(5)
+    finally:
+        up.kill()
+        if agent.poll() is None:
+            agent.kill()
+        alog = agent.communicate(timeout=10)[0]
+        _no_leftovers(swarm)
+    log = up.log() + "\n--- agent 2 ---\n" + alog[-3000:]
+    # the supervisor: agent 2's token goes with its session's lease (10 s), then exit 3
+    assert up.p.returncode == 3 and ended["up"] < LOST_HOST_EXIT_S, (ended, log)
+    assert ended["results"] < LEASE_S + 5.0, (ended, log)  # written before the router's slow close
+    res = read_results(out)
+    assert [(d["process"], d["how"]) for d in res["process_deaths"]] == [("agent:2", "liveliness token gone (external)")], res
+    assert [f["cause"] for f in res["failures"]] == ["process_died"], res["failures"]
+    # the recording was closed: readable as it is (strict), and it ends where the flight did
+    from zenswarm.bridge.mcapio import read_recording
+
+    recording = read_recording(rec)
+    states = [m.publish_time / 1e9 for m in recording.messages(lambda topic: topic.endswith("/uav/1/state"))]
+    assert states and states[-1] >= 3.0, states[-3:]
+    # the remote agent lost its router for good: it gives up after --router-lost-timeout, exit 3
+    assert agent.returncode == 3 and ended["agent"] < LOST_HOST_EXIT_S, (ended, log)
+    assert "giving up, exit 3" in alog, alog
+    print(f"\nremote host lost: results after {ended['results']:.1f} s, supervisor exit 3 after {ended['up']:.1f} s, "
+          f"remote agent exit 3 after {ended['agent']:.1f} s; recording readable, {len(states)} states of UAV 1")
