@@ -612,6 +612,9 @@ class Supervisor:
         how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
         t = max(collector.sim_t_ns, 0) / 1e9
         self.recording_loss = {"died_at_sim_time_s": t, "how": how, "recording": str(self.args.record)}
+        error = next((ln for ln in reversed(child.lines) if ln.startswith("recorder: error:")), None)
+        if error is not None:  # why it stopped, in its words (e.g. the disk is full: ENOSPC)
+            self.recording_loss["error"] = error.removeprefix("recorder: error: ")
         tail = "; last output: " + " | ".join(child.lines[-3:]) if child.lines else ""
         self.say(
             f"recording lost: the recorder died ({how}) at sim time {t:.2f} s; the flight goes on unrecorded, "
