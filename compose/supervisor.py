@@ -34,7 +34,7 @@ from zenswarm.config import Scenario, load_scenario
 from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.linkfaults import LinkFaults
 from zenswarm.metrics import add_failure, compute_results
-from zenswarm.paths import check_output_dir, check_output_file
+from zenswarm.paths import check_output_dir, check_output_file, lock_output_dir
 from zenswarm.plugins import check_selection, select
 from zenswarm.policy import restart_policy
 from zenswarm.runtime import gc_policy, gc_safe_point, gc_startup_done
@@ -962,6 +962,14 @@ def _run_up(ns: argparse.Namespace) -> int:
         if args.live is not None:
             raise ScenarioError("--live", "not with --only: the live view runs beside the supervisor of the whole swarm")
         return _run_only(args)
+    out_lock = lock_output_dir(args.out, "--out")  # a second flight into this OUT: exit 2 now
+    try:
+        return _run_supervisor(args, sc)
+    finally:
+        out_lock.release()
+
+
+def _run_supervisor(args: UpOptions, sc: Scenario) -> int:
     sup = Supervisor(args, sc)
     if args.live is not None:  # bound now: a port in use is exit 2 before any process starts
         from zenswarm.bridge.live import LiveView, open_in_app

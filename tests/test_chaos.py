@@ -312,3 +312,47 @@ def test_disk_full_while_recording(tmp_path: Path, small_fs: Path) -> None:
     assert ticks == list(range(len(ticks))), "a gap in the recorded states before the cut"
     print(f"\ndisk full at sim time {loss['died_at_sim_time_s']:.2f} s: flight flew on to 8 s; recording readable, "
           f"{len(states)} states of UAV 1 (to {states[-1]:.2f} s); {loss['error']}")
+
+
+def test_two_flights_at_once_with_default_settings(tmp_path: Path) -> None:
+    """Two lockstep flights at once on this machine, both with the default swarm name and
+    router port (a free one each), one ``--secure``: neither sees the other's traffic (no
+    foreign sample, no reject), and both fly the same trajectory bit for bit, as alone. A third
+    flight into the first one's ``--out`` while it runs is refused (exit 2 naming --out)."""
+    import numpy as np
+
+    from zenswarm.metrics import TimeSeries
+
+    scenario = scenario_variant(tmp_path, time_limit_s=6.0)
+    outs = [tmp_path / "open", tmp_path / "secure"]
+    ups = [Up(str(scenario), "--out", str(outs[0]), "--quiet-children"),
+           Up(str(scenario), "--out", str(outs[1]), "--secure", "--quiet-children")]
+    try:
+        deadline = time.monotonic() + 30
+        while not all(any("router on" in ln for ln in u.lines) for u in ups) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        third = subprocess.run([sys.executable, "-m", "zenswarm", "up", str(scenario), "--out", str(outs[0])],
+                               capture_output=True, text=True, cwd=ROOT, timeout=60)
+        rcs = [u.wait(180) for u in ups]
+    finally:
+        for u in ups:
+            u.kill()
+        left = processes_mentioning(str(scenario))  # the swarm name is "default": find them by their scenario
+        kill_mentioning(str(scenario))
+    assert not left, f"processes left behind: {left}"
+    logs = "\n=====\n".join(u.log() for u in ups)
+    assert rcs == [1, 1], logs  # 6 s do not reach the goal: the verdict, the same for both
+    assert third.returncode == 2 and "--out" in third.stderr and "another flight" in third.stderr, third
+    ports = {re.search(r"router on \S+:(\d+)", ln).group(1) for u in ups for ln in u.lines if "router on" in ln}
+    assert len(ports) == 2, ports
+    series = []
+    for out in outs:
+        res = read_results(out)
+        assert res["swarm"] == "default" and res["process_deaths"] == [], res
+        assert res["foreign_samples"] == {} and res["decoder_rejects"]["rejected"] == 0, res
+        for name, d in res["diagnostics"].items():
+            assert d.get("rejected", 0) == 0, (out.name, name, d.get("last_reject"))
+        series.append(TimeSeries.load(str(out / "timeseries.npz")))
+    assert np.array_equal(series[0].q, series[1].q, equal_nan=True) and np.array_equal(series[0].u, series[1].u, equal_nan=True)
+    print(f"\ntwo flights at once (swarm 'default', routers on ports {sorted(ports)}, one --secure): no foreign "
+          f"sample, identical series; a third into the same --out refused")
