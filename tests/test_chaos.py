@@ -356,3 +356,63 @@ def test_two_flights_at_once_with_default_settings(tmp_path: Path) -> None:
     assert np.array_equal(series[0].q, series[1].q, equal_nan=True) and np.array_equal(series[0].u, series[1].u, equal_nan=True)
     print(f"\ntwo flights at once (swarm 'default', routers on ports {sorted(ports)}, one --secure): no foreign "
           f"sample, identical series; a third into the same --out refused")
+
+
+def _listening(pids: set[int]) -> list[tuple[int, str, str]]:
+    """(pid, protocol, local address) of every socket the processes ``pids`` listen on (TCP) or
+    hold bound (UDP), from ``ss``."""
+    r = subprocess.run(["ss", "-H", "-lntup"], capture_output=True, text=True, check=True)
+    found = []
+    for line in r.stdout.splitlines():
+        cols = line.split()
+        for pid in map(int, re.findall(r"pid=(\d+)", line)):
+            if pid in pids:
+                found.append((pid, cols[0], cols[4]))
+    return sorted(set(found))
+
+
+def test_every_listening_port_is_loopback_only(tmp_path: Path) -> None:
+    """A flight with ``--record`` and ``--live``: the only sockets listening are the supervisor's
+    router, the live view's relay and the Foxglove SDK's server behind it (docs/security.md,
+    "Listening ports"), all on 127.0.0.1; the swarm's processes listen on nothing. The relay
+    refuses a browser page from another site (its ``Origin``), and takes the Foxglove app."""
+    import asyncio
+
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import InvalidStatus
+
+    swarm, port, live = unique_swarm("p"), free_port(), free_port()
+    scenario = scenario_variant(tmp_path, time_limit_s=20.0)
+    up = Up(str(scenario), "--swarm", swarm, "--out", str(tmp_path / "out"), "--realtime", "--record",
+            str(tmp_path / "f.mcap"), "--live", str(live), "--listen", f"tcp/127.0.0.1:{port}", "--progress-every", "0.2",
+            "--quiet-children")
+    try:
+        up.wait_sim_time(1.0)
+        pids = {pid for pid, _ in processes_mentioning(f"--swarm {swarm}")}
+        socks = _listening(pids)
+
+        async def origin(value: str | None) -> str:
+            headers = {} if value is None else {"Origin": value}
+            try:
+                async with connect(f"ws://127.0.0.1:{live}", subprotocols=["foxglove.websocket.v1"],  # type: ignore[list-item]
+                                   additional_headers=headers, open_timeout=10) as ws:
+                    return f"open {ws.subprotocol}"
+            except InvalidStatus as e:
+                return f"refused {e.response.status_code}"
+
+        seen = {o: asyncio.run(origin(o)) for o in (None, "https://app.foxglove.dev", "https://evil.example")}
+        up.p.send_signal(signal.SIGINT)
+        up.wait(60)
+    finally:
+        up.kill()
+        _no_leftovers(swarm)
+    assert len(pids) == 7, pids  # supervisor (with the live view), recorder, plant, leader, 3 agents
+    assert socks and all(addr.rsplit(":", 1)[0] in ("127.0.0.1", "[::1]") for _, _, addr in socks), socks
+    owners = {pid for pid, _, _ in socks}
+    assert owners == {up.p.pid}, socks  # the children listen on nothing
+    ports = sorted(int(addr.rsplit(":", 1)[1]) for _, proto, addr in socks if proto == "tcp")
+    assert port in ports and live in ports and len(ports) == 3, socks  # router, relay, the SDK's server
+    assert not [s for s in socks if s[1] != "tcp"], socks  # no UDP (no scouting)
+    assert seen == {None: "open foxglove.websocket.v1", "https://app.foxglove.dev": "open foxglove.websocket.v1",
+                    "https://evil.example": "refused 403"}, seen
+    print(f"\nlistening sockets of the flight: {socks}; relay by Origin: {seen}")
