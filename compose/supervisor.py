@@ -365,10 +365,20 @@ class Supervisor:
     # ------------------------------------------------------------------ main loop
     def run(self) -> int:
         a = self.args
-        sc = self.sc
         out: Path = a.out
         listen = list(a.listen) or [f"tcp/127.0.0.1:{bus.free_port()}"]
         settings, listen = self._security(listen, out)
+        # a second flight into this OUT would overwrite our results: exit 2 naming --out, now
+        out_lock = lock_output_dir(out, "--out")
+        try:
+            return self._run_locked(listen, settings, out)
+        finally:
+            out_lock.release()
+
+    def _run_locked(self, listen: list[str], settings: dict, out: Path) -> int:
+        """:meth:`run` once the output directory is locked: the router, the processes, the watch."""
+        a = self.args
+        sc = self.sc
         self.connect_endpoints = list(a.connect) or list(listen)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
@@ -962,14 +972,6 @@ def _run_up(ns: argparse.Namespace) -> int:
         if args.live is not None:
             raise ScenarioError("--live", "not with --only: the live view runs beside the supervisor of the whole swarm")
         return _run_only(args)
-    out_lock = lock_output_dir(args.out, "--out")  # a second flight into this OUT: exit 2 now
-    try:
-        return _run_supervisor(args, sc)
-    finally:
-        out_lock.release()
-
-
-def _run_supervisor(args: UpOptions, sc: Scenario) -> int:
     sup = Supervisor(args, sc)
     if args.live is not None:  # bound now: a port in use is exit 2 before any process starts
         from zenswarm.bridge.live import LiveView, open_in_app
