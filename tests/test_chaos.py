@@ -305,6 +305,7 @@ def test_disk_full_while_recording(tmp_path: Path, small_fs: Path) -> None:
     from zenswarm.bridge.mcapio import read_recording
 
     recording = read_recording(rec)
+    assert "No space left on device" in recording.metadata["zenswarm"]["recorder_stop_reason"], recording.metadata
     states = sorted(m.publish_time / 1e9 for m in recording.messages(lambda topic: topic.endswith("/uav/1/state")))
     assert states and states[-1] <= loss["died_at_sim_time_s"] + 0.5, (states[-3:], loss)
     ticks = [round(t * 100) for t in states]
