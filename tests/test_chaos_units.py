@@ -51,8 +51,8 @@ def test_a_recording_on_a_full_disk_is_ended_readable(tmp_path: Path, monkeypatc
     sink = McapSink(path, keys, flush_interval_s=0.0, chunk_size=2048, metadata=build_metadata("disk", "lockstep", None, "test"))
     sink.start()
     for k in range(3000):
-        t = k * 10_000_000
-        sink.put(1_700_000_000_000_000_000 + k, keys.state(1), wire.encode(wire.State(t=t, seq=k + 1, q=[k, 0, 1], v=[0, 0, 0], rpy=[0, 0, 0], w=[0, 0, 0])))
+        st = wire.State(t=k * 10_000_000, seq=k + 1, q=[k, 0, 1], v=[0, 0, 0], rpy=[0, 0, 0], w=[0, 0, 0])
+        sink.put(1_700_000_000_000_000_000 + k, keys.state(1), wire.encode(st))
     sink.close()
     assert isinstance(sink.error, OSError) and sink.error.errno == errno.ENOSPC
     assert sink.salvaged is not None and sink.salvaged.startswith("cut at the last flush"), sink.salvaged
@@ -91,7 +91,8 @@ def test_failsafe_intervals_from_the_plants_diagnostics() -> None:
     sc = load_scenario(EX1)
     keys = wire.Keys("fs")
     c = Collector(sc, keys)
-    for t, fs in ((1.0, "none"), (3.5, "2:hover"), (4.0, "2:hover"), (5.0, "2:land,3:hover"), (6.0, "3:hover"), (7.0, "none"), (9.0, "1:hover")):
+    told = ((1.0, "none"), (3.5, "2:hover"), (4.0, "2:hover"), (5.0, "2:land,3:hover"), (6.0, "3:hover"), (7.0, "none"), (9.0, "1:hover"))
+    for t, fs in told:
         c.on_sample(keys.diag("plant"), _diag(t, fs))
     c.on_sample(keys.diag("agent:1"), wire.encode(wire.Diag(t=0, seq=1, process="agent:1", counters={}, info={"failsafe": "2:hover"})))
     assert c.failsafe_intervals() == [
