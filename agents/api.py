@@ -39,12 +39,16 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import msgspec
 import numpy as np
 
+from zenswarm.plugins import STAGE_BUILD, STAGE_SHARE, STAGE_STEP, Boundary, bad_scalar, bad_vector
+
 if TYPE_CHECKING:  # pragma: no cover
     from zenswarm.config import Scenario
 
 __all__ = [
     "Neighbour", "ControllerContext", "Shared", "Command", "Controller", "NoParams", "received", "context_of",
     "make_controller", "inputs_of", "prepare", "finish",
+    "boundary_of", "build_controller", "check_shared", "check_command", "checked_reset", "checked_share", "checked_prepare",
+    "checked_finish",
 ]
 
 _EMPTY: Mapping[str, np.ndarray] = MappingProxyType({})
@@ -224,3 +228,85 @@ def finish(ctrl: Controller, q: np.ndarray, v: np.ndarray, prepared: Any, dt: fl
         return cmd
     nbrs, leader = prepared
     return ctrl.step(q, v, nbrs, leader, dt)
+
+
+# ----------------------------------------------------------------------------- the plug-in boundary
+#
+# The runners (the simulator, the agent process, ``zenswarm verify``) call a controller through
+# these: an exception, a non-finite or a wrongly shaped output becomes a
+# :class:`zenswarm.errors.PluginFailure` naming the controller, the UAV, the tick and the call
+# or field, the same in every runner (docs/plugins.md, "When a plug-in fails").
+
+
+def boundary_of(scenario: Scenario, i: int) -> Boundary:
+    """The boundary of agent i's (0-based) controller: process ``agent:<i+1>``, UAV i + 1."""
+    return Boundary("controller", scenario.agents.controller, f"agent:{i + 1}", (i + 1,))
+
+
+def build_controller(scenario: Scenario, i: int, mass: float, g: float) -> Controller:
+    """:func:`make_controller`, with the plug-in's constructor at the boundary (tick 0, stage
+    build): a bad name or parameter is a ScenarioError (exit 2, checked before any work), an
+    exception of the constructor a PluginFailure."""
+    from zenswarm.plugins import decode_params, plugin_rng, resolve
+
+    cls = resolve("controller", scenario.agents.controller)
+    params = decode_params(cls, scenario.agents.params, "agents.params")
+    ctx = context_of(scenario, i, mass, g, plugin_rng(scenario.seed, i + 1))
+    ctrl: Controller = boundary_of(scenario, i).call(0, STAGE_BUILD, "__init__", cls, ctx, params)
+    return ctrl
+
+
+def check_shared(sh: Any, shares: Mapping[str, tuple[int, ...]]) -> list[tuple[str, str] | None]:
+    """What is wrong with a :meth:`Controller.share` result: (field, problem) pairs (None: fine)."""
+    if not (hasattr(sh, "q") and hasattr(sh, "v")):
+        return [("share", f"{type(sh).__name__} is not a Shared (q, v, extra)")]
+    out: list[tuple[str, str] | None] = []
+    for name, x in (("q", sh.q), ("v", sh.v)):
+        bad = bad_vector(x, (3,))
+        out.append(None if bad is None else (name, bad))
+    extra = getattr(sh, "extra", None) or {}
+    for name, shape in shares.items():
+        x = extra.get(name) if isinstance(extra, Mapping) else None
+        size = int(np.prod(shape))
+        bad = "missing (declared in shares)" if x is None else bad_vector(np.reshape(np.asarray(x, dtype=float), -1), (size,))
+        out.append(None if bad is None else (f"extra.{name}", bad))
+    return out
+
+
+def check_command(cmd: Any) -> list[tuple[str, str] | None]:
+    """What is wrong with a :meth:`Controller.step` result: (field, problem) pairs (None: fine)."""
+    if not isinstance(cmd, Command):
+        return [("command", f"{type(cmd).__name__} is not a zenswarm.agents.api.Command")]
+    out: list[tuple[str, str] | None] = []
+    bad = bad_scalar(cmd.thrust)
+    out.append(None if bad is None else ("thrust", bad))
+    for name, x in (("rpy", cmd.rpy), ("u", cmd.u), ("d_hat", cmd.d_hat)):
+        bad = bad_vector(x, (3,))
+        out.append(None if bad is None else (name, bad))
+    return out
+
+
+def checked_reset(ctrl: Controller, b: Boundary, k: int, q: np.ndarray, v: np.ndarray) -> None:
+    """:meth:`Controller.reset` at tick k (stage share: it starts what the tick shares)."""
+    b.call(k, STAGE_SHARE, "reset", ctrl.reset, q, v)
+
+
+def checked_share(ctrl: Controller, b: Boundary, k: int) -> Shared:
+    """:meth:`Controller.share` of tick k, checked (finite (3,) q and v, the declared extras)."""
+    sh: Shared = b.call(k, STAGE_SHARE, "share", ctrl.share)
+    b.check(k, STAGE_SHARE, "share", check_shared(sh, ctrl.shares))
+    return sh
+
+
+def checked_prepare(ctrl: Controller, b: Boundary, k: int, nbr: Sequence[Any], lead: Any) -> Any:
+    """:func:`prepare` of tick k at the boundary."""
+    two = bool(getattr(ctrl, "two_phase", False))
+    return b.call(k, STAGE_STEP, "prepare" if two else "step", prepare, ctrl, nbr, lead)
+
+
+def checked_finish(ctrl: Controller, b: Boundary, k: int, q: np.ndarray, v: np.ndarray, prepared: Any, dt: float) -> Command:
+    """:func:`finish` of tick k at the boundary, its command checked (finite thrust, (3,) rpy, u, d_hat)."""
+    what = "finish" if getattr(ctrl, "two_phase", False) else "step"
+    cmd: Command = b.call(k, STAGE_STEP, what, finish, ctrl, q, v, prepared, dt)
+    b.check(k, STAGE_STEP, what, check_command(cmd))
+    return cmd

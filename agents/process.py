@@ -37,7 +37,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from zenswarm import wire
-from zenswarm.agents.api import Command, Controller, finish, make_controller, prepare
+from zenswarm.agents.api import (
+    Command,
+    Controller,
+    boundary_of,
+    build_controller,
+    checked_finish,
+    checked_prepare,
+    checked_reset,
+    checked_share,
+)
 from zenswarm.agents.core import AgentRow, elapsed_dt
 from zenswarm.faults import FaultState
 from zenswarm.linkfaults import Box, box_counters, due_tick
@@ -93,7 +102,8 @@ class _Agent:
         self.me = wire.agent(index)
         self.quad = params = QuadParams.from_vehicle(sc.vehicle)
         self.row = AgentRow.from_scenario(sc, index - 1, params.mass, params.g)
-        self.ctrl: Controller = make_controller(sc, index - 1, params.mass, params.g)
+        self.bound = boundary_of(sc, index - 1)  # where the controller is called: its failures are named
+        self.ctrl: Controller = build_controller(sc, index - 1, params.mass, params.g)
         self.gen = 0  # counts the controller's ticks and restarts (what a prepared phase 1 belongs to)
         keys = self.keys = proc.keys
         self.state_key = keys.state(index)
@@ -134,7 +144,9 @@ class _Agent:
         proc.extra_counters = link_counters
 
     def publish_ref(self, t_ns: int) -> None:
-        sh = self.ctrl.share()
+        """The controller's :meth:`~zenswarm.agents.api.Controller.share` for sim time ``t_ns``
+        (its tick: ``t_ns / dt``), checked, as ``uav/<i>/ref``."""
+        sh = checked_share(self.ctrl, self.bound, int(round(t_ns / self.dt_ns)))
         self.seq += 1
         pos = tuple(self.stamp) if self.radio and self.stamp is not None else ()
         if sh.extra:
@@ -151,7 +163,7 @@ class _Agent:
     def start(self, st: wire.State, k: int) -> None:
         """(Re)start the controller from a measured state and share ref(k)."""
         self.gen += 1
-        self.ctrl.reset(st.q, st.v)
+        checked_reset(self.ctrl, self.bound, k, st.q, st.v)
         self.stamp = st.q
         self.publish_ref(k * self.dt_ns)
         if k > 0:
@@ -160,17 +172,17 @@ class _Agent:
     def restart(self) -> None:
         """A fresh controller that starts at the next state (a rejoin)."""
         self.gen += 1
-        self.ctrl = make_controller(self.sc, self.index - 1, self.quad.mass, self.quad.g)
+        self.ctrl = build_controller(self.sc, self.index - 1, self.quad.mass, self.quad.g)
 
-    def prepare(self, inputs: Mapping[str, Any]) -> Any:
-        """Phase 1 of a tick from the inputs given (a missing neighbour or leader: None)."""
-        return prepare(self.ctrl, [inputs.get(key) for key in self.nbr_keys], inputs.get(self.keys.leader_ref))
+    def prepare(self, inputs: Mapping[str, Any], k: int) -> Any:
+        """Phase 1 of tick k from the inputs given (a missing neighbour or leader: None)."""
+        return checked_prepare(self.ctrl, self.bound, k, [inputs.get(key) for key in self.nbr_keys], inputs.get(self.keys.leader_ref))
 
     def tick(self, k: int, st: wire.State, prepared: Any, dt: float | None = None) -> None:
         """Tick k (phase 2 with the state) over ``dt`` s (None: one control period, always so in
         lockstep; a realtime agent that skipped ticks passes the time that elapsed), then publish
         cmd(k) and ref(k+1)."""
-        cmd = finish(self.ctrl, st.q, st.v, prepared, self.dt if dt is None else dt)
+        cmd = checked_finish(self.ctrl, self.bound, k, st.q, st.v, prepared, self.dt if dt is None else dt)
         self.gen += 1
         t = st.t if self.proc.options.realtime else k * self.dt_ns
         self.publish_cmd(t, cmd)
@@ -231,7 +243,7 @@ class _LockstepAgent:
         msgs = [inbox.get(key, k) for key in a.input_keys]
         if None in msgs:
             return
-        self.early = _Early(k, a.gen, msgs, a.prepare(dict(zip(a.input_keys, msgs, strict=True))))
+        self.early = _Early(k, a.gen, msgs, a.prepare(dict(zip(a.input_keys, msgs, strict=True)), k))
 
     def needed(self, key: str, k: int) -> bool:
         """Wait for this input of tick k? Not if its sender is gone, or if the sender has
@@ -290,13 +302,13 @@ class _LockstepAgent:
         e, self.early = self.early, None
         if a.boxes:
             st, inputs = self._boxed_inputs(k, forced)
-            prepared = a.prepare(inputs)
+            prepared = a.prepare(inputs, k)
         else:
             st, msgs, held = self._held_inputs(k)
             if e is not None and e.k == k and e.gen == a.gen and all(x is y for x, y in zip(e.msgs, msgs, strict=True)):
                 prepared = e.prepared  # the same inputs as prepared ahead
             else:
-                prepared = a.prepare(held)
+                prepared = a.prepare(held, k)
         if forced:
             proc.counters["input_timeouts"] += 1
         raw = proc.inbox.get(a.state_key, k)  # the plant's state of tick k as sent (true position)
@@ -359,7 +371,7 @@ def _run_realtime(a: _Agent) -> int:
             proc.counters["skipped_ticks"] += k - k_prev - 1
             proc.counters["max_gap_ticks"] = max(proc.counters["max_gap_ticks"], k - k_prev)
         a.stamp = st.q
-        a.tick(k, st, a.prepare({key: m for key in a.input_keys if (m := proc.inbox.latest.get(key)) is not None}), dt)
+        a.tick(k, st, a.prepare({key: m for key in a.input_keys if (m := proc.inbox.latest.get(key)) is not None}, k), dt)
         k_prev = k
         proc.inbox.forget_before(k - 2)  # only the latest values are used: keep memory flat
         if clock.stats.ticks % 100 == 0:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
+from typing import Any
 
 from zenswarm.config import check_seed
 from zenswarm.errors import ScenarioError
@@ -184,3 +185,45 @@ def add_rt_priority_arg(p: argparse.ArgumentParser) -> None:
         "so its loop preempts normally scheduled work the moment it wakes; needs root or an RLIMIT_RTPRIO >= P "
         "(default: the normal scheduler)",
     )
+
+
+def add_override_args(p: argparse.ArgumentParser) -> None:
+    """``--set KEY=VALUE`` (repeatable) and ``--duration S``: scenario overrides by dotted path,
+    the same keys as ``api.fly(overrides=)`` and ``zenswarm sweep --grid`` (:mod:`zenswarm.overrides`)."""
+    p.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="override a scenario field by its dotted path, e.g. --set agents.params.k2=0.5 --set leader.goal=[10,0,2] "
+        "--set obstacles[0].radius=0.4 (VALUE is read as TOML, else as a string; repeatable; validated as the file is)",
+    )
+    p.add_argument(
+        "--duration", type=float, default=None, metavar="S",
+        help="fly S sim seconds (sets timing.time_limit_s; default: the scenario's)",
+    )
+
+
+def overrides_of(args: argparse.Namespace) -> dict[str, Any]:
+    """The ``--set`` and ``--duration`` overrides, in order (ScenarioError naming the flag on bad syntax)."""
+    from zenswarm.errors import ScenarioError
+    from zenswarm.overrides import parse_assignment
+
+    out: dict[str, Any] = dict(parse_assignment(text) for text in getattr(args, "overrides", None) or [])
+    duration = getattr(args, "duration", None)
+    if duration is not None:
+        if not (duration > 0 and duration == duration and duration != float("inf")):
+            raise ScenarioError("--duration", f"must be a finite number of seconds > 0, got {duration!r}")
+        out["timing.time_limit_s"] = float(duration)
+    return out
+
+
+def scenario_of(args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
+    """``args.scenario`` with ``--set`` / ``--duration`` applied, then ``--controller`` /
+    ``--planner`` (:func:`zenswarm.plugins.select`), the plug-ins resolved and their parameters
+    decoded: bad input is a ScenarioError (an OverrideError for what an override caused) naming
+    the field or flag, before any work. Returns (scenario, the overrides)."""
+    from zenswarm.overrides import check_plugins, load_file
+    from zenswarm.plugins import select
+
+    ov = overrides_of(args)
+    sc = select(load_file(args.scenario, ov), args.controller, args.planner)
+    check_plugins(sc, ov, "--controller" if args.controller else None, "--planner" if args.planner else None)
+    return sc, ov

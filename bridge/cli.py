@@ -3,7 +3,7 @@
 ``record`` (:mod:`zenswarm.bridge.recorder`), ``replay`` and ``verify`` (:mod:`zenswarm.bridge.replay`),
 ``recover`` (:mod:`zenswarm.bridge.mcapio`), ``info`` (:mod:`zenswarm.bridge.info`);
 ``report`` (:mod:`zenswarm.bridge.report`) and ``export``
-(:mod:`zenswarm.bridge.foxglove`) when those modules are present.
+(:mod:`zenswarm.bridge.export`) when those modules are present.
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def _add_recover(sub: argparse._SubParsersAction) -> None:
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Register ``record``, ``replay``, ``verify``, ``recover``, ``info`` (and ``report``/``export``
-    when :mod:`zenswarm.bridge.report` / :mod:`zenswarm.bridge.foxglove` exist)."""
+    when :mod:`zenswarm.bridge.report` / :mod:`zenswarm.bridge.export` exist)."""
     from zenswarm.bridge import info, recorder, replay
 
     recorder.add_parser(sub)
@@ -76,7 +76,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     from zenswarm.bridge import mavlink
 
     mavlink.add_parsers(sub)
-    for modname in ("zenswarm.bridge.report", "zenswarm.bridge.foxglove"):
+    for modname in ("zenswarm.bridge.report", "zenswarm.bridge.export"):
         try:
             mod = __import__(modname, fromlist=["add_parser"])
         except ImportError as e:

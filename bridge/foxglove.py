@@ -7,7 +7,8 @@ schema per message kind (``zenswarm.State``, ``zenswarm.Ref``, ``zenswarm.Cmd``,
 them (``v``, ``k``, ``t``, ``seq``, ``q``, ``vel``...). Topics are the recorded Zenoh keys.
 
 On top of that it adds, at ``--scene-hz`` (default 20 Hz) of sim time, the frames of
-:mod:`zenswarm.bridge.scene` (the code ``zenswarm up --live`` serves to the Foxglove app too):
+:mod:`zenswarm.bridge.scene`, encoded by :mod:`zenswarm.bridge.foxglove_scene` (the code ``zenswarm up
+--live`` serves to the Foxglove app too):
 
 ``/scene``    ``foxglove.SceneUpdate``: obstacles with their caps and d0 bands, the UAVs, the
               formation links, trails over the last ``--trail-s`` seconds, the virtual leader and
@@ -27,10 +28,10 @@ time (a lockstep run that computed 25x faster than real time plays at its real s
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,7 @@ from typing import Any
 import msgpack
 
 from zenswarm import wire
+from zenswarm.bridge.scene import METRICS_TOPIC, SCENE_TOPIC, TF_TOPIC
 from zenswarm.errors import RecordingError, ZenswarmError
 
 __all__ = [
@@ -48,15 +50,12 @@ __all__ = [
     "wire_to_json",
     "ExportSummary",
     "export_foxglove",
-    "add_parsers",
+    "interleave",
+    "scene_frames",
 ]
 
-SCENE_TOPIC = "/scene"
-TF_TOPIC = "/tf"
-METRICS_TOPIC = "/metrics"
-WORLD = "world"
-# The Foxglove SDK is imported where it is used (zenswarm.bridge.scene): this module is imported
-# by the CLI of every zenswarm process.
+# The Foxglove SDK is imported where it is used (here, and in zenswarm.bridge.foxglove_scene): this
+# module is imported by the CLI of every zenswarm process.
 
 # =========================================================================== JSON Schemas: wire
 
@@ -165,10 +164,13 @@ class ExportSummary:
         self.skipped[why] = self.skipped.get(why, 0) + 1
 
 
-def _json_items(rec: Any, keys: wire.Keys, summary: ExportSummary) -> tuple[list[tuple[int, int, str, str, bytes]], int]:
+def _json_items(
+    rec: Any, keys: wire.Keys, summary: ExportSummary, kinds: frozenset[str] | None = None
+) -> tuple[list[tuple[int, int, str, str, bytes]], int]:
     """The recorded messages as JSON: ``(sim t ns, file order, topic, kind, json)`` (what cannot
     be exported is counted in ``summary.skipped``), and the time base, ns: the first received
-    message's receive time minus its sim time (0 without messages)."""
+    message's receive time minus its sim time (0 without messages). ``kinds``: only messages of
+    these kinds (the others are left out, uncounted, and do not set the time base)."""
     items: list[tuple[int, int, str, str, bytes]] = []  # (sim t, order, topic, kind, json)
     first_rx: tuple[int, int] | None = None  # (receive time, sim t) of the first message received
     for order, m in enumerate(rec.messages):
@@ -183,6 +185,8 @@ def _json_items(rec: Any, keys: wire.Keys, summary: ExportSummary) -> tuple[list
         kind = wire.message_kind(key_kind)
         if kind is None:
             summary.skip("liveliness token")
+            continue
+        if kinds is not None and kind not in kinds:
             continue
         try:
             data = wire_to_json(kind, m.data)
@@ -223,7 +227,7 @@ class _Scene:
     frames: list[tuple[int, int]]
     stride: int
     trail_ticks: int
-    channels: Any  # zenswarm.bridge.scene.SceneChannels
+    channels: Any  # zenswarm.bridge.foxglove_scene.SceneChannels
 
     def put(self, out: _Out, j: int, diag: dict[str, dict[str, Any]]) -> None:
         """Write frame j on /scene, /tf and /metrics."""
@@ -233,40 +237,66 @@ class _Scene:
         self.channels.put(frame_from_series(self.ts, k, self.trail_ticks, self.stride), out.base + ts_ns, diag)
 
 
-def _scene(ts: Any, sc: Any, out: _Out, scene_hz: float, trail_s: float) -> _Scene | None:
-    """The scene of the flight series ``ts`` (None without one)."""
-    from zenswarm.bridge.scene import SceneChannels
-
+def scene_frames(ts: Any, sc: Any, scene_hz: float, trail_s: float) -> tuple[list[tuple[int, int]], int, int]:
+    """The frames of the flight series ``ts`` at ``scene_hz`` of sim time: ``(sim t ns, tick)``
+    every ``stride`` ticks, the stride and the trails' length in ticks (no frame without a series)."""
     if ts is None or not len(ts.t):
-        return None
+        return [], 1, 0
     dt = sc.timing.dt
     stride = max(1, int(round(1.0 / (scene_hz * dt))))
-    frames = [(wire.t_ns(float(ts.t[k])), k) for k in range(0, len(ts.t), stride)]
-    return _Scene(ts, frames, stride, int(round(trail_s / dt)), SceneChannels(sc, out.context, trail_s))
+    return [(wire.t_ns(float(ts.t[k])), k) for k in range(0, len(ts.t), stride)], stride, int(round(trail_s / dt))
+
+
+def _scene(ts: Any, sc: Any, out: _Out, scene_hz: float, trail_s: float) -> _Scene | None:
+    """The scene of the flight series ``ts`` (None without one)."""
+    from zenswarm.bridge.foxglove_scene import SceneChannels
+
+    frames, stride, trail_ticks = scene_frames(ts, sc, scene_hz, trail_s)
+    if not frames:
+        return None
+    return _Scene(ts, frames, stride, trail_ticks, SceneChannels(sc, out.context, trail_s))
+
+
+def interleave(
+    items: list[tuple[int, int, str, str, bytes]],
+    frame_times: list[int],
+    put_frame: Callable[[int, dict[str, dict[str, Any]]], None],
+    put_message: Callable[[int, str, str, bytes], None],
+) -> None:
+    """Walk the recorded messages ``items`` (JSON, in sim-time order) and the frames at sim times
+    ``frame_times`` (ns) together: ``put_frame(j, diag)`` for frame j before the messages of a
+    later sim time, with the diagnostics received up to then (process -> its newest, as
+    :func:`zenswarm.bridge.scene.diag_view`); ``put_message(t, topic, kind, json)`` for each message."""
+    from zenswarm.bridge.scene import diag_view
+
+    diag: dict[str, dict[str, Any]] = {}
+    j = 0
+    for t_sim, _, topic, kind, data in items:
+        while j < len(frame_times) and frame_times[j] <= t_sim:
+            put_frame(j, diag)
+            j += 1
+        put_message(t_sim, topic, kind, data)
+        if kind == "diag":
+            d = json.loads(data)
+            diag[d["process"]] = diag_view(wire.Diag(d["t"], d["seq"], d["process"], d["counters"], d["info"]))
+    for jj in range(j, len(frame_times)):
+        put_frame(jj, diag)
 
 
 def _write_messages(out: _Out, items: list[tuple[int, int, str, str, bytes]], scene: _Scene | None, summary: ExportSummary) -> None:
     """The recorded messages in sim-time order (file order among equal times), each scene frame
     before the messages of a later sim time (with the diagnostics received up to then)."""
-    from zenswarm.bridge.scene import diag_view
 
-    frames = scene.frames if scene is not None else []
-    diag: dict[str, dict[str, Any]] = {}
-    j = 0
-    for t_sim, _, topic, kind, data in items:
-        while j < len(frames) and frames[j][0] <= t_sim:
-            scene.put(out, j, diag)  # type: ignore[union-attr]
-            summary.scene_frames += 1
-            j += 1
+    def put_frame(j: int, diag: dict[str, dict[str, Any]]) -> None:
+        scene.put(out, j, diag)  # type: ignore[union-attr]
+        summary.scene_frames += 1
+
+    def put_message(t_sim: int, topic: str, kind: str, data: bytes) -> None:
         out.put(topic, kind, t_sim, data)
-        if kind == "diag":
-            d = json.loads(data)
-            diag[d["process"]] = diag_view(wire.Diag(d["t"], d["seq"], d["process"], d["counters"], d["info"]))
         summary.topics[topic] = summary.topics.get(topic, 0) + 1
         summary.messages += 1
-    for jj in range(j, len(frames)):
-        scene.put(out, jj, diag)  # type: ignore[union-attr]
-        summary.scene_frames += 1
+
+    interleave(items, [t for t, _ in scene.frames] if scene is not None else [], put_frame, put_message)
     if summary.scene_frames:
         summary.topics[SCENE_TOPIC] = summary.topics[TF_TOPIC] = summary.topics[METRICS_TOPIC] = summary.scene_frames
 
@@ -314,40 +344,3 @@ def export_foxglove(recording: str | Path, out: str | Path, *, scene_hz: float =
                 w.write_metadata(name, dict(d))
     os.replace(tmp, out)
     return summary
-
-
-# =========================================================================== CLI
-
-
-def _run_export(args: argparse.Namespace) -> int:
-    from zenswarm.paths import check_output_file
-
-    check_output_file(args.out, "--out")
-    s = export_foxglove(args.foxglove, args.out, scene_hz=args.scene_hz, trail_s=args.trail_s)
-    skipped = ", ".join(f"{n} {why}" for why, n in sorted(s.skipped.items())) or "none"
-    print(
-        f"{s.out}: {s.messages} recorded messages on {len(s.topics) - (2 if s.scene_frames else 0)} JSON channels, "
-        f"{s.scene_frames} scene frames on {SCENE_TOPIC} and {TF_TOPIC}; skipped: {skipped}"
-    )
-    print(s.out)
-    return 0
-
-
-def add_parsers(sub: argparse._SubParsersAction) -> None:
-    """Register ``zenswarm export`` on the CLI's subparsers."""
-    p = sub.add_parser(
-        "export",
-        help="export a recording for other tools (--foxglove: JSON channels + 3D scene for Foxglove)",
-        description=(
-            "Export a recording. --foxglove FILE writes OUT, an MCAP file Foxglove opens without "
-            "plugins: every recorded message as JSON with a JSON Schema per message kind (topics "
-            "are the Zenoh keys), plus a 3D scene on /scene (foxglove.SceneUpdate: obstacles, "
-            "UAVs, trails, the virtual leader and its enclosing sphere) and /tf "
-            "(foxglove.FrameTransforms), timed in sim time."
-        ),
-    )
-    p.add_argument("--foxglove", type=Path, required=True, metavar="FILE", help="the MCAP recording to export")
-    p.add_argument("--out", type=Path, required=True, metavar="OUT.mcap", help="output MCAP file (replaced if present)")
-    p.add_argument("--scene-hz", type=float, default=20.0, help="rate of /scene and /tf in sim time (default 20)")
-    p.add_argument("--trail-s", type=float, default=10.0, help="length of the trails, s of sim time (default 10)")
-    p.set_defaults(func=_run_export)

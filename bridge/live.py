@@ -1,20 +1,24 @@
-"""The live view: a flying (or replayed) swarm served to the Foxglove app over its WebSocket
-protocol, by the ``foxglove-sdk`` package's server, under both names of the protocol
-(subprotocols ``foxglove.sdk.v1`` and ``foxglove.websocket.v1``, see :class:`SubprotocolRelay`).
+"""The live views: a flying (or replayed) swarm served to a viewer while it flies.
 
-:class:`LiveView` keeps the newest message of each key it is fed (:meth:`LiveView.feed`, a dict
-store per message: cheap enough for the supervisor's bus loop) and, at most ``hz`` times per wall
-second (:meth:`LiveView.maybe_publish`), decodes the newest states, references and diagnostics
-into a :class:`zenswarm.bridge.scene.Frame` and logs it on ``/scene``, ``/tf`` and ``/metrics``
-with the scene code ``zenswarm export --foxglove`` writes files with
-(:class:`zenswarm.bridge.scene.SceneChannels`). Frames are stamped ``base + sim time``, base the
-wall time the server started, so the app's plots run in sim time.
+``--live [PORT]``: the Foxglove app, over its WebSocket protocol, by the ``foxglove-sdk``
+package's server, under both names of the protocol (subprotocols ``foxglove.sdk.v1`` and
+``foxglove.websocket.v1``, see :class:`SubprotocolRelay`). ``--live rerun[:PORT]``: Rerun's own
+web viewer and gRPC server (:class:`zenswarm.bridge.rerun_scene.RerunLiveView`, extra
+``zenswarm[rerun]``). :func:`open_view` makes either from a :class:`LiveTarget`.
+
+Both keep the newest messages of the swarm (:class:`zenswarm.bridge.scene.LatestFrames`, fed
+per message: cheap enough for the supervisor's bus loop) and, at most ``hz`` times per wall
+second (``maybe_publish``), make a :class:`zenswarm.bridge.scene.Frame` of one tick and log it:
+here on ``/scene``, ``/tf`` and ``/metrics`` with the scene code ``zenswarm export --foxglove``
+writes files with (:class:`zenswarm.bridge.foxglove_scene.SceneChannels`). Foxglove frames are
+stamped ``base + sim time``, base the wall time the server started, so the app's plots run in
+sim time; Rerun's are on its ``sim_time`` timeline.
 
 It runs where the swarm's messages already arrive and never in a swarm process: in the
 supervisor of ``zenswarm up --live`` (fed from its bus loop; the flight's processes do not know
 it exists, so a lockstep flight is the same bit for bit), or beside a replay (``zenswarm replay
 --live``: a Zenoh session of its own, subscribed to the replayed swarm, see :class:`BusViewer`).
-The server listens on 127.0.0.1 only: anyone who reaches it sees the flight.
+The servers listen on 127.0.0.1 only: anyone who reaches them sees the flight.
 
 Why a relay: the SDK's server (every foxglove-sdk release on PyPI, 0.5.0 to 0.30.3, tried) accepts
 a client only if it offers ``foxglove.sdk.v1``, the protocol's current name, and answers HTTP 400 to
@@ -36,12 +40,10 @@ import os
 import re
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from zenswarm import wire
 from zenswarm.errors import ScenarioError
 
 __all__ = [
@@ -49,7 +51,11 @@ __all__ = [
     "LIVE_HZ",
     "SUBPROTOCOLS",
     "live_port",
+    "live_target",
+    "LiveTarget",
+    "LIVE_HELP",
     "LiveView",
+    "open_view",
     "SubprotocolRelay",
     "BusViewer",
     "open_in_app",
@@ -84,7 +90,7 @@ bound by the same-origin policy): one from another site is refused with HTTP 403
 
 
 def live_port(text: str) -> int:
-    """argparse type of ``--live [PORT]``: a TCP port 1..65535."""
+    """argparse type of a TCP port 1..65535."""
     try:
         port = int(text)
     except ValueError:
@@ -92,6 +98,41 @@ def live_port(text: str) -> int:
     if not 1 <= port <= 65535:
         raise argparse.ArgumentTypeError(f"{port}: a TCP port is 1..65535")
     return port
+
+
+@dataclass(frozen=True)
+class LiveTarget:
+    """What ``--live`` asks for: ``viewer`` ``foxglove`` (the Foxglove WebSocket server on
+    ``port``) or ``rerun`` (Rerun's web viewer on ``port``, its gRPC server beside it)."""
+
+    viewer: str
+    port: int
+
+
+RERUN_WEB_PORT = 9090
+"""``--live rerun`` without a port: the Rerun web viewer's default HTTP port."""
+
+LIVE_HELP = (
+    f"PORT (default {DEFAULT_PORT}): serve the flight to the Foxglove app over its WebSocket protocol on "
+    f"ws://127.0.0.1:PORT; rerun[:PORT]: serve Rerun's web viewer on http://127.0.0.1:PORT (default {RERUN_WEB_PORT}) "
+    "and its gRPC data server (for the native viewer too), URL printed (needs zenswarm[rerun]). "
+    "Both show the 3D scene, attitudes, errors, clearance, failsafe and links (docs/live.md); loopback only"
+)
+
+
+def live_target(text: str) -> LiveTarget:
+    """argparse type of ``--live [PORT | rerun | rerun:PORT]``."""
+    if text == "rerun":
+        return LiveTarget("rerun", RERUN_WEB_PORT)
+    if text.startswith("rerun:"):
+        return LiveTarget("rerun", live_port(text[len("rerun:") :]))
+    if not text.strip().isdigit():
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a TCP port (Foxglove), rerun or rerun:PORT")
+    return LiveTarget("foxglove", live_port(text))
+
+
+FOXGLOVE_DEFAULT = LiveTarget("foxglove", DEFAULT_PORT)
+"""``--live`` alone: the Foxglove view on its default port."""
 
 
 def open_in_app(url: str) -> str:
@@ -104,13 +145,17 @@ class LiveView:
     construction: a port in use raises :class:`ScenarioError` naming ``flag`` (exit 2, before
     the flight). ``port`` 0: any free port (see :attr:`port`)."""
 
+    viewer = "foxglove"
+
     def __init__(self, sc: Any, swarm: str, port: int, *, flag: str = "--live", hz: float = LIVE_HZ, trail_s: float = 10.0) -> None:
         import foxglove
 
-        from zenswarm.bridge.scene import SceneChannels, Trails
+        from zenswarm.bridge.foxglove_scene import SceneChannels
+        from zenswarm.bridge.scene import LatestFrames
 
         self.sc = sc
-        self.keys = wire.Keys(swarm)
+        self.latest = LatestFrames(sc, swarm, trail_s)
+        self.keys = self.latest.keys
         self.context = foxglove.Context()  # the server's own: no other channel of this process on it
         # the channels first: a client that connects at once is advertised all three in one go
         # (a channel created after the server started can race a client's subscription to it)
@@ -125,21 +170,18 @@ class LiveView:
             raise ScenarioError(flag, f"cannot serve the live view on {HOST}:{port}: {reason}") from None
         self.port: int = self.relay.port
         self.url = f"ws://{HOST}:{self.port}"
-        self.trails = Trails(sc.n, trail_s)
         self.period = 1.0 / hz
         self.base_ns = time.time_ns()
         self.frames = 0
-        self._last: dict[str, bytes] = {}
         self._next = 0.0
-        self._shown = -1  # sim time of the last frame, ns
-        n = sc.n
-        self._state_keys = [self.keys.state(i) for i in range(1, n + 1)]
-        self._ref_keys = [self.keys.ref(i) for i in range(1, n + 1)]
-        self._diag_prefix = self.keys.prefix + "/diag/"
+
+    def how_to_open(self) -> str:
+        """The line the commands print: where the view is and how to open it."""
+        return open_in_app(self.url)
 
     def feed(self, key: str, payload: bytes) -> None:
         """Take one message of the swarm (the newest of each key is kept)."""
-        self._last[key] = payload
+        self.latest.feed(key, payload)
 
     def maybe_publish(self, now: float) -> bool:
         """Publish a frame if one is due at ``now`` (monotonic s) and something new arrived."""
@@ -148,44 +190,13 @@ class LiveView:
         self._next = now + self.period
         return self.publish()
 
-    def _decode(self, key: str, kind: str) -> Any:
-        payload = self._last.get(key)
-        if payload is None:
-            return None
-        try:
-            return wire.decode(kind, payload)
-        except wire.WireDecodeError:
-            return None
-
     def publish(self) -> bool:
         """Log a frame of the newest messages (False: no state yet, or none newer than the last frame)."""
-        from zenswarm.bridge.scene import Frame, diag_view
-
-        n = self.sc.n
-        nan = np.full((n, 3), np.nan)
-        q, v, rpy, qref = nan.copy(), nan.copy(), nan.copy(), nan.copy()
-        t_ns = -1
-        for i, key in enumerate(self._state_keys):
-            st = self._decode(key, "state")
-            if isinstance(st, wire.State):
-                q[i], v[i], rpy[i] = st.q, st.v, st.rpy
-                t_ns = max(t_ns, st.t)
-        for i, key in enumerate(self._ref_keys):
-            r = self._decode(key, "ref")
-            if isinstance(r, wire.Ref):
-                qref[i] = r.q
-        lead = self._decode(self.keys.leader_ref, "ref")
-        q0 = np.asarray(lead.q, dtype=float) if isinstance(lead, wire.Ref) else np.full(3, np.nan)
-        if t_ns < 0 or t_ns == self._shown:
+        got = self.latest.frame()
+        if got is None:
             return False
-        self._shown = t_ns
-        diag = {}
-        for key in [k for k in self._last if k.startswith(self._diag_prefix)]:
-            d = self._decode(key, "diag")
-            if isinstance(d, wire.Diag):
-                diag[d.process] = diag_view(d)
-        trail0, trails = self.trails.add(t_ns, q0, q)
-        self.channels.put(Frame(t_ns, q0, q, v, rpy, qref, trail0, trails), self.base_ns + t_ns, diag)
+        f, diag = got
+        self.channels.put(f, self.base_ns + f.t_ns, diag)
         self.frames += 1
         return True
 
@@ -308,12 +319,24 @@ class BusViewer:
             self.view.close()
 
 
-def replay_viewer(path: Path, swarm: str | None, port: int, connect: list[str]) -> BusViewer:
-    """``zenswarm replay FILE --live PORT``: the live view of the swarm the replay publishes
-    (``swarm``, or the recorded one), scenario from the recording's metadata."""
+def open_view(target: LiveTarget, sc: Any, swarm: str, *, flag: str = "--live") -> Any:
+    """The live view ``target`` asks for: a Foxglove :class:`LiveView`, or Rerun's web viewer and
+    gRPC server (:class:`zenswarm.bridge.rerun_scene.RerunLiveView`). Bound or started now: a
+    port in use, or Rerun not installed, raises :class:`ScenarioError` naming ``flag``."""
+    if target.viewer == "rerun":
+        from zenswarm.bridge.rerun_scene import RerunLiveView, require_rerun
+
+        require_rerun(flag)
+        return RerunLiveView(sc, swarm, target.port, flag=flag)
+    return LiveView(sc, swarm, target.port, flag=flag)
+
+
+def replay_viewer(path: Path, swarm: str | None, target: LiveTarget, connect: list[str]) -> BusViewer:
+    """``zenswarm replay FILE --live [PORT|rerun]``: the live view of the swarm the replay
+    publishes (``swarm``, or the recorded one), scenario from the recording's metadata."""
     from zenswarm.bridge.report import load_recording
 
     rec = load_recording(path)
-    view = LiveView(rec.scenario, swarm or rec.swarm, port)
-    print(open_in_app(view.url), flush=True)
+    view = open_view(target, rec.scenario, swarm or rec.swarm)
+    print(view.how_to_open(), flush=True)
     return BusViewer(view, connect)

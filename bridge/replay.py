@@ -1016,8 +1016,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="before the first message, wait up to S s for a subscriber to match (default 2)",
     )
     p.add_argument(
-        "--live", nargs="?", const=live.DEFAULT_PORT, type=live.live_port, metavar="PORT",
-        help=f"also serve the replayed swarm to the Foxglove app on ws://127.0.0.1:PORT (default {live.DEFAULT_PORT}; docs/live.md)",
+        "--live", nargs="?", const=live.FOXGLOVE_DEFAULT, type=live.live_target, metavar="PORT|rerun[:PORT]",
+        help=f"also serve the replayed swarm to a viewer. {live.LIVE_HELP}",
     )
     p.add_argument("--verify", action="store_true", help="verify agent --agent against the recording instead of publishing")
     p.add_argument("--agent", type=_agents_arg, metavar="I", help="with --verify: UAV number I (1..N) or 'all'")

@@ -1,45 +1,45 @@
-"""The flight as Foxglove sees it, one frame at a time: the 3D scene, the frame transforms and the
-time series. One code for both outputs: ``zenswarm export --foxglove`` writes these frames to an
-MCAP file (:mod:`zenswarm.bridge.foxglove`), ``zenswarm up --live`` / ``zenswarm replay --live``
-serve them to the Foxglove app over its WebSocket protocol (:mod:`zenswarm.bridge.live`).
+"""What the flight's view shows, one frame at a time, independent of any viewer: the neutral
+description of the scene (:func:`describe`: entities made of spheres, cylinders, cubes, arrows,
+labels and lines, in ENU world coordinates), the vehicles' poses (:func:`poses`) and the
+flight's figures (:func:`metrics`, flattened to time series by :func:`metric_series`). Two
+encoders turn it into a viewer's format, so both viewers show the same scene from one code:
 
-Channels (the same in the file and on the live server):
+* Foxglove (:mod:`zenswarm.bridge.foxglove_scene`): ``foxglove.SceneUpdate`` on ``/scene``,
+  ``foxglove.FrameTransforms`` on ``/tf``, JSON on ``/metrics`` (:data:`METRICS_SCHEMA`), for
+  ``zenswarm export --foxglove`` (a file) and ``zenswarm up/replay --live`` (the WebSocket server);
+* Rerun (:mod:`zenswarm.bridge.rerun_scene`): Rerun archetypes under ``world/...`` and scalar time
+  series under ``metrics/...`` on the ``sim_time`` timeline, for ``zenswarm export --rerun`` (an
+  ``.rrd`` file) and ``--live rerun`` (Rerun's own web viewer and gRPC server).
 
-``/scene``    ``foxglove.SceneUpdate`` (protobuf, Foxglove's official schema as the ``foxglove-sdk``
-              package ships it): obstacles (cylinder + sphere for the hemispherical cap), their d0
-              bands (translucent: where the leader's centre q0 feels the AAPF repulsion, eqs
-              (10)-(13): d_obs(q0) <= d0, i.e. within r_o + r_f + d0 of the obstacle's axis or
-              cap centre), the UAVs (spheres, a velocity arrow, a label, a faint sphere at the
-              reference q*_i), the formation links (the graph's edges a_ij > 0 between UAVs, and
-              the pinned UAVs b_i > 0 to the leader), trails over the last ``trail_s`` seconds,
-              the virtual leader and its enclosing sphere of radius r_f, start and goal. Every
-              message holds the whole scene, so a seek shows it complete.
-``/tf``       ``foxglove.FrameTransforms`` (protobuf): ``world`` -> ``leader`` and ``world`` ->
-              ``uav<i>`` (attitude from the measured roll/pitch/yaw).
-``/metrics``  JSON (:data:`METRICS_SCHEMA`): formation and tracking errors, obstacle clearance per
-              UAV and their extremes, the closest UAV pair, the leader's d_obs, the failsafe state
-              (the plant's diagnostics) and per-link delivery and age (the agents' link counters,
-              present when link faults are on: without them every link delivers everything).
+The scene: obstacles (cylinder + sphere for the hemispherical cap), their d0 bands (translucent:
+where the leader's centre q0 feels the AAPF repulsion, eqs (10)-(13): d_obs(q0) <= d0, i.e. within
+r_o + r_f + d0 of the obstacle's axis or cap centre), the UAVs (spheres, a velocity arrow, a
+label, a faint sphere at the reference q*_i), the formation links (the graph's edges a_ij > 0
+between UAVs, and the pinned UAVs b_i > 0 to the leader), trails over the last ``trail_s``
+seconds, the virtual leader and its enclosing sphere of radius r_f, start and goal. Every frame
+holds the whole scene (the entities marked ``static`` are the same in every frame).
 
-Coordinates are ENU, z up, m, as in the paper; every stamp is the caller's ``stamp_ns``.
+The poses: ``world`` -> ``leader`` and ``world`` -> ``uav<i>`` (attitude from the measured
+roll/pitch/yaw). The figures (:data:`METRICS_SCHEMA`): formation and tracking errors, obstacle
+clearance per UAV and their extremes, the closest UAV pair, the leader's d_obs, the failsafe state
+(the plant's diagnostics) and per-link delivery and age (the agents' link counters, present when
+link faults are on: without them every link delivers everything).
+
+Coordinates are ENU, z up, m, as in the paper; times are sim time, ns. Pure data: numpy and the
+base (no viewer's package is imported here).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from foxglove import Channel, Context
-from foxglove import messages as fm
-from foxglove.channels import FrameTransformsChannel, SceneUpdateChannel
 
 from zenswarm import wire
-from zenswarm.bridge.foxglove import METRICS_TOPIC, SCENE_TOPIC, TF_TOPIC, WORLD
 from zenswarm.geometry import d_obs_many, obstacle_clearance_many
 
 __all__ = [
@@ -50,14 +50,36 @@ __all__ = [
     "METRICS_SCHEMA",
     "Frame",
     "Trails",
+    "LatestFrames",
     "frame_from_series",
-    "scene_update",
-    "frame_transforms",
+    "Sphere",
+    "Cylinder",
+    "Cube",
+    "Arrow",
+    "Label",
+    "Polyline",
+    "Entity",
+    "Pose",
+    "static_entities",
+    "describe",
+    "poses",
+    "palette",
+    "quat_rpy",
+    "quat_x_to",
     "metrics",
-    "SceneChannels",
+    "metric_series",
     "diag_view",
+    "failsafe_modes",
 ]
 
+SCENE_TOPIC = "/scene"
+"""The scene's stream (Foxglove topic ``/scene``)."""
+TF_TOPIC = "/tf"
+"""The poses' stream (Foxglove topic ``/tf``)."""
+METRICS_TOPIC = "/metrics"
+"""The figures' stream (Foxglove topic ``/metrics``)."""
+WORLD = "world"
+"""The world frame, ENU, m: the parent of every pose and the frame of every entity."""
 
 
 @dataclass
@@ -122,34 +144,200 @@ class Trails:
         return _finite_rows(q0s), [_finite_rows(qs[:, i]) for i in range(self.n)]
 
 
-# =========================================================================== primitives
 
 
-def _time(ns: int) -> fm.Timestamp:
-    return fm.Timestamp(sec=int(ns // 1_000_000_000), nsec=int(ns % 1_000_000_000))
+class LatestFrames:
+    """The newest messages of swarm ``swarm`` flying scenario ``sc`` (:meth:`feed`: an append to
+    a short queue per key, cheap enough for the supervisor's bus loop) and the frame they make
+    (:meth:`frame`): what both live views (Foxglove's, Rerun's) show.
+
+    A frame shows one instant: the newest tick every UAV's state has reached (the oldest of their
+    newest states, leaving out a UAV more than :data:`STALE_S` behind the newest, which is shown
+    at its last state), each UAV's state and reference at that tick (the newest not after it, of
+    its last :data:`HISTORY`), the leader's likewise. Messages of one tick arrive one by one, so
+    taking each key's newest would mix ticks (UAV 1 at tick k, UAV 2 still at k - 1)."""
+
+    HISTORY = 8
+    STALE_S = 0.25
+
+    def __init__(self, sc: Any, swarm: str, trail_s: float = 10.0) -> None:
+        self.sc = sc
+        self.keys = wire.Keys(swarm)
+        self.trails = Trails(sc.n, trail_s)
+        self._last: dict[str, bytes] = {}
+        self._shown = -1  # sim time of the last frame, ns
+        n = sc.n
+        self._state_keys = [self.keys.state(i) for i in range(1, n + 1)]
+        self._ref_keys = [self.keys.ref(i) for i in range(1, n + 1)]
+        self._hist: dict[str, deque[bytes]] = {
+            k: deque(maxlen=self.HISTORY) for k in [*self._state_keys, *self._ref_keys, self.keys.leader_ref]
+        }
+        self._diag_prefix = self.keys.prefix + "/diag/"
+        self._stale_ns = wire.t_ns(self.STALE_S)
+
+    def feed(self, key: str, payload: bytes) -> None:
+        """Take one message of the swarm."""
+        h = self._hist.get(key)
+        if h is not None:
+            h.append(payload)
+        else:
+            self._last[key] = payload
+
+    def _decoded(self, key: str, kind: str, cls: type) -> list[Any]:
+        out = []
+        for payload in self._hist[key]:
+            try:
+                m = wire.decode(kind, payload)
+            except wire.WireDecodeError:
+                continue
+            if isinstance(m, cls):
+                out.append(m)
+        return out
+
+    @staticmethod
+    def _at(msgs: list[Any], t_ns: int) -> Any:
+        """The newest of ``msgs`` not after ``t_ns`` (else the oldest; None without any)."""
+        best = None
+        for m in msgs:
+            if m.t <= t_ns and (best is None or m.t >= best.t):
+                best = m
+        return best if best is not None else (min(msgs, key=lambda m: m.t) if msgs else None)
+
+    def frame(self) -> tuple[Frame, dict[str, dict[str, Any]]] | None:
+        """The frame of the newest messages and the newest diagnostics per process (None: no state
+        yet, or no tick newer than the last frame's)."""
+        n = self.sc.n
+        states = [self._decoded(k, "state", wire.State) for k in self._state_keys]
+        newest = [max(m.t for m in ms) for ms in states if ms]
+        if not newest:
+            return None
+        t_max = max(newest)
+        t_ns = min(t for t in newest if t >= t_max - self._stale_ns)
+        if t_ns == self._shown:
+            return None
+        self._shown = t_ns
+        nan = np.full((n, 3), np.nan)
+        q, v, rpy, qref = nan.copy(), nan.copy(), nan.copy(), nan.copy()
+        for i in range(n):
+            st = self._at(states[i], t_ns)
+            if st is not None:
+                q[i], v[i], rpy[i] = st.q, st.v, st.rpy
+            r = self._at(self._decoded(self._ref_keys[i], "ref", wire.Ref), t_ns)
+            if r is not None:
+                qref[i] = r.q
+        lead = self._at(self._decoded(self.keys.leader_ref, "ref", wire.Ref), t_ns)
+        q0 = np.asarray(lead.q, dtype=float) if lead is not None else np.full(3, np.nan)
+        diag = {}
+        for key in [k for k in self._last if k.startswith(self._diag_prefix)]:
+            try:
+                d = wire.decode("diag", self._last[key])
+            except wire.WireDecodeError:
+                continue
+            if isinstance(d, wire.Diag):
+                diag[d.process] = diag_view(d)
+        trail0, trails = self.trails.add(t_ns, q0, q)
+        return Frame(t_ns, q0, q, v, rpy, qref, trail0, trails), diag
 
 
-def _v3(p: Any) -> fm.Vector3:
-    return fm.Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+# =========================================================================== the scene, neutral
+
+Rgba = tuple[float, float, float, float]
+"""A colour: red, green, blue, alpha, each 0..1 (alpha 1: opaque)."""
 
 
-def _p3(p: Any) -> fm.Point3:
-    return fm.Point3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+@dataclass(frozen=True)
+class Sphere:
+    """A sphere of ``diameter`` (m) centred at ``center`` (3,), m, world frame."""
+
+    center: Any
+    diameter: float
+    color: Rgba
 
 
-_IDENTITY = (0.0, 0.0, 0.0, 1.0)
+@dataclass(frozen=True)
+class Cylinder:
+    """An upright cylinder (axis along world z) of ``diameter`` and ``height`` (m) standing on ``base`` (3,), m."""
+
+    base: Any
+    diameter: float
+    height: float
+    color: Rgba
 
 
-def _quat(q: tuple[float, float, float, float]) -> fm.Quaternion:
-    return fm.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])
+@dataclass(frozen=True)
+class Cube:
+    """An axis-aligned cube of edge ``size`` (m) centred at ``center`` (3,), m."""
+
+    center: Any
+    size: float
+    color: Rgba
 
 
-def _pose(p: Any, q: tuple[float, float, float, float] = _IDENTITY) -> fm.Pose:
-    return fm.Pose(position=_v3(p), orientation=_quat(q))
+@dataclass(frozen=True)
+class Arrow:
+    """An arrow from ``origin`` (3,), m, along the unit vector ``direction`` (3,), ``length`` m of
+    shaft (then the head: ``head_length`` m long, ``head_diameter`` m wide); shaft ``shaft_diameter`` m."""
+
+    origin: Any
+    direction: Any
+    length: float
+    shaft_diameter: float
+    head_length: float
+    head_diameter: float
+    color: Rgba
 
 
-def _color(c: Any, a: float) -> fm.Color:
-    return fm.Color(r=float(c[0]), g=float(c[1]), b=float(c[2]), a=float(a))
+@dataclass(frozen=True)
+class Label:
+    """A text at ``position`` (3,), m, facing the viewer, ``size`` screen pixels high."""
+
+    position: Any
+    text: str
+    color: Rgba
+    size: float
+
+
+@dataclass(frozen=True)
+class Polyline:
+    """Lines through ``points`` (a list of (3,), m), ``width`` screen pixels wide: ``strip`` one
+    line through every point in order; ``pairs`` one segment per consecutive pair (0-1, 2-3, ...)."""
+
+    points: list[Any]
+    color: Rgba
+    width: float
+    kind: str  # "strip" | "pairs"
+
+
+@dataclass
+class Entity:
+    """One thing of the scene, named ``id`` (``obstacle/1``, ``uav/2``, ``trails``...), made of
+    primitives in the world frame. ``static``: the same in every frame of a flight."""
+
+    id: str
+    static: bool = False
+    spheres: list[Sphere] = field(default_factory=list)
+    cylinders: list[Cylinder] = field(default_factory=list)
+    cubes: list[Cube] = field(default_factory=list)
+    arrows: list[Arrow] = field(default_factory=list)
+    labels: list[Label] = field(default_factory=list)
+    lines: list[Polyline] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Pose:
+    """The frame ``child`` in the world frame: origin at ``position`` (3,), m; orientation the
+    quaternion ``rotation`` (x, y, z, w) of body FLU in ENU."""
+
+    child: str
+    position: Any
+    rotation: tuple[float, float, float, float]
+
+
+IDENTITY = (0.0, 0.0, 0.0, 1.0)
+
+
+def _rgba(c: Any, a: float) -> Rgba:
+    return (float(c[0]), float(c[1]), float(c[2]), float(a))
 
 
 def quat_rpy(rpy: Any) -> tuple[float, float, float, float]:
@@ -170,34 +358,6 @@ def quat_x_to(d: np.ndarray) -> tuple[float, float, float, float]:
     return (0.0, y / nrm, z / nrm, w / nrm)
 
 
-def _entity(eid: str, stamp_ns: int, **prims: Any) -> fm.SceneEntity:
-    return fm.SceneEntity(timestamp=_time(stamp_ns), frame_id=WORLD, id=eid, lifetime=fm.Duration(sec=0, nsec=0), **prims)
-
-
-def _sphere(p: Any, diameter: float, color: fm.Color) -> fm.SpherePrimitive:
-    return fm.SpherePrimitive(pose=_pose(p), size=_v3((diameter, diameter, diameter)), color=color)
-
-
-def _cylinder(base: Any, diameter: float, height: float, color: fm.Color) -> fm.CylinderPrimitive:
-    return fm.CylinderPrimitive(
-        pose=_pose(np.asarray(base, dtype=float) + (0.0, 0.0, 0.5 * height)),
-        size=_v3((diameter, diameter, height)),
-        bottom_scale=1.0,
-        top_scale=1.0,
-        color=color,
-    )
-
-
-def _text(p: Any, text: str, color: fm.Color, size: float = 14.0) -> fm.TextPrimitive:
-    return fm.TextPrimitive(pose=_pose(p), billboard=True, font_size=size, scale_invariant=True, color=color, text=text)
-
-
-def _lines(points: list[Any], color: fm.Color, thickness: float, kind: fm.LinePrimitiveLineType) -> fm.LinePrimitive:
-    return fm.LinePrimitive(
-        type=kind, pose=_pose((0.0, 0.0, 0.0)), thickness=thickness, scale_invariant=True, points=[_p3(p) for p in points], color=color
-    )
-
-
 def palette(n: int) -> list[tuple[float, float, float]]:
     """One RGB colour (each 0..1) per UAV: tab10 up to 10 UAVs, else spread over turbo."""
     from matplotlib import colormaps
@@ -213,16 +373,13 @@ def _finite(p: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(p)))
 
 
-# =========================================================================== the scene
-
-
 _GREY = (0.55, 0.57, 0.6)
 _BAND = (0.95, 0.55, 0.15)
 _DARK = (0.1, 0.1, 0.1)
 
 
-def _static_entities(sc: Any, stamp_ns: int) -> list[fm.SceneEntity]:
-    """Obstacles with their caps and d0 bands, goal and start."""
+def static_entities(sc: Any) -> list[Entity]:
+    """Obstacles with their caps and d0 bands, goal and start: the same in every frame."""
     ents = []
     band_r = sc.r_f + sc.leader.d0  # beyond r_o: d_obs(q0) <= d0 (eq. 10)
     for j, ob in enumerate(sc.obstacles):
@@ -230,38 +387,37 @@ def _static_entities(sc: Any, stamp_ns: int) -> list[fm.SceneEntity]:
         top = c + (0.0, 0.0, ob.height)
         d = 2.0 * ob.radius
         ents.append(
-            _entity(
+            Entity(
                 f"obstacle/{j + 1}",
-                stamp_ns,
-                cylinders=[_cylinder(c, d, ob.height, _color(_GREY, 0.75))],
-                spheres=[_sphere(top, d, _color(_GREY, 0.75))],  # the cap; its lower half inside the cylinder
+                static=True,
+                cylinders=[Cylinder(c, d, ob.height, _rgba(_GREY, 0.75))],
+                spheres=[Sphere(top, d, _rgba(_GREY, 0.75))],  # the cap; its lower half inside the cylinder
             )
         )
         db = 2.0 * (ob.radius + band_r)
         ents.append(
-            _entity(
+            Entity(
                 f"d0_band/{j + 1}",
-                stamp_ns,
-                cylinders=[_cylinder(c, db, ob.height, _color(_BAND, 0.08))],
-                spheres=[_sphere(top, db, _color(_BAND, 0.08))],
-                texts=[_text(top + (0.0, 0.0, ob.radius + band_r), f"d0 band {j + 1}", _color(_BAND, 0.9), 11.0)],
+                static=True,
+                cylinders=[Cylinder(c, db, ob.height, _rgba(_BAND, 0.08))],
+                spheres=[Sphere(top, db, _rgba(_BAND, 0.08))],
+                labels=[Label(top + (0.0, 0.0, ob.radius + band_r), f"d0 band {j + 1}", _rgba(_BAND, 0.9), 11.0)],
             )
         )
     goal = np.asarray(sc.leader.goal, dtype=float)
     ents.append(
-        _entity(
+        Entity(
             "goal",
-            stamp_ns,
-            spheres=[_sphere(goal, 0.05, _color((0.1, 0.75, 0.2), 0.9))],
-            texts=[_text(goal + (0, 0, 0.08), "goal", _color((0.1, 0.6, 0.2), 1.0))],
+            static=True,
+            spheres=[Sphere(goal, 0.05, _rgba((0.1, 0.75, 0.2), 0.9))],
+            labels=[Label(goal + (0, 0, 0.08), "goal", _rgba((0.1, 0.6, 0.2), 1.0), 14.0)],
         )
     )
-    start = fm.CubePrimitive(pose=_pose(sc.leader.start), size=_v3((0.04, 0.04, 0.04)), color=_color((0.2, 0.2, 0.2), 0.9))
-    ents.append(_entity("start", stamp_ns, cubes=[start]))
+    ents.append(Entity("start", static=True, cubes=[Cube(sc.leader.start, 0.04, _rgba((0.2, 0.2, 0.2), 0.9))]))
     return ents
 
 
-def _graph_lines(sc: Any, f: Frame) -> list[fm.LinePrimitive]:
+def _graph_lines(sc: Any, f: Frame) -> list[Polyline]:
     """The formation links: UAV pairs with a_ij > 0 (grey) and pinned UAVs b_i > 0 to the leader (blue)."""
     A = np.asarray(sc.graph.adjacency, dtype=float)
     b = np.asarray(sc.graph.pinning, dtype=float)
@@ -269,74 +425,60 @@ def _graph_lines(sc: Any, f: Frame) -> list[fm.LinePrimitive]:
     pts = [p for i in range(n) for j in range(i + 1, n) if A[i, j] > 0 and _finite(f.q[i]) and _finite(f.q[j]) for p in (f.q[i], f.q[j])]
     out = []
     if pts:
-        out.append(_lines(pts, _color((0.35, 0.35, 0.35), 0.6), 1.0, fm.LinePrimitiveLineType.LineList))
+        out.append(Polyline(pts, _rgba((0.35, 0.35, 0.35), 0.6), 1.0, "pairs"))
     if _finite(f.q0):
         pin = [p for i in range(n) if b[i] > 0 and _finite(f.q[i]) for p in (f.q0, f.q[i])]
         if pin:
-            out.append(_lines(pin, _color((0.3, 0.5, 0.95), 0.6), 1.0, fm.LinePrimitiveLineType.LineList))
+            out.append(Polyline(pin, _rgba((0.3, 0.5, 0.95), 0.6), 1.0, "pairs"))
     return out
 
 
-def scene_update(f: Frame, sc: Any, stamp_ns: int, colors: list[tuple[float, float, float]]) -> fm.SceneUpdate:
-    """The ``foxglove.SceneUpdate`` of frame ``f`` of scenario ``sc``: the whole scene (see the
-    module docstring), every entity stamped ``stamp_ns``; ``colors`` from :func:`palette`."""
-    ents = _static_entities(sc, stamp_ns)
+def describe(f: Frame, sc: Any, colors: list[tuple[float, float, float]]) -> list[Entity]:
+    """The whole scene of frame ``f`` of scenario ``sc`` (see the module docstring), in this order:
+    :func:`static_entities`, ``leader`` (once q0 is known), ``uav/<i>`` (those whose position is
+    known), ``links``, ``trails``; ``colors`` from :func:`palette`."""
+    ents = static_entities(sc)
     lines = []
     if len(f.trail0) >= 2:
-        lines.append(_lines(list(f.trail0), _color(_DARK, 0.8), 1.5, fm.LinePrimitiveLineType.LineStrip))
+        lines.append(Polyline(list(f.trail0), _rgba(_DARK, 0.8), 1.5, "strip"))
     if _finite(f.q0):
         ents.append(
-            _entity(
+            Entity(
                 "leader",
-                stamp_ns,
-                spheres=[_sphere(f.q0, 0.03, _color((0.05, 0.05, 0.05), 1.0)), _sphere(f.q0, 2.0 * sc.r_f, _color((0.3, 0.5, 0.95), 0.12))],
-                texts=[_text(f.q0 + (0, 0, 0.06), "leader", _color(_DARK, 1.0), 12.0)],
+                spheres=[Sphere(f.q0, 0.03, _rgba((0.05, 0.05, 0.05), 1.0)), Sphere(f.q0, 2.0 * sc.r_f, _rgba((0.3, 0.5, 0.95), 0.12))],
+                labels=[Label(f.q0 + (0, 0, 0.06), "leader", _rgba(_DARK, 1.0), 12.0)],
             )
         )
     for i, col in enumerate(colors):
         qi, vi = f.q[i], f.v[i]
         if len(f.trails[i]) >= 2:
-            lines.append(_lines(list(f.trails[i]), _color(col, 0.9), 2.0, fm.LinePrimitiveLineType.LineStrip))
+            lines.append(Polyline(list(f.trails[i]), _rgba(col, 0.9), 2.0, "strip"))
         if not _finite(qi):
             continue
-        spheres = [_sphere(qi, 0.09, _color(col, 1.0))]
+        spheres = [Sphere(qi, 0.09, _rgba(col, 1.0))]
         if _finite(f.qref[i]):
-            spheres.append(_sphere(f.qref[i], 0.05, _color(col, 0.3)))
+            spheres.append(Sphere(f.qref[i], 0.05, _rgba(col, 0.3)))
         arrows = []
         speed = float(np.linalg.norm(vi)) if _finite(vi) else 0.0
-        if speed > 0.01:
-            arrows.append(
-                fm.ArrowPrimitive(
-                    pose=_pose(qi, quat_x_to(vi / speed)),
-                    shaft_length=0.5 * speed,  # 0.5 s of travel
-                    shaft_diameter=0.008,
-                    head_length=0.03,
-                    head_diameter=0.025,
-                    color=_color(col, 0.9),
-                )
-            )
-        label = _text(qi + (0, 0, 0.08), f"uav {i + 1}", _color(col, 1.0), 12.0)
-        ents.append(_entity(f"uav/{i + 1}", stamp_ns, spheres=spheres, arrows=arrows, texts=[label]))
-    ents.append(_entity("links", stamp_ns, lines=_graph_lines(sc, f)))
-    ents.append(_entity("trails", stamp_ns, lines=lines))
-    return fm.SceneUpdate(deletions=[], entities=ents)
+        if speed > 0.01:  # 0.5 s of travel
+            arrows.append(Arrow(qi, vi / speed, 0.5 * speed, 0.008, 0.03, 0.025, _rgba(col, 0.9)))
+        label = Label(qi + (0, 0, 0.08), f"uav {i + 1}", _rgba(col, 1.0), 12.0)
+        ents.append(Entity(f"uav/{i + 1}", spheres=spheres, arrows=arrows, labels=[label]))
+    ents.append(Entity("links", lines=_graph_lines(sc, f)))
+    ents.append(Entity("trails", lines=lines))
+    return ents
 
 
-def _transform(ts: fm.Timestamp, child: str, p: Any, rot: tuple[float, float, float, float]) -> fm.FrameTransform:
-    return fm.FrameTransform(timestamp=ts, parent_frame_id=WORLD, child_frame_id=child, translation=_v3(p), rotation=_quat(rot))
-
-
-def frame_transforms(f: Frame, stamp_ns: int) -> fm.FrameTransforms:
-    """``foxglove.FrameTransforms`` of frame ``f``: world -> leader, world -> uav<i>."""
+def poses(f: Frame) -> list[Pose]:
+    """The frames of ``f`` in the world frame: ``leader`` (no rotation; once q0 is known) and
+    ``uav<i>`` (attitude from the measured roll/pitch/yaw; identity while unknown)."""
     out = []
-    ts = _time(stamp_ns)
     if _finite(f.q0):
-        out.append(_transform(ts, "leader", f.q0, _IDENTITY))
+        out.append(Pose("leader", f.q0, IDENTITY))
     for i in range(len(f.q)):
         if _finite(f.q[i]):
-            rot = quat_rpy(f.rpy[i]) if _finite(f.rpy[i]) else _IDENTITY
-            out.append(_transform(ts, f"uav{i + 1}", f.q[i], rot))
-    return fm.FrameTransforms(transforms=out)
+            out.append(Pose(f"uav{i + 1}", f.q[i], quat_rpy(f.rpy[i]) if _finite(f.rpy[i]) else IDENTITY))
+    return out
 
 
 # =========================================================================== time series
@@ -504,23 +646,27 @@ def metrics(f: Frame, sc: Any, diag: dict[str, dict[str, Any]]) -> dict[str, Any
     }
 
 
-# =========================================================================== the channels
+_SCALARS = (
+    "max_formation_error_m", "max_tracking_error_m", "min_clearance_m", "min_inter_uav_m", "leader_d_obs_m", "d0_m", "failsafe_uavs",
+)
 
 
-class SceneChannels:
-    """``/scene``, ``/tf`` and ``/metrics`` on a Foxglove context (whatever sinks it has: an MCAP
-    file, a WebSocket server); :meth:`put` logs one frame on the three."""
-
-    def __init__(self, sc: Any, context: Context, trail_s: float = 10.0) -> None:
-        self.sc = sc
-        self.colors = palette(sc.n)
-        self.trail_s = trail_s
-        self.scene = SceneUpdateChannel(SCENE_TOPIC, context=context)
-        self.tf = FrameTransformsChannel(TF_TOPIC, context=context)
-        self.metrics = Channel(METRICS_TOPIC, schema=METRICS_SCHEMA, context=context)
-
-    def put(self, f: Frame, stamp_ns: int, diag: dict[str, dict[str, Any]]) -> None:
-        """Log frame ``f`` at ``stamp_ns`` (ns, the messages' log time and stamps)."""
-        self.scene.log(scene_update(f, self.sc, stamp_ns, self.colors), log_time=stamp_ns)
-        self.tf.log(frame_transforms(f, stamp_ns), log_time=stamp_ns)
-        self.metrics.log(json.dumps(metrics(f, self.sc, diag), separators=(",", ":"), allow_nan=False).encode(), log_time=stamp_ns)
+def metric_series(m: dict[str, Any]) -> dict[str, float]:
+    """The figures of a :func:`metrics` message as named scalars (the unknown ones left out):
+    ``max_formation_error_m`` ... ``d0_m``, ``failsafe_uavs``; per UAV
+    ``<figure>/uav<i>`` (``formation_error_m/uav1``, ``tracking_error_m/uav1``, ``clearance_m/uav1``);
+    per link ``link_<figure>/<src>-><dst>:<kind>`` (``link_delivery/...``, ``link_age_s/...``,
+    ``link_max_age_s/...``). Names are ``/``-separated paths: a viewer groups them by their first part."""
+    out: dict[str, float] = {}
+    for k in _SCALARS:
+        if m.get(k) is not None:
+            out[k] = float(m[k])
+    for u in m["uavs"]:
+        for k in ("formation_error_m", "tracking_error_m", "clearance_m"):
+            if u[k] is not None:
+                out[f"{k}/uav{u['uav']}"] = float(u[k])
+    for ln in m["links"]:
+        for k in ("delivery", "age_s", "max_age_s"):
+            if ln[k] is not None:
+                out[f"link_{k}/{ln['link']}"] = float(ln[k])
+    return out

@@ -10,7 +10,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from zenswarm.bridge.args import add_fault_args, add_plugin_args, link_faults, positive_float
+from zenswarm.bridge.args import add_fault_args, add_override_args, add_plugin_args, link_faults, positive_float, scenario_of
 from zenswarm.errors import ZenswarmError
 
 EPILOG = """\
@@ -19,7 +19,8 @@ Quick start:
   zenswarm up  compose/scenarios/paper_example1.toml --out runs/ex1
 
 Exit codes: 0 success, 1 mission failed, 2 bad input (the message names the field, flag or file;
-checked before any work starts, output paths included), 3 a swarm process failed, 130 interrupted.
+checked before any work starts, output paths included), 3 a swarm process failed, 4 a plug-in
+failed (``plugin_error``), 130 interrupted.
 """
 
 
@@ -32,8 +33,9 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
             "semantics as the distributed lockstep swarm. Writes OUT/results.json and "
             "OUT/timeseries.npz. Exit status 0 when the mission succeeded (the leader reached the "
             "goal, every UAV ended at its slot, no contact with obstacles, the ground or each other, "
-            "every state finite), 1 otherwise (each failure named with its cause and time), 130 on "
-            "Ctrl-C (what was flown is judged and written)."
+            "every state finite), 1 otherwise (each failure named with its cause and time), 4 when a plug-in "
+            "failed (it raised, or gave a non-finite or wrongly shaped output: plugin_error, named with the plug-in, UAV, "
+            "tick and cause; what was flown before is judged and written), 130 on Ctrl-C (what was flown is judged and written)."
         ),
     )
     p.add_argument("scenario", type=Path, help="scenario TOML file, e.g. compose/scenarios/paper_example1.toml")
@@ -54,6 +56,7 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
     )
     add_fault_args(p)
     add_plugin_args(p)
+    add_override_args(p)
     p.set_defaults(func=_run_sim)
 
 
@@ -61,11 +64,10 @@ def _run_sim(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from zenswarm.compose.sim import apply_overrides, run_sim_cli
-    from zenswarm.config import load_scenario
     from zenswarm.paths import check_output_dir
-    from zenswarm.plugins import check_selection, select
+    from zenswarm.plugins import check_selection
 
-    sc = select(load_scenario(args.scenario), args.controller, args.planner)
+    sc, _ = scenario_of(args)  # --set, --duration, --controller, --planner: checked, plug-ins included
     sc = apply_overrides(sc, no_eso=args.no_eso, fixed_gain=args.fixed_gain)
     if args.seed is not None:
         sc = replace(sc, seed=args.seed)
@@ -81,9 +83,14 @@ def _add_scenario(sub: argparse._SubParsersAction) -> None:
     c = ssub.add_parser(
         "check",
         help="validate a scenario file and print a summary",
-        description="Load and validate SCENARIO; print its summary or the error naming the bad field.",
+        description=(
+            "Load and validate SCENARIO exactly as a flight does, the plug-ins included (their names resolve, their "
+            "[agents.params] / [leader.params] decode); print its summary or the error naming the bad field (exit 2)."
+        ),
     )
     c.add_argument("scenario", type=Path)
+    add_plugin_args(c)
+    add_override_args(c)
     c.set_defaults(func=_run_check)
     from zenswarm.compose.scenario_generate import add_parser as add_generate
 
@@ -91,13 +98,13 @@ def _add_scenario(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_check(args: argparse.Namespace) -> int:
-    from zenswarm.config import load_scenario
+    from zenswarm.plugins import planner_name
 
-    s = load_scenario(args.scenario)
+    s, _ = scenario_of(args)
     print(
         f"{args.scenario}: OK  name={s.name}  N={s.n}  r_f={s.r_f:.3f} m  obstacles={len(s.obstacles)}  "
         f"control {s.timing.control_rate_hz:g} Hz  physics {s.timing.physics_rate_hz:g} Hz  "
-        f"time limit {s.timing.time_limit_s:g} s"
+        f"time limit {s.timing.time_limit_s:g} s  controller {s.agents.controller}  planner {planner_name(s)}"
     )
     return 0
 

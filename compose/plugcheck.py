@@ -7,8 +7,11 @@ it that need it:
 1. **interface**: the class resolves (:func:`zenswarm.plugins.resolve`), has a one-line ``name``
    and ``description``, a ``Params`` that is a frozen :class:`msgspec.Struct` refusing unknown
    keys (checked by decoding an unknown key), and the scenario's params table decodes; a
-   controller's ``shares`` maps names to shapes of positive ints.
-2. **outputs**: :data:`TICKS` ticks on synthetic, deterministic inputs (every UAV of the scenario,
+   controller's ``shares`` maps names to shapes of positive ints; the methods the runners call
+   take the arguments they are called with (``step(q, v, neighbours, leader, dt)``, a two-phase
+   controller's ``prepare(neighbours, leader)`` and ``finish(q, v, prepared, dt)``, ``reset(q,
+   v)``, ``share()``; a planner's ``ref()`` and ``advance()``).
+2. **outputs**: every tick of the (shortened) flight on synthetic, deterministic inputs (every UAV of the scenario,
    each fed its neighbours' shared values and the leader's reference): a controller's shared q, v
    are (3,) and finite, its declared extras have their shapes, its command has a finite thrust
    >= 0, rpy (3,), u (3,), d_hat (3,); a planner's (q0, v0) are (3,) and finite and ``ref()``
@@ -17,12 +20,17 @@ it that need it:
 4. **pure ticks**: during ``reset``/``share``/``step`` (``ref``/``advance``) the clock (``time``),
    sockets, ``open`` and unseeded randomness (``random``, numpy's global generator) raise;
    constructing the plug-in may do what it likes.
-5. **sim == swarm**: a short flight (:data:`DEFAULT_DURATION_S` of SCENARIO, link loss and delay
-   on every link) in the in-process simulator and as the lockstep swarm (``zenswarm up``), compared
-   bit for bit (:func:`zenswarm.metrics.flight_differences`).
+5. **flight**: the short flight (:data:`DEFAULT_DURATION_S` of SCENARIO) in the in-process
+   simulator, on the vehicles' real states: the plug-in must not fail there (``plugin_error``:
+   an exception, a non-finite or wrongly shaped output, named with its tick and UAV).
+6. **sim == swarm**: the same flight with link loss and delay on every link in the in-process
+   simulator and as the lockstep swarm (``zenswarm up``), compared bit for bit
+   (:func:`zenswarm.metrics.flight_differences`: the first differing field, tick and UAV), with
+   the usual causes of a difference when there is one.
 
-Exit status 0 every check passed, 1 a check failed, 2 bad input (an unknown name, a scenario that
-does not load).
+Every check is reported (PASS, FAIL or SKIP with why), never a traceback, then a ``result:``
+line. Exit status 0 every check passed, 1 a check failed, 2 bad input (an unknown name, a
+scenario that does not load).
 """
 
 from __future__ import annotations
@@ -51,8 +59,14 @@ from zenswarm.plugins import GROUPS, KINDS, PluginError, decode_params, plugin_r
 
 __all__ = ["add_check_parser", "run_check", "Check", "check_plugin"]
 
-TICKS = 100
-"""Ticks of the interface, determinism and purity checks (1 s at 100 Hz)."""
+MISMATCH_CAUSES = (
+    "state kept outside the instance (a module or class variable: the simulator runs every UAV's "
+    "controller in one process, the swarm one per process)",
+    "randomness not from ctx.rng, or the clock",
+    "mutating an array after share() returned it, or the inputs it was given",
+    "depending on the order of dict/set iteration, object ids or hash seeds",
+)
+"""What usually makes a plug-in fly differently in the simulator and in the swarm."""
 
 DEFAULT_DURATION_S = 3.0
 """Sim seconds of the sim-versus-swarm flight."""
@@ -153,6 +167,7 @@ def _interface(kind: str, cls: type, sc: Scenario) -> tuple[list[str], Any]:
             params = decode_params(cls, table, field)
         except ScenarioError as e:
             problems.append(f"the scenario's [{field}] does not decode: {e} (give a SCENARIO with the plug-in's parameters)")
+    problems += _signatures(kind, cls)
     if kind == "controller":
         shares = getattr(cls, "shares", {})
         try:
@@ -162,6 +177,33 @@ def _interface(kind: str, cls: type, sc: Scenario) -> tuple[list[str], Any]:
         if not ok:
             problems.append(f"shares must map names to shapes (tuples of positive ints), got {shares!r}")
     return problems, params
+
+
+def _signatures(kind: str, cls: type) -> list[str]:
+    """Problems with the methods' signatures: each must accept the arguments a runner passes."""
+    import inspect
+
+    calls: dict[str, tuple[str, ...]]
+    if kind == "controller":
+        calls = {"reset": ("q", "v"), "share": (), "step": ("q", "v", "neighbours", "leader", "dt")}
+        if getattr(cls, "two_phase", False):
+            calls.update({"prepare": ("neighbours", "leader"), "finish": ("q", "v", "prepared", "dt")})
+    else:
+        calls = {"ref": (), "advance": ()}
+    problems = []
+    for meth, args in calls.items():
+        fn = getattr(cls, meth, None)
+        if not callable(fn):
+            problems.append(f"{meth}() is missing")
+            continue
+        try:
+            inspect.signature(fn).bind(None, *args)
+        except TypeError as e:
+            want = f"{meth}(self{''.join(', ' + a for a in args)})"
+            problems.append(f"{meth} must accept {want}: {e}")
+        except ValueError:  # no signature (a builtin): cannot tell
+            continue
+    return problems
 
 
 # ----------------------------------------------------------------------------- ticking
@@ -318,7 +360,24 @@ def _sim_vs_swarm(sc: Scenario, seed: int) -> str:
     diffs = flight_differences(ref.series, ref.results, got, res)
     if run.leftovers:
         diffs.append(f"processes left behind (killed): {list(run.leftovers)}")
-    return "; ".join(diffs[:6])
+    if not diffs:
+        return ""
+    first = diffs[0]
+    more = f" (and {len(diffs) - 1} more: {'; '.join(diffs[1:4])})" if len(diffs) > 1 else ""
+    return f"first difference: {first}{more}. Usual causes: " + "; ".join(MISMATCH_CAUSES)
+
+
+def _flight(sc: Scenario) -> Check:
+    """The short flight in the simulator: no plug-in failure (``plugin_error``)."""
+    from zenswarm.compose.sim import failure_text, simulate
+
+    res = simulate(sc).results
+    bad = [f for f in res["failures"] if f["cause"] == "plugin_error"]
+    what = f"{sc.timing.time_limit_s:g} s of {sc.name} in the simulator"
+    if bad:
+        return Check("flight", "FAIL", f"{what}: " + "; ".join(failure_text(f) for f in bad) + f" ({bad[0]['detail']})")
+    verdict = "success" if res["success"] else "no plug-in failure; verdict " + ", ".join(sorted({f["cause"] for f in res["failures"]}))
+    return Check("flight", "PASS", f"{what}: {verdict}")
 
 
 def resolve_kind(name: str, kind: str | None) -> tuple[str, type]:
@@ -345,14 +404,18 @@ def check_plugin(
     name: str, sc: Scenario, kind: str | None = None, duration: float = DEFAULT_DURATION_S, swarm: bool = True
 ) -> tuple[str, type, list[Check]]:
     """Run the checks of the module docstring on plug-in ``name`` with scenario ``sc``; returns
-    (kind, class, the checks in order). Bad input (an unknown name) raises ScenarioError."""
+    (kind, class, the checks in order). Bad input (an unknown name) raises ScenarioError; what
+    the plug-in does wrong, whatever it raises, is a failed check."""
     kind, cls = resolve_kind(name, kind)
     sc = _scenario_for(kind, name, sc, duration)
     checks: list[Check] = []
-    problems, params = _interface(kind, cls, sc)
+    try:
+        problems, params = _interface(kind, cls, sc)
+    except Exception as e:  # noqa: BLE001 - a plug-in's own error is a failed check, reported
+        problems, params = [f"{type(e).__name__}: {e}"], None
     checks.append(Check("interface", "FAIL" if problems else "PASS", "; ".join(problems) or _interface_text(kind, cls)))
     tick: Callable[[type, Any, Scenario, int, bool], list[np.ndarray]] = _tick_controllers if kind == "controller" else _tick_planner
-    ticks = min(TICKS, sc.timing.n_ticks)
+    ticks = sc.timing.n_ticks
     first: list[np.ndarray] | None = None
     if problems:
         checks.append(Check("outputs", "SKIP", "the interface check failed"))
@@ -363,38 +426,71 @@ def check_plugin(
             checks.append(Check("outputs", "PASS", f"{what}: shapes and finiteness as declared"))
         except Exception as e:  # noqa: BLE001 - a plug-in's own error is a failed check, reported
             first = None
-            checks.append(Check("outputs", "FAIL", f"{type(e).__name__}: {e}"))
+            checks.append(Check("outputs", "FAIL", _raised(e)))
     if first is None:
         checks.append(Check("deterministic", "SKIP", "the outputs check failed"))
         checks.append(Check("pure ticks", "SKIP", "the outputs check failed"))
     else:
+        checks += _repeatable(cls, params, sc, ticks, tick, first)
+    if problems:
+        checks.append(Check("flight", "SKIP", "the interface check failed"))
+    else:
         try:
-            again = tick(cls, params, sc, ticks, False)
-            same = len(again) == len(first) and all(np.array_equal(a, b) for a, b in zip(first, again, strict=True))
-            checks.append(Check("deterministic", "PASS" if same else "FAIL",
-                                "two fresh runs on the same inputs: identical, bit for bit" if same else _first_diff(first, again)))
+            checks.append(_flight(sc))
         except Exception as e:  # noqa: BLE001 - reported as the check's failure
-            checks.append(Check("deterministic", "FAIL", f"{type(e).__name__}: {e}"))
-        try:
-            guarded = tick(cls, params, sc, ticks, True)
-            same = len(guarded) == len(first) and all(np.array_equal(a, b) for a, b in zip(first, guarded, strict=True))
-            checks.append(Check("pure ticks", "PASS" if same else "FAIL", "no clock, socket, file or unseeded randomness during ticks"
-                                if same else "outputs change when the clock, sockets, files and global randomness are unavailable"))
-        except Impure as e:
-            checks.append(Check("pure ticks", "FAIL", str(e)))
-        except Exception as e:  # noqa: BLE001 - reported as the check's failure
-            checks.append(Check("pure ticks", "FAIL", f"{type(e).__name__}: {e}"))
+            checks.append(Check("flight", "FAIL", _raised(e)))
     if not swarm:
         checks.append(Check("sim == swarm", "SKIP", "not asked (--no-swarm)"))
     elif any(c.status != "PASS" for c in checks):
         checks.append(Check("sim == swarm", "SKIP", "an earlier check failed"))
     else:
         seed = 1
-        diff = _sim_vs_swarm(replace(sc, seed=seed), seed)
         faults = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in FAULTS.items())
         what = f"{sc.timing.time_limit_s:g} s of {sc.name}, {faults}, seed {seed}"
-        checks.append(Check("sim == swarm", "FAIL" if diff else "PASS", f"{what}: {diff}" if diff else f"{what}: identical, bit for bit"))
+        try:
+            diff = _sim_vs_swarm(replace(sc, seed=seed), seed)
+            detail = f"{what}: {diff}" if diff else f"{what}: identical, bit for bit"
+            checks.append(Check("sim == swarm", "FAIL" if diff else "PASS", detail))
+        except Exception as e:  # noqa: BLE001 - reported as the check's failure
+            checks.append(Check("sim == swarm", "FAIL", f"{what}: {_raised(e)}"))
     return kind, cls, checks
+
+
+def _raised(e: BaseException) -> str:
+    """An exception as a check's detail: its type, message and where in the plug-in it came from."""
+    import traceback
+
+    where = ""
+    frames = traceback.extract_tb(e.__traceback__)
+    if frames:
+        f = frames[-1]
+        where = f" (at {Path(f.filename).name}:{f.lineno} in {f.name})"
+    return f"{type(e).__name__}: {e}{where}"
+
+
+def _repeatable(
+    cls: type, params: Any, sc: Scenario, ticks: int, tick: Callable[[type, Any, Scenario, int, bool], list[np.ndarray]],
+    first: list[np.ndarray],
+) -> list[Check]:
+    """The deterministic and pure-ticks checks: the outputs again, fresh, then under the guard."""
+    out: list[Check] = []
+    try:
+        again = tick(cls, params, sc, ticks, False)
+        same = len(again) == len(first) and all(np.array_equal(a, b) for a, b in zip(first, again, strict=True))
+        out.append(Check("deterministic", "PASS" if same else "FAIL",
+                         "two fresh runs on the same inputs: identical, bit for bit" if same else _first_diff(first, again)))
+    except Exception as e:  # noqa: BLE001 - reported as the check's failure
+        out.append(Check("deterministic", "FAIL", _raised(e)))
+    try:
+        guarded = tick(cls, params, sc, ticks, True)
+        same = len(guarded) == len(first) and all(np.array_equal(a, b) for a, b in zip(first, guarded, strict=True))
+        out.append(Check("pure ticks", "PASS" if same else "FAIL", "no clock, socket, file or unseeded randomness during ticks"
+                         if same else "outputs change when the clock, sockets, files and global randomness are unavailable"))
+    except Impure as e:
+        out.append(Check("pure ticks", "FAIL", str(e)))
+    except Exception as e:  # noqa: BLE001 - reported as the check's failure
+        out.append(Check("pure ticks", "FAIL", _raised(e)))
+    return out
 
 
 def _first_diff(a: list[np.ndarray], b: list[np.ndarray]) -> str:
@@ -443,7 +539,7 @@ def run_check(args: argparse.Namespace) -> int:
     kind, cls, checks = check_plugin(args.name, sc, args.kind, args.duration, swarm=not args.no_swarm)
     print(f"zenswarm plugins check {args.name}: {kind} {cls.__module__}:{cls.__qualname__}, scenario {sc.name} ({path})")
     for ck in checks:
-        print(f"  {ck.status:<4}  {ck.name:<14} {ck.detail}")
+        print(f"  {ck.status:<4}  {ck.name:<14} {ck.detail}", flush=True)
     failed = [ck.name for ck in checks if ck.status == "FAIL"]
     print(f"result: {'FAIL (' + ', '.join(failed) + ')' if failed else 'PASS'}")
     return 1 if failed else 0

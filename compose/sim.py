@@ -38,15 +38,27 @@ from typing import Any, NamedTuple
 import numpy as np
 from msgspec.structs import replace as replace_table
 
-from zenswarm.agents.api import Controller, finish, make_controller, prepare
+from zenswarm.agents.api import (
+    Controller,
+    boundary_of,
+    build_controller,
+    check_command,
+    check_shared,
+    checked_finish,
+    checked_prepare,
+    checked_reset,
+    checked_share,
+)
 from zenswarm.agents.core import AgentRow, StackedAgents
 from zenswarm.agents.paper import PaperController
 from zenswarm.config import Scenario
+from zenswarm.errors import PluginFailure
 from zenswarm.faults import FaultPlan, FaultState, Held
 from zenswarm.leader.core import LeaderCore
 from zenswarm.linkfaults import Box, box_counters, effective_graph
-from zenswarm.metrics import TimeSeries, add_failure, compute_results
+from zenswarm.metrics import TimeSeries, add_failure, add_plugin_failures, compute_results, exit_code_of
 from zenswarm.plant.core import PlantCore
+from zenswarm.plugins import STAGE_SHARE, STAGE_STEP, Boundary, first_failures
 from zenswarm.verdict import criteria_from_scenario, decide_end
 
 __all__ = ["simulate", "SimResult", "run_sim_cli"]
@@ -63,6 +75,41 @@ ProgressFn = Callable[[int, int, float], None]
 DECIDE_EVERY = 50
 """Ticks between two checks of :func:`zenswarm.verdict.decide_end` (the run ends after the tick it
 names: checking in blocks costs less and ends at the same tick)."""
+
+
+class PluginsFailed(Exception):
+    """Plug-ins failed in one stage of a tick (:class:`zenswarm.errors.PluginFailure` each):
+    the simulator ends the run there."""
+
+    def __init__(self, failures: list[PluginFailure]) -> None:
+        super().__init__("; ".join(str(f) for f in failures))
+        self.failures = failures
+
+
+def _collect(failures: list[PluginFailure], fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(*args)``, a PluginFailure added to ``failures`` (None returned) instead of raised."""
+    try:
+        return fn(*args)
+    except PluginFailure as e:
+        failures.append(e)
+        return None
+
+
+def _each(bounds: list[Boundary], k: int, stage: int, what: str, fn: Callable[[], Any]) -> Any:
+    """``fn()`` for every UAV at once: an exception is every UAV's failure (each agent process
+    would raise it alone)."""
+    try:
+        return fn()
+    except Exception as e:
+        err = e
+        failed: list[PluginFailure] = []
+
+        def again() -> None:
+            raise err
+
+        for b in bounds:
+            _collect(failed, b.call, k, stage, what, again)
+        raise PluginsFailed(failed) from e
 
 
 class _Ref(NamedTuple):
@@ -112,16 +159,23 @@ class _Swarm:
 
     def __init__(self, scenario: Scenario, faults: FaultPlan | None) -> None:
         self.dt = scenario.timing.dt
-        self.leader = LeaderCore.from_scenario(scenario)
+        failed: list[PluginFailure] = []  # every plug-in's constructor runs, as in the swarm's processes
+        leader = _collect(failed, LeaderCore.from_scenario, scenario)
         self.plant = PlantCore(scenario)
         p = self.plant.params
         rows = [AgentRow.from_scenario(scenario, i, p.mass, p.g) for i in range(scenario.n)]
         self.links = _Links(faults, rows, self.dt) if faults is not None and faults.active else None
-        self.ctrls: list[Controller] = [make_controller(scenario, i, p.mass, p.g) for i in range(scenario.n)]
+        ctrls = [_collect(failed, build_controller, scenario, i, p.mass, p.g) for i in range(scenario.n)]
+        if failed:
+            raise PluginsFailed(failed)
+        self.leader: LeaderCore = leader
+        self.ctrls: list[Controller] = ctrls
+        self.bounds: list[Boundary] = [boundary_of(scenario, i) for i in range(scenario.n)]
         self.stacked = StackedAgents(rows) if self.links is None and all(type(c) is PaperController for c in self.ctrls) else None
 
     def tick(self, k: int, ts: TimeSeries) -> None:
-        """Control tick k: steps 1-8; the samples of step 2 go into ``ts[k]``."""
+        """Control tick k: steps 1-8; the samples of step 2 go into ``ts[k]``. A plug-in that
+        fails raises :class:`PluginsFailed` with every failure of the stage it failed in."""
         q0, v0 = self.leader.ref()
         st = self.plant.state
         q, v = st.q.copy(), st.v.copy()
@@ -136,12 +190,45 @@ class _Swarm:
     def _agents_stacked(
         self, ag: StackedAgents, k: int, q: np.ndarray, v: np.ndarray, q0: np.ndarray, v0: np.ndarray, ts: TimeSeries
     ) -> None:
+        """The built-in controller of every UAV at once; its outputs are checked per UAV as the
+        agent processes check theirs (:func:`zenswarm.agents.api.check_shared` / ``check_command``)."""
+        from zenswarm.agents.api import Command, Shared
+
+        bounds = self.bounds
+        what = "finish" if PaperController.two_phase else "step"
         if k == 0:
-            ag.reset(q, v)
-        ts.qref[k], ts.vref[k] = ag.q_ref, ag.v_ref
-        cmd = ag.finish(q, v, ag.rates_all(q0, v0))
+            _each(bounds, k, STAGE_SHARE, "reset", lambda: ag.reset(q, v))
+        q_ref, v_ref = ag.q_ref, ag.v_ref
+        assert q_ref is not None and v_ref is not None, "reset at tick 0"
+        ts.qref[k], ts.vref[k] = q_ref, v_ref
+        failed: list[PluginFailure] = []
+        for i, b in enumerate(bounds):
+            _collect(failed, b.check, k, STAGE_SHARE, "share", check_shared(Shared(q_ref[i], v_ref[i]), {}))
+        if failed:
+            raise PluginsFailed(failed)
+        cmd = _each(bounds, k, STAGE_STEP, what, lambda: ag.finish(q, v, ag.rates_all(q0, v0)))
+        for i, b in enumerate(bounds):
+            one = Command(float(cmd.thrust[i]), cmd.rpy[i], cmd.u[i], cmd.d_hat[i])
+            _collect(failed, b.check, k, STAGE_STEP, what, check_command(one))
+        if failed:
+            raise PluginsFailed(failed)
         ts.u[k], ts.thrust[k], ts.d_hat[k] = cmd.u, cmd.thrust, cmd.d_hat
         self.plant.hold_all(cmd.thrust, cmd.rpy, k)
+
+    def _shares(self, lk: _Links | None, k: int, q: np.ndarray, v: np.ndarray) -> list[Any]:
+        """Stage share of tick k: every controller (re)started if it is not yet, then what it
+        shares (checked); :class:`PluginsFailed` with every failure of the stage."""
+        failed: list[PluginFailure] = []
+        for i, c in enumerate(self.ctrls):
+            if lk is not None:
+                lk.state[i].offer(k, k, (q[i], v[i]))
+            if not c.initialised:
+                qv = _present(lk.state[i].at(k)).value if lk is not None else (q[i], v[i])
+                _collect(failed, checked_reset, c, self.bounds[i], k, *qv)
+        shared = [_collect(failed, checked_share, c, self.bounds[i], k) for i, c in enumerate(self.ctrls)]
+        if failed:
+            raise PluginsFailed(failed)
+        return shared
 
     def _agents_each(
         self, lk: _Links | None, k: int, q: np.ndarray, v: np.ndarray, q0: np.ndarray, v0: np.ndarray, ts: TimeSeries
@@ -149,13 +236,9 @@ class _Swarm:
         """Every agent's controller ticks on its inputs (through its links' receive boxes, hold
         last value, when there are link faults), as the agent processes do; the plant reads the
         commands (through their links)."""
-        ctrls = self.ctrls
-        for i, c in enumerate(ctrls):
-            if lk is not None:
-                lk.state[i].offer(k, k, (q[i], v[i]))
-            if not c.initialised:
-                c.reset(*(_present(lk.state[i].at(k)).value if lk is not None else (q[i], v[i])))
-        shared = [c.share() for c in ctrls]
+        ctrls, bounds = self.ctrls, self.bounds
+        shared = self._shares(lk, k, q, v)
+        failed: list[PluginFailure] = []
         lead_ref = _Ref(q0, v0)
         if lk is not None:
             lk.geometry(k, q)
@@ -178,13 +261,19 @@ class _Swarm:
                 qm, vm = q[i], v[i]
                 nbr = [shared[nb.index] for nb in c.ctx.neighbours]
                 lead = lead_ref if c.ctx.pinned else None
-            cmd = finish(c, qm, vm, prepare(c, nbr, lead), self.dt)
+            before = len(failed)
+            prepared = _collect(failed, checked_prepare, c, bounds[i], k, nbr, lead)
+            cmd = _collect(failed, checked_finish, c, bounds[i], k, qm, vm, prepared, self.dt) if len(failed) == before else None
+            if cmd is None:
+                continue  # the tick ends with this stage's failures, after every agent's step ran
             ts.qref[k, i], ts.vref[k, i] = shared[i].q, shared[i].v
             ts.u[k, i], ts.thrust[k, i], ts.d_hat[k, i] = cmd.u, cmd.thrust, cmd.d_hat
             if lk is not None:
                 lk.cmd[i].offer(k, k, (cmd.thrust, cmd.rpy))
             else:
                 self.plant.hold(i, cmd.thrust, cmd.rpy, k)
+        if failed:
+            raise PluginsFailed(failed)
         if lk is not None:
             for i, box in enumerate(lk.cmd):
                 held = _present(box.at(k))
@@ -234,6 +323,7 @@ class _Flight:
         self.goal = np.asarray(scenario.leader.goal, dtype=float)
         self.progress = progress
         self.flown = 0
+        self.failures: list[PluginFailure] = []  # the plug-in failures the run ended on
 
     def _decided(self, lo: int, hi: int) -> int | None:
         """The tick in [lo, hi) that decided the run (:func:`zenswarm.verdict.decide_end`), if any."""
@@ -241,20 +331,32 @@ class _Flight:
         return None if self.crit is None else decide_end(ts.q0, ts.q, ts.qref, self.crit, lo, hi)
 
     def run(self, T: int) -> int:
-        """Tick until T, or until the tick that decided the run (unless ``full_time``).
-        Returns the ticks flown."""
+        """Tick until T, or until the tick that decided the run (unless ``full_time``), or until
+        a plug-in failed (:attr:`failures`: the failures of its first (tick, stage); the ticks
+        before it are judged, unless the run was decided before). Returns the ticks flown."""
         checked = 0  # ticks already given to decide_end
-        for k in range(T):
-            if k - checked >= DECIDE_EVERY:  # the run ends after a tick that decided its outcome
-                stop = self._decided(checked, k)
-                if stop is not None:
-                    self.flown = stop + 1
-                    return self.flown
-                checked = k
-            self.flown = k
-            self.swarm.tick(k, self.ts)
-            if self.progress is not None and (k % 100 == 0 or k == T - 1):
-                self.progress(k + 1, T, float(np.linalg.norm(self.swarm.leader.q0 - self.goal)))
+        try:
+            for k in range(T):
+                if k - checked >= DECIDE_EVERY:  # the run ends after a tick that decided its outcome
+                    stop = self._decided(checked, k)
+                    if stop is not None:
+                        self.flown = stop + 1
+                        return self.flown
+                    checked = k
+                self.flown = k
+                self.swarm.tick(k, self.ts)
+                if self.progress is not None and (k % 100 == 0 or k == T - 1):
+                    self.progress(k + 1, T, float(np.linalg.norm(self.swarm.leader.q0 - self.goal)))
+        except (PluginsFailed, PluginFailure) as e:
+            first = first_failures(e.failures if isinstance(e, PluginsFailed) else [e])
+            upto = min(first[0].tick, T)  # the ticks before the failed one are complete
+            stop = self._decided(checked, upto)
+            if stop is not None:  # decided before the plug-in failed: as the swarm's supervisor judges it
+                self.flown = stop + 1
+                return self.flown
+            self.flown = upto
+            self.failures = first
+            return self.flown
         stop = self._decided(checked, T)
         self.flown = T if stop is None else stop + 1
         return self.flown
@@ -280,21 +382,33 @@ def simulate(
     wall0 = time.perf_counter()
     dt = scenario.timing.dt
     T = scenario.timing.n_ticks if n_ticks is None else int(n_ticks)
-    swarm = _Swarm(scenario, faults)
     ts = TimeSeries.allocate(T, scenario.n)
-    flight = _Flight(swarm, ts, scenario, progress, full_time)
-    interrupted = False
     try:
-        flight.run(T)
-    except KeyboardInterrupt:  # Ctrl-C: judge and keep what was flown
-        interrupted = True
-    flown = flight.flown
+        swarm: _Swarm | None = _Swarm(scenario, faults)
+    except PluginsFailed as e:  # a plug-in's constructor raised: nothing flown
+        swarm, built = None, first_failures(e.failures)
+    except PluginFailure as e:
+        swarm, built = None, [e]
+    interrupted = False
+    if swarm is not None:
+        flight = _Flight(swarm, ts, scenario, progress, full_time)
+        try:
+            flight.run(T)
+        except KeyboardInterrupt:  # Ctrl-C: judge and keep what was flown
+            interrupted = True
+        flown, failed = flight.flown, flight.failures
+    else:
+        flown, failed = 0, built
     wall = time.perf_counter() - wall0
     if flown < T:
         ts = ts.truncated(flown)
     results = compute_results(ts, scenario, wall_time_s=wall, early_end=not full_time)
     if interrupted:
         add_failure(results, "interrupted", f"interrupted (Ctrl-C) at sim time {flown * dt:.2f} s", flown * dt)
+    if failed:
+        add_plugin_failures(results, failed, dt)
+    if swarm is None:
+        return SimResult(ts, results)
     results.update(swarm.fault_results())
     results.update(radio_results(scenario, faults, ts))
     return SimResult(ts, results)
@@ -346,7 +460,8 @@ def apply_overrides(scenario: Scenario, no_eso: bool = False, fixed_gain: float 
 
 def run_sim_cli(scenario: Scenario, out: Path, quiet: bool = False, faults: FaultPlan | None = None, full_time: bool = False) -> int:
     """``zenswarm sim``: run, write outputs, print a summary. Exit code 0 on mission success, 1 on
-    failure, 130 when interrupted (Ctrl-C or SIGTERM; what was flown is judged and written)."""
+    failure, 4 when a plug-in failed (``plugin_error``; what was flown before it is judged and
+    written), 130 when interrupted (Ctrl-C or SIGTERM; what was flown is judged and written)."""
     prog = None if quiet else ProgressPrinter("sim", scenario.timing.dt)
     previous = _interrupt_on_signals()
     try:
@@ -358,9 +473,7 @@ def run_sim_cli(scenario: Scenario, out: Path, quiet: bool = False, faults: Faul
     r = res.results
     print(summary_line(r))
     print(f"wrote {out / 'results.json'} and {out / 'timeseries.npz'}")
-    if any(f["cause"] == "interrupted" for f in r["failures"]):
-        return 130
-    return 0 if r["success"] else 1
+    return exit_code_of(r)
 
 
 def _interrupt_on_signals() -> dict[int, Any]:
@@ -373,7 +486,8 @@ def _interrupt_on_signals() -> dict[int, Any]:
 
 
 def _fmt(x: object, unit: str = " m") -> str:
-    return "n/a" if x is None else f"{x:.4f}{unit}"
+    """A figure to 4 significant digits (``0.2513 m``, ``1.43e-05 m``); ``n/a`` for None."""
+    return "n/a" if x is None else f"{x:.4g}{unit}"
 
 
 MAX_SUMMARY_FAILURES = 6
@@ -385,7 +499,16 @@ def failure_text(f: dict) -> str:
     uavs = f.get("uavs") or []
     who = f" uav {uavs[0]}" if len(uavs) == 1 else (f" uavs {','.join(map(str, uavs))}" if uavs else "")
     when = f" at {f['t_s']:.2f} s" if f.get("t_s") is not None else ""
+    if f["cause"] == "plugin_error":  # which plug-in, which call, what was wrong
+        who = who or f" {f.get('process', '?')}"
+        return f"{f['cause']}{who}{when} ({f.get('kind')} {f.get('plugin')!r} {f.get('call')}(): {_tail(f)})"
     return f"{f['cause']}{who}{when}"
+
+
+def _tail(f: dict) -> str:
+    """The part of a plug-in failure's detail after its preamble (the exception or the bad field)."""
+    detail = str(f.get("detail", ""))
+    return detail.split("(): ", 1)[1] if "(): " in detail else detail
 
 
 def summary_line(r: dict) -> str:

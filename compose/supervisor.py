@@ -26,18 +26,25 @@ import numpy as np
 import zenoh
 
 from zenswarm import bus, rtsched, security, verdict, wire
-from zenswarm.bridge.args import add_fault_args, add_plugin_args, add_rt_priority_arg, link_faults, positive_float
-from zenswarm.bridge.live import DEFAULT_PORT as DEFAULT_LIVE_PORT
-from zenswarm.bridge.live import live_port
+from zenswarm.bridge.args import (
+    add_fault_args,
+    add_override_args,
+    add_plugin_args,
+    add_rt_priority_arg,
+    link_faults,
+    positive_float,
+    scenario_of,
+)
+from zenswarm.bridge.live import FOXGLOVE_DEFAULT, LIVE_HELP, LiveTarget, live_target
 from zenswarm.collector import Collector
-from zenswarm.config import Scenario, load_scenario
-from zenswarm.errors import ScenarioError, ZenswarmError
+from zenswarm.config import Scenario
+from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
 from zenswarm.linkfaults import LinkFaults
-from zenswarm.metrics import add_failure, compute_results
+from zenswarm.metrics import add_failure, add_plugin_failures, compute_results
 from zenswarm.paths import check_output_dir, check_output_file, lock_output_dir
-from zenswarm.plugins import check_selection, select
+from zenswarm.plugins import STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
 from zenswarm.policy import restart_policy
-from zenswarm.runtime import gc_policy, gc_safe_point, gc_startup_done
+from zenswarm.runtime import PLUGIN_FAILURE_MARK, gc_policy, gc_safe_point, gc_startup_done
 
 __all__ = ["add_parsers", "UpOptions", "up_options", "Supervisor", "role_names", "swarm_roles", "check_up_args"]
 
@@ -122,7 +129,7 @@ class UpOptions:
     faults: LinkFaults = field(default_factory=LinkFaults)
     controller: str | None = None  # plug-in names overriding the scenario's (zenswarm.plugins.select)
     planner: str | None = None
-    live: int | None = None  # --live PORT: serve the flight to the Foxglove app (zenswarm.bridge.live)
+    live: LiveTarget | None = None  # --live [PORT|rerun[:PORT]]: serve the flight to a viewer (zenswarm.bridge.live)
     rt_priority: int | None = None  # --rt-priority P: the flying processes under SCHED_FIFO P (zenswarm.rtsched)
     router_lost_timeout: float | None = None  # --only: give up on a lost router after S s (zenswarm.runtime)
 
@@ -217,10 +224,11 @@ class Supervisor:
         self._in_slots_since: int | None = None
         self._deciding = False  # the live look saw the outcome decided; waiting for the exact tick
         self.recording_loss: dict | None = None  # the recorder died mid-flight (_recorder_died)
+        self.plugin_failures: list[PluginFailure] = []  # what processes that exited with 4 reported
         # the vehicles' ports P+i (the bridge listens) and their send ports P+40+i, all free
         self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n, also=(SITL_SEND_OFFSET,))
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
-        self.live: Any = None  # --live: the zenswarm.bridge.live.LiveView, bound by _run_up before run()
+        self.live: Any = None  # --live: the view (zenswarm.bridge.live.open_view), bound by _run_up before run()
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -231,6 +239,16 @@ class Supervisor:
         assert child.popen.stdout is not None
         for raw in child.popen.stdout:
             line = raw.rstrip("\n")
+            at = line.find(PLUGIN_FAILURE_MARK)
+            if at >= 0:  # a plug-in failed in this child (zenswarm.runtime.report_plugin_failure)
+                try:
+                    f = PluginFailure.from_dict(json.loads(line[at + len(PLUGIN_FAILURE_MARK) :]))
+                except (ValueError, KeyError, TypeError, AssertionError):
+                    pass
+                else:
+                    self.plugin_failures.append(f)
+                    self.say(f"plug-in failed: {f}")
+                    continue
             child.lines.append(line)
             del child.lines[:-50]
             if not self.args.quiet_children:
@@ -733,6 +751,9 @@ class Supervisor:
                 return EXIT_INTERRUPTED
             now = time.monotonic()
             done, code = self._check_children(collector, now)
+            self._external_plugin_failures(collector)
+            if code == EXIT_PLUGIN_FAILED or self.plugin_failures:
+                return self._drain_plugin_failures(collector)
             if code is None:
                 code = self._watch_external(collector, now, wall0)
             if code is not None:
@@ -777,12 +798,89 @@ class Supervisor:
             if c.name == "recorder":  # any exit before the end is a loss, never a failure
                 self._recorder_died(c, rc, collector)
                 continue
+            if rc == EXIT_PLUGIN_FAILED and self._took_plugin_failure(c):
+                return done, EXIT_PLUGIN_FAILED
             if rc != 0:
                 code = self._child_died(c, rc, collector, now)
                 if code is not None:
                     return done, code
                 done = False
         return done, None
+
+    def _took_plugin_failure(self, c: Child) -> bool:
+        """A child that exited with 4: did it report its plug-in's failure
+        (:data:`zenswarm.runtime.PLUGIN_FAILURE_MARK`, read by :meth:`_pump`)? If not, it died."""
+        if c.reader is not None:
+            c.reader.join(timeout=5.0)  # its last lines: the pipe ends with the process
+        return any(f.process == c.name for f in self.plugin_failures)
+
+    def _external_plugin_failures(self, collector: Collector) -> None:
+        """A role on another host (``--external``) reports its plug-in's failure in its
+        diagnostics (:func:`zenswarm.runtime.report_plugin_failure`): take it as a child's line."""
+        for name in self.external_roles():
+            text = (collector.diag.get(name) or {}).get("plugin_failure")
+            if not isinstance(text, str) or any(f.process == name for f in self.plugin_failures):
+                continue
+            try:
+                f = PluginFailure.from_dict(json.loads(text))
+            except (ValueError, KeyError, TypeError, AssertionError):
+                continue
+            self.plugin_failures.append(f)
+            self.say(f"plug-in failed on {name}: {f}")
+
+    def _drain_plugin_failures(self, collector: Collector) -> int:
+        """A plug-in failed: wait until the flight before it is complete and every process
+        that could fail in the same (tick, stage) has either given its output of that stage or
+        failed too (the processes run concurrently; the simulator calls them in turn), then
+        judge: the ticks before the failed one, unless the outcome was decided before it (as
+        the simulator). Sets ``self.upto``; returns 4, or 0 when the run was decided before."""
+        deadline = time.monotonic() + self.args.lockstep_timeout + 10.0
+        while True:
+            collector.poll(self._bus_sub, self._live_tap())
+            for c in list(self.children.values()):
+                rc = c.popen.poll()
+                if rc is not None and c.returncode is None:
+                    c.returncode = rc
+                    if rc == EXIT_PLUGIN_FAILED:
+                        self._took_plugin_failure(c)  # its last lines read
+            self._external_plugin_failures(collector)
+            first = first_failures(self.plugin_failures)
+            if self._resolved(collector, first) or self.stop.is_set():
+                break
+            if time.monotonic() > deadline:
+                self.say("not every process gave its output of the failed tick in time; judging what arrived")
+                break
+            time.sleep(0.02)
+        self.plugin_failures = first
+        k = min(first[0].tick, collector.T)
+        if not self.args.full_time and not self.args.realtime and k > 0:
+            ts = collector.series(k)
+            d = verdict.decide_end(ts.q0, ts.q, ts.qref, self.criteria)
+            if d is not None:  # decided before the plug-in failed: the run had ended there
+                self.upto = d + 1
+                self.plugin_failures = []
+                self.say(f"the outcome was decided at sim time {d * self.criteria.dt:.2f} s, before the plug-in failed")
+                return EXIT_OK
+        self.upto = k
+        return EXIT_PLUGIN_FAILED
+
+    def _resolved(self, collector: Collector, first: list[PluginFailure]) -> bool:
+        """Lockstep: the ticks before the failed one are complete and every other process has
+        passed the failed (tick, stage) or failed in it. Realtime: at once (ticks are held)."""
+        if self.args.realtime:
+            return True
+        k, stage = first[0].order
+        failed = {f.process for f in first}
+        exited = {name for name, c in self.children.items() if c.returncode is not None}
+        if stage == STAGE_BUILD:
+            return all(r in self.seen or r in exited or r in failed for r in self.roles())
+        if k > 0 and not collector.tick_complete(k - 1):
+            return False
+        if stage in (STAGE_SHARE, STAGE_STEP) and k < collector.T:
+            have = collector.outputs_of_tick("ref" if stage == STAGE_SHARE else "cmd", k)
+            agents = [wire.agent(i + 1) for i in range(self.sc.n)]
+            return all(have[i] or a in failed or a in exited for i, a in enumerate(agents))
+        return True
 
     def _restart_if_due(self, c: Child, now: float) -> None:
         if now >= self.restart_at[c.name]:
@@ -828,8 +926,8 @@ class Supervisor:
 
     def _judged_ticks(self, collector: Collector, code: int, fill: bool) -> int | None:
         """How many ticks the results judge: None for the whole time limit."""
-        if code == EXIT_OK:
-            return self.upto if self.upto >= 0 else None  # ended early, decided (or --stop-at-goal)
+        if code in (EXIT_OK, EXIT_PLUGIN_FAILED):
+            return self.upto if self.upto >= 0 else None  # ended early: decided, --stop-at-goal, or a plug-in failed
         upto = int(max(collector.sim_t_ns, 0) // collector.dt_ns)  # stopped: the ticks flown so far
         return upto if fill else collector.complete_ticks(upto)  # and only those whose every state arrived
 
@@ -896,6 +994,8 @@ class Supervisor:
             add_failure(res, "process_died", f"process {dead} died ({how})", t_end, process=dead)
         elif code == EXIT_INTERRUPTED:
             add_failure(res, "interrupted", f"interrupted ({self.stop_reason}) at sim time {t_end:.2f} s", t_end)
+        elif code == EXIT_PLUGIN_FAILED:
+            add_plugin_failures(res, self.plugin_failures, self.sc.timing.dt)
 
 
 def check_up_args(args: UpOptions, sc: Scenario) -> None:
@@ -963,10 +1063,11 @@ def _check_kills(args: UpOptions, sc: Scenario, names: list[str]) -> None:
 
 def _run_up(ns: argparse.Namespace) -> int:
     args = up_options(ns)
-    sc = select(load_scenario(args.scenario), args.controller, args.planner)
-    check_selection(sc)  # a bad plug-in name or parameter: exit 2 now
+    sc, overrides = scenario_of(ns)  # --set, --duration, a bad plug-in name or parameter: exit 2 now
     args.faults.plan(sc)  # bad flags: exit 2 now
     check_up_args(args, sc)
+    if overrides:  # every process reads the scenario as overridden: OUT/scenario.toml
+        args = replace(args, scenario=_write_effective(args, overrides))
     gc_policy()  # a bad ZENSWARM_GC: exit 2 now
     if args.only:
         if args.live is not None:
@@ -974,16 +1075,45 @@ def _run_up(ns: argparse.Namespace) -> int:
         return _run_only(args)
     sup = Supervisor(args, sc)
     if args.live is not None:  # bound now: a port in use is exit 2 before any process starts
-        from zenswarm.bridge.live import LiveView, open_in_app
+        from zenswarm.bridge.live import open_view
 
-        sup.live = LiveView(sc, args.swarm, args.live)
-        sup.say(open_in_app(sup.live.url))
+        sup.live = open_view(args.live, sc, args.swarm)
+        sup.say(sup.live.how_to_open())
     try:
         sup.t_start = time.monotonic()
-        return sup.run()
+        rc = sup.run()
+        if sup.live is not None and sup.live.viewer == "rerun" and sys.stdin is not None and sys.stdin.isatty():
+            # Rerun's server holds the whole flight: a browser opened now still gets all of it
+            sup.say(f"flight over; Rerun keeps serving it on {sup.live.url} until you press Enter (or Ctrl-C)")
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, signal.default_int_handler)  # raise KeyboardInterrupt here, not set the flight's stop flag
+            try:
+                input()
+            except (EOFError, KeyboardInterrupt):
+                pass
+        return rc
     finally:
         if sup.live is not None:
             sup.live.close()
+
+
+def _write_effective(args: UpOptions, overrides: dict[str, Any]) -> Path:
+    """The scenario file with the overrides applied (``--set``, ``--duration``), written as
+    OUT/scenario.toml for the swarm's processes (``--only``: beside the scenario, named by swarm)."""
+    import tomllib
+
+    from zenswarm.generate import to_toml
+    from zenswarm.overrides import apply
+
+    doc = apply(tomllib.loads(Path(args.scenario).read_text(encoding="utf-8")), overrides)
+    trace = (doc.get("faults") or {}).get("trace")
+    if isinstance(trace, str) and not Path(trace).is_absolute():  # relative to the original file
+        doc["faults"]["trace"] = str(Path(args.scenario).parent.absolute() / trace)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / (f"scenario-{args.swarm}.toml" if args.only else "scenario.toml")
+    path.write_text(to_toml(doc))
+    return path
 
 
 def _run_only(args: UpOptions) -> int:
@@ -1042,7 +1172,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
             "Start a Zenoh router inside this process, then the plant, the leader and one agent "
             "process per UAV; show progress, merge their logs, stop everything on Ctrl-C, and write "
             "OUT/results.json and OUT/timeseries.npz. Exit status: 0 mission succeeded, 1 mission "
-            "failed (goal not reached, collision), 2 bad input, 3 a process died, 130 interrupted."
+            "failed (goal not reached, collision), 2 bad input, 3 a process died, 4 a plug-in failed "
+            "(plugin_error: it raised, or gave a non-finite or wrongly shaped output), 130 interrupted."
         ),
     )
     p.add_argument("scenario", type=Path, help="scenario TOML file")
@@ -1171,14 +1302,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--live",
         nargs="?",
-        const=DEFAULT_LIVE_PORT,
-        type=live_port,
-        metavar="PORT",
-        help=f"serve the flight to the Foxglove app over its WebSocket protocol on ws://127.0.0.1:PORT (default "
-        f"{DEFAULT_LIVE_PORT}): 3D scene, transforms, errors, clearance, failsafe, links (docs/live.md); run by this "
-        "supervisor, not by the swarm's processes. A port in use: exit 2 before the flight",
+        const=FOXGLOVE_DEFAULT,
+        type=live_target,
+        metavar="PORT|rerun[:PORT]",
+        help=f"watch the flight live. {LIVE_HELP}. Run by this supervisor, not by the swarm's processes; "
+        "a port in use: exit 2 before the flight",
     )
     add_rt_priority_arg(p)
     add_fault_args(p)
     add_plugin_args(p)
+    add_override_args(p)
     p.set_defaults(func=_run_up)

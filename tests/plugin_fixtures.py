@@ -6,14 +6,16 @@ draws from its seeded stream, and a planner; tests/test_plugins.py flies them in
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace as _replace
 from typing import Any
 
 import msgspec
 import numpy as np
 
 from zenswarm.agents.api import Command, Controller, ControllerContext, Shared
+from zenswarm.agents.paper import PaperController
 from zenswarm.inversion import invert_thrust_attitude
-from zenswarm.leader.planner import Planner, PlannerContext
+from zenswarm.leader.planner import AapfPlanner, Planner, PlannerContext
 
 
 class ConsensusController(Controller):
@@ -98,3 +100,73 @@ class CrashingController(ConsensusController):
 
     def step(self, q: np.ndarray, v: np.ndarray, neighbours: Sequence[Shared | None], leader: Shared | None, dt: float) -> Command:
         raise RuntimeError("test-crash controller: deliberate failure")
+
+
+# ----------------------------------------------------------------------------- plug-ins that misbehave
+# (tests/test_plugin_failures.py: the same named failure in sim, up and api.fly)
+
+
+class MisbehavingController(PaperController):
+    """The paper's controller that misbehaves from tick ``tick`` on UAV ``uav`` (0: every UAV):
+    ``how`` = ``raise`` (its finish raises), ``nan`` (a NaN thrust), ``shape`` (a (2,) attitude),
+    ``share`` (an infinite shared velocity), ``init`` (its constructor raises)."""
+
+    name = "test-misbehaving"
+    description = "test-only: the paper's controller, misbehaving as its params say"
+
+    class Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+        how: str = "raise"
+        tick: int = 50
+        uav: int = 2
+
+    def __init__(self, ctx: ControllerContext, params: Any) -> None:
+        self.mine = params.uav in (0, ctx.i + 1)
+        if params.how == "init" and self.mine:
+            raise ValueError(f"misbehaving controller of UAV {ctx.i + 1}: refused to start")
+        super().__init__(ctx, params)
+        self.k = 0  # the tick this controller is at
+
+    def _now(self) -> bool:
+        return self.mine and self.k >= self.params.tick
+
+    def share(self) -> Shared:
+        sh = super().share()
+        if self.params.how == "share" and self._now():
+            return Shared(sh.q, np.array([0.0, np.inf, 0.0]))
+        return sh
+
+    def finish(self, q: np.ndarray, v: np.ndarray, rates: Any, dt: float) -> Command:
+        now, how = self._now(), self.params.how
+        cmd = super().finish(q, v, rates, dt)
+        self.k += 1
+        if now and how == "raise":
+            raise RuntimeError(f"misbehaving controller: deliberate error at tick {self.k - 1}")
+        if now and how == "nan":
+            return _replace(cmd, thrust=float("nan"))
+        if now and how == "shape":
+            return _replace(cmd, rpy=cmd.rpy[:2])
+        return cmd
+
+
+class MisbehavingPlanner(AapfPlanner):
+    """The AAPF that misbehaves from tick ``tick``: ``how`` = ``nan`` (its position goes NaN),
+    ``raise`` (its advance raises)."""
+
+    name = "test-misbehaving-planner"
+    description = "test-only: the AAPF, misbehaving as its params say"
+
+    class Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+        how: str = "nan"
+        tick: int = 40
+
+    def __init__(self, ctx: PlannerContext, params: Any) -> None:
+        super().__init__(ctx, params)
+        self.k = 0
+
+    def advance(self) -> None:
+        self.k += 1
+        if self.k >= self.params.tick and self.params.how == "raise":
+            raise ZeroDivisionError("misbehaving planner: deliberate error")
+        super().advance()
+        if self.k >= self.params.tick and self.params.how == "nan":
+            self.q0 = self.q0 * np.nan

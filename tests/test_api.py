@@ -108,6 +108,7 @@ def test_differences_name_the_field_and_the_first_tick() -> None:
     b = replace(a, series=series, results={**a.results, "min_altitude_m": 0.0})
     got = api.differences(a, b)
     assert got[0].startswith("series.q: 1 values differ, first at tick 20") and got[1].startswith("results.min_altitude_m")
+    assert "UAV 2)" in got[0], got[0]  # the field, the tick and the UAV
     assert api.differences(a, a) == []
 
 

@@ -238,3 +238,39 @@ def test_external_watch_logic_without_processes(tmp_path: Path) -> None:
     sup, col = supervisor("--external", "leader", "--external-timeout", "2")
     assert sup._watch_external(col, t0 + 2.5, t0) == EXIT_PROCESS_FAILED
     assert sup.deaths[0]["process"] == "leader" and "never announced" in sup.deaths[0]["how"]
+
+
+@pytest.mark.swarm
+def test_external_agent_whose_plug_in_fails_is_named_like_a_child(tmp_path: Path) -> None:
+    """An ``--external`` agent's plug-in fails (issue 27): the supervisor learns it from the
+    agent's diagnostics, names the same ``plugin_error`` as the simulator, exits 4."""
+    import tomllib
+
+    from zenswarm import api
+    from zenswarm.generate import to_toml
+
+    tests = str(Path(__file__).parent)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}
+    doc = tomllib.loads(scenario_variant(tmp_path, time_limit_s=1.0).read_text())
+    doc["agents"] = {"controller": "plugin_fixtures:MisbehavingController", "params": {"how": "nan", "tick": 33, "uav": 2}}
+    scenario = tmp_path / "bad.toml"
+    scenario.write_text(to_toml(doc))
+    swarm, port, out = unique_swarm("pe"), free_port(), tmp_path / "out"
+    sup = start_zenswarm("up", str(scenario), "--out", str(out), "--swarm", swarm, "--listen", f"tcp/127.0.0.1:{port}",
+                         "--external", "agent:2", "--quiet-children", env=env)
+    agent = start_zenswarm("up", str(scenario), "--only", "agent:2", "--swarm", swarm, "--connect", f"tcp/127.0.0.1:{port}", env=env)
+    try:
+        s_out = sup.communicate(timeout=120)[0]
+        a_out = agent.communicate(timeout=60)[0]
+    finally:
+        stop_swarm([sup, agent], swarm, port)
+    assert sup.returncode == 4, s_out[-3000:]
+    assert agent.returncode == 4 and "plugin_error" in a_out and "Traceback" not in a_out, a_out[-2000:]
+    import sys
+
+    sys.path.insert(0, tests)
+    try:
+        sim = api.fly(doc, mode="sim")
+    finally:
+        sys.path.remove(tests)
+    assert read_results(out)["failures"] == sim.results["failures"] and sim.results["failures"][0]["tick"] == 33

@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -63,6 +64,54 @@ class NanController(PaperController):
         return Command(float("nan") if self.k > 5 else cmd.thrust, cmd.rpy, cmd.u, cmd.d_hat)
 
 
+class LateRaiseController(PaperController):
+    name = "late-raise"
+    description = "raises at its tick 150 (past the first second), UAV 2 only"
+
+    def finish(self, q: np.ndarray, v: np.ndarray, rates: Any, dt: float) -> Command:
+        self.k = getattr(self, "k", 0) + 1
+        if self.ctx.i == 1 and self.k > 150:
+            raise RuntimeError("late failure")
+        return super().finish(q, v, rates, dt)
+
+
+class WrongSignatureController(PaperController):
+    two_phase = False
+    name = "signature"
+    description = "its step takes no dt"
+
+    def step(self, q: np.ndarray, v: np.ndarray, neighbours: Sequence[Shared | None], leader: Shared | None) -> Command:  # type: ignore[override]
+        return super().step(q, v, neighbours, leader, 0.01)
+
+
+class BrokenInitController(PaperController):
+    name = "broken-init"
+    description = "its constructor raises"
+
+    def __init__(self, ctx: Any, params: Any) -> None:
+        raise KeyError("no such gain")
+
+
+class CrossTalkController(PaperController):
+    """Deterministic in one process, but its UAVs share a class-level table: in the simulator
+    (every UAV in one process) UAV 2 and 3 see more entries than in the swarm (one per process)."""
+
+    two_phase = False
+    name = "cross-talk"
+    description = "state shared between instances through a class variable"
+    table: dict[int, float] = {}
+
+    def __init__(self, ctx: Any, params: Any) -> None:
+        if ctx.i == 0:
+            CrossTalkController.table = {}
+        super().__init__(ctx, params)
+
+    def step(self, q: np.ndarray, v: np.ndarray, neighbours: Sequence[Shared | None], leader: Shared | None, dt: float) -> Command:
+        cmd = super().step(q, v, neighbours, leader, dt)
+        self.table[self.ctx.i] = cmd.thrust
+        return Command(cmd.thrust + 1e-6 * len(self.table), cmd.rpy, cmd.u, cmd.d_hat)
+
+
 class MutableParamsController(PaperController):
     name = "mutable"
     description = "Params not frozen"
@@ -103,12 +152,33 @@ def _status(name: str, **kw: Any) -> dict[str, str]:
         ("DriftController", "deterministic", "differs between two fresh runs"),
         ("NanController", "outputs", "step().thrust at tick 5: not finite"),
         ("MutableParamsController", "interface", "Params must be frozen"),
+        ("WrongSignatureController", "interface", "step must accept step(self, q, v, neighbours, leader, dt)"),
+        ("LateRaiseController", "outputs", "RuntimeError: late failure"),
+        ("BrokenInitController", "outputs", "KeyError"),
     ],
 )
 def test_a_plug_in_that_breaks_a_rule_fails_that_check(plugin: str, check: str, needle: str) -> None:
     got = _status(plugin)
     assert got[check].startswith("FAIL") and needle in got[check], got
     assert got["sim == swarm"].startswith("SKIP"), got
+
+
+def test_a_failure_past_the_first_second_is_found_and_named_in_the_flight() -> None:
+    """The outputs check covers the whole (shortened) flight, and the flight check names the
+    plug-in's failure as the simulator does (plugin_error, UAV, tick, the exception)."""
+    got = _status("LateRaiseController", duration=2.0)
+    assert got["outputs"].startswith("FAIL") and "late failure" in got["outputs"], got
+    assert got["flight"].startswith("FAIL") and "plugin_error uav 2 at 1.50 s" in got["flight"] and "late failure" in got["flight"], got
+    assert _status("LateRaiseController", duration=1.0)["flight"].startswith("PASS")  # 1 s: it never fails
+
+
+def test_a_plug_in_that_raises_gets_every_check_reported_never_a_traceback(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["plugins", "check", "test_plugcheck:BrokenInitController", "--no-swarm"]) == 1
+    out = capsys.readouterr()
+    assert "Traceback" not in out.out + out.err
+    lines = [ln.split()[:2] for ln in out.out.splitlines() if ln.startswith("  ")]
+    assert [ln[1] for ln in lines] == ["interface", "outputs", "deterministic", "pure", "flight", "sim"], out.out
+    assert out.out.rstrip().endswith("result: FAIL (outputs, flight)"), out.out
 
 
 def test_exit_status_and_report(capsys: pytest.CaptureFixture[str]) -> None:
@@ -130,5 +200,20 @@ def test_every_built_in_plug_in_passes(kind: str, name: str) -> None:
     got_kind, _, checks = check_plugin(name, EX1, duration=2.0)
     assert got_kind == kind
     assert [(c.name, c.status) for c in checks] == [
-        ("interface", "PASS"), ("outputs", "PASS"), ("deterministic", "PASS"), ("pure ticks", "PASS"), ("sim == swarm", "PASS")
+        ("interface", "PASS"), ("outputs", "PASS"), ("deterministic", "PASS"), ("pure ticks", "PASS"), ("flight", "PASS"),
+        ("sim == swarm", "PASS"),
     ], [(c.name, c.status, c.detail) for c in checks]
+
+
+@pytest.mark.swarm
+def test_a_sim_swarm_mismatch_names_the_first_field_tick_uav_and_the_usual_causes(monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
+
+    tests = str(Path(__file__).parent)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")]))
+    _, _, checks = check_plugin("test_plugcheck:CrossTalkController", EX1, duration=1.0)
+    got = {c.name: (c.status, c.detail) for c in checks}
+    assert [got[n][0] for n in ("interface", "outputs", "deterministic", "pure ticks", "flight")] == ["PASS"] * 5, got
+    status, detail = got["sim == swarm"]
+    assert status == "FAIL" and "first difference: series.thrust" in detail and "first at tick 0" in detail, detail
+    assert "UAV 2)" in detail and "Usual causes:" in detail and "module or class variable" in detail, detail

@@ -170,6 +170,16 @@ def test_divergence_from_the_reference_and_non_finite_end_the_run() -> None:
     assert causes(v) == ["non_finite"] and v.failures[0].t_s == pytest.approx(1.23) and not v.finite
 
 
+def test_a_non_finite_leader_ends_the_run_there() -> None:
+    """docs/verdict.md: a non-finite state ends the run early, the leader's reference too."""
+    t, q0, q, qref = flight(400, H3)
+    q0[120:] = np.nan
+    assert decide_end(q0, q, qref, crit(H3)) == 120
+    assert decide_end(q0, q, qref, crit(H3), 0, 120) is None and decide_end(q0, q, qref, crit(H3), 130) == 130
+    v = judge(t, q0, q, qref, crit(H3))
+    assert v.end_tick == 121 and "non_finite" in causes(v)
+
+
 def test_lagging_formation_is_off_slot_not_diverged() -> None:
     """A formation whose references lag the leader (slow consensus) while the UAVs track them is
     no divergence: it flies to the end and fails with uav_off_slot."""

@@ -43,13 +43,13 @@ from zenswarm.bus import free_port
 from zenswarm.compose.launch import kill_processes_of, live_flights, processes_of, run_up, stop_flight
 from zenswarm.compose.sim import simulate, summary_line, write_outputs
 from zenswarm.compose.supervisor import UpOptions, check_up_args
-from zenswarm.config import Scenario, scenario_from_dict, scenario_to_dict
-from zenswarm.errors import ScenarioError, ZenswarmError
+from zenswarm.config import Scenario, scenario_to_dict
+from zenswarm.errors import EXIT_PLUGIN_FAILED, ScenarioError, ZenswarmError
 from zenswarm.generate import to_toml
 from zenswarm.linkfaults import LinkFaults
-from zenswarm.metrics import TimeSeries, flight_differences
+from zenswarm.metrics import TimeSeries, exit_code_of, flight_differences
+from zenswarm.overrides import OverrideError, apply, copy_document, validated
 from zenswarm.paths import check_output_dir
-from zenswarm.plugins import check_selection
 from zenswarm.wire import validate_process
 
 __all__ = [
@@ -76,17 +76,6 @@ Mode = Literal["sim", "swarm"]
 
 DEFAULT_SWARM_TIMEOUT_S = 600.0
 """Wall seconds a swarm flight may take before :func:`fly` stops it (:class:`FlightError`)."""
-
-
-class OverrideError(ScenarioError):
-    """An override's path does not name a scenario field, or its value is refused.
-
-    ``field`` is the dotted path of the scenario field (as in :class:`ScenarioError`);
-    ``override`` the key given to :func:`fly` that caused it."""
-
-    def __init__(self, field: str, message: str, override: str) -> None:
-        super().__init__(field, message)
-        self.override = override
 
 
 class FlightError(ZenswarmError):
@@ -163,7 +152,8 @@ class Flight:
     ``q0``/``v0`` (T, 3) leader, ``qref``/``vref`` (T, N, 3) references, ``q``/``v``/``rpy``
     (T, N, 3) vehicle states, ``u`` (T, N, 3) m/s^2, ``thrust`` (T, N) N, ``d_hat`` (T, N, 3)).
     results: ``results.json`` as a dict (schema in docs/verdict.md). exit_code: what the command
-    line would have returned (0 success, 1 mission failed, 3 a process died, 130 interrupted).
+    line would have returned (0 success, 1 mission failed, 3 a process died, 4 a plug-in failed:
+    ``plugin_error``, 130 interrupted). ``formation_error``: (T, N) m, per tick.
     out: where results.json and timeseries.npz were written (None: not kept). log: the
     supervisor's output (swarm mode). leftovers: processes of the swarm found alive after the
     flight and killed (empty unless something went wrong)."""
@@ -199,6 +189,13 @@ class Flight:
     def summary(self) -> str:
         """The verdict and headline figures in the words of ``zenswarm sim`` (for assertion messages)."""
         return summary_line(dict(self.results))
+
+    @property
+    def formation_error(self) -> np.ndarray:
+        """The vehicles' formation error ||q_i - q0 - h_i|| per tick and UAV, (T, N) m
+        (:meth:`zenswarm.metrics.TimeSeries.formation_error`; its maximum from
+        ``timing.settle_time_s`` on is ``metrics.max_formation_error_m``)."""
+        return self.series.formation_error(self.scenario.offsets)
 
     @property
     def restarts(self) -> dict[str, int]:
@@ -257,7 +254,7 @@ def _document(scenario: str | Path | Scenario | Mapping[str, Any]) -> dict[str, 
     if isinstance(scenario, Scenario):
         return scenario_to_dict(scenario)
     if isinstance(scenario, Mapping):
-        copied: dict[str, Any] = _copy(dict(scenario))
+        copied: dict[str, Any] = copy_document(dict(scenario))
         return copied
     p = scenario_path(scenario)
     try:
@@ -265,68 +262,6 @@ def _document(scenario: str | Path | Scenario | Mapping[str, Any]) -> dict[str, 
         return doc
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise ScenarioError("file", f"{p} is not valid TOML: {e}") from None
-
-
-def _copy(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {k: _copy(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_copy(v) for v in x]
-    return x
-
-
-def _tokens(path: str) -> list[str | int]:
-    """``obstacles[0].radius`` -> ["obstacles", 0, "radius"]; ScenarioError on bad syntax."""
-    import re
-
-    if not isinstance(path, str) or not re.fullmatch(r"[A-Za-z_][\w-]*(\[\d+\]|\.[A-Za-z_][\w-]*)*", path):
-        raise OverrideError(str(path), "not a dotted path to a scenario field (e.g. timing.time_limit_s, obstacles[0].radius)", str(path))
-    return [t if t else int(i) for t, i in re.findall(r"([A-Za-z_][\w-]*)|\[(\d+)\]", path)]
-
-
-def _set(doc: dict[str, Any], path: str, value: Any) -> None:
-    """Set ``value`` at ``path`` in the document, creating missing tables (the schema then
-    refuses keys that are not fields). A path into a list must name an existing element."""
-    toks = _tokens(path)
-    cur: Any = doc
-    for pos, (tok, nxt) in enumerate(zip(toks, [*toks[1:], None], strict=True)):
-        here = "".join(f"[{t}]" if isinstance(t, int) else f".{t}" for t in toks[: pos + 1]).lstrip(".")
-        last = nxt is None
-        if isinstance(tok, int):
-            if not isinstance(cur, list) or tok >= len(cur):
-                n = len(cur) if isinstance(cur, list) else 0
-                raise OverrideError(here, f"no element {tok} (the scenario has {n})", path)
-            if last:
-                cur[tok] = _plain(value)
-            else:
-                cur = cur[tok]
-            continue
-        if not isinstance(cur, dict):
-            raise OverrideError(here, "is not a table", path)
-        if last:
-            cur[tok] = _plain(value)
-        else:
-            if tok not in cur:
-                cur[tok] = [] if isinstance(nxt, int) else {}
-            cur = cur[tok]
-
-
-def _plain(value: Any) -> Any:
-    """A Python value as TOML would hold it: tuples and arrays as lists, numpy scalars as numbers."""
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    return value
-
-
-def _related(a: str, b: str) -> bool:
-    """One dotted path is the other or lies below it."""
-    return a == b or a.startswith(b + ".") or a.startswith(b + "[") or b.startswith(a + ".") or b.startswith(a + "[")
 
 
 def load(
@@ -340,22 +275,8 @@ def load(
     :class:`ScenarioError`; errors an override caused raise :class:`OverrideError` naming the
     field and the override."""
     doc = _document(scenario)
-    base = scenario_from_dict(_copy(doc))  # the scenario's own errors first, as such
-    if not overrides:
-        return base, doc
-    for path, value in overrides.items():
-        _set(doc, path, value)
-    try:
-        sc = scenario_from_dict(_copy(doc))
-    except OverrideError:
-        raise
-    except ScenarioError as e:
-        culprit = next((p for p in overrides if _related(e.field, str(p))), None)
-        if culprit is None:  # a cross-field check (leader.k_rep_max >= k_rep_min, ...)
-            given = ", ".join(map(str, overrides))
-            raise OverrideError(e.field, f"{e.message} (after the overrides {given})", given) from None
-        raise OverrideError(e.field, e.message, str(culprit)) from None
-    return sc, doc
+    ov = dict(overrides or {})
+    return validated(doc, ov), apply(doc, ov)
 
 
 # ----------------------------------------------------------------------------- processes
@@ -474,8 +395,7 @@ def fly(
     ov.update({key: value for key, value in shortcuts.items() if value is not None})
     if planner is not None:  # as --planner: the named planner decides ([leader] adaptive is its older spelling)
         ov["leader.adaptive"] = planner != "apf"
-    sc, doc = load(scenario, ov)
-    check_selection(sc)  # the controller and planner resolve, their params decode (PluginError naming them)
+    sc, doc = load(scenario, ov)  # the controller and planner resolve, their params decode (errors naming them)
     loss = None if link_loss is None else (link_loss if isinstance(link_loss, str) else repr(float(link_loss)))
     rng = None if link_range is None else (link_range if isinstance(link_range, str) else repr(float(link_range)))
     faults = LinkFaults(
@@ -496,8 +416,7 @@ def fly(
         res = simulate(sc, faults=plan, full_time=full_time)
         if out is not None:
             write_outputs(out, res.series, res.results)
-        code = 0 if res.results["success"] else 1
-        return _flight("sim", sc, res.results, res.series, code, out)
+        return _flight("sim", sc, res.results, res.series, exit_code_of(res.results), out)
     return _fly_swarm(sc, doc, faults, kills, restart, realtime, full_time, record, out, swarm, port, lockstep_timeout, timeout,
                       rt_priority)
 
@@ -545,7 +464,7 @@ def _fly_swarm(
         code, log, leftovers = run.exit_code, run.log, run.leftovers
         if run.timed_out:
             raise FlightError(f"the swarm flight took more than {timeout:g} s of wall time; stopped", None, log)
-        if code not in (0, 1, 3) or not (out_dir / "results.json").is_file():
+        if code not in (0, 1, 3, EXIT_PLUGIN_FAILED) or not (out_dir / "results.json").is_file():
             tail = "\n".join(log.splitlines()[-20:])
             raise FlightError(f"zenswarm up ended with exit status {code} and no results:\n{tail}", code, log)
         results = json.loads((out_dir / "results.json").read_text())

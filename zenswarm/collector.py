@@ -246,6 +246,26 @@ class Collector:
         missing = np.flatnonzero(~self.got_state[:upto].all(axis=1))
         return int(missing[0]) if len(missing) else min(upto, self.T)
 
+    def tick_complete(self, k: int) -> bool:
+        """Every message of tick k arrived: each UAV's state, ref and cmd, and the leader's ref
+        (with :meth:`complete_ticks`, in lockstep: every tick before it too)."""
+        if not 0 <= k < self.T:
+            return k < 0
+        if self.complete_ticks(k + 1) < k + 1:
+            return False
+        with self.lock:
+            ts = self.ts
+            return bool(np.isfinite(self.q0[k]).all() and np.isfinite(ts.qref[k]).all() and np.isfinite(ts.thrust[k]).all())
+
+    def outputs_of_tick(self, kind: str, k: int) -> np.ndarray:
+        """(N,) bool: each UAV's ``ref`` or ``cmd`` message of tick k arrived."""
+        self._drain()
+        with self.lock:
+            ts = self.ts
+            if kind == "ref":
+                return np.asarray(~np.isnan(ts.qref[k]).any(axis=1))
+            return np.asarray(~np.isnan(ts.thrust[k]))
+
     def latest(self, kind: str) -> dict[int, tuple[int, np.ndarray]]:
         """UAV number -> (tick, q (3,)) of its newest ``state`` or ``ref`` message, decoded now:
         what the live verdict needs, without decoding the whole flight."""

@@ -30,3 +30,68 @@ class RecordingError(ZenswarmError):
 
 class CampaignError(ZenswarmError):
     """A campaign directory (``zenswarm sweep --out DIR``) is missing, unreadable or malformed."""
+
+
+EXIT_PLUGIN_FAILED = 4
+"""Exit status of ``zenswarm sim``, ``zenswarm up`` and a swarm process when a plug-in failed
+(:class:`PluginFailure`): distinct from 1 (the mission failed) and 3 (a process died)."""
+
+
+class PluginFailure(ZenswarmError):
+    """A plug-in (a controller, a planner or a plant model) misbehaved at its boundary: it raised,
+    or returned a non-finite or wrongly shaped value. Caught where the runner calls the plug-in
+    (:class:`zenswarm.plugins.Boundary`) and turned into the failure ``plugin_error`` of the
+    verdict, at the sim time ``tick * dt`` it happened, by the simulator and the swarm alike.
+
+    kind: ``controller``, ``planner`` or ``plant``. plugin: the name it was selected by.
+    process: the swarm process that runs it (``agent:2``, ``leader``, ``plant``). uavs: the UAVs
+    concerned, 1-based. tick: the control tick whose value it failed to give. stage: where in
+    that tick (:data:`zenswarm.plugins.STAGES`: the failures of a run are those of its first
+    (tick, stage)). call: the method (``step``, ``share``, ``ref``, ...). field: the bad output
+    field (``thrust``, ``rpy``, ``q0``, ...; None when it raised). detail: what was wrong.
+    """
+
+    def __init__(
+        self, kind: str, plugin: str, process: str, uavs: tuple[int, ...], tick: int, stage: int, call: str,
+        detail: str, field: str | None = None,
+    ) -> None:
+        self.kind = kind
+        self.plugin = plugin
+        self.process = process
+        self.uavs = tuple(int(u) for u in uavs)
+        self.tick = int(tick)
+        self.stage = int(stage)
+        self.call = call
+        self.detail = detail
+        self.field = field
+        super().__init__(f"{kind} {plugin!r} of {process} failed at tick {tick} in {call}(): {detail}")
+
+    @property
+    def order(self) -> tuple[int, int]:
+        """(tick, stage): the failures of a run are those with the smallest."""
+        return (self.tick, self.stage)
+
+    def failure(self, dt: float) -> dict[str, object]:
+        """The ``plugin_error`` failure of a results dict (dt: the control tick, s)."""
+        return {
+            "cause": "plugin_error", "t_s": self.tick * dt, "uavs": list(self.uavs), "detail": self.args[0],
+            "plugin": self.plugin, "kind": self.kind, "process": self.process, "tick": self.tick, "stage": self.stage,
+            "call": self.call, "field": self.field,
+        }
+
+    def to_dict(self) -> dict[str, object]:
+        """The fields, as a process reports them to its supervisor (:meth:`from_dict` reads them)."""
+        return {
+            "kind": self.kind, "plugin": self.plugin, "process": self.process, "uavs": list(self.uavs), "tick": self.tick,
+            "stage": self.stage, "call": self.call, "detail": self.detail, "field": self.field,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, object]) -> PluginFailure:
+        uavs = d.get("uavs") or ()
+        assert isinstance(uavs, (list, tuple))
+        field = d.get("field")
+        return cls(
+            str(d["kind"]), str(d["plugin"]), str(d["process"]), tuple(int(u) for u in uavs), int(str(d["tick"])),
+            int(str(d["stage"])), str(d["call"]), str(d["detail"]), None if field is None else str(field),
+        )

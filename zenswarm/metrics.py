@@ -7,11 +7,13 @@ the same flight gives the same JSON.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from .errors import EXIT_PLUGIN_FAILED
 from .verdict import criteria_from_scenario, judge
 
 __all__ = ["TimeSeries", "compute_results", "add_failure", "flight_differences", "RESULT_FIELDS", "FLIGHT_FIELDS", "RESULTS_SCHEMA_VERSION"]
@@ -69,6 +71,22 @@ class TimeSeries:
     d_hat: np.ndarray
 
     FIELDS = ("t", "q0", "v0", "qref", "vref", "q", "v", "rpy", "u", "thrust", "d_hat")
+
+    def formation_error(self, offsets: Any) -> np.ndarray:
+        """The vehicles' formation error per tick and UAV: ||q_i - q0 - h_i||, (T, N) m, from
+        the formation offsets h (N, 3) m (``scenario.offsets``). Its maximum over the ticks at or
+        after ``timing.settle_time_s`` is the verdict's ``max_formation_error_m``."""
+        h = np.asarray(offsets, dtype=float)
+        return np.asarray(np.linalg.norm(self.q - (self.q0[:, None, :] + h[None]), axis=2))
+
+    def generator_formation_error(self, offsets: Any) -> np.ndarray:
+        """The references' formation error ||q*_i - q0 - h_i||, (T, N) m (the generator's, eqs 16-17)."""
+        h = np.asarray(offsets, dtype=float)
+        return np.asarray(np.linalg.norm(self.qref - (self.q0[:, None, :] + h[None]), axis=2))
+
+    def tracking_error(self) -> np.ndarray:
+        """The vehicles' tracking error ||q*_i - q_i||, (T, N) m."""
+        return np.asarray(np.linalg.norm(self.qref - self.q, axis=2))
 
     @classmethod
     def allocate(cls, T: int, n: int) -> TimeSeries:
@@ -163,11 +181,36 @@ def add_failure(res: dict[str, Any], cause: str, detail: str, t_s: float | None 
     res["success"] = False
 
 
+def add_plugin_failures(res: dict[str, Any], failures: Sequence[Any], dt: float) -> None:
+    """Add the ``plugin_error`` failures a run ended on (:class:`zenswarm.errors.PluginFailure`
+    each, at sim time tick * dt, ``dt`` the control tick in s) to a results dict, in place of the
+    ``incomplete`` or ``no_data`` they explain; the run is then not a success."""
+    res["failures"] = [f for f in res["failures"] if f["cause"] not in ("incomplete", "no_data")]
+    res["failures"].extend(f.failure(dt) for f in failures)
+    res["success"] = False
+
+
+def exit_code_of(res: dict[str, Any]) -> int:
+    """The exit status a results dict stands for: 130 interrupted, 4 a plug-in failed
+    (``plugin_error``), 3 a process died, 0 success, else 1 (the mission failed)."""
+    causes = {f["cause"] for f in res.get("failures") or ()}
+    if "interrupted" in causes:
+        return 130
+    if "plugin_error" in causes:
+        return EXIT_PLUGIN_FAILED
+    if "process_died" in causes:
+        return 3
+    return 0 if res["success"] else 1
+
+
 def flight_differences(a: TimeSeries, res_a: dict[str, Any], b: TimeSeries, res_b: dict[str, Any]) -> list[str]:
     """What differs between two flights: every series compared bit for bit (NaN equal to NaN,
-    shapes included; the first differing tick named), then the :data:`FLIGHT_FIELDS` of their
-    results. Empty when they are the same flight (the lockstep swarm against the simulator)."""
+    shapes included; the first differing tick, the UAV and the two values named), the series
+    that differ earliest first (the field order of :class:`TimeSeries` among those of one tick),
+    then the :data:`FLIGHT_FIELDS` of their results. Empty when they are the same flight (the
+    lockstep swarm against the simulator)."""
     out: list[str] = []
+    series: list[tuple[int, str]] = []
     for f in TimeSeries.FIELDS:
         x, y = getattr(a, f), getattr(b, f)
         if x.shape != y.shape:
@@ -177,7 +220,12 @@ def flight_differences(a: TimeSeries, res_a: dict[str, Any], b: TimeSeries, res_
             tick = int(bad[0][0])
             gaps = int(np.sum(np.isnan(x) != np.isnan(y)))  # a value on one side, none (NaN) on the other
             why = f"; {gaps} of them missing on one side" if gaps else ""
-            out.append(f"series.{f}: {len(bad)} values differ, first at tick {tick} (t = {float(a.t[tick]):.3f} s){why}")
+            uav = f", UAV {int(bad[0][1]) + 1}" if x.ndim >= 2 and f not in ("q0", "v0") else ""
+            at = tuple(int(i) for i in bad[0])
+            vals = f": {float(x[at])!r} != {float(y[at])!r}"
+            when = f"first at tick {tick} (t = {float(a.t[tick]):.3f} s{uav})"
+            series.append((tick, f"series.{f}: {len(bad)} values differ, {when}{vals}{why}"))
+    out += [text for _, text in sorted(series, key=lambda s: s[0])]
     for key in FLIGHT_FIELDS:
         if res_a.get(key) != res_b.get(key):
             out.append(f"results.{key}: {res_a.get(key)!r} != {res_b.get(key)!r}")

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any, Final, Literal
 import msgspec
 import numpy as np
 
-from .errors import ScenarioError
+from .errors import PluginFailure, ScenarioError
 from .schema import convert
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -55,6 +55,17 @@ __all__ = [
     "planner_name",
     "select",
     "check_selection",
+    "PluginFailure",
+    "Boundary",
+    "STAGES",
+    "STAGE_BUILD",
+    "STAGE_PLANNER",
+    "STAGE_SHARE",
+    "STAGE_STEP",
+    "STAGE_PLANT",
+    "bad_vector",
+    "bad_scalar",
+    "first_failures",
 ]
 
 Kind = Literal["controller", "planner"]
@@ -140,10 +151,11 @@ def resolve(kind: str, name: str, field: str | None = None) -> type:
         if ep is not None:
             target = ep.value
     if target is None:
-        raise PluginError(where, f"no {kind} named {name!r} (tried {'; '.join(tried)}); `zenswarm plugins` lists them")
+        hint = _did_you_mean(kind, name)
+        raise PluginError(where, f"no {kind} named {name!r}{hint} (tried {'; '.join(tried)}); `zenswarm plugins` lists them")
     try:
         obj = _load_target(target)
-    except (ImportError, AttributeError) as e:
+    except Exception as e:  # noqa: BLE001 - ImportError, AttributeError, or whatever its module raised on import
         raise PluginError(where, f"{kind} {name!r}: cannot load {target} ({type(e).__name__}: {e}); tried {'; '.join(tried)}") from None
     base = _base(kind)
     if not (isinstance(obj, type) and issubclass(obj, base)):
@@ -153,6 +165,22 @@ def resolve(kind: str, name: str, field: str | None = None) -> type:
         missing = ", ".join(sorted(abstract))
         raise PluginError(where, f"{kind} {name!r}: {target} does not implement {missing}")
     return obj
+
+
+def _did_you_mean(kind: str, name: str) -> str:
+    """``; did you mean 'aapf'?`` for a name close to a known one of ``kind`` (any kind's, named), else ""."""
+    import difflib
+
+    known = {n: kind for n in [*BUILTINS[kind], *_entry_points(kind)]}
+    for other in KINDS:
+        if other != kind:
+            for n in [*BUILTINS[other], *_entry_points(other)]:
+                known.setdefault(n, other)
+    close = difflib.get_close_matches(name, list(known), n=3, cutoff=0.6)
+    if not close:
+        return ""
+    shown = ", ".join(repr(n) if known[n] == kind else f"{n!r} (a {known[n]})" for n in close)
+    return f"; did you mean {shown}?"
 
 
 def available(kind: str) -> list[PluginInfo]:
@@ -222,8 +250,106 @@ def select(scenario: Scenario, controller: str | None = None, planner: str | Non
     return scenario
 
 
-def check_selection(scenario: Scenario) -> None:
+def check_selection(scenario: Scenario, controller_field: str | None = None, planner_field: str | None = None) -> None:
     """Resolve the scenario's controller and planner and decode their params tables: a bad name
-    or parameter raises ScenarioError naming it (exit 2), before any work starts."""
-    decode_params(resolve("controller", scenario.agents.controller), scenario.agents.params, "agents.params")
-    decode_params(resolve("planner", planner_name(scenario)), scenario.leader.params, "leader.params")
+    or parameter raises ScenarioError naming it (exit 2), before any work starts. A bad name is
+    named by ``controller_field`` / ``planner_field`` when given (the flag it came from, e.g.
+    ``--controller``), else by its scenario field."""
+    decode_params(resolve("controller", scenario.agents.controller, controller_field), scenario.agents.params, "agents.params")
+    decode_params(resolve("planner", planner_name(scenario), planner_field), scenario.leader.params, "leader.params")
+
+
+# ----------------------------------------------------------------------------- the plug-in boundary
+
+STAGE_BUILD, STAGE_PLANNER, STAGE_SHARE, STAGE_STEP, STAGE_PLANT = -1, 0, 1, 2, 3
+STAGES: Final[Mapping[int, str]] = {
+    STAGE_BUILD: "build (the plug-in's constructor, before tick 0)",
+    STAGE_PLANNER: "the leader's reference of the tick (Planner.advance to it, then Planner.ref)",
+    STAGE_SHARE: "what the agents share for the tick (Controller.reset on the first, Controller.share)",
+    STAGE_STEP: "the agents' commands of the tick (Controller.step, or prepare + finish)",
+    STAGE_PLANT: "the vehicles' physics over the tick (the plant model)",
+}
+"""Where in control tick k a plug-in is called, in the order the simulator calls them (the
+module docstring of :mod:`zenswarm.compose.sim`). A run that a plug-in fails ends at its first
+(tick, stage): the failures judged are every plug-in failure of that (tick, stage), so the
+simulator and the swarm (whose processes run concurrently) name the same ones."""
+
+
+class Boundary:
+    """Where a runner (the simulator, an agent or the leader process, ``zenswarm verify``) calls
+    one plug-in instance: :meth:`call` turns an exception into a :class:`PluginFailure` and
+    :meth:`fail` reports a bad output, each naming the plug-in, its process, the tick and the
+    call. kind: ``controller`` / ``planner`` / ``plant``; plugin: the name it was selected by;
+    process: ``agent:<i>``, ``leader`` or ``plant``; uavs: the UAVs it flies, 1-based."""
+
+    def __init__(self, kind: str, plugin: str, process: str, uavs: tuple[int, ...] = ()) -> None:
+        self.kind = kind
+        self.plugin = plugin
+        self.process = process
+        self.uavs = uavs
+
+    def call(self, tick: int, stage: int, what: str, fn: Any, *args: Any) -> Any:
+        """``fn(*args)``; an exception (not KeyboardInterrupt / SystemExit) becomes a
+        :class:`PluginFailure` of ``tick`` and ``stage`` naming ``what`` and the exception."""
+        try:
+            return fn(*args)
+        except PluginFailure:
+            raise
+        except Exception as e:  # any exception of a plug-in is its failure, named
+            text = str(e).strip().splitlines()
+            detail = f"raised {type(e).__name__}" + (f": {text[0]}" if text else "")
+            raise PluginFailure(self.kind, self.plugin, self.process, self.uavs, tick, stage, what, detail) from e
+
+    def fail(self, tick: int, stage: int, what: str, field: str, problem: str) -> PluginFailure:
+        """The failure of a bad output ``field`` (``problem``: what is wrong with it), to raise."""
+        return PluginFailure(self.kind, self.plugin, self.process, self.uavs, tick, stage, what, f"{field}: {problem}", field)
+
+    def check(self, tick: int, stage: int, what: str, problems: Any) -> None:
+        """Raise the failure of the first of ``problems`` ((field, problem) pairs, None: fine)."""
+        for item in problems:
+            if item is not None:
+                raise self.fail(tick, stage, what, *item)
+
+
+def _show(x: Any) -> str:
+    text = np.array2string(x, precision=6, threshold=9) if isinstance(x, np.ndarray) else repr(x)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def bad_vector(x: Any, shape: tuple[int, ...]) -> str | None:
+    """What is wrong with ``x`` as a finite float array of ``shape`` (None: nothing)."""
+    try:
+        a = np.asarray(x, dtype=float)
+    except (TypeError, ValueError):
+        return f"{_show(x)} is not an array of numbers (expected shape {shape})"
+    if a.shape != tuple(shape):
+        return f"shape {a.shape} != {tuple(shape)}"
+    if not np.all(np.isfinite(a)):
+        return f"{_show(a)} is not finite"
+    return None
+
+
+def bad_scalar(x: Any) -> str | None:
+    """What is wrong with ``x`` as one finite number (None: nothing)."""
+    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+        if isinstance(x, np.ndarray) and x.shape == ():
+            x = x.item()
+        else:
+            return f"{_show(x)} ({type(x).__name__}) is not a number"
+    if not np.isfinite(float(x)):
+        return f"{x!r} is not finite"
+    return None
+
+
+def first_failures(failures: list[PluginFailure]) -> list[PluginFailure]:
+    """The failures of the first (tick, stage) among ``failures``, ordered by process (the
+    leader, then agent 1, 2, ...): what the run ends on."""
+    if not failures:
+        return []
+    first = min(f.order for f in failures)
+
+    def by_process(f: PluginFailure) -> tuple[int, str]:
+        name = f.process
+        return (int(name.split(":")[1]), name) if name.startswith("agent:") and name.split(":")[1].isdigit() else (0, name)
+
+    return sorted((f for f in failures if f.order == first), key=by_process)

@@ -46,7 +46,7 @@ import zenoh
 
 from . import bus, rtsched, security, wire
 from .config import Scenario, load_scenario, scenario_from_dict
-from .errors import ScenarioError, ZenswarmError
+from .errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
 
 if TYPE_CHECKING:
     from .faults import FaultPlan
@@ -1248,13 +1248,48 @@ class SwarmProcess:
         print(text, flush=True)
 
 
+PLUGIN_FAILURE_MARK = "zenswarm-plugin-failure "
+"""The line a swarm process prints (``MARK`` + JSON of :meth:`zenswarm.errors.PluginFailure.to_dict`)
+before it exits with :data:`zenswarm.errors.EXIT_PLUGIN_FAILED`: how its supervisor learns
+which plug-in failed, where and when."""
+
+
+PLUGIN_FAILURE_LINGER_S = 30.0
+"""Wall seconds a process whose plug-in failed stays up at most (its token held), until the plant
+is gone or it is stopped: what it published last reaches its receivers, and they never mistake
+it for a crash."""
+
+
+def report_plugin_failure(proc: SwarmProcess | None, e: PluginFailure) -> None:
+    """Say that a plug-in failed: a line for humans, the machine-readable line
+    (:data:`PLUGIN_FAILURE_MARK`) for the supervisor, and a diagnostic on the bus (best effort);
+    then linger (:data:`PLUGIN_FAILURE_LINGER_S`) until the flight is over."""
+    import json
+
+    print(f"{e.process}: plugin_error: {e}", file=sys.stderr, flush=True)
+    print(PLUGIN_FAILURE_MARK + json.dumps(e.to_dict(), sort_keys=True), file=sys.stderr, flush=True)
+    if proc is not None and proc.session is not None:
+        try:
+            dt_ns = wire.t_ns(proc.scenario.timing.dt) if proc.scenario is not None else 0
+            proc.publish_diag(e.tick * dt_ns, {"plugin_failure": json.dumps(e.to_dict(), sort_keys=True)})
+        except Exception:  # noqa: BLE001 - the line above is what counts
+            pass
+        if proc.name != "plant":
+            proc.linger_until_gone("plant", PLUGIN_FAILURE_LINGER_S)
+
+
 def run_process(fn: Callable[[SwarmProcess], int], name: str, options: ProcessOptions | Any) -> int:
     """Run ``fn`` inside a :class:`SwarmProcess` started with ``options`` (or any object with
     their attribute names, see :meth:`ProcessOptions.of`); map errors to exit codes (2: bad
-    scenario, credentials, unreachable router) and always close."""
+    scenario, credentials, unreachable router; 4: a plug-in failed, :func:`report_plugin_failure`)
+    and always close."""
     try:
         with SwarmProcess(name, options) as proc:
-            rc = fn(proc)
+            try:
+                rc = fn(proc)
+            except PluginFailure as e:
+                report_plugin_failure(proc, e)
+                return EXIT_PLUGIN_FAILED
             return EXIT_ROUTER_LOST if proc.router_gone else rc
     except ZenswarmError as e:  # bad scenario, credentials, unreachable router: say what, exit 2
         print(f"{name}: error: {e}", file=sys.stderr, flush=True)

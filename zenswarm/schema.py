@@ -515,7 +515,8 @@ def _error(e: msgspec.ValidationError, obj: Any, typ: type, prefix: str) -> Scen
     if m := re.fullmatch(r"Object contains unknown field `(.+)`", msg):
         st = _type_at(mi.type_info(typ), tokens)
         names = sorted(f.encode_name for f in st.fields) if isinstance(st, mi.StructType) else []
-        return ScenarioError(join(m.group(1)), f"unknown key (allowed: {', '.join(names)})")
+        allowed = ", ".join(names) if names else "none: this table takes no keys"
+        return ScenarioError(join(m.group(1)), f"unknown key (allowed: {allowed})")
     if m := re.fullmatch(r"Object missing required field `(.+)`", msg):
         return ScenarioError(join(m.group(1)), "missing required key")
     if m := re.fullmatch(r"@(\w+): (.*)", msg, re.S):  # a __post_init__ check naming its key

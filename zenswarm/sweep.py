@@ -10,7 +10,9 @@ Campaign directory (docs/campaigns.md): ``campaign.json`` (the plan, written bef
 run), ``runs.jsonl`` (the journal: one line per finished run, appended and flushed as it
 finishes), ``runs.parquet`` (the table, rebuilt from the journal and replaced atomically as runs
 finish). Re-running the same command resumes: the journal's runs are skipped. Ctrl-C loses the runs
-in flight only. A run that raises is recorded with its error after one retry (``attempts``).
+in flight only. A run that raises is recorded with its error after one retry (``attempts``); a
+run whose plug-in failed (``plugin_error``, deterministic: not retried) has its failure as its
+``error``, beside the figures of what it flew.
 
 Exit status: 0 every run recorded without a crash, 1 some run crashed (``error``) or a
 ``--check-swarm`` run differed from the simulator, 2 bad input (before anything runs), 130 Ctrl-C.
@@ -97,7 +99,9 @@ def run_one(task: Mapping[str, Any]) -> dict[str, Any]:
             controller=task["controller"], planner=task["planner"],
         )
         r = f.results
-        row |= {"success": bool(f.success), "causes": ",".join(f.causes), "error": None}
+        failed = [x for x in f.failures if x.cause == "plugin_error"]
+        error = f"plugin_error: {failed[0].detail}" if failed else None
+        row |= {"success": bool(f.success), "causes": ",".join(f.causes), "error": error}
         row |= {k: None if r.get(k) is None else float(r[k]) for k in METRICS_FLOAT}
         row |= {k: None if r.get(k) is None else bool(r[k]) for k in METRICS_BOOL}
     except Exception as e:  # noqa: BLE001 -- a crashing run is data: recorded with its error, retried once by the driver
@@ -405,7 +409,7 @@ def _drive(backend: Backend, tasks: Sequence[dict[str, Any]], on_row: Callable[[
             except Exception as e:  # noqa: BLE001 -- the pool or the cluster lost the run (a dead worker): an error, retried
                 row = {"run": task["run"], "cell": task["cell"], "seed": task["seed"], **task["columns"], "success": False,
                        "causes": "", "error": f"{type(e).__name__}: {e}", "mode": task["mode"], "zenswarm_version": __version__}
-            if row.get("error") is not None and attempt == 1:
+            if row.get("error") is not None and attempt == 1 and not str(row["error"]).startswith("plugin_error"):
                 pending[backend.submit(task)] = (task, 2)
                 continue
             row["attempts"] = attempt

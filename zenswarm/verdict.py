@@ -61,12 +61,15 @@ CAUSES = (
     "timeout",
     "incomplete",
     "process_died",
+    "plugin_error",
     "interrupted",
     "no_data",
 )
-"""Every cause a failure can have. ``process_died`` and ``interrupted`` are added by the tools
-that run the flight (a swarm process died; Ctrl-C) in place of ``incomplete`` (a flight that stopped
-before its time limit, undecided); the rest come from the UAVs' states."""
+"""Every cause a failure can have. ``process_died``, ``plugin_error`` and ``interrupted`` are
+added by the tools that run the flight (a swarm process died; a plug-in raised or gave a
+non-finite or wrongly shaped output, :class:`zenswarm.errors.PluginFailure`; Ctrl-C) in place of
+``incomplete`` (a flight that stopped before its time limit, undecided); the rest come from the
+UAVs' states."""
 
 TERMINAL = ("leader_stalled", "uav_diverged", "non_finite")
 """Causes that end a run early (unless the whole time limit is asked for)."""
@@ -271,8 +274,8 @@ def decide_end(
     q0: np.ndarray, q: np.ndarray, qref: np.ndarray, c: Criteria, k0: int = 0, k1: int | None = None
 ) -> int | None:
     """The first tick in [k0, k1) at which the outcome can no longer change: the leader stalled
-    (``leader_stalled``) or a UAV diverged from its reference or went non-finite. The run ends
-    after that tick.
+    (``leader_stalled``), its reference went non-finite, or a UAV diverged from its reference or
+    went non-finite. The run ends after that tick.
 
     Causal: the decision at tick k reads ticks <= k only, so a run stopped there holds the same
     ticks as one that flew on. q0 (T, 3), q and qref (T, N, 3); default k1 = T. None if no such
@@ -282,7 +285,8 @@ def decide_end(
     if k1 <= k0:
         return None
     div = _diverged(q, qref, k0, k1, c)
-    hits = [k for k in (_stalled(q0, k0, k1, c), div[0] if div else None) if k is not None]
+    lead = np.flatnonzero(~np.isfinite(q0[k0:k1]).all(axis=1))  # the leader's reference went non-finite
+    hits = [k for k in (_stalled(q0, k0, k1, c), div[0] if div else None, k0 + int(lead[0]) if len(lead) else None) if k is not None]
     return min(hits) if hits else None
 
 
