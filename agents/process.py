@@ -49,7 +49,7 @@ from zenswarm.agents.api import (
 )
 from zenswarm.agents.core import AgentRow, elapsed_dt
 from zenswarm.faults import FaultState
-from zenswarm.linkfaults import Box, box_counters
+from zenswarm.linkfaults import Box, box_counters, due_tick
 from zenswarm.plugins import plant_vehicle
 from zenswarm.runtime import (
     Lockstep,
@@ -247,11 +247,13 @@ class _LockstepAgent:
 
     def needed(self, key: str, k: int) -> bool:
         """Wait for this input of tick k? Not if its sender is gone, or if the sender has
-        already moved past tick k (a restarted neighbour that skipped it)."""
+        already moved past the tick of the message due (a restarted neighbour that skipped it:
+        one key's messages arrive in the order they were sent, so one never sent is never
+        coming). With link faults the message due is its box's (:func:`due_tick`)."""
         if not self.proc.is_alive(self.a.sender[key]):
             return False
         m = self.proc.inbox.latest.get(key)
-        return m is None or m.t <= k * self.a.dt_ns
+        return m is None or m.t <= due_tick(self.a.boxes.get(key), k) * self.a.dt_ns
 
     def ready(self, k: int) -> bool:
         a, inbox = self.a, self.proc.inbox

@@ -144,9 +144,9 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
     """The flags every swarm process takes (read back with
     :meth:`zenswarm.runtime.ProcessOptions.of`): ``--scenario``, ``--swarm``, ``--connect``,
     ``--realtime``, the credentials (:func:`add_security_args`), the link faults
-    (:func:`add_fault_args`), the plug-ins (:func:`add_plugin_args`), ``--lockstep-timeout`` and
-    ``--rt-priority`` (:func:`add_rt_priority_arg`)."""
-    from zenswarm.runtime import DEFAULT_LOCKSTEP_TIMEOUT_S
+    (:func:`add_fault_args`), the plug-ins (:func:`add_plugin_args`), ``--lockstep-timeout``,
+    ``--router-lost-timeout`` and ``--rt-priority`` (:func:`add_rt_priority_arg`)."""
+    from zenswarm.runtime import DEFAULT_LOCKSTEP_TIMEOUT_S, DEFAULT_ROUTER_LOST_TIMEOUT_S
 
     p.add_argument("--scenario", type=Path, help="scenario TOML; if omitted, fetched from the leader's mission key")
     p.add_argument("--swarm", default="default", help="swarm name: the key prefix swarm/<name> (default: default)")
@@ -167,6 +167,14 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
         default=DEFAULT_LOCKSTEP_TIMEOUT_S,
         metavar="S",
         help=f"lockstep: wall seconds to wait for an input before it counts as a drop (default {DEFAULT_LOCKSTEP_TIMEOUT_S})",
+    )
+    p.add_argument(
+        "--router-lost-timeout",
+        type=positive_float,
+        default=DEFAULT_ROUTER_LOST_TIMEOUT_S,
+        metavar="S",
+        help="wall seconds to wait for the router to come back once the link to it is closed (zenoh's 10 s lease ran "
+        f"out) before giving up: the process stops and exits 3 (default {DEFAULT_ROUTER_LOST_TIMEOUT_S:g})",
     )
     add_rt_priority_arg(p)
 

@@ -37,6 +37,7 @@ import argparse
 import asyncio
 import concurrent.futures
 import os
+import re
 import threading
 import time
 from dataclasses import dataclass
@@ -73,6 +74,17 @@ SDK_SUBPROTOCOL = "foxglove.sdk.v1"
 """The only subprotocol the foxglove-sdk server accepts."""
 
 SUBPROTOCOLS = (SDK_SUBPROTOCOL, "foxglove.websocket.v1")
+
+ALLOWED_ORIGINS: tuple[Any, ...] = (
+    None,  # no Origin header: not a browser (the desktop apps' native clients, scripts, tests)
+    "null",  # a page from a file, a sandboxed frame
+    "file://",
+    re.compile(r"https?://(localhost|127\.0\.0\.1|\[::1\])(:\d+)?"),  # a viewer served from this machine
+    re.compile(r"https://([a-z0-9-]+\.)*foxglove\.dev"),  # the Foxglove web app
+)
+"""``Origin`` headers the relay accepts (:class:`SubprotocolRelay`; values or full-match patterns).
+A web page can open a WebSocket to 127.0.0.1 from any site the user visits (WebSockets are not
+bound by the same-origin policy): one from another site is refused with HTTP 403."""
 """The names of the protocol the live view accepts, the preferred first: a client offering both
 (the Foxglove app) gets ``foxglove.sdk.v1``; one offering only the old name gets that."""
 
@@ -213,7 +225,8 @@ class SubprotocolRelay:
     gets a connection of its own to ``upstream`` (the foxglove-sdk server, subprotocol
     ``foxglove.sdk.v1``) and every message passes both ways unchanged, text and binary alike:
     the protocol is the same under both names. A slow client slows its upstream connection, so
-    the SDK's per-client backlog drops the oldest messages as it does for a direct client. Runs
+    the SDK's per-client backlog drops the oldest messages as it does for a direct client. A
+    browser page from a site not in :data:`ALLOWED_ORIGINS` is refused (HTTP 403). Runs
     an event loop in a daemon thread; binds at construction (``OSError`` if it cannot);
     :meth:`close` disconnects every client and stops it."""
 
@@ -226,7 +239,8 @@ class SubprotocolRelay:
         self._thread.start()
 
         async def start() -> Any:
-            return await serve(self._handle, host, port, subprotocols=list(SUBPROTOCOLS), compression=None, max_size=None)  # type: ignore[arg-type]
+            return await serve(self._handle, host, port, subprotocols=list(SUBPROTOCOLS), compression=None, max_size=None,  # type: ignore[arg-type]
+                               origins=list(ALLOWED_ORIGINS))
 
         try:
             self._server = asyncio.run_coroutine_threadsafe(start(), self._loop).result(timeout=10.0)

@@ -273,6 +273,8 @@ class McapSink:
         if metadata is not None:
             self._writer.add_metadata(METADATA_NAME, metadata)
         self._file.flush()
+        self._good_end = self._file.tell()  # the end of what reached the OS whole (see _salvage)
+        self.salvaged: str | None = None  # how a failed file was ended (see _salvage), None if it was not
         self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
         self.put_item = self._q.put
         """Queue one ``(log_time_ns, key, payload)`` tuple (the Zenoh callback's hot path)."""
@@ -324,7 +326,7 @@ class McapSink:
             # _STOP is queued after the session is closed, so every sample precedes it (FIFO)
             if st.dropped_oversize != ws.dropped_written:
                 self._write_metadata(self._dropped_metadata())
-            self._writer.flush()  # the open chunk first: the end marker comes after every message
+            self._flush()  # the open chunk first: the end marker comes after every message
             self._write_metadata(self._end_metadata())
         except BaseException as e:  # noqa: BLE001 - report, and still try to finish the file
             self.error = e
@@ -410,7 +412,7 @@ class McapSink:
             if backlog > st.peak_backlog:
                 st.peak_backlog = backlog
             if ws.dirty:
-                self._writer.flush()  # closes the open chunk, writes it and flushes to the OS
+                self._flush()  # closes the open chunk, writes it and flushes to the OS
                 st.flushes += 1
                 ws.dirty = False
             ws.next_flush = mono() + self.flush_interval_s
@@ -439,18 +441,75 @@ class McapSink:
 
     def _write_metadata(self, values: dict[str, str]) -> None:
         self._writer.add_metadata(METADATA_NAME, values)
+        self._flush()
+
+    def _flush(self) -> None:
+        """Close the open chunk, write it and flush the file to the OS; the file is whole up to here."""
         self._writer.flush()
+        self._good_end = self._file.tell()
 
     def _finish(self) -> None:
+        """Write the summary and the footer, close the file. After a write error (a full disk:
+        ENOSPC, an I/O error) the file is ended by :meth:`_salvage` instead."""
         try:
-            self._writer.finish()
+            if self.error is None:
+                self._writer.finish()
+                self._file.flush()
+        except OSError as e:
+            self.error = e
         finally:
-            self._file.flush()
-            self._file.close()
+            try:
+                self._file.close()
+            except OSError as e:  # what was still buffered did not fit either: cut by _salvage
+                self.error = self.error or e
+            if self.error is not None:
+                self.salvaged = self._salvage()
             try:
                 self.stats.file_bytes = os.path.getsize(self.path)
             except OSError:
                 pass
+
+    def _salvage(self) -> str:
+        """End a file whose writing failed so that it is readable as it is, up to the last flush
+        (at most ``flush_interval_s`` of samples lost before the failure): cut it back there, at a
+        record boundary, then append the end marker (stop reason: the error), a data end and a
+        footer without a summary (readers scan the data section). A partial chunk freed what it
+        used, so the few hundred bytes of that ending usually fit on a full disk; if even they do
+        not, the end marker is left out, and failing that the file is left cut at the last
+        flush, which ``zenswarm recover`` (or a non-strict read) takes whole. Returns what was done."""
+        import struct
+
+        def record(opcode: int, body: bytes) -> bytes:
+            return struct.pack("<BQ", opcode, len(body)) + body
+
+        def text(v: str) -> bytes:
+            b = v.encode()
+            return struct.pack("<I", len(b)) + b
+
+        self.stop_reason = f"writer failed: {self.error!r}"
+        entries = b"".join(text(k) + text(v) for k, v in self._end_metadata().items())
+        metadata = record(0x0C, text(METADATA_NAME) + struct.pack("<I", len(entries)) + entries)  # METADATA
+        ending = record(0x0F, struct.pack("<I", 0)) + record(0x02, struct.pack("<QQI", 0, 0, 0))  # DATA_END, FOOTER
+        ending += b"\x89MCAP0\r\n"
+        try:
+            fd = os.open(self.path, os.O_WRONLY)
+        except OSError:
+            return "not ended: the file could not be opened again"
+        try:
+            for tail, what in ((metadata + ending, "cut at the last flush, end marker and footer written"),
+                               (ending, "cut at the last flush, footer written (no room for the end marker)")):
+                os.ftruncate(fd, self._good_end)
+                try:
+                    if os.pwrite(fd, tail, self._good_end) == len(tail):
+                        return what
+                except OSError:
+                    pass
+            os.ftruncate(fd, self._good_end)
+            return "cut at the last flush, no room for a footer (`zenswarm recover` reads it)"
+        except OSError as e:
+            return f"not ended: {e!r}"
+        finally:
+            os.close(fd)
 
 
 def _fetch_mission(session: Any, keys: wire.Keys, stop: threading.Event, on_scenario: Any, log: Any) -> None:
@@ -666,7 +725,8 @@ def run(args: argparse.Namespace) -> int:
     st = sink.stats
     log(f"recorder: {stop.why}; wrote {out}: {st.line()}")
     if sink.error is not None:
-        print(f"recorder: error: writing {out} failed: {sink.error!r}", file=sys.stderr, flush=True)
+        ended = f"; {out}: {sink.salvaged}" if sink.salvaged else ""
+        print(f"recorder: error: writing {out} failed: {sink.error!r}{ended}", file=sys.stderr, flush=True)
         return 3
     return 0
 

@@ -41,7 +41,7 @@ from zenswarm.config import Scenario
 from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
 from zenswarm.linkfaults import LinkFaults
 from zenswarm.metrics import add_failure, add_plugin_failures, compute_results
-from zenswarm.paths import check_output_dir, check_output_file
+from zenswarm.paths import check_output_dir, check_output_file, lock_output_dir
 from zenswarm.plugins import DEFAULTS, STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
 from zenswarm.policy import restart_policy
 from zenswarm.runtime import PLUGIN_FAILURE_MARK, gc_policy, gc_safe_point, gc_startup_done
@@ -81,12 +81,18 @@ def swarm_roles(n: int, plant: str = "sim") -> list[str]:
     return ["vehicles", "bridge"] + names[1:] if plant == "mavlink" else names
 
 
-def _pdeathsig() -> None:  # runs in the child between fork and exec
+def _pdeathsig(sig: int = signal.SIGKILL) -> None:  # runs in the child between fork and exec
     try:
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG: die with the supervisor
+        libc.prctl(1, sig)  # PR_SET_PDEATHSIG: die with the supervisor
     except OSError:
         pass
+
+
+def _pdeathsig_term() -> None:
+    """The recorder's: a SIGTERM when the supervisor dies, so it closes its MCAP file (summary
+    and footer written: readable as it is) before it exits; the flying roles get a SIGKILL."""
+    _pdeathsig(signal.SIGTERM)
 
 
 @dataclass(frozen=True)
@@ -126,6 +132,7 @@ class UpOptions:
     plant_model: str | None = None
     live: LiveTarget | None = None  # --live [PORT|rerun[:PORT]]: serve the flight to a viewer (zenswarm.bridge.live)
     rt_priority: int | None = None  # --rt-priority P: the flying processes under SCHED_FIFO P (zenswarm.rtsched)
+    router_lost_timeout: float | None = None  # --only: give up on a lost router after S s (zenswarm.runtime)
 
     def rt_argv(self) -> list[str]:
         """``--rt-priority P`` for the flying processes (if given)."""
@@ -175,6 +182,7 @@ def up_options(args: argparse.Namespace) -> UpOptions:
         plant_model=args.plant_model,
         live=args.live,
         rt_priority=args.rt_priority,
+        router_lost_timeout=args.router_lost_timeout,
     )
 
 
@@ -324,7 +332,7 @@ class Supervisor:
             stdin=subprocess.DEVNULL,
             text=True,
             start_new_session=True,  # Ctrl-C reaches the supervisor only; it stops the children
-            preexec_fn=_pdeathsig,
+            preexec_fn=_pdeathsig_term if role == "recorder" else _pdeathsig,
             env=env,
         )
         c = Child(role, p, time.monotonic())
@@ -377,10 +385,20 @@ class Supervisor:
     # ------------------------------------------------------------------ main loop
     def run(self) -> int:
         a = self.args
-        sc = self.sc
         out: Path = a.out
         listen = list(a.listen) or [f"tcp/127.0.0.1:{bus.free_port()}"]
         settings, listen = self._security(listen, out)
+        # a second flight into this OUT would overwrite our results: exit 2 naming --out, now
+        out_lock = lock_output_dir(out, "--out")
+        try:
+            return self._run_locked(listen, settings, out)
+        finally:
+            out_lock.release()
+
+    def _run_locked(self, listen: list[str], settings: dict, out: Path) -> int:
+        """:meth:`run` once the output directory is locked: the router, the processes, the watch."""
+        a = self.args
+        sc = self.sc
         self.connect_endpoints = list(a.connect) or list(listen)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
@@ -396,38 +414,42 @@ class Supervisor:
         self._bus_sub: Any = None
         subs = []
         try:
-            # A channel, drained by _watch every loop: no Python callback per message (each would
-            # wake a thread of this process, on the cores the swarm shares). The capacity holds
-            # minutes of a large swarm's traffic, so the router never waits on this queue.
-            self._bus_sub = session.declare_subscriber(self.keys.all, zenoh.handlers.FifoChannel(COLLECTOR_QUEUE))
-            subs.append(self._bus_sub)
-            subs.append(session.liveliness().declare_subscriber(self.keys.alive_all, self._on_liveliness, history=True))
-            subs.append(session.liveliness().declare_subscriber(self.keys.alive_all + "/*", self._on_sender_token, history=True))
-            self.say(
-                f"swarm '{a.swarm}': router on {', '.join(listen)}; {sc.n} UAVs; "
-                f"{'realtime' if a.realtime else 'lockstep'}; scenario {sc.name}"
-            )
-            if a.record is not None:
-                a.record.parent.mkdir(parents=True, exist_ok=True)
-                self.spawn("recorder")  # first: the plant waits for it, so no tick goes unrecorded
-            for role in self.roles():
-                self.spawn(role)
-            if a.realtime:
-                gc_startup_done()  # the children are started: see zenswarm.runtime.GcPolicy (realtime only)
-            code = self._watch(collector)
+            try:
+                # A channel, drained by _watch every loop: no Python callback per message (each would
+                # wake a thread of this process, on the cores the swarm shares). The capacity holds
+                # minutes of a large swarm's traffic, so the router never waits on this queue.
+                self._bus_sub = session.declare_subscriber(self.keys.all, zenoh.handlers.FifoChannel(COLLECTOR_QUEUE))
+                subs.append(self._bus_sub)
+                subs.append(session.liveliness().declare_subscriber(self.keys.alive_all, self._on_liveliness, history=True))
+                subs.append(session.liveliness().declare_subscriber(self.keys.alive_all + "/*", self._on_sender_token, history=True))
+                self.say(
+                    f"swarm '{a.swarm}': router on {', '.join(listen)}; {sc.n} UAVs; "
+                    f"{'realtime' if a.realtime else 'lockstep'}; scenario {sc.name}"
+                )
+                if a.record is not None:
+                    a.record.parent.mkdir(parents=True, exist_ok=True)
+                    self.spawn("recorder")  # first: the plant waits for it, so no tick goes unrecorded
+                for role in self.roles():
+                    self.spawn(role)
+                if a.realtime:
+                    gc_startup_done()  # the children are started: see zenswarm.runtime.GcPolicy (realtime only)
+                code = self._watch(collector)
+            finally:
+                self.terminate_all()
+                if self._bus_sub is not None:
+                    collector.poll(self._bus_sub, self._live_tap())  # what arrived after the last loop
+                if self.live is not None:
+                    self.live.publish()  # the flight's last frame
+                for s in subs:
+                    try:
+                        s.undeclare()
+                    except Exception:  # noqa: BLE001 - best effort on shutdown
+                        pass
+            # results first, then the router's close: with a link to a host that is gone (a cut
+            # cable, a dead remote role) zenoh's close waits about 10 s for it to time out
+            return self._finish(collector, code, out)
         finally:
-            self.terminate_all()
-            if self._bus_sub is not None:
-                collector.poll(self._bus_sub, self._live_tap())  # what arrived after the last loop
-            if self.live is not None:
-                self.live.publish()  # the flight's last frame
-            for s in subs:
-                try:
-                    s.undeclare()
-                except Exception:  # noqa: BLE001 - best effort on shutdown
-                    pass
             session_cm.__exit__(None, None, None)
-        return self._finish(collector, code, out)
 
     def _security(self, listen: list[str], out: Path) -> tuple[dict, list[str]]:
         """Router settings and listen endpoints for --secure/--tls (secure by default off loopback)."""
@@ -620,6 +642,9 @@ class Supervisor:
         how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
         t = max(collector.sim_t_ns, 0) / 1e9
         self.recording_loss = {"died_at_sim_time_s": t, "how": how, "recording": str(self.args.record)}
+        error = next((ln for ln in reversed(child.lines) if ln.startswith("recorder: error:")), None)
+        if error is not None:  # why it stopped, in its words (e.g. the disk is full: ENOSPC)
+            self.recording_loss["error"] = error.removeprefix("recorder: error: ")
         tail = "; last output: " + " | ".join(child.lines[-3:]) if child.lines else ""
         self.say(
             f"recording lost: the recorder died ({how}) at sim time {t:.2f} s; the flight goes on unrecorded, "
@@ -925,6 +950,10 @@ class Supervisor:
             self.say(f"ignored {collector.foreign} messages from sessions that are not their key's process "
                      f"(on {len(collector.foreign_by_key)} keys; results.json: foreign_samples)")
         self._add_stop_failure(res, code)
+        for e in res["failsafe"]:
+            until = f"{e['to_s']:.2f} s" if e["to_s"] is not None else "the end"
+            self.say(f"failsafe: UAV {e['uav']} flown by the plant ({' then '.join(e['modes'])}) from sim time "
+                     f"{e['from_s']:.2f} s to {until}: agent:{e['uav']}'s commands were stale")
         out.mkdir(parents=True, exist_ok=True)
         ts.save(str(out / "timeseries.npz"))
         (out / "results.json").write_text(json.dumps(res, indent=2, sort_keys=True, default=str) + "\n")
@@ -952,6 +981,7 @@ class Supervisor:
             if self.recording_loss is not None:
                 res["recording_loss"] = self.recording_loss
         res["restarts"] = self.restarts
+        res["failsafe"] = collector.failsafe_intervals()  # UAVs the plant held: their agents' commands were stale
         res["diagnostics"] = collector.diag
         res["supervisor_zenoh_threads"] = bus.zenoh_threads()  # the router's (ZENOH_RUNTIME_ROUTER)
         res["decoder_rejects"] = collector.decoder.counters()
@@ -1113,6 +1143,8 @@ def _run_only(args: UpOptions) -> int:
         argv.append("--realtime")
     if args.keys is not None:
         argv += ["--keys", str(args.keys)] + (["--tls"] if args.tls else [])
+    if args.router_lost_timeout is not None:
+        argv += ["--router-lost-timeout", repr(args.router_lost_timeout)]
     return cli_main(argv + args.plugin_argv() + args.rt_argv())
 
 
@@ -1229,6 +1261,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--only",
         metavar="ROLE",
         help="run a single role here (plant, leader, agent:<i>) against a router elsewhere (--connect)",
+    )
+    p.add_argument(
+        "--router-lost-timeout",
+        type=positive_float,
+        default=None,
+        metavar="S",
+        help="with --only: seconds to wait for the remote router to come back once zenoh closed the link to it "
+        "(its 10 s lease ran out) before the role gives up and exits 3 (default 30)",
     )
     p.add_argument(
         "--lockstep-timeout",

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 from zenswarm import wire
 from zenswarm.faults import FaultState
-from zenswarm.linkfaults import Box, box_counters
+from zenswarm.linkfaults import Box, box_counters, due_tick
 from zenswarm.plant.core import PlantCore
 from zenswarm.runtime import (
     CLOCK_EVERY_TICKS,
@@ -142,11 +142,14 @@ class _LockstepPlant:
             self.p.boxes[key].offer(k, msg.seq, msg)
 
     def needed(self, i: int, k: int) -> bool:
-        """Wait for agent i's cmd(k)? Not if it is gone or has moved past tick k."""
+        """Wait for agent i's cmd(k)? Not if it is gone or has moved past the tick of the
+        command due (a restarted agent that skipped it; with link faults, its box's due one:
+        :func:`zenswarm.linkfaults.due_tick`)."""
         if not self.proc.is_alive(self.p.agents[i]):
             return False
-        m = self.proc.inbox.latest.get(self.p.cmd_keys[i])
-        return m is None or m.t <= k * self.p.dt_ns
+        key = self.p.cmd_keys[i]
+        m = self.proc.inbox.latest.get(key)
+        return m is None or m.t <= due_tick(self.p.boxes.get(key) if self.p.boxes else None, k) * self.p.dt_ns
 
     def ready(self, k: int) -> bool:
         p, inbox = self.p, self.proc.inbox

@@ -161,6 +161,9 @@ class Collector:
         self._goal = np.asarray(scenario.leader.goal, dtype=float)
         self._goal_tol = scenario.timing.goal_tolerance_m
         self.diag: dict[str, dict[str, Any]] = {}
+        # the plant's failsafe as its diagnostics said it, each change once: (sim time ns, summary
+        # such as "2:hover"; "none" when every UAV is back to nominal), see failsafe_intervals()
+        self.failsafe_log: list[tuple[int, str]] = []
         self.counts: dict[str, int] = {}
         self._eager = {keys.clock, keys.leader_ref}
         self._spool = Spool(spool_dir, spool_block_bytes)  # samples decoded later, raw, in arrival order
@@ -298,6 +301,28 @@ class Collector:
         """Drop the samples still in the spool and free its file."""
         self._spool.close()
 
+    def failsafe_intervals(self) -> list[dict[str, Any]]:
+        """The plant's failsafe as its diagnostics told it (:attr:`failsafe_log`): one entry per
+        UAV and interval it was out of nominal mode, ``{"uav": i (1-based), "modes": ["hover",
+        "land"...] in order, "from_s": sim time s, "to_s": sim time s or None (still held at the
+        end)}``, in order of start. A UAV there was flown by the plant, not by its agent: that
+        agent's commands were stale (frozen, dead or cut off)."""
+        open_: dict[int, dict[str, Any]] = {}
+        done: list[dict[str, Any]] = []
+        for t_ns, summary in self.failsafe_log:
+            modes = {}
+            for part in summary.split(","):
+                uav, sep, mode = part.partition(":")
+                if sep and uav.strip().isdigit():
+                    modes[int(uav)] = mode.strip()
+            for i in [i for i in open_ if i not in modes]:
+                done.append({**open_.pop(i), "to_s": t_ns / 1e9})
+            for i, mode in modes.items():
+                cur = open_.setdefault(i, {"uav": i, "modes": [], "from_s": t_ns / 1e9, "to_s": None})
+                if not cur["modes"] or cur["modes"][-1] != mode:
+                    cur["modes"].append(mode)
+        return sorted(done + list(open_.values()), key=lambda e: (e["from_s"], e["uav"]))
+
     def _drain(self) -> None:
         if not self._spool.records:
             return
@@ -315,6 +340,9 @@ class Collector:
         if msg is None:
             return
         if isinstance(msg, wire.Diag):
+            fs = msg.info.get("failsafe")
+            if msg.process == "plant" and isinstance(fs, str) and (self.failsafe_log[-1][1] if self.failsafe_log else "none") != fs:
+                self.failsafe_log.append((int(msg.t), fs))
             self.diag[msg.process] = {**msg.counters, **{k: v for k, v in msg.info.items() if isinstance(v, (int, float, bool, str))}}
             return
         if isinstance(msg, wire.Mission):

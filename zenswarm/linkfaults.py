@@ -34,7 +34,7 @@ from .linktrace import LinkTrace, load_trace
 from .radio import GEOMETRY_TICK_OFFSET, components, leader_reaches_all, radio_reason
 
 __all__ = [
-    "Box", "LinkFaults", "plan_for", "scenario_links", "DelayLine", "box_counters", "distance",
+    "Box", "LinkFaults", "plan_for", "scenario_links", "DelayLine", "box_counters", "distance", "due_tick",
     "effective_graph", "graph_series", "GraphSeries", "LinkSeries",
 ]  # fmt: skip
 
@@ -166,6 +166,16 @@ class Box(LinkInbox):
         its fate is known."""
         j = self.due(k)
         return j is None or (self.has(j) and self.known(j))
+
+
+def due_tick(box: Box | None, k: int) -> int:
+    """The send tick of the message a lockstep receiver waits for at tick k: k without link
+    faults; with them the tick its receive box is due to deliver (:meth:`Box.due`), unless that
+    message was already offered (a radio link may still be deciding its fate: wait for it)."""
+    if box is None:
+        return k
+    j = box.due(k)
+    return k if j is None or box.has(j) else j
 
 
 def scenario_links(scenario: Scenario) -> list[tuple[str, str, str]]:

@@ -84,3 +84,48 @@ def check_output_file(path: str | os.PathLike[str], flag: str) -> Path:
     anc = _check_ancestor(p, flag)
     _probe_writable(anc, p, flag)
     return p
+
+
+OUTPUT_LOCK = ".zenswarm-up.lock"
+"""The file in an output directory that a running flight holds locked (:func:`lock_output_dir`)."""
+
+
+class OutputLock:
+    """An exclusive lock (``flock``) on ``DIR/.zenswarm-up.lock`` held while a flight writes into
+    ``DIR``; released by :meth:`release` or when the process ends, however it ends (the kernel
+    drops the lock with the descriptor: a SIGKILLed flight leaves no stale lock)."""
+
+    def __init__(self, fd: int, path: Path) -> None:
+        self.fd: int | None = fd
+        self.path = path
+
+    def release(self) -> None:
+        fd, self.fd = self.fd, None
+        if fd is not None:
+            os.close(fd)
+
+
+def lock_output_dir(path: str | os.PathLike[str], flag: str) -> OutputLock:
+    """Lock the output directory ``path`` (created if missing) for one flight: a second flight
+    with the same ``--out`` while the first runs would overwrite its results (two flights at once
+    on one machine with the default ``--out``). Raises :class:`ScenarioError` (field ``flag``)
+    naming the flight that holds it (its pid), before anything starts."""
+    import fcntl
+
+    p = Path(path)
+    p.mkdir(parents=True, exist_ok=True)
+    lock = p / OUTPUT_LOCK
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        try:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+        finally:
+            os.close(fd)
+        raise ScenarioError(
+            flag, f"{p} is the output directory of another flight that is running (pid {holder}); give this one its own --out"
+        ) from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return OutputLock(fd, lock)

@@ -58,6 +58,14 @@ __all__ = ["Inbox", "SwarmProcess", "ProcessOptions", "run_process", "LoopStats"
 # Lockstep: a missing input is waited for this long (wall clock) before it counts as a drop.
 DEFAULT_LOCKSTEP_TIMEOUT_S = 5.0
 
+DEFAULT_ROUTER_LOST_TIMEOUT_S = 30.0
+"""``--router-lost-timeout``: wall seconds a process waits for its router to come back once zenoh
+has closed the link to it (the session lease, 10 s, ran out) before it gives up, stops and exits
+with :data:`EXIT_ROUTER_LOST`: the router, or the host it runs on, is gone for good."""
+
+EXIT_ROUTER_LOST = 3
+"""Exit status of a process that gave up on its router (``--router-lost-timeout``)."""
+
 # Zenoh runs Python callbacks on its own threads; with the default 5 ms GIL switch interval a
 # callback thread can keep the main loop waiting for the GIL for milliseconds per message.
 SWITCH_INTERVAL_S = 0.0002
@@ -706,7 +714,8 @@ class ProcessOptions:
     scenario's). controller, planner, plant_model: plug-in names overriding the scenario's
     (:func:`zenswarm.plugins.select`; None: the scenario's). rt_priority: realtime only, run
     the process's threads under ``SCHED_FIFO`` at this priority once start-up is over
-    (:mod:`zenswarm.rtsched`; None: the fair scheduler).
+    (:mod:`zenswarm.rtsched`; None: the fair scheduler). router_lost_timeout: wall seconds to wait
+    for a lost router to come back before giving up (:data:`DEFAULT_ROUTER_LOST_TIMEOUT_S`).
     """
 
     scenario: Path | None = None
@@ -731,6 +740,7 @@ class ProcessOptions:
     planner: str | None = None
     rt_priority: int | None = None
     plant_model: str | None = None
+    router_lost_timeout: float = DEFAULT_ROUTER_LOST_TIMEOUT_S
 
     @classmethod
     def of(cls, obj: Any) -> ProcessOptions:
@@ -766,6 +776,7 @@ class ProcessOptions:
             link_trace=get("link_trace", None),
             rt_priority=get("rt_priority", None),
             plant_model=get("plant_model", None),
+            router_lost_timeout=float(get("router_lost_timeout", DEFAULT_ROUTER_LOST_TIMEOUT_S)),
         )
 
     def fault_plan(self, scenario: Scenario) -> FaultPlan | None:
@@ -820,6 +831,8 @@ class SwarmProcess:
         self._source_info: dict[str, Any] = {}
         self._transport_listener: bus.Undeclarable | None = None
         self._link_lost = False
+        self._lost_since: float | None = None  # monotonic s when zenoh closed the link to the router
+        self.router_gone = False  # gave up on the router (--router-lost-timeout): exit EXIT_ROUTER_LOST
         self.on_reconnect: Callable[[], None] | None = None  # called (zenoh's thread) when the link to the router is back
 
     @property
@@ -1059,10 +1072,16 @@ class SwarmProcess:
             return
         if not up:
             self._link_lost = True
+            since = self._lost_since = time.monotonic()
             self.counters["router_link_lost"] += 1
-            self.log(f"{self.name}: link to the router lost; zenoh keeps trying to reconnect")
+            wait = self.options.router_lost_timeout
+            self.log(f"{self.name}: link to the router lost; zenoh keeps trying to reconnect for {wait:g} s (--router-lost-timeout)")
+            t = threading.Timer(wait, self._router_lost_for_good, args=(since,))
+            t.daemon = True
+            t.start()
         elif self._link_lost:
             self._link_lost = False
+            self._lost_since = None
             self.counters["router_reconnects"] += 1
             if self._guard is not None:
                 self._guard.discontinuity()
@@ -1070,6 +1089,18 @@ class SwarmProcess:
             hook = self.on_reconnect
             if hook is not None:
                 hook()
+
+    def _router_lost_for_good(self, since: float) -> None:
+        """The router did not come back within ``--router-lost-timeout`` of the link loss at
+        ``since``: stop the process (its loop ends, it exits with :data:`EXIT_ROUTER_LOST`)."""
+        if not self._link_lost or self._lost_since != since or self.stop.is_set():
+            return
+        self.router_gone = True
+        self.counters["router_lost"] += 1
+        self.log(f"{self.name}: error: the router has been unreachable for {self.options.router_lost_timeout:g} s "
+                 f"(--router-lost-timeout); giving up, exit {EXIT_ROUTER_LOST}")
+        self.stop.set()
+        self.inbox.wake()
 
     def publisher(self, key: str) -> Any:
         pub = self._pubs.get(key)
@@ -1257,10 +1288,11 @@ def run_process(fn: Callable[[SwarmProcess], int], name: str, options: ProcessOp
     try:
         with SwarmProcess(name, options) as proc:
             try:
-                return fn(proc)
+                rc = fn(proc)
             except PluginFailure as e:
                 report_plugin_failure(proc, e)
                 return EXIT_PLUGIN_FAILED
+            return EXIT_ROUTER_LOST if proc.router_gone else rc
     except ZenswarmError as e:  # bad scenario, credentials, unreachable router: say what, exit 2
         print(f"{name}: error: {e}", file=sys.stderr, flush=True)
         return 2

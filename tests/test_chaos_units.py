@@ -1,0 +1,116 @@
+"""Issue 30, the pieces without processes: a recording ended on a full disk, the output-directory
+lock, the failsafe intervals the supervisor reports, the message a lockstep receiver waits for."""
+
+from __future__ import annotations
+
+import errno
+import io
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from zenswarm import wire
+from zenswarm.bridge import recorder
+from zenswarm.bridge.mcapio import RECORDER_END, read_recording
+from zenswarm.bridge.recorder import McapSink, build_metadata
+from zenswarm.collector import Collector
+from zenswarm.config import load_scenario
+from zenswarm.errors import ScenarioError
+from zenswarm.faults import plan_from_cli
+from zenswarm.linkfaults import Box, due_tick
+from zenswarm.paths import OUTPUT_LOCK, lock_output_dir
+
+from swarmtest import SCENARIOS
+
+EX1 = SCENARIOS / "paper_example1.toml"
+
+
+class _FullDisk(io.FileIO):
+    """A file on a disk that has room for ``room`` bytes: then every write fails with ENOSPC."""
+
+    room = 0
+
+    def write(self, b: Any) -> int:
+        if self.tell() + len(b) > self.room:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return super().write(b)
+
+
+@pytest.mark.parametrize("room", [6_000, 60_000])
+def test_a_recording_on_a_full_disk_is_ended_readable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, room: int) -> None:
+    """The recorder's file fills up: the sink reports the error, cuts the file back to its last
+    flush and ends it (end marker naming the error, footer): readable as it is, every message
+    written before the last flush, in order."""
+    _FullDisk.room = room
+    monkeypatch.setattr(recorder, "open", lambda path, mode: _FullDisk(path, "w"), raising=False)
+    keys = wire.Keys("disk")
+    path = tmp_path / "full.mcap"
+    sink = McapSink(path, keys, flush_interval_s=0.0, chunk_size=2048, metadata=build_metadata("disk", "lockstep", None, "test"))
+    sink.start()
+    for k in range(3000):
+        st = wire.State(t=k * 10_000_000, seq=k + 1, q=[k, 0, 1], v=[0, 0, 0], rpy=[0, 0, 0], w=[0, 0, 0])
+        sink.put(1_700_000_000_000_000_000 + k, keys.state(1), wire.encode(st))
+    sink.close()
+    assert isinstance(sink.error, OSError) and sink.error.errno == errno.ENOSPC
+    assert sink.salvaged is not None and sink.salvaged.startswith("cut at the last flush"), sink.salvaged
+    rec = read_recording(path)  # strict: complete
+    ticks = [wire.decode("state", m.payload).seq - 1 for m in rec.messages()]
+    assert 0 < len(ticks) < 3000 and ticks == list(range(len(ticks)))
+    if "end marker" in sink.salvaged:
+        meta = rec.metadata["zenswarm"]
+        assert "No space left on device" in meta.get("recorder_stop_reason", ""), meta
+        assert RECORDER_END in meta
+
+
+def test_an_output_directory_holds_one_flight_at_a_time(tmp_path: Path) -> None:
+    """A second lock on an output directory is refused naming the flag and the holder's pid; it
+    is free again once released, and a process that dies holding it leaves no stale lock."""
+    out = tmp_path / "out"
+    lock = lock_output_dir(out, "--out")
+    with pytest.raises(ScenarioError) as ei:
+        lock_output_dir(out, "--out")
+    assert ei.value.field == "--out" and "another flight" in ei.value.message and str(__import__("os").getpid()) in ei.value.message
+    lock.release()
+    lock_output_dir(out, "--out").release()
+    code = f"from zenswarm.paths import lock_output_dir; lock_output_dir({str(out)!r}, '--out'); import os; os._exit(9)"
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 9  # died holding it
+    lock_output_dir(out, "--out").release()
+    assert (out / OUTPUT_LOCK).is_file()
+
+
+def _diag(t: float, failsafe: str) -> bytes:
+    return wire.encode(wire.Diag(t=wire.t_ns(t), seq=1, process="plant", counters={}, info={"failsafe": failsafe}))
+
+
+def test_failsafe_intervals_from_the_plants_diagnostics() -> None:
+    """The supervisor's ``failsafe`` (results.json): each UAV's interval out of nominal mode, with
+    the modes in order, from the plant's diagnostics; one still held at the end has no end."""
+    sc = load_scenario(EX1)
+    keys = wire.Keys("fs")
+    c = Collector(sc, keys)
+    told = ((1.0, "none"), (3.5, "2:hover"), (4.0, "2:hover"), (5.0, "2:land,3:hover"), (6.0, "3:hover"), (7.0, "none"), (9.0, "1:hover"))
+    for t, fs in told:
+        c.on_sample(keys.diag("plant"), _diag(t, fs))
+    c.on_sample(keys.diag("agent:1"), wire.encode(wire.Diag(t=0, seq=1, process="agent:1", counters={}, info={"failsafe": "2:hover"})))
+    assert c.failsafe_intervals() == [
+        {"uav": 2, "modes": ["hover", "land"], "from_s": 3.5, "to_s": 6.0},
+        {"uav": 3, "modes": ["hover"], "from_s": 5.0, "to_s": 7.0},
+        {"uav": 1, "modes": ["hover"], "from_s": 9.0, "to_s": None},
+    ]
+    c.close()
+
+
+def test_a_message_never_sent_is_not_waited_for() -> None:
+    """``due_tick``: the tick of the message a receiver waits for at tick k: k without faults; the
+    box's due one with them, so a newer message of the sender (it restarted and skipped the due
+    one) ends the wait; but a due message already offered is waited for as before."""
+    assert due_tick(None, 42) == 42
+    plan = plan_from_cli("50ms", None, None, [], seed=1, n=3)
+    box = Box(plan, "agent:2", "agent:1", "ref", 0.01)
+    assert box.due(100) == 95  # 50 ms: the message of tick 95 is delivered at 100
+    assert due_tick(box, 100) == 95
+    box.offer(95, 1, "ref95")
+    assert due_tick(box, 100) == 100  # offered: the old rule (has the sender moved past tick 100?)
