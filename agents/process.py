@@ -205,6 +205,8 @@ class _LockstepAgent:
         self.held: dict[str, wire.Ref] = {}
         self.join_tick = 0
         self.early: _Early | None = None  # rates of a tick computed ahead
+        self.seen: set[str] = set()  # senders seen alive
+        self.back: set[str] = set()  # senders that died and have sent nothing since (restarted: not waited for)
         self.ls = Lockstep(
             agent.n_ticks, self.ready, self.step, self.proc.options.lockstep_timeout, self.proc.stop,
             prepare=self.prepare, can_force=self.state_in, on_msg=self.on_msg,
@@ -216,6 +218,7 @@ class _LockstepAgent:
 
     def on_msg(self, key: str, k: int, msg: Any) -> None:  # under the lockstep lock
         a = self.a
+        self.back.discard(a.sender[key])  # a restarted sender's first message: wait for it again
         if a.boxes:
             if key == a.state_key:
                 a.boxes[key].offer(k, msg.seq, msg)
@@ -250,8 +253,14 @@ class _LockstepAgent:
         already moved past the tick of the message due (a restarted neighbour that skipped it:
         one key's messages arrive in the order they were sent, so one never sent is never
         coming). With link faults the message due is its box's (:func:`due_tick`)."""
-        if not self.proc.is_alive(self.a.sender[key]):
+        name = self.a.sender[key]
+        if not self.proc.is_alive(name):
+            if name in self.seen:
+                self.back.add(name)  # it died: once back, it joins at the next state it sees
             return False
+        self.seen.add(name)
+        if name in self.back:
+            return False  # back, nothing from it yet: what it would send for tick k needs a state it missed
         m = self.proc.inbox.latest.get(key)
         return m is None or m.t <= due_tick(self.a.boxes.get(key), k) * self.a.dt_ns
 

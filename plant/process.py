@@ -136,17 +136,28 @@ class _LockstepPlant:
         # while an agent is down, run no faster than real time
         self.pacer = WallClock(plant.dt, catch_up=False)
         self.ls = Lockstep(plant.n_ticks, self.ready, self.step, self.proc.options.lockstep_timeout, self.proc.stop, on_msg=self.on_msg)
+        self.seen: set[str] = set()  # agents seen alive
+        self.back: set[str] = set()  # agents that died and have sent nothing since (restarted: not waited for)
+        self.sender = dict(zip(plant.cmd_keys, plant.agents, strict=True))
 
     def on_msg(self, key: str, k: int, msg: wire.Cmd) -> None:  # under the lockstep lock
         if self.p.boxes:
             self.p.boxes[key].offer(k, msg.seq, msg)
+        if self.back:
+            self.back.discard(self.sender.get(key, ""))  # a restarted agent's first command: wait for it again
 
     def needed(self, i: int, k: int) -> bool:
         """Wait for agent i's cmd(k)? Not if it is gone or has moved past the tick of the
         command due (a restarted agent that skipped it; with link faults, its box's due one:
         :func:`zenswarm.linkfaults.due_tick`)."""
-        if not self.proc.is_alive(self.p.agents[i]):
+        name = self.p.agents[i]
+        if not self.proc.is_alive(name):
+            if name in self.seen:
+                self.back.add(name)  # it died: once back, it joins at the next state it sees
             return False
+        self.seen.add(name)
+        if name in self.back:
+            return False  # back, nothing from it yet: state(k) went out before it subscribed
         key = self.p.cmd_keys[i]
         m = self.proc.inbox.latest.get(key)
         return m is None or m.t <= due_tick(self.p.boxes.get(key) if self.p.boxes else None, k) * self.p.dt_ns
