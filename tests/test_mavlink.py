@@ -229,6 +229,7 @@ class Gcs:
     def __init__(self, port: int, sysid: int = 1) -> None:
         self.c = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=245, source_component=191)
         self.sysid = sysid
+        self.last_sp = 0.0  # monotonic s of the last setpoint sent
         self.c.mav.heartbeat_send(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 4)
 
     def recv(self, mtype: str, timeout: float) -> Any:
@@ -251,6 +252,7 @@ class Gcs:
         self.c.mav.set_position_target_local_ned_send(
             0, self.sysid, 1, mavlink.MAV_FRAME_LOCAL_NED, 2496, *ned, 0, 0, 0, 0, 0, 0, math.pi / 2, 0
         )
+        self.last_sp = time.monotonic()  # when the last setpoint left (the vehicle's loss timer starts after it)
 
     def stream(self, ned: list[float], seconds: float, until: Callable[[Any], bool] | None = None) -> Any:
         """Send position setpoints at 20 Hz for ``seconds`` or until a HEARTBEAT satisfies
@@ -354,7 +356,7 @@ def test_vehicle_offboard_loss_failsafe(one_vehicle):
     gcs.stream([2.0, 1.0, -0.3], 1.5)
     veh = fleet.vehicles[0]
     assert veh.mode == "OFFBOARD" and veh.armed and fleet.state.q[0, 2] > 0.15
-    t_stop = time.monotonic()
+    t_stop = gcs.last_sp  # the last setpoint: stream() may return up to a receive timeout (and a loaded core) later
     wait_until(lambda: veh.mode == "AUTO.LOITER", 1.5, "the failsafe hold")
     assert time.monotonic() - t_stop >= 0.45  # not before the 0.5 s loss time (scheduling slack 50 ms)
     # ... and says so in its heartbeat (queued older heartbeats may still say OFFBOARD)
