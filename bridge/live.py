@@ -44,6 +44,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from zenswarm.bridge.scene import PacedView
 from zenswarm.errors import ScenarioError
 
 __all__ = [
@@ -140,7 +141,7 @@ def open_in_app(url: str) -> str:
     return f"live view on {url}: in the Foxglove app, Open connection -> Foxglove WebSocket -> {url} (layout: docs/foxglove_layout.json)"
 
 
-class LiveView:
+class LiveView(PacedView):
     """A Foxglove WebSocket server showing scenario ``sc`` flown by swarm ``swarm``. Binds at
     construction: a port in use raises :class:`ScenarioError` naming ``flag`` (exit 2, before
     the flight). ``port`` 0: any free port (see :attr:`port`)."""
@@ -151,11 +152,8 @@ class LiveView:
         import foxglove
 
         from zenswarm.bridge.foxglove_scene import SceneChannels
-        from zenswarm.bridge.scene import LatestFrames
 
-        self.sc = sc
-        self.latest = LatestFrames(sc, swarm, trail_s)
-        self.keys = self.latest.keys
+        super().__init__(sc, swarm, hz, trail_s)
         self.context = foxglove.Context()  # the server's own: no other channel of this process on it
         # the channels first: a client that connects at once is advertised all three in one go
         # (a channel created after the server started can race a client's subscription to it)
@@ -170,25 +168,11 @@ class LiveView:
             raise ScenarioError(flag, f"cannot serve the live view on {HOST}:{port}: {reason}") from None
         self.port: int = self.relay.port
         self.url = f"ws://{HOST}:{self.port}"
-        self.period = 1.0 / hz
         self.base_ns = time.time_ns()
-        self.frames = 0
-        self._next = 0.0
 
     def how_to_open(self) -> str:
         """The line the commands print: where the view is and how to open it."""
         return open_in_app(self.url)
-
-    def feed(self, key: str, payload: bytes) -> None:
-        """Take one message of the swarm (the newest of each key is kept)."""
-        self.latest.feed(key, payload)
-
-    def maybe_publish(self, now: float) -> bool:
-        """Publish a frame if one is due at ``now`` (monotonic s) and something new arrived."""
-        if now < self._next:
-            return False
-        self._next = now + self.period
-        return self.publish()
 
     def publish(self) -> bool:
         """Log a frame of the newest messages (False: no state yet, or none newer than the last frame)."""

@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 
+from zenswarm.bridge.scene import PacedView
 from zenswarm.errors import RecordingError, ScenarioError, ZenswarmError
 
 __all__ = [
@@ -390,7 +391,7 @@ def _plain(text: str) -> str:
     return _ANSI.sub("", text)
 
 
-class RerunLiveView:
+class RerunLiveView(PacedView):
     """The live view in Rerun: :class:`RerunServer` on ``port`` (the web viewer's; 0: any free)
     fed with the frames of swarm ``swarm`` flying ``sc`` (:class:`zenswarm.bridge.scene.LatestFrames`),
     at most ``hz`` per wall second. The same interface as :class:`zenswarm.bridge.live.LiveView`
@@ -401,11 +402,7 @@ class RerunLiveView:
     def __init__(self, sc: Any, swarm: str, port: int, *, flag: str = "--live", hz: float = 10.0, trail_s: float = 10.0) -> None:
         import rerun as rr
 
-        from zenswarm.bridge.scene import LatestFrames
-
-        self.sc = sc
-        self.latest = LatestFrames(sc, swarm, trail_s)
-        self.keys = self.latest.keys
+        super().__init__(sc, swarm, hz, trail_s)
         self.server = RerunServer(port, flag=flag)
         self.url = self.server.url
         self.port = self.server.web_port
@@ -413,26 +410,12 @@ class RerunLiveView:
         self.rec.connect_grpc(self.server.grpc_url, default_blueprint=blueprint())
         self.rec.send_recording_name(f"{sc.name} (swarm {swarm}, live)")
         self.scene = RerunScene(sc, self.rec)
-        self.period = 1.0 / hz
-        self.frames = 0
-        self._next = 0.0
 
     def how_to_open(self) -> str:
         """The line the commands print: where the view is and how to open it."""
         return (
             f"live view (Rerun) on {self.url} : open it in a browser (the native viewer: rerun --connect {self.server.grpc_url})"
         )
-
-    def feed(self, key: str, payload: bytes) -> None:
-        """Take one message of the swarm (the newest of each key is kept)."""
-        self.latest.feed(key, payload)
-
-    def maybe_publish(self, now: float) -> bool:
-        """Publish a frame if one is due at ``now`` (monotonic s) and something new arrived."""
-        if now < self._next:
-            return False
-        self._next = now + self.period
-        return self.publish()
 
     def publish(self) -> bool:
         """Log a frame of the newest messages (False: no state yet, or none newer than the last frame)."""

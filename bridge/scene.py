@@ -670,3 +670,33 @@ def metric_series(m: dict[str, Any]) -> dict[str, float]:
             if ln[k] is not None:
                 out[f"link_{k}/{ln['link']}"] = float(ln[k])
     return out
+
+
+class PacedView:
+    """What both live views share (:class:`zenswarm.bridge.live.LiveView`,
+    :class:`zenswarm.bridge.rerun_scene.RerunLiveView`): the swarm's newest messages
+    (:class:`LatestFrames`, :meth:`feed`) and a frame published at most ``hz`` per wall second
+    (:meth:`maybe_publish`); a view implements :meth:`publish`."""
+
+    def __init__(self, sc: Any, swarm: str, hz: float, trail_s: float) -> None:
+        self.sc = sc
+        self.latest = LatestFrames(sc, swarm, trail_s)
+        self.keys = self.latest.keys
+        self.period = 1.0 / hz
+        self.frames = 0
+        self._next = 0.0
+
+    def feed(self, key: str, payload: bytes) -> None:
+        """Take one message of the swarm (the newest of each key is kept)."""
+        self.latest.feed(key, payload)
+
+    def maybe_publish(self, now: float) -> bool:
+        """Publish a frame if one is due at ``now`` (monotonic s) and something new arrived."""
+        if now < self._next:
+            return False
+        self._next = now + self.period
+        return self.publish()
+
+    def publish(self) -> bool:
+        """Show a frame of the newest messages (False: no state yet, or none newer than the last frame)."""
+        raise NotImplementedError
