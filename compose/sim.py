@@ -26,6 +26,7 @@ The distributed lockstep swarm runs exactly these steps, each in the process tha
 from __future__ import annotations
 
 import json
+import math
 import signal
 import sys
 import threading
@@ -93,6 +94,12 @@ def _collect(failures: list[PluginFailure], fn: Callable[..., Any], *args: Any) 
     except PluginFailure as e:
         failures.append(e)
         return None
+
+
+def _finite(*arrays: np.ndarray) -> bool:
+    """Every value of these small arrays is finite (on Python floats: cheaper than numpy's
+    reductions for a few UAVs, checked every tick)."""
+    return all(all(map(math.isfinite, a.ravel().tolist())) for a in arrays)
 
 
 def _each(bounds: list[Boundary], k: int, stage: int, what: str, fn: Callable[[], Any]) -> Any:
@@ -203,15 +210,15 @@ class _Swarm:
         assert q_ref is not None and v_ref is not None, "reset at tick 0"
         ts.qref[k], ts.vref[k] = q_ref, v_ref
         failed: list[PluginFailure] = []
-        for i, b in enumerate(bounds):
-            _collect(failed, b.check, k, STAGE_SHARE, "share", check_shared(Shared(q_ref[i], v_ref[i]), {}))
-        if failed:
+        if not _finite(q_ref, v_ref):  # then name them as the agents would
+            for i, b in enumerate(bounds):
+                _collect(failed, b.check, k, STAGE_SHARE, "share", check_shared(Shared(q_ref[i], v_ref[i]), {}))
             raise PluginsFailed(failed)
         cmd = _each(bounds, k, STAGE_STEP, what, lambda: ag.finish(q, v, ag.rates_all(q0, v0)))
-        for i, b in enumerate(bounds):
-            one = Command(float(cmd.thrust[i]), cmd.rpy[i], cmd.u[i], cmd.d_hat[i])
-            _collect(failed, b.check, k, STAGE_STEP, what, check_command(one))
-        if failed:
+        if not _finite(cmd.thrust, cmd.rpy, cmd.u, cmd.d_hat):
+            for i, b in enumerate(bounds):
+                one = Command(float(cmd.thrust[i]), cmd.rpy[i], cmd.u[i], cmd.d_hat[i])
+                _collect(failed, b.check, k, STAGE_STEP, what, check_command(one))
             raise PluginsFailed(failed)
         ts.u[k], ts.thrust[k], ts.d_hat[k] = cmd.u, cmd.thrust, cmd.d_hat
         self.plant.hold_all(cmd.thrust, cmd.rpy, k)

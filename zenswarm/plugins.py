@@ -28,6 +28,7 @@ seeded from the scenario's seed and its role (0: the leader's planner, i: UAV i'
 from __future__ import annotations
 
 import importlib
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import metadata
@@ -345,7 +346,10 @@ def _show(x: Any) -> str:
 
 
 def bad_vector(x: Any, shape: tuple[int, ...]) -> str | None:
-    """What is wrong with ``x`` as a finite float array of ``shape`` (None: nothing)."""
+    """What is wrong with ``x`` as a finite float array of ``shape`` (None: nothing). Called
+    several times per UAV and tick: a right-shaped numeric array takes a fast path."""
+    if type(x) is np.ndarray and x.shape == shape and x.dtype.kind in "fiu" and all(map(math.isfinite, x.ravel().tolist())):
+        return None
     try:
         a = np.asarray(x, dtype=float)
     except (TypeError, ValueError):
@@ -359,6 +363,8 @@ def bad_vector(x: Any, shape: tuple[int, ...]) -> str | None:
 
 def bad_scalar(x: Any) -> str | None:
     """What is wrong with ``x`` as one finite number (None: nothing)."""
+    if type(x) is float and math.isfinite(x):
+        return None
     if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
         if isinstance(x, np.ndarray) and x.shape == ():
             x = x.item()
