@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 import re
+from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -672,7 +673,7 @@ def metric_series(m: dict[str, Any]) -> dict[str, float]:
     return out
 
 
-class PacedView:
+class PacedView(ABC):
     """What both live views share (:class:`zenswarm.bridge.live.LiveView`,
     :class:`zenswarm.bridge.rerun_scene.RerunLiveView`): the swarm's newest messages
     (:class:`LatestFrames`, :meth:`feed`) and a frame published at most ``hz`` per wall second
@@ -697,6 +698,6 @@ class PacedView:
         self._next = now + self.period
         return self.publish()
 
+    @abstractmethod
     def publish(self) -> bool:
         """Show a frame of the newest messages (False: no state yet, or none newer than the last frame)."""
-        raise NotImplementedError
