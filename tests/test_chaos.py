@@ -195,21 +195,7 @@ def test_frozen_agent_in_realtime_is_named(tmp_path: Path) -> None:
     print(f"\nrealtime freeze of agent 2 at sim {t_freeze:.2f} s for {FREEZE_S:g} s: failsafe {fs}, exit {rc}")
 
 
-@pytest.fixture
-def netns():
-    import shutil
-
-    from test_netsplit import Netns
-
-    if shutil.which("ip") is None:
-        pytest.skip("no `ip` command (iproute2) on this machine")
-    ns = Netns()
-    try:
-        ns.create()
-        yield ns
-    finally:
-        ns.remove()
-        assert not ns.exists(), f"namespace {ns.name} or its veth left behind"
+from test_netsplit import netns  # noqa: E402,F401,F811 - the namespace fixture, shared (skips without iproute2)
 
 
 def test_remote_host_lost_for_good(tmp_path: Path, netns) -> None:
