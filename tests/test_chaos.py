@@ -195,10 +195,10 @@ def test_frozen_agent_in_realtime_is_named(tmp_path: Path) -> None:
     print(f"\nrealtime freeze of agent 2 at sim {t_freeze:.2f} s for {FREEZE_S:g} s: failsafe {fs}, exit {rc}")
 
 
-from test_netsplit import netns  # noqa: E402,F401,F811 - the namespace fixture, shared (skips without iproute2)
+from test_netsplit import netns  # noqa: E402,F401 - the namespace fixture, shared (skips without iproute2)
 
 
-def test_remote_host_lost_for_good(tmp_path: Path, netns) -> None:
+def test_remote_host_lost_for_good(tmp_path: Path, netns) -> None:  # noqa: F811 - the fixture imported above
     """Agent 2 on another host (a network namespace, over a veth pair); mid-flight its link is cut
     for good. The supervisor ends with exit 3 (agent 2's token goes when the session lease, 10 s,
     runs out), the recording closed and readable, results.json written; the remote agent, which
