@@ -23,7 +23,7 @@ One tick k of agent i, in every runner:
    and moves the controller to tick k + 1.
 
 Sharing more than (q*, v*): declare ``shares = {"name": shape, ...}`` and return the values in
-``Shared.extra``; they travel in the reference message (:attr:`zenswarm.wire.Ref.extra`), are
+``Shared.extra``; they travel in the reference message (:attr:`zenswarm.bus.wire.Ref.extra`), are
 recorded and fault-injected with it, and arrive reshaped to the declared shape (a message
 without them counts as not heard).
 """
@@ -39,10 +39,10 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import msgspec
 import numpy as np
 
-from zenswarm.plugins import STAGE_BUILD, STAGE_SHARE, STAGE_STEP, Boundary, bad_scalar, bad_vector
+from zenswarm.scenario.plugins import STAGE_BUILD, STAGE_SHARE, STAGE_STEP, Boundary, bad_scalar, bad_vector
 
 if TYPE_CHECKING:  # pragma: no cover
-    from zenswarm.config import Scenario
+    from zenswarm.scenario.config import Scenario
 
 __all__ = [
     "Neighbour", "ControllerContext", "Shared", "Command", "Controller", "NoParams", "received", "context_of",
@@ -75,7 +75,7 @@ class ControllerContext:
     i: 0-based index (UAV number i + 1). offset: h_i (3,) m. neighbours: its graph row (a_ij > 0,
     in increasing j: the order :meth:`Controller.step` gets their messages in). pinning: b_i
     (0: never hears the leader). mass: kg. g: m/s^2. dt: nominal control tick, s.
-    rng: its seeded stream (:func:`zenswarm.plugins.plugin_rng` with role i + 1).
+    rng: its seeded stream (:func:`zenswarm.scenario.plugins.plugin_rng` with role i + 1).
     scenario: the whole scenario (the built-in reads the paper's gains from it).
     """
 
@@ -159,7 +159,7 @@ class Controller(ABC):
 
 def received(msg: Any, shares: Mapping[str, tuple[int, ...]]) -> Shared | None:
     """A neighbour's message as the controller gets it. Without declared extras the message
-    itself (anything with ``q``, ``v``: a :class:`Shared` or a :class:`zenswarm.wire.Ref`);
+    itself (anything with ``q``, ``v``: a :class:`Shared` or a :class:`zenswarm.bus.wire.Ref`);
     with them a :class:`Shared` whose extras are float64 arrays of the declared shapes, or None
     if one is missing or has the wrong size (counted as not heard)."""
     if msg is None or not shares:
@@ -190,9 +190,9 @@ def context_of(scenario: Scenario, i: int, mass: float, g: float, rng: np.random
 
 def make_controller(scenario: Scenario, i: int, mass: float, g: float) -> Controller:
     """Agent i's (0-based) controller: the scenario's ``[agents] controller`` with its
-    ``[agents.params]`` and the random stream :func:`zenswarm.plugins.plugin_rng` (seed, i + 1).
+    ``[agents.params]`` and the random stream :func:`zenswarm.scenario.plugins.plugin_rng` (seed, i + 1).
     A bad name or parameter raises :class:`zenswarm.errors.ScenarioError` naming it."""
-    from zenswarm.plugins import decode_params, plugin_rng, resolve
+    from zenswarm.scenario.plugins import decode_params, plugin_rng, resolve
 
     cls = resolve("controller", scenario.agents.controller)
     params = decode_params(cls, scenario.agents.params, "agents.params")
@@ -247,7 +247,7 @@ def build_controller(scenario: Scenario, i: int, mass: float, g: float) -> Contr
     """:func:`make_controller`, with the plug-in's constructor at the boundary (tick 0, stage
     build): a bad name or parameter is a ScenarioError (exit 2, checked before any work), an
     exception of the constructor a PluginFailure."""
-    from zenswarm.plugins import decode_params, plugin_rng, resolve
+    from zenswarm.scenario.plugins import decode_params, plugin_rng, resolve
 
     cls = resolve("controller", scenario.agents.controller)
     params = decode_params(cls, scenario.agents.params, "agents.params")

@@ -1,14 +1,14 @@
 """Composite tracking controller, paper eq. (28), and the thrust/attitude inversion after it.
 
 Pure numerics (numpy + math). Works on (3,) vectors or (N, 3) stacks. The inversion lives in the
-base layer (:mod:`zenswarm.inversion`: the vehicle's failsafe uses it too) and is re-exported.
+base layer (:mod:`zenswarm.vehicle.inversion`: the vehicle's failsafe uses it too) and is re-exported.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from zenswarm.inversion import invert_thrust_attitude, virtual_control_from_attitude
+from zenswarm.vehicle.inversion import invert_thrust_attitude, virtual_control_from_attitude
 
 __all__ = ["composite_control", "invert_thrust_attitude", "virtual_control_from_attitude"]
 

@@ -27,13 +27,13 @@ from zenswarm.agents.eso import eso_step
 from zenswarm.agents.generator import generator_rates
 
 if TYPE_CHECKING:  # pragma: no cover
-    from zenswarm.config import Scenario
+    from zenswarm.scenario.config import Scenario
 
 __all__ = ["AgentCommand", "AgentCore", "AgentRow", "Rates", "RefLike", "StackedAgents", "elapsed_dt"]
 
 
 class RefLike(Protocol):
-    """A reference (q*, v*) as received: each (3,), m and m/s (:class:`zenswarm.wire.Ref` is one)."""
+    """A reference (q*, v*) as received: each (3,), m and m/s (:class:`zenswarm.bus.wire.Ref` is one)."""
 
     q: np.ndarray
     v: np.ndarray

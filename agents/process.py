@@ -15,11 +15,11 @@ prepares as soon as the references are in (usually while the plant integrates): 
 arrives, only the control law (28) and the inversion stand between it and cmd(k).
 A timeout (``--lockstep-timeout``) counts as a drop and holds
 the newest earlier value; a sender whose liveliness token is gone is not waited for. With link
-faults each input goes through its link's :class:`zenswarm.linkfaults.Box` (hold last value),
+faults each input goes through its link's :class:`zenswarm.link.swarm.Box` (hold last value),
 exactly as in the in-process simulator. A (re)started agent joins at the first state it sees and
 restarts its generator from it.
 Realtime: the same computation at the control rate on the wall clock with the latest values
-(:class:`zenswarm.runtime.WallClock`), on each new state; when states were skipped (late, lost,
+(:class:`zenswarm.process.runtime.WallClock`), on each new state; when states were skipped (late, lost,
 or a MAVLink vehicle's telemetry slower than the control rate) the ESO and the generator integrate
 over the time that elapsed since the state last ticked on (its tick index, see
 :func:`zenswarm.agents.core.elapsed_dt` and :meth:`zenswarm.agents.core.AgentCore.advance_elapsed`),
@@ -36,7 +36,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from zenswarm import wire
 from zenswarm.agents.api import (
     Command,
     Controller,
@@ -48,16 +47,17 @@ from zenswarm.agents.api import (
     checked_share,
 )
 from zenswarm.agents.core import AgentRow, elapsed_dt
-from zenswarm.faults import FaultState
-from zenswarm.linkfaults import Box, box_counters, due_tick
-from zenswarm.plugins import plant_vehicle
-from zenswarm.runtime import (
+from zenswarm.bus import wire
+from zenswarm.link.faults import FaultState
+from zenswarm.link.swarm import Box, box_counters, due_tick
+from zenswarm.process.runtime import (
     Lockstep,
     ProcessOptions,
     SwarmProcess,
     WallClock,
     run_process,
 )
+from zenswarm.scenario.plugins import plant_vehicle
 
 __all__ = ["AgentOptions", "run", "subscriptions"]
 
@@ -117,7 +117,7 @@ class _Agent:
         self.n_ticks = sc.timing.n_ticks
         self.seq = 0
         self.boxes: dict[str, Box] = {}
-        self.radio = False  # a radio model is active: stamp refs with the position (zenswarm.radio)
+        self.radio = False  # a radio model is active: stamp refs with the position (zenswarm.link.radio)
         self.stamp: Any = None  # the position stamped on the next ref: the raw state of the tick it is sent on
 
     def links(self) -> dict[str, tuple[str, str, str]]:
@@ -225,7 +225,7 @@ class _LockstepAgent:
                 for b in a.boxes.values():  # the receiver's true position of tick k (radio links)
                     b.own_position(k, msg.q)
             elif key == a.keys.leader_ref:
-                a.boxes[key].offer(k, msg.seq, msg, msg.q)  # the leader flies q0 (zenswarm.radio)
+                a.boxes[key].offer(k, msg.seq, msg, msg.q)  # the leader flies q0 (zenswarm.link.radio)
             else:
                 a.boxes[key].offer(k, msg.seq, msg, msg.pos)
         if key == a.state_key and not a.ctrl.initialised and k > self.ls.k:

@@ -188,7 +188,7 @@ def scenario_file(spec: str, out_dir: Path, time_limit: float | None = None) -> 
 
 
 def scenario_facts(path: Path) -> dict[str, Any]:
-    from zenswarm.config import load_scenario
+    from zenswarm.scenario.config import load_scenario
 
     sc = load_scenario(path)
     return {"n_uav": sc.n, "sim_time_s": sc.timing.time_limit_s, "n_ticks": sc.timing.n_ticks,
@@ -200,7 +200,7 @@ def run_sim_worker(scenario: Path, keep_openblas: bool = False, timeout_s: float
     """Run ``zenswarm.compose.sim.simulate`` on ``scenario`` in a fresh interpreter; return its timings."""
     code = (
         "import json, sys, time\n"
-        "from zenswarm.config import load_scenario\n"
+        "from zenswarm.scenario.config import load_scenario\n"
         "from zenswarm.compose.sim import simulate\n"
         "sc = load_scenario(sys.argv[1])\n"
         "c0 = time.process_time(); w0 = time.perf_counter()\n"

@@ -3,7 +3,7 @@ for the paper's examples and ring and complete graphs of 5 and 10 UAVs.
 
 Per scenario (the paper's gains mu1 = 0.1, mu2 = 2, dt = 10 ms everywhere):
 
-* analytic (:mod:`zenswarm.delaymargin`): the margin of zenswarm's delay model (the agent's own
+* analytic (:mod:`zenswarm.campaign.delaymargin`): the margin of zenswarm's delay model (the agent's own
   state current, the neighbours' and the leader's values tau old, Euler at dt), the certificate's
   two numbers rho(Delta^-1 A) and mu2 dt max delta_i, and for comparison the fully delayed
   model's pi / (2 mu2 lambda_max(M)) and its exact Euler form (Levin-May);
@@ -12,7 +12,7 @@ Per scenario (the paper's gains mu1 = 0.1, mu2 = 2, dt = 10 ms everywhere):
   (``default_duration``) rather than stability decides.
 
 Generated scenarios: ``zenswarm scenario generate --n N --topology ring|complete --pinning
-first|all`` (:func:`zenswarm.generate.generate_scenario`, circle formation, seed 0).
+first|all`` (:func:`zenswarm.scenario.generate.generate_scenario`, circle formation, seed 0).
 
     python bench/delay_margin.py                      # writes bench/results/delay_margin.json
     python bench/delay_margin.py --quick              # 2 s search only
@@ -31,9 +31,9 @@ from pathlib import Path
 from typing import Any
 
 from zenswarm.compose.margin import analytic_summary, empirical_margin, json_safe
-from zenswarm.config import Scenario, load_scenario, scenario_from_dict
-from zenswarm.faults import delivery_tick
-from zenswarm.generate import generate_scenario
+from zenswarm.link.faults import delivery_tick
+from zenswarm.scenario.config import Scenario, load_scenario, scenario_from_dict
+from zenswarm.scenario.generate import generate_scenario
 
 REPO = Path(__file__).resolve().parent.parent
 OUT = REPO / "bench" / "results" / "delay_margin.json"

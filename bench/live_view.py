@@ -31,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from zenswarm.metrics import TimeSeries
+from zenswarm.judge.metrics import TimeSeries
 
 import _common as C
 

@@ -47,20 +47,20 @@ def bench(fn, calls: int) -> float:
 def cases(tmpdir: Path):
     import numpy as np
 
-    from zenswarm import wire
     from zenswarm.agents.core import AgentCore, AgentRow
     from zenswarm.agents.generator import generator_rates_all
-    from zenswarm.config import load_scenario
+    from zenswarm.bus import wire
     from zenswarm.leader.aapf import AapfParams, integrate_leader
-    from zenswarm.params import QuadParams
     from zenswarm.plant.quadrotor import initial_state, step
+    from zenswarm.scenario.config import load_scenario
+    from zenswarm.vehicle.params import QuadParams
 
     ex1 = load_scenario(C.PAPER["example1"])
     params = QuadParams.from_vehicle(ex1.vehicle)
     out = []
 
     for n, label in ((3, "example1 (UAV 1: 2 neighbours)"), (16, "gen16 (UAV 1: 4 neighbours)")):
-        sc = ex1 if n == 3 else __import__("zenswarm.config", fromlist=["load_scenario"]).load_scenario(
+        sc = ex1 if n == 3 else __import__("zenswarm.scenario.config", fromlist=["load_scenario"]).load_scenario(
             C.generated_scenario(16, tmpdir))
         row = AgentRow.from_scenario(sc, 0, params.mass, params.g)
         core = AgentCore(row)
@@ -136,7 +136,8 @@ def bus_costs(rounds: int, runs: int) -> dict[str, dict[str, float]]:
     import numpy as np
     import zenoh
 
-    from zenswarm import bus, wire
+    from zenswarm import bus
+    from zenswarm.bus import wire
 
     ep = bus.tcp_endpoint(bus.free_port())
     out: dict[str, dict[str, list[float]]] = {}

@@ -45,7 +45,7 @@ PLANNERS = ("aapf", "escape")
 
 def behind_layout(seed: int) -> dict[str, Any]:
     """A generated scenario dict with obstacles between start and goal, straight in front of the goal."""
-    from zenswarm.generate import generate_scenario
+    from zenswarm.scenario.generate import generate_scenario
 
     d = generate_scenario(3, "circle", "ring", n_obstacles=0, seed=seed, name=f"behind_s{seed}")
     rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0xBE41,)))
@@ -82,7 +82,7 @@ def leader_tv(v0: np.ndarray) -> float:
 
 def fly(scenario: Any, planner: str) -> dict[str, Any]:
     from zenswarm.compose.sim import simulate
-    from zenswarm.plugins import select
+    from zenswarm.scenario.plugins import select
 
     t0 = time.perf_counter()
     res = simulate(select(scenario, planner=planner))
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="write the raw figures here")
     args = ap.parse_args(argv)
 
-    from zenswarm.config import load_scenario, scenario_from_dict
+    from zenswarm.scenario.config import load_scenario, scenario_from_dict
 
     flights: list[dict[str, Any]] = []
     t0 = time.perf_counter()

@@ -32,9 +32,9 @@ def run_once(model: str, ticks: int, n: int | None) -> float:
     """CPU microseconds per vehicle per physics step of one run."""
     import numpy as np
 
-    from zenswarm.config import load_scenario
     from zenswarm.plant.core import PlantCore
-    from zenswarm.plugins import select
+    from zenswarm.scenario.config import load_scenario
+    from zenswarm.scenario.plugins import select
 
     sc = select(load_scenario(C.PAPER["example1"]), plant_model=model)
     core = PlantCore(sc)
@@ -54,9 +54,9 @@ def run_direct(ticks: int) -> float:
     ``step_held`` on a ``PlantState`` (what ``PlantCore.step`` ran), no model call, no state check."""
     import numpy as np
 
-    from zenswarm.config import load_scenario
     from zenswarm.plant.core import PlantCore
     from zenswarm.plant.quadrotor import initial_state, step_held
+    from zenswarm.scenario.config import load_scenario
 
     sc = load_scenario(C.PAPER["example1"])
     core = PlantCore(sc)

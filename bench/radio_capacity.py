@@ -26,11 +26,11 @@ import sys
 import numpy as np
 
 from zenswarm.compose.sim import simulate
-from zenswarm.config import scenario_from_dict
-from zenswarm.faults import FaultState
-from zenswarm.generate import generate_scenario
-from zenswarm.linkfaults import plan_for, scenario_links
-from zenswarm.linkqueue import message_size, parse_capacity
+from zenswarm.link.faults import FaultState
+from zenswarm.link.queue import message_size, parse_capacity
+from zenswarm.link.swarm import plan_for, scenario_links
+from zenswarm.scenario.config import scenario_from_dict
+from zenswarm.scenario.generate import generate_scenario
 
 
 def run(n: int, capacity: str, queue: str, duration: float | None, seed: int) -> dict:

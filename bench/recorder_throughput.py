@@ -27,8 +27,9 @@ import msgpack
 import numpy as np
 import zenoh
 
-from zenswarm import bus, wire
+from zenswarm import bus
 from zenswarm.bridge.mcapio import read_recording
+from zenswarm.bus import wire
 
 
 def _payloads(n_uav: int) -> list[tuple[str, bytes]]:

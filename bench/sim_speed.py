@@ -40,7 +40,7 @@ def profile(scenario: Path, top: int) -> None:
     import pstats
 
     from zenswarm.compose.sim import simulate
-    from zenswarm.config import load_scenario
+    from zenswarm.scenario.config import load_scenario
 
     sc = load_scenario(scenario)
     pr = cProfile.Profile()

@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
                 breakdowns[label] = {"run": m, "parts": tick_breakdown(sd, dt_ns)}
                 if not breakdowns[label]["parts"].get("ticks"):
                     print(f"  WARNING {label}: no tick could be followed through the stamps; the wrappers in"
-                          " bench/stamps/sitecustomize.py may no longer match zenswarm.runtime/zenswarm.wire", flush=True)
+                          " bench/stamps/sitecustomize.py may no longer match zenswarm.process.runtime/zenswarm.bus.wire", flush=True)
                 shutil.rmtree(sd, ignore_errors=True)
                 shutil.rmtree(out, ignore_errors=True)
     finally:

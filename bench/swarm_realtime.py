@@ -274,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"  exit {run.returncode}", flush=True)
             if not a.no_stamps and nb["n"] == 0:
                 print(f"    WARNING: no neighbour message was stamped ({m['stamp_files']} stamp files): the wrappers in"
-                      " bench/stamps/sitecustomize.py may no longer match zenswarm.runtime/zenswarm.wire")
+                      " bench/stamps/sitecustomize.py may no longer match zenswarm.process.runtime/zenswarm.bus.wire")
             if m["hung_after_plant_exit"]:
                 print(f"    HUNG AT THE END: {len(m['still_running_after_plant'])} processes kept running after the plant exited"
                       f" ({', '.join(m['still_running_after_plant'][:6])}{', ...' if len(m['still_running_after_plant']) > 6 else ''});"

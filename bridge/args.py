@@ -1,6 +1,6 @@
 """Command-line flags shared by the edges (``bridge/`` and ``compose/``), and the typed values
 they parse into. Nothing below the edges sees argparse: the base and the roles take
-:class:`zenswarm.linkfaults.LinkFaults`, :class:`zenswarm.security.ClientSecurity`, plain values.
+:class:`zenswarm.link.swarm.LinkFaults`, :class:`zenswarm.process.security.ClientSecurity`, plain values.
 
 A bad value is a usage error naming the flag (exit status 2), before any work starts.
 """
@@ -12,10 +12,10 @@ import math
 from pathlib import Path
 from typing import Any
 
-from zenswarm.config import check_seed
 from zenswarm.errors import ScenarioError
-from zenswarm.linkfaults import LinkFaults
-from zenswarm.security import ClientSecurity
+from zenswarm.link.swarm import LinkFaults
+from zenswarm.process.security import ClientSecurity
+from zenswarm.scenario.config import check_seed
 
 __all__ = [
     "add_rt_priority_arg",
@@ -42,7 +42,7 @@ def positive_float(text: str) -> float:
 
 
 def seed_arg(text: str) -> int:
-    """argparse ``type`` of ``--seed`` flags: :func:`zenswarm.config.check_seed` of an integer
+    """argparse ``type`` of ``--seed`` flags: :func:`zenswarm.scenario.config.check_seed` of an integer
     literal (a usage error, exit status 2, otherwise)."""
     try:
         v = int(text)
@@ -123,7 +123,7 @@ def client_security(args: argparse.Namespace) -> ClientSecurity:
 
 def add_plugin_args(p: argparse.ArgumentParser) -> None:
     """``--controller NAME``, ``--planner NAME`` and ``--plant-model NAME``: override the scenario's
-    ``[agents] controller``, ``[leader] planner`` and ``[plant] model`` (:func:`zenswarm.plugins.select`)."""
+    ``[agents] controller``, ``[leader] planner`` and ``[plant] model`` (:func:`zenswarm.scenario.plugins.select`)."""
     p.add_argument(
         "--controller", metavar="NAME", default=None,
         help="agent controller plug-in: a built-in name, module:attribute or an installed entry point "
@@ -142,11 +142,11 @@ def add_plugin_args(p: argparse.ArgumentParser) -> None:
 
 def add_process_args(p: argparse.ArgumentParser) -> None:
     """The flags every swarm process takes (read back with
-    :meth:`zenswarm.runtime.ProcessOptions.of`): ``--scenario``, ``--swarm``, ``--connect``,
+    :meth:`zenswarm.process.runtime.ProcessOptions.of`): ``--scenario``, ``--swarm``, ``--connect``,
     ``--realtime``, the credentials (:func:`add_security_args`), the link faults
     (:func:`add_fault_args`), the plug-ins (:func:`add_plugin_args`), ``--lockstep-timeout``,
     ``--router-lost-timeout`` and ``--rt-priority`` (:func:`add_rt_priority_arg`)."""
-    from zenswarm.runtime import DEFAULT_LOCKSTEP_TIMEOUT_S, DEFAULT_ROUTER_LOST_TIMEOUT_S
+    from zenswarm.process.runtime import DEFAULT_LOCKSTEP_TIMEOUT_S, DEFAULT_ROUTER_LOST_TIMEOUT_S
 
     p.add_argument("--scenario", type=Path, help="scenario TOML; if omitted, fetched from the leader's mission key")
     p.add_argument("--swarm", default="default", help="swarm name: the key prefix swarm/<name> (default: default)")
@@ -180,7 +180,7 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
 
 
 def add_rt_priority_arg(p: argparse.ArgumentParser) -> None:
-    """``--rt-priority P`` (:mod:`zenswarm.rtsched`)."""
+    """``--rt-priority P`` (:mod:`zenswarm.process.rtsched`)."""
     p.add_argument(
         "--rt-priority",
         type=int,
@@ -194,7 +194,7 @@ def add_rt_priority_arg(p: argparse.ArgumentParser) -> None:
 
 def add_override_args(p: argparse.ArgumentParser) -> None:
     """``--set KEY=VALUE`` (repeatable) and ``--duration S``: scenario overrides by dotted path,
-    the same keys as ``api.fly(overrides=)`` and ``zenswarm sweep --grid`` (:mod:`zenswarm.overrides`)."""
+    the same keys as ``api.fly(overrides=)`` and ``zenswarm sweep --grid`` (:mod:`zenswarm.scenario.overrides`)."""
     p.add_argument(
         "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
         help="override a scenario field by its dotted path, e.g. --set agents.params.k2=0.5 --set leader.goal=[10,0,2] "
@@ -209,7 +209,7 @@ def add_override_args(p: argparse.ArgumentParser) -> None:
 def overrides_of(args: argparse.Namespace) -> dict[str, Any]:
     """The ``--set`` and ``--duration`` overrides, in order (ScenarioError naming the flag on bad syntax)."""
     from zenswarm.errors import ScenarioError
-    from zenswarm.overrides import parse_assignment
+    from zenswarm.scenario.overrides import parse_assignment
 
     out: dict[str, Any] = dict(parse_assignment(text) for text in getattr(args, "overrides", None) or [])
     duration = getattr(args, "duration", None)
@@ -222,11 +222,11 @@ def overrides_of(args: argparse.Namespace) -> dict[str, Any]:
 
 def scenario_of(args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
     """``args.scenario`` with ``--set`` / ``--duration`` applied, then ``--controller`` /
-    ``--planner`` / ``--plant-model`` (:func:`zenswarm.plugins.select`), the plug-ins resolved and their parameters
+    ``--planner`` / ``--plant-model`` (:func:`zenswarm.scenario.plugins.select`), the plug-ins resolved and their parameters
     decoded: bad input is a ScenarioError (an OverrideError for what an override caused) naming
     the field or flag, before any work. Returns (scenario, the overrides)."""
-    from zenswarm.overrides import check_plugins, load_file
-    from zenswarm.plugins import select
+    from zenswarm.scenario.overrides import check_plugins, load_file
+    from zenswarm.scenario.plugins import select
 
     ov = overrides_of(args)
     plant_model = getattr(args, "plant_model", None)

@@ -18,7 +18,7 @@ __all__ = ["add_parsers"]
 
 def _run_recover(args: argparse.Namespace) -> int:
     from zenswarm.bridge.mcapio import recover
-    from zenswarm.paths import check_output_file
+    from zenswarm.process.paths import check_output_file
 
     check_output_file(args.out, "--out")
     st = recover(args.src, args.out)

@@ -16,7 +16,7 @@ __all__ = ["add_parsers"]
 
 def _run_export(args: argparse.Namespace) -> int:
     from zenswarm.errors import ScenarioError
-    from zenswarm.paths import check_output_file
+    from zenswarm.process.paths import check_output_file
 
     if args.recording is not None and args.foxglove is not None:
         raise ScenarioError("--foxglove", f"one recording at a time: {args.recording} (positional) or --foxglove {args.foxglove}, not both")

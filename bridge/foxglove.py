@@ -3,7 +3,7 @@
 Foxglove does not decode msgpack, so the export re-encodes every recorded wire message as JSON
 (message encoding ``json``) on a channel with a JSON Schema (schema encoding ``jsonschema``), one
 schema per message kind (``zenswarm.State``, ``zenswarm.Ref``, ``zenswarm.Cmd``, ``zenswarm.Clock``,
-``zenswarm.Mission``, ``zenswarm.Diag``): the wire fields exactly as :mod:`zenswarm.wire` defines
+``zenswarm.Mission``, ``zenswarm.Diag``): the wire fields exactly as :mod:`zenswarm.bus.wire` defines
 them (``v``, ``k``, ``t``, ``seq``, ``q``, ``vel``...). Topics are the recorded Zenoh keys.
 
 On top of that it adds, at ``--scene-hz`` (default 20 Hz) of sim time, the frames of
@@ -38,8 +38,8 @@ from typing import Any
 
 import msgpack
 
-from zenswarm import wire
 from zenswarm.bridge.scene import METRICS_TOPIC, SCENE_TOPIC, TF_TOPIC
+from zenswarm.bus import wire
 from zenswarm.errors import RecordingError, ZenswarmError
 
 __all__ = [
@@ -86,7 +86,7 @@ def _vec3(desc: str) -> dict[str, Any]:
 
 
 def wire_json_schema(kind: str) -> dict[str, Any]:
-    """JSON Schema of a wire message of ``kind`` (one of :data:`zenswarm.wire.KINDS`) as JSON.
+    """JSON Schema of a wire message of ``kind`` (one of :data:`zenswarm.bus.wire.KINDS`) as JSON.
 
     The exact field set of the wire (no other property), with the decoder's constraints:
     version, kind tag, non-negative integer t (sim time, ns) and seq, 3-vectors of numbers.
@@ -113,7 +113,7 @@ def wire_json_schema(kind: str) -> dict[str, Any]:
         props["u"] = _vec3("virtual control u_i, m/s^2 (eq. 28)")
         props["d_hat"] = _vec3("ESO disturbance estimate, m/s^2 (eq. 27)")
     elif kind == "mission":
-        props["scenario"] = {"type": "object", "description": "the scenario (zenswarm.config.scenario_to_dict)"}
+        props["scenario"] = {"type": "object", "description": "the scenario (zenswarm.scenario.config.scenario_to_dict)"}
     elif kind == "diag":
         props["process"] = {"type": "string", "description": "process name (plant, leader, agent:<i>, ...)"}
         props["counters"] = {"type": "object", "additionalProperties": {"type": "number"}, "description": "counters"}
@@ -137,8 +137,8 @@ def wire_json_schema(kind: str) -> dict[str, Any]:
 
 
 def wire_to_json(kind: str, payload: bytes) -> bytes:
-    """Validate a msgpack wire payload with :func:`zenswarm.wire.decode` and re-encode its wire
-    map as compact JSON. Raises :class:`zenswarm.wire.WireDecodeError` when it is rejected."""
+    """Validate a msgpack wire payload with :func:`zenswarm.bus.wire.decode` and re-encode its wire
+    map as compact JSON. Raises :class:`zenswarm.bus.wire.WireDecodeError` when it is rejected."""
     wire.decode(kind, payload)
     obj = msgpack.unpackb(payload, raw=False, strict_map_key=True)
     return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()

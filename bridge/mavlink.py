@@ -11,7 +11,7 @@ vehicle with system id ``sysid_i`` and then:
    ``GUID_OPTIONS``, ``GUID_TIMEOUT``, ``MOT_THST_HOVER``): the hover throttle of the thrust map,
    the check that ``link_timeout_s`` is below the vehicle's loss timeout, and on ArduCopter with
    attitude setpoints ``GUID_OPTIONS`` bit 3 set (thrust as thrust, not a climb rate); a missing
-   or bad parameter refuses the UAV (:func:`zenswarm.autopilot.vehicle_params`);
+   or bad parameter refuses the UAV (:func:`zenswarm.vehicle.autopilot.vehicle_params`);
 2. streams setpoints (a position hold at the current position) for ``stream_s`` seconds before
    asking for the offboard mode, as PX4 requires (it refuses OFFBOARD unless setpoints arrive at
    more than 2 Hz, and leaves it after ``COM_OF_LOSS_T`` without them);
@@ -28,13 +28,13 @@ vehicle with system id ``sysid_i`` and then:
 5. once every UAV is ready (or ``start_timeout_s`` passed) and, unless ``--no-wait-alive``, the
    leader and the agents hold liveliness tokens, starts the mission clock: every control tick it
    publishes ``clock`` and each ready UAV's ``uav/<i>/state`` (from LOCAL_POSITION_NED and
-   ATTITUDE/ATTITUDE_QUATERNION, converted to ENU/FLU by :mod:`zenswarm.frames`; stamped ``ts``
+   ATTITUDE/ATTITUDE_QUATERNION, converted to ENU/FLU by :mod:`zenswarm.vehicle.frames`; stamped ``ts``
    with the vehicle's ``time_boot_ms`` on the mission clock once TIMESYNC gave its clock offset,
    :meth:`Bridge.sample_time`), as the realtime
    plant does (mission time is wall time since the start: a tick the loop missed on an overloaded
    host is skipped and counted in ``ticks_skipped``, never caught up in a burst), and forwards
    each agent's ``uav/<i>/cmd`` as SET_ATTITUDE_TARGET
-   (quaternion + normalised thrust through :class:`zenswarm.frames.ThrustMap`) at
+   (quaternion + normalised thrust through :class:`zenswarm.vehicle.frames.ThrustMap`) at
    ``max(rate_hz, 20)`` Hz, re-sending the latest command if the agent is slower; with
    ``setpoint = "position"`` it forwards ``uav/<i>/ref`` as SET_POSITION_TARGET_LOCAL_NED
    (position + velocity) instead and lets the vehicle run its own position loop. A command older
@@ -54,7 +54,7 @@ other system ids) is ignored and counted (``mav_bad``, ``mav_unknown``, ``mav_ma
 ``mav_other_system``, ``mav_unhandled`` in the bridge's diag counters).
 
 Configuration: the scenario's ``[mavlink]`` table (see :func:`mavlink_settings` for every key),
-overridden by command-line flags. All frames conversions are in :mod:`zenswarm.frames`.
+overridden by command-line flags. All frames conversions are in :mod:`zenswarm.vehicle.frames`.
 
 Importing this module sets ``MAVLINK20=1`` in the environment before importing pymavlink, so all
 connections of the process speak MAVLink 2 (PX4 and ArduPilot both do).
@@ -73,8 +73,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from zenswarm import frames
-from zenswarm.autopilot import (  # re-exported: the mode tables and settings are the bridge's vocabulary
+from zenswarm.errors import ScenarioError
+from zenswarm.scenario.config import Scenario
+from zenswarm.vehicle import frames
+from zenswarm.vehicle.autopilot import (  # re-exported: the mode tables and settings are the bridge's vocabulary
     AP_COPTER_MODES,
     AUTOPILOT_PARAMS,
     GUID_OPTIONS_THRUST_AS_THRUST,
@@ -97,8 +99,6 @@ from zenswarm.autopilot import (  # re-exported: the mode tables and settings ar
     px4_decode,
     vehicle_params,
 )
-from zenswarm.config import Scenario
-from zenswarm.errors import ScenarioError
 
 mavutil = load_mavutil()
 mavlink = mavutil.mavlink
@@ -110,7 +110,7 @@ __all__ = [
     "health_problem",
     "add_parsers",
     "add_mavlink_parser",
-    # re-exported from zenswarm.autopilot: the bridge's vocabulary (modes, settings)
+    # re-exported from zenswarm.vehicle.autopilot: the bridge's vocabulary (modes, settings)
     "AP_COPTER_MODES",
     "PX4_AUTO_SUB",
     "PX4_HOLD",
@@ -363,7 +363,7 @@ class Bridge:
         log: Callable[[str], None] = print,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        from zenswarm.params import QuadParams
+        from zenswarm.vehicle.params import QuadParams
 
         self.s = settings
         self.sc = scenario
@@ -673,7 +673,7 @@ class Bridge:
 
     def _step_params(self, link: UavLink, now: float) -> None:
         """PARAMS -> STREAM once the autopilot's parameters (:data:`AUTOPILOT_PARAMS`) are read
-        and acceptable (:func:`zenswarm.autopilot.vehicle_params`), and ArduCopter's GUID_OPTIONS
+        and acceptable (:func:`zenswarm.vehicle.autopilot.vehicle_params`), and ArduCopter's GUID_OPTIONS
         is written if the thrust mapping needs it (PARAM_SET, confirmed by the PARAM_VALUE echo).
         REFUSED (the reason names the parameter) after ``params_timeout_s`` or on a bad value."""
         t = link.tel
@@ -1218,7 +1218,7 @@ def _make_bridge(proc: Any, settings: MavlinkSettings) -> Bridge:
     # the bridge takes the plant's place, so agent i's link to it is the plant's `agent:i -> plant`
     # cmd link (also when it forwards uav/<i>/ref as position setpoints), decided on receipt and
     # released after its delay, exactly as in the realtime plant.
-    from zenswarm.faults import FaultState
+    from zenswarm.link.faults import FaultState
 
     in_keys = cmd_keys if settings.setpoint == "attitude" else ref_keys
     plan = proc.options.fault_plan(sc)
@@ -1241,8 +1241,8 @@ class _BridgeLoop:
     then landing. ``code`` is the process's exit code (3: no UAV ready, or a process missing)."""
 
     def __init__(self, proc: Any, bridge: Bridge, settings: MavlinkSettings) -> None:
-        from zenswarm import wire
-        from zenswarm.runtime import WallClock
+        from zenswarm.bus import wire
+        from zenswarm.process.runtime import WallClock
 
         sc = proc.scenario
         self.proc = proc
@@ -1319,7 +1319,7 @@ class _BridgeLoop:
     def _publish_tick(self, now: float) -> bool:
         """Publish the clock and the ready UAVs' states if a control tick is due; True at the
         mission's last tick (``finished``)."""
-        from zenswarm import wire
+        from zenswarm.bus import wire
 
         if not self.started:
             return False
@@ -1357,7 +1357,7 @@ class _BridgeLoop:
         """The state's ``stamp`` (wire ``ts``): :meth:`Bridge.sample_time` on the mission clock
         (ns since mission time 0, negative for a sample measured before the start; clipped to
         +-``wire.MAX_T_NS``), or None (left out) without a TIMESYNC clock offset."""
-        from zenswarm import wire
+        from zenswarm.bus import wire
 
         ts = self.bridge.sample_time(link)
         if ts is None or not math.isfinite(self.t0):
@@ -1374,7 +1374,7 @@ class _BridgeLoop:
             self.proc.publish_diag(max(self.k_tick, 0) * self.dt_ns, {**bridge.info(now), **stats, **extra})
 
     def _pace(self) -> None:
-        """Sleep until the next iteration is due (:class:`zenswarm.runtime.WallClock`); more than
+        """Sleep until the next iteration is due (:class:`zenswarm.process.runtime.WallClock`); more than
         a period behind: start again from now, counted in ``loop_resync``."""
         resyncs = self.clock.resyncs
         self.clock.wait()
@@ -1451,7 +1451,7 @@ def _cli_overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _main_args(args: argparse.Namespace) -> int:
-    from zenswarm.runtime import run_process
+    from zenswarm.process.runtime import run_process
 
     if getattr(args, "scenario_path", None) is not None:
         args.scenario = args.scenario_path
@@ -1460,8 +1460,8 @@ def _main_args(args: argparse.Namespace) -> int:
         # bad [mavlink] settings or flags (ids, timeouts): exit 2 naming the field before any
         # work (no Zenoh session, no MAVLink link opened); the process checks again with the
         # scenario it loads
-        from zenswarm.config import load_scenario
         from zenswarm.errors import ZenswarmError
+        from zenswarm.scenario.config import load_scenario
 
         try:
             mavlink_settings(load_scenario(args.scenario), _cli_overrides(args))

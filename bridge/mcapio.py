@@ -8,14 +8,14 @@ A zenswarm recording (written by :mod:`zenswarm.bridge.recorder`) is an MCAP fil
 * one channel per concrete Zenoh key (``topic`` = the key, e.g. ``swarm/demo/uav/2/state``),
   ``message_encoding = "msgpack"`` (MCAP's well-known encoding), no schema (``schema_id = 0``,
   as the MCAP registry allows for self-describing encodings), channel metadata ``{"kind": ...}``
-  (the key kind of :meth:`zenswarm.wire.Keys.parse`, empty for keys outside the swarm layout);
+  (the key kind of :meth:`zenswarm.bus.wire.Keys.parse`, empty for keys outside the swarm layout);
 * messages with ``log_time`` = receive wall time (ns since the Unix epoch; non-decreasing in
   file order), ``publish_time`` = the sender's sim time ``t`` (ns) when the payload carries one,
   else ``log_time``, ``sequence`` = running count per channel (1, 2, ..., modulo 2**32), and
   ``data`` = the payload exactly as received;
 * metadata records named ``"zenswarm"`` (:data:`METADATA_NAME`) with string values ``swarm``,
   ``zenswarm_version``, ``mode``, ``scenario_source``, ``recorder_start_unix_ns`` and
-  ``scenario_json`` (json of :func:`zenswarm.config.scenario_to_dict`). The first is written
+  ``scenario_json`` (json of :func:`zenswarm.scenario.config.scenario_to_dict`). The first is written
   right after the header; when the scenario comes from the leader's mission rather than
   ``--scenario``, a second one carrying ``scenario_json`` follows when it arrives. Readers merge
   them in file order (:attr:`Recording.metadata`). When the recorder did not record oversize
@@ -407,10 +407,10 @@ class Recording:
         return d
 
     def load_scenario(self) -> Any:
-        """The recorded scenario as a :class:`zenswarm.config.Scenario` (validated); raises
+        """The recorded scenario as a :class:`zenswarm.scenario.config.Scenario` (validated); raises
         RecordingError if the recording has none."""
-        from zenswarm.config import scenario_from_dict
         from zenswarm.errors import ScenarioError
+        from zenswarm.scenario.config import scenario_from_dict
 
         d = self.scenario
         if d is None:

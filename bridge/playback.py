@@ -17,7 +17,7 @@ from typing import Any
 
 import msgpack
 
-from zenswarm import wire
+from zenswarm.bus import wire
 from zenswarm.errors import ScenarioError
 
 __all__ = ["TopicFilter", "restamp", "Pacer", "Controls", "KeyboardControls", "parse_keys"]
@@ -94,7 +94,7 @@ class TopicFilter:
 def restamp(payload: bytes, dt_ns: int, dseq: int) -> bytes | None:
     """``payload`` with ``t`` moved on by ``dt_ns`` and ``seq`` by ``dseq`` (a msgpack map with
     integer ``t`` and ``seq``: every zenswarm message); None if it is not such a map or the new
-    ``t`` would pass :data:`zenswarm.wire.MAX_T_NS`. Floats stay float64, so every other field
+    ``t`` would pass :data:`zenswarm.bus.wire.MAX_T_NS`. Floats stay float64, so every other field
     is the same bit for bit."""
     n = len(payload)
     try:

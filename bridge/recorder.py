@@ -68,11 +68,13 @@ from typing import Any, Final
 
 import msgpack
 
-from zenswarm import __version__, bus, security, wire
+from zenswarm import __version__, bus
 from zenswarm.bridge.args import add_fault_args, add_plugin_args, add_security_args, client_security, link_faults
 from zenswarm.bridge.mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME, RECORDER_END
-from zenswarm.paths import check_output_file
-from zenswarm.runtime import gc_policy, gc_safe_point, gc_startup_done
+from zenswarm.bus import wire
+from zenswarm.process import security
+from zenswarm.process.paths import check_output_file
+from zenswarm.process.runtime import gc_policy, gc_safe_point, gc_startup_done
 
 __all__ = [
     "PROCESS_NAME",
@@ -106,10 +108,10 @@ _OVERSIZE = object()
 
 
 def payload_limit(keys: wire.Keys, key: str) -> int:
-    """The decoders' size bound (bytes) for a payload on ``key``: :data:`zenswarm.wire.MAX_MISSION_PAYLOAD`
-    on the swarm's mission key, :data:`zenswarm.wire.MAX_PAYLOAD` on every other key (also keys
+    """The decoders' size bound (bytes) for a payload on ``key``: :data:`zenswarm.bus.wire.MAX_MISSION_PAYLOAD`
+    on the swarm's mission key, :data:`zenswarm.bus.wire.MAX_PAYLOAD` on every other key (also keys
     outside the swarm's layout, which no decoder reads at all). A longer payload is rejected by
-    every :class:`zenswarm.wire.Decoder` as ``oversize`` before it is unpacked."""
+    every :class:`zenswarm.bus.wire.Decoder` as ``oversize`` before it is unpacked."""
     return wire.MAX_MISSION_PAYLOAD if key == keys.mission else wire.MAX_PAYLOAD
 
 
@@ -193,7 +195,7 @@ class RecorderStats:
             d["largest"] = size
 
     def counters(self, backlog: int) -> dict[str, int | float]:
-        """Counters for the recorder's own ``diag/recorder`` messages (:class:`zenswarm.wire.Diag`
+        """Counters for the recorder's own ``diag/recorder`` messages (:class:`zenswarm.bus.wire.Diag`
         counters; all of these are counts)."""
         return {
             "recorded": self.messages,
@@ -516,7 +518,7 @@ def _fetch_mission(session: Any, keys: wire.Keys, stop: threading.Event, on_scen
     """Ask the leader's mission queryable until it answers or ``stop`` is set: at once when the
     leader's liveliness token appears (it declares the queryable before the token), and once a
     second in any case."""
-    from zenswarm.config import scenario_from_dict, scenario_to_dict
+    from zenswarm.scenario.config import scenario_from_dict, scenario_to_dict
 
     leader_seen = threading.Event()
     watch = None
@@ -616,7 +618,7 @@ def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: 
     diag_seq = 0
     next_diag = time.monotonic() + (args.diag_interval if diag_pub is not None else 1e18)
     if args.realtime or getattr(args, "mode", None) == "realtime":
-        gc_startup_done()  # subscribed, writer running: see zenswarm.runtime.GcPolicy (realtime only)
+        gc_startup_done()  # subscribed, writer running: see zenswarm.process.runtime.GcPolicy (realtime only)
     while not stop.event.is_set():
         gc_safe_point()
         now = time.monotonic()
@@ -644,7 +646,7 @@ def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: 
 
 def run(args: argparse.Namespace) -> int:
     """Run the recorder until SIGTERM/SIGINT or ``--duration``. Exit code 0 on a clean stop."""
-    from zenswarm.config import load_scenario, scenario_to_dict
+    from zenswarm.scenario.config import load_scenario, scenario_to_dict
 
     gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work
     stop = _Stop()
@@ -658,7 +660,7 @@ def run(args: argparse.Namespace) -> int:
     mode = "realtime" if args.realtime else args.mode
     scenario: dict[str, Any] | None = None
     if args.scenario is not None:
-        from zenswarm.plugins import select
+        from zenswarm.scenario.plugins import select
 
         scenario = scenario_to_dict(select(load_scenario(args.scenario), args.controller, args.planner, getattr(args, "plant_model", None)))
     connect = args.connect or ["tcp/127.0.0.1:7447"]

@@ -29,11 +29,11 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from zenswarm import wire
 from zenswarm.bridge import live
 from zenswarm.bridge.info import RecordingInfo, scan
 from zenswarm.bridge.mcapio import Recording, read_recording
 from zenswarm.bridge.playback import Controls, KeyboardControls, Pacer, TopicFilter, restamp
+from zenswarm.bus import wire
 from zenswarm.errors import RecordingError, ScenarioError
 
 __all__ = [
@@ -594,7 +594,7 @@ def _compare_cmd(tick: int, rec: wire.Cmd, cmd: Any) -> Difference | None:
 
 
 def _compare_ref(tick: int, rec: wire.Ref, shared: Any) -> Difference | None:
-    """ref.q, ref.v and each extra shared quantity (:attr:`zenswarm.wire.Ref.extra`), bit for bit."""
+    """ref.q, ref.v and each extra shared quantity (:attr:`zenswarm.bus.wire.Ref.extra`), bit for bit."""
     d = _compare_vec(tick, "ref.q", rec.q, shared.q) or _compare_vec(tick, "ref.v", rec.v, shared.v)
     if d is not None:
         return d
@@ -624,7 +624,7 @@ def _swarm_of(rec: Recording) -> str:
 
 def _recorded_seed(rec: Recording, sc: Any) -> Any:
     """The scenario with the run's ``--seed`` (recorded with the fault flags) applied: the
-    controllers' random streams (:func:`zenswarm.plugins.plugin_rng`) derive from it."""
+    controllers' random streams (:func:`zenswarm.scenario.plugins.plugin_rng`) derive from it."""
     import json
     from dataclasses import replace
 
@@ -660,9 +660,9 @@ def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> Verif
     leader's ref of tick k, holding the newest earlier value when one is missing from the
     recording (as the agent does after a timeout). With link faults (the scenario's ``[faults]``
     table and the recorder's fault flags) every input goes through the same
-    :class:`zenswarm.linkfaults.Box` the agent uses, so the same messages are lost or delayed.
+    :class:`zenswarm.link.swarm.Box` the agent uses, so the same messages are lost or delayed.
     The tick of a message is ``(t + dt_ns // 2) // dt_ns`` as in
-    :meth:`zenswarm.runtime.SwarmProcess.subscribe`. A restarted agent's first tick is fed no
+    :meth:`zenswarm.process.runtime.SwarmProcess.subscribe`. A restarted agent's first tick is fed no
     inputs of that tick (they were sent before it subscribed): an approximation.
     Realtime recordings: the agent ticked on each new state with the latest inputs; the inputs
     are taken as the newest recorded before the command's receive time (an approximation: a
@@ -709,7 +709,7 @@ class _Verifier:
 
     def __init__(self, rec: Recording, sc: Any, agent: int) -> None:
         from zenswarm.agents.core import AgentRow
-        from zenswarm.plugins import plant_vehicle
+        from zenswarm.scenario.plugins import plant_vehicle
 
         self.sc = sc
         self.res = VerifyResult(agent=agent, mode=rec.mode)
@@ -870,11 +870,11 @@ class _HeldInputs:
 
 class _BoxedInputs:
     """A run's inputs with link faults: every input through the receive box the agent uses
-    (:class:`zenswarm.linkfaults.Box`), fed the recorded messages in order."""
+    (:class:`zenswarm.link.swarm.Box`), fed the recorded messages in order."""
 
     def __init__(self, v: _Verifier, plan: Any, start: int) -> None:
-        from zenswarm.faults import FaultState
-        from zenswarm.linkfaults import Box
+        from zenswarm.link.faults import FaultState
+        from zenswarm.link.swarm import Box
 
         fstate = FaultState(plan)
         kinds = {v.state_key: "state", v.keys.leader_ref: "leader"}

@@ -1,11 +1,11 @@
 """``zenswarm report``: the flight report, from an MCAP recording alone (or a simulator time series).
 
 From a recording (``zenswarm report FILE.mcap --out DIR``) the scenario comes from the file's
-``zenswarm`` metadata record, the flight's :class:`zenswarm.metrics.TimeSeries` is rebuilt from the
-recorded samples by the supervisor's :class:`zenswarm.collector.Collector` (the same code that
+``zenswarm`` metadata record, the flight's :class:`zenswarm.judge.metrics.TimeSeries` is rebuilt from the
+recorded samples by the supervisor's :class:`zenswarm.process.collector.Collector` (the same code that
 builds it live, so a lockstep recording gives the run's own series), and the results by
-:func:`zenswarm.metrics.compute_results` (so ``results.json`` matches the run's own on every field
-of :data:`zenswarm.metrics.FLIGHT_FIELDS`; ``wall_time_s`` is null, the recording does not know the
+:func:`zenswarm.judge.metrics.compute_results` (so ``results.json`` matches the run's own on every field
+of :data:`zenswarm.judge.metrics.FLIGHT_FIELDS`; ``wall_time_s`` is null, the recording does not know the
 run's compute time). Figures (PNG, matplotlib Agg, no display needed), after the paper's Figs 4-8:
 
 ``trajectories_3d.png``  3D trajectories of the virtual leader and the UAVs, obstacles as cylinders
@@ -48,14 +48,14 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
-from zenswarm import wire
-from zenswarm.config import Scenario, load_scenario
+from zenswarm.bus import wire
 from zenswarm.errors import RecordingError, ScenarioError, ZenswarmError
-from zenswarm.faults import FaultPlan
-from zenswarm.geometry import d_obs_many, obstacle_clearance_many
-from zenswarm.linkfaults import graph_series, plan_for
-from zenswarm.metrics import TimeSeries, compute_results
-from zenswarm.paths import check_output_dir
+from zenswarm.judge.metrics import TimeSeries, compute_results
+from zenswarm.link.faults import FaultPlan
+from zenswarm.link.swarm import graph_series, plan_for
+from zenswarm.process.paths import check_output_dir
+from zenswarm.scenario.config import Scenario, load_scenario
+from zenswarm.vehicle.geometry import d_obs_many, obstacle_clearance_many
 
 __all__ = [
     "METADATA_NAME",
@@ -209,7 +209,7 @@ def flight_from_recording(rec: Recording) -> Flight:
     run); realtime recordings are forward-filled over gaps, exactly as ``zenswarm up --realtime``
     does. Raises RecordingError when no sample of the swarm is in the file.
     """
-    from zenswarm.collector import Collector
+    from zenswarm.process.collector import Collector
 
     keys = wire.Keys(rec.swarm)
     col = Collector(rec.scenario, keys)
@@ -629,7 +629,7 @@ def recorded_fault_plan(rec: Recording) -> FaultPlan | None:
 
 
 def plot_effective_graph(ts: TimeSeries, sc: Scenario, faults: FaultPlan, path: Path) -> Path:
-    """The effective communication graph over time (:func:`zenswarm.linkfaults.graph_series`,
+    """The effective communication graph over time (:func:`zenswarm.link.swarm.graph_series`,
     recomputed from the fault plan and the flown series, as ``results.json``'s ``effective_graph``):
     the connected components per tick with the ticks where the leader-rooted spanning tree of
     Lemma 1 held, each ref/leader link up or down per tick (raster), each link's delivery ratio

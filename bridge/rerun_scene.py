@@ -257,10 +257,10 @@ def export_rerun(recording: str | Path, out: str | Path, *, scene_hz: float = 20
     and renamed into place when complete. Raises RecordingError for an unusable input."""
     import rerun as rr
 
-    from zenswarm import wire
     from zenswarm.bridge.foxglove import ExportSummary, _json_items, interleave, scene_frames
     from zenswarm.bridge.report import flight_from_recording, load_recording
     from zenswarm.bridge.scene import frame_from_series
+    from zenswarm.bus import wire
 
     if not scene_hz > 0 or not math.isfinite(scene_hz):
         raise ZenswarmError(f"--scene-hz must be a positive number, got {scene_hz}")

@@ -40,8 +40,8 @@ from typing import Any
 
 import numpy as np
 
-from zenswarm import wire
-from zenswarm.geometry import d_obs_many, obstacle_clearance_many
+from zenswarm.bus import wire
+from zenswarm.vehicle.geometry import d_obs_many, obstacle_clearance_many
 
 __all__ = [
     "SCENE_TOPIC",
@@ -106,7 +106,7 @@ def _finite_rows(a: np.ndarray) -> np.ndarray:
 
 
 def frame_from_series(ts: Any, k: int, trail_ticks: int, stride: int) -> Frame:
-    """Frame of tick k of a :class:`zenswarm.metrics.TimeSeries`: trails sampled every ``stride``
+    """Frame of tick k of a :class:`zenswarm.judge.metrics.TimeSeries`: trails sampled every ``stride``
     ticks over the last ``trail_ticks`` ticks (and tick k itself)."""
     lo = max(0, k - trail_ticks)
     idx = np.arange(lo, k + 1, stride)
@@ -588,7 +588,7 @@ def _links(diag: dict[str, dict[str, Any]], dt: float) -> list[dict[str, Any]]:
 
 def diag_view(msg: wire.Diag) -> dict[str, Any]:
     """A process's diagnostics as one flat dict: its counters and its scalar info (what
-    :attr:`zenswarm.collector.Collector.diag` keeps per process)."""
+    :attr:`zenswarm.process.collector.Collector.diag` keeps per process)."""
     return {**msg.counters, **{k: v for k, v in msg.info.items() if isinstance(v, (int, float, bool, str))}}
 
 
@@ -604,7 +604,7 @@ def failsafe_modes(summary: str, n: int) -> list[str]:
 
 def metrics(f: Frame, sc: Any, diag: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """The ``/metrics`` message of frame ``f`` (:data:`METRICS_SCHEMA`); ``diag``: process ->
-    its newest diagnostics (counters and info, as :attr:`zenswarm.collector.Collector.diag`)."""
+    its newest diagnostics (counters and info, as :attr:`zenswarm.process.collector.Collector.diag`)."""
     n = len(f.q)
     h = np.asarray(sc.offsets, dtype=float).reshape(-1, 3)
     with np.errstate(invalid="ignore"):

@@ -64,8 +64,8 @@ def _run_sim(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from zenswarm.compose.sim import apply_overrides, run_sim_cli
-    from zenswarm.paths import check_output_dir
-    from zenswarm.plugins import check_selection
+    from zenswarm.process.paths import check_output_dir
+    from zenswarm.scenario.plugins import check_selection
 
     sc, _ = scenario_of(args)  # --set, --duration, --controller, --planner: checked, plug-ins included
     sc = apply_overrides(sc, no_eso=args.no_eso, fixed_gain=args.fixed_gain)
@@ -98,7 +98,7 @@ def _add_scenario(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_check(args: argparse.Namespace) -> int:
-    from zenswarm.plugins import planner_name
+    from zenswarm.scenario.plugins import planner_name
 
     s, _ = scenario_of(args)
     print(
@@ -129,7 +129,7 @@ def _add_plugins(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_plugins(args: argparse.Namespace) -> int:
-    from zenswarm.plugins import DEFAULTS, KINDS, available
+    from zenswarm.scenario.plugins import DEFAULTS, KINDS, available
 
     for kind in KINDS:
         print(f"{kind}s (default {DEFAULTS[kind]}):")
@@ -195,23 +195,13 @@ def run_standalone(prog: str, doc: str | None, configure, argv: Sequence[str] | 
         return 2
 
 
-# The swarm's own processes start with only what they need (a restarted agent rejoins sooner).
-_ROLE_PARSERS = {"agent": "add_agent_parser", "leader": "add_leader_parser", "plant": "add_plant_parser"}
-
-
-def _role_parser(role: str) -> argparse.ArgumentParser:
-    from zenswarm.compose import roles
-
-    parser = argparse.ArgumentParser(prog="zenswarm")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    getattr(roles, _ROLE_PARSERS[role])(sub)
-    return parser
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = _role_parser(argv[0]) if argv and argv[0] in _ROLE_PARSERS else build_parser()
-    args = parser.parse_args(argv)
+    if argv and argv[0] in ("agent", "leader", "plant"):  # the swarm's own processes: only their parser
+        from zenswarm.compose.roles import run_role
+
+        return run_role(argv)
+    args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except ZenswarmError as e:

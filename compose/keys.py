@@ -1,4 +1,4 @@
-"""``zenswarm keys``: the command line of :func:`zenswarm.security.generate_credentials`."""
+"""``zenswarm keys``: the command line of :func:`zenswarm.process.security.generate_credentials`."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import os
 import sys
 from pathlib import Path
 
-from zenswarm import security
-from zenswarm.paths import check_output_dir
+from zenswarm.process import security
+from zenswarm.process.paths import check_output_dir
 
 __all__ = ["add_parsers"]
 

@@ -1,5 +1,5 @@
 """``zenswarm sweep margin``: the empirical delay margin of the reference generator (16)-(17),
-beside the analytic one (:mod:`zenswarm.delaymargin`). Derivation, criterion and table:
+beside the analytic one (:mod:`zenswarm.campaign.delaymargin`). Derivation, criterion and table:
 docs/delay_margin.md.
 
 What is simulated
@@ -10,8 +10,8 @@ faithful, not an approximation: in zenswarm the generator of agent i reads its o
 its neighbours' and the leader's references and nothing else (not the measured state,
 :meth:`zenswarm.agents.core.AgentCore.rates`), and the leader does not read the UAVs, so the
 references the swarm computes under such a delay do not depend on the plant at all. The delay
-becomes d = ceil(tau / dt - 1e-9) ticks (:func:`zenswarm.faults.delivery_tick`) and each
-receiver holds the message of tick max(0, k - d) at tick k (:class:`zenswarm.linkfaults.Box`:
+becomes d = ceil(tau / dt - 1e-9) ticks (:func:`zenswarm.link.faults.delivery_tick`) and each
+receiver holds the message of tick max(0, k - d) at tick k (:class:`zenswarm.link.swarm.Box`:
 the tick-0 message is there at once), so agent i integrates, by explicit Euler at dt,
 
     q*_i(k+1) = q*_i(k) + dt [v*_i(k) - mu1 (delta_i (q*_i(k) - h_i) - sum_j a_ij (q*_j(k-d) - h_j) - b_i q0(k-d))]
@@ -26,7 +26,7 @@ The leader: Assumption 1
 The leader moves at a constant velocity v0 (``--speed`` along the scenario's start -> goal
 direction) from its start: the setting of the paper's stability analysis (Assumption 1). With a
 delay the position error then settles at a known constant lag, q*_i - q0 - h_i -> -tau c_i v0,
-c = M^-1 Delta 1 (:func:`zenswarm.delaymargin.steady_lag_factors`), which is subtracted: what is
+c = M^-1 Delta 1 (:func:`zenswarm.campaign.delaymargin.steady_lag_factors`), which is subtracted: what is
 judged is convergence, not the lag. (A hovering leader would leave eq. (17) unexcited: v* starts
 at 0 = v0. The scenario's own AAPF leader has a varying v0, whose lag cannot be separated from
 a slow divergence.)
@@ -54,8 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from zenswarm.config import Scenario, load_scenario
-from zenswarm.delaymargin import (
+from zenswarm.campaign.delaymargin import (
     degrees,
     delay_independent,
     fully_delayed_bound,
@@ -65,7 +64,8 @@ from zenswarm.delaymargin import (
     steady_lag_factors,
 )
 from zenswarm.errors import ScenarioError, ZenswarmError
-from zenswarm.faults import FaultPlan, LinkFaultSpec, delivery_tick, parse_duration
+from zenswarm.link.faults import FaultPlan, LinkFaultSpec, delivery_tick, parse_duration
+from zenswarm.scenario.config import Scenario, load_scenario
 
 __all__ = [
     "REL_TOL",
@@ -278,7 +278,7 @@ def default_duration(scenario: Scenario, max_delay_s: float) -> float:
 
 
 def analytic_summary(scenario: Scenario, max_ticks: int) -> dict[str, Any]:
-    """The analytic figures of :mod:`zenswarm.delaymargin` for a scenario's graph and gains."""
+    """The analytic figures of :mod:`zenswarm.campaign.delaymargin` for a scenario's graph and gains."""
     A = np.asarray(scenario.graph.adjacency, dtype=float)
     b = np.asarray(scenario.graph.pinning, dtype=float)
     g, dt = scenario.generator, scenario.timing.dt

@@ -4,11 +4,11 @@ What any plug-in author can run on their plug-in before flying it (and what the 
 every built-in and on the example in ``examples/``). In order; a failed check skips the ones after
 it that need it:
 
-1. **interface**: the class resolves (:func:`zenswarm.plugins.resolve`), has a one-line ``name``
+1. **interface**: the class resolves (:func:`zenswarm.scenario.plugins.resolve`), has a one-line ``name``
    and ``description``, a ``Params`` that is a frozen :class:`msgspec.Struct` refusing unknown
    keys (checked by decoding an unknown key), and the scenario's params table decodes; a
    controller's ``shares`` maps names to shapes of positive ints; a plant model's ``vehicle()``
-   gives a :class:`zenswarm.params.QuadParams`; the methods the runners call
+   gives a :class:`zenswarm.vehicle.params.QuadParams`; the methods the runners call
    take the arguments they are called with (``step(q, v, neighbours, leader, dt)``, a two-phase
    controller's ``prepare(neighbours, leader)`` and ``finish(q, v, prepared, dt)``, ``reset(q,
    v)``, ``share()``; a planner's ``ref()`` and ``advance()``; a plant model's
@@ -29,7 +29,7 @@ it that need it:
    an exception, a non-finite or wrongly shaped output, named with its tick and UAV).
 6. **sim == swarm**: the same flight with link loss and delay on every link in the in-process
    simulator and as the lockstep swarm (``zenswarm up``), compared bit for bit
-   (:func:`zenswarm.metrics.flight_differences`: the first differing field, tick and UAV), with
+   (:func:`zenswarm.judge.metrics.flight_differences`: the first differing field, tick and UAV), with
    the usual causes of a difference when there is one.
 
 Every check is reported (PASS, FAIL or SKIP with why), never a traceback, then a ``result:``
@@ -57,9 +57,9 @@ import msgspec
 import numpy as np
 from msgspec.structs import replace as replace_table
 
-from zenswarm.config import Scenario, load_scenario, scenario_to_dict
 from zenswarm.errors import ScenarioError
-from zenswarm.plugins import GROUPS, KINDS, PluginError, decode_params, plant_vehicle, plugin_rng, resolve, select
+from zenswarm.scenario.config import Scenario, load_scenario, scenario_to_dict
+from zenswarm.scenario.plugins import GROUPS, KINDS, PluginError, decode_params, plant_vehicle, plugin_rng, resolve, select
 
 __all__ = ["add_check_parser", "run_check", "Check", "check_plugin"]
 
@@ -232,7 +232,7 @@ def _finite(x: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
 
 
 def _mass_g(sc: Scenario) -> tuple[float, float]:
-    from zenswarm.plugins import plant_vehicle
+    from zenswarm.scenario.plugins import plant_vehicle
 
     p = plant_vehicle(sc)
     return float(p.mass), float(p.g)
@@ -365,13 +365,13 @@ def _scenario_for(kind: str, name: str, sc: Scenario, duration: float) -> Scenar
 def _sim_vs_swarm(sc: Scenario, seed: int) -> str:
     """Fly ``sc`` in-process and as the lockstep swarm with :data:`FAULTS`; "" when bit equal,
     else what differs."""
+    from zenswarm.bus.wire import Keys
     from zenswarm.compose.launch import run_up
     from zenswarm.compose.sim import simulate
     from zenswarm.compose.supervisor import UpOptions
-    from zenswarm.generate import to_toml
-    from zenswarm.linkfaults import LinkFaults
-    from zenswarm.metrics import TimeSeries, flight_differences
-    from zenswarm.wire import Keys
+    from zenswarm.judge.metrics import TimeSeries, flight_differences
+    from zenswarm.link.swarm import LinkFaults
+    from zenswarm.scenario.generate import to_toml
 
     faults = LinkFaults(FAULTS["link_delay"], FAULTS["link_jitter"], FAULTS["link_loss"], (), seed)
     ref = simulate(sc, faults=faults.plan(sc))

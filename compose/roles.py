@@ -1,7 +1,7 @@
 """CLI entry points of the swarm's processes (what the supervisor starts, one OS process each).
 
 The edge of the roles: here the command line of ``zenswarm plant|leader|agent`` is parsed and
-turned into the roles' typed options (:class:`zenswarm.runtime.ProcessOptions`,
+turned into the roles' typed options (:class:`zenswarm.process.runtime.ProcessOptions`,
 :class:`zenswarm.agents.process.AgentOptions`, :class:`zenswarm.plant.process.PlantOptions`),
 which their ``run`` functions take. A bad flag is a usage error (exit 2) before any work.
 """
@@ -9,9 +9,11 @@ which their ``run`` functions take. A bad flag is a usage error (exit 2) before 
 from __future__ import annotations
 
 import argparse
+import sys
+from collections.abc import Sequence
 
 from zenswarm.bridge.args import add_process_args, add_rt_priority_arg
-from zenswarm.runtime import ProcessOptions
+from zenswarm.process.runtime import ProcessOptions
 
 __all__ = ["add_parsers", "agent_options", "plant_options", "process_options"]
 
@@ -58,10 +60,10 @@ def _main_mavlink_fleet(args: argparse.Namespace) -> int:
     (:mod:`zenswarm.plant.mavlink_vehicle`; no Zenoh session: the MAVLink bridge is their swarm side)."""
     from dataclasses import replace
 
-    from zenswarm.config import load_scenario
     from zenswarm.errors import ScenarioError
     from zenswarm.plant.mavlink_vehicle import run_fleet
-    from zenswarm.plugins import DEFAULTS
+    from zenswarm.scenario.config import load_scenario
+    from zenswarm.scenario.plugins import DEFAULTS
 
     if args.scenario is None:
         raise ScenarioError("--scenario", "plant --mavlink needs the scenario file (it has no bus to fetch it from)")
@@ -168,3 +170,30 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     add_vehicles_parser(sub)
     add_leader_parser(sub)
     add_agent_parser(sub)
+
+
+#: The swarm's own processes: their parsers (a role starts with only what it needs, so a restarted
+#: agent rejoins sooner than it would after building the whole CLI's parser).
+ROLE_PARSERS = {"agent": add_agent_parser, "leader": add_leader_parser, "plant": add_plant_parser}
+
+
+def run_role(argv: Sequence[str]) -> int:
+    """Run one role's command line (``agent --id 2 ...``, ``leader ...``, ``plant ...``) in this
+    process, as ``zenswarm`` would: a :class:`zenswarm.errors.ZenswarmError` is printed as
+    ``zenswarm: error: ...`` (exit 2), Ctrl-C is exit 130."""
+    from zenswarm.errors import ZenswarmError
+
+    argv = list(argv)
+    if not argv or argv[0] not in ROLE_PARSERS:
+        raise ValueError(f"not a role's command line: {argv[:1]!r} (expected one of {', '.join(ROLE_PARSERS)})")
+    parser = argparse.ArgumentParser(prog="zenswarm")
+    ROLE_PARSERS[argv[0]](parser.add_subparsers(dest="command", metavar="COMMAND", required=True))
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except ZenswarmError as e:
+        print(f"zenswarm: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("zenswarm: interrupted", file=sys.stderr)
+        return 130

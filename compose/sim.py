@@ -52,15 +52,15 @@ from zenswarm.agents.api import (
 )
 from zenswarm.agents.core import AgentRow, StackedAgents
 from zenswarm.agents.paper import PaperController
-from zenswarm.config import Scenario
 from zenswarm.errors import PluginFailure
-from zenswarm.faults import FaultPlan, FaultState, Held
+from zenswarm.judge.metrics import TimeSeries, add_failure, add_plugin_failures, compute_results, exit_code_of
+from zenswarm.judge.verdict import criteria_from_scenario, decide_end
 from zenswarm.leader.core import LeaderCore
-from zenswarm.linkfaults import Box, box_counters, effective_graph
-from zenswarm.metrics import TimeSeries, add_failure, add_plugin_failures, compute_results, exit_code_of
+from zenswarm.link.faults import FaultPlan, FaultState, Held
+from zenswarm.link.swarm import Box, box_counters, effective_graph
 from zenswarm.plant.core import PlantCore
-from zenswarm.plugins import STAGE_SHARE, STAGE_STEP, Boundary, first_failures, plant_vehicle
-from zenswarm.verdict import criteria_from_scenario, decide_end
+from zenswarm.scenario.config import Scenario
+from zenswarm.scenario.plugins import STAGE_SHARE, STAGE_STEP, Boundary, first_failures, plant_vehicle
 
 __all__ = ["simulate", "SimResult", "run_sim_cli"]
 
@@ -74,7 +74,7 @@ class SimResult:
 ProgressFn = Callable[[int, int, float], None]
 
 DECIDE_EVERY = 50
-"""Ticks between two checks of :func:`zenswarm.verdict.decide_end` (the run ends after the tick it
+"""Ticks between two checks of :func:`zenswarm.judge.verdict.decide_end` (the run ends after the tick it
 names: checking in blocks costs less and ends at the same tick)."""
 
 
@@ -128,7 +128,7 @@ class _Ref(NamedTuple):
 
 class _Links:
     """With link faults: every directed link of the swarm as a receive box
-    (:class:`zenswarm.linkfaults.Box`, hold last value), as in the lockstep processes."""
+    (:class:`zenswarm.link.swarm.Box`, hold last value), as in the lockstep processes."""
 
     def __init__(self, plan: FaultPlan, rows: list[AgentRow], dt: float) -> None:
         fs = FaultState(plan)
@@ -297,7 +297,7 @@ class _Swarm:
 
 def radio_results(scenario: Scenario, faults: FaultPlan | None, series: TimeSeries) -> dict:
     """``effective_graph`` of a run with a radio model, a capacity queue or a link trace
-    (:func:`zenswarm.linkfaults.effective_graph`; {} without any): the same figures for ``sim`` and
+    (:func:`zenswarm.link.swarm.effective_graph`; {} without any): the same figures for ``sim`` and
     ``up``, computed from the recorded series."""
     if faults is None or not (faults.radio_active or faults.queues is not None or faults.trace is not None):
         return {}
@@ -315,7 +315,7 @@ def _held(h: Held | None) -> Any:
 
 def _present(h: Held | None) -> Held:
     """What a box holds where something must be held: the state and command links carry a
-    message every tick from tick 0, which a :class:`zenswarm.linkfaults.Box` always delivers at once."""
+    message every tick from tick 0, which a :class:`zenswarm.link.swarm.Box` always delivers at once."""
     assert h is not None, "a state or command link holds nothing"
     return h
 
@@ -334,7 +334,7 @@ class _Flight:
         self.failures: list[PluginFailure] = []  # the plug-in failures the run ended on
 
     def _decided(self, lo: int, hi: int) -> int | None:
-        """The tick in [lo, hi) that decided the run (:func:`zenswarm.verdict.decide_end`), if any."""
+        """The tick in [lo, hi) that decided the run (:func:`zenswarm.judge.verdict.decide_end`), if any."""
         ts = self.ts
         return None if self.crit is None else decide_end(ts.q0, ts.q, ts.qref, self.crit, lo, hi)
 
@@ -380,10 +380,10 @@ def simulate(
     """Run ``scenario`` for ``n_ticks`` control ticks (default: the time limit).
 
     progress(k, n_ticks, dist_to_goal_m) is called about every 100 ticks. ``faults``: a link
-    fault plan (:func:`zenswarm.linkfaults.plan_for`); each receiver then holds the newest value
-    its links delivered (:class:`zenswarm.linkfaults.Box`), exactly as the lockstep processes do.
+    fault plan (:func:`zenswarm.link.swarm.plan_for`); each receiver then holds the newest value
+    its links delivered (:class:`zenswarm.link.swarm.Box`), exactly as the lockstep processes do.
     The run ends after the tick where its outcome was decided (a stalled leader or a diverged
-    UAV, :func:`zenswarm.verdict.decide_end`) unless ``full_time``. Ctrl-C (KeyboardInterrupt)
+    UAV, :func:`zenswarm.judge.verdict.decide_end`) unless ``full_time``. Ctrl-C (KeyboardInterrupt)
     ends it too: the ticks flown are judged and the results carry an ``interrupted`` failure.
     Returns the time series (one sample per tick, taken at step 2 of the tick) and the results.
     """

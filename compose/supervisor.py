@@ -2,7 +2,7 @@
 processes; watch them, show progress, merge their logs, stop them cleanly, write results.
 
 The supervisor's router session subscribes to the swarm's whole key space to assemble the
-flight's time series (the same :class:`zenswarm.metrics.TimeSeries` the in-process simulator
+flight's time series (the same :class:`zenswarm.judge.metrics.TimeSeries` the in-process simulator
 writes), so ``results.json`` is computed by the same code for both. Apart from the recorder it
 is the only subscriber to the whole key space; the swarm's processes see only their graph rows.
 """
@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from zenswarm import bus, rtsched, security, verdict, wire
+from zenswarm import bus
 from zenswarm.bridge.args import (
     add_fault_args,
     add_override_args,
@@ -36,15 +36,18 @@ from zenswarm.bridge.args import (
     scenario_of,
 )
 from zenswarm.bridge.live import FOXGLOVE_DEFAULT, LIVE_HELP, LiveTarget, live_target
-from zenswarm.collector import Collector
-from zenswarm.config import Scenario
+from zenswarm.bus import wire
+from zenswarm.compose.policy import restart_policy
 from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
-from zenswarm.linkfaults import LinkFaults
-from zenswarm.metrics import add_failure, add_plugin_failures, compute_results
-from zenswarm.paths import check_output_dir, check_output_file, lock_output_dir
-from zenswarm.plugins import DEFAULTS, STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
-from zenswarm.policy import restart_policy
-from zenswarm.runtime import PLUGIN_FAILURE_MARK, gc_policy, gc_safe_point, gc_startup_done
+from zenswarm.judge import verdict
+from zenswarm.judge.metrics import add_failure, add_plugin_failures, compute_results
+from zenswarm.link.swarm import LinkFaults
+from zenswarm.process import rtsched, security
+from zenswarm.process.collector import Collector
+from zenswarm.process.paths import check_output_dir, check_output_file, lock_output_dir
+from zenswarm.process.runtime import PLUGIN_FAILURE_MARK, gc_policy, gc_safe_point, gc_startup_done
+from zenswarm.scenario.config import Scenario
+from zenswarm.scenario.plugins import DEFAULTS, STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
 
 __all__ = ["add_parsers", "UpOptions", "up_options", "Supervisor", "role_names", "swarm_roles", "check_up_args"]
 
@@ -127,12 +130,12 @@ class UpOptions:
     quiet: bool = False
     quiet_children: bool = False
     faults: LinkFaults = field(default_factory=LinkFaults)
-    controller: str | None = None  # plug-in names overriding the scenario's (zenswarm.plugins.select)
+    controller: str | None = None  # plug-in names overriding the scenario's (zenswarm.scenario.plugins.select)
     planner: str | None = None
     plant_model: str | None = None
     live: LiveTarget | None = None  # --live [PORT|rerun[:PORT]]: serve the flight to a viewer (zenswarm.bridge.live)
-    rt_priority: int | None = None  # --rt-priority P: the flying processes under SCHED_FIFO P (zenswarm.rtsched)
-    router_lost_timeout: float | None = None  # --only: give up on a lost router after S s (zenswarm.runtime)
+    rt_priority: int | None = None  # --rt-priority P: the flying processes under SCHED_FIFO P (zenswarm.process.rtsched)
+    router_lost_timeout: float | None = None  # --only: give up on a lost router after S s (zenswarm.process.runtime)
 
     def rt_argv(self) -> list[str]:
         """``--rt-priority P`` for the flying processes (if given)."""
@@ -242,7 +245,7 @@ class Supervisor:
         for raw in child.popen.stdout:
             line = raw.rstrip("\n")
             at = line.find(PLUGIN_FAILURE_MARK)
-            if at >= 0:  # a plug-in failed in this child (zenswarm.runtime.report_plugin_failure)
+            if at >= 0:  # a plug-in failed in this child (zenswarm.process.runtime.report_plugin_failure)
                 try:
                     f = PluginFailure.from_dict(json.loads(line[at + len(PLUGIN_FAILURE_MARK) :]))
                 except (ValueError, KeyError, TypeError, AssertionError):
@@ -432,7 +435,7 @@ class Supervisor:
                 for role in self.roles():
                     self.spawn(role)
                 if a.realtime:
-                    gc_startup_done()  # the children are started: see zenswarm.runtime.GcPolicy (realtime only)
+                    gc_startup_done()  # the children are started: see zenswarm.process.runtime.GcPolicy (realtime only)
                 code = self._watch(collector)
             finally:
                 self.terminate_all()
@@ -568,7 +571,7 @@ class Supervisor:
             self.collector.token(parts[1], parts[2], str(sample.kind).endswith("PUT"))
 
     def _live_verdict(self, collector: Collector) -> str | None:
-        """Has the flight's outcome been decided (:mod:`zenswarm.verdict`)? Then say why, and set
+        """Has the flight's outcome been decided (:mod:`zenswarm.judge.verdict`)? Then say why, and set
         ``self.upto`` (the ticks to judge). Cheap: the leader's series (decoded as it arrives) and
         each UAV's newest state; the exact decision is taken again on the whole series after."""
         c = self.criteria
@@ -619,7 +622,7 @@ class Supervisor:
         )
 
     def _decided_exactly(self, collector: Collector) -> str | None:
-        """The exact decision (:func:`zenswarm.verdict.decide_end`) on the ticks complete so far:
+        """The exact decision (:func:`zenswarm.judge.verdict.decide_end`) on the ticks complete so far:
         says why and sets ``self.upto`` when found; None while those ticks are still on the way."""
         if self.args.realtime:  # skipped ticks hold the previous value, as in the results
             ts = collector.series(int(max(collector.sim_t_ns, 0) // collector.dt_ns), fill=True)
@@ -811,14 +814,14 @@ class Supervisor:
 
     def _took_plugin_failure(self, c: Child) -> bool:
         """A child that exited with 4: did it report its plug-in's failure
-        (:data:`zenswarm.runtime.PLUGIN_FAILURE_MARK`, read by :meth:`_pump`)? If not, it died."""
+        (:data:`zenswarm.process.runtime.PLUGIN_FAILURE_MARK`, read by :meth:`_pump`)? If not, it died."""
         if c.reader is not None:
             c.reader.join(timeout=5.0)  # its last lines: the pipe ends with the process
         return any(f.process == c.name for f in self.plugin_failures)
 
     def _external_plugin_failures(self, collector: Collector) -> None:
         """A role on another host (``--external``) reports its plug-in's failure in its
-        diagnostics (:func:`zenswarm.runtime.report_plugin_failure`): take it as a child's line."""
+        diagnostics (:func:`zenswarm.process.runtime.report_plugin_failure`): take it as a child's line."""
         for name in self.external_roles():
             text = (collector.diag.get(name) or {}).get("plugin_failure")
             if not isinstance(text, str) or any(f.process == name for f in self.plugin_failures):
@@ -1032,7 +1035,7 @@ def check_up_args(args: UpOptions, sc: Scenario) -> None:
 
 def check_rt_priority(args: UpOptions) -> None:
     """``--rt-priority P``: 1-99, a realtime flight (``--realtime`` or ``--plant mavlink``), and
-    permitted to this user (:func:`zenswarm.rtsched.probe`): else :class:`ScenarioError` naming the
+    permitted to this user (:func:`zenswarm.process.rtsched.probe`): else :class:`ScenarioError` naming the
     flag and the remedy, before anything starts."""
     rtsched.validate(args.rt_priority, realtime=args.realtime or args.plant == "mavlink", how="--realtime or --plant mavlink")
 
@@ -1110,8 +1113,8 @@ def _write_effective(args: UpOptions, overrides: dict[str, Any]) -> Path:
     OUT/scenario.toml for the swarm's processes (``--only``: beside the scenario, named by swarm)."""
     import tomllib
 
-    from zenswarm.generate import to_toml
-    from zenswarm.overrides import apply
+    from zenswarm.scenario.generate import to_toml
+    from zenswarm.scenario.overrides import apply
 
     doc = apply(tomllib.loads(Path(args.scenario).read_text(encoding="utf-8")), overrides)
     trace = (doc.get("faults") or {}).get("trace")
@@ -1126,7 +1129,7 @@ def _write_effective(args: UpOptions, overrides: dict[str, Any]) -> Path:
 
 def _run_only(args: UpOptions) -> int:
     """``--only ROLE``: run one role of a swarm in this process, against a remote router."""
-    from zenswarm.compose.cli import main as cli_main
+    from zenswarm.compose.roles import run_role
 
     role = args.only or ""
     argv: list[str]
@@ -1145,7 +1148,7 @@ def _run_only(args: UpOptions) -> int:
         argv += ["--keys", str(args.keys)] + (["--tls"] if args.tls else [])
     if args.router_lost_timeout is not None:
         argv += ["--router-lost-timeout", repr(args.router_lost_timeout)]
-    return cli_main(argv + args.plugin_argv() + args.rt_argv())
+    return run_role(argv + args.plugin_argv() + args.rt_argv())
 
 
 def _parse_kill(text: str) -> tuple[str, float]:

@@ -4,7 +4,7 @@ Pure numerics: imports numpy and the standard library's ``math`` only; no I/O, n
 
 Conventions: positions are (3,) arrays in metres, inertial ENU frame (z up). An obstacle is any
 object with ``center`` (3,) = base centre c, ``radius`` r_o and ``height`` h_o (a vertical cylinder
-capped by an upper hemisphere, Remark 1), e.g. :class:`zenswarm.config.Obstacle`.
+capped by an upper hemisphere, Remark 1), e.g. :class:`zenswarm.scenario.config.Obstacle`.
 
 Behaviour at and inside the boundary (the paper leaves it open): the repulsion (13) grows like
 1/d_obs^3 as d_obs -> 0. For evaluation the clearance is floored at ``d_floor = D_FLOOR_FRACTION *
@@ -22,10 +22,10 @@ from typing import TYPE_CHECKING, Protocol, Sequence
 
 import numpy as np
 
-from zenswarm.geometry import obstacle_clearance, obstacle_clearance_many  # re-exported: the solid's distance
+from zenswarm.vehicle.geometry import obstacle_clearance, obstacle_clearance_many  # re-exported: the solid's distance
 
 if TYPE_CHECKING:  # pragma: no cover
-    from zenswarm.config import Scenario
+    from zenswarm.scenario.config import Scenario
 
 __all__ = [
     "ObstacleLike",
@@ -61,7 +61,7 @@ MAX_SUBSTEPS = 20_000
 
 class ObstacleLike(Protocol):
     """A capped cylinder (read-only): ``center`` (3,) m, ``radius`` r_o m, ``height`` h_o m,
-    e.g. :class:`zenswarm.config.Obstacle`."""
+    e.g. :class:`zenswarm.scenario.config.Obstacle`."""
 
     @property
     def center(self) -> Sequence[float]: ...
@@ -116,7 +116,7 @@ class AapfParams:
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> AapfParams:
-        """Build from a :class:`zenswarm.config.Scenario`."""
+        """Build from a :class:`zenswarm.scenario.config.Scenario`."""
         ld = scenario.leader
         return cls(
             goal=ld.goal,

@@ -6,12 +6,12 @@ Step 1 of a control tick (see :mod:`zenswarm.compose.sim`) is :meth:`LeaderCore.
 of tick k (for the paper's planner v0 = Gamma*_total(q0), eq. 15); step 8 is
 :meth:`LeaderCore.advance`, to tick k + 1.
 
-Which planner: :func:`zenswarm.plugins.planner_name` (``[leader] planner``; without it ``aapf``,
+Which planner: :func:`zenswarm.scenario.plugins.planner_name` (``[leader] planner``; without it ``aapf``,
 the paper's, or ``apf``, fixed gain, when ``[leader] adaptive = false``, the older spelling).
-Its parameters: ``[leader.params]``. Its random stream: :func:`zenswarm.plugins.plugin_rng` with
+Its parameters: ``[leader.params]``. Its random stream: :func:`zenswarm.scenario.plugins.plugin_rng` with
 role 0.
 
-The planner is called at its boundary (:class:`zenswarm.plugins.Boundary`): an exception of its
+The planner is called at its boundary (:class:`zenswarm.scenario.plugins.Boundary`): an exception of its
 constructor, :meth:`~zenswarm.leader.planner.Planner.advance` or
 :meth:`~zenswarm.leader.planner.Planner.ref`, or a reference that is not two finite (3,) vectors,
 is a :class:`zenswarm.errors.PluginFailure` of the tick whose reference it failed to give, in
@@ -25,10 +25,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from zenswarm.leader.planner import Planner, PlannerContext
-from zenswarm.plugins import STAGE_BUILD, STAGE_PLANNER, Boundary, bad_vector, decode_params, planner_name, plugin_rng, resolve
+from zenswarm.scenario.plugins import STAGE_BUILD, STAGE_PLANNER, Boundary, bad_vector, decode_params, planner_name, plugin_rng, resolve
 
 if TYPE_CHECKING:  # pragma: no cover
-    from zenswarm.config import Scenario
+    from zenswarm.scenario.config import Scenario
 
 __all__ = ["LeaderCore", "make_planner", "planner_boundary"]
 

@@ -61,7 +61,7 @@ from zenswarm.leader.aapf import (
 )
 
 if TYPE_CHECKING:  # pragma: no cover
-    from zenswarm.config import Scenario
+    from zenswarm.scenario.config import Scenario
 
 __all__ = [
     "EscapeParams",
@@ -270,7 +270,7 @@ class EscapeParams:
         lookahead: float = DEFAULT_LOOKAHEAD,
         sides: int = DEFAULT_SIDES,
     ) -> EscapeParams:
-        """Build from a :class:`zenswarm.config.Scenario` (its ``[leader]`` table and obstacles)."""
+        """Build from a :class:`zenswarm.scenario.config.Scenario` (its ``[leader]`` table and obstacles)."""
         return cls(AapfParams.from_scenario(scenario), scenario.leader.start, margin, lookahead, sides)
 
 

@@ -11,7 +11,7 @@ Frames and units: positions (3,) float64 m, velocities (3,) m/s, inertial ENU (z
 Write one by subclassing :class:`Planner` (set ``name``, ``description``, ``Params``; implement
 :meth:`Planner.ref` and :meth:`Planner.advance`) and name it in the scenario
 (``[leader] planner = "my_pkg.plan:MyPlanner"``) with its parameters in ``[leader.params]``
-(see :mod:`zenswarm.plugins`).
+(see :mod:`zenswarm.scenario.plugins`).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from zenswarm.leader.aapf import AapfParams, ObstacleLike, integrate_leader, tot
 from zenswarm.leader.escape import DEFAULT_LOOKAHEAD, DEFAULT_MARGIN, DEFAULT_SIDES, EscapeParams, escape_velocity, integrate_escape
 
 if TYPE_CHECKING:  # pragma: no cover
-    from zenswarm.config import LeaderConfig
+    from zenswarm.scenario.config import LeaderConfig
 
 __all__ = ["PlannerContext", "Planner", "NoParams", "AapfPlanner", "ApfPlanner", "EscapePlanner"]
 
@@ -44,7 +44,7 @@ class PlannerContext:
     start, goal: (3,) m ENU (``[leader]``). obstacles: the scenario's capped cylinders
     (:class:`zenswarm.leader.aapf.ObstacleLike`). r_f: formation-enclosing sphere radius, m.
     dt: control tick, s. substeps: physics sub-steps per tick (a floor for integration sub-steps).
-    rng: the planner's seeded stream (:func:`zenswarm.plugins.plugin_rng` with role 0).
+    rng: the planner's seeded stream (:func:`zenswarm.scenario.plugins.plugin_rng` with role 0).
     leader: the whole ``[leader]`` table (the built-ins read the paper's gains from it).
     """
 

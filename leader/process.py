@@ -5,14 +5,14 @@ Publishes ``leader/ref`` and answers queries on ``mission`` with the scenario, s
 join late (or run on other hosts without the scenario file) can fetch it.
 
 Lockstep: the leader's trajectory does not depend on the swarm, so it runs ahead: on the plant's
-clock(c) (published every :data:`zenswarm.runtime.CLOCK_EVERY_TICKS` ticks) it publishes every
-ref up to ref(c + :data:`zenswarm.runtime.LEADER_AHEAD_TICKS`), so pinned agents never wait for it
+clock(c) (published every :data:`zenswarm.process.runtime.CLOCK_EVERY_TICKS` ticks) it publishes every
+ref up to ref(c + :data:`zenswarm.process.runtime.LEADER_AHEAD_TICKS`), so pinned agents never wait for it
 (the plant starts the clock only once every process has subscribed, so nothing is published into
 the void; a leader that starts late catches up at once). Realtime: it follows the plant's clock on a fixed
-loop (:class:`zenswarm.runtime.WallClock`), integrating from its current time to the newest clock time.
+loop (:class:`zenswarm.process.runtime.WallClock`), integrating from its current time to the newest clock time.
 
 The leader's tick is :class:`zenswarm.leader.core.LeaderCore` (the in-process simulator runs the same).
-Started with :class:`zenswarm.runtime.ProcessOptions` by :func:`run` (the command line is parsed at
+Started with :class:`zenswarm.process.runtime.ProcessOptions` by :func:`run` (the command line is parsed at
 the edge, :mod:`zenswarm.compose.roles`).
 """
 
@@ -20,10 +20,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from zenswarm import wire
-from zenswarm.config import scenario_to_dict
+from zenswarm.bus import wire
 from zenswarm.leader.core import LeaderCore
-from zenswarm.runtime import (
+from zenswarm.process.runtime import (
     LEADER_AHEAD_TICKS,
     Lockstep,
     ProcessOptions,
@@ -31,6 +30,7 @@ from zenswarm.runtime import (
     WallClock,
     run_process,
 )
+from zenswarm.scenario.config import scenario_to_dict
 
 if TYPE_CHECKING:
     import zenoh

@@ -1,7 +1,7 @@
 """The plant model interface: the dynamics N vehicles fly, one control tick at a time.
 
 A plant model is the third plug-in kind (beside :class:`zenswarm.agents.api.Controller` and
-:class:`zenswarm.leader.planner.Planner`; :mod:`zenswarm.plugins`, entry-point group
+:class:`zenswarm.leader.planner.Planner`; :mod:`zenswarm.scenario.plugins`, entry-point group
 ``zenswarm.plants``). It is chosen by ``[plant] model = "NAME"`` in the scenario (parameters in
 ``[plant.params]``) or ``--plant-model NAME`` on ``zenswarm sim`` and ``zenswarm up``; the
 built-in :class:`QuadrotorModel` (name ``quadrotor``, :mod:`zenswarm.plant.quadrotor`) is the
@@ -27,7 +27,7 @@ send on ``uav/<i>/cmd``), and :meth:`PlantModel.step` advances every vehicle by 
 period ``ctx.dt``. Afterwards the core checks :attr:`PlantModel.state`: every array (N, 3) and
 finite, else the flight ends with the plug-in failure ``plugin_error``
 (:class:`zenswarm.errors.PluginFailure`: kind ``plant``, process ``plant``, stage
-:data:`zenswarm.plugins.STAGE_PLANT`, the tick, the field, the UAVs; docs/plugins.md); a model
+:data:`zenswarm.scenario.plugins.STAGE_PLANT`, the tick, the field, the UAVs; docs/plugins.md); a model
 that raises (constructor or step) is reported the same way.
 
 A model must be deterministic (no clock, no I/O, randomness only from ``ctx.rng``), as
@@ -44,11 +44,11 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 import msgspec
 import numpy as np
 
-from zenswarm.params import QuadParams
 from zenswarm.plant.quadrotor import PlantState, initial_state, step_held
+from zenswarm.vehicle.params import QuadParams
 
 if TYPE_CHECKING:  # pragma: no cover
-    from zenswarm.config import Scenario
+    from zenswarm.scenario.config import Scenario
 
 __all__ = ["NoParams", "PlantContext", "VehicleStates", "Disturbance", "PlantModel", "QuadrotorModel"]
 
@@ -83,7 +83,7 @@ class PlantContext:
     disturbance is sampled per sub-step). h: dt / substeps, s. initial_positions: (N, 3) m ENU
     (every vehicle starts there at rest, level, yaw 0). yaw: the commanded yaw, rad
     (``controller.yaw``). vehicle: the model's own :meth:`PlantModel.vehicle`. rng: its seeded
-    stream (:func:`zenswarm.plugins.plugin_rng` with role :data:`zenswarm.plugins.PLANT_ROLE`).
+    stream (:func:`zenswarm.scenario.plugins.plugin_rng` with role :data:`zenswarm.scenario.plugins.PLANT_ROLE`).
     scenario: the whole scenario.
     """
 
@@ -113,11 +113,11 @@ class PlantModel(ABC):
 
     @classmethod
     def vehicle(cls, scenario: Scenario, params: Any) -> QuadParams:
-        """The vehicle this model flies, as :class:`zenswarm.params.QuadParams`: ``mass`` kg and
+        """The vehicle this model flies, as :class:`zenswarm.vehicle.params.QuadParams`: ``mass`` kg and
         ``g`` m/s^2 (the agents' controllers compute thrust = m |u|, eq. 28, and the failsafe
         hovers with them), ``inertia`` kg m^2 and ``max_thrust`` N (for the record). Called
         before any work starts (a model that cannot run, e.g. a missing package, raises
-        :class:`zenswarm.plugins.PluginError` naming ``plant.model`` here). Default: zenswarm's
+        :class:`zenswarm.scenario.plugins.PluginError` naming ``plant.model`` here). Default: zenswarm's
         Crazyflie 2.1 with the scenario's ``[vehicle]`` overrides."""
         return QuadParams.from_vehicle(scenario.vehicle)
 

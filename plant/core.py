@@ -21,7 +21,7 @@ from zenswarm.errors import PluginFailure
 from zenswarm.plant.api import PlantContext, PlantModel, VehicleStates
 from zenswarm.plant.disturbance import DisturbanceModel
 from zenswarm.plant.failsafe import FailsafeState, failsafe_config
-from zenswarm.plugins import PLANT_ROLE, STAGE_BUILD, STAGE_PLANT, Boundary, plant_selection, plant_vehicle, plugin_rng
+from zenswarm.scenario.plugins import PLANT_ROLE, STAGE_BUILD, STAGE_PLANT, Boundary, plant_selection, plant_vehicle, plugin_rng
 
 __all__ = ["PlantCore", "make_plant_model", "STATE_FIELDS"]
 
@@ -47,7 +47,7 @@ def make_plant_model(scenario: Any) -> PlantModel:
 
 
 def boundary(scenario: Any) -> Boundary:
-    """Where the plant model is called (:class:`zenswarm.plugins.Boundary`): kind ``plant``, the
+    """Where the plant model is called (:class:`zenswarm.scenario.plugins.Boundary`): kind ``plant``, the
     name it was selected by, process ``plant``, every UAV."""
     return Boundary("plant", str(scenario.plant.model), "plant", tuple(range(1, scenario.n + 1)))
 
@@ -103,7 +103,7 @@ class PlantCore:
         tick k + 1 (in place). Returns the failsafe events of this tick (tick, UAV 1-based, from,
         to). A model that raises, or leaves a state that is not (N, 3) and finite, raises
         :class:`zenswarm.errors.PluginFailure` (kind ``plant``, process ``plant``, tick k, stage
-        :data:`zenswarm.plugins.STAGE_PLANT`, call ``step``; the field ``state.<name>`` and the
+        :data:`zenswarm.scenario.plugins.STAGE_PLANT`, call ``step``; the field ``state.<name>`` and the
         UAVs whose rows are not finite)."""
         p = self.params
         fs = self.failsafe

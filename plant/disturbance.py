@@ -3,7 +3,7 @@
 Pure numerics: numpy and ``math`` only; randomness comes from an injected, seeded
 ``numpy.random.Generator`` (same seed and same call sequence -> the same samples).
 
-Model (``zenswarm.config.DisturbanceConfig``), all as accelerations::
+Model (``zenswarm.scenario.config.DisturbanceConfig``), all as accelerations::
 
     d_p(t) = wind + sine_amplitude * sin(2 pi sine_freq_hz t) + gust(t)       m/s^2, ENU, (N, 3)
     d_a(t) = attitude_std * n(t)                                              rad/s^2, body, (N, 3)
@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 if TYPE_CHECKING:  # pragma: no cover
-    from zenswarm.config import DisturbanceConfig
+    from zenswarm.scenario.config import DisturbanceConfig
 
 __all__ = ["DisturbanceModel"]
 
@@ -44,7 +44,7 @@ class DisturbanceModel:
 
     Parameters
     ----------
-    cfg : zenswarm.config.DisturbanceConfig
+    cfg : zenswarm.scenario.config.DisturbanceConfig
     n : int
         Number of UAVs N (>= 1).
     rng : numpy.random.Generator

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from zenswarm.config import FailsafeConfig, failsafe_config  # re-exported: the [failsafe] table
-from zenswarm.inversion import invert_thrust_attitude
+from zenswarm.scenario.config import FailsafeConfig, failsafe_config  # re-exported: the [failsafe] table
+from zenswarm.vehicle.inversion import invert_thrust_attitude
 
 __all__ = ["FailsafeConfig", "FailsafeMode", "failsafe_config", "mode_for_age", "hold_command"]
 

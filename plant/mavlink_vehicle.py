@@ -30,7 +30,7 @@ heartbeat and behaviours; each behaviour cites its autopilot source next to its 
   (HOME_POSITION, AUTOPILOT_VERSION), each answered with COMMAND_ACK; other commands get
   MAV_RESULT_UNSUPPORTED; messages for another system or another component are ignored;
 * SET_ATTITUDE_TARGET (quaternion, or body rates when the attitude is ignored; PX4: normalised
-  thrust through :class:`zenswarm.frames.ThrustMap`; ArduCopter: a climb rate unless GUID_OPTIONS
+  thrust through :class:`zenswarm.vehicle.frames.ThrustMap`; ArduCopter: a climb rate unless GUID_OPTIONS
   bit 3) and SET_POSITION_TARGET_LOCAL_NED (position/velocity/yaw in MAV_FRAME_LOCAL_NED; the
   vehicle then runs its own PD position loop producing thrust and attitude).
 
@@ -74,8 +74,12 @@ from typing import Any
 
 import numpy as np
 
-from zenswarm import frames
-from zenswarm.autopilot import (
+from zenswarm.errors import ScenarioError
+from zenswarm.plant.disturbance import DisturbanceModel
+from zenswarm.plant.mavlink_params import ParamStore, ardupilot_params, px4_params
+from zenswarm.plant.quadrotor import PlantState, initial_state, step
+from zenswarm.vehicle import frames
+from zenswarm.vehicle.autopilot import (
     AP_COPTER_MODES,
     PX4_AUTO_SUB,
     PX4_HOLD,
@@ -88,11 +92,7 @@ from zenswarm.autopilot import (
     px4_custom_mode,
     px4_decode,
 )
-from zenswarm.errors import ScenarioError
-from zenswarm.params import QuadParams
-from zenswarm.plant.disturbance import DisturbanceModel
-from zenswarm.plant.mavlink_params import ParamStore, ardupilot_params, px4_params
-from zenswarm.plant.quadrotor import PlantState, initial_state, step
+from zenswarm.vehicle.params import QuadParams
 
 mavutil = load_mavutil()
 mavlink = mavutil.mavlink
@@ -1160,7 +1160,7 @@ class MavlinkFleet:
         stopped. Late periods are caught up (physics stays on the wall clock); a stall of more
         than 0.5 s resynchronises instead (counted in ``overruns``; the simulation then runs
         behind the wall clock by the stall)."""
-        from zenswarm.runtime import WallClock
+        from zenswarm.process.runtime import WallClock
 
         stop = stop or self._stop
         end = math.inf if duration_s is None else time.monotonic() + duration_s
@@ -1244,11 +1244,11 @@ def run_fleet(
     scenario's ``mavlink.base_port``); ``autopilot`` (``px4`` or ``ardupilot``) and
     ``telemetry_hz`` override the scenario's vehicle options; ``own_origin`` and ``sitl_ports`` set
     the options of the same names (:class:`VehicleOptions`); ``rt_priority``: run under
-    ``SCHED_FIFO`` at this priority once the fleet is built (:mod:`zenswarm.rtsched`; checked
+    ``SCHED_FIFO`` at this priority once the fleet is built (:mod:`zenswarm.process.rtsched`; checked
     first, exit 2 if not permitted). The command line (``zenswarm
     mavlink-vehicle``, ``zenswarm plant --mavlink``) is parsed in :mod:`zenswarm.compose.roles`."""
-    from zenswarm import rtsched
-    from zenswarm.runtime import gc_policy, gc_startup_done
+    from zenswarm.process import rtsched
+    from zenswarm.process.runtime import gc_policy, gc_startup_done
 
     gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work
     rtsched.set_requested(rtsched.validate(rt_priority, realtime=True))  # out of range or not permitted: exit 2 now
@@ -1276,7 +1276,7 @@ def run_fleet(
             + f"; physics {1 / fleet.h:g} Hz in chunks of {fleet.chunk}, telemetry {fleet.loop_hz / fleet.tel_every:g} Hz",
             flush=True,
         )
-        gc_startup_done()  # sockets open, vehicles built: see zenswarm.runtime.GcPolicy (safe points: WallClock.wait)
+        gc_startup_done()  # sockets open, vehicles built: see zenswarm.process.runtime.GcPolicy (safe points: WallClock.wait)
         rtsched.apply_after_startup(lambda text: print(f"mavlink-vehicle: {text}", flush=True))
         why = fleet.run(stop, duration)
         print(f"mavlink-vehicle: stopped ({why}); overruns {fleet.overruns}; {gc_policy().counters()}; " + str(fleet.status()),

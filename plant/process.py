@@ -5,11 +5,11 @@ Lockstep tick k: publish state_i(k) for all i, wait for every cmd_i(k) (a timeou
 counts as a drop and holds the UAV's previous command; an agent whose liveliness token is gone is
 not waited for), then integrate ``timing.substeps`` physics sub-steps. A UAV whose newest command
 is too old goes into the failsafe of :mod:`zenswarm.plant.failsafe` (hover, then land). The clock, read by
-the leader and the supervisor only, goes out every :data:`zenswarm.runtime.CLOCK_EVERY_TICKS`
+the leader and the supervisor only, goes out every :data:`zenswarm.process.runtime.CLOCK_EVERY_TICKS`
 ticks: clock(0) with the first states, then clock(k + 1) as the integration of tick k starts, so
 the leader's burst of refs overlaps the integration, not the agents' work. It starts only
 when the leader and every agent have announced themselves.
-Realtime: a fixed-rate loop at the control rate (:class:`zenswarm.runtime.WallClock`); each period
+Realtime: a fixed-rate loop at the control rate (:class:`zenswarm.process.runtime.WallClock`); each period
 integrates one control period of physics with the latest command of each UAV (hover thrust, level,
 before the first one).
 
@@ -22,11 +22,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from zenswarm import wire
-from zenswarm.faults import FaultState
-from zenswarm.linkfaults import Box, box_counters, due_tick
+from zenswarm.bus import wire
+from zenswarm.link.faults import FaultState
+from zenswarm.link.swarm import Box, box_counters, due_tick
 from zenswarm.plant.core import PlantCore
-from zenswarm.runtime import (
+from zenswarm.process.runtime import (
     CLOCK_EVERY_TICKS,
     Lockstep,
     ProcessOptions,
@@ -149,7 +149,7 @@ class _LockstepPlant:
     def needed(self, i: int, k: int) -> bool:
         """Wait for agent i's cmd(k)? Not if it is gone or has moved past the tick of the
         command due (a restarted agent that skipped it; with link faults, its box's due one:
-        :func:`zenswarm.linkfaults.due_tick`)."""
+        :func:`zenswarm.link.swarm.due_tick`)."""
         name = self.p.agents[i]
         if not self.proc.is_alive(name):
             if name in self.seen:
@@ -260,5 +260,5 @@ def _run(proc: SwarmProcess, expect: tuple[str, ...]) -> int:
 def run(options: PlantOptions) -> int:
     """Run the plant until the flight ends; the exit code (2: bad input, 3: a process never came,
     4: the plant model failed, :class:`zenswarm.errors.PluginFailure`, reported by
-    :func:`zenswarm.runtime.run_process`)."""
+    :func:`zenswarm.process.runtime.run_process`)."""
     return run_process(lambda proc: _run(proc, options.expect), "plant", options.process)

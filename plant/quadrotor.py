@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from zenswarm.params import QuadParams
+from zenswarm.vehicle.params import QuadParams
 
 __all__ = [
     "rotation_matrix",

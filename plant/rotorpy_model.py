@@ -45,12 +45,12 @@ from typing import TYPE_CHECKING, Any, Literal
 import msgspec
 import numpy as np
 
-from zenswarm.params import QuadParams
 from zenswarm.plant.api import Disturbance, PlantContext, PlantModel
-from zenswarm.plugins import PluginError
+from zenswarm.scenario.plugins import PluginError
+from zenswarm.vehicle.params import QuadParams
 
 if TYPE_CHECKING:  # pragma: no cover
-    from zenswarm.config import Scenario
+    from zenswarm.scenario.config import Scenario
 
 __all__ = ["RotorPyModel", "RotorPyStates", "crazyflie_params"]
 

@@ -14,8 +14,8 @@ import numpy as np
 
 from zenswarm.agents.api import Command, Controller, ControllerContext, Shared
 from zenswarm.agents.paper import PaperController
-from zenswarm.inversion import invert_thrust_attitude
 from zenswarm.leader.planner import AapfPlanner, Planner, PlannerContext
+from zenswarm.vehicle.inversion import invert_thrust_attitude
 
 
 class ConsensusController(Controller):

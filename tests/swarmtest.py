@@ -22,7 +22,7 @@ def unique_swarm(prefix: str = "t") -> str:
 
 def scenario_variant(tmp: Path, base: str = "paper_example1", **timing: Any) -> Path:
     """Write a copy of a paper scenario with [timing] fields overridden; returns its path."""
-    from zenswarm.generate import to_toml
+    from zenswarm.scenario.generate import to_toml
 
     d = tomllib.loads((SCENARIOS / f"{base}.toml").read_text())
     d["timing"].update(timing)

@@ -12,9 +12,9 @@ from msgspec.structs import replace as replace_table
 
 from zenswarm import api
 from zenswarm.compose.sim import simulate
-from zenswarm.config import load_scenario
 from zenswarm.errors import ScenarioError
-from zenswarm.linkfaults import plan_for
+from zenswarm.link.swarm import plan_for
+from zenswarm.scenario.config import load_scenario
 
 from swarmtest import SCENARIOS
 

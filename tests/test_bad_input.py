@@ -15,10 +15,10 @@ from pathlib import Path
 import pytest
 
 from zenswarm import bus
-from zenswarm.config import MAX_SEED, scenario_from_dict
 from zenswarm.errors import ScenarioError
-from zenswarm.generate import to_toml
-from zenswarm.paths import check_output_dir, check_output_file
+from zenswarm.process.paths import check_output_dir, check_output_file
+from zenswarm.scenario.config import MAX_SEED, scenario_from_dict
+from zenswarm.scenario.generate import to_toml
 
 from swarmtest import SCENARIOS, processes_mentioning, unique_swarm, zenswarm
 
@@ -280,7 +280,7 @@ def _security_of(out: Path, swarm: str, *extra: str):
     """Supervisor._security for `up EX1 --secure --out OUT --swarm SWARM` (no process started)."""
     from zenswarm.compose.cli import build_parser
     from zenswarm.compose.supervisor import Supervisor, up_options
-    from zenswarm.config import load_scenario
+    from zenswarm.scenario.config import load_scenario
 
     args = build_parser().parse_args(["up", str(EX1), "--secure", "--out", str(out), "--swarm", swarm, "--quiet", *extra])
     sup = Supervisor(up_options(args), load_scenario(EX1))

@@ -21,7 +21,6 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 
-from zenswarm import wire
 from zenswarm.bus import (
     TX_QUEUE_BATCHES,
     ZENOH_RUNTIME_DEFAULT,
@@ -35,6 +34,7 @@ from zenswarm.bus import (
     tcp_endpoint,
     use_swarm_runtime,
     wait_matching,
+    wire,
 )
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -112,7 +112,7 @@ def swarm_name() -> str:
 SUB = """
 import json, sys
 import zenoh
-from zenswarm import wire
+from zenswarm.bus import wire
 from zenswarm.bus import client_config, open_session
 ep, swarm, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
 keys = wire.Keys(swarm)
@@ -134,7 +134,7 @@ print("result", json.dumps({"got": got, "counters": dec.counters(), "rejects": d
 PUB = """
 import json, sys, time
 import zenoh
-from zenswarm import wire
+from zenswarm.bus import wire
 from zenswarm.bus import client_config, open_session, wait_matching
 ep, swarm, uav, first, count, garbage = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5]), sys.argv[6] == "1"
 keys = wire.Keys(swarm)
@@ -151,7 +151,7 @@ print("done", json.dumps({"matched": matched}), flush=True)
 
 TOKEN = """
 import sys, time
-from zenswarm import wire
+from zenswarm.bus import wire
 from zenswarm.bus import client_config, declare_alive, open_session
 ep, swarm, process = sys.argv[1], sys.argv[2], sys.argv[3]
 keys = wire.Keys(swarm)

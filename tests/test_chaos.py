@@ -308,7 +308,7 @@ def test_two_flights_at_once_with_default_settings(tmp_path: Path) -> None:
     flight into the first one's ``--out`` while it runs is refused (exit 2 naming --out)."""
     import numpy as np
 
-    from zenswarm.metrics import TimeSeries
+    from zenswarm.judge.metrics import TimeSeries
 
     scenario = scenario_variant(tmp_path, time_limit_s=6.0)
     outs = [tmp_path / "open", tmp_path / "secure"]

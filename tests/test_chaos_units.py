@@ -12,16 +12,16 @@ from typing import Any
 
 import pytest
 
-from zenswarm import wire
 from zenswarm.bridge import recorder
 from zenswarm.bridge.mcapio import RECORDER_END, read_recording
 from zenswarm.bridge.recorder import McapSink, build_metadata
-from zenswarm.collector import Collector
-from zenswarm.config import load_scenario
+from zenswarm.bus import wire
 from zenswarm.errors import ScenarioError
-from zenswarm.faults import plan_from_cli
-from zenswarm.linkfaults import Box, due_tick
-from zenswarm.paths import OUTPUT_LOCK, lock_output_dir
+from zenswarm.link.faults import plan_from_cli
+from zenswarm.link.swarm import Box, due_tick
+from zenswarm.process.collector import Collector
+from zenswarm.process.paths import OUTPUT_LOCK, lock_output_dir
+from zenswarm.scenario.config import load_scenario
 
 from swarmtest import SCENARIOS
 
@@ -75,7 +75,7 @@ def test_an_output_directory_holds_one_flight_at_a_time(tmp_path: Path) -> None:
     assert ei.value.field == "--out" and "another flight" in ei.value.message and str(__import__("os").getpid()) in ei.value.message
     lock.release()
     lock_output_dir(out, "--out").release()
-    code = f"from zenswarm.paths import lock_output_dir; lock_output_dir({str(out)!r}, '--out'); import os; os._exit(9)"
+    code = f"from zenswarm.process.paths import lock_output_dir; lock_output_dir({str(out)!r}, '--out'); import os; os._exit(9)"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 9  # died holding it
     lock_output_dir(out, "--out").release()
     assert (out / OUTPUT_LOCK).is_file()

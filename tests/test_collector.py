@@ -1,5 +1,5 @@
 """The supervisor's collector keeps flat memory however long the flight (issue 16): the samples it
-decodes after the flight wait raw in a :class:`zenswarm.collector.Spool` (an anonymous file), not
+decodes after the flight wait raw in a :class:`zenswarm.process.collector.Spool` (an anonymous file), not
 in a list, and the series it builds from them is the one it built before, to the bit.
 
 Pure tests (no process): a spool round trip across blocks, a collector fed the same samples with
@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from zenswarm import wire
-from zenswarm.collector import Collector, Spool
-from zenswarm.config import load_scenario
-from zenswarm.metrics import TimeSeries
+from zenswarm.bus import wire
+from zenswarm.judge.metrics import TimeSeries
+from zenswarm.process.collector import Collector, Spool
+from zenswarm.scenario.config import load_scenario
 
 from swarmtest import SCENARIOS
 

@@ -1,4 +1,4 @@
-"""Scenario loading and validation (zenswarm.config).
+"""Scenario loading and validation (zenswarm.scenario.config).
 
 The paper's numbers are those of its Experiments section (A. Experimental setup). Every rejection
 test checks the error's ``field`` (dotted path) and that the message says what is wrong.
@@ -17,14 +17,14 @@ import msgspec
 import numpy as np
 import pytest
 
-from zenswarm.config import (
+from zenswarm.errors import ScenarioError, ZenswarmError
+from zenswarm.scenario.config import (
     Scenario,
     formation_radius,
     load_scenario,
     scenario_from_dict,
     scenario_to_dict,
 )
-from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.schema import FaultsTable
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "compose" / "scenarios"
@@ -293,7 +293,7 @@ def test_rejects(mutate: Mutator, field: str, needles: tuple[str, ...]) -> None:
 
 def test_bounds_accept_their_edges() -> None:
     """The largest seed, exactly MAX_CONTROL_TICKS ticks, MAX_SUBSTEPS sub-steps and one tick are valid."""
-    from zenswarm.config import MAX_CONTROL_TICKS, MAX_SEED, MAX_SUBSTEPS
+    from zenswarm.scenario.config import MAX_CONTROL_TICKS, MAX_SEED, MAX_SUBSTEPS
 
     d = base()
     d["scenario"]["seed"] = MAX_SEED
@@ -306,7 +306,7 @@ def test_bounds_accept_their_edges() -> None:
 
 def test_uav_ticks_bound_scales_with_n() -> None:
     """3 UAVs x 10 M ticks fit; the message for a larger product names the time that would fit."""
-    from zenswarm.config import MAX_UAV_TICKS
+    from zenswarm.scenario.config import MAX_UAV_TICKS
 
     d = base()
     d["timing"]["time_limit_s"] = 99_000.0  # 9.9 M ticks x 3 UAVs < 50 M

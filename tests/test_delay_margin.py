@@ -1,4 +1,4 @@
-"""Delay margin of the generator (16)-(17): closed-form checks of zenswarm.delaymargin, the
+"""Delay margin of the generator (16)-(17): closed-form checks of zenswarm.campaign.delaymargin, the
 generator-only simulation against the full simulator, the bisection, and the CLI's bad input.
 All cheap (no process is started)."""
 
@@ -11,10 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from zenswarm.compose import margin
-from zenswarm.compose.sim import simulate
-from zenswarm.config import load_scenario
-from zenswarm.delaymargin import (
+from zenswarm.campaign.delaymargin import (
     continuous_scalar_margin,
     delay_independent,
     delay_ticks,
@@ -29,7 +26,10 @@ from zenswarm.delaymargin import (
     spectral_radius,
     steady_lag_factors,
 )
-from zenswarm.faults import delivery_tick
+from zenswarm.compose import margin
+from zenswarm.compose.sim import simulate
+from zenswarm.link.faults import delivery_tick
+from zenswarm.scenario.config import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 EX1 = ROOT / "compose" / "scenarios" / "paper_example1.toml"

@@ -11,9 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from zenswarm.config import Obstacle, load_scenario
 from zenswarm.errors import ScenarioError
-from zenswarm.geometry import obstacle_clearance_many
 from zenswarm.leader.aapf import AapfParams, integrate_leader, total_force
 from zenswarm.leader.core import LeaderCore
 from zenswarm.leader.escape import (
@@ -24,6 +22,8 @@ from zenswarm.leader.escape import (
     integrate_escape,
     plan_path,
 )
+from zenswarm.scenario.config import Obstacle, load_scenario
+from zenswarm.vehicle.geometry import obstacle_clearance_many
 
 SCEN = Path(__file__).resolve().parents[1] / "compose" / "scenarios"
 START = np.array([0.0, 0.0, 0.4])
@@ -142,7 +142,7 @@ def test_selected_by_name_with_typed_params() -> None:
     from msgspec.structs import replace as replace_table
 
     from zenswarm.leader.planner import EscapePlanner
-    from zenswarm.plugins import check_selection, select
+    from zenswarm.scenario.plugins import check_selection, select
 
     sc = load_scenario(SCEN / "paper_example1.toml")
     core = LeaderCore.from_scenario(select(sc, planner="escape"))
@@ -168,8 +168,8 @@ def test_sim_escape_flies_goal_behind_obstacle_to_success() -> None:
     import tomllib
 
     from zenswarm.compose.sim import simulate
-    from zenswarm.config import scenario_from_dict
-    from zenswarm.plugins import select
+    from zenswarm.scenario.config import scenario_from_dict
+    from zenswarm.scenario.plugins import select
 
     d = tomllib.loads((SCEN / "paper_example1.toml").read_text())
     d["scenario"]["name"] = "goal_behind_obstacle"

@@ -185,11 +185,11 @@ def test_external_watch_logic_without_processes(tmp_path: Path) -> None:
     by hand (it announces itself as ``bridge``)."""
     from types import SimpleNamespace
 
-    from zenswarm import wire
-    from zenswarm.collector import Collector
+    from zenswarm.bus import wire
     from zenswarm.compose.cli import build_parser
     from zenswarm.compose.supervisor import EXIT_PROCESS_FAILED, EXTERNAL_GONE_GRACE_S, Supervisor, up_options
-    from zenswarm.config import load_scenario
+    from zenswarm.process.collector import Collector
+    from zenswarm.scenario.config import load_scenario
 
     scenario = scenario_variant(tmp_path, time_limit_s=2.0)
     sc = load_scenario(scenario)
@@ -247,7 +247,7 @@ def test_external_agent_whose_plug_in_fails_is_named_like_a_child(tmp_path: Path
     import tomllib
 
     from zenswarm import api
-    from zenswarm.generate import to_toml
+    from zenswarm.scenario.generate import to_toml
 
     tests = str(Path(__file__).parent)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from zenswarm.compose.policy import RestartPolicy, restart_policy
 from zenswarm.errors import ScenarioError
-from zenswarm.params import QuadParams
 from zenswarm.plant.failsafe import HOVER, LAND, LANDED, NOMINAL, FailsafeConfig, FailsafeState, failsafe_config, hold_command, mode_for_age
 from zenswarm.plant.quadrotor import initial_state, step
-from zenswarm.policy import RestartPolicy, restart_policy
+from zenswarm.vehicle.params import QuadParams
 
 
 def test_mode_for_age_thresholds() -> None:

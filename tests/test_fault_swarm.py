@@ -14,8 +14,8 @@ import pytest
 
 from zenswarm import api
 from zenswarm.compose.sim import simulate
-from zenswarm.config import load_scenario
-from zenswarm.metrics import TimeSeries
+from zenswarm.judge.metrics import TimeSeries
+from zenswarm.scenario.config import load_scenario
 
 from swarmtest import SCENARIOS
 
@@ -112,8 +112,8 @@ def test_sigkill_of_agent2_restarts_and_completes(zenswarm_fly, tmp_path: Path) 
     assert any("nominal -> hover" in ln for ln in fs) and any("-> nominal" in ln for ln in fs), fs
     json.dumps(res)
     # the recording shows the failsafe interval: the plant's diag says UAV 2 hovered, then nominal
-    from zenswarm import wire
     from zenswarm.bridge.mcapio import read_recording
+    from zenswarm.bus import wire
 
     marks = []
     for m in read_recording(rec).messages(lambda topic: topic.endswith("/diag/plant")):

@@ -1,4 +1,4 @@
-"""Link-fault model (zenswarm.faults): parsing, pure decisions, statistics against closed forms,
+"""Link-fault model (zenswarm.link.faults): parsing, pure decisions, statistics against closed forms,
 partitions, lockstep delivery ticks and the receiver's hold-last-value inbox.
 
 Statistical tolerances are stated per test; the seeds are fixed, so every test is deterministic.
@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from zenswarm.errors import ScenarioError
-from zenswarm.faults import (
+from zenswarm.link.faults import (
     BLOCK,
     FaultPlan,
     FaultState,

@@ -1,6 +1,6 @@
 """Issue 5 item 4: malformed input on every key a process subscribes to is rejected and counted.
 
-Unit and property tests drive :meth:`zenswarm.runtime.SwarmProcess.handle_sample` (the body of
+Unit and property tests drive :meth:`zenswarm.process.runtime.SwarmProcess.handle_sample` (the body of
 every subscriber callback) with fake samples; the live test floods every key of a swarm flying
 paper example 1 (lockstep) with garbage from another process, and the flight still equals the
 in-process simulator bit for bit.
@@ -30,9 +30,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from zenswarm import wire
-from zenswarm.config import load_scenario
-from zenswarm.runtime import GUARD_REASONS, MAX_ABS_VALUE, Lockstep, SwarmProcess, expected_senders
+from zenswarm.bus import wire
+from zenswarm.process.runtime import GUARD_REASONS, MAX_ABS_VALUE, Lockstep, SwarmProcess, expected_senders
+from zenswarm.scenario.config import load_scenario
 
 from swarmtest import (
     SCENARIOS,
@@ -46,7 +46,8 @@ from swarmtest import (
 EX1 = SCENARIOS / "paper_example1.toml"
 DT_NS = 10_000_000  # paper example 1: 100 Hz
 SPOOF_SEQ = 2**62  # a seq above any real one: the spoofs below are rejected for their time, not their seq
-RECENT_TICKS = 64  # the ticks an input guard remembers per key (zenswarm.runtime._KeyState.recent): a tick among them is a duplicate
+# the ticks an input guard remembers per key (zenswarm.process.runtime._KeyState.recent): a tick among them is a duplicate
+RECENT_TICKS = 64
 
 # --------------------------------------------------------------------------- fakes and builders
 
@@ -194,7 +195,7 @@ def test_unreadable_and_exploding_samples_are_counted_not_raised() -> None:
 def test_supervisor_progress_ignores_clocks_beyond_the_mission() -> None:
     """The supervisor's collector takes its sim time (progress, --kill, the end of the series)
     from clocks: a decodable clock past the mission's end is garbage and must not move it."""
-    from zenswarm.collector import Collector
+    from zenswarm.process.collector import Collector
 
     sc = load_scenario(EX1)
     keys = wire.Keys("progress")
@@ -213,8 +214,8 @@ def test_supervisor_series_of_a_flight_that_never_started() -> None:
     """A process that dies before the first tick leaves the collector with nothing: the series
     up to tick 0 is empty, filled or not, and the results say the mission failed (the
     supervisor once crashed here on the fill, losing results.json)."""
-    from zenswarm.collector import Collector
-    from zenswarm.metrics import compute_results
+    from zenswarm.judge.metrics import compute_results
+    from zenswarm.process.collector import Collector
 
     sc = load_scenario(EX1)
     col = Collector(sc, wire.Keys("never"))
@@ -230,7 +231,7 @@ def test_supervisor_collector_takes_each_key_only_from_its_process() -> None:
     key to the first session holding its process's sender token, ignores (and counts) other
     sessions and anonymous samples, and takes a new session once the pinned one's token is gone
     (a restarted process). Before any token is known (a secure swarm has none), it takes all."""
-    from zenswarm.collector import Collector
+    from zenswarm.process.collector import Collector
 
     sc = load_scenario(EX1)
     keys = wire.Keys("pins")

@@ -14,14 +14,14 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import pytest
 
-from zenswarm import wire
 from zenswarm.agents.core import AgentCore, AgentRow
-from zenswarm.config import load_scenario
+from zenswarm.bus import wire
 from zenswarm.errors import ScenarioError
 from zenswarm.leader.core import LeaderCore
-from zenswarm.params import QuadParams
 from zenswarm.plant.core import PlantCore
-from zenswarm.runtime import GC_FORCE_LIMIT, GC_YOUNG_LIMIT, GcPolicy
+from zenswarm.process.runtime import GC_FORCE_LIMIT, GC_YOUNG_LIMIT, GcPolicy
+from zenswarm.scenario.config import load_scenario
+from zenswarm.vehicle.params import QuadParams
 
 from swarmtest import SCENARIOS
 

@@ -1,4 +1,4 @@
-"""Scenario generator (zenswarm.generate): validity, Lemma 1, geometry, determinism, TOML, CLI."""
+"""Scenario generator (zenswarm.scenario.generate): validity, Lemma 1, geometry, determinism, TOML, CLI."""
 
 from __future__ import annotations
 
@@ -12,10 +12,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from zenswarm import generate
-from zenswarm.config import load_scenario, scenario_from_dict, scenario_to_dict
 from zenswarm.errors import ScenarioError
-from zenswarm.generate import (
+from zenswarm.leader.aapf import d_obs, obstacle_clearance
+from zenswarm.scenario import generate
+from zenswarm.scenario.config import load_scenario, scenario_from_dict, scenario_to_dict
+from zenswarm.scenario.generate import (
     OBSTACLE_GAP,
     PINNINGS,
     SHAPES,
@@ -26,7 +27,6 @@ from zenswarm.generate import (
     generate_scenario,
     to_toml,
 )
-from zenswarm.leader.aapf import d_obs, obstacle_clearance
 
 NS = (3, 8, 16, 32)
 SEEDS = range(4)

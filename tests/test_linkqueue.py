@@ -1,4 +1,4 @@
-"""Capacity queues (zenswarm.linkqueue) and trace replay (zenswarm.linktrace): pure tests, and the
+"""Capacity queues (zenswarm.link.queue) and trace replay (zenswarm.link.trace): pure tests, and the
 bad-input checks of `zenswarm sim` (exit 2 naming the field or the CSV line)."""
 
 from __future__ import annotations
@@ -8,14 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from zenswarm import wire
+from zenswarm.bus import wire
 from zenswarm.compose.sim import simulate
-from zenswarm.config import load_scenario
 from zenswarm.errors import ScenarioError
-from zenswarm.faults import FaultState, plan_from_scenario
-from zenswarm.linkfaults import Box, plan_for, scenario_links
-from zenswarm.linkqueue import LinkQueues, QueueSpec, message_size, parse_capacity, parse_queue
-from zenswarm.linktrace import parse_trace
+from zenswarm.link.faults import FaultState, plan_from_scenario
+from zenswarm.link.queue import LinkQueues, QueueSpec, message_size, parse_capacity, parse_queue
+from zenswarm.link.swarm import Box, plan_for, scenario_links
+from zenswarm.link.trace import parse_trace
+from zenswarm.scenario.config import load_scenario
 
 from swarmtest import SCENARIOS
 

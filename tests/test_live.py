@@ -153,7 +153,7 @@ def test_live_view_accepts_both_names_of_the_protocol() -> None:
     client offers (``foxglove.sdk.v1`` when both are), relays the server's first messages, and
     refuses a client offering neither (HTTP 400, as the SDK does)."""
     from zenswarm.bridge.live import LiveView
-    from zenswarm.config import load_scenario
+    from zenswarm.scenario.config import load_scenario
 
     view = LiveView(load_scenario(ROOT / "compose" / "scenarios" / "paper_example1.toml"), "names", 0)
 

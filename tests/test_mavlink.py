@@ -25,7 +25,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from zenswarm import frames, wire
 from zenswarm.bridge.mavlink import (
     AP_COPTER_MODES,
     PX4_HOLD,
@@ -40,13 +39,14 @@ from zenswarm.bridge.mavlink import (
     px4_custom_mode,
     px4_decode,
 )
-from zenswarm.bus import client_config, free_port, open_session, router_config, tcp_endpoint
+from zenswarm.bus import client_config, free_port, open_session, router_config, tcp_endpoint, wire
 from zenswarm.bus import free_udp_block as bus_free_udp_block
-from zenswarm.config import load_scenario, scenario_from_dict
 from zenswarm.errors import ScenarioError
-from zenswarm.params import QuadParams
 from zenswarm.plant.mavlink_vehicle import MavlinkFleet, VehicleOptions
 from zenswarm.plant.quadrotor import rotation_matrix
+from zenswarm.scenario.config import load_scenario, scenario_from_dict
+from zenswarm.vehicle import frames
+from zenswarm.vehicle.params import QuadParams
 
 REPO = Path(__file__).resolve().parents[1]
 EX1 = REPO / "compose" / "scenarios" / "paper_example1.toml"

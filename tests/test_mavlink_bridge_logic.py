@@ -18,7 +18,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from zenswarm.autopilot import GUID_OPTIONS_THRUST_AS_THRUST, param_value, vehicle_params
 from zenswarm.bridge.mavlink import (
     AP_COPTER_MODES,
     PX4_OFFBOARD,
@@ -29,8 +28,9 @@ from zenswarm.bridge.mavlink import (
     swarm_to_vehicle,
     vehicle_to_swarm,
 )
-from zenswarm.config import scenario_from_dict
 from zenswarm.errors import ScenarioError
+from zenswarm.scenario.config import scenario_from_dict
+from zenswarm.vehicle.autopilot import GUID_OPTIONS_THRUST_AS_THRUST, param_value, vehicle_params
 
 EX1 = Path(__file__).resolve().parents[1] / "compose" / "scenarios" / "paper_example1.toml"
 
@@ -348,8 +348,8 @@ def test_state_stamp_is_the_vehicle_time_on_the_mission_clock():
     """The published state's ``ts``: LOCAL_POSITION_NED.time_boot_ms through the TIMESYNC clock
     offset, in ns since mission time 0; none before a TIMESYNC answer (the fallback offset is for
     the diagnostic only)."""
-    from zenswarm import wire
     from zenswarm.bridge.mavlink import _BridgeLoop
+    from zenswarm.bus import wire
 
     b, _, _ = _bridge({})
     lk = b.links[0]

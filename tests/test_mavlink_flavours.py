@@ -25,12 +25,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from zenswarm import wire
 from zenswarm.bridge.mavlink import AP_COPTER_MODES, Bridge, mavlink_settings
-from zenswarm.bus import free_udp_block
-from zenswarm.config import scenario_from_dict
-from zenswarm.params import QuadParams
+from zenswarm.bus import free_udp_block, wire
 from zenswarm.plant.mavlink_vehicle import MavlinkFleet, VehicleOptions
+from zenswarm.scenario.config import scenario_from_dict
+from zenswarm.vehicle.params import QuadParams
 
 pytestmark = pytest.mark.swarm  # real sockets and vehicle threads, wall-clock seconds
 

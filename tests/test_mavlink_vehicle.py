@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from zenswarm.params import QuadParams
 from zenswarm.plant.mavlink_params import INT32, REAL32, ParamStore, decode, encode, px4_params
 from zenswarm.plant.mavlink_vehicle import MavlinkFleet, VehicleOptions, mavlink, mavutil
+from zenswarm.vehicle.params import QuadParams
 
 P = QuadParams()
 

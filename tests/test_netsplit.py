@@ -30,8 +30,8 @@ import numpy as np
 import pytest
 
 from zenswarm.bus import free_port
-from zenswarm.config import load_scenario
-from zenswarm.metrics import TimeSeries
+from zenswarm.judge.metrics import TimeSeries
+from zenswarm.scenario.config import load_scenario
 
 from swarmtest import ROOT, kill_mentioning, processes_mentioning, read_results, scenario_variant, unique_swarm, wait_port_free
 

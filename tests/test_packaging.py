@@ -7,6 +7,7 @@ outside the repository, so only what the installation provides can be imported.
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import tomllib
@@ -41,10 +42,44 @@ def test_namespace_packages_come_from_the_repository_folders(tmp_path: Path) -> 
 def test_package_dir_maps_every_folder() -> None:
     cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
     assert cfg["package-dir"] == {"zenswarm": "zenswarm", **{f"zenswarm.{n}": n for n in ROLES_AND_EDGES}}
-    assert sorted(cfg["packages"]) == sorted(cfg["package-dir"])
+    # the base's sub-packages (zenswarm/<name>/) install from zenswarm/: each must be listed, or a
+    # wheel would leave it out while an editable install still finds it
+    base = sorted(f"zenswarm.{d.name}" for d in (ROOT / "zenswarm").iterdir() if (d / "__init__.py").is_file())
+    assert base, "no sub-package found in zenswarm/"
+    assert sorted(cfg["packages"]) == sorted([*cfg["package-dir"], *base])
 
 
 def test_builtin_scenarios_ship_with_the_package(tmp_path: Path) -> None:
     out = _run("import zenswarm.compose as c, pathlib; print(pathlib.Path(c.__file__).parent / 'scenarios')", tmp_path)
     assert out.returncode == 0, out.stderr
     assert (Path(out.stdout.strip()) / "paper_example1.toml").is_file()
+
+
+def test_old_module_names_import_the_moved_modules(tmp_path: Path) -> None:
+    """0.1's module names (zenswarm.config, zenswarm.faults, ...) still import: the very module
+    under its new name, with a DeprecationWarning naming it (zenswarm.MOVED)."""
+    code = """
+import importlib, json, sys, warnings
+import zenswarm
+out = {}
+for old, new in zenswarm.MOVED.items():
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        mod = importlib.import_module(old)
+    out[old] = [mod is sys.modules[new], mod.__name__, mod.__spec__.name, [str(x.message) for x in w if x.category is DeprecationWarning]]
+from zenswarm.faults import FaultPlan
+from zenswarm.link import FaultPlan as New
+out["same class"] = FaultPlan is New
+print(json.dumps(out))
+"""
+    out = _run(code, tmp_path)
+    assert out.returncode == 0, out.stderr
+    res = json.loads(out.stdout)
+    import zenswarm
+
+    assert res.pop("same class") is True
+    assert set(res) == set(zenswarm.MOVED) and len(res) >= 20
+    for old, (same, name, spec, warned) in res.items():
+        new = zenswarm.MOVED[old]
+        assert same and name == new and spec == new, (old, name, spec)
+        assert any(new in w for w in warned), (old, warned)

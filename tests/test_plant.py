@@ -11,8 +11,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from zenswarm.config import DisturbanceConfig, VehicleConfig
-from zenswarm.params import THRUST_TO_WEIGHT, QuadParams
 from zenswarm.plant.disturbance import DisturbanceModel
 from zenswarm.plant.quadrotor import (
     SCALAR_MAX_N,
@@ -24,6 +22,8 @@ from zenswarm.plant.quadrotor import (
     step_held,
     wrap_angle,
 )
+from zenswarm.scenario.config import DisturbanceConfig, VehicleConfig
+from zenswarm.vehicle.params import THRUST_TO_WEIGHT, QuadParams
 
 DT = 1e-3
 P = QuadParams()

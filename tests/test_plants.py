@@ -25,17 +25,17 @@ from msgspec.structs import replace as replace_table
 from zenswarm.compose import sim
 from zenswarm.compose.cli import main
 from zenswarm.compose.plugcheck import check_plugin
-from zenswarm.config import load_scenario, scenario_from_dict, scenario_to_dict
 from zenswarm.errors import ScenarioError
-from zenswarm.generate import to_toml
-from zenswarm.linkfaults import plan_for
-from zenswarm.metrics import FLIGHT_FIELDS, TimeSeries
-from zenswarm.params import QuadParams
+from zenswarm.judge.metrics import FLIGHT_FIELDS, TimeSeries
+from zenswarm.link.swarm import plan_for
 from zenswarm.plant.api import QuadrotorModel
 from zenswarm.plant.core import PlantCore
 from zenswarm.plant.disturbance import DisturbanceModel
 from zenswarm.plant.quadrotor import initial_state, step_held
-from zenswarm.plugins import DEFAULTS, GROUPS, KINDS, STAGE_PLANT, available, check_selection, plant_vehicle, resolve, select
+from zenswarm.scenario.config import load_scenario, scenario_from_dict, scenario_to_dict
+from zenswarm.scenario.generate import to_toml
+from zenswarm.scenario.plugins import DEFAULTS, GROUPS, KINDS, STAGE_PLANT, available, check_selection, plant_vehicle, resolve, select
+from zenswarm.vehicle.params import QuadParams
 
 from swarmtest import SCENARIOS, read_results, scenario_variant, unique_swarm, zenswarm
 

@@ -18,9 +18,9 @@ from zenswarm.agents.api import Command, Shared
 from zenswarm.agents.paper import PaperController
 from zenswarm.compose.cli import main
 from zenswarm.compose.plugcheck import check_plugin
-from zenswarm.config import load_scenario
 from zenswarm.leader.planner import AapfPlanner
-from zenswarm.plugins import KINDS, available
+from zenswarm.scenario.config import load_scenario
+from zenswarm.scenario.plugins import KINDS, available
 
 from swarmtest import SCENARIOS
 

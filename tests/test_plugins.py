@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 
 from zenswarm.compose import sim
-from zenswarm.config import load_scenario
 from zenswarm.errors import ScenarioError
+from zenswarm.judge.metrics import FLIGHT_FIELDS, TimeSeries
 from zenswarm.leader.aapf import AapfParams, integrate_leader, total_force
 from zenswarm.leader.core import LeaderCore
-from zenswarm.linkfaults import plan_for
-from zenswarm.metrics import FLIGHT_FIELDS, TimeSeries
-from zenswarm.plugins import PluginError, available, check_selection, resolve, select
+from zenswarm.link.swarm import plan_for
+from zenswarm.scenario.config import load_scenario
+from zenswarm.scenario.plugins import PluginError, available, check_selection, resolve, select
 
 from swarmtest import SCENARIOS, read_results, scenario_variant, unique_swarm, zenswarm
 

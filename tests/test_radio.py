@@ -9,14 +9,15 @@ import tomllib
 import numpy as np
 import pytest
 
-from zenswarm import api, wire
+from zenswarm import api
+from zenswarm.bus import wire
 from zenswarm.compose.sim import simulate
-from zenswarm.config import load_scenario, scenario_from_dict
 from zenswarm.errors import ScenarioError
-from zenswarm.faults import FaultPlan, FaultState, LinkFaultSpec, plan_from_scenario, plan_with_radio
-from zenswarm.linkfaults import Box, distance, effective_graph, plan_for
-from zenswarm.metrics import flight_differences
-from zenswarm.radio import RadioModel, components, drop_probability, leader_reaches_all, parse_distance, parse_fade, radio_reason
+from zenswarm.judge.metrics import flight_differences
+from zenswarm.link.faults import FaultPlan, FaultState, LinkFaultSpec, plan_from_scenario, plan_with_radio
+from zenswarm.link.radio import RadioModel, components, drop_probability, leader_reaches_all, parse_distance, parse_fade, radio_reason
+from zenswarm.link.swarm import Box, distance, effective_graph, plan_for
+from zenswarm.scenario.config import load_scenario, scenario_from_dict
 
 from swarmtest import SCENARIOS
 

@@ -28,7 +28,7 @@ STATE_LOSS = 0.67
 
 
 def _scenario(tmp: Path, name: str, state_loss: float) -> Path:
-    from zenswarm.generate import to_toml
+    from zenswarm.scenario.generate import to_toml
 
     d = tomllib.loads((SCENARIOS / "paper_example1.toml").read_text())
     d["timing"].update(time_limit_s=FLIGHT_S, settle_time_s=1.0)

@@ -23,13 +23,13 @@ import numpy as np
 import pytest
 import zenoh
 
-from zenswarm import __version__, wire
+from zenswarm import __version__
 from zenswarm.bridge.mcapio import METADATA_NAME, file_is_complete, read_recording, recover
 from zenswarm.bridge.recorder import McapSink, build_metadata, sim_time
 from zenswarm.bridge.replay import verify_agent
-from zenswarm.bus import AliveWatcher, client_config, free_port, open_session, router_config, tcp_endpoint
-from zenswarm.config import load_scenario, scenario_to_dict
+from zenswarm.bus import AliveWatcher, client_config, free_port, open_session, router_config, tcp_endpoint, wire
 from zenswarm.errors import RecordingError
+from zenswarm.scenario.config import load_scenario, scenario_to_dict
 
 REPO = Path(__file__).resolve().parents[1]
 EX1 = REPO / "compose" / "scenarios" / "paper_example1.toml"

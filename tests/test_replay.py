@@ -23,14 +23,14 @@ import msgpack
 import numpy as np
 import pytest
 
-from zenswarm import wire
 from zenswarm.bridge.info import scan
 from zenswarm.bridge.playback import Controls, KeyboardControls, TopicFilter, parse_keys, restamp
 from zenswarm.bridge.recorder import McapSink, build_metadata
 from zenswarm.bridge.replay import replay
+from zenswarm.bus import wire
 from zenswarm.compose.cli import main
-from zenswarm.config import load_scenario, scenario_to_dict
 from zenswarm.errors import RecordingError, ScenarioError
+from zenswarm.scenario.config import load_scenario, scenario_to_dict
 
 from swarmtest import ROOT, scenario_variant, unique_swarm
 

@@ -21,14 +21,14 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from zenswarm import wire
 from zenswarm.bridge import foxglove as fx
 from zenswarm.bridge import report
+from zenswarm.bus import wire
 from zenswarm.compose.cli import main as cli_main
 from zenswarm.compose.sim import simulate
-from zenswarm.config import scenario_from_dict, scenario_to_dict
 from zenswarm.errors import RecordingError
-from zenswarm.metrics import FLIGHT_FIELDS, compute_results
+from zenswarm.judge.metrics import FLIGHT_FIELDS, compute_results
+from zenswarm.scenario.config import scenario_from_dict, scenario_to_dict
 
 import foxglove_check
 
@@ -158,7 +158,7 @@ def test_report_plots_the_effective_graph_of_a_radio_run(flight, recording, tmp_
     effective_graph.png is drawn, from the same per-tick graph as results.json's effective_graph
     (its summary is recomputed here from graph_series)."""
     from zenswarm.bridge.args import add_fault_args, link_faults
-    from zenswarm.linkfaults import effective_graph, graph_series
+    from zenswarm.link.swarm import effective_graph, graph_series
 
     sc, sim = flight
     words = ["--link-range", "0.25m", "--link-capacity", "20kB/s", "--link-jitter", "5ms"]

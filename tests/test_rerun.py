@@ -30,10 +30,10 @@ import pytest
 from mcap.reader import make_reader
 from test_report import EX1, SWARM, write_recording
 
-from zenswarm import wire
+from zenswarm.bus import wire
 from zenswarm.compose.cli import main as cli_main
 from zenswarm.compose.sim import simulate
-from zenswarm.config import scenario_from_dict
+from zenswarm.scenario.config import scenario_from_dict
 
 from swarmtest import ROOT, processes_mentioning, scenario_variant, start_zenswarm, stop_swarm, unique_swarm
 from test_swarm import _assert_equal_to_sim
@@ -332,7 +332,7 @@ def test_up_live_rerun_serves_the_flight(tmp_path):
     loopback) receives the flight from the gRPC server: each UAV where the flight had it, in sim
     time; the flight is the simulator's bit for bit, and the viewer's process is gone afterwards."""
     from zenswarm.bridge.rerun_scene import _rerun_executable
-    from zenswarm.metrics import TimeSeries
+    from zenswarm.judge.metrics import TimeSeries
 
     scenario = scenario_variant(tmp_path, time_limit_s=2.0)
     out, swarm, router, web = tmp_path / "out", unique_swarm("rrup"), port(), port()

@@ -1,4 +1,4 @@
-"""Real-time scheduling of the flying processes (``--rt-priority``, :mod:`zenswarm.rtsched`).
+"""Real-time scheduling of the flying processes (``--rt-priority``, :mod:`zenswarm.process.rtsched`).
 
 The checks of the value and of the privilege run everywhere (the privilege refused by a patched
 ``os.sched_setscheduler``, and for real under ``setpriv`` without ``CAP_SYS_NICE``). What needs
@@ -18,9 +18,9 @@ from pathlib import Path
 
 import pytest
 
-from zenswarm import rtsched
 from zenswarm.api import fly
 from zenswarm.errors import ScenarioError
+from zenswarm.process import rtsched
 
 PRIORITY = 7
 
@@ -107,7 +107,7 @@ def test_without_cap_sys_nice_the_probe_refuses_for_real() -> None:
     r = _fifo_child(
         """
         import resource
-        from zenswarm import rtsched
+        from zenswarm.process import rtsched
         resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))
         try:
             rtsched.probe(5)
@@ -129,7 +129,7 @@ def test_every_thread_is_raised_after_startup_and_new_threads_inherit() -> None:
     r = _fifo_child(
         f"""
         import json, os, threading
-        from zenswarm import rtsched
+        from zenswarm.process import rtsched
         stop = threading.Event()
         early = threading.Thread(target=stop.wait); early.start()
         before = rtsched.process_policy(os.getpid())

@@ -10,8 +10,8 @@ import pytest
 from msgspec.structs import replace as replace_table
 
 from zenswarm.compose.sim import simulate
-from zenswarm.config import DisturbanceConfig, load_scenario
-from zenswarm.metrics import TimeSeries
+from zenswarm.judge.metrics import TimeSeries
+from zenswarm.scenario.config import DisturbanceConfig, load_scenario
 
 pytestmark = pytest.mark.slow  # flies whole simulated missions: tens of seconds
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from zenswarm.metrics import TimeSeries
+from zenswarm.judge.metrics import TimeSeries
 
 from swarmtest import (
     SCENARIOS,
@@ -114,7 +114,9 @@ def _forge_main(argv: list[str]) -> int:
     and N forged references for UAV 2 at the current tick."""
     import zenoh
 
-    from zenswarm import bus, security, wire
+    from zenswarm import bus
+    from zenswarm.bus import wire
+    from zenswarm.process import security
 
     ap = argparse.ArgumentParser(prog="forge")
     ap.add_argument("--swarm", required=True)
@@ -165,9 +167,9 @@ def test_second_session_with_an_agents_credentials_is_a_foreign_sender(tmp_path:
     session holding agent 2's sender token, as in an open swarm: its 100 forged commands and 100
     forged references are rejected as foreign_sender and counted by the plant, by agent 1 (UAV 2's
     neighbour) and by the supervisor's collector, and the flight still equals the simulator."""
-    from zenswarm import security, wire
-    from zenswarm.bus import free_port
-    from zenswarm.config import load_scenario
+    from zenswarm.bus import free_port, wire
+    from zenswarm.process import security
+    from zenswarm.scenario.config import load_scenario
 
     n = 100
     scenario = scenario_variant(tmp_path, time_limit_s=6.0, settle_time_s=1.0)

@@ -1,4 +1,4 @@
-"""Authenticated swarm (zenswarm.security): credentials, mutual TLS and graph-generated access control.
+"""Authenticated swarm (zenswarm.process.security): credentials, mutual TLS and graph-generated access control.
 
 Process tests run a real Zenoh router and real client sessions, each in its own OS process (this
 file, run as a script, is the worker: ``python test_security.py router|client JSON``), on a free
@@ -38,7 +38,7 @@ CONTROL_TIMEOUT_S = 10.0
 
 
 def _insert(conf: Any, fragments: dict[str, Any]) -> None:
-    """What zenswarm.security.apply_config does (inlined: a worker imports zenoh only, to start fast)."""
+    """What zenswarm.process.security.apply_config does (inlined: a worker imports zenoh only, to start fast)."""
     for path, value in fragments.items():
         conf.insert_json5(path, json.dumps(value))
 
@@ -197,9 +197,9 @@ if __name__ == "__main__":
 
 import pytest  # noqa: E402
 
-from zenswarm import security, wire  # noqa: E402
-from zenswarm.config import load_scenario  # noqa: E402
-from zenswarm.security import (  # noqa: E402
+from zenswarm.bus import wire  # noqa: E402
+from zenswarm.process import security  # noqa: E402
+from zenswarm.process.security import (  # noqa: E402
     CredentialsError,
     acl_rules,
     client_security_config,
@@ -208,6 +208,7 @@ from zenswarm.security import (  # noqa: E402
     load_manifest,
     router_security_config,
 )
+from zenswarm.scenario.config import load_scenario  # noqa: E402
 
 
 def free_port() -> int:

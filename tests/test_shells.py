@@ -12,9 +12,9 @@ import numpy as np
 
 from zenswarm.agents.core import AgentCore, AgentRow, StackedAgents
 from zenswarm.bridge.args import add_process_args
-from zenswarm.config import load_scenario
-from zenswarm.params import QuadParams
-from zenswarm.runtime import DEFAULT_LOCKSTEP_TIMEOUT_S, ProcessOptions, WallClock
+from zenswarm.process.runtime import DEFAULT_LOCKSTEP_TIMEOUT_S, ProcessOptions, WallClock
+from zenswarm.scenario.config import load_scenario
+from zenswarm.vehicle.params import QuadParams
 
 EX1 = Path(__file__).resolve().parents[1] / "compose" / "scenarios" / "paper_example1.toml"
 

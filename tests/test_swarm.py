@@ -13,13 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from zenswarm import wire
 from zenswarm.agents.core import AgentRow
 from zenswarm.agents.process import subscriptions
-from zenswarm.bus import free_port
+from zenswarm.bus import free_port, wire
 from zenswarm.compose.sim import simulate
-from zenswarm.config import load_scenario
-from zenswarm.metrics import FLIGHT_FIELDS, TimeSeries
+from zenswarm.judge.metrics import FLIGHT_FIELDS, TimeSeries
+from zenswarm.scenario.config import load_scenario
 
 from swarmtest import (
     SCENARIOS,
@@ -96,7 +95,7 @@ def test_agent_subscriptions_follow_the_graph(tmp_path: Path) -> None:
     """Contract: subscriptions are the graph row; a different graph gives different ones (live)."""
     import tomllib
 
-    from zenswarm.generate import to_toml
+    from zenswarm.scenario.generate import to_toml
 
     d = tomllib.loads((SCENARIOS / "paper_example1.toml").read_text())
     d["timing"].update(time_limit_s=0.5)

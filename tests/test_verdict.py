@@ -1,5 +1,5 @@
 """The verdict against closed-form flights: contacts at known ticks, margins, slots, stalls,
-divergence, and the pair search against brute force (zenswarm.verdict, zenswarm.geometry)."""
+divergence, and the pair search against brute force (zenswarm.judge.verdict, zenswarm.vehicle.geometry)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from zenswarm.geometry import close_pairs, d_obs_many, obstacle_clearance_many
-from zenswarm.verdict import CAUSES, Criteria, decide_end, judge
+from zenswarm.judge.verdict import CAUSES, Criteria, decide_end, judge
+from zenswarm.vehicle.geometry import close_pairs, d_obs_many, obstacle_clearance_many
 
 DT = 0.01
 OB = SimpleNamespace(center=(5.0, 0.0, 0.0), radius=0.5, height=1.0)
@@ -256,7 +256,7 @@ def _variant(tmp_path, name: str, **sections) -> Path:
     """paper_example1 with whole tables replaced or merged (``leader={...}`` merges)."""
     import tomllib
 
-    from zenswarm.generate import to_toml
+    from zenswarm.scenario.generate import to_toml
 
     from swarmtest import SCENARIOS
 
@@ -376,7 +376,7 @@ def test_swarm_gives_the_simulator_s_verdict_and_ends_as_early(case: str, tmp_pa
     the run's recording (which holds ticks past the decision: the swarm stops a moment later)."""
     import json
 
-    from zenswarm.metrics import FLIGHT_FIELDS
+    from zenswarm.judge.metrics import FLIGHT_FIELDS
 
     from swarmtest import unique_swarm, zenswarm
     from test_swarm import _up

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from zenswarm import wire as w
+from zenswarm.bus import wire as w
 from zenswarm.errors import DecodeError, ZenswarmError
 
 # --------------------------------------------------------------------------- helpers

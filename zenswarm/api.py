@@ -38,19 +38,19 @@ from typing import Any, Literal
 
 import numpy as np
 
-from zenswarm import rtsched
 from zenswarm.bus import free_port
+from zenswarm.bus.wire import validate_process
 from zenswarm.compose.launch import kill_processes_of, live_flights, processes_of, run_up, stop_flight
 from zenswarm.compose.sim import simulate, summary_line, write_outputs
 from zenswarm.compose.supervisor import UpOptions, check_up_args
-from zenswarm.config import Scenario, scenario_to_dict
 from zenswarm.errors import EXIT_PLUGIN_FAILED, ScenarioError, ZenswarmError
-from zenswarm.generate import to_toml
-from zenswarm.linkfaults import LinkFaults
-from zenswarm.metrics import TimeSeries, exit_code_of, flight_differences
-from zenswarm.overrides import OverrideError, apply, copy_document, validated
-from zenswarm.paths import check_output_dir
-from zenswarm.wire import validate_process
+from zenswarm.judge.metrics import TimeSeries, exit_code_of, flight_differences
+from zenswarm.link.swarm import LinkFaults
+from zenswarm.process import rtsched
+from zenswarm.process.paths import check_output_dir
+from zenswarm.scenario.config import Scenario, scenario_to_dict
+from zenswarm.scenario.generate import to_toml
+from zenswarm.scenario.overrides import OverrideError, apply, copy_document, validated
 
 __all__ = [
     "fly",
@@ -148,7 +148,7 @@ class Metrics:
 class Flight:
     """A flown scenario: its verdict, figures and time series.
 
-    series: one sample per control tick (:class:`zenswarm.metrics.TimeSeries`: ``t`` (T,) s,
+    series: one sample per control tick (:class:`zenswarm.judge.metrics.TimeSeries`: ``t`` (T,) s,
     ``q0``/``v0`` (T, 3) leader, ``qref``/``vref`` (T, N, 3) references, ``q``/``v``/``rpy``
     (T, N, 3) vehicle states, ``u`` (T, N, 3) m/s^2, ``thrust`` (T, N) N, ``d_hat`` (T, N, 3)).
     results: ``results.json`` as a dict (schema in docs/verdict.md). exit_code: what the command
@@ -193,7 +193,7 @@ class Flight:
     @property
     def formation_error(self) -> np.ndarray:
         """The vehicles' formation error ||q_i - q0 - h_i|| per tick and UAV, (T, N) m
-        (:meth:`zenswarm.metrics.TimeSeries.formation_error`; its maximum from
+        (:meth:`zenswarm.judge.metrics.TimeSeries.formation_error`; its maximum from
         ``timing.settle_time_s`` on is ``metrics.max_formation_error_m``)."""
         return self.series.formation_error(self.scenario.offsets)
 
@@ -216,7 +216,7 @@ class Flight:
 def differences(a: Flight, b: Flight) -> list[str]:
     """What differs between two flights of the same scenario: the time series compared bit for
     bit (NaN equal to NaN, shapes included) and the flight fields of the verdict
-    (:data:`zenswarm.metrics.FLIGHT_FIELDS`). Empty when the flights are identical (the
+    (:data:`zenswarm.judge.metrics.FLIGHT_FIELDS`). Empty when the flights are identical (the
     lockstep swarm's guarantee against the simulator)."""
     return flight_differences(a.series, dict(a.results), b.series, dict(b.results))
 
@@ -367,12 +367,12 @@ def fly(
     ``timing.time_limit_s``; ``seed`` sets ``scenario.seed`` (disturbances and fault decisions);
     ``controller`` / ``planner`` / ``plant_model`` set ``agents.controller`` / ``leader.planner`` /
     ``plant.model`` (a plug-in name; a plant model that fails mid-flight raises
-    :class:`zenswarm.plugins.PluginFailure` in sim mode).
+    :class:`zenswarm.scenario.plugins.PluginFailure` in sim mode).
 
     Link faults on every link (docs/faults.md), as ``--link-loss`` and friends: ``link_loss``
     probability in [0, 1] (or ``"20%"``), ``link_delay`` / ``link_jitter`` seconds (or ``"50ms"``),
     ``partitions`` (``"agent:2@1s-2s"``), ``link_range`` metres (or ``"1.5m"``) and ``link_fade``
-    (``"1.2m,0.1m"``) the radio models of :mod:`zenswarm.radio`; ``link_capacity`` (``"20kB/s"``),
+    (``"1.2m,0.1m"``) the radio models of :mod:`zenswarm.link.radio`; ``link_capacity`` (``"20kB/s"``),
     ``link_queue`` (8 or ``"4kB"``), ``link_medium`` (``"sender"`` or ``"link"``) and ``link_trace``
     (a CSV file) as ``--link-capacity`` and friends. Process faults (swarm mode only): ``kill`` SIGKILLs a
     process at a sim time (``("agent:2", 1.0)`` or ``"agent:2@1s"``), ``restart`` restarts it
@@ -384,7 +384,7 @@ def fly(
     127.0.0.1 (default: a unique name, a free port); ``timeout`` bounds a swarm flight's wall
     time (s). A swarm flight's processes are all stopped when :func:`fly` returns or raises.
     ``rt_priority`` (realtime swarm flights only): the flying processes under ``SCHED_FIFO`` at
-    this priority once started, as ``zenswarm up --rt-priority`` (:mod:`zenswarm.rtsched`; needs
+    this priority once started, as ``zenswarm up --rt-priority`` (:mod:`zenswarm.process.rtsched`; needs
     root or an ``RLIMIT_RTPRIO``, else :class:`ScenarioError` naming ``rt_priority``).
 
     Raises :class:`ScenarioError` / :class:`OverrideError` naming the argument or field on bad

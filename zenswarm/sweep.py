@@ -56,9 +56,9 @@ from zenswarm.campaign import (
     plan_from_toml,
 )
 from zenswarm.errors import ScenarioError, ZenswarmError
-from zenswarm.linkfaults import plan_for
-from zenswarm.paths import check_output_dir
-from zenswarm.plugins import check_selection
+from zenswarm.link.swarm import plan_for
+from zenswarm.process.paths import check_output_dir
+from zenswarm.scenario.plugins import check_selection
 
 __all__ = ["main", "run_one", "metric_columns", "read_rows", "INSTALL_HINT"]
 
@@ -89,7 +89,7 @@ def run_one(task: Mapping[str, Any]) -> dict[str, Any]:
     row: dict[str, Any] = {"run": task["run"], "cell": task["cell"], "seed": task["seed"], **task["columns"]}
     try:
         if task["generate"] is not None:
-            from zenswarm.generate import generate_scenario
+            from zenswarm.scenario.generate import generate_scenario
 
             doc: Any = generate_scenario(**task["generate"], seed=task["seed"])
         else:
@@ -130,7 +130,7 @@ def _task(run: Run, plan: Plan, doc: dict[str, Any] | None, mode: str | None = N
 def _validate(plan: Plan, runs: Sequence[Run], doc: dict[str, Any] | None) -> None:
     """Every cell's scenario as its flights will load it: unknown paths, bad values, plug-ins,
     faults. Raises ScenarioError / OverrideError naming the field (nothing has run)."""
-    from zenswarm.generate import generate_scenario
+    from zenswarm.scenario.generate import generate_scenario
 
     seen: set[str] = set()
     for run in runs:

@@ -41,7 +41,8 @@ def _install(role: str, out_dir: str) -> None:
     import threading
     import time
 
-    from zenswarm import runtime, wire
+    from zenswarm.bus import wire
+    from zenswarm.process import runtime
 
     mono = time.monotonic_ns
     pub: dict[str, list] = {}

@@ -29,7 +29,7 @@ import msgspec
 import numpy as np
 
 from zenswarm.agents.api import Command, Controller, ControllerContext, Shared
-from zenswarm.inversion import invert_thrust_attitude
+from zenswarm.vehicle.inversion import invert_thrust_attitude
 
 __all__ = ["ConsensusController", "ConsensusParams"]
 

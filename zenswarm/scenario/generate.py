@@ -39,10 +39,9 @@ from typing import Any
 
 import numpy as np
 
-from zenswarm.geometry import obstacle_clearance
-
-from .config import Obstacle, check_seed, scenario_from_dict
-from .errors import ScenarioError
+from zenswarm.errors import ScenarioError
+from zenswarm.scenario.config import Obstacle, check_seed, scenario_from_dict
+from zenswarm.vehicle.geometry import obstacle_clearance
 
 __all__ = [
     "SHAPES",
@@ -248,7 +247,7 @@ def pinning_vector(adjacency: np.ndarray, pinning: str = "first", rng: np.random
 
 
 def _clearance(p: np.ndarray, center: np.ndarray, radius: float, height: float) -> float:
-    """Signed distance from p (3,) to a capped cylinder's surface, m (zenswarm.geometry.obstacle_clearance)."""
+    """Signed distance from p (3,) to a capped cylinder's surface, m (zenswarm.vehicle.geometry.obstacle_clearance)."""
     return float(obstacle_clearance(p, Obstacle(center=tuple(center), radius=radius, height=height)))
 
 
@@ -349,7 +348,7 @@ def generate_scenario(
     ln(L / 0.05 m) / K_att, plus 10 s, rounded up to 5 s and at least 70 s).
 
     Gains are the paper's (d0 of example 1); rates and tolerances those of the example files.
-    The result is checked by building it with :func:`zenswarm.config.scenario_from_dict`, so it
+    The result is checked by building it with :func:`zenswarm.scenario.config.scenario_from_dict`, so it
     is always valid; ValueError for bad arguments, ScenarioError when the obstacles do not fit.
     """
     _check_args(n, shape, topology, pinning, n_obstacles, seed)

@@ -1,7 +1,9 @@
 """The plan of an experiment campaign (``zenswarm sweep``): its axes, and the list of runs.
 
 Pure planning, no flight: :mod:`zenswarm.sweep` validates the plan against the scenario, flies
-the runs and writes the table (docs/campaigns.md).
+the runs and writes the table (docs/campaigns.md). Its companion
+:mod:`zenswarm.campaign.delaymargin` is the generator's delay margin (eqs 16-17) that ``zenswarm
+margin`` and a campaign's delay axes are read against.
 
 A campaign is a scenario, grid axes (every combination of their values), optional sampled axes
 (``samples`` uniform draws, shared by every grid cell), and ``seeds`` Monte Carlo seeds
@@ -11,7 +13,7 @@ then the draws; then the seeds), so the same command always gives the same run i
 
 An axis names a scenario field by its dotted path (``faults.loss``, ``faults.delay``,
 ``generator.mu1``, ``agents.controller``, ``leader.planner``, ``obstacles[0].radius``) or, when
-the scenario is the word ``generate``, a parameter of :func:`zenswarm.generate.generate_scenario`
+the scenario is the word ``generate``, a parameter of :func:`zenswarm.scenario.generate.generate_scenario`
 (:data:`GENERATOR_FIELDS`: ``n``, ``shape``, ``topology``, ``k``, ``pinning``, ``n_obstacles``,
 ``spacing``). Values are TOML values (``0.1``, ``3``, ``true``, ``"ring"``, ``[1, 2, 0.5]``) or
 bare words (``ring``, ``50ms``). Durations with a unit (``50ms``) reach the scenario as written and
@@ -31,11 +33,11 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ScenarioError
-from .faults import parse_duration
-from .linkqueue import parse_capacity
-from .radio import parse_distance
-from .schema import MAX_SEED
+from zenswarm.errors import ScenarioError
+from zenswarm.link.faults import parse_duration
+from zenswarm.link.queue import parse_capacity
+from zenswarm.link.radio import parse_distance
+from zenswarm.schema import MAX_SEED
 
 __all__ = [
     "GENERATE",
@@ -64,7 +66,7 @@ GENERATE = "generate"
 GENERATOR_FIELDS: dict[str, type] = {
     "n": int, "shape": str, "topology": str, "k": int, "pinning": str, "n_obstacles": int, "spacing": float,
 }
-"""Axes of a generated scenario: keyword arguments of :func:`zenswarm.generate.generate_scenario`
+"""Axes of a generated scenario: keyword arguments of :func:`zenswarm.scenario.generate.generate_scenario`
 (its ``seed`` is the run's seed)."""
 
 PLUGIN_FIELDS: tuple[str, ...] = ("agents.controller", "leader.planner")
@@ -329,7 +331,7 @@ def _check_generator_value(path: str, v: Any) -> None:
     """A value of a generator axis: its type, and a known word for shape, topology and pinning."""
     if path not in GENERATOR_FIELDS:
         return
-    from .generate import PINNINGS, SHAPES, TOPOLOGIES
+    from zenswarm.scenario.generate import PINNINGS, SHAPES, TOPOLOGIES
 
     want = GENERATOR_FIELDS[path]
     num = isinstance(v, int) and not isinstance(v, bool)

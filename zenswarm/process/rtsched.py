@@ -9,7 +9,7 @@ wakes (BENCHMARKS.md, "Real-time priority").
 
 ``--rt-priority P`` (1-99; :func:`check_priority`) runs a process's threads under
 ``SCHED_FIFO`` priority P, once its start-up is over (:func:`apply_after_startup`, the same
-moment the managed collector freezes: :class:`zenswarm.runtime.GcPolicy`). Start-up (imports,
+moment the managed collector freezes: :class:`zenswarm.process.runtime.GcPolicy`). Start-up (imports,
 scenario, session) stays under the fair scheduler, so a process that is still importing numpy
 cannot hold a core against loops that already fly: ``SCHED_FIFO`` threads of one priority are
 never preempted by each other, only by a higher priority or by blocking. Every thread of the
@@ -29,7 +29,7 @@ import os
 import sys
 from collections.abc import Callable
 
-from .errors import ScenarioError
+from zenswarm.errors import ScenarioError
 
 __all__ = ["RT_PRIORITY_MIN", "RT_PRIORITY_MAX", "RtPriorityError", "check_priority", "probe", "validate", "apply_to_process",
            "apply_after_startup", "current_policy", "set_requested", "requested", "process_policy", "counters"]

@@ -1,7 +1,7 @@
 """Bandwidth and queueing on the swarm's links: a capacity in bytes/s and a bounded FIFO queue.
 
-Pure: numpy, msgspec (through :mod:`zenswarm.wire`) and the standard library; no clock, no files.
-Used by :mod:`zenswarm.faults` (a :class:`~zenswarm.faults.FaultState` adds what this module
+Pure: numpy, msgspec (through :mod:`zenswarm.bus.wire`) and the standard library; no clock, no files.
+Used by :mod:`zenswarm.link.faults` (a :class:`~zenswarm.link.faults.FaultState` adds what this module
 computes to every decision), so the simulator and the lockstep processes agree bit for bit.
 
 Model
@@ -16,7 +16,7 @@ first served at ``capacity_Bps`` bytes/s.
   the order of :func:`queue_order` (kind ``cmd``, ``state``, ``leader``, ``ref``, then by
   destination).
 * *Size* of a message: the length in bytes of its real msgpack encoding (:func:`message_size`,
-  which calls :func:`zenswarm.wire.encode` on the message the processes send at that tick; the
+  which calls :func:`zenswarm.bus.wire.encode` on the message the processes send at that tick; the
   floats are always packed as float64, so the size depends only on the kind, ``t`` and ``seq``).
   The paper's controller shares no extra quantities; a controller plug-in's ``x`` extras are not
   counted. Zenoh sends one copy of a publication per subscriber, so a reference heard by m
@@ -52,8 +52,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from . import wire
-from .errors import ScenarioError
+from zenswarm.bus import wire
+from zenswarm.errors import ScenarioError
 
 __all__ = [
     "CHUNK",

@@ -3,14 +3,14 @@ diagnostics, liveliness, and a clean exit on SIGINT/SIGTERM.
 
 The process shells (``agents/process.py``, ``leader/process.py``, ``plant/process.py``) are thin:
 decode -> pure step -> encode. This module is the glue they share; messages cross the network in
-:mod:`zenswarm.bus` (sessions) and :mod:`zenswarm.wire` (keys and payloads).
+:mod:`zenswarm.bus` (sessions) and :mod:`zenswarm.bus.wire` (keys and payloads).
 
 Malformed input (issue 5). Every sample a process subscribed to goes through
-:meth:`SwarmProcess.handle_sample`, which never raises: first the :class:`zenswarm.wire.Decoder`
+:meth:`SwarmProcess.handle_sample`, which never raises: first the :class:`zenswarm.bus.wire.Decoder`
 (bytes, size, msgpack, version, kind, fields, types, lengths, finiteness, t/seq ranges), then an
 :class:`InputGuard` that judges the decoded message against what this key has delivered so far.
 Each reject is counted per key and per reason (:data:`GUARD_REASONS` beside the decoder's
-:data:`zenswarm.wire.REASONS`) and shows up in the process's diag counters as ``rejected``,
+:data:`zenswarm.bus.wire.REASONS`) and shows up in the process's diag counters as ``rejected``,
 ``rejected.<reason>`` and ``rejected@<key>.<reason>`` (``<key>`` without ``swarm/<name>/``).
 
 Sender identity. :meth:`SwarmProcess.publish` stamps every sample with the
@@ -44,12 +44,14 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
-from . import bus, rtsched, security, wire
-from .config import Scenario, load_scenario, scenario_from_dict
-from .errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
+from zenswarm import bus
+from zenswarm.bus import wire
+from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
+from zenswarm.process import rtsched, security
+from zenswarm.scenario.config import Scenario, load_scenario, scenario_from_dict
 
 if TYPE_CHECKING:
-    from .faults import FaultPlan
+    from zenswarm.link.faults import FaultPlan
 
 __all__ = ["Inbox", "SwarmProcess", "ProcessOptions", "run_process", "LoopStats", "WallClock", "sleep_until",
            "InputGuard", "GUARD_REASONS", "sample_sender", "expected_senders", "GcPolicy", "gc_policy",
@@ -79,7 +81,7 @@ GUARD_REASONS = (
     "future",  # beyond the mission's end, or too far ahead of this key's stream
     "internal",  # the guard itself failed (a bug; counted, never raised)
 )
-"""Reasons of :class:`InputGuard` rejects (the decoder's are :data:`zenswarm.wire.REASONS`)."""
+"""Reasons of :class:`InputGuard` rejects (the decoder's are :data:`zenswarm.bus.wire.REASONS`)."""
 
 MAX_ABS_VALUE = 1e9
 """Largest magnitude accepted for any vector element or scalar of a state, ref or cmd (SI units).
@@ -682,7 +684,7 @@ class InputGuard:
 
 
 class _KeyedDecoder(wire.Decoder):
-    """:class:`zenswarm.wire.Decoder` that also counts rejects per (key, reason)."""
+    """:class:`zenswarm.bus.wire.Decoder` that also counts rejects per (key, reason)."""
 
     def __init__(self, **kw: Any) -> None:
         super().__init__(**kw)
@@ -708,13 +710,13 @@ class ProcessOptions:
     ``swarm/<swarm>``. connect: Zenoh router endpoints (empty: ``tcp/127.0.0.1:7447``).
     realtime: wall clock, latest value wins (else lockstep). lockstep_timeout: wall seconds an
     input is waited for before it counts as a drop. keys, tls: credentials of a secured router
-    (:mod:`zenswarm.security`). link_delay, link_jitter, link_loss, partition, link_range,
+    (:mod:`zenswarm.process.security`). link_delay, link_jitter, link_loss, partition, link_range,
     link_fade, link_capacity, link_queue, link_medium, link_trace: the whole-swarm link faults
-    (:mod:`zenswarm.linkfaults`); seed: disturbances and fault decisions (None: the
+    (:mod:`zenswarm.link.swarm`); seed: disturbances and fault decisions (None: the
     scenario's). controller, planner, plant_model: plug-in names overriding the scenario's
-    (:func:`zenswarm.plugins.select`; None: the scenario's). rt_priority: realtime only, run
+    (:func:`zenswarm.scenario.plugins.select`; None: the scenario's). rt_priority: realtime only, run
     the process's threads under ``SCHED_FIFO`` at this priority once start-up is over
-    (:mod:`zenswarm.rtsched`; None: the fair scheduler). router_lost_timeout: wall seconds to wait
+    (:mod:`zenswarm.process.rtsched`; None: the fair scheduler). router_lost_timeout: wall seconds to wait
     for a lost router to come back before giving up (:data:`DEFAULT_ROUTER_LOST_TIMEOUT_S`).
     """
 
@@ -782,7 +784,7 @@ class ProcessOptions:
     def fault_plan(self, scenario: Scenario) -> FaultPlan | None:
         """The link-fault plan of this run (scenario's ``[faults]`` plus the flags); None when no
         fault is active. Raises :class:`zenswarm.errors.ScenarioError` naming the bad field."""
-        from .linkfaults import plan_for
+        from zenswarm.link.swarm import plan_for
 
         return plan_for(
             scenario, self.link_delay, self.link_jitter, self.link_loss, self.partition, self.seed,
@@ -897,7 +899,7 @@ class SwarmProcess:
 
     def _check_rt_priority(self) -> None:
         """``--rt-priority``: an integer 1-99, realtime only, and permitted to this user; what
-        :meth:`announce` applies once start-up is over (:mod:`zenswarm.rtsched`)."""
+        :meth:`announce` applies once start-up is over (:mod:`zenswarm.process.rtsched`)."""
         rtsched.set_requested(rtsched.validate(self.options.rt_priority, realtime=self.options.realtime))
 
     def _on_signal(self, signum: int, frame: Any) -> None:
@@ -922,7 +924,7 @@ class SwarmProcess:
         self._session_cm.__exit__(None, None, None)
 
     def _load_scenario(self) -> Scenario:
-        from .plugins import check_selection, select
+        from zenswarm.scenario.plugins import check_selection, select
 
         sc = self._fetch_scenario()
         seed = self.options.seed
@@ -987,7 +989,7 @@ class SwarmProcess:
             return 0
         if plan is None:
             return 0
-        from .faults import delivery_tick
+        from zenswarm.link.faults import delivery_tick
 
         worst = plan.worst_delay_s()
         return delivery_tick(0, worst, self.scenario.timing.dt) + 1 if worst > 0 else 0
@@ -1183,7 +1185,7 @@ class SwarmProcess:
     # ------------------------------------------------------------------ realtime link faults
     def use_delay_line(self, state: Any, links: dict[str, tuple[str, str, str]]) -> None:
         """Realtime link faults on these keys: decided on receipt, released after their delay."""
-        from .linkfaults import DelayLine
+        from zenswarm.link.swarm import DelayLine
 
         self._links = dict(links)
         self._delay_line = DelayLine(state, self.scenario.timing.dt)

@@ -1,6 +1,6 @@
 """Thin Zenoh helpers: configs, sessions that always close, liveliness (eclipse-zenoh 1.10.x).
 
-This is where messages cross the network; payloads are built and checked by :mod:`zenswarm.wire`.
+This is where messages cross the network; payloads are built and checked by :mod:`zenswarm.bus.wire`.
 
 Topology: one router per swarm (``mode: router``, possibly inside a Python process, see
 ``python -m zenswarm.compose.router``) and every swarm process a client of it. Multicast scouting and
@@ -44,8 +44,8 @@ from typing import Any, Final, Protocol, cast
 
 import zenoh
 
-from .errors import ScenarioError, ZenswarmError
-from .wire import InvalidKeyError, Keys, validate_process
+from zenswarm.bus.wire import InvalidKeyError, Keys, validate_process
+from zenswarm.errors import ScenarioError, ZenswarmError
 
 __all__ = [
     "DEFAULT_CONNECT_TIMEOUT_S",

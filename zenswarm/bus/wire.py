@@ -69,7 +69,7 @@ import numpy as np
 import numpy.typing as npt
 from msgspec import Meta, Struct, StructMeta
 
-from .errors import DecodeError, ZenswarmError
+from zenswarm.errors import DecodeError, ZenswarmError
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -690,7 +690,7 @@ class Ref(_Msg, frozen=True, omit_defaults=True):
     quantities (:attr:`zenswarm.agents.api.Controller.shares`), name -> flat float64 values;
     left out of the payload when empty (the paper's controller shares none). pos (wire ``"p"``,
     optional): the sender's true position (m, ENU; its plant's state of the tick it sent this on),
-    stamped only when a radio model is active (:mod:`zenswarm.radio`); left out when empty."""
+    stamped only when a radio model is active (:mod:`zenswarm.link.radio`); left out when empty."""
 
     kind: ClassVar[str] = "ref"
     t: TimeNs
@@ -718,7 +718,7 @@ class Cmd(_Msg, frozen=True):
 
 
 class Mission(_Msg, frozen=True):
-    """The scenario (e.g. :func:`zenswarm.config.scenario_to_dict`), published by the leader.
+    """The scenario (e.g. :func:`zenswarm.scenario.config.scenario_to_dict`), published by the leader.
 
     scenario: nested dict of plain types (None, bool, int, finite float, str, list, dict with
     str keys; at most :data:`MAX_DEPTH` levels). Copied on construction; tuples become lists.

@@ -1,6 +1,6 @@
 """Crazyflie 2.1 physical parameters and onboard attitude-controller gains.
 
-Pure data: imports the standard library only (``zenswarm.config`` is imported lazily for type
+Pure data: imports the standard library only (``zenswarm.schema`` is imported lazily for type
 hints). Units are SI; every default names its source.
 
 The onboard attitude controller is a cascade like the Crazyflie firmware's (``controller_pid``):
@@ -30,7 +30,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, cast
 
 if TYPE_CHECKING:  # pragma: no cover
-    from zenswarm.config import VehicleConfig
+    from zenswarm.schema import VehicleConfig
 
 __all__ = ["QuadParams", "THRUST_TO_WEIGHT"]
 

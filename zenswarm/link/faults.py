@@ -42,9 +42,9 @@ Per decision, in order of precedence for the reported reason:
 3. ``loss``: ``u_loss[seq] < loss``;
 4. otherwise ``ok``.
 
-On a link named by the plan's trace (:mod:`zenswarm.linktrace`) rules 2-3, the delay and the jitter
+On a link named by the plan's trace (:mod:`zenswarm.link.trace`) rules 2-3, the delay and the jitter
 are replaced by the trace's row in force at ``t_send_s`` (a dropped row: reason ``trace``).
-Then, on a link with a capacity (:mod:`zenswarm.linkqueue`, ``seq`` is the tick), the queue's
+Then, on a link with a capacity (:mod:`zenswarm.link.queue`, ``seq`` is the tick), the queue's
 wait and serialization time are added to the delay, and a message a full queue refused is
 dropped with reason ``queue`` whatever the other rules said.
 
@@ -98,9 +98,9 @@ Configuration
     burst = false             # no burst loss on this link (overrides an inherited burst)
 
 Capacity and queue (``capacity``, ``queue``, ``medium`` in ``[faults]`` and ``[[faults.links]]``,
-``--link-capacity``, ``--link-queue``, ``--link-medium``): :mod:`zenswarm.linkqueue`; traces
-(``[faults] trace``, ``--link-trace``): :mod:`zenswarm.linktrace`, loaded with the scenario's graph
-by :func:`zenswarm.linkfaults.plan_for`.
+``--link-capacity``, ``--link-queue``, ``--link-medium``): :mod:`zenswarm.link.queue`; traces
+(``[faults] trace``, ``--link-trace``): :mod:`zenswarm.link.trace`, loaded with the scenario's graph
+by :func:`zenswarm.link.swarm.plan_for`.
 """
 
 from __future__ import annotations
@@ -112,17 +112,16 @@ import re
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from .errors import ScenarioError
-from .linkqueue import LinkQueues, QueueSpec, queue_spec
-from .radio import RADIO_KINDS, RadioModel, parse_distance, parse_fade
-from .schema import BurstTable, FadeTable, FaultsTable, LinkFaultsTable, PartitionTable, convert
-
-if TYPE_CHECKING:  # traces are read by zenswarm.linkfaults.plan_for (zenswarm.linktrace imports this module)
-    from .linktrace import LinkTrace
+from zenswarm.errors import ScenarioError
+from zenswarm.link.names import KIND_ROLES, KINDS, PROCESS_RE, agent_links, link_kind, parse_process, plant_links, role_of
+from zenswarm.link.queue import LinkQueues, QueueSpec, queue_spec
+from zenswarm.link.radio import RADIO_KINDS, RadioModel, parse_distance, parse_fade
+from zenswarm.link.trace import LinkTrace
+from zenswarm.schema import BurstTable, FadeTable, FaultsTable, LinkFaultsTable, PartitionTable, convert
 
 __all__ = [
     "KINDS",
@@ -151,9 +150,6 @@ __all__ = [
     "plant_links",
 ]
 
-#: Message kinds, see the module docstring.
-KINDS: tuple[str, ...] = ("ref", "leader", "state", "cmd")
-_KIND_ROLES = {"ref": ("agent", "agent"), "leader": ("leader", "agent"), "state": ("plant", "agent"), "cmd": ("agent", "plant")}
 
 #: Sequence numbers per block of the counter-based generator. Part of the definition of the
 #: decisions (changing it changes every decision), so it is not a parameter.
@@ -170,57 +166,6 @@ _Chunk = tuple[list[bool], list[float], list[str], list[int]]
 
 # ----------------------------------------------------------------------------------------------
 # names and parsing
-
-
-_PROC_RE = re.compile(r"^(plant|leader|agent:(\d+))$")
-
-
-def parse_process(name: str) -> str:
-    """Canonical process name: ``plant``, ``leader`` or ``agent:<i>`` with i >= 1 (``agent:02`` -> ``agent:2``).
-
-    Raises ValueError naming the bad text.
-    """
-    if not isinstance(name, str):
-        raise ValueError(f"expected a process name (plant, leader, agent:<i>), got {name!r}")
-    m = _PROC_RE.match(name.strip())
-    if not m:
-        raise ValueError(f"invalid process name {name!r}: expected plant, leader or agent:<i> (i >= 1)")
-    if m.group(2) is not None:
-        i = int(m.group(2))
-        if i < 1:
-            raise ValueError(f"invalid process name {name!r}: UAVs are numbered from 1")
-        return f"agent:{i}"
-    return m.group(1)
-
-
-def _role(name: str) -> str:
-    return "agent" if name.startswith("agent:") else name
-
-
-def link_kind(src: str, dst: str) -> str:
-    """The message kind a directed link carries (see the module table); ValueError if none does."""
-    s, d = parse_process(src), parse_process(dst)
-    roles = (_role(s), _role(d))
-    for kind, r in _KIND_ROLES.items():
-        if r == roles and s != d:
-            return kind
-    raise ValueError(f"no message kind flows {src!r} -> {dst!r}")
-
-
-def agent_links(i: int, neighbours: Iterable[int], pinned: bool) -> list[tuple[str, str, str]]:
-    """Incoming links ``(src, dst, kind)`` of agent ``i`` (1-based): its state, its neighbours'
-    refs (1-based indices, in the order given) and, if pinned, the leader's ref. The graph row."""
-    me = f"agent:{int(i)}"
-    links = [("plant", me, "state")]
-    links += [(f"agent:{int(j)}", me, "ref") for j in neighbours]
-    if pinned:
-        links.append(("leader", me, "leader"))
-    return links
-
-
-def plant_links(n: int) -> list[tuple[str, str, str]]:
-    """Incoming links of the plant: every agent's command, agents 1..n."""
-    return [(f"agent:{i}", "plant", "cmd") for i in range(1, int(n) + 1)]
 
 
 _NUM = r"(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?"
@@ -297,7 +242,7 @@ def check_exists(path: str, target: str, n: int | None) -> None:
     if n is None:
         return
     for part in target.split("->"):
-        m = _PROC_RE.match(part.strip())
+        m = PROCESS_RE.match(part.strip())
         if m and m.group(2) is not None and not 1 <= int(m.group(2)) <= n:
             raise ScenarioError(path, f"{part.strip()} does not exist: the scenario has {n} UAVs (agent:1 to agent:{n})")
 
@@ -411,9 +356,9 @@ class Partition:
 class LinkFaultSpec:
     """Faults on one directed link. delay_s, jitter_s >= 0 s; loss in [0, 1]; optional burst
     loss; partitions (each only applies where it matches the link, see :class:`Partition`);
-    radio: a geometry-dependent model (:class:`zenswarm.radio.RadioModel`), applied by the
-    receive boxes of the radio kinds only (``ref``, ``leader``; :data:`zenswarm.radio.RADIO_KINDS`);
-    queue: optional capacity and bounded queue (:class:`zenswarm.linkqueue.QueueSpec`)."""
+    radio: a geometry-dependent model (:class:`zenswarm.link.radio.RadioModel`), applied by the
+    receive boxes of the radio kinds only (``ref``, ``leader``; :data:`zenswarm.link.radio.RADIO_KINDS`);
+    queue: optional capacity and bounded queue (:class:`zenswarm.link.queue.QueueSpec`)."""
 
     delay_s: float = 0.0
     jitter_s: float = 0.0
@@ -485,9 +430,9 @@ class FaultPlan:
     seed: keys every random draw (the run's ``--seed``).
     partitions: timed cuts that apply whatever spec a link resolves to (``--partition``).
     trace: per-link delay/delivery replayed in place of the model on the links it names
-      (:class:`zenswarm.linktrace.LinkTrace`, ``--link-trace``).
-    queues: the capacity queues of the run's links (:class:`zenswarm.linkqueue.LinkQueues`, built
-      from the specs' ``queue`` and the scenario's graph by :func:`zenswarm.linkfaults.plan_for`).
+      (:class:`zenswarm.link.trace.LinkTrace`, ``--link-trace``).
+    queues: the capacity queues of the run's links (:class:`zenswarm.link.queue.LinkQueues`, built
+      from the specs' ``queue`` and the scenario's graph by :func:`zenswarm.link.swarm.plan_for`).
     hold_s: the hold horizon of the references, s (``[faults] hold``; None: forever). On the
       ``ref`` and ``leader`` links a receive box holds its newest message only while it is at
       most ``ceil(hold_s / dt)`` ticks old (counted from its send tick); older, :meth:`LinkInbox.at`
@@ -561,7 +506,7 @@ class FaultPlan:
 
     @property
     def radio_active(self) -> bool:
-        """True when some link has a radio model (:mod:`zenswarm.radio`): senders then stamp
+        """True when some link has a radio model (:mod:`zenswarm.link.radio`): senders then stamp
         their positions and receivers decide with the geometry."""
         return self.default.radio_active or any(s.radio_active for s in self.per_link.values())
 
@@ -636,6 +581,7 @@ class BatchDelivery:
 
 
 def _key128(seed: int, link: tuple[str, str, str], stream: str, block: int) -> int:
+    # the personalisation is part of the decisions' definition: the module's name before 0.2, kept
     h = hashlib.blake2b(digest_size=16, person=b"zenswarm.faults")
     h.update("\x1f".join((str(seed), link[0], link[1], link[2], stream, str(block))).encode())
     return int.from_bytes(h.digest(), "little")
@@ -744,7 +690,7 @@ class FaultState:
     def decide(self, src: str, dst: str, kind: str, seq: int, t_send_s: float) -> Delivery:
         """See :func:`decide`."""
         seq = _check_seq(seq)
-        if kind not in _KIND_ROLES:
+        if kind not in KIND_ROLES:
             raise ValueError(f"unknown message kind {kind!r} (allowed: {', '.join(KINDS)})")
         d = self._decide_model(src, dst, kind, seq, t_send_s)
         queues = self.plan.queues
@@ -787,7 +733,7 @@ class FaultState:
     def decide_batch(self, src: str, dst: str, kind: str, seqs: Any, t_send_s: Any) -> BatchDelivery:
         """Vectorised :meth:`decide` over seqs (m,) and send times (m,) (or a scalar time);
         element for element equal to it."""
-        if kind not in _KIND_ROLES:
+        if kind not in KIND_ROLES:
             raise ValueError(f"unknown message kind {kind!r} (allowed: {', '.join(KINDS)})")
         seqs = np.asarray(seqs)
         if seqs.ndim != 1 or (seqs.size and (seqs.dtype.kind not in "iu" or seqs.min() < 0)):
@@ -921,7 +867,7 @@ class LinkInbox:
         capacity: int = 4096,
     ) -> None:
         self.state = faults if isinstance(faults, FaultState) else FaultState(faults)
-        if kind not in _KIND_ROLES:
+        if kind not in KIND_ROLES:
             raise ValueError(f"unknown message kind {kind!r} (allowed: {', '.join(KINDS)})")
         if not dt > 0:
             raise ValueError(f"dt must be > 0, got {dt!r}")
@@ -1203,9 +1149,9 @@ def _link_key(p: str, e: LinkFaultsTable, n_uavs: int | None) -> tuple[str, str,
     if kind not in KINDS and kind != "*":
         raise ScenarioError(f"{p}.kind", f"unknown kind {kind!r} (allowed: {', '.join(KINDS)}, *)")
     if kind != "*":
-        want = _KIND_ROLES[kind]
+        want = KIND_ROLES[kind]
         for name, ep, role in (("src", src, want[0]), ("dst", dst, want[1])):
-            if not any(c in ep for c in "*?[") and _role(ep) != role:
+            if not any(c in ep for c in "*?[") and role_of(ep) != role:
                 raise ScenarioError(f"{p}.{name}", f"a {kind!r} link goes {want[0]} -> {want[1]}; {ep!r} is not a {role}")
     if src == dst and not any(c in src for c in "*?["):
         raise ScenarioError(f"{p}.dst", f"a link needs two different processes, got {src!r} twice")
@@ -1290,7 +1236,7 @@ def plan_from_scenario(section: FaultsTable | Mapping[str, Any] | None, seed: in
 
 def plan_with_radio(plan: FaultPlan, link_range: str | None = None, link_fade: str | None = None) -> FaultPlan:
     """The whole-swarm radio shortcuts ``--link-range 1.5m`` and ``--link-fade 1.2m,0.1m``
-    (:mod:`zenswarm.radio`) applied to ``plan``: they replace the range / fall-off of its
+    (:mod:`zenswarm.link.radio`) applied to ``plan``: they replace the range / fall-off of its
     default spec, keeping the ``[[faults.links]]`` entries, as the other shortcuts do
     (:func:`plan_from_cli`). Raises :class:`ScenarioError` whose field is the flag."""
     if link_range is None and link_fade is None:

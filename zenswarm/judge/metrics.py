@@ -1,7 +1,7 @@
 """A flight's time series and the fields of ``results.json`` computed from it.
 
 Pure (numpy only). The in-process simulator, the distributed swarm and the flight report all
-compute their results with :func:`compute_results` (the verdict of :mod:`zenswarm.verdict`), so
+compute their results with :func:`compute_results` (the verdict of :mod:`zenswarm.judge.verdict`), so
 the same flight gives the same JSON.
 """
 
@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from .errors import EXIT_PLUGIN_FAILED
-from .verdict import criteria_from_scenario, judge
+from zenswarm.errors import EXIT_PLUGIN_FAILED
+from zenswarm.judge.verdict import criteria_from_scenario, judge
 
 __all__ = ["TimeSeries", "compute_results", "add_failure", "flight_differences", "RESULT_FIELDS", "FLIGHT_FIELDS", "RESULTS_SCHEMA_VERSION"]
 
@@ -124,11 +124,11 @@ class TimeSeries:
 def compute_results(
     ts: TimeSeries, scenario: Any, wall_time_s: float | None = None, early_end: bool = True
 ) -> dict[str, Any]:
-    """The mission results of a flight: the verdict of :func:`zenswarm.verdict.judge` on the
+    """The mission results of a flight: the verdict of :func:`zenswarm.judge.verdict.judge` on the
     UAVs' real states, as the JSON-ready fields of ``results.json`` (:data:`RESULTS_SCHEMA_VERSION`).
 
     With ``early_end`` the flight is judged up to the tick where its outcome was decided (a stalled
-    leader, a diverged UAV; :func:`zenswarm.verdict.decide_end`), as the run itself ends there;
+    leader, a diverged UAV; :func:`zenswarm.judge.verdict.decide_end`), as the run itself ends there;
     ``early_end=False`` judges every tick (``--full-time``). ``wall_time_s`` is the run's wall
     time (None when judged from a recording). See :data:`FLIGHT_FIELDS` for what two judgements
     of the same flight must agree on.

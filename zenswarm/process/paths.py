@@ -17,7 +17,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from .errors import ScenarioError
+from zenswarm.errors import ScenarioError
 
 __all__ = ["check_output_dir", "check_output_file"]
 

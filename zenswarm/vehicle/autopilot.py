@@ -13,9 +13,8 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
-from zenswarm.config import Scenario
 from zenswarm.errors import ScenarioError
-from zenswarm.schema import MavlinkTable, convert, to_builtins
+from zenswarm.schema import MavlinkTable, ScenarioTables, convert, to_builtins
 
 __all__ = [
     "PX4_MAIN",
@@ -261,7 +260,7 @@ def _per_uav(t: MavlinkTable, name: str, n: int, what: str) -> None:
         raise ScenarioError(f"mavlink.{name}", f"expected a list of {n} {what} (one per UAV), got {len(v)}")
 
 
-def _table_with(sc: Scenario, cli: dict[str, Any]) -> MavlinkTable:
+def _table_with(sc: ScenarioTables, cli: dict[str, Any]) -> MavlinkTable:
     """The scenario's ``[mavlink]`` table with the command-line overrides (None values ignored)
     applied, validated by the schema; the per-UAV lists have N entries."""
     t = sc.mavlink or MavlinkTable()
@@ -425,7 +424,7 @@ def vehicle_params(
     return VehicleParams(hover, loss, set_opts, "", notes)
 
 
-def mavlink_settings(sc: Scenario, cli: dict[str, Any] | None = None) -> MavlinkSettings:
+def mavlink_settings(sc: ScenarioTables, cli: dict[str, Any] | None = None) -> MavlinkSettings:
     """The scenario's ``[mavlink]`` table (``Scenario.mavlink``, typed by
     :class:`zenswarm.schema.MavlinkTable`), with command-line overrides applied.
 

@@ -3,7 +3,7 @@ report of a recording reads.
 
 :class:`Collector` takes every sample of the swarm's key space (its sender checked as the
 processes' input guard does), decodes the clock, the leader's reference and diagnostics at once
-and the rest after the flight, and fills a :class:`zenswarm.metrics.TimeSeries` indexed by tick
+and the rest after the flight, and fills a :class:`zenswarm.judge.metrics.TimeSeries` indexed by tick
 (the same one the in-process simulator writes), so ``results.json`` is computed by the same code
 for both.
 
@@ -27,11 +27,11 @@ from typing import IO, Any
 
 import numpy as np
 
-from zenswarm import wire
-from zenswarm.config import Scenario
+from zenswarm.bus import wire
 from zenswarm.errors import ZenswarmError
-from zenswarm.metrics import TimeSeries
-from zenswarm.runtime import expected_senders, sample_sender
+from zenswarm.judge.metrics import TimeSeries
+from zenswarm.process.runtime import expected_senders, sample_sender
+from zenswarm.scenario.config import Scenario
 
 __all__ = ["Collector", "Spool"]
 

@@ -4,7 +4,7 @@
 
 A document (the scenario's TOML as nested dicts) gets each value set at its path, missing tables
 created (the schema then refuses keys that are not fields); the result is validated as a file
-would be, the plug-ins' parameters included (:func:`zenswarm.plugins.check_selection`). Every
+would be, the plug-ins' parameters included (:func:`zenswarm.scenario.plugins.check_selection`). Every
 error an override causes is an :class:`OverrideError` naming the field and the override.
 """
 
@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from .config import Scenario, scenario_from_dict
-from .errors import ScenarioError
+from zenswarm.errors import ScenarioError
+from zenswarm.scenario.config import Scenario, scenario_from_dict
 
 __all__ = ["OverrideError", "apply", "parse_assignment", "validated", "copy_document", "check_plugins", "load_file"]
 
@@ -115,7 +115,7 @@ def validated(doc: dict[str, Any], overrides: Mapping[str, Any], plugins: bool =
     """The scenario of ``doc`` (its own errors first, as :class:`ScenarioError`) with
     ``overrides`` applied and validated, the plug-ins' names and parameters too (``plugins``):
     every error an override caused is an :class:`OverrideError`."""
-    from .plugins import check_selection
+    from zenswarm.scenario.plugins import check_selection
 
     base = scenario_from_dict(copy_document(doc))  # the scenario's own errors first, as such
     if not overrides:
@@ -169,9 +169,9 @@ def check_plugins(
     sc: Scenario, overrides: Mapping[str, Any], controller_field: str | None = None, planner_field: str | None = None,
     flag: str = "--set", plant_field: str | None = None,
 ) -> None:
-    """:func:`zenswarm.plugins.check_selection` of ``sc``; an error in a field an override set is
+    """:func:`zenswarm.scenario.plugins.check_selection` of ``sc``; an error in a field an override set is
     an :class:`OverrideError` naming ``flag KEY`` (the override)."""
-    from .plugins import check_selection
+    from zenswarm.scenario.plugins import check_selection
 
     try:
         check_selection(sc, controller_field, planner_field, plant_field)
@@ -185,13 +185,13 @@ def check_plugins(
 
 
 def load_file(path: Any, overrides: Mapping[str, Any]) -> Scenario:
-    """A scenario file (:func:`zenswarm.config.load_scenario`: its errors, its relative trace
+    """A scenario file (:func:`zenswarm.scenario.config.load_scenario`: its errors, its relative trace
     path) with ``overrides`` applied and validated (not the plug-ins: :func:`check_plugins`)."""
     from pathlib import Path
 
     import msgspec
 
-    from .config import load_scenario
+    from zenswarm.scenario.config import load_scenario
 
     sc = load_scenario(path)  # the file's own errors first, as such
     if not overrides:

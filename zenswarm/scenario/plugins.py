@@ -37,12 +37,12 @@ from typing import TYPE_CHECKING, Any, Final, Literal
 import msgspec
 import numpy as np
 
-from .errors import PluginFailure, ScenarioError
-from .params import QuadParams
-from .schema import convert
+from zenswarm.errors import PluginFailure, ScenarioError
+from zenswarm.schema import convert
+from zenswarm.vehicle.params import QuadParams
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .config import Scenario
+    from zenswarm.scenario.config import Scenario
 
 __all__ = [
     "KINDS",
@@ -396,7 +396,7 @@ def plant_selection(scenario: Scenario) -> tuple[type, Any]:
 
 def plant_vehicle(scenario: Scenario) -> QuadParams:
     """The vehicle the scenario's plant model flies (its ``vehicle`` classmethod): mass, g,
-    inertia and thrust bound as :class:`zenswarm.params.QuadParams`. The agents' controllers are
+    inertia and thrust bound as :class:`zenswarm.vehicle.params.QuadParams`. The agents' controllers are
     built with its mass and g (thrust = m |u|, eq. 28), the failsafe hovers with them, so the
     scheme uses the plant model's vehicle in the simulator, the processes and ``verify`` alike.
     A model that cannot be used (e.g. its package is not installed) raises PluginError naming

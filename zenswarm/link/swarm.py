@@ -1,4 +1,4 @@
-"""Link faults wired into the simulator and the processes (the model is :mod:`zenswarm.faults`).
+"""Link faults wired into the simulator and the processes (the model is :mod:`zenswarm.link.faults`).
 
 Faults are applied where a message is received, per directed link ``(src, dst, kind)``:
 
@@ -6,7 +6,7 @@ Faults are applied where a message is received, per directed link ``(src, dst, k
   (``leader``), ``agent:i -> plant`` (``cmd``).
 
 Lockstep: the decision for a link's message of tick k is a pure function of (seed, link, k)
-(:class:`zenswarm.faults.FaultState`); the receiver holds the newest delivered value
+(:class:`zenswarm.link.faults.FaultState`); the receiver holds the newest delivered value
 (:class:`Box`). The in-process simulator makes the same decisions with the same boxes, so a faulty
 lockstep swarm still equals the simulator bit for bit. The messages of tick 0 (the start-up
 exchange that initialises every generator) are never faulted.
@@ -26,12 +26,22 @@ from typing import Any
 
 import numpy as np
 
-from .config import Scenario
-from .errors import ScenarioError
-from .faults import Delivery, FaultPlan, FaultState, LinkInbox, agent_links, plan_from_cli, plan_from_scenario, plan_with_radio, plant_links
-from .linkqueue import LinkQueues
-from .linktrace import LinkTrace, load_trace
-from .radio import GEOMETRY_TICK_OFFSET, components, leader_reaches_all, radio_reason
+from zenswarm.errors import ScenarioError
+from zenswarm.link.faults import (
+    Delivery,
+    FaultPlan,
+    FaultState,
+    LinkInbox,
+    agent_links,
+    plan_from_cli,
+    plan_from_scenario,
+    plan_with_radio,
+    plant_links,
+)
+from zenswarm.link.queue import LinkQueues
+from zenswarm.link.radio import GEOMETRY_TICK_OFFSET, components, leader_reaches_all, radio_reason
+from zenswarm.link.trace import LinkTrace, load_trace
+from zenswarm.schema import ScenarioTables
 
 __all__ = [
     "Box", "LinkFaults", "plan_for", "scenario_links", "DelayLine", "box_counters", "distance", "due_tick",
@@ -49,10 +59,10 @@ def distance(a: Any, b: Any) -> float:
 class Box(LinkInbox):
     """:class:`LinkInbox` whose tick-0 message is always delivered at once (start-up exchange).
 
-    On a link with a radio model (:meth:`zenswarm.faults.FaultPlan.radio_for`) a message's fate
+    On a link with a radio model (:meth:`zenswarm.link.faults.FaultPlan.radio_for`) a message's fate
     also depends on the distance between the sender's position (given to :meth:`offer` as
     ``pos``) and the receiver's own position at the message's geometry tick (given to
-    :meth:`own_position`; :data:`zenswarm.radio.GEOMETRY_TICK_OFFSET`). An offered message
+    :meth:`own_position`; :data:`zenswarm.link.radio.GEOMETRY_TICK_OFFSET`). An offered message
     whose geometry is not known yet waits (parked) until it is; :meth:`due` names a message
     whose radio fate is unknown as the one to wait for. Extra counters ``dropped_range`` and
     ``dropped_fade``.
@@ -178,7 +188,7 @@ def due_tick(box: Box | None, k: int) -> int:
     return k if j is None or box.has(j) else j
 
 
-def scenario_links(scenario: Scenario) -> list[tuple[str, str, str]]:
+def scenario_links(scenario: ScenarioTables) -> list[tuple[str, str, str]]:
     """Every directed link ``(src, dst, kind)`` of the scenario: each agent's state, its
     neighbours' refs and (if pinned) the leader's ref, then every agent's command to the plant."""
     g = scenario.graph
@@ -186,9 +196,9 @@ def scenario_links(scenario: Scenario) -> list[tuple[str, str, str]]:
     return links + plant_links(scenario.n)
 
 
-def _trace(scenario: Scenario, link_trace: str | None) -> LinkTrace | None:
+def _trace(scenario: ScenarioTables, link_trace: str | None) -> LinkTrace | None:
     """The run's trace: ``--link-trace`` (relative to the working directory) or the scenario's
-    ``[faults] trace`` (resolved against the scenario file by :func:`zenswarm.config.load_scenario`)."""
+    ``[faults] trace`` (resolved against the scenario file by :func:`zenswarm.scenario.config.load_scenario`)."""
     if link_trace is not None:
         field, path = "--link-trace", link_trace
     elif scenario.faults is not None and scenario.faults.trace is not None:
@@ -206,7 +216,7 @@ def _trace(scenario: Scenario, link_trace: str | None) -> LinkTrace | None:
 
 
 def plan_for(
-    scenario: Scenario,
+    scenario: ScenarioTables,
     link_delay: str | None = None,
     link_jitter: str | None = None,
     link_loss: str | None = None,
@@ -220,9 +230,9 @@ def plan_for(
     link_trace: str | None = None,
 ) -> FaultPlan | None:
     """The fault plan of a run: the scenario's ``[faults]`` table, then the CLI shortcuts
-    (``link_range``, ``link_fade``: :func:`zenswarm.faults.plan_with_radio`); the capacity queues
-    of the scenario's links (:class:`zenswarm.linkqueue.LinkQueues`) and the trace
-    (:mod:`zenswarm.linktrace`; ``link_trace`` replaces the scenario's).
+    (``link_range``, ``link_fade``: :func:`zenswarm.link.faults.plan_with_radio`); the capacity queues
+    of the scenario's links (:class:`zenswarm.link.queue.LinkQueues`) and the trace
+    (:mod:`zenswarm.link.trace`; ``link_trace`` replaces the scenario's).
 
     ``seed`` defaults to the scenario's. Returns None when no fault is active (the fast path).
     Raises :class:`zenswarm.errors.ScenarioError` naming the field, flag or trace line.
@@ -266,7 +276,7 @@ class LinkFaults:
     link_medium: str | None = None
     link_trace: str | None = None
 
-    def plan(self, scenario: Scenario) -> FaultPlan | None:
+    def plan(self, scenario: ScenarioTables) -> FaultPlan | None:
         """The fault plan of a run of ``scenario`` with these shortcuts (:func:`plan_for`)."""
         return plan_for(
             scenario, self.link_delay, self.link_jitter, self.link_loss, self.partitions, self.seed,
@@ -384,10 +394,10 @@ def graph_series(plan: FaultPlan, neighbours: list[list[int]], pinned: list[bool
 
     Link ``src -> dst`` (a ``ref`` link ``agent:j -> agent:i`` for every neighbour j of agent i,
     a ``leader`` link for every pinned agent) is *up* at tick k when its message of tick k is
-    delivered: not dropped by any fault (:meth:`zenswarm.faults.FaultState.decide_batch`: loss,
+    delivered: not dropped by any fault (:meth:`zenswarm.link.faults.FaultState.decide_batch`: loss,
     burst, partition, trace, full queue) nor by its radio model at the geometry of that tick (the
     plant's positions ``q`` (T, n, 3) and the leader's ``q0`` (T, 3), as recorded;
-    :mod:`zenswarm.radio`), the same decision the receive boxes make (:class:`Box`). Tick 0 is
+    :mod:`zenswarm.link.radio`), the same decision the receive boxes make (:class:`Box`). Tick 0 is
     always up (start-up exchange, delay 0).
 
     neighbours: per agent (0-based), its neighbours' 0-based indices; pinned: per agent; dt: s.

@@ -14,7 +14,7 @@ The sections and their meaning (see ``compose/scenarios/paper_example1.toml`` fo
 ``[scenario]``   name, description, seed
 ``[timing]``     control_rate_hz, physics_rate_hz, time_limit_s, settle_time_s, goal_tolerance_m
 ``[leader]``     start, goal, k_att, k_rep_min, k_rep_max, d0, adaptive, k_rep_fixed, speed_limit,
-                 planner (plug-in name, :mod:`zenswarm.plugins`) and ``[leader.params]`` (its parameters)
+                 planner (plug-in name, :mod:`zenswarm.scenario.plugins`) and ``[leader.params]`` (its parameters)
 ``[[obstacles]]`` center (base centre), radius, height: cylinder capped by a hemisphere (Remark 1)
 ``[formation]``  offsets h_i (N, 3), initial_positions q_i(0) (N, 3)
 ``[graph]``      adjacency A (N, N) symmetric, pinning b (N,)
@@ -23,15 +23,15 @@ The sections and their meaning (see ``compose/scenarios/paper_example1.toml`` fo
 ``[controller]`` kp (3,), kd (3,), yaw (eq. 28 and the inversion after it)
 ``[agents]``     controller (plug-in name, default ``paper``) and ``[agents.params]`` (its parameters)
 ``[plant]``      model (plant model plug-in name, default ``quadrotor``) and ``[plant.params]`` (its parameters)
-``[vehicle]``    optional overrides of the Crazyflie 2.1 parameters (see :mod:`zenswarm.params`), and
+``[vehicle]``    optional overrides of the Crazyflie 2.1 parameters (see :mod:`zenswarm.vehicle.params`), and
                  radius (the contact radius the verdict uses; default :data:`CRAZYFLIE_RADIUS_M`)
-``[mission]``    how the flight is judged (:mod:`zenswarm.verdict`): slot_tolerance_m,
+``[mission]``    how the flight is judged (:mod:`zenswarm.judge.verdict`): slot_tolerance_m,
                  settle_window_s, stall_speed_m_s, stall_window_s, divergence_m
 ``[disturbance]`` wind, sine_amplitude, sine_freq_hz, gust_std, gust_tau_s (accelerations, m/s^2)
-``[faults]``     link faults (``Scenario.faults``, :func:`zenswarm.faults.plan_from_scenario`)
+``[faults]``     link faults (``Scenario.faults``, :func:`zenswarm.link.faults.plan_from_scenario`)
 ``[failsafe]``   the plant's command-loss failsafe (``Scenario.failsafe``, :func:`failsafe_config`)
-``[restart]``    the supervisor's restart backoff (``Scenario.restart``, :func:`zenswarm.policy.restart_policy`)
-``[mavlink]``    MAVLink bridge and vehicles (``Scenario.mavlink``, :func:`zenswarm.autopilot.mavlink_settings`)
+``[restart]``    the supervisor's restart backoff (``Scenario.restart``, :func:`zenswarm.compose.policy.restart_policy`)
+``[mavlink]``    MAVLink bridge and vehicles (``Scenario.mavlink``, :func:`zenswarm.vehicle.autopilot.mavlink_settings`)
 
 Any other section or key is an error naming it.
 
@@ -52,9 +52,9 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from .errors import ScenarioError
-from .geometry import obstacle_clearance
-from .schema import (
+from zenswarm.bus.wire import MAX_T_NS
+from zenswarm.errors import ScenarioError
+from zenswarm.schema import (
     MAX_SEED,
     AgentsConfig,
     ControllerConfig,
@@ -77,7 +77,7 @@ from .schema import (
     convert,
     to_builtins,
 )
-from .wire import MAX_T_NS
+from zenswarm.vehicle.geometry import obstacle_clearance
 
 __all__ = [
     "Obstacle",
@@ -316,11 +316,11 @@ def _validate_extra(s: Scenario) -> None:
     """The subsystems' tables are checked against the scenario on load too (durations and process
     names of ``[faults]``, the per-UAV lists of ``[mavlink]``), so errors show up at once."""
     if s.faults is not None:
-        from .faults import plan_from_scenario
+        from zenswarm.link.faults import plan_from_scenario
 
         plan_from_scenario(s.faults, s.seed, s.n)
     if s.mavlink is not None:
-        from .autopilot import mavlink_settings
+        from zenswarm.vehicle.autopilot import mavlink_settings
 
         mavlink_settings(s)
 

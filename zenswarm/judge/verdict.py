@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from .geometry import close_pairs, d_obs_many, obstacle_clearance_many
+from zenswarm.vehicle.geometry import close_pairs, d_obs_many, obstacle_clearance_many
 
 __all__ = [
     "CAUSES",
@@ -87,7 +87,7 @@ class Criteria:
 
     goal (3,), offsets h (N, 3), m. obstacles: capped cylinders. d0: the AAPF's repulsion range, m;
     r_f: formation radius, m (for the stall report). dt: control period, s. settle_time_s: from
-    when the formation error counts. The rest: see ``[mission]`` in :mod:`zenswarm.config`.
+    when the formation error counts. The rest: see ``[mission]`` in :mod:`zenswarm.scenario.config`.
     """
 
     goal: np.ndarray
@@ -117,7 +117,7 @@ class Criteria:
 
 
 def criteria_from_scenario(sc: Any) -> Criteria:
-    """The :class:`Criteria` of a :class:`zenswarm.config.Scenario`."""
+    """The :class:`Criteria` of a :class:`zenswarm.scenario.config.Scenario`."""
     m = sc.mission
     return Criteria(
         goal=np.asarray(sc.leader.goal, dtype=float),

@@ -40,13 +40,13 @@ EXIT_PLUGIN_FAILED = 4
 class PluginFailure(ZenswarmError):
     """A plug-in (a controller, a planner or a plant model) misbehaved at its boundary: it raised,
     or returned a non-finite or wrongly shaped value. Caught where the runner calls the plug-in
-    (:class:`zenswarm.plugins.Boundary`) and turned into the failure ``plugin_error`` of the
+    (:class:`zenswarm.scenario.plugins.Boundary`) and turned into the failure ``plugin_error`` of the
     verdict, at the sim time ``tick * dt`` it happened, by the simulator and the swarm alike.
 
     kind: ``controller``, ``planner`` or ``plant``. plugin: the name it was selected by.
     process: the swarm process that runs it (``agent:2``, ``leader``, ``plant``). uavs: the UAVs
     concerned, 1-based. tick: the control tick whose value it failed to give. stage: where in
-    that tick (:data:`zenswarm.plugins.STAGES`: the failures of a run are those of its first
+    that tick (:data:`zenswarm.scenario.plugins.STAGES`: the failures of a run are those of its first
     (tick, stage)). call: the method (``step``, ``share``, ``ref``, ...). field: the bad output
     field (``thrust``, ``rpy``, ``q0``, ...; None when it raised). detail: what was wrong.
     """

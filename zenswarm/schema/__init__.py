@@ -12,22 +12,23 @@ msgspec's path ``$.obstacles[1].radius`` mapped to ours.
 
 Units are SI, positions in the inertial ENU frame (z up). The checks that need numbers of the
 whole scenario (the graph's Lemma 1, start/goal clearance, run-size bounds, durations in the
-``[faults]`` table) live with their owners (:mod:`zenswarm.config`, :mod:`zenswarm.faults`,
-:mod:`zenswarm.autopilot`), which read these Structs.
+``[faults]`` table) live with their owners (:mod:`zenswarm.scenario.config`, :mod:`zenswarm.link.faults`,
+:mod:`zenswarm.vehicle.autopilot`), which read these Structs.
 """
 
 from __future__ import annotations
 
 import math
 import re
-from typing import Annotated, Any, Literal, TypeVar
+from typing import Annotated, Any, Literal, Protocol, TypeVar
 
 import msgspec
 from msgspec import Meta, field
 
-from .errors import ScenarioError
+from zenswarm.errors import ScenarioError
 
 __all__ = [
+    "ScenarioTables",
     "Table",
     "ScenarioMeta",
     "Timing",
@@ -70,7 +71,7 @@ Prob = Annotated[float, Meta(ge=0, le=1)]
 Vec3 = tuple[float, float, float]
 PosVec3 = tuple[Pos, Pos, Pos]
 Duration = str | float
-"""A duration string with a unit (``"50ms"``), or the number 0 (checked by :mod:`zenswarm.faults`)."""
+"""A duration string with a unit (``"50ms"``), or the number 0 (checked by :mod:`zenswarm.link.faults`)."""
 
 
 class Table(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -142,7 +143,7 @@ class LeaderConfig(Table, frozen=True):
     adaptive: bool = True
     k_rep_fixed: Pos = 1.0
     speed_limit: NonNeg = 0.0  # m/s; 0 means off (fidelity to the paper)
-    planner: str | None = None  # plug-in name (zenswarm.plugins); None: "aapf", or "apf" with adaptive = false
+    planner: str | None = None  # plug-in name (zenswarm.scenario.plugins); None: "aapf", or "apf" with adaptive = false
     params: dict[str, Any] = field(default_factory=dict)  # [leader.params]: the planner's Params
 
     def __post_init__(self) -> None:
@@ -151,7 +152,7 @@ class LeaderConfig(Table, frozen=True):
 
 
 class AgentsConfig(Table, frozen=True):
-    """``[agents]``: the agents' controller plug-in (:mod:`zenswarm.plugins`) and its parameters
+    """``[agents]``: the agents' controller plug-in (:mod:`zenswarm.scenario.plugins`) and its parameters
     (``[agents.params]``, decoded into the controller's ``Params``)."""
 
     controller: str = "paper"
@@ -159,7 +160,7 @@ class AgentsConfig(Table, frozen=True):
 
 
 class PlantConfig(Table, frozen=True):
-    """``[plant]``: the plant model plug-in (:mod:`zenswarm.plugins`, kind ``plant``: the vehicles'
+    """``[plant]``: the plant model plug-in (:mod:`zenswarm.scenario.plugins`, kind ``plant``: the vehicles'
     dynamics; default ``quadrotor``, zenswarm's own) and its parameters (``[plant.params]``,
     decoded into the model's ``Params``)."""
 
@@ -227,7 +228,7 @@ class ControllerConfig(Table, frozen=True):
 
 
 class VehicleConfig(Table, frozen=True):
-    """``[vehicle]``: optional overrides of :class:`zenswarm.params.QuadParams`; ``None`` keeps the default.
+    """``[vehicle]``: optional overrides of :class:`zenswarm.vehicle.params.QuadParams`; ``None`` keeps the default.
 
     ``radius``: the vehicle's contact radius, m, used by the verdict (obstacle contact when a
     UAV's clearance is below it, UAV-UAV contact below twice it); ``None``: a Crazyflie 2.1's.
@@ -241,7 +242,7 @@ class VehicleConfig(Table, frozen=True):
 
 
 class MissionConfig(Table, frozen=True):
-    """``[mission]``: how a flight is judged (:mod:`zenswarm.verdict`).
+    """``[mission]``: how a flight is judged (:mod:`zenswarm.judge.verdict`).
 
     slot_tolerance_m: every UAV must end within this distance of its slot q0_goal + h_i, m ...
     settle_window_s: ... for this long at the end of the flight, s.
@@ -302,7 +303,7 @@ class FailsafeConfig(Table, frozen=True):
 
 
 class RestartTable(Table, frozen=True):
-    """``[restart]``: supervisor backoff (see :class:`zenswarm.policy.RestartPolicy`); present
+    """``[restart]``: supervisor backoff (see :class:`zenswarm.compose.policy.RestartPolicy`); present
     means enabled unless ``enabled = false``. Delays s > 0, factor >= 1, max_restarts >= 0."""
 
     enabled: bool = True
@@ -326,7 +327,7 @@ class BurstTable(Table, frozen=True):
 
 
 class FadeTable(Table, frozen=True):
-    """A logistic fall-off of delivery with distance (:class:`zenswarm.radio.RadioModel`): its
+    """A logistic fall-off of delivery with distance (:class:`zenswarm.link.radio.RadioModel`): its
     50 % range ``r50`` and ``width`` (distances such as ``"1.2m"`` or metres, > 0)."""
 
     r50: str | float
@@ -346,7 +347,7 @@ class LinkFaultsTable(Table, frozen=True):
     """One ``[[faults.links]]`` entry: src, dst (process names or globs), kind (``ref``,
     ``leader``, ``state``, ``cmd`` or ``*``); omitted fields inherit the ``[faults]`` values;
     ``burst = false`` turns an inherited burst off, ``capacity = false`` an inherited capacity
-    (:mod:`zenswarm.linkqueue`)."""
+    (:mod:`zenswarm.link.queue`)."""
 
     src: str = "*"
     dst: str = "*"
@@ -363,8 +364,8 @@ class LinkFaultsTable(Table, frozen=True):
 
 
 class FaultsTable(Table, frozen=True):
-    """``[faults]``: link faults (see :func:`zenswarm.faults.plan_from_scenario` and docs/faults.md);
-    capacity, queue, medium: :mod:`zenswarm.linkqueue`; trace: a CSV file (:mod:`zenswarm.linktrace`),
+    """``[faults]``: link faults (see :func:`zenswarm.link.faults.plan_from_scenario` and docs/faults.md);
+    capacity, queue, medium: :mod:`zenswarm.link.queue`; trace: a CSV file (:mod:`zenswarm.link.trace`),
     relative to the scenario file; hold: the hold horizon of the references (a duration, e.g.
     ``"0.5s"``: a neighbour or leader last heard longer ago is left out of eqs (16)-(17))."""
 
@@ -385,7 +386,7 @@ class FaultsTable(Table, frozen=True):
 
 class MavlinkTable(Table, frozen=True):
     """``[mavlink]``: the MAVLink bridge and simulated vehicles (see
-    :func:`zenswarm.autopilot.mavlink_settings` for every key; ``None``: the derived default)."""
+    :func:`zenswarm.vehicle.autopilot.mavlink_settings` for every key; ``None``: the derived default)."""
 
     connections: tuple[Annotated[str, Meta(min_length=1)], ...] | None = None
     sysids: tuple[Annotated[int, Meta(ge=1, le=254)], ...] | None = None
@@ -575,3 +576,30 @@ def _plain(x: Any) -> Any:
     if isinstance(x, dict):
         return {k: _plain(v) for k, v in x.items()}
     return x
+
+
+class ScenarioTables(Protocol):
+    """What the base's packages below the scenario (the link model, :mod:`zenswarm.link`; the
+    autopilot facts, :mod:`zenswarm.vehicle.autopilot`) read of a validated scenario: its tables,
+    typed here. :class:`zenswarm.scenario.config.Scenario` is one; they never import it, so the
+    scenario package may use them (it validates ``[faults]`` and ``[mavlink]`` on load)."""
+
+    @property
+    def n(self) -> int:
+        """Number of follower UAVs N."""
+        ...
+
+    @property
+    def seed(self) -> int: ...
+
+    @property
+    def timing(self) -> Timing: ...
+
+    @property
+    def graph(self) -> GraphConfig: ...
+
+    @property
+    def faults(self) -> FaultsTable | None: ...
+
+    @property
+    def mavlink(self) -> MavlinkTable | None: ...

@@ -43,9 +43,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from . import wire
-from .config import Scenario, load_scenario
-from .errors import ZenswarmError
+from zenswarm.bus import wire
+from zenswarm.errors import ZenswarmError
+from zenswarm.scenario.config import Scenario, load_scenario
 
 if TYPE_CHECKING:  # imported where used: only credential generation needs cryptography
     from cryptography import x509

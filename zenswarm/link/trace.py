@@ -14,7 +14,7 @@ A CSV file with the header ``time,link,delay,delivered`` and one row per sample:
 
 * ``time``: seconds of sim time since the start, a finite number >= 0; non-decreasing down the
   file (rows of different links interleave freely; one link may not have two rows at the same time).
-* ``link``: a directed link ``src->dst`` named as in :mod:`zenswarm.faults` (``plant``,
+* ``link``: a directed link ``src->dst`` named as in :mod:`zenswarm.link.names` (``plant``,
   ``leader``, ``agent:<i>``); the message kind follows from the two ends (``agent->agent``:
   ``ref``, ``leader->agent``: ``leader``, ``plant->agent``: ``state``, ``agent->plant``: ``cmd``).
   It must be a link of the scenario's graph (:func:`LinkTrace.check_links`).
@@ -27,7 +27,7 @@ A message sent at ``t_send`` on a traced link takes the row *in force* at ``t_se
 of that link with ``time <= t_send``; before a link's first row its first row applies, after its
 last row the last row holds (no looping). On a traced link the trace replaces the model's delay,
 jitter, independent and burst loss (a dropped message reports reason ``trace``); timed partitions
-and the link's capacity queue (:mod:`zenswarm.linkqueue`) still apply. Untraced links keep the
+and the link's capacity queue (:mod:`zenswarm.link.queue`) still apply. Untraced links keep the
 model. Everything is a pure function of (trace, link, t_send), so the simulator and the lockstep
 swarm agree bit for bit.
 """
@@ -43,8 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ScenarioError
-from .faults import link_kind, parse_process
+from zenswarm.errors import ScenarioError
+from zenswarm.link.names import link_kind, parse_process
 
 __all__ = ["HEADER", "LinkTrace", "parse_trace", "load_trace"]
 

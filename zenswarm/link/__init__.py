@@ -1,0 +1,41 @@
+"""The link model: what happens to a message between two processes of the swarm.
+
+A run's links are described by a plan (:class:`FaultPlan`: delay, jitter, loss, bursts, timed
+partitions, radio range and fading, capacity queues, a replayed trace), made once from the
+scenario's ``[faults]`` table and the command line's shortcuts (:class:`LinkFaults`,
+:func:`plan_for`). A receiver asks its :class:`Box` for each of its incoming links (``(src,
+dst, kind)``) what becomes of a message: it offers what arrived and takes what is delivered at
+a tick; lockstep decisions are pure functions of (seed, link, tick), so the simulator and the
+swarm's processes decide alike. Realtime runs release kept messages late through a
+:class:`DelayLine`.
+
+This package's namespace is the entry point the roles, the edges and the runtime use; its
+modules are the model's parts: :mod:`~zenswarm.link.names` (processes and links),
+:mod:`~zenswarm.link.faults` (the plan and the decisions), :mod:`~zenswarm.link.radio`,
+:mod:`~zenswarm.link.queue` (capacity and queueing), :mod:`~zenswarm.link.trace` (trace replay) and
+:mod:`~zenswarm.link.swarm` (the plan of a scenario's swarm, its boxes and graph series).
+"""
+
+from zenswarm.link.faults import FaultPlan, FaultState, delivery_tick, parse_duration
+from zenswarm.link.names import KINDS, agent_links, link_kind, parse_process, plant_links
+from zenswarm.link.queue import message_size, parse_capacity
+from zenswarm.link.radio import parse_distance
+from zenswarm.link.swarm import (
+    Box,
+    DelayLine,
+    GraphSeries,
+    LinkFaults,
+    box_counters,
+    distance,
+    due_tick,
+    effective_graph,
+    graph_series,
+    plan_for,
+    scenario_links,
+)
+
+__all__ = [
+    "FaultPlan", "FaultState", "delivery_tick", "parse_duration", "KINDS", "agent_links", "link_kind", "parse_process",
+    "plant_links", "message_size", "parse_capacity", "parse_distance", "Box", "DelayLine", "GraphSeries", "LinkFaults",
+    "box_counters", "distance", "due_tick", "effective_graph", "graph_series", "plan_for", "scenario_links",
+]  # fmt: skip

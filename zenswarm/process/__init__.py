@@ -1,0 +1,9 @@
+"""What every swarm process shares (the roles and edges build on it).
+
+- :mod:`zenswarm.process.runtime`: a process's Zenoh session, its inbox of decoded inputs, lockstep
+  waits, clocks, diagnostics, plug-in failures and exit statuses.
+- :mod:`zenswarm.process.security`: credentials and access control (``zenswarm keys``, ``up --secure``).
+- :mod:`zenswarm.process.collector`: the flight's time series assembled from the bus (what ``up`` judges).
+- :mod:`zenswarm.process.rtsched`: ``SCHED_FIFO`` for a realtime flight's control loops.
+- :mod:`zenswarm.process.paths`: output paths checked (and locked) before any work.
+"""
