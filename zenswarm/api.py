@@ -51,6 +51,7 @@ from zenswarm.process.paths import check_output_dir
 from zenswarm.scenario.config import Scenario, scenario_to_dict
 from zenswarm.scenario.generate import to_toml
 from zenswarm.scenario.overrides import OverrideError, apply, copy_document, validated
+from zenswarm.scenario.plugins import check_selection
 
 __all__ = [
     "fly",
@@ -249,19 +250,39 @@ def scenario_path(name: str | Path) -> Path:
     return q
 
 
-def _document(scenario: str | Path | Scenario | Mapping[str, Any]) -> dict[str, Any]:
-    """The scenario as a TOML document (nested dicts), as a file holds it."""
-    if isinstance(scenario, Scenario):
-        return scenario_to_dict(scenario)
+def _document(scenario: str | Path | Mapping[str, Any]) -> dict[str, Any]:
+    """A scenario given as a file or a parsed document, as a TOML document (nested dicts; a copy).
+    A file's relative ``[faults] trace`` is made relative to the file's directory, as
+    :func:`zenswarm.scenario.config.load_scenario` makes it."""
     if isinstance(scenario, Mapping):
         copied: dict[str, Any] = copy_document(dict(scenario))
         return copied
     p = scenario_path(scenario)
     try:
         doc: dict[str, Any] = tomllib.loads(p.read_text(encoding="utf-8"))
-        return doc
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise ScenarioError("file", f"{p} is not valid TOML: {e}") from None
+    faults = doc.get("faults")
+    if isinstance(faults, dict) and isinstance(faults.get("trace"), str) and not Path(faults["trace"]).is_absolute():
+        faults["trace"] = str(p.parent.absolute() / faults["trace"])
+    return doc
+
+
+def _resolve(
+    scenario: str | Path | Scenario | Mapping[str, Any], overrides: Mapping[str, Any] | None
+) -> tuple[Scenario, dict[str, Any] | None]:
+    """The flight's scenario, converted once: a :class:`Scenario` without overrides is used as it
+    is (its plug-ins checked); a file or document, with the overrides set in it, becomes one.
+    Also the document it came from (None for a Scenario used as it is)."""
+    ov = dict(overrides or {})
+    if isinstance(scenario, Scenario):
+        if not ov:
+            check_selection(scenario)
+            return scenario, None
+        doc = scenario_to_dict(scenario)  # overrides are edits of the document
+    else:
+        doc = _document(scenario)
+    return validated(doc, ov), apply(doc, ov) if ov else doc
 
 
 def load(
@@ -274,9 +295,8 @@ def load(
     ``{"dotted.path": value}``, applied in order. Errors of the scenario itself raise
     :class:`ScenarioError`; errors an override caused raise :class:`OverrideError` naming the
     field and the override."""
-    doc = _document(scenario)
-    ov = dict(overrides or {})
-    return validated(doc, ov), apply(doc, ov)
+    sc, doc = _resolve(scenario, overrides)
+    return sc, doc if doc is not None else scenario_to_dict(sc)
 
 
 # ----------------------------------------------------------------------------- processes
@@ -401,7 +421,7 @@ def fly(
     ov.update({key: value for key, value in shortcuts.items() if value is not None})
     if planner is not None:  # as --planner: the named planner decides ([leader] adaptive is its older spelling)
         ov["leader.adaptive"] = planner != "apf"
-    sc, doc = load(scenario, ov)  # the controller and planner resolve, their params decode (errors naming them)
+    sc, doc = _resolve(scenario, ov)  # converted once; the plug-ins resolve, their params decode (errors naming them)
     loss = None if link_loss is None else (link_loss if isinstance(link_loss, str) else repr(float(link_loss)))
     rng = None if link_range is None else (link_range if isinstance(link_range, str) else repr(float(link_range)))
     faults = LinkFaults(
@@ -448,7 +468,7 @@ def _flight(
 
 
 def _fly_swarm(
-    sc: Scenario, doc: dict[str, Any], faults: LinkFaults, kills: tuple[tuple[str, float], ...], restart: bool,
+    sc: Scenario, doc: dict[str, Any] | None, faults: LinkFaults, kills: tuple[tuple[str, float], ...], restart: bool,
     realtime: bool, full_time: bool, record: Path | None, out: Path | None, swarm: str | None, port: int | None,
     lockstep_timeout: float, timeout: float, rt_priority: int | None = None,
 ) -> Flight:
@@ -459,7 +479,8 @@ def _fly_swarm(
         run_dir = Path(tmp)
         out_dir = out if out is not None else run_dir / "out"
         scen_file = run_dir / "scenario.toml"
-        scen_file.write_text(to_toml(doc))
+        # the file the supervisor reads: the document flown, or the Scenario's own (the one conversion)
+        scen_file.write_text(to_toml(doc if doc is not None else scenario_to_dict(sc)))
         opts = UpOptions(
             scenario=scen_file, swarm=swarm, out=out_dir, realtime=realtime, record=record, lockstep_timeout=lockstep_timeout,
             kill=kills, restart=restart, full_time=full_time, faults=faults, listen=(f"tcp/127.0.0.1:{port}",),

@@ -112,30 +112,27 @@ def apply(doc: dict[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def validated(doc: dict[str, Any], overrides: Mapping[str, Any], plugins: bool = True) -> Scenario:
-    """The scenario of ``doc`` (its own errors first, as :class:`ScenarioError`) with
-    ``overrides`` applied and validated, the plug-ins' names and parameters too (``plugins``):
-    every error an override caused is an :class:`OverrideError`."""
+    """The scenario of ``doc`` with ``overrides`` applied, converted once and validated, the
+    plug-ins' names and parameters too (``plugins``). An error of the scenario itself is a
+    :class:`ScenarioError`; every error an override caused is an :class:`OverrideError` (told
+    apart, only when there is an error, by converting ``doc`` without the overrides)."""
     from zenswarm.scenario.plugins import check_selection
 
-    base = scenario_from_dict(copy_document(doc))  # the scenario's own errors first, as such
     if not overrides:
+        sc = scenario_from_dict(copy_document(doc))
         if plugins:
-            check_selection(base)
-        return base
+            check_selection(sc)
+        return sc
     new = apply(doc, overrides)
     try:
-        sc = scenario_from_dict(copy_document(new))
+        sc = scenario_from_dict(new)
+        if plugins:
+            check_selection(sc)
     except OverrideError:
         raise
     except ScenarioError as e:
+        validated(doc, {}, plugins)  # the scenario's own error: raised as such
         raise _blame(e, overrides) from None
-    if plugins:
-        try:
-            check_selection(sc)
-        except ScenarioError as e:
-            if any(_related(e.field, str(p)) for p in overrides):
-                raise _blame(e, overrides) from None
-            raise
     return sc
 
 
