@@ -66,6 +66,7 @@ import argparse
 import math
 import sys
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -153,6 +154,7 @@ _PARAM_RETRY_S = 0.5  # PARAM_REQUEST_READ / PARAM_SET repeated this often until
 _SYS_STATUS_WAIT_S = 3.0  # ARM: no SYS_STATUS this long -> refused (health unknown)
 _TAKEOFF_RETRY_S = 1.0
 _TIMESYNC_S = 1.0  # TIMESYNC request period per vehicle (link latency)
+_TIMESYNC_WINDOW = 8  # the clock offset comes from the fastest of the last answers (NTP's rule)
 # MAV_LANDED_STATE (MAVLink common.xml, sent in EXTENDED_SYS_STATE): IN_AIR, TAKEOFF, LANDING
 _AIRBORNE_STATES = (2, 3, 4)
 _MODE_RETRY_S = 1.0
@@ -189,6 +191,7 @@ class Telemetry:
     rtt_s: float | None = None  # TIMESYNC round trip, s (latest)
     clock_offset_s: float | None = None  # vehicle clock - bridge monotonic clock, s (TIMESYNC, else time_boot_ms)
     clock_from_timesync: bool = False
+    timesync_samples: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=_TIMESYNC_WINDOW))  # (rtt, offset)
 
 
 class Endpoint:
@@ -556,8 +559,9 @@ class Bridge:
 
     def _rx_timesync(self, link: UavLink, m: Any, now: float) -> bool:
         """TIMESYNC answer (tc1 = the vehicle's time, ns; ts1 = ours, echoed): round trip and
-        clock offset (MAVLink timesync protocol; PX4 and ArduPilot both answer). A request from
-        the vehicle (tc1 = 0) is answered."""
+        clock offset (MAVLink timesync protocol; PX4 and ArduPilot both answer), the offset from
+        the fastest of the last ``_TIMESYNC_WINDOW`` answers. A request from the vehicle
+        (tc1 = 0) is answered."""
         t = link.tel
         if m.tc1 == 0:
             mav = self._mav(link)
@@ -570,7 +574,14 @@ class Bridge:
             self._count("timesync_stale")
             return True
         t.rtt_s = rtt
-        t.clock_offset_s = m.tc1 / 1e9 - (sent + now) / 2.0
+        offset = m.tc1 / 1e9 - (sent + now) / 2.0
+        if t.timesync_samples and abs(offset - t.timesync_samples[-1][1]) > 5.0:  # the vehicle rebooted
+            t.timesync_samples.clear()
+        t.timesync_samples.append((rtt, offset))
+        # Half the round trip is assumed each way, so an answer's offset is off by up to rtt/2:
+        # the fastest recent answer is the best estimate (a slow, lopsided one under load would
+        # otherwise date states into the future). The window follows clock drift.
+        t.clock_offset_s = min(t.timesync_samples)[1]
         t.clock_from_timesync = True
         return True
 

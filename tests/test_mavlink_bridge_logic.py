@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from zenswarm.bridge import mavlink as mavlink_mod
 from zenswarm.bridge.mavlink import (
     AP_COPTER_MODES,
     PX4_OFFBOARD,
@@ -367,6 +368,34 @@ def test_state_stamp_is_the_vehicle_time_on_the_mission_clock():
     assert stamp is not None and stamp == pytest.approx(-0.34e9, abs=1e3)
     st = wire.State(t=0, seq=1, q=[0, 0, 1], v=[0, 0, 0], rpy=[0, 0, 0], w=[0, 0, 0], stamp=stamp)
     assert wire.decode("state", wire.encode(st)).stamp == stamp
+
+
+def test_clock_offset_from_the_fastest_recent_timesync_answer():
+    """A slow, lopsided round trip (load: the answer waited 40 ms on the way back) must not move
+    the clock offset: the fastest of the recent answers sets it, so states are never dated after
+    they arrived; a vehicle reboot (offset jump) starts the window over."""
+    b, _, _ = _bridge({})
+    lk = b.links[0]
+    _heartbeat(b, 1, mavlink.MAV_AUTOPILOT_PX4, 0, now=10.0)
+    # vehicle clock = bridge clock - 5.0 s exactly; fast answer: 2 ms each way
+    b._handle(lk.endpoint, _msg("TIMESYNC", tc1=int(5.002e9), ts1=int(10.0 * 1e9)), 10.004)
+    assert lk.tel.clock_offset_s == pytest.approx(-5.0, abs=1e-9)
+    # slow answer: 1 ms out, 40 ms back -> this answer alone would say offset = -5.0195
+    b._handle(lk.endpoint, _msg("TIMESYNC", tc1=int(6.001e9), ts1=int(11.0 * 1e9)), 11.041)
+    assert lk.tel.rtt_s == pytest.approx(0.041)  # the latency diagnostic is the latest round trip
+    assert lk.tel.clock_offset_s == pytest.approx(-5.0, abs=1e-9)
+    b._handle(lk.endpoint, _msg("LOCAL_POSITION_NED", time_boot_ms=6030, x=0.0, y=0.0, z=-1.0, vx=0.0, vy=0.0, vz=0.0), 11.031)
+    lk.tel.rpy_ned, lk.tel.rates_frd, lk.tel.att_rx = np.zeros(3), np.zeros(3), 11.031
+    b.state_enu(lk, 11.031)
+    assert lk.state_age_s == pytest.approx(0.001, abs=1e-6)  # with the slow answer's offset: -18.5 ms
+    # the fast answer leaves the window after _TIMESYNC_WINDOW newer ones: the offset follows drift
+    for i in range(mavlink_mod._TIMESYNC_WINDOW):
+        sent = 12.0 + i
+        b._handle(lk.endpoint, _msg("TIMESYNC", tc1=int((sent - 4.999 + 0.003) * 1e9), ts1=int(sent * 1e9)), sent + 0.006)
+    assert lk.tel.clock_offset_s == pytest.approx(-4.999, abs=1e-9)
+    # reboot: the vehicle's clock starts again near 0
+    b._handle(lk.endpoint, _msg("TIMESYNC", tc1=int(0.5e9), ts1=int(30.0 * 1e9)), 30.05)
+    assert lk.tel.clock_offset_s == pytest.approx(0.5 - 30.025, abs=1e-9)
 
 
 def test_origin_flag_overrides_one_uav():
