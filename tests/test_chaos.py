@@ -360,9 +360,9 @@ def _listening(pids: set[int]) -> list[tuple[int, str, str]]:
 
 def test_every_listening_port_is_loopback_only(tmp_path: Path) -> None:
     """A flight with ``--record`` and ``--live``: the only sockets listening are the supervisor's
-    router, the live view's relay and the Foxglove SDK's server behind it (docs/security.md,
-    "Listening ports"), all on 127.0.0.1; the swarm's processes listen on nothing. The relay
-    refuses a browser page from another site (its ``Origin``), and takes the Foxglove app."""
+    router and the live view's server (docs/security.md, "Listening ports"), both on 127.0.0.1;
+    the swarm's processes listen on nothing. The live view refuses a browser page from another
+    site (its ``Origin``), and takes the Foxglove app."""
     import asyncio
 
     from websockets.asyncio.client import connect
@@ -398,8 +398,8 @@ def test_every_listening_port_is_loopback_only(tmp_path: Path) -> None:
     owners = {pid for pid, _, _ in socks}
     assert owners == {up.p.pid}, socks  # the children listen on nothing
     ports = sorted(int(addr.rsplit(":", 1)[1]) for _, proto, addr in socks if proto == "tcp")
-    assert port in ports and live in ports and len(ports) == 3, socks  # router, relay, the SDK's server
+    assert ports == sorted([port, live]), socks  # the router and the live view: nothing else
     assert not [s for s in socks if s[1] != "tcp"], socks  # no UDP (no scouting)
     assert seen == {None: "open foxglove.websocket.v1", "https://app.foxglove.dev": "open foxglove.websocket.v1",
                     "https://evil.example": "refused 403"}, seen
-    print(f"\nlistening sockets of the flight: {socks}; relay by Origin: {seen}")
+    print(f"\nlistening sockets of the flight: {socks}; the live view by Origin: {seen}")

@@ -1,5 +1,6 @@
 """Issue 30, the pieces without processes: a recording ended on a full disk, the output-directory
-lock, the failsafe intervals the supervisor reports, the message a lockstep receiver waits for."""
+lock, the failsafe intervals the supervisor reports, the message a lockstep receiver waits for,
+``--router-lost-timeout`` reaching every process that has a router to lose."""
 
 from __future__ import annotations
 
@@ -114,3 +115,46 @@ def test_a_message_never_sent_is_not_waited_for() -> None:
     assert due_tick(box, 100) == 95
     box.offer(95, 1, "ref95")
     assert due_tick(box, 100) == 100  # offered: the old rule (has the sender moved past tick 100?)
+
+
+ROUTER_CLIENTS = {
+    "bridge mavlink": (["bridge", "mavlink", str(EX1)], "zenswarm.process.runtime"),
+    "plant": (["plant"], "zenswarm.plant.process"),
+    "leader": (["leader"], "zenswarm.leader.process"),
+    "agent": (["agent", "--id", "2"], "zenswarm.agents.process"),
+}
+"""The commands whose process is a client of the swarm's router, and the module their run function
+calls ``run_process`` from. ``mavlink-vehicle`` is not one: the simulated vehicles open no Zenoh
+session (UDP only, the bridge is their swarm side), so they have no router to lose."""
+
+
+@pytest.mark.parametrize("command", list(ROUTER_CLIENTS))
+def test_router_lost_timeout_reaches_the_process_options(command: str, monkeypatch: pytest.MonkeyPatch,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """``--router-lost-timeout S`` on the command line of the MAVLink bridge as on the plant's,
+    the leader's and an agent's (the same flag, add_process_args): the process runs with it in its
+    ProcessOptions (without it, the default); a bad value is exit 2 naming the flag, before any work."""
+    import importlib
+
+    from zenswarm.compose.cli import main as cli_main
+    from zenswarm.process.runtime import DEFAULT_ROUTER_LOST_TIMEOUT_S, ProcessOptions
+
+    argv, module = ROUTER_CLIENTS[command]
+    ran: list[tuple[str, ProcessOptions]] = []
+
+    def run_process(fn: Any, name: str, options: Any) -> int:  # what SwarmProcess would be started with
+        ran.append((name, ProcessOptions.of(options)))
+        return 0
+
+    monkeypatch.setattr(importlib.import_module(module), "run_process", run_process)
+    assert cli_main([*argv, "--router-lost-timeout", "2.5"]) == 0
+    assert cli_main(argv) == 0
+    assert [(name, o.router_lost_timeout) for name, o in ran] == [(ran[0][0], 2.5), (ran[0][0], DEFAULT_ROUTER_LOST_TIMEOUT_S)]
+    assert ran[0][0] == {"bridge mavlink": "bridge", "agent": "agent:2"}.get(command, command)
+    for bad in ("0", "-1", "nan", "inf", "soon"):
+        with pytest.raises(SystemExit) as e:
+            cli_main([*argv, "--router-lost-timeout", bad])
+        assert e.value.code == 2
+        err = capsys.readouterr().err
+        assert "--router-lost-timeout" in err and repr(bad) in err, err
+    assert len(ran) == 2, "a bad value ran nothing"

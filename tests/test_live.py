@@ -1,11 +1,13 @@
-"""The live view (bridge/live.py, `zenswarm up --live`): a Foxglove WebSocket client, headless.
+"""The live view (bridge/live.py, `zenswarm up --live`): Foxglove WebSocket clients, headless.
 
 A short lockstep flight of paper example 1 with ``--live PORT``: a client speaking the Foxglove
 WebSocket protocol under its first name only (subprotocol ``foxglove.websocket.v1``, which the
-foxglove-sdk server itself refuses: bridge/live.py's relay accepts it) connects, checks the advertised channels and schemas (/scene and /tf
-with Foxglove's official protobuf descriptors, the SDK's; /metrics with its JSON Schema),
-subscribes to them, and decodes what it receives with those schemas. The flight itself equals
-the in-process simulator bit for bit, as without --live.
+foxglove-sdk's own server refuses; the live view's server, bridge/live.py's, accepts both names)
+connects, checks the advertised channels and schemas (/scene and /tf with Foxglove's official
+protobuf descriptors, the SDK's; /metrics with its JSON Schema), subscribes to them, and decodes
+what it receives with those schemas. The flight itself equals the in-process simulator bit for
+bit, as without --live. Without a flight: the handshake under each name, the one listening port,
+the bytes against the export's, subscriptions of two clients, a slow client.
 """
 
 from __future__ import annotations
@@ -149,9 +151,9 @@ def test_live_view_serves_the_flight_to_a_foxglove_client(tmp_path: Path) -> Non
 
 
 def test_live_view_accepts_both_names_of_the_protocol() -> None:
-    """In this process, no flight: the relay in front of the SDK's server selects the name the
-    client offers (``foxglove.sdk.v1`` when both are), relays the server's first messages, and
-    refuses a client offering neither (HTTP 400, as the SDK does)."""
+    """In this process, no flight: the live view's server selects the name the client offers
+    (``foxglove.sdk.v1`` when both are), sends its first messages, and refuses a client offering
+    neither (HTTP 400, as the SDK's server does)."""
     from zenswarm.bridge.live import LiveView
     from zenswarm.scenario.config import load_scenario
 
@@ -245,3 +247,301 @@ def test_live_port_in_use_or_invalid_is_exit_2_before_the_flight(tmp_path: Path,
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert "--live" in err and "70000" in err, err
+
+
+# ----------------------------------------------------------------------------- the server, without a flight
+
+EX1 = ROOT / "compose" / "scenarios" / "paper_example1.toml"
+
+
+class Client:
+    """A Foxglove WebSocket client for the tests below: the server's hello (``info``, the
+    advertised channels ``by_topic``), then every message read kept: ``data`` (subscription id,
+    timestamp, payload) and ``statuses``."""
+
+    def __init__(self, ws: websockets.ClientConnection) -> None:
+        self.ws = ws
+        self.info: dict = {}
+        self.by_topic: dict[str, dict] = {}
+        self.data: list[tuple[int, int, bytes]] = []
+        self.statuses: list[dict] = []
+
+    @classmethod
+    async def open(cls, url: str, offer: tuple[str, ...] = (WS_V1,), **kw: object) -> Client:
+        c = cls(await websockets.connect(url, subprotocols=list(offer), open_timeout=10, max_size=None, **kw))  # type: ignore[arg-type]
+        c.info = json.loads(await asyncio.wait_for(c.ws.recv(), 10))
+        advertise = json.loads(await asyncio.wait_for(c.ws.recv(), 10))
+        assert (c.info["op"], advertise["op"]) == ("serverInfo", "advertise"), (c.info, advertise)
+        c.by_topic = {ch["topic"]: ch for ch in advertise["channels"]}
+        return c
+
+    async def send(self, op: str, **fields: object) -> None:
+        await self.ws.send(json.dumps({"op": op, **fields}))
+
+    async def subscribe(self, subs: dict[int, str]) -> None:
+        await self.send("subscribe", subscriptions=[{"id": sid, "channelId": self.by_topic[t]["id"]} for sid, t in subs.items()])
+
+    async def read(self, timeout: float = 10.0) -> None:
+        raw = await asyncio.wait_for(self.ws.recv(), timeout)
+        if isinstance(raw, str):
+            msg = json.loads(raw)
+            assert msg["op"] == "status", msg
+            self.statuses.append(msg)
+        else:
+            assert raw[0] == 0x01, f"opcode {raw[0]}: expected message data"
+            sid, stamp = struct.unpack_from("<IQ", raw, 1)
+            self.data.append((sid, stamp, bytes(raw[13:])))
+
+    async def until(self, done: Callable[[], bool], timeout: float = 10.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not done():
+            await self.read(max(0.01, deadline - time.monotonic()))
+
+    async def barrier(self) -> dict:
+        """Everything sent before has been handled by the server: it answers in order, here an
+        op it does not support with an error status (which it sends before any data queued)."""
+        n = len(self.statuses)
+        await self.send("zenswarm.test.barrier")
+        await self.until(lambda: any("barrier" in s["message"] for s in self.statuses[n:]))
+        return self.statuses[-1]
+
+    def got(self, sid: int) -> list[tuple[int, bytes]]:
+        return [(stamp, payload) for s, stamp, payload in self.data if s == sid]
+
+
+def feed_tick(view, k: int) -> int:
+    """The wire messages of tick ``k`` (every UAV's state and reference, the leader's), then a
+    frame published; returns its stamp (ns)."""
+    from zenswarm.bus import wire
+
+    t, keys = k * 10_000_000, view.keys
+    for i in range(1, view.sc.n + 1):
+        q, v = [float(i), 0.01 * k, 1.0], [1.0, 0.0, 0.0]
+        view.feed(keys.state(i), wire.encode(wire.State(t, k, q, v, [0.0, 0.0, 0.01 * k], [0.0, 0.0, 0.0])))
+        view.feed(keys.ref(i), wire.encode(wire.Ref(t, k, q, v)))
+    view.feed(keys.leader_ref, wire.encode(wire.Ref(t, k, [0.0, 0.01 * k, 1.0], [1.0, 0.0, 0.0])))
+    assert view.publish()
+    return view.base_ns + t
+
+
+@pytest.fixture
+def view():
+    from zenswarm.bridge.live import LiveView
+    from zenswarm.scenario.config import load_scenario
+
+    v = LiveView(load_scenario(EX1), "server", 0)
+    try:
+        yield v
+    finally:
+        v.close()
+
+
+def test_the_live_view_listens_on_one_port_only() -> None:
+    """A process serving the live view (a LiveView, as in `up --live` and `replay --live`)
+    listens on exactly one socket: the port it prints, on 127.0.0.1, where the Origin check is.
+    (Before, the foxglove-sdk's server listened on a second, free, loopback port behind the relay,
+    reachable by any local process without that check.)"""
+    import subprocess
+    import sys
+
+    psutil = pytest.importorskip("psutil", reason="psutil (a dependency of rerun-sdk, zenswarm[rerun]) lists the sockets")
+    code = (
+        "import sys\n"
+        "from zenswarm.bridge.live import LiveView\n"
+        "from zenswarm.scenario.config import load_scenario\n"
+        "view = LiveView(load_scenario(sys.argv[1]), 'ports', 0)\n"
+        "print(view.port, flush=True)\n"
+        "sys.stdin.readline()\n"
+        "view.close()\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code, str(EX1)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and proc.stdin is not None
+        port = int(proc.stdout.readline())
+
+        async def serving() -> str:  # it serves there, a client connected while the sockets are listed
+            c = await Client.open(f"ws://127.0.0.1:{port}")
+            async with c.ws:
+                await c.subscribe({1: "/scene"})
+                await c.barrier()
+                return str(c.info["name"])
+
+        assert asyncio.run(serving()) == "zenswarm ports"
+        socks = psutil.Process(proc.pid).net_connections("inet")
+        listening = sorted((c.laddr.ip, c.laddr.port) for c in socks if c.status == psutil.CONN_LISTEN)
+        assert listening == [("127.0.0.1", port)], f"listening: {listening}, the live view's port: {port}"
+        assert not [c for c in socks if c.type == socket.SOCK_DGRAM], socks
+        proc.stdin.write("\n")
+        proc.stdin.flush()
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_live_view_sends_what_the_export_writes(view, tmp_path: Path) -> None:
+    """The channels the live view advertises and the messages it sends are those ``zenswarm
+    export --foxglove`` writes (SceneChannels on the foxglove-sdk's MCAP writer), byte for byte:
+    topics, encodings, schema names and schemas, each message's payload and log time."""
+    import foxglove
+    from mcap.reader import make_reader
+
+    from zenswarm.bridge.foxglove_scene import SceneChannels
+
+    made = []
+    frame = view.latest.frame
+
+    def spy():
+        got = frame()
+        made.append(got)
+        return got
+
+    view.latest.frame = spy
+
+    async def run() -> Client:
+        c = await Client.open(view.url)
+        async with c.ws:
+            await c.subscribe({1: "/scene", 2: "/tf", 3: "/metrics"})
+            await c.barrier()
+            for k in (1, 2, 3):
+                feed_tick(view, k)
+            await c.until(lambda: len(c.data) == 9)
+        return c
+
+    c = asyncio.run(run())
+    ctx = foxglove.Context()
+    with foxglove.open_mcap(tmp_path / "same.mcap", context=ctx):
+        channels = SceneChannels(view.sc, ctx)
+        for f, diag in made:
+            channels.put(f, view.base_ns + f.t_ns, diag)
+    with open(tmp_path / "same.mcap", "rb") as fh:
+        reader = make_reader(fh)
+        written: dict[str, list[tuple[int, bytes]]] = {}
+        schemas = {}
+        for schema, channel, msg in reader.iter_messages():
+            written.setdefault(channel.topic, []).append((msg.log_time, bytes(msg.data)))
+            schemas[channel.topic] = (channel.message_encoding, schema.name, schema.encoding, bytes(schema.data))
+    assert set(written) == set(c.by_topic) == set(TOPICS)
+    for sid, topic in ((1, "/scene"), (2, "/tf"), (3, "/metrics")):
+        ch = c.by_topic[topic]
+        text = ch["schema"]
+        data = base64.b64decode(text) if ch["schemaEncoding"] == "protobuf" else text.encode()
+        assert (ch["encoding"], ch["schemaName"], ch["schemaEncoding"], data) == schemas[topic], topic
+        assert c.got(sid) == written[topic], topic
+    assert len(written["/scene"]) == 3
+
+
+def test_subscribe_unsubscribe_and_two_clients(view) -> None:
+    """Two clients at once, each with subscription ids of its own, get their own streams (the same
+    payloads); after an unsubscribe no more data comes for that id, and the id may be used again;
+    wrong subscriptions and unknown ops are answered with an error status, the connection stays;
+    a client leaving unsubscribes it."""
+    server = view.server
+    scene_id = None
+
+    async def run() -> None:
+        nonlocal scene_id
+        a = await Client.open(view.url, (WS_V1,))
+        b = await Client.open(view.url, ("foxglove.sdk.v1",))
+        assert a.ws.subprotocol == WS_V1 and b.ws.subprotocol == "foxglove.sdk.v1"
+        assert a.info["capabilities"] == [] and a.info["name"] == "zenswarm server" and a.info["sessionId"] == b.info["sessionId"]
+        scene_id, tf_id = a.by_topic["/scene"]["id"], a.by_topic["/tf"]["id"]
+        assert not server.subscribed(scene_id)
+        async with a.ws, b.ws:
+            await a.subscribe({7: "/scene", 8: "/tf"})
+            await b.subscribe({1: "/scene", 2: "/metrics"})
+            await a.barrier()
+            await b.barrier()
+            assert server.subscribed(scene_id)
+            s1 = feed_tick(view, 1)
+            await a.until(lambda: len(a.data) == 2)
+            await b.until(lambda: len(b.data) == 2)
+            assert [(sid, stamp) for sid, stamp, _ in a.data] == [(7, s1), (8, s1)]
+            assert [(sid, stamp) for sid, stamp, _ in b.data] == [(1, s1), (2, s1)]
+            assert a.got(7) == b.got(1)  # the same /scene message
+
+            # wrong subscriptions and ops: an error status each, nothing changes
+            n = len(a.statuses)
+            await a.subscribe({8: "/metrics"})  # id in use
+            await a.send("subscribe", subscriptions=[{"id": 9, "channelId": tf_id}])  # channel subscribed already
+            await a.send("subscribe", subscriptions=[{"id": 9, "channelId": 999}])  # no such channel
+            await a.send("subscribe", subscriptions=[{"id": -1, "channelId": tf_id}])
+            await a.send("getParameters", parameterNames=[])  # a capability the server does not offer
+            await a.ws.send("not json")
+            await a.ws.send(b"\x01\x00\x00\x00\x00")  # client message data: no clientPublish
+            await a.send("unsubscribe", subscriptionIds=[99])  # never subscribed: ignored
+            await a.barrier()
+            levels = [(s["level"], s["message"]) for s in a.statuses[n:]]
+            assert len(levels) == 8 and all(level == 2 for level, _ in levels), levels
+            assert "in use" in levels[0][1] and "already" in levels[1][1] and "999" in levels[2][1], levels
+            assert "getParameters" in levels[4][1] and "JSON" in levels[5][1] and "binary" in levels[6][1], levels
+
+            await a.send("unsubscribe", subscriptionIds=[7])
+            await a.barrier()
+            s2 = feed_tick(view, 2)
+            await a.until(lambda: len(a.got(8)) == 2)  # /tf of tick 2: sent after its /scene would have been
+            await b.until(lambda: len(b.data) == 4)
+            assert [stamp for stamp, _ in a.got(7)] == [s1], "data for an unsubscribed id"
+            assert [(sid, stamp) for sid, stamp, _ in b.data[2:]] == [(1, s2), (2, s2)]
+
+            await a.subscribe({7: "/scene"})  # the id again, after its unsubscribe
+            await a.barrier()
+            s3 = feed_tick(view, 3)
+            await a.until(lambda: len(a.got(8)) == 3)
+            assert [stamp for stamp, _ in a.got(7)] == [s1, s3]
+            await b.until(lambda: len(b.data) == 6)
+            assert a.got(7)[-1] == b.got(1)[-1]
+        await asyncio.sleep(0)
+
+    asyncio.run(run())
+    deadline = time.monotonic() + 10
+    while server.stats() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert server.stats() == [] and not server.subscribed(scene_id), "the clients left: no one subscribed"
+    assert feed_tick(view, 4)  # publishing to no one
+
+
+def test_a_slow_client_does_not_hold_up_publishing(view) -> None:
+    """A client that stops reading: publishing returns at once whatever it does, its queue is
+    bounded (the oldest dropped), and another client still gets the newest message; when it goes
+    away (reset), the server forgets it."""
+    from zenswarm.bridge.live import BACKLOG
+
+    server = view.server
+    scene = view.channels[0]
+    payload = bytes(64 * 1024)
+    n = 300
+
+    async def run() -> tuple[float, Client]:
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        sock.connect(("127.0.0.1", view.port))
+        slow = await Client.open(view.url, sock=sock, max_queue=1)
+        fast = await Client.open(view.url)
+        await slow.subscribe({1: "/scene"})
+        await fast.subscribe({1: "/scene"})
+        await slow.barrier()
+        await fast.barrier()
+        slow.ws.transport.pause_reading()  # it reads nothing more
+        t0 = time.perf_counter()
+        for i in range(1, n + 1):
+            server.publish(scene.id, i, payload)
+        took = time.perf_counter() - t0
+        await fast.until(lambda: bool(fast.data) and fast.data[-1][1] == n, timeout=60)
+        stamps = [stamp for _, stamp, _ in fast.data]
+        assert stamps == sorted(stamps) and all(p == payload for _, _, p in fast.data)
+        stats = server.stats()
+        assert len(stats) == 2 and all(s["queued"] <= BACKLOG for s in stats), stats
+        stuck = [s for s in stats if s["dropped"] > 0 and s["sent"] < n]
+        assert stuck, stats  # the slow one: most of its messages dropped, not queued
+        slow.ws.transport.abort()
+        await fast.ws.close()
+        return took, fast
+
+    took, fast = asyncio.run(run())
+    assert took < 2.0, f"{n} messages published in {took:.2f} s"
+    deadline = time.monotonic() + 10
+    while server.stats() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert server.stats() == []
