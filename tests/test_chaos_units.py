@@ -1,6 +1,7 @@
 """Issue 30, the pieces without processes: a recording ended on a full disk, the output-directory
 lock, the failsafe intervals the supervisor reports, the message a lockstep receiver waits for,
-``--router-lost-timeout`` reaching every process that has a router to lose."""
+``--router-lost-timeout`` reaching every process that has a router to lose, the last tick's
+messages waited for after the processes ended."""
 
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ from zenswarm.process.collector import Collector
 from zenswarm.process.paths import OUTPUT_LOCK, lock_output_dir
 from zenswarm.scenario.config import load_scenario
 
-from swarmtest import SCENARIOS
+from swarmtest import SCENARIOS, scenario_variant
 
 EX1 = SCENARIOS / "paper_example1.toml"
 
@@ -158,3 +159,74 @@ def test_router_lost_timeout_reaches_the_process_options(command: str, monkeypat
         err = capsys.readouterr().err
         assert "--router-lost-timeout" in err and repr(bad) in err, err
     assert len(ran) == 2, "a bad value ran nothing"
+
+
+class _Router:
+    """The supervisor's subscriber, fed by hand: ``try_recv`` hands out what was delivered, one
+    sample at a time, and ``late`` samples are delivered only after ``after`` empty polls (the
+    last messages of processes that exited, still on their way through a loaded router)."""
+
+    def __init__(self, now: list[Any], late: list[Any], after: int) -> None:
+        self.queue, self.late, self.after = list(now), list(late), after
+
+    def try_recv(self) -> Any:
+        if self.queue:
+            return self.queue.pop(0)
+        if self.late:
+            self.after -= 1
+            if self.after <= 0:
+                self.queue, self.late = self.late, []
+        return None
+
+
+def test_the_supervisor_waits_for_the_last_ticks_messages_after_every_process_ended(tmp_path: Path) -> None:
+    """Lockstep, every process done, the last tick's refs and commands not yet through the router:
+    the supervisor polls on (up to --lockstep-timeout) and judges the whole flight, not a series
+    with NaN in its last tick (under CPU load the lockstep swarm != the simulator by the NaN
+    of the last tick: test_plugins, issue 30 "flaky under load")."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from zenswarm.compose.cli import build_parser
+    from zenswarm.compose.supervisor import EXIT_OK, Supervisor, up_options
+
+    scenario = scenario_variant(tmp_path, time_limit_s=0.05)
+    sc = load_scenario(scenario)
+    args = build_parser().parse_args(["up", str(scenario), "--swarm", "late", "--quiet", "--lockstep-timeout", "3"])
+    sup = Supervisor(up_options(args), sc)
+    keys = sup.keys
+    col = sup.collector = Collector(sc, keys)
+    T, n, z = col.T, sc.n, (0.0, 0.0, 0.0)
+
+    def sample(key: str, msg: Any) -> Any:
+        data = wire.encode(msg)
+        return SimpleNamespace(key_expr=key, payload=SimpleNamespace(to_bytes=lambda: data), source_info=None)
+
+    now, late = [], []
+    for k in range(T):
+        t = k * col.dt_ns
+        now.append(sample(keys.clock, wire.Clock(t=t, seq=k)))
+        now.append(sample(keys.leader_ref, wire.Ref(t=t, seq=k, q=(k, 0, 1), v=z)))
+        for i in range(1, n + 1):
+            now.append(sample(keys.state(i), wire.State(t=t, seq=k, q=(k, i, 1), v=z, rpy=z, w=z)))
+            out = late if k == T - 1 else now  # the last tick's outputs come late
+            out.append(sample(keys.ref(i), wire.Ref(t=t, seq=k, q=(k, i, 1.5), v=z)))
+            out.append(sample(keys.cmd(i), wire.Cmd(t=t, seq=k, thrust=1.0, rpy=z, u=z, d_hat=z)))
+    sup._bus_sub = _Router(now, late, after=5)
+    sup.children = {}  # every process has ended
+    assert sup._watch(col) == EXIT_OK
+    ts = col.series()
+    assert np.isfinite(ts.qref).all() and np.isfinite(ts.thrust).all(), "the last tick's outputs were judged missing"
+    assert ts.qref[T - 1, n - 1].tolist() == [T - 1, n, 1.5]
+
+    # they never come: the wait is bounded and said, the run is judged on what arrived
+    col = sup.collector = Collector(sc, keys)
+    sup._bus_sub = _Router(now, [], after=0)
+    sup.args = dataclasses.replace(sup.args, lockstep_timeout=0.2)
+    said: list[str] = []
+    sup.say = said.append  # type: ignore[method-assign]
+    assert sup._watch(col) == EXIT_OK
+    assert any(f"tick {T - 1} did not all arrive within 0.2 s" in s for s in said), said
+    assert np.isnan(col.series().qref[T - 1]).all()
