@@ -199,18 +199,22 @@ def _sweep_args(out: Path, *extra: str) -> list[str]:
 @pytest.mark.swarm  # CLI subprocesses and a process pool
 def test_local_campaign_interrupt_resume_and_rows_equal_fly(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "camp"
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    gate = tmp_path / "gate"  # while it exists, runs after run 0 wait (tests/hold_runs/sitecustomize.py)
+    gate.touch()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "ZENSWARM_TEST_RUN_GATE": str(gate),
+           "PYTHONPATH": os.pathsep.join([str(TESTS / "hold_runs"), os.environ.get("PYTHONPATH", "")])}
     cmd = [sys.executable, "-m", "zenswarm", "sweep", *_sweep_args(out, "--workers", "1")]
     p = subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True)
     journal = out / "runs.jsonl"
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 120
     while time.monotonic() < deadline and p.poll() is None and not (journal.is_file() and journal.read_text().count("\n") >= 1):
         time.sleep(0.05)
     os.killpg(p.pid, signal.SIGINT)  # as Ctrl-C in a terminal: the whole foreground group
     _, err = p.communicate(timeout=30)
     assert p.returncode == 130, err
     first = _table(out)
-    assert 1 <= len(first) < 4 and "resume" in err
+    assert len(first) == 1 and "resume" in err  # run 0 finished, run 1 was held at the gate
+    gate.unlink()
     assert main(_sweep_args(out, "--workers", "1")) == 0  # resumes
     rows = _table(out)
     assert [r["run"] for r in rows] == list(range(4))  # no duplicates, nothing missing
