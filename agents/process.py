@@ -48,8 +48,7 @@ from zenswarm.agents.api import (
 )
 from zenswarm.agents.core import AgentRow, elapsed_dt
 from zenswarm.bus import wire
-from zenswarm.link.faults import FaultState
-from zenswarm.link.swarm import Box, box_counters, due_tick
+from zenswarm.link import Box, FaultState, box_counters, due_tick
 from zenswarm.process.runtime import (
     Lockstep,
     ProcessOptions,

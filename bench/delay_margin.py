@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from zenswarm.compose.margin import analytic_summary, empirical_margin, json_safe
-from zenswarm.link.faults import delivery_tick
+from zenswarm.link import delivery_tick
 from zenswarm.scenario.config import Scenario, load_scenario, scenario_from_dict
 from zenswarm.scenario.generate import generate_scenario
 

@@ -26,9 +26,7 @@ import sys
 import numpy as np
 
 from zenswarm.compose.sim import simulate
-from zenswarm.link.faults import FaultState
-from zenswarm.link.queue import message_size, parse_capacity
-from zenswarm.link.swarm import plan_for, scenario_links
+from zenswarm.link import FaultState, message_size, parse_capacity, plan_for, scenario_links
 from zenswarm.scenario.config import scenario_from_dict
 from zenswarm.scenario.generate import generate_scenario
 

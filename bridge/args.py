@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from zenswarm.errors import ScenarioError
-from zenswarm.link.swarm import LinkFaults
+from zenswarm.link import LinkFaults
 from zenswarm.process.security import ClientSecurity
 from zenswarm.scenario.config import check_seed
 

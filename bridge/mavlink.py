@@ -1229,7 +1229,7 @@ def _make_bridge(proc: Any, settings: MavlinkSettings) -> Bridge:
     # the bridge takes the plant's place, so agent i's link to it is the plant's `agent:i -> plant`
     # cmd link (also when it forwards uav/<i>/ref as position setpoints), decided on receipt and
     # released after its delay, exactly as in the realtime plant.
-    from zenswarm.link.faults import FaultState
+    from zenswarm.link import FaultState
 
     in_keys = cmd_keys if settings.setpoint == "attitude" else ref_keys
     plan = proc.options.fault_plan(sc)

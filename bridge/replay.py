@@ -873,8 +873,7 @@ class _BoxedInputs:
     (:class:`zenswarm.link.swarm.Box`), fed the recorded messages in order."""
 
     def __init__(self, v: _Verifier, plan: Any, start: int) -> None:
-        from zenswarm.link.faults import FaultState
-        from zenswarm.link.swarm import Box
+        from zenswarm.link import Box, FaultState
 
         fstate = FaultState(plan)
         kinds = {v.state_key: "state", v.keys.leader_ref: "leader"}

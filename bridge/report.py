@@ -51,8 +51,7 @@ import numpy as np
 from zenswarm.bus import wire
 from zenswarm.errors import RecordingError, ScenarioError, ZenswarmError
 from zenswarm.judge.metrics import TimeSeries, compute_results
-from zenswarm.link.faults import FaultPlan
-from zenswarm.link.swarm import graph_series, plan_for
+from zenswarm.link import FaultPlan, graph_series, plan_for
 from zenswarm.process.paths import check_output_dir
 from zenswarm.scenario.config import Scenario, load_scenario
 from zenswarm.vehicle.geometry import d_obs_many, obstacle_clearance_many

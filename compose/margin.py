@@ -64,7 +64,7 @@ from zenswarm.campaign.delaymargin import (
     steady_lag_factors,
 )
 from zenswarm.errors import ScenarioError, ZenswarmError
-from zenswarm.link.faults import FaultPlan, LinkFaultSpec, delivery_tick, parse_duration
+from zenswarm.link import FaultPlan, LinkFaultSpec, delivery_tick, parse_duration
 from zenswarm.scenario.config import Scenario, load_scenario
 
 __all__ = [

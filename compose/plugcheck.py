@@ -370,7 +370,7 @@ def _sim_vs_swarm(sc: Scenario, seed: int) -> str:
     from zenswarm.compose.sim import simulate
     from zenswarm.compose.supervisor import UpOptions
     from zenswarm.judge.metrics import TimeSeries, flight_differences
-    from zenswarm.link.swarm import LinkFaults
+    from zenswarm.link import LinkFaults
     from zenswarm.scenario.generate import to_toml
 
     faults = LinkFaults(FAULTS["link_delay"], FAULTS["link_jitter"], FAULTS["link_loss"], (), seed)

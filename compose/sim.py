@@ -56,8 +56,7 @@ from zenswarm.errors import PluginFailure
 from zenswarm.judge.metrics import TimeSeries, add_failure, add_plugin_failures, compute_results, exit_code_of
 from zenswarm.judge.verdict import criteria_from_scenario, decide_end
 from zenswarm.leader.core import LeaderCore
-from zenswarm.link.faults import FaultPlan, FaultState, Held
-from zenswarm.link.swarm import Box, box_counters, effective_graph
+from zenswarm.link import Box, FaultPlan, FaultState, Held, box_counters, effective_graph
 from zenswarm.plant.core import PlantCore
 from zenswarm.scenario.config import Scenario
 from zenswarm.scenario.plugins import STAGE_SHARE, STAGE_STEP, Boundary, first_failures, plant_vehicle

@@ -41,7 +41,7 @@ from zenswarm.compose.policy import restart_policy
 from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
 from zenswarm.judge import verdict
 from zenswarm.judge.metrics import add_failure, add_plugin_failures, compute_results
-from zenswarm.link.swarm import LinkFaults
+from zenswarm.link import LinkFaults
 from zenswarm.process import rtsched, security
 from zenswarm.process.collector import Collector
 from zenswarm.process.paths import check_output_dir, check_output_file, lock_output_dir

@@ -23,8 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from zenswarm.bus import wire
-from zenswarm.link.faults import FaultState
-from zenswarm.link.swarm import Box, box_counters, due_tick
+from zenswarm.link import Box, FaultState, box_counters, due_tick
 from zenswarm.plant.core import PlantCore
 from zenswarm.process.runtime import (
     CLOCK_EVERY_TICKS,

@@ -45,7 +45,7 @@ from zenswarm.compose.sim import simulate, summary_line, write_outputs
 from zenswarm.compose.supervisor import UpOptions, check_up_args
 from zenswarm.errors import EXIT_PLUGIN_FAILED, ScenarioError, ZenswarmError
 from zenswarm.judge.metrics import TimeSeries, exit_code_of, flight_differences
-from zenswarm.link.swarm import LinkFaults
+from zenswarm.link import LinkFaults
 from zenswarm.process import rtsched
 from zenswarm.process.paths import check_output_dir
 from zenswarm.scenario.config import Scenario, scenario_to_dict

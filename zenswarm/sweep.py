@@ -56,7 +56,7 @@ from zenswarm.campaign import (
     plan_from_toml,
 )
 from zenswarm.errors import ScenarioError, ZenswarmError
-from zenswarm.link.swarm import plan_for
+from zenswarm.link import plan_for
 from zenswarm.process.paths import check_output_dir
 from zenswarm.scenario.plugins import check_selection
 

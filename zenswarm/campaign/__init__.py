@@ -34,9 +34,7 @@ from typing import Any
 import numpy as np
 
 from zenswarm.errors import ScenarioError
-from zenswarm.link.faults import parse_duration
-from zenswarm.link.queue import parse_capacity
-from zenswarm.link.radio import parse_distance
+from zenswarm.link import parse_capacity, parse_distance, parse_duration
 from zenswarm.schema import MAX_SEED
 
 __all__ = [

@@ -9,14 +9,15 @@ a tick; lockstep decisions are pure functions of (seed, link, tick), so the simu
 swarm's processes decide alike. Realtime runs release kept messages late through a
 :class:`DelayLine`.
 
-This package's namespace is the entry point the roles, the edges and the runtime use; its
+This package's namespace is the one entry point: every module outside it imports
+``zenswarm.link``, never one of its modules (an import-linter contract, ``bash .ci/lint``); its
 modules are the model's parts: :mod:`~zenswarm.link.names` (processes and links),
 :mod:`~zenswarm.link.faults` (the plan and the decisions), :mod:`~zenswarm.link.radio`,
 :mod:`~zenswarm.link.queue` (capacity and queueing), :mod:`~zenswarm.link.trace` (trace replay) and
 :mod:`~zenswarm.link.swarm` (the plan of a scenario's swarm, its boxes and graph series).
 """
 
-from zenswarm.link.faults import FaultPlan, FaultState, delivery_tick, parse_duration
+from zenswarm.link.faults import FaultPlan, FaultState, Held, LinkFaultSpec, delivery_tick, parse_duration, plan_from_scenario
 from zenswarm.link.names import KINDS, agent_links, link_kind, parse_process, plant_links
 from zenswarm.link.queue import message_size, parse_capacity
 from zenswarm.link.radio import parse_distance
@@ -35,7 +36,8 @@ from zenswarm.link.swarm import (
 )
 
 __all__ = [
-    "FaultPlan", "FaultState", "delivery_tick", "parse_duration", "KINDS", "agent_links", "link_kind", "parse_process",
+    "FaultPlan", "FaultState", "Held", "LinkFaultSpec", "delivery_tick", "parse_duration", "plan_from_scenario",
+    "KINDS", "agent_links", "link_kind", "parse_process",
     "plant_links", "message_size", "parse_capacity", "parse_distance", "Box", "DelayLine", "GraphSeries", "LinkFaults",
     "box_counters", "distance", "due_tick", "effective_graph", "graph_series", "plan_for", "scenario_links",
 ]  # fmt: skip

@@ -51,7 +51,7 @@ from zenswarm.process import rtsched, security
 from zenswarm.scenario.config import Scenario, load_scenario, scenario_from_dict
 
 if TYPE_CHECKING:
-    from zenswarm.link.faults import FaultPlan
+    from zenswarm.link import FaultPlan
 
 __all__ = ["Inbox", "SwarmProcess", "ProcessOptions", "run_process", "LoopStats", "WallClock", "sleep_until",
            "InputGuard", "GUARD_REASONS", "sample_sender", "expected_senders", "GcPolicy", "gc_policy",
@@ -784,7 +784,7 @@ class ProcessOptions:
     def fault_plan(self, scenario: Scenario) -> FaultPlan | None:
         """The link-fault plan of this run (scenario's ``[faults]`` plus the flags); None when no
         fault is active. Raises :class:`zenswarm.errors.ScenarioError` naming the bad field."""
-        from zenswarm.link.swarm import plan_for
+        from zenswarm.link import plan_for
 
         return plan_for(
             scenario, self.link_delay, self.link_jitter, self.link_loss, self.partition, self.seed,
@@ -989,7 +989,7 @@ class SwarmProcess:
             return 0
         if plan is None:
             return 0
-        from zenswarm.link.faults import delivery_tick
+        from zenswarm.link import delivery_tick
 
         worst = plan.worst_delay_s()
         return delivery_tick(0, worst, self.scenario.timing.dt) + 1 if worst > 0 else 0
@@ -1185,7 +1185,7 @@ class SwarmProcess:
     # ------------------------------------------------------------------ realtime link faults
     def use_delay_line(self, state: Any, links: dict[str, tuple[str, str, str]]) -> None:
         """Realtime link faults on these keys: decided on receipt, released after their delay."""
-        from zenswarm.link.swarm import DelayLine
+        from zenswarm.link import DelayLine
 
         self._links = dict(links)
         self._delay_line = DelayLine(state, self.scenario.timing.dt)

@@ -316,7 +316,7 @@ def _validate_extra(s: Scenario) -> None:
     """The subsystems' tables are checked against the scenario on load too (durations and process
     names of ``[faults]``, the per-UAV lists of ``[mavlink]``), so errors show up at once."""
     if s.faults is not None:
-        from zenswarm.link.faults import plan_from_scenario
+        from zenswarm.link import plan_from_scenario
 
         plan_from_scenario(s.faults, s.seed, s.n)
     if s.mavlink is not None:
