@@ -87,8 +87,10 @@ def use_swarm_runtime() -> None:
     with two worker threads), so one message crosses several threads in each process: read by
     an ``rx`` thread, queued to a ``tx`` thread, and so on, each hand-over a thread wake-up.
     :data:`ZENOH_RUNTIME_DEFAULT` hands every runtime over to one ``app`` runtime with a single
-    worker thread. On the 2-core machine that, with :func:`direct_callback`, made the lockstep
-    swarm about 1.7x (3 UAVs) to 2.4x (16 UAVs) faster (BENCHMARKS.md, "What made the swarm faster").
+    worker thread. On the 2-core machine that, with :func:`direct_callback` (and the router's
+    ``tx`` apart), took the lockstep swarm from 2.54 to 1.39 ms per tick on paper example 1 (3
+    UAVs) and from 13.15 to 6.77 ms on gen16 (BENCHMARKS.md, "What made the swarm faster": the
+    ablation's "+ supervisor queue" row against "as committed").
 
     zenoh reads the variable once, when it creates its runtimes (the first session of the
     process), so call this before opening one; child processes inherit it. The supervisor's

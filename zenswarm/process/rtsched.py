@@ -3,9 +3,10 @@
 On a machine whose cores are busy (a whole swarm on a laptop, or a companion computer that also
 runs a camera pipeline), a control loop that wakes for its deadline waits for the kernel's fair
 scheduler to give it a core: with the 11 processes of an 8-UAV swarm on 2 cores (about 90 % busy)
-the loops of a 30-minute soak stalled up to 47 ms, and a trivial 100 Hz loop beside the swarm
-up to 17 ms. A loop under ``SCHED_FIFO`` preempts every normally scheduled thread the moment it
-wakes (BENCHMARKS.md, "Real-time priority").
+the agents' worst loop jitter in 3-minute flights was 22.7 and 101.4 ms (two runs), and a bare
+100 Hz loop beside the swarm was late by up to 17 ms. A loop under ``SCHED_FIFO`` preempts every
+normally scheduled thread the moment it wakes: 6.4 and 9.7 ms in the runs beside them
+(BENCHMARKS.md, "Real-time priority").
 
 ``--rt-priority P`` (1-99; :func:`check_priority`) runs a process's threads under
 ``SCHED_FIFO`` priority P, once its start-up is over (:func:`apply_after_startup`, the same

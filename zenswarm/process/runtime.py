@@ -1108,9 +1108,12 @@ class SwarmProcess:
         pub = self._pubs.get(key)
         if pub is None:
             # BLOCK: lockstep traffic must not be dropped. No express (one batch per message): it
-            # costs a write, and a wake-up of zenoh's thread, per put. Lockstep ran 36 % faster
-            # without it; realtime, once zenoh ran on one thread, missed 8 times fewer deadlines
-            # at 16 UAVs, with a shorter latency tail too (BENCHMARKS.md).
+            # costs a write, and a wake-up of zenoh's thread, per put: 16 puts of a State cost 42 µs
+            # wall / 64 µs CPU each with express, 2.7 / 13.5 µs without; realtime at 16 UAVs missed
+            # 0.73-0.76 % of deadlines with express, 0.09-0.42 % without, p99 25 ms against 9-14 ms
+            # (BENCHMARKS.md, "Scheduling of the lockstep tick"). The lockstep gain when express was
+            # first turned off (up to 36 %, with zenoh's default threads) is in git history:
+            # `git show 3ff7b8f:BENCHMARKS.md`.
             pub = self._zenoh().declare_publisher(
                 key,
                 congestion_control=zenoh.CongestionControl.BLOCK,
