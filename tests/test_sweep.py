@@ -204,7 +204,10 @@ def test_local_campaign_interrupt_resume_and_rows_equal_fly(tmp_path: Path, caps
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "ZENSWARM_TEST_RUN_GATE": str(gate),
            "PYTHONPATH": os.pathsep.join([str(TESTS / "hold_runs"), os.environ.get("PYTHONPATH", "")])}
     cmd = [sys.executable, "-m", "zenswarm", "sweep", *_sweep_args(out, "--workers", "1")]
-    p = subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    # SIGINT as in a terminal's foreground job, also when pytest itself runs as a background job
+    # (which inherits SIGINT ignored, and so would the sweep: docs/campaigns.md)
+    p = subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     journal = out / "runs.jsonl"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and p.poll() is None and not (journal.is_file() and journal.read_text().count("\n") >= 1):
