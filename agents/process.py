@@ -319,6 +319,8 @@ class _LockstepAgent:
                 prepared = a.prepare(held, k)
         if forced:
             proc.counters["input_timeouts"] += 1
+            # said at once (rare): `verify` names it when the recording cannot reproduce this tick
+            proc.publish_diag(k * a.dt_ns, {"lockstep_timeout_tick": k})
         raw = proc.inbox.get(a.state_key, k)  # the plant's state of tick k as sent (true position)
         a.stamp = raw.q if raw is not None else st.q
         a.tick(k, st, prepared)

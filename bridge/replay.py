@@ -691,6 +691,9 @@ def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> Verif
             v.verify_lockstep(_fault_plan(rec, sc))
     except _Differs as e:
         v.res.difference = e.difference
+        note = v.timeout_note(e.difference.tick)
+        if note is not None:
+            v.res.notes.append(note)
     return v.res
 
 
@@ -736,8 +739,16 @@ class _Verifier:
         self.by_tick: dict[str, dict[int, Any]] = {k: {} for k in wanted}
         self.timeline: dict[str, list[tuple[int, int, Any]]] = {k: [] for k in wanted}  # (log_time, tick, msg)
         self.start_refs: dict[int, wire.Ref] = {}
+        self.timeout_ticks: list[int] = []
+        self.timeouts = 0
+        diag_key, diags = self.keys.diag(self.me), wire.Decoder()  # not the inputs' decoder: its counts are said
         dt_ns = self.dt_ns
-        for m in rec.messages(topics=wanted.__contains__):
+        for m in rec.messages(topics=lambda t: t in wanted or t == diag_key):
+            if m.topic == diag_key:
+                d = diags.decode(m.topic, "diag", m.payload)
+                if isinstance(d, wire.Diag):
+                    self._timeout_tick(d)
+                continue
             msg = self.decoder.decode(m.topic, wanted[m.topic], m.payload)
             if msg is None:
                 continue
@@ -753,6 +764,28 @@ class _Verifier:
         self.last = max(self.cmds)
         self.refs = self.by_tick[self.ref_key]  # references published after a tick (seq > 1)
         self.states = self.by_tick[self.state_key]
+
+    def _timeout_tick(self, d: wire.Diag) -> None:
+        """Take one of the agent's diagnostics: the tick at which it waited out
+        ``--lockstep-timeout`` and ticked on held inputs (``lockstep_timeout_tick``), and how
+        often it did (``input_timeouts``; an agent of an older zenswarm says only that)."""
+        k = d.info.get("lockstep_timeout_tick")
+        if isinstance(k, int) and not isinstance(k, bool):
+            self.timeout_ticks.append(k)
+        self.timeouts = max(self.timeouts, int(d.counters.get("input_timeouts", 0)))
+
+    def timeout_note(self, tick: int) -> str | None:
+        """Why a difference at ``tick`` is expected: the agent waited out the lockstep timeout
+        at or before it (its inputs then were not the recording's), or None."""
+        before = sorted(k for k in set(self.timeout_ticks) if k <= tick)
+        why = ("and ticked on the inputs it held (its diagnostics); the messages it did not wait for are in the "
+               "recording, so the recomputation differs from there on: a starved or stalled process, not the controller")
+        if before:
+            more = f" (and {len(before) - 1} more)" if len(before) > 1 else ""
+            return f"agent {self.res.agent} waited out --lockstep-timeout at tick {before[0]}{more} {why}"
+        if self.timeouts > len(set(self.timeout_ticks)):  # counted, but not when
+            return f"agent {self.res.agent} waited out --lockstep-timeout {self.timeouts} times in this flight {why}"
+        return None
 
     def find_starts(self) -> None:
         """The ticks where the agent (re)started (its references with seq 1)."""

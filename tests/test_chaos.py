@@ -164,6 +164,41 @@ def test_frozen_agent_in_lockstep_succeeds(tmp_path: Path) -> None:
     assert res["diagnostics"]["plant"].get("cmd_timeouts", 0) == 0, res["diagnostics"]["plant"]
 
 
+def test_verify_names_a_lockstep_timeout_as_the_cause_of_a_difference(tmp_path: Path) -> None:
+    """Agent 2 frozen for 2 s with ``--lockstep-timeout 0.5``, recorded: its neighbours wait out
+    the timeout and tick on held references, so the recording (which has agent 2's late
+    references) cannot reproduce those ticks. `verify` says so: each agent either verifies every
+    tick, or its difference comes with a note naming the tick it waited out the timeout (from its
+    diagnostics), never an unexplained mismatch. An agent that never timed out verifies."""
+    from swarmtest import zenswarm as run_zenswarm
+
+    swarm = unique_swarm("vt")
+    out, rec = tmp_path / "out", tmp_path / "flight.mcap"
+    scenario = scenario_variant(tmp_path, time_limit_s=4.0)
+    up = Up(str(scenario), "--swarm", swarm, "--out", str(out), "--record", str(rec), "--lockstep-timeout", "0.5",
+            "--progress-every", "0.2", "--quiet-children")
+    try:
+        up.wait_sim_time(1.0)
+        _freeze(_pid_of(swarm, "agent --id 2"), 2.0)
+        rc = up.wait(240)
+    finally:
+        up.kill()
+        _no_leftovers(swarm)
+    assert rc in (0, 1), up.log()
+    diag = read_results(out)["diagnostics"]
+    timed_out = {i for i in (1, 2, 3) if diag.get(f"agent:{i}", {}).get("input_timeouts", 0) > 0}
+    assert timed_out, f"no agent waited out the timeout: the test did not stall anyone ({diag})"
+    cp = run_zenswarm("verify", str(rec), "--agent", "all")
+    explained = 0
+    for i in (1, 2, 3):
+        verified = f"agent {i}: verified " in cp.stdout
+        note = re.search(rf"agent {i}: note: agent {i} waited out --lockstep-timeout at tick \d+", cp.stdout)
+        assert verified or note, f"agent {i}: a difference without its cause named:\n{cp.stdout}"
+        assert i in timed_out or verified, f"agent {i} never timed out, yet differs:\n{cp.stdout}"
+        explained += bool(note)
+    print(f"\nagents that waited out the timeout: {sorted(timed_out)}; differences explained by it: {explained}")
+
+
 def test_frozen_agent_in_realtime_is_named(tmp_path: Path) -> None:
     """Agent 2 frozen for 3 s in a realtime flight: the clock does not wait for it. The plant's
     failsafe holds UAV 2 (its commands are stale), gives it back when they are fresh again, and
