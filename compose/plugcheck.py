@@ -30,7 +30,9 @@ it that need it:
 6. **sim == swarm**: the same flight with link loss and delay on every link in the in-process
    simulator and as the lockstep swarm (``zenswarm up``), compared bit for bit
    (:func:`zenswarm.judge.metrics.flight_differences`: the first differing field, tick and UAV), with
-   the usual causes of a difference when there is one.
+   the usual causes of a difference when there is one. The swarm waits up to
+   :data:`LOCKSTEP_TIMEOUT_S` for a tick's inputs; if a process still waited it out (a starved
+   machine), the detail says so instead of blaming the plug-in.
 
 Every check is reported (PASS, FAIL or SKIP with why), never a traceback, then a ``result:``
 line. Exit status 0 every check passed, 1 a check failed, 2 bad input (an unknown name, a
@@ -74,6 +76,12 @@ MISMATCH_CAUSES = (
 
 DEFAULT_DURATION_S = 3.0
 """Sim seconds of the sim-versus-swarm flight."""
+
+LOCKSTEP_TIMEOUT_S = 60.0
+"""Wall seconds a process of the check's swarm waits for a tick's inputs before ticking on held
+ones. The check's flight loses no process and every lost message is known to its receiver, so
+in a healthy flight the timeout never fires; it is long so that a busy machine (slow imports,
+CPU contention) cannot turn into a difference blamed on the plug-in (``up``'s default is 5 s)."""
 
 FAULTS = {"link_loss": "0.2", "link_delay": "30ms", "link_jitter": "10ms"}
 """The link faults of the sim-versus-swarm flight (on every link)."""
@@ -385,7 +393,8 @@ def _sim_vs_swarm(sc: Scenario, seed: int) -> str:
         scen.write_text(to_toml(scenario_to_dict(sc)))
         swarm = f"check{uuid.uuid4().hex[:10]}"
         Keys(swarm)  # a valid swarm name
-        opts = UpOptions(scenario=scen, swarm=swarm, out=Path(tmp) / "out", faults=faults, listen=(f"tcp/127.0.0.1:{free_port()}",))
+        opts = UpOptions(scenario=scen, swarm=swarm, out=Path(tmp) / "out", faults=faults, listen=(f"tcp/127.0.0.1:{free_port()}",),
+                         lockstep_timeout=LOCKSTEP_TIMEOUT_S)
         run = run_up(opts, timeout=600.0)
         if run.timed_out or not (opts.out / "results.json").is_file():
             tail = "\n".join(run.log.splitlines()[-15:])
@@ -395,10 +404,26 @@ def _sim_vs_swarm(sc: Scenario, seed: int) -> str:
     diffs = flight_differences(ref.series, ref.results, got, res)
     if run.leftovers:
         diffs.append(f"processes left behind (killed): {list(run.leftovers)}")
+    return difference_text(diffs, res, opts.lockstep_timeout)
+
+
+def difference_text(diffs: list[str], res: dict[str, Any], lockstep_timeout: float) -> str:
+    """The sim == swarm check's detail for the differences ``diffs`` of the swarm flight whose
+    results are ``res``: "" when none; else the first few, and their cause: the swarm's
+    processes waiting out the lockstep timeout (:func:`zenswarm.judge.metrics.lockstep_stalls`;
+    a loaded machine, not the plug-in), or else the usual causes in a plug-in."""
+    from zenswarm.judge.metrics import lockstep_stalls
+
     if not diffs:
         return ""
     first = diffs[0]
     more = f" (and {len(diffs) - 1} more: {'; '.join(diffs[1:4])})" if len(diffs) > 1 else ""
+    stalls = lockstep_stalls(res)
+    if stalls:
+        who = ", ".join(f"{p} {n} tick{'s' if n > 1 else ''}" for p, n in stalls.items())
+        return (f"first difference: {first}{more}. Cause: processes of the swarm waited out the lockstep timeout "
+                f"({lockstep_timeout:g} s) and ticked on held inputs ({who}), so the swarm did not fly the "
+                "simulator's flight: a starved machine or a stalled process, not the plug-in; check again on a less loaded machine")
     return f"first difference: {first}{more}. Usual causes: " + "; ".join(MISMATCH_CAUSES)
 
 

@@ -170,6 +170,8 @@ def test_verify_names_a_lockstep_timeout_as_the_cause_of_a_difference(tmp_path: 
     references) cannot reproduce those ticks. `verify` says so: each agent either verifies every
     tick, or its difference comes with a note naming the tick it waited out the timeout (from its
     diagnostics), never an unexplained mismatch. An agent that never timed out verifies."""
+    from zenswarm.judge.metrics import lockstep_stalls
+
     from swarmtest import zenswarm as run_zenswarm
 
     swarm = unique_swarm("vt")
@@ -188,6 +190,8 @@ def test_verify_names_a_lockstep_timeout_as_the_cause_of_a_difference(tmp_path: 
     diag = read_results(out)["diagnostics"]
     timed_out = {i for i in (1, 2, 3) if diag.get(f"agent:{i}", {}).get("input_timeouts", 0) > 0}
     assert timed_out, f"no agent waited out the timeout: the test did not stall anyone ({diag})"
+    stalls = lockstep_stalls(read_results(out))  # what the plug-in check names as a difference's cause
+    assert {f"agent:{i}" for i in timed_out} <= set(stalls), (stalls, diag)
     cp = run_zenswarm("verify", str(rec), "--agent", "all")
     explained = 0
     for i in (1, 2, 3):

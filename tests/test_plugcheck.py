@@ -217,3 +217,21 @@ def test_a_sim_swarm_mismatch_names_the_first_field_tick_uav_and_the_usual_cause
     status, detail = got["sim == swarm"]
     assert status == "FAIL" and "first difference: series.thrust" in detail and "first at tick 0" in detail, detail
     assert "UAV 2)" in detail and "Usual causes:" in detail and "module or class variable" in detail, detail
+
+
+def test_a_difference_after_a_lockstep_timeout_names_the_stall_not_the_plug_in() -> None:
+    """A swarm flight whose processes waited out the lockstep timeout (``forced_ticks`` in their
+    final diagnostics) did not fly the simulator's flight: the check's detail names which and how
+    many ticks, instead of the plug-in's usual causes; without a stall, the usual causes."""
+    from zenswarm.compose.plugcheck import LOCKSTEP_TIMEOUT_S, difference_text
+
+    diffs = ["series.thrust: 3 values differ, first at tick 148 (t = 2.960 s, UAV 2): 1.0 != 2.0"]
+    calm = {"diagnostics": {"plant": {"forced_ticks": 0, "cmd_timeouts": 0}, "agent:1": {"forced_ticks": 0}}}
+    stalled = {"diagnostics": {"plant": {"forced_ticks": 1}, "agent:1": {"forced_ticks": 0}, "agent:3": {"forced_ticks": 4}}}
+    assert difference_text([], stalled, 5.0) == ""
+    usual = difference_text(diffs, calm, 5.0)
+    assert usual.startswith("first difference: series.thrust") and "Usual causes:" in usual and "lockstep" not in usual, usual
+    named = difference_text(diffs, stalled, 5.0)
+    assert "Usual causes" not in named and "waited out the lockstep timeout (5 s)" in named, named
+    assert "(agent:3 4 ticks, plant 1 tick)" in named and "not the plug-in" in named, named
+    assert LOCKSTEP_TIMEOUT_S > 5.0  # the check's swarm waits longer than `up`'s default

@@ -16,7 +16,10 @@ import numpy as np
 from zenswarm.errors import EXIT_PLUGIN_FAILED
 from zenswarm.judge.verdict import criteria_from_scenario, judge
 
-__all__ = ["TimeSeries", "compute_results", "add_failure", "flight_differences", "RESULT_FIELDS", "FLIGHT_FIELDS", "RESULTS_SCHEMA_VERSION"]
+__all__ = [
+    "TimeSeries", "compute_results", "add_failure", "flight_differences", "lockstep_stalls",
+    "RESULT_FIELDS", "FLIGHT_FIELDS", "RESULTS_SCHEMA_VERSION",
+]  # fmt: skip
 
 RESULTS_SCHEMA_VERSION = 2
 """Version of ``results.json``'s layout. 2: the verdict from the vehicles' states (``failures``,
@@ -229,4 +232,19 @@ def flight_differences(a: TimeSeries, res_a: dict[str, Any], b: TimeSeries, res_
     for key in FLIGHT_FIELDS:
         if res_a.get(key) != res_b.get(key):
             out.append(f"results.{key}: {res_a.get(key)!r} != {res_b.get(key)!r}")
+    return out
+
+
+def lockstep_stalls(results: dict[str, Any]) -> dict[str, int]:
+    """The processes of a lockstep swarm flight that waited out ``--lockstep-timeout`` and ran a
+    tick on held inputs, each with how many ticks it forced (``forced_ticks`` of its final
+    diagnostics in ``results["diagnostics"]``); empty when none did, or for a simulator flight.
+    A flight with stalls is not the simulator's flight from the first forced tick on: its
+    differences from the simulator come from a starved or stalled process, not from the law."""
+    diag = results.get("diagnostics") or {}
+    out: dict[str, int] = {}
+    for name, d in sorted(diag.items()):
+        n = d.get("forced_ticks", 0) if isinstance(d, dict) else 0
+        if isinstance(n, (int, float)) and not isinstance(n, bool) and n > 0:
+            out[name] = int(n)
     return out
