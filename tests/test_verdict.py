@@ -200,6 +200,24 @@ def test_stopped_before_the_limit_is_incomplete_not_timeout() -> None:
     assert set(causes(v)) <= set(CAUSES)
 
 
+def test_a_series_that_starts_late_ran_its_course_by_its_last_tick() -> None:
+    """A realtime series starts at the first tick every process had produced a value (here 11):
+    it is judged by its last tick's time, not its length. Flown to the limit it is a timeout at
+    the limit's sim time, never ``incomplete``; stopped early it is incomplete at its last tick."""
+    t, q0, q, qref = flight(400, H3, arrive_tick=10_000)
+    late = slice(11, None)
+    v = judge(t[late], q0[late], q[late], qref[late], crit(H3), n_ticks=400)
+    assert causes(v) == ["timeout"] and v.end_tick == 400, (causes(v), v.end_tick)
+    assert v.failures[0].t_s == pytest.approx(3.99)
+    early = slice(11, 100)
+    v = judge(t[early], q0[early], q[early], qref[early], crit(H3), n_ticks=400)
+    assert causes(v) == ["incomplete"] and v.end_tick == 100, (causes(v), v.end_tick)
+    # reached: success whatever the first tick
+    t, q0, q, qref = flight(400, H3, arrive_tick=100)
+    v = judge(t[late], q0[late], q[late], qref[late], crit(H3), n_ticks=400)
+    assert v.success and v.end_tick == 400 and v.time_to_goal_s == pytest.approx(1.0), (causes(v), v.end_tick)
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_close_pairs_equals_brute_force(seed: int) -> None:
     rng = np.random.default_rng(seed)

@@ -6,7 +6,8 @@ of UAVs N (no (T, N, N) arrays). The in-process simulator, the distributed swarm
 the flight report all judge with :func:`judge`, and all decide an early end with
 :func:`decide_end`, so one flight gets one verdict wherever it is judged.
 
-Conventions: tick k at t_k = k dt; q (T, N, 3) the UAVs' measured positions (the plant's states,
+Conventions: tick k at t_k = k dt (row r of a series is the tick round(t[r] / dt): a realtime
+series starts at the first tick every process had produced a value, not always 0); q (T, N, 3) the UAVs' measured positions (the plant's states,
 or the vehicles' telemetry through the MAVLink bridge), q0 (T, 3) the virtual leader, qref
 (T, N, 3) the reference generator's q*_i, metres, inertial ENU frame (z up). UAV numbers in
 failures are 1-based, like process names (``agent:1``).
@@ -165,7 +166,7 @@ class Verdict:
 
     success: bool
     failures: list[Failure]
-    end_tick: int  # ticks judged: 0 .. end_tick - 1
+    end_tick: int  # ticks judged: up to end_tick - 1 (the last row's tick + 1: a realtime series may start after tick 0)
     ended_early: bool  # the outcome was decided at end_tick - 1 (a terminal failure), the run ended there
     goal_reached: bool
     time_to_goal_s: float | None
@@ -361,7 +362,9 @@ def judge(
     t (T,) s; q0 (T, 3), q and qref (T, N, 3) m. With ``early_end`` the flight is judged up to
     and including the tick :func:`decide_end` finds (the tick the run ended at, or would have),
     else over all T ticks (``--full-time``); the terminal failures are named either way.
-    ``n_ticks``: the time limit in ticks (default T). A flight that stopped before it without a
+    ``n_ticks``: the time limit in ticks (default T); whether the flight got there is read from
+    the last tick's time, so a series that starts after tick 0 (realtime: the ticks before every
+    process had produced a value are not in it) still ran its course. A flight that stopped before it without a
     decided outcome and without the goal is ``incomplete`` (not ``timeout``): the tool that
     stopped it names why (``interrupted``, ``process_died``).
     """
@@ -372,6 +375,9 @@ def judge(
     end = stop + 1 if (early_end and stop is not None) else T
     t, q0, q, qref = t[:end], q0[:end], q[:end], qref[:end]
     T = end
+    # the tick the judged series ends at, from its time (not its length: a realtime series may
+    # start after tick 0, when every process had produced a value)
+    end_tick = int(round(float(t[-1]) / c.dt)) + 1 if T else 0
     r = c.vehicle_radius_m
     h = c.offsets
     failures: list[Failure] = []
@@ -527,7 +533,7 @@ def judge(
     if T and not (early_end and stop is not None):  # the flight ran its course: did it get there?
         if not goal_reached and stall_info is None:
             d_end = float(dist_goal[-1])
-            if T >= n_ticks:
+            if end_tick >= n_ticks:
                 failures.append(
                     Failure("timeout", t_end, f"the virtual leader did not reach the goal by the time limit ({d_end:.3f} m from it)")
                 )
@@ -560,7 +566,7 @@ def judge(
     return Verdict(
         success=success,
         failures=failures,
-        end_tick=end,
+        end_tick=end_tick,
         ended_early=early_end and stop is not None,
         goal_reached=goal_reached,
         time_to_goal_s=time_to_goal,
