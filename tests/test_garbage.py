@@ -48,6 +48,8 @@ DT_NS = 10_000_000  # paper example 1: 100 Hz
 SPOOF_SEQ = 2**62  # a seq above any real one: the spoofs below are rejected for their time, not their seq
 # the ticks an input guard remembers per key (zenswarm.process.runtime._KeyState.recent): a tick among them is a duplicate
 RECENT_TICKS = 64
+# how far (ticks) a receiver may lag the clock the flood sees, loaded: a "past" message is older than both
+LAG_TICKS = 32
 
 # --------------------------------------------------------------------------- fakes and builders
 
@@ -572,10 +574,17 @@ def _flood_main(argv: list[str]) -> int:
                 return _pack({**d, "seq": d["seq"] + 1, vec: [x + 0.5 for x in d[vec]]}), own
             return _pack({**d, "seq": d["seq"] + 1}), own
         # past: older than the receivers' window of recent ticks (64; within it the same tick is a
-        # duplicate), so not before the key has that much history (under load the flood can
-        # start a few ticks into the flight: its "past" messages were all counted as duplicates)
-        if g == "past" and old is not None and d["t"] - old[2]["t"] > RECENT_TICKS * DT_NS:
-            return _pack({**old[2], "seq": SPOOF_SEQ}), si
+        # duplicate). The window is the receiver's: under load a receiver lags the tick this
+        # flood last saw by a few ticks (seen: all 15 "past" messages to the leader, 65 ticks
+        # old here, counted as duplicates), so a past message is LAG_TICKS older still. A real
+        # old message replayed where the key has that much history; the latest one with an old
+        # tick where it has not (the flood joined late)
+        if g == "past":
+            t_past = d["t"] - (RECENT_TICKS + LAG_TICKS) * DT_NS
+            if old is not None and old[2]["t"] <= t_past:
+                return _pack({**old[2], "seq": SPOOF_SEQ}), si
+            if t_past >= 0:
+                return _pack({**d, "t": t_past, "seq": SPOOF_SEQ}), si
         if g == "future":
             return _pack({**d, "t": beyond, "seq": SPOOF_SEQ}), si
         if g == "stale":  # a seq already used (the tick is beyond the mission's end)
