@@ -116,6 +116,15 @@ def test_differences_name_the_field_and_the_first_tick() -> None:
 
 
 @pytest.mark.swarm
+def test_swarm_flight_takes_its_output_paths_as_text(tmp_path: Path) -> None:
+    """``out`` and ``record`` given as str, as a script writes them (once a TypeError after the flight)."""
+    out, rec = tmp_path / "o", tmp_path / "f.mcap"
+    f = api.fly("paper_example1", mode="swarm", duration=0.5, out=str(out), record=str(rec))
+    assert f.out == out and (out / "results.json").is_file() and rec.is_file(), f.log[-2000:]
+    assert f.metrics.sim_time_s == 0.5
+
+
+@pytest.mark.swarm
 def test_swarm_flight_equals_the_sim_flight_and_leaves_nothing(zenswarm_fly) -> None:
     """The fixture flies the lockstep swarm (unique name, free port) under loss and delay; the
     flight is the simulator's bit for bit; at teardown nothing of it is left (the fixture checks)."""

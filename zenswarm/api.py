@@ -369,8 +369,8 @@ def fly(
     restart: bool = False,
     realtime: bool = False,
     full_time: bool = False,
-    record: Path | None = None,
-    out: Path | None = None,
+    record: str | Path | None = None,
+    out: str | Path | None = None,
     swarm: str | None = None,
     port: int | None = None,
     lockstep_timeout: float = 5.0,
@@ -432,6 +432,8 @@ def fly(
     )  # fmt: skip
     plan = faults.plan(sc)  # bad values: ScenarioError naming the flag, before any work
     kills = _kills(kill)
+    record = None if record is None else Path(record)  # a path given as text works as well
+    out = None if out is None else Path(out)
     rtsched.validate(rt_priority, realtime=realtime and mode == "swarm", how="mode='swarm', realtime=True", field="rt_priority")
     if mode == "sim":
         for name, given in (("kill", kills), ("restart", restart), ("realtime", realtime), ("record", record is not None)):
