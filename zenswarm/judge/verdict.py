@@ -7,10 +7,10 @@ the flight report all judge with :func:`judge`, and all decide an early end with
 :func:`decide_end`, so one flight gets one verdict wherever it is judged.
 
 Conventions: tick k at t_k = k dt (row r of a series is the tick round(t[r] / dt): a realtime
-series starts at the first tick every process had produced a value, not always 0); q (T, N, 3) the UAVs' measured positions (the plant's states,
-or the vehicles' telemetry through the MAVLink bridge), q0 (T, 3) the virtual leader, qref
-(T, N, 3) the reference generator's q*_i, metres, inertial ENU frame (z up). UAV numbers in
-failures are 1-based, like process names (``agent:1``).
+series starts at the first tick every process had produced a value, not always 0); q (T, N, 3)
+the UAVs' measured positions (the plant's states, or the vehicles' telemetry through the MAVLink
+bridge), q0 (T, 3) the virtual leader, qref (T, N, 3) the reference generator's q*_i, metres,
+inertial ENU frame (z up). UAV numbers in failures are 1-based, like process names (``agent:1``).
 
 Mission success requires all of (:func:`judge`):
 
