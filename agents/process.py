@@ -209,6 +209,7 @@ class _LockstepAgent:
         self.ls = Lockstep(
             agent.n_ticks, self.ready, self.step, self.proc.options.lockstep_timeout, self.proc.stop,
             prepare=self.prepare, can_force=self.state_in, on_msg=self.on_msg,
+            kill_at=self.proc.options.kill_at_tick, name=self.proc.name,
         )
 
     def state_in(self, k: int) -> bool:

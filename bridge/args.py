@@ -145,7 +145,7 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
     :meth:`zenswarm.process.runtime.ProcessOptions.of`): ``--scenario``, ``--swarm``, ``--connect``,
     ``--realtime``, the credentials (:func:`add_security_args`), the link faults
     (:func:`add_fault_args`), the plug-ins (:func:`add_plugin_args`), ``--lockstep-timeout``,
-    ``--router-lost-timeout`` and ``--rt-priority`` (:func:`add_rt_priority_arg`)."""
+    ``--router-lost-timeout``, ``--kill-at-tick`` and ``--rt-priority`` (:func:`add_rt_priority_arg`)."""
     from zenswarm.process.runtime import DEFAULT_LOCKSTEP_TIMEOUT_S, DEFAULT_ROUTER_LOST_TIMEOUT_S
 
     p.add_argument("--scenario", type=Path, help="scenario TOML; if omitted, fetched from the leader's mission key")
@@ -175,6 +175,14 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
         metavar="S",
         help="wall seconds to wait for the router to come back once the link to it is closed (zenoh's 10 s lease ran "
         f"out) before giving up: the process stops and exits 3 (default {DEFAULT_ROUTER_LOST_TIMEOUT_S:g})",
+    )
+    p.add_argument(
+        "--kill-at-tick",
+        type=int,
+        default=None,
+        metavar="K",
+        help="lockstep: SIGKILL this process itself just before it runs tick K, so the fault falls on the same tick "
+        "in every run (what `zenswarm up --kill ROLE@T` passes its lockstep roles; default: never)",
     )
     add_rt_priority_arg(p)
 

@@ -219,6 +219,15 @@ class Supervisor:
         self.seen: set[str] = set()  # processes whose token appeared at least once
         self.gone_at: dict[str, tuple[float, int]] = {}  # process -> when its token went away (monotonic s, sim ns)
         self.pending_kills: dict[str, int] = {role: wire.t_ns(t) for role, t in (args.kill or ())}
+        # lockstep: a swarm role kills itself at the exact tick (--kill-at-tick, its first start
+        # only), so the fault falls on the same tick in every run; the rest are killed from here
+        # when the collector's sim time gets there (the recorder, realtime flights)
+        self.kill_ticks: dict[str, int] = {}
+        self.self_killed: dict[str, int] = {}  # role -> the tick it was started to kill itself at
+        if not args.realtime:
+            dt_ns = wire.t_ns(scenario.timing.dt)
+            for role in [r for r in self.pending_kills if r in ("plant", "leader") or r.startswith("agent:")]:
+                self.kill_ticks[role] = -(-self.pending_kills.pop(role) // dt_ns)  # the first tick at or after T
         self.policy = restart_policy(scenario.restart, force=args.restart)
         self.restart_at: dict[str, float] = {}
         self.restarts: dict[str, int] = {}
@@ -321,6 +330,11 @@ class Supervisor:
             argv.append("--realtime")
         if self.keys_dir is not None:
             argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
+        kill_at = self.kill_ticks.pop(role, None)  # the first start only: a restarted process is not killed again
+        if kill_at is not None:
+            argv += ["--kill-at-tick", str(kill_at)]
+            self.self_killed[role] = kill_at
+            self.say(f"{role} will SIGKILL itself just before tick {kill_at} (sim time {kill_at * self.sc.timing.dt:.2f} s; --kill)")
         return argv + a.faults.argv() + a.plugin_argv() + a.rt_argv()
 
     def spawn(self, role: str) -> Child:
@@ -917,9 +931,15 @@ class Supervisor:
         """A process of ours exited with status ``rc`` != 0: schedule its restart (None) when the
         policy allows, else the exit code (3)."""
         how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
+        if c.reader is not None:
+            c.reader.join(timeout=1.0)  # its pipe closed with it: its last lines are read at once
         tail = "; last output: " + " | ".join(c.lines[-3:]) if c.lines else ""
-        self.say(f"process {c.name} died ({how}) at sim time {max(collector.sim_t_ns, 0) / 1e9:.2f} s{tail}")
-        self.deaths.append({"process": c.name, "how": how, "sim_time_s": max(collector.sim_t_ns, 0) / 1e9})
+        t_s = max(collector.sim_t_ns, 0) / 1e9  # when the collector's clock (a few ticks behind, loaded) saw it
+        k = self.self_killed.pop(c.name, None)
+        if k is not None and rc == -signal.SIGKILL and any(ln.endswith(f"SIGKILL at tick {k} (--kill-at-tick)") for ln in c.lines[-3:]):
+            t_s = k * self.sc.timing.dt  # --kill in lockstep: it killed itself just before this tick
+        self.say(f"process {c.name} died ({how}) at sim time {t_s:.2f} s{tail}")
+        self.deaths.append({"process": c.name, "how": how, "sim_time_s": t_s})
         delay = self.policy.delay(self.restarts.get(c.name, 0)) if self.policy.allows(c.name) else None
         if delay is not None:
             self.restart_at[c.name] = now + delay
@@ -1307,7 +1327,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="inject a SIGKILL into ROLE when sim time reaches T, e.g. agent:2@10s; ROLE must be a process started "
         "here (plant, leader, agent:1..N, the recorder with --record; not --external ones) (repeatable; for tests "
         "and demos). The recorder is not a vehicle: its death is reported (results.json: recording_loss), the "
-        "flight goes on",
+        "flight goes on. In lockstep the plant, leader and agents kill themselves just before the first tick at or "
+        "after T (--kill-at-tick), so the fault falls on the same tick in every run",
     )
     p.add_argument(
         "--restart",

@@ -78,7 +78,8 @@ class _Leader:
 
     def run_lockstep(self) -> int:
         proc = self.proc
-        ls = Lockstep(self.n_ticks, self.ready, self.step, proc.options.lockstep_timeout, proc.stop, can_force=lambda k: False)
+        ls = Lockstep(self.n_ticks, self.ready, self.step, proc.options.lockstep_timeout, proc.stop, can_force=lambda k: False,
+                      kill_at=proc.options.kill_at_tick, name=proc.name)
         proc.on_input = ls.poke
         k = ls.run()
         proc.publish_diag(k * self.dt_ns, {"finished": k >= self.n_ticks, **ls.timing()})

@@ -1,7 +1,7 @@
 """Issue 30, the pieces without processes: a recording ended on a full disk, the output-directory
 lock, the failsafe intervals the supervisor reports, the message a lockstep receiver waits for,
 ``--router-lost-timeout`` reaching every process that has a router to lose, the last tick's
-messages waited for after the processes ended."""
+messages waited for after the processes ended, a lockstep process killing itself at its tick (`--kill`)."""
 
 from __future__ import annotations
 
@@ -230,3 +230,46 @@ def test_the_supervisor_waits_for_the_last_ticks_messages_after_every_process_en
     assert sup._watch(col) == EXIT_OK
     assert any(f"tick {T - 1} did not all arrive within 0.2 s" in s for s in said), said
     assert np.isnan(col.series().qref[T - 1]).all()
+
+
+_LOCKSTEP_KILLED = """
+import sys, threading
+from zenswarm.process.runtime import Lockstep
+ran = []
+def step(k, forced):
+    ran.append(k)
+    print(f"ran {k}", flush=True)
+ls = Lockstep(10, lambda k: True, step, 5.0, threading.Event(), kill_at=int(sys.argv[1]), name="agent:7")
+ls.run()
+print("finished", ran, flush=True)
+"""
+
+
+@pytest.mark.parametrize("kill_at", [0, 3, 10])
+def test_a_lockstep_loop_kills_itself_just_before_its_tick(kill_at: int) -> None:
+    """``--kill-at-tick K`` (what ``zenswarm up --kill ROLE@T`` gives its lockstep roles): the
+    process dies by SIGKILL with ticks 0..K-1 run and tick K not, after a line naming the tick;
+    a K beyond the flight kills nothing."""
+    cp = subprocess.run([sys.executable, "-c", _LOCKSTEP_KILLED, str(kill_at)], capture_output=True, text=True, timeout=60)
+    ran = [int(ln.split()[1]) for ln in cp.stdout.splitlines() if ln.startswith("ran ")]
+    if kill_at >= 10:
+        assert cp.returncode == 0 and ran == list(range(10)) and "finished" in cp.stdout, (cp.returncode, cp.stdout, cp.stderr)
+        return
+    assert cp.returncode == -9, (cp.returncode, cp.stdout, cp.stderr)
+    assert ran == list(range(kill_at)), cp.stdout
+    assert cp.stdout.splitlines()[-1] == f"agent:7: SIGKILL at tick {kill_at} (--kill-at-tick)", cp.stdout
+
+
+@pytest.mark.parametrize(("flags", "needle"), [
+    (("--realtime", "--kill-at-tick", "5"), "lockstep only"),
+    (("--kill-at-tick", "-1"), "a tick >= 0, got -1"),
+])
+def test_kill_at_tick_is_checked_before_connecting(flags: tuple[str, ...], needle: str) -> None:
+    """A bad ``--kill-at-tick`` is exit 2 naming the flag, before the process looks for a router
+    (the endpoint here has none)."""
+    for role in (["agent", "--id", "1"], ["leader"], ["plant"]):
+        cp = subprocess.run(
+            [sys.executable, "-m", "zenswarm", *role, "--scenario", str(EX1), "--connect", "tcp/127.0.0.1:9", *flags],
+            capture_output=True, text=True, timeout=60,
+        )
+        assert cp.returncode == 2 and "--kill-at-tick" in cp.stderr and needle in cp.stderr, (role, cp.returncode, cp.stderr)

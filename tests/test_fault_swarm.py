@@ -100,6 +100,8 @@ def test_sigkill_of_agent2_restarts_and_completes(zenswarm_fly, tmp_path: Path) 
     assert f.restarts == {"agent:2": 1}
     death = f.process_deaths[0]
     assert death["process"] == "agent:2" and "SIGKILL" in death["how"]
+    # lockstep: agent 2 killed itself just before tick 1000 (--kill-at-tick), in every run
+    assert death["sim_time_s"] == 10.0 and "agent:2: SIGKILL at tick 1000 (--kill-at-tick)" in f.log, (death, f.log[-3000:])
     rejoin = [ln for ln in f.log.splitlines() if "agent:2: joined at tick" in ln]
     assert rejoin, f.log[-3000:]
     t_join = float(rejoin[0].split("t = ")[1].split(" s")[0])

@@ -40,7 +40,7 @@ from collections import defaultdict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import zenoh
 
@@ -718,6 +718,8 @@ class ProcessOptions:
     the process's threads under ``SCHED_FIFO`` at this priority once start-up is over
     (:mod:`zenswarm.process.rtsched`; None: the fair scheduler). router_lost_timeout: wall seconds to wait
     for a lost router to come back before giving up (:data:`DEFAULT_ROUTER_LOST_TIMEOUT_S`).
+    kill_at_tick: lockstep only, the process SIGKILLs itself just before it runs this tick
+    (:class:`Lockstep`; ``zenswarm up --kill``), so the fault falls on the same tick in every run.
     """
 
     scenario: Path | None = None
@@ -743,6 +745,7 @@ class ProcessOptions:
     rt_priority: int | None = None
     plant_model: str | None = None
     router_lost_timeout: float = DEFAULT_ROUTER_LOST_TIMEOUT_S
+    kill_at_tick: int | None = None
 
     @classmethod
     def of(cls, obj: Any) -> ProcessOptions:
@@ -779,6 +782,7 @@ class ProcessOptions:
             rt_priority=get("rt_priority", None),
             plant_model=get("plant_model", None),
             router_lost_timeout=float(get("router_lost_timeout", DEFAULT_ROUTER_LOST_TIMEOUT_S)),
+            kill_at_tick=get("kill_at_tick", None),
         )
 
     def fault_plan(self, scenario: Scenario) -> FaultPlan | None:
@@ -874,6 +878,7 @@ class SwarmProcess:
     def __enter__(self) -> SwarmProcess:
         gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work
         self._check_rt_priority()  # a bad or forbidden --rt-priority: exit 2 before any work
+        self._check_kill_at_tick()
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
@@ -896,6 +901,16 @@ class SwarmProcess:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+    def _check_kill_at_tick(self) -> None:
+        """``--kill-at-tick K``: a tick >= 0, lockstep only (realtime processes do not run tick by tick)."""
+        k = self.options.kill_at_tick
+        if k is None:
+            return
+        if self.options.realtime:
+            raise ScenarioError("--kill-at-tick", f"{self.name}: lockstep only (a realtime process is killed from outside)")
+        if int(k) < 0:
+            raise ScenarioError("--kill-at-tick", f"{self.name}: a tick >= 0, got {k}")
 
     def _check_rt_priority(self) -> None:
         """``--rt-priority``: an integer 1-99, realtime only, and permitted to this user; what
@@ -1303,6 +1318,15 @@ def run_process(fn: Callable[[SwarmProcess], int], name: str, options: ProcessOp
         return 2
 
 
+def kill_self(name: str, tick: int) -> NoReturn:
+    """SIGKILL this process now, as ``kill -9`` from outside would (nothing is flushed, no
+    handler runs), after one line saying so: the fault ``--kill-at-tick`` injects at ``tick``."""
+    sys.stdout.write(f"{name or 'process'}: SIGKILL at tick {tick} (--kill-at-tick)\n")
+    sys.stdout.flush()
+    os.kill(os.getpid(), signal.SIGKILL)
+    raise SystemExit(137)  # not reached: SIGKILL is not caught
+
+
 class Lockstep:
     """Event-driven lockstep loop: tick k runs as soon as its inputs are there.
 
@@ -1310,7 +1334,8 @@ class Lockstep:
     (``forced`` = some input timed out and the tick runs with held values). ``prepare(k)`` runs
     before each readiness check (e.g. to publish what others need from us first).
     ``can_force(k)`` says whether a timed-out tick may run anyway (False when the missing input
-    is the clock itself).
+    is the clock itself). ``kill_at``: the process SIGKILLs itself (:func:`kill_self`) just before
+    tick ``kill_at`` would run (``--kill-at-tick``); ``name`` names it in that line.
 
     Ticks run inside the Zenoh callback that delivered the last missing input (call
     :meth:`poke` from every subscriber callback), so no thread hand-off sits on the critical
@@ -1328,8 +1353,12 @@ class Lockstep:
         prepare: Callable[[int], None] | None = None,
         can_force: Callable[[int], bool] | None = None,
         on_msg: Callable[[str, int, Any], None] | None = None,
+        kill_at: int | None = None,
+        name: str = "",
     ) -> None:
         self.n = n_ticks
+        self.kill_at = kill_at
+        self.name = name
         self.k = 0
         self._ready = ready
         self._step = step
@@ -1368,6 +1397,8 @@ class Lockstep:
         try:
             while self.k < self.n and not self.stop.is_set():
                 k = self.k
+                if k == self.kill_at:
+                    kill_self(self.name, k)
                 if self._prepare is not None:
                     self._prepare(k)
                 ok = self._ready(k)
