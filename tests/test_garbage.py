@@ -31,7 +31,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from zenswarm.bus import wire
-from zenswarm.process.runtime import GUARD_REASONS, MAX_ABS_VALUE, Lockstep, SwarmProcess, expected_senders
+from zenswarm.process.runtime import CLOCK_EVERY_TICKS, GUARD_REASONS, MAX_ABS_VALUE, Lockstep, SwarmProcess, expected_senders
 from zenswarm.scenario.config import load_scenario
 
 from swarmtest import (
@@ -573,18 +573,22 @@ def _flood_main(argv: list[str]) -> int:
             if vec:
                 return _pack({**d, "seq": d["seq"] + 1, vec: [x + 0.5 for x in d[vec]]}), own
             return _pack({**d, "seq": d["seq"] + 1}), own
-        # past: older than the receivers' window of recent ticks (64; within it the same tick is a
-        # duplicate). The window is the receiver's: under load a receiver lags the tick this
-        # flood last saw by a few ticks (seen: all 15 "past" messages to the leader, 65 ticks
-        # old here, counted as duplicates), so a past message is LAG_TICKS older still. A real
-        # old message replayed where the key has that much history; the latest one with an old
-        # tick where it has not (the flood joined late)
+        # past: older than the key's newest tick and not among the receiver's 64 recent ones
+        # (those are duplicates). The 64 are messages: on the clock, sent every CLOCK_EVERY_TICKS
+        # ticks, they span 256 ticks, more than a loaded flood ever saw (seen: all 15 "past"
+        # clocks to the leader counted as duplicates, twice). And the receiver lags the tick this
+        # flood last saw by a few. So: a real old message where the key has history beyond both;
+        # else the latest message with a tick LAG_TICKS older than the window, on the clock one
+        # it never sends (not a multiple of CLOCK_EVERY_TICKS), so never a recent one
         if g == "past":
-            t_past = d["t"] - (RECENT_TICKS + LAG_TICKS) * DT_NS
-            if old is not None and old[2]["t"] <= t_past:
+            period = CLOCK_EVERY_TICKS if key == keys.clock else 1
+            if old is not None and old[2]["t"] // DT_NS <= d["t"] // DT_NS - RECENT_TICKS * period - LAG_TICKS:
                 return _pack({**old[2], "seq": SPOOF_SEQ}), si
-            if t_past >= 0:
-                return _pack({**d, "t": t_past, "seq": SPOOF_SEQ}), si
+            tick_past = d["t"] // DT_NS - RECENT_TICKS - LAG_TICKS
+            if period > 1 and tick_past % period == 0:
+                tick_past -= 1
+            if tick_past >= 0:
+                return _pack({**d, "t": tick_past * DT_NS, "seq": SPOOF_SEQ}), si
         if g == "future":
             return _pack({**d, "t": beyond, "seq": SPOOF_SEQ}), si
         if g == "stale":  # a seq already used (the tick is beyond the mission's end)
