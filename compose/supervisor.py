@@ -795,22 +795,34 @@ class Supervisor:
             time.sleep(0.05)
 
     def _await_last_tick(self, collector: Collector) -> None:
-        """Lockstep, every process done: a process's last messages (the last tick's refs and
+        """Lockstep, every process done: a process's last messages (the last ticks' clock, refs and
         commands) are sent as it exits and may still be on their way through the router, so poll
-        until the last tick flown is complete, at most ``--lockstep-timeout``. Without this wait a
-        loaded machine judged a series whose last tick was partly missing (NaN where the simulator
-        has values). Realtime: nothing to wait for (a tick without a message holds the previous value)."""
+        until the last tick flown (:meth:`_last_tick_flown`) is complete, at most
+        ``--lockstep-timeout``. Without this wait a loaded machine judged a series whose last ticks
+        were partly missing (NaN where the simulator has values). Realtime: nothing to wait for (a
+        tick without a message holds the previous value)."""
         if self.args.realtime or collector.sim_t_ns < 0:
             return
-        last = min(collector.T, int(collector.sim_t_ns // collector.dt_ns) + 1) - 1
         deadline = time.monotonic() + self.args.lockstep_timeout
-        while not collector.tick_complete(last):
+        while not collector.tick_complete(last := self._last_tick_flown(collector)):
             if time.monotonic() > deadline or self.stop.is_set():
                 self.say(f"the messages of tick {last} did not all arrive within {self.args.lockstep_timeout:g} s "
                          "(--lockstep-timeout) after the processes ended; judging what arrived")
                 return
             time.sleep(0.01)
             collector.poll(self._bus_sub, self._live_tap())
+
+    @staticmethod
+    def _last_tick_flown(collector: Collector) -> int:
+        """Lockstep, every process ended with status 0: the plant ran every tick of the time limit
+        (its loop ends only there, or when it is stopped), so the last tick flown is T - 1, whatever
+        the collector's clock says yet: the plant's final clocks travel with the last ticks'
+        messages, and a clock seen only up to an earlier tick judged the ticks after it missing.
+        A plant stopped early says so in its final diagnostics (``finished`` false): then the last
+        tick of the clock seen."""
+        if (collector.diag.get("plant") or {}).get("finished") is False:
+            return min(collector.T, int(collector.sim_t_ns // collector.dt_ns) + 1) - 1
+        return collector.T - 1
 
     def _live_tap(self) -> Any:
         """The live view's feed (``--live``), else None."""

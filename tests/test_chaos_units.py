@@ -180,10 +180,12 @@ class _Router:
 
 
 def test_the_supervisor_waits_for_the_last_ticks_messages_after_every_process_ended(tmp_path: Path) -> None:
-    """Lockstep, every process done, the last tick's refs and commands not yet through the router:
-    the supervisor polls on (up to --lockstep-timeout) and judges the whole flight, not a series
-    with NaN in its last tick (under CPU load the lockstep swarm != the simulator by the NaN
-    of the last tick: test_plugins, issue 30 "flaky under load")."""
+    """Lockstep, every process done, the last ticks' refs and commands and the plant's final clock
+    not yet through the router: the supervisor polls on (up to --lockstep-timeout) and judges the
+    whole flight, not a series with NaN in its last ticks (under CPU load the lockstep swarm !=
+    the simulator by the NaN of the last ticks: test_plugins, plugins check, issue 30 "flaky under
+    load"). The clock goes out every CLOCK_EVERY_TICKS ticks, so the clock seen on time is a few
+    ticks short of the end: the ticks after it are waited for too."""
     import dataclasses
     from types import SimpleNamespace
 
@@ -191,34 +193,45 @@ def test_the_supervisor_waits_for_the_last_ticks_messages_after_every_process_en
 
     from zenswarm.compose.cli import build_parser
     from zenswarm.compose.supervisor import EXIT_OK, Supervisor, up_options
+    from zenswarm.process.runtime import CLOCK_EVERY_TICKS
 
-    scenario = scenario_variant(tmp_path, time_limit_s=0.05)
+    scenario = scenario_variant(tmp_path, time_limit_s=0.1)
     sc = load_scenario(scenario)
     args = build_parser().parse_args(["up", str(scenario), "--swarm", "late", "--quiet", "--lockstep-timeout", "3"])
     sup = Supervisor(up_options(args), sc)
     keys = sup.keys
     col = sup.collector = Collector(sc, keys)
     T, n, z = col.T, sc.n, (0.0, 0.0, 0.0)
+    on_time_clock = (T - 1) // CLOCK_EVERY_TICKS * CLOCK_EVERY_TICKS  # the last clock before the final one
+    assert 0 < on_time_clock < T - 1, "the scenario must end between two clocks"
 
     def sample(key: str, msg: Any) -> Any:
         data = wire.encode(msg)
         return SimpleNamespace(key_expr=key, payload=SimpleNamespace(to_bytes=lambda: data), source_info=None)
 
-    now, late = [], []
-    for k in range(T):
-        t = k * col.dt_ns
-        now.append(sample(keys.clock, wire.Clock(t=t, seq=k)))
-        now.append(sample(keys.leader_ref, wire.Ref(t=t, seq=k, q=(k, 0, 1), v=z)))
-        for i in range(1, n + 1):
-            now.append(sample(keys.state(i), wire.State(t=t, seq=k, q=(k, i, 1), v=z, rpy=z, w=z)))
-            out = late if k == T - 1 else now  # the last tick's outputs come late
-            out.append(sample(keys.ref(i), wire.Ref(t=t, seq=k, q=(k, i, 1.5), v=z)))
-            out.append(sample(keys.cmd(i), wire.Cmd(t=t, seq=k, thrust=1.0, rpy=z, u=z, d_hat=z)))
+    def flight() -> tuple[list[Any], list[Any]]:
+        """The flight's samples as the plant, leader and agents send them: (on time, late). Late:
+        the outputs of the ticks after the last on-time clock, the final clock and the plant's final diagnostics."""
+        now, late = [sample(keys.clock, wire.Clock(t=0, seq=0))], []
+        for k in range(T):
+            t = k * col.dt_ns
+            now.append(sample(keys.leader_ref, wire.Ref(t=t, seq=k, q=(k, 0, 1), v=z)))
+            for i in range(1, n + 1):
+                now.append(sample(keys.state(i), wire.State(t=t, seq=k, q=(k, i, 1), v=z, rpy=z, w=z)))
+                out = late if k > on_time_clock else now
+                out.append(sample(keys.ref(i), wire.Ref(t=t, seq=k, q=(k, i, 1.5), v=z)))
+                out.append(sample(keys.cmd(i), wire.Cmd(t=t, seq=k, thrust=1.0, rpy=z, u=z, d_hat=z)))
+            if (k + 1) % CLOCK_EVERY_TICKS == 0 or k + 1 == T:
+                (now if k + 1 <= on_time_clock else late).append(sample(keys.clock, wire.Clock(t=(k + 1) * col.dt_ns, seq=k + 1)))
+        late.append(sample(keys.diag("plant"), wire.Diag(t=T * col.dt_ns, seq=T, process="plant", info={"finished": True})))
+        return now, late
+
+    now, late = flight()
     sup._bus_sub = _Router(now, late, after=5)
     sup.children = {}  # every process has ended
     assert sup._watch(col) == EXIT_OK
     ts = col.series()
-    assert np.isfinite(ts.qref).all() and np.isfinite(ts.thrust).all(), "the last tick's outputs were judged missing"
+    assert np.isfinite(ts.qref).all() and np.isfinite(ts.thrust).all(), "the last ticks' outputs were judged missing"
     assert ts.qref[T - 1, n - 1].tolist() == [T - 1, n, 1.5]
 
     # they never come: the wait is bounded and said, the run is judged on what arrived
@@ -230,6 +243,16 @@ def test_the_supervisor_waits_for_the_last_ticks_messages_after_every_process_en
     assert sup._watch(col) == EXIT_OK
     assert any(f"tick {T - 1} did not all arrive within 0.2 s" in s for s in said), said
     assert np.isnan(col.series().qref[T - 1]).all()
+
+    # a plant stopped before the end says so (finished false): the ticks of its clock are judged, no wait
+    col = sup.collector = Collector(sc, keys)
+    stopped = [s for s in now if s.key_expr != keys.clock or wire.decode("clock", s.payload.to_bytes()).t <= on_time_clock * col.dt_ns]
+    stopped.append(sample(keys.diag("plant"), wire.Diag(t=on_time_clock * col.dt_ns, seq=T, process="plant", info={"finished": False})))
+    sup._bus_sub = _Router(stopped, [], after=0)
+    said.clear()
+    assert sup._watch(col) == EXIT_OK
+    assert not any("did not all arrive" in s for s in said), said
+    assert col.tick_complete(on_time_clock)
 
 
 _LOCKSTEP_KILLED = """
