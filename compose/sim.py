@@ -297,13 +297,16 @@ class _Swarm:
 def radio_results(scenario: Scenario, faults: FaultPlan | None, series: TimeSeries) -> dict:
     """``effective_graph`` of a run with a radio model, a capacity queue or a link trace
     (:func:`zenswarm.link.swarm.effective_graph`; {} without any): the same figures for ``sim`` and
-    ``up``, computed from the recorded series."""
+    ``up``, computed from the recorded series (its first row's tick from its time: a realtime
+    series starts at the first tick every process had a value)."""
     if faults is None or not (faults.radio_active or faults.queues is not None or faults.trace is not None):
         return {}
     A = np.asarray(scenario.graph.adjacency, dtype=float)
     nbrs = [[int(j) for j in np.flatnonzero(A[i])] for i in range(scenario.n)]
     pinned = [float(b) > 0 for b in scenario.graph.pinning]
-    graph = effective_graph(faults, nbrs, pinned, series.q, series.q0, scenario.timing.dt)
+    dt = scenario.timing.dt
+    first = int(round(float(series.t[0]) / dt)) if len(series.t) else 0
+    graph = effective_graph(faults, nbrs, pinned, series.q, series.q0, dt, first)
     return {"effective_graph": graph}
 
 

@@ -222,6 +222,43 @@ def test_effective_graph_of_a_lossless_plan() -> None:
     assert g["components"] == [[0, 1], [2, 2], [4, 1]] and g["spanning_tree_fraction"] == 0.6
 
 
+def test_a_series_that_starts_late_is_judged_by_its_own_ticks() -> None:
+    """A realtime series starts at the first tick every process had a value (a late joiner): its
+    row r is tick s + r. The effective graph of its rows is the whole flight's from tick s on (the
+    faults of each tick, not of its row number): loss and the radio's fall-off draw per tick, so a
+    graph shifted by s ticks differs. (A ref of tick k is judged at the positions of tick k - 1,
+    which a series from tick s has from its second row on.)"""
+    from dataclasses import replace
+
+    from zenswarm.compose.sim import radio_results
+    from zenswarm.link.swarm import graph_series
+
+    ex1 = load_scenario(SCENARIOS / "paper_example1.toml")
+    plan = plan_for(ex1, link_fade="0.25m,0.05m", link_loss="0.3", seed=3)
+    flown = simulate(ex1, n_ticks=SHORT, faults=plan)
+    ts, s = flown.series, 37
+    A = np.asarray(ex1.graph.adjacency, dtype=float)
+    nbrs = [[int(j) for j in np.flatnonzero(A[i])] for i in range(ex1.n)]
+    pinned = [float(b) > 0 for b in ex1.graph.pinning]
+    whole = graph_series(plan, nbrs, pinned, ts.q, ts.q0, ex1.timing.dt)
+    late = graph_series(plan, nbrs, pinned, ts.q[s:], ts.q0[s:], ex1.timing.dt, first_tick=s)
+    for a, b in zip(whole.links, late.links, strict=True):
+        assert a.name == b.name and a.up[s + 1 :].tolist() == b.up[1:].tolist(), a.name
+        assert np.array_equal(a.delay_s[s:], b.delay_s)
+    assert whole.components[s + 1 :].tolist() == late.components[1:].tolist()
+    shifted = graph_series(plan, nbrs, pinned, ts.q[s:], ts.q0[s:], ex1.timing.dt)  # judged as if from tick 0
+    assert any(a.up[s + 1 :].tolist() != b.up[1:].tolist() for a, b in zip(whole.links, shifted.links, strict=True))
+
+    # through radio_results, as the supervisor judges a realtime series that starts late
+    cut = replace(ts, **{f: getattr(ts, f)[s:] for f in ts.FIELDS})
+    graph = radio_results(ex1, plan, cut)["effective_graph"]
+    assert graph["first_tick"] == s and graph["ticks"] == SHORT - s and graph["components"][0][0] == s
+    for ls in late.links:
+        assert graph["link_up_fraction"][ls.name] == float(np.mean(ls.up)), ls.name
+    with pytest.raises(ValueError, match="first_tick"):
+        graph_series(plan, nbrs, pinned, ts.q, ts.q0, ex1.timing.dt, first_tick=-1)
+
+
 @pytest.mark.swarm
 @pytest.mark.parametrize("rng", ["0.3m"])
 def test_radio_swarm_equals_sim(zenswarm_fly, rng: str) -> None:

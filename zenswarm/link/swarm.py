@@ -388,7 +388,9 @@ class GraphSeries:
     tree: np.ndarray
 
 
-def graph_series(plan: FaultPlan, neighbours: list[list[int]], pinned: list[bool], q: Any, q0: Any, dt: float) -> GraphSeries:
+def graph_series(
+    plan: FaultPlan, neighbours: list[list[int]], pinned: list[bool], q: Any, q0: Any, dt: float, first_tick: int = 0
+) -> GraphSeries:
     """The effective communication graph of a flight, tick by tick, from its fault plan and its
     time series.
 
@@ -400,14 +402,22 @@ def graph_series(plan: FaultPlan, neighbours: list[list[int]], pinned: list[bool
     :mod:`zenswarm.link.radio`), the same decision the receive boxes make (:class:`Box`). Tick 0 is
     always up (start-up exchange, delay 0).
 
-    neighbours: per agent (0-based), its neighbours' 0-based indices; pinned: per agent; dt: s.
+    neighbours: per agent (0-based), its neighbours' 0-based indices; pinned: per agent; dt: s;
+    first_tick: the tick of the series' first row (a realtime series starts at the first tick
+    every process had a value: row r is tick ``first_tick + r``, and its faults are that tick's).
+    The per-tick arrays have a row per row of ``q``; a link judged at the positions of the tick
+    before (:data:`GEOMETRY_TICK_OFFSET`) has none in the first row of a series that starts
+    late: there only its other faults decide.
     """
     fs = FaultState(plan)
     q = np.asarray(q, dtype=float)
     q0 = np.asarray(q0, dtype=float)
     T = int(q.shape[0])
     n = len(neighbours)
-    ticks = np.arange(T, dtype=np.int64)
+    first_tick = int(first_tick)
+    if first_tick < 0:
+        raise ValueError(f"first_tick must be >= 0, got {first_tick}")
+    ticks = np.arange(first_tick, first_tick + T, dtype=np.int64)
     links: list[tuple[int, int, LinkSeries]] = []  # (src node, dst node, series); node 0 the leader
     for i in range(n):
         rows = [(j + 1, f"agent:{j + 1}", "ref") for j in neighbours[i]]
@@ -423,16 +433,16 @@ def graph_series(plan: FaultPlan, neighbours: list[list[int]], pinned: list[bool
             model = plan.radio_for(src, dst, kind)
             if model is not None and T:
                 off = GEOMETRY_TICK_OFFSET[kind]
-                for k in range(1, T):
+                for k in range(1 if first_tick == 0 else 0, T):  # k: the row; tick first_tick + k
                     g = k + off
                     if not up[k] or g < 0:
                         continue
                     a = q0[k] if kind == "leader" else q[g, node - 1]
-                    u = fs.uniform((src, dst, kind), "radio", k) if model.uses_uniform else 0.0
+                    u = fs.uniform((src, dst, kind), "radio", first_tick + k) if model.uses_uniform else 0.0
                     dd = distance(a, q[g, i])
                     if radio_reason(model, dd if math.isfinite(dd) else math.inf, u) is not None:
                         up[k] = False
-            if T:
+            if T and first_tick == 0:
                 up[0] = True
                 delay[0] = 0.0
             links.append((node, i + 1, LinkSeries(f"{src}->{dst}", kind, up, delay)))
@@ -445,24 +455,29 @@ def graph_series(plan: FaultPlan, neighbours: list[list[int]], pinned: list[bool
     return GraphSeries(tuple(ls for _, _, ls in links), comps, tree)
 
 
-def effective_graph(plan: FaultPlan, neighbours: list[list[int]], pinned: list[bool], q: Any, q0: Any, dt: float) -> dict[str, Any]:
+def effective_graph(
+    plan: FaultPlan, neighbours: list[list[int]], pinned: list[bool], q: Any, q0: Any, dt: float, first_tick: int = 0
+) -> dict[str, Any]:
     """The effective communication graph of a flight, summarised (:func:`graph_series` per tick).
 
     Returns ``link_up_fraction`` (``"src->dst"`` -> fraction of ticks up), ``components``
     (number of connected components of the undirected graph of the leader and the agents over
     the links up, per tick, as a run-length list ``[[first_tick, count], ...]``),
     ``max_components``, ``spanning_tree_fraction`` (fraction of ticks with a directed spanning
-    tree rooted at the leader over the links up: Lemma 1's assumption) and ``ticks``.
+    tree rooted at the leader over the links up: Lemma 1's assumption), ``ticks`` (how many) and
+    ``first_tick`` (the first one: ``first_tick`` of :func:`graph_series`, the tick of the series'
+    first row).
     """
-    gs = graph_series(plan, neighbours, pinned, q, q0, dt)
+    gs = graph_series(plan, neighbours, pinned, q, q0, dt, first_tick)
     T = int(gs.components.shape[0])
     comps: list[list[int]] = []
     for k in range(T):
         c = int(gs.components[k])
         if not comps or comps[-1][1] != c:
-            comps.append([k, c])
+            comps.append([int(first_tick) + k, c])
     return {
         "ticks": T,
+        "first_tick": int(first_tick),
         "link_up_fraction": {ls.name: float(np.mean(ls.up)) if T else 0.0 for ls in gs.links},
         "components": comps,
         "max_components": int(gs.components.max()) if T else 0,
