@@ -65,6 +65,11 @@ DEFAULT_EXTERNAL_TIMEOUT_S = 60.0
 """``--external-timeout``: how long an external role may take to announce itself (the plant
 waits as long for the processes it needs before its first tick)."""
 
+ROUTER_PORT_TRIES = 5
+"""Without ``--listen`` the router's port is a free one, chosen a moment before the router binds
+it; another program (a second flight started at the same moment) may take it in between. Then a
+new free port, up to this many ports in all."""
+
 EXTERNAL_GONE_GRACE_S = 0.5
 """An external role's liveliness token must stay gone this long before the role counts as dead:
 its final diagnostics (``finished``), sent just before a normal exit, reach the collector's queue
@@ -416,17 +421,14 @@ class Supervisor:
         """:meth:`run` once the output directory is locked: the router, the processes, the watch."""
         a = self.args
         sc = self.sc
-        self.connect_endpoints = list(a.connect) or list(listen)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
 
         # zenoh reads ZENOH_RUNTIME when this process opens its first session: the router's
         if self.user_runtime is None:
             os.environ["ZENOH_RUNTIME"] = bus.ZENOH_RUNTIME_ROUTER
-        session_cm = bus.open_session(
-            bus.router_config(listen, connect=list(a.router_connect), settings=settings), handle_signals=False
-        )
-        session = session_cm.__enter__()
+        session_cm, session, listen = self._open_router(listen, settings)
+        self.connect_endpoints = list(a.connect) or list(listen)
         collector = self.collector = Collector(sc, self.keys, spool_dir=out)  # spool: flat memory
         self._bus_sub: Any = None
         subs = []
@@ -467,6 +469,29 @@ class Supervisor:
             return self._finish(collector, code, out)
         finally:
             session_cm.__exit__(None, None, None)
+
+    def _open_router(self, listen: list[str], settings: dict) -> tuple[Any, zenoh.Session, list[str]]:
+        """The router's session (its context manager, entered; the session; the endpoints it
+        listens on). Without ``--listen`` the port was chosen free a moment ago: if another program
+        bound it since (two flights started at once), the router takes a new free port, up to
+        :data:`ROUTER_PORT_TRIES` ports, and says so. A port given with ``--listen`` is never changed:
+        :class:`zenswarm.bus.BusError` naming ``--listen`` (exit 2)."""
+        a = self.args
+        for attempt in range(1, ROUTER_PORT_TRIES + 1):
+            cm = bus.open_session(bus.router_config(listen, connect=list(a.router_connect), settings=settings), handle_signals=False)
+            try:
+                return cm, cm.__enter__(), listen
+            except bus.BusError as e:
+                if "Address already in use" not in str(e) or attempt == ROUTER_PORT_TRIES:
+                    raise
+                if a.listen:
+                    raise bus.BusError(f"--listen {', '.join(listen)}: the port is taken by another program (another flight?); "
+                                       "give another port, or leave --listen out for a free one") from None
+                port = bus.free_port()
+                self.say(f"the router's port was taken by another program before the router bound it ({', '.join(listen)}); "
+                         f"taking port {port}")
+                listen = [ep.rpartition(":")[0] + f":{port}" for ep in listen]
+        raise AssertionError("unreachable")  # the last try returns or raises
 
     def _security(self, listen: list[str], out: Path) -> tuple[dict, list[str]]:
         """Router settings and listen endpoints for --secure/--tls (secure by default off loopback)."""

@@ -296,3 +296,43 @@ def test_kill_at_tick_is_checked_before_connecting(flags: tuple[str, ...], needl
             capture_output=True, text=True, timeout=60,
         )
         assert cp.returncode == 2 and "--kill-at-tick" in cp.stderr and needle in cp.stderr, (role, cp.returncode, cp.stderr)
+
+
+def test_the_routers_port_taken_before_it_binds_is_replaced_unless_given(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two flights started at once on default settings: each chooses a free port for its router a
+    moment before binding it, so both may choose the same one (test_chaos's two flights failed
+    once, a router never up). Without ``--listen`` the router takes another free port and says so;
+    a port given with ``--listen`` is never changed: the bus error names ``--listen`` (exit 2)."""
+    import socket
+
+    from zenswarm import bus
+    from zenswarm.compose.cli import build_parser
+    from zenswarm.compose.supervisor import Supervisor, up_options
+
+    sc = load_scenario(EX1)
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        real = bus.free_port
+        chosen = iter([port])  # the next free port chosen is the taken one again, then real free ones
+        monkeypatch.setattr(bus, "free_port", lambda host="127.0.0.1": next(chosen, None) or real(host))
+
+        args = build_parser().parse_args(["up", str(EX1), "--swarm", "taken", "--quiet"])
+        sup = Supervisor(up_options(args), sc)
+        said: list[str] = []
+        sup.say = said.append  # type: ignore[method-assign]
+        cm, session, listen = sup._open_router([f"tcp/127.0.0.1:{port}"], {})
+        try:
+            assert listen != [f"tcp/127.0.0.1:{port}"] and listen[0].startswith("tcp/127.0.0.1:"), listen
+            got = int(listen[0].rpartition(":")[2])
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+                assert probe.connect_ex(("127.0.0.1", got)) == 0, "the router does not listen on the port it says"
+        finally:
+            cm.__exit__(None, None, None)
+        assert sum("port was taken by another program" in s for s in said) == 2, said  # the taken port twice
+
+        given = build_parser().parse_args(["up", str(EX1), "--swarm", "taken", "--quiet", "--listen", f"tcp/127.0.0.1:{port}"])
+        sup = Supervisor(up_options(given), sc)
+        with pytest.raises(bus.BusError, match=f"--listen tcp/127.0.0.1:{port}: the port is taken"):
+            sup._open_router([f"tcp/127.0.0.1:{port}"], {})
