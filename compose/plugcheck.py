@@ -386,15 +386,13 @@ def _sim_vs_swarm(sc: Scenario, seed: int) -> str:
     import json
     import uuid
 
-    from zenswarm.bus import free_port
-
     with tempfile.TemporaryDirectory(prefix="zenswarm-check-") as tmp:
         scen = Path(tmp) / "scenario.toml"
         scen.write_text(to_toml(scenario_to_dict(sc)))
         swarm = f"check{uuid.uuid4().hex[:10]}"
         Keys(swarm)  # a valid swarm name
-        opts = UpOptions(scenario=scen, swarm=swarm, out=Path(tmp) / "out", faults=faults, listen=(f"tcp/127.0.0.1:{free_port()}",),
-                         lockstep_timeout=LOCKSTEP_TIMEOUT_S)
+        # no --listen: the supervisor chooses the router's port (another one if it is taken before the bind)
+        opts = UpOptions(scenario=scen, swarm=swarm, out=Path(tmp) / "out", faults=faults, lockstep_timeout=LOCKSTEP_TIMEOUT_S)
         run = run_up(opts, timeout=600.0)
         if run.timed_out or not (opts.out / "results.json").is_file():
             tail = "\n".join(run.log.splitlines()[-15:])

@@ -217,6 +217,7 @@ class Supervisor:
         self.user_runtime = None if rt == bus.ZENOH_RUNTIME_DEFAULT else rt  # None: ours (spawn, run)
         self.children: dict[str, Child] = {}
         self.collector: Collector | None = None
+        self.listen: list[str] = []  # the router's endpoints, once it listens (:meth:`_open_router`)
         self.stop = threading.Event()
         self.stop_reason = ""
         self.print_lock = threading.Lock()
@@ -428,6 +429,7 @@ class Supervisor:
         if self.user_runtime is None:
             os.environ["ZENOH_RUNTIME"] = bus.ZENOH_RUNTIME_ROUTER
         session_cm, session, listen = self._open_router(listen, settings)
+        self.listen = listen
         self.connect_endpoints = list(a.connect) or list(listen)
         collector = self.collector = Collector(sc, self.keys, spool_dir=out)  # spool: flat memory
         self._bus_sub: Any = None
@@ -1051,6 +1053,7 @@ class Supervisor:
         """What results.json says of the run beside the verdict: mode, processes, recording, diagnostics."""
         res["mode"] = "realtime" if self.args.realtime else "lockstep"
         res["swarm"] = self.args.swarm
+        res["router"] = list(self.listen)  # the endpoints the router listened on (its port: chosen free without --listen)
         # a child stopped by terminate_all has its code on popen only (returncode is set when one dies)
         res["processes"] = {name: c.returncode if c.returncode is not None else c.popen.poll() for name, c in self.children.items()}
         res["vehicles"] = self._vehicles_figures(collector)

@@ -122,11 +122,13 @@ def test_swarm_flight_takes_its_output_paths_as_text(tmp_path: Path) -> None:
     f = api.fly("paper_example1", mode="swarm", duration=0.5, out=str(out), record=str(rec))
     assert f.out == out and (out / "results.json").is_file() and rec.is_file(), f.log[-2000:]
     assert f.metrics.sim_time_s == 0.5
+    # no port given: the supervisor chose a free one, said in results.json and on the flight
+    assert f.results["router"] == [f"tcp/127.0.0.1:{f.port}"] and f.port is not None and f.port > 0, f.results.get("router")
 
 
 @pytest.mark.swarm
 def test_swarm_flight_equals_the_sim_flight_and_leaves_nothing(zenswarm_fly) -> None:
-    """The fixture flies the lockstep swarm (unique name, free port) under loss and delay; the
+    """The fixture flies the lockstep swarm (unique name, a free port its supervisor chose) under loss and delay; the
     flight is the simulator's bit for bit; at teardown nothing of it is left (the fixture checks)."""
     kw = dict(duration=2.0, seed=3, link_loss="20%", link_delay="50ms")
     swarm = zenswarm_fly("paper_example1", mode="swarm", **kw)
@@ -136,6 +138,7 @@ def test_swarm_flight_equals_the_sim_flight_and_leaves_nothing(zenswarm_fly) -> 
     assert swarm.out is not None and (swarm.out / "results.json").is_file()
     assert swarm.diagnostics["agent:1"]["link:agent:2->agent:1:ref.dropped"] > 0
     assert swarm.swarm is not None and api.processes_of(swarm.swarm) == []
+    assert swarm.port is not None and swarm.results["router"] == [f"tcp/127.0.0.1:{swarm.port}"]
 
 
 @pytest.mark.swarm

@@ -38,7 +38,6 @@ from typing import Any, Literal
 
 import numpy as np
 
-from zenswarm.bus import free_port
 from zenswarm.bus.wire import validate_process
 from zenswarm.compose.launch import kill_processes_of, live_flights, processes_of, run_up, stop_flight
 from zenswarm.compose.sim import simulate, summary_line, write_outputs
@@ -157,7 +156,8 @@ class Flight:
     ``plugin_error``, 130 interrupted). ``formation_error``: (T, N) m, per tick.
     out: where results.json and timeseries.npz were written (None: not kept). log: the
     supervisor's output (swarm mode). leftovers: processes of the swarm found alive after the
-    flight and killed (empty unless something went wrong)."""
+    flight and killed (empty unless something went wrong). port: the router's TCP port on
+    127.0.0.1 (swarm mode; the one given, else the free one its supervisor chose)."""
 
     mode: Mode
     scenario: Scenario
@@ -171,6 +171,7 @@ class Flight:
     swarm: str | None = None
     log: str = ""
     leftovers: tuple[str, ...] = ()
+    port: int | None = None
 
     @property
     def causes(self) -> tuple[str, ...]:
@@ -451,7 +452,7 @@ def fly(
 
 def _flight(
     mode: Mode, sc: Scenario, results: Mapping[str, Any], series: TimeSeries, code: int,
-    out: Path | None, swarm: str | None = None, log: str = "", leftovers: tuple[str, ...] = (),
+    out: Path | None, swarm: str | None = None, log: str = "", leftovers: tuple[str, ...] = (), port: int | None = None,
 ) -> Flight:
     return Flight(
         mode=mode,
@@ -466,6 +467,7 @@ def _flight(
         swarm=swarm,
         log=log,
         leftovers=leftovers,
+        port=port,
     )
 
 
@@ -474,9 +476,10 @@ def _fly_swarm(
     realtime: bool, full_time: bool, record: Path | None, out: Path | None, swarm: str | None, port: int | None,
     lockstep_timeout: float, timeout: float, rt_priority: int | None = None,
 ) -> Flight:
-    """``zenswarm up`` as a child process group; its results read back from its output directory."""
+    """``zenswarm up`` as a child process group; its results read back from its output directory.
+    Without ``port`` the supervisor chooses a free one for its router (and another if that one is
+    taken before the router binds it: two flights started at once)."""
     swarm = swarm or unique_swarm_name()
-    port = port or free_port()
     with tempfile.TemporaryDirectory(prefix="zenswarm-fly-") as tmp:
         run_dir = Path(tmp)
         out_dir = out if out is not None else run_dir / "out"
@@ -485,7 +488,7 @@ def _fly_swarm(
         scen_file.write_text(to_toml(doc if doc is not None else scenario_to_dict(sc)))
         opts = UpOptions(
             scenario=scen_file, swarm=swarm, out=out_dir, realtime=realtime, record=record, lockstep_timeout=lockstep_timeout,
-            kill=kills, restart=restart, full_time=full_time, faults=faults, listen=(f"tcp/127.0.0.1:{port}",),
+            kill=kills, restart=restart, full_time=full_time, faults=faults, listen=(f"tcp/127.0.0.1:{port}",) if port else (),
             rt_priority=rt_priority,
         )
         check_up_args(opts, sc)  # the supervisor's own checks, here: bad input raises before anything starts
@@ -498,7 +501,16 @@ def _fly_swarm(
             raise FlightError(f"zenswarm up ended with exit status {code} and no results:\n{tail}", code, log)
         results = json.loads((out_dir / "results.json").read_text())
         series = TimeSeries.load(str(out_dir / "timeseries.npz"))
-    return _flight("swarm", sc, results, series, code, out, swarm, log, leftovers)
+    return _flight("swarm", sc, results, series, code, out, swarm, log, leftovers, port or _router_port(results))
+
+
+def _router_port(results: Mapping[str, Any]) -> int | None:
+    """The port of the router's first endpoint in ``results.json`` (``router``), if it has one."""
+    eps = results.get("router") or []
+    try:
+        return int(str(eps[0]).rpartition(":")[2])
+    except (IndexError, ValueError):
+        return None
 
 
 

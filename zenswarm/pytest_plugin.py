@@ -60,20 +60,23 @@ def _check_swarm(swarm: str) -> list[str]:
 
 class FlyFactory:
     """The ``zenswarm_fly`` fixture: call it like :func:`zenswarm.api.fly`. Swarm flights get a
-    unique ``swarm``, a free ``port`` and ``out`` = ``tmp_path/flight<k>`` unless given."""
+    unique ``swarm`` and ``out`` = ``tmp_path/flight<k>`` unless given; their router's port is the
+    one given, else a free one that the flight's supervisor chooses (:attr:`zenswarm.api.Flight.port`)."""
 
     def __init__(self, tmp_path: Path) -> None:
         self.tmp_path = tmp_path
-        self.swarms: list[tuple[str, int]] = []
+        self.swarms: list[tuple[str, int | None]] = []  # (swarm, router port: None until known)
         self.flights: list[api.Flight] = []
 
     def __call__(self, scenario: Any, **kwargs: Any) -> api.Flight:
-        if kwargs.get("mode", "sim") == "swarm":
+        swarm = kwargs.get("mode", "sim") == "swarm"
+        if swarm:
             kwargs.setdefault("swarm", api.unique_swarm_name("pt"))
-            kwargs.setdefault("port", free_port())
             kwargs.setdefault("out", self.tmp_path / f"flight{len(self.swarms) + 1}")
-            self.swarms.append((kwargs["swarm"], kwargs["port"]))
+            self.swarms.append((kwargs["swarm"], kwargs.get("port")))
         flight = api.fly(scenario, **kwargs)
+        if swarm and flight.port is not None:
+            self.swarms[-1] = (kwargs["swarm"], flight.port)
         self.flights.append(flight)
         return flight
 
@@ -86,7 +89,7 @@ class FlyFactory:
             problems += [f"swarm {f.swarm}: process left behind after the flight and killed: {cmd}" for cmd in f.leftovers]
         for swarm, port in self.swarms:
             problems += _check_swarm(swarm)
-            if not port_free(port):
+            if port is not None and not port_free(port):
                 problems.append(f"swarm {swarm}: router port {port} still bound")
         return problems
 
