@@ -8,7 +8,11 @@ is too old goes into the failsafe of :mod:`zenswarm.plant.failsafe` (hover, then
 the leader and the supervisor only, goes out every :data:`zenswarm.process.runtime.CLOCK_EVERY_TICKS`
 ticks: clock(0) with the first states, then clock(k + 1) as the integration of tick k starts, so
 the leader's burst of refs overlaps the integration, not the agents' work. It starts only
-when the leader and every agent have announced themselves.
+when the leader and every agent have announced themselves. After its last tick it stays (token
+held) until every live agent's command of the last tick has arrived, at most
+:data:`LAST_COMMANDS_TIMEOUT_S`: with delay on the command links its last tick needs only older
+commands, so it can finish while an agent is still ticking, and the leader and the agents leave
+once the plant is gone (a receiver does not wait for a sender whose token is gone).
 Realtime: a fixed-rate loop at the control rate (:class:`zenswarm.process.runtime.WallClock`); each period
 integrates one control period of physics with the latest command of each UAV (hover thrust, level,
 before the first one).
@@ -20,6 +24,7 @@ Started with :class:`PlantOptions` by :func:`run` (the command line is parsed at
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 from zenswarm.bus import wire
@@ -34,7 +39,11 @@ from zenswarm.process.runtime import (
     run_process,
 )
 
-__all__ = ["PlantOptions", "run"]
+__all__ = ["PlantOptions", "run", "LAST_COMMANDS_TIMEOUT_S"]
+
+LAST_COMMANDS_TIMEOUT_S = 30.0
+"""Lockstep end: wall seconds the plant stays for the agents' commands of the last tick (the
+leader and the agents stay as long for the plant: :meth:`zenswarm.process.runtime.SwarmProcess.linger_until_gone`)."""
 
 
 @dataclass(frozen=True)
@@ -212,7 +221,33 @@ class _LockstepPlant:
             p.publish_tick(0)
         k = self.ls.run()
         proc.publish_diag(k * p.dt_ns, {"finished": k >= p.n_ticks, "failsafe": p.failsafe_summary(), **self.ls.timing()})
+        if k >= p.n_ticks:
+            self.await_last_commands()
         return 0
+
+    def await_last_commands(self, timeout_s: float = LAST_COMMANDS_TIMEOUT_S) -> list[str]:
+        """Stay (token held) until every agent whose token is present has sent its command of the
+        last tick, i.e. has run all its ticks; returns the agents still missing (said) when the
+        wait ends otherwise (``timeout_s``, or stopped). With delay on the command links the
+        plant's last tick needs commands of earlier ticks only, so it can finish while an agent is
+        still a few ticks behind; the leader and the agents leave once the plant is gone, and an
+        agent still ticking would then take its neighbours' and the leader's normal exit for a
+        crash and stop waiting for the messages they sent (under load their tokens' removal can
+        overtake those messages in the router): the swarm would not fly the simulator's flight."""
+        p, proc = self.p, self.proc
+        last_t = (p.n_ticks - 1) * p.dt_ns
+
+        def behind() -> list[str]:
+            return [a for a, key in zip(p.agents, p.cmd_keys, strict=True)
+                    if proc.is_alive(a) and ((m := proc.inbox.latest.get(key)) is None or m.t < last_t)]  # fmt: skip
+
+        deadline = time.monotonic() + timeout_s
+        while (left := behind()) and not proc.stop.is_set():
+            if time.monotonic() > deadline:
+                proc.log(f"plant: leaving after {timeout_s:g} s without the last tick's command of {', '.join(left)}")
+                return left
+            time.sleep(0.005)
+        return left
 
 
 def _run_realtime(p: _Plant) -> int:

@@ -1,5 +1,5 @@
 """Test-only plug-ins (named ``plugin_fixtures:ConsensusController`` / ``plugin_fixtures:LinePlanner``
-/ ``plugin_fixtures:CrashingController``
+/ ``plugin_fixtures:CrashingController`` / ``plugin_fixtures:SlowController``
 with ``tests/`` on PYTHONPATH): a controller that shares an EXTRA quantity with its neighbours and
 draws from its seeded stream, and a planner; tests/test_plugins.py flies them in sim and lockstep up."""
 
@@ -146,6 +146,29 @@ class MisbehavingController(PaperController):
         if now and how == "shape":
             return _replace(cmd, rpy=cmd.rpy[:2])
         return cmd
+
+
+class SlowController(PaperController):
+    """The paper's controller, slow on UAV ``uav`` (0: every UAV): each tick takes ``sleep_s``
+    more wall time (a loaded or slow computer; the values are the paper controller's)."""
+
+    name = "test-slow"
+    description = "test-only: the paper's controller, sleep_s of wall time per tick"
+
+    class Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+        uav: int = 1
+        sleep_s: float = 0.04
+
+    def __init__(self, ctx: ControllerContext, params: Any) -> None:
+        super().__init__(ctx, params)
+        self.mine = params.uav in (0, ctx.i + 1)
+
+    def finish(self, q: np.ndarray, v: np.ndarray, rates: Any, dt: float) -> Command:
+        if self.mine:
+            import time
+
+            time.sleep(self.params.sleep_s)
+        return super().finish(q, v, rates, dt)
 
 
 class MisbehavingPlanner(AapfPlanner):

@@ -20,12 +20,23 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from zenswarm.bus import free_port
 
-from swarmtest import ROOT, SCENARIOS, kill_mentioning, processes_mentioning, read_results, scenario_variant, unique_swarm, wait_port_free
+from swarmtest import (
+    ROOT,
+    SCENARIOS,
+    kill_mentioning,
+    processes_mentioning,
+    read_results,
+    scenario_variant,
+    stop_swarm,
+    unique_swarm,
+    wait_port_free,
+)
 
 pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
 
@@ -39,10 +50,10 @@ class Up:
     """A ``zenswarm up`` run in the background, its output read line by line (sim time parsed
     from the progress lines)."""
 
-    def __init__(self, *args: str) -> None:
+    def __init__(self, *args: str, env: dict[str, str] | None = None) -> None:
         self.p = subprocess.Popen(
             [sys.executable, "-m", "zenswarm", "up", *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-            text=True, cwd=ROOT,
+            text=True, cwd=ROOT, env=env,
         )
         self.lines: list[str] = []
         self.sim_t = 0.0
@@ -162,6 +173,69 @@ def test_frozen_agent_in_lockstep_succeeds(tmp_path: Path) -> None:
     res = read_results(out)
     assert res["success"] and res["process_deaths"] == [], up.log()
     assert res["diagnostics"]["plant"].get("cmd_timeouts", 0) == 0, res["diagnostics"]["plant"]
+
+
+def test_the_plant_stays_until_every_agent_ran_its_last_tick(tmp_path: Path) -> None:
+    """With delay on the command links the plant's last tick needs older commands only, so the
+    plant can finish while an agent is still ticking: here agent 1 takes 40 ms of wall time a
+    tick and the delay (600 ms) is longer than the 0.4 s flight, so the plant needs none of its
+    commands. The plant then stays, token held, until agent 1's command of the last tick has
+    arrived: the leader and the agents leave once the plant is gone, and an agent still ticking
+    must not see them go (a sender whose token is gone is not waited for; under load its token's
+    removal overtook its last messages in the router and the swarm differed from the simulator
+    at the last ticks: issue 30). The flight equals the simulator's, bit for bit."""
+    import tomllib
+
+    import zenoh
+
+    from zenswarm import api, bus
+    from zenswarm.bus import wire
+    from zenswarm.judge.metrics import TimeSeries, flight_differences
+    from zenswarm.scenario.generate import to_toml
+
+    tests = str(Path(__file__).parent)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}
+    doc = tomllib.loads(scenario_variant(tmp_path, time_limit_s=0.4).read_text())
+    doc["agents"] = {"controller": "plugin_fixtures:SlowController", "params": {"uav": 1, "sleep_s": 0.04}}
+    scenario = tmp_path / "slow.toml"
+    scenario.write_text(to_toml(doc))
+    dt = 1.0 / doc["timing"]["control_rate_hz"]
+    T = round(0.4 / dt)
+    swarm, port, out = unique_swarm("ls"), free_port(), tmp_path / "out"
+    keys = wire.Keys(swarm)
+    plant_up: list[bool] = []  # the plant's token, as this session last saw it
+    at_last_cmd: list[bool] = []  # the plant's token when agent 1's command of the last tick arrived
+
+    def on_plant(sample: Any) -> None:
+        plant_up.append(sample.kind == zenoh.SampleKind.PUT)
+
+    def on_cmd(sample: Any) -> None:
+        if wire.decode("cmd", sample.payload.to_bytes()).t == (T - 1) * wire.t_ns(dt):
+            at_last_cmd.append(bool(plant_up and plant_up[-1]))
+
+    up = Up(str(scenario), "--out", str(out), "--swarm", swarm, "--listen", f"tcp/127.0.0.1:{port}", "--link-delay", "600ms",
+            "--quiet-children", env=env)
+    try:
+        deadline = time.monotonic() + 60
+        while not any("router on" in ln for ln in up.lines) and up.p.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        with bus.open_session(bus.client_config([f"tcp/127.0.0.1:{port}"]), handle_signals=False) as s:
+            subs = [s.liveliness().declare_subscriber(keys.alive("plant"), on_plant, history=True),
+                    s.declare_subscriber(keys.cmd(1), on_cmd)]
+            rc = up.wait(180)
+            for sub in subs:
+                sub.undeclare()
+    finally:
+        up.kill()
+        stop_swarm([], swarm, port)
+    log = up.log()
+    assert rc == 1, log  # 0.4 s do not reach the goal
+    assert plant_up, "this test's session never saw the plant's token: it connected too late\n" + log
+    assert at_last_cmd == [True], f"the plant had left before agent 1's command of tick {T - 1} arrived: {at_last_cmd}\n" + log
+    sim = api.fly(scenario, link_delay="600ms")
+    res = read_results(out)
+    assert flight_differences(sim.series, sim.results, TimeSeries.load(str(out / "timeseries.npz")), res) == []
+    assert all(d.get("forced_ticks", 0) == 0 for d in res["diagnostics"].values()), res["diagnostics"]
 
 
 def test_verify_names_a_lockstep_timeout_as_the_cause_of_a_difference(tmp_path: Path) -> None:
