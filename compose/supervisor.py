@@ -45,7 +45,7 @@ from zenswarm.link import LinkFaults
 from zenswarm.process import rtsched, security
 from zenswarm.process.collector import Collector
 from zenswarm.process.paths import check_output_dir, check_output_file, lock_output_dir
-from zenswarm.process.runtime import PLUGIN_FAILURE_MARK, gc_policy, gc_safe_point, gc_startup_done
+from zenswarm.process.runtime import PLUGIN_FAILURE_MARK, gc_policy, gc_safe_point, gc_startup_done, kill_self_line
 from zenswarm.scenario.config import Scenario
 from zenswarm.scenario.plugins import DEFAULTS, STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
 
@@ -975,7 +975,7 @@ class Supervisor:
         tail = "; last output: " + " | ".join(c.lines[-3:]) if c.lines else ""
         t_s = max(collector.sim_t_ns, 0) / 1e9  # when the collector's clock (a few ticks behind, loaded) saw it
         k = self.self_killed.pop(c.name, None)
-        if k is not None and rc == -signal.SIGKILL and any(ln.endswith(f"SIGKILL at tick {k} (--kill-at-tick)") for ln in c.lines[-3:]):
+        if k is not None and rc == -signal.SIGKILL and any(ln.endswith(kill_self_line(k)) for ln in c.lines[-3:]):
             t_s = k * self.sc.timing.dt  # --kill in lockstep: it killed itself just before this tick
         self.say(f"process {c.name} died ({how}) at sim time {t_s:.2f} s{tail}")
         self.deaths.append({"process": c.name, "how": how, "sim_time_s": t_s})

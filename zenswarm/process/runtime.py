@@ -1318,10 +1318,16 @@ def run_process(fn: Callable[[SwarmProcess], int], name: str, options: ProcessOp
         return 2
 
 
+def kill_self_line(tick: int) -> str:
+    """The end of the line :func:`kill_self` writes (the supervisor knows a self-kill by it)."""
+    return f"SIGKILL at tick {tick} (--kill-at-tick)"
+
+
 def kill_self(name: str, tick: int) -> NoReturn:
     """SIGKILL this process now, as ``kill -9`` from outside would (nothing is flushed, no
-    handler runs), after one line saying so: the fault ``--kill-at-tick`` injects at ``tick``."""
-    sys.stdout.write(f"{name or 'process'}: SIGKILL at tick {tick} (--kill-at-tick)\n")
+    handler runs), after one line saying so (:func:`kill_self_line`): the fault ``--kill-at-tick``
+    injects at ``tick``."""
+    sys.stdout.write(f"{name or 'process'}: {kill_self_line(tick)}\n")
     sys.stdout.flush()
     os.kill(os.getpid(), signal.SIGKILL)
     raise SystemExit(137)  # not reached: SIGKILL is not caught
