@@ -225,10 +225,10 @@ class _LockstepPlant:
             self.await_last_commands()
         return 0
 
-    def await_last_commands(self, timeout_s: float = LAST_COMMANDS_TIMEOUT_S) -> list[str]:
+    def await_last_commands(self, timeout_s: float = LAST_COMMANDS_TIMEOUT_S) -> None:
         """Stay (token held) until every agent whose token is present has sent its command of the
-        last tick, i.e. has run all its ticks; returns the agents still missing (said) when the
-        wait ends otherwise (``timeout_s``, or stopped). With delay on the command links the
+        last tick, i.e. has run all its ticks, at most ``timeout_s`` (then the agents still
+        missing are said) or until stopped. With delay on the command links the
         plant's last tick needs commands of earlier ticks only, so it can finish while an agent is
         still a few ticks behind; the leader and the agents leave once the plant is gone, and an
         agent still ticking would then take its neighbours' and the leader's normal exit for a
@@ -238,16 +238,18 @@ class _LockstepPlant:
         last_t = (p.n_ticks - 1) * p.dt_ns
 
         def behind() -> list[str]:
-            return [a for a, key in zip(p.agents, p.cmd_keys, strict=True)
-                    if proc.is_alive(a) and ((m := proc.inbox.latest.get(key)) is None or m.t < last_t)]  # fmt: skip
+            latest = proc.inbox.latest
+            return [
+                a for a, key in zip(p.agents, p.cmd_keys, strict=True)
+                if proc.is_alive(a) and ((m := latest.get(key)) is None or m.t < last_t)
+            ]
 
         deadline = time.monotonic() + timeout_s
         while (left := behind()) and not proc.stop.is_set():
             if time.monotonic() > deadline:
                 proc.log(f"plant: leaving after {timeout_s:g} s without the last tick's command of {', '.join(left)}")
-                return left
-            time.sleep(0.005)
-        return left
+                return
+            time.sleep(0.005)  # poll interval of a bounded wait
 
 
 def _run_realtime(p: _Plant) -> int:
