@@ -583,6 +583,9 @@ class Flight:
         self.keys = wire.Keys(self.swarm)
         self.states: dict[int, wire.State] = {}
         self.n_states: dict[int, int] = {1: 0, 2: 0, 3: 0}
+        # mission ticks (wire t, ns) in the order they came: of the clock, and of each UAV's states
+        self.clock_t: list[int] = []
+        self.state_t: dict[int, list[int]] = {1: [], 2: [], 3: []}
         self.diag: wire.Diag | None = None
         self.lock = threading.Lock()
         self._router_cm = open_session(router_config([self.ep]), handle_signals=False)
@@ -607,6 +610,11 @@ class Flight:
             with self.lock:
                 self.states[i] = m
                 self.n_states[i] += 1
+                self.state_t[i].append(m.t)
+        elif kind == "clock":
+            c = wire.decode("clock", sample.payload.to_bytes())
+            with self.lock:
+                self.clock_t.append(c.t)
         elif kind == "diag":
             m = wire.decode("diag", sample.payload.to_bytes())
             if m.process == "bridge":
@@ -694,7 +702,8 @@ def test_bridge_refuses_to_arm_vehicle_in_unrequested_mode(flight):
 def test_silent_vehicle_marked_unhealthy_then_recovers(flight):
     f = flight
     wait_until(lambda: _ready(f), 20.0, "UAVs ready")
-    n1 = f.n_states[1]
+    with f.lock:
+        c0, s0 = len(f.clock_t), len(f.state_t[1])
     f.fleet.silence(1, 2.0)  # vehicle 2 drops all traffic for 2 s
     t0 = time.monotonic()
     wait_until(lambda: f.uav(2).get("healthy") is False, 2.5, "UAV 2 marked unhealthy")
@@ -704,14 +713,24 @@ def test_silent_vehicle_marked_unhealthy_then_recovers(flight):
     n2 = f.n_states[2]
     time.sleep(max(0.0, min(0.5, t0 + 1.8 - time.monotonic())))  # still inside the silence
     assert f.n_states[2] == n2  # no stale state published for the silent UAV ...
-    assert f.n_states[1] > n1 + 50  # ... while UAV 1 keeps flying and publishing (100 Hz)
-    wait_until(lambda: f.uav(2).get("healthy") is True, 3.0, "UAV 2 healthy again")
+    # ... while UAV 1 keeps flying and publishing: counted in the mission's own time, not the
+    # wall clock's. The bridge's mission clock is wall time and skips the ticks its loop missed
+    # on an overloaded host (docs/mavlink.md), so its rate is the machine's; what the silence
+    # must not change is that every tick the bridge published carries UAV 1's state.
+    with f.lock:
+        clocks, uav1 = f.clock_t[c0:], set(f.state_t[1][s0:])
+    assert len(clocks) >= 10, f"the mission clock stalled: {len(clocks)} ticks during the silence"
+    missing = [t for t in clocks[:-1] if t not in uav1]  # the last: its state may still be on the way
+    assert not missing, f"ticks without UAV 1's state while UAV 2 was silent: {len(missing)} of {len(clocks) - 1}"
+    # after the silence: conditions waited for with generous bounds (the bridge, the vehicles'
+    # thread and this test share a loaded host; how fast is for bench/, not for this test)
+    wait_until(lambda: f.uav(2).get("healthy") is True, 10.0, "UAV 2 healthy again")
     # it failsafed to hold during the silence; the bridge re-engages OFFBOARD (still armed)
     veh = f.fleet.vehicles[1]
-    wait_until(lambda: f.uav(2).get("phase") == "ready" and veh.mode == "OFFBOARD", 5.0, "UAV 2 re-engaged")
+    wait_until(lambda: f.uav(2).get("phase") == "ready" and veh.mode == "OFFBOARD", 15.0, "UAV 2 re-engaged")
     assert veh.counters.get("failsafe_hold", 0) >= 1 and veh.armed
     n2 = f.n_states[2]
-    wait_until(lambda: f.n_states[2] > n2 + 10, 2.0, "UAV 2 states again")
+    wait_until(lambda: f.n_states[2] > n2 + 10, 10.0, "UAV 2 states again")
     assert f.fleet.state.q[1, 2] > 0.25  # still flying
 
 
