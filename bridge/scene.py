@@ -156,7 +156,11 @@ class LatestFrames:
     newest states, leaving out a UAV more than :data:`STALE_S` behind the newest, which is shown
     at its last state), each UAV's state and reference at that tick (the newest not after it, of
     its last :data:`HISTORY`), the leader's likewise. Messages of one tick arrive one by one, so
-    taking each key's newest would mix ticks (UAV 1 at tick k, UAV 2 still at k - 1)."""
+    taking each key's newest would mix ticks (UAV 1 at tick k, UAV 2 still at k - 1). A UAV
+    whose first state has not come yet counts as one at the first state the view received (the
+    flight's start, or a replay window's): the first frame waits for every UAV's first state
+    until the newest is more than :data:`STALE_S` past that, and a UAV that never came is then
+    left out (not drawn)."""
 
     HISTORY = 8
     STALE_S = 0.25
@@ -167,6 +171,7 @@ class LatestFrames:
         self.trails = Trails(sc.n, trail_s)
         self._last: dict[str, bytes] = {}
         self._shown = -1  # sim time of the last frame, ns
+        self._first: int | None = None  # sim time of the first state received, ns
         n = sc.n
         self._state_keys = [self.keys.state(i) for i in range(1, n + 1)]
         self._ref_keys = [self.keys.ref(i) for i in range(1, n + 1)]
@@ -213,6 +218,10 @@ class LatestFrames:
         if not newest:
             return None
         t_max = max(newest)
+        if self._first is None:
+            self._first = min(newest)
+        if len(newest) < n and t_max - self._first <= self._stale_ns:
+            return None  # a UAV's first state is still on the way: no frame with it missing
         t_ns = min(t for t in newest if t >= t_max - self._stale_ns)
         if t_ns == self._shown:
             return None

@@ -150,6 +150,46 @@ def test_live_view_serves_the_flight_to_a_foxglove_client(tmp_path: Path) -> Non
     assert not processes_mentioning(f"ws://127.0.0.1:{live}")
 
 
+def test_live_frames_wait_for_every_uavs_first_state() -> None:
+    """In this process, no flight: the first states of a tick reach the supervisor one by one
+    (on a loaded host, UAV 1's tick 0 well before UAV 2's); a frame built between them must not
+    show a swarm of one (a /tf without uav2, uav3). The view waits for every UAV's first state,
+    but not for ever: a UAV still missing more than STALE_S of sim time after the first state is
+    left out and the others are shown."""
+    from zenswarm.bridge.scene import LatestFrames, poses
+    from zenswarm.bus import wire
+    from zenswarm.scenario.config import load_scenario
+
+    sc = load_scenario(ROOT / "compose" / "scenarios" / "paper_example1.toml")
+    keys, dt = wire.Keys("first"), sc.timing.dt
+    lf = LatestFrames(sc, "first")
+    zero = np.zeros(3)
+
+    def put(k: int, i: int) -> None:
+        lf.feed(keys.state(i), wire.encode(wire.State(wire.t_ns(k * dt), k, [float(i), 0.0, 1.0], zero, zero, zero)))
+
+    def frames_of(got: tuple | None) -> set[str]:
+        assert got is not None
+        return {p.child for p in poses(got[0])}
+
+    put(0, 1)
+    assert lf.frame() is None, "UAV 1 alone at tick 0: UAV 2's and 3's first states are on the way"
+    put(1, 1)
+    put(0, 2)
+    assert lf.frame() is None
+    put(0, 3)
+    assert frames_of(lf.frame()) == {"uav1", "uav2", "uav3"}
+    # a UAV that never comes does not hold the view back for ever
+    lf = LatestFrames(sc, "first")
+    k_stale = int(LatestFrames.STALE_S / dt) + 1
+    for k in range(k_stale + 1):
+        put(k, 1)
+        put(k, 2)
+        if k < k_stale:
+            assert lf.frame() is None, k
+    assert frames_of(lf.frame()) == {"uav1", "uav2"}
+
+
 def test_live_view_accepts_both_names_of_the_protocol() -> None:
     """In this process, no flight: the live view's server selects the name the client offers
     (``foxglove.sdk.v1`` when both are), sends its first messages, and refuses a client offering
