@@ -5,6 +5,7 @@ draws from its seeded stream, and a planner; tests/test_plugins.py flies them in
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from dataclasses import replace as _replace
 from typing import Any
@@ -106,10 +107,16 @@ class CrashingController(ConsensusController):
 # (tests/test_plugin_failures.py: the same named failure in sim, up and api.fly)
 
 
+class PluginAbort(BaseException):
+    """A plug-in's own BaseException (not an Exception): what some libraries raise to unwind."""
+
+
 class MisbehavingController(PaperController):
     """The paper's controller that misbehaves from tick ``tick`` on UAV ``uav`` (0: every UAV):
     ``how`` = ``raise`` (its finish raises), ``nan`` (a NaN thrust), ``shape`` (a (2,) attitude),
-    ``share`` (an infinite shared velocity), ``init`` (its constructor raises)."""
+    ``share`` (an infinite shared velocity), ``init`` (its constructor raises), ``exit`` (its
+    finish calls ``sys.exit(3)``), ``generator-exit`` (raises ``GeneratorExit``), ``base`` (raises
+    :class:`PluginAbort`, a ``BaseException`` of its own)."""
 
     name = "test-misbehaving"
     description = "test-only: the paper's controller, misbehaving as its params say"
@@ -141,6 +148,12 @@ class MisbehavingController(PaperController):
         self.k += 1
         if now and how == "raise":
             raise RuntimeError(f"misbehaving controller: deliberate error at tick {self.k - 1}")
+        if now and how == "exit":
+            sys.exit(3)
+        if now and how == "generator-exit":
+            raise GeneratorExit(f"misbehaving controller: leaving at tick {self.k - 1}")
+        if now and how == "base":
+            raise PluginAbort(f"misbehaving controller: aborting at tick {self.k - 1}")
         if now and how == "nan":
             return _replace(cmd, thrust=float("nan"))
         if now and how == "shape":

@@ -77,6 +77,21 @@ class RaisingPlant(QuadrotorModel):
         super().step(thrust, rpy, disturbance)
 
 
+class ExitingPlant(QuadrotorModel):
+    name = "exiting"
+    description = "calls sys.exit(5) at tick 4"
+
+    def __init__(self, ctx: Any, params: Any) -> None:
+        super().__init__(ctx, params)
+        self.k = 0
+
+    def step(self, thrust: np.ndarray, rpy: np.ndarray, disturbance: Any) -> None:
+        if self.k == 4:
+            sys.exit(5)
+        self.k += 1
+        super().step(thrust, rpy, disturbance)
+
+
 class ClockPlant(QuadrotorModel):
     name = "clock"
     description = "reads the clock in its step"
@@ -190,6 +205,9 @@ def test_a_model_that_returns_nan_or_raises_is_a_named_plugin_failure(tmp_path: 
     (f,) = [f for f in res.results["failures"] if f["cause"] == "plugin_error"]
     assert (f["tick"], f["call"], f["field"], f["uavs"]) == (3, "step", None, [1, 2, 3])
     assert "raised ZeroDivisionError: the model's own bug" in f["detail"]
+    res = sim.simulate(select(SC, plant_model="test_plants:ExitingPlant"), n_ticks=50)  # not an Exception: the same
+    (f,) = [f for f in res.results["failures"] if f["cause"] == "plugin_error"]
+    assert (f["tick"], f["call"], f["uavs"]) == (4, "step", [1, 2, 3]) and "raised SystemExit: 5" in f["detail"]
     out = tmp_path / "o"
     assert main(["sim", str(EX1), "--plant-model", "test_plants:NanPlant", "--out", str(out), "--quiet"]) == 4
     assert "plugin_error" in capsys.readouterr().out

@@ -57,6 +57,12 @@ CASES = {
     "every-uav": ("controller", {"how": "raise", "tick": 25, "uav": 0},
                   [(f"agent:{i}", [i], 25, "finish", None, "deliberate error at tick 25") for i in (1, 2, 3)]),
     "constructor": ("controller", {"how": "init", "uav": 3}, [("agent:3", [3], 0, "__init__", None, "ValueError: misbehaving controller")]),
+    # not Exceptions: a plug-in that exits or unwinds is as failed as one that raises (issue 43)
+    "sys-exit": ("controller", {"how": "exit", "tick": 45, "uav": 2}, [("agent:2", [2], 45, "finish", None, "raised SystemExit: 3")]),
+    "generator-exit": ("controller", {"how": "generator-exit", "tick": 15, "uav": 1},
+                       [("agent:1", [1], 15, "finish", None, "raised GeneratorExit: misbehaving controller")]),
+    "base-exception": ("controller", {"how": "base", "tick": 33, "uav": 3},
+                       [("agent:3", [3], 33, "finish", None, "raised PluginAbort: misbehaving controller")]),
     "planner-nan": ("planner", {"how": "nan", "tick": 40}, [("leader", [], 40, "ref", "q0", "q0: [nan nan nan] is not finite")]),
     "planner-raise": ("planner", {"how": "raise", "tick": 60},
                       [("leader", [], 60, "advance", None, "ZeroDivisionError: misbehaving planner")]),
@@ -133,6 +139,19 @@ def test_command_lines_exit_4_with_results_and_no_traceback(tmp_path: Path) -> N
         assert "Traceback" not in cp.stdout and "plugin_error uav 2 at 0.42 s" in cp.stdout, cp.stdout[-3000:]
         outs[cmd] = json.loads((out / "results.json").read_text())["failures"]
     assert outs["sim"] == outs["up"] and outs["sim"][0]["field"] == "thrust"
+
+
+def test_sim_command_line_a_plug_in_calling_sys_exit_is_plugin_error(tmp_path: Path) -> None:
+    """``zenswarm sim`` with a controller that calls ``sys.exit(3)`` in its step: not exit 3 with
+    nothing written, but the plug-in's failure, named (UAV, tick, cause), exit 4, results written."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}
+    out = tmp_path / "sim"
+    cp = zenswarm("sim", str(SCENARIOS / "paper_example1.toml"), "--controller", CTRL, "--duration", "1",
+                  "--set", "agents.params.how=exit", "--set", "agents.params.tick=12", "--out", str(out), env=env, timeout=120)
+    assert cp.returncode == EXIT_PLUGIN_FAILED, cp.stdout[-3000:]
+    assert "Traceback" not in cp.stdout and "plugin_error uav 2 at 0.12 s" in cp.stdout, cp.stdout[-3000:]
+    (f,) = json.loads((out / "results.json").read_text())["failures"]
+    assert (f["cause"], f["uavs"], f["tick"]) == ("plugin_error", [2], 12) and "raised SystemExit: 3" in f["detail"], f
 
 
 def test_scenario_check_validates_plug_in_parameters_as_a_flight(tmp_path: Path, on_path: None) -> None:

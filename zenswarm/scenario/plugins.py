@@ -318,13 +318,21 @@ class Boundary:
         self.uavs = uavs
 
     def call(self, tick: int, stage: int, what: str, fn: Any, *args: Any) -> Any:
-        """``fn(*args)``; an exception (not KeyboardInterrupt / SystemExit) becomes a
-        :class:`PluginFailure` of ``tick`` and ``stage`` naming ``what`` and the exception."""
+        """``fn(*args)``; whatever it raises becomes a :class:`PluginFailure` of ``tick`` and
+        ``stage`` naming ``what`` and the exception: any ``Exception``, and also ``SystemExit``
+        (``sys.exit()`` in a plug-in), ``GeneratorExit`` and a plug-in's own ``BaseException``
+        subclasses. Only a stop the user asked for passes through: ``KeyboardInterrupt`` (Ctrl-C,
+        and SIGTERM in ``zenswarm sim``) and :class:`zenswarm.bus.Shutdown` (the signal handlers
+        of :func:`zenswarm.bus.open_session`)."""
         try:
             return fn(*args)
         except PluginFailure:
             raise
-        except Exception as e:  # any exception of a plug-in is its failure, named
+        except KeyboardInterrupt:
+            raise
+        except BaseException as e:  # any exception of a plug-in is its failure, named
+            if not isinstance(e, Exception) and _stop_requested(e):
+                raise
             text = str(e).strip().splitlines()
             detail = f"raised {type(e).__name__}" + (f": {text[0]}" if text else "")
             raise PluginFailure(self.kind, self.plugin, self.process, self.uavs, tick, stage, what, detail) from e
@@ -338,6 +346,14 @@ class Boundary:
         for item in problems:
             if item is not None:
                 raise self.fail(tick, stage, what, *item)
+
+
+def _stop_requested(e: BaseException) -> bool:
+    """Whether ``e`` is the stop a signal handler raised (:class:`zenswarm.bus.Shutdown`), not
+    the plug-in's own exit. Imported here, on this rare path: the bus is zenoh's."""
+    from zenswarm.bus import Shutdown
+
+    return isinstance(e, Shutdown)
 
 
 def _show(x: Any) -> str:
