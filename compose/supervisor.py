@@ -369,7 +369,14 @@ class Supervisor:
         messages in flight, with time to drain its queue and write the summary."""
         rec = self.children.get("recorder")
         last = ("recorder", "bridge", "vehicles")
-        self._terminate([c for c in self.children.values() if c.name not in last], grace_s)
+        # a process whose plug-in failed is leaving by itself with status 4 (after its report):
+        # the others are stopped first, then it is given the grace to exit before any signal, so
+        # results.json's processes say 4, not the signal that caught it on its way out
+        failed = {f.process for f in self.plugin_failures}
+        leaving = [c for c in self.children.values() if c.name in failed and c.name not in last]
+        self._terminate([c for c in self.children.values() if c.name not in last and c not in leaving], grace_s)
+        self._await_exit(leaving, grace_s)
+        self._terminate(leaving, grace_s)
         # MAVLink: the bridge lands and disarms its vehicles, which must still be running for that
         for name, grace in (("bridge", 25.0), ("vehicles", grace_s)):
             if name in self.children:
@@ -380,6 +387,16 @@ class Supervisor:
             self._terminate([rec], 60.0)
             for line in rec.lines[-1:] if self.recording_loss is None else ():
                 self.say(line)
+
+    @staticmethod
+    def _await_exit(children: list, grace_s: float) -> None:
+        """Wait (at most ``grace_s`` in all) for ``children`` to exit by themselves."""
+        deadline = time.monotonic() + grace_s
+        for c in children:
+            try:
+                c.popen.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
 
     def _terminate(self, children: list, grace_s: float) -> None:
         for c in children:

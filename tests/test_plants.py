@@ -62,6 +62,24 @@ class NanPlant(QuadrotorModel):
             self.state.v[1, 2] = np.nan
 
 
+class SlowExitPlant(NanPlant):
+    """NanPlant whose process is slow to leave after its failure, without handling signals any
+    more (as late in an interpreter's exit, once Python's signal handlers are gone and zenoh's
+    runtime is being torn down): a SIGTERM then kills it, and its status would be -15."""
+
+    name = "slow-exit"
+    description = "NanPlant; its process takes 2 s to exit, deaf to signals"
+
+    def step(self, thrust: np.ndarray, rpy: np.ndarray, disturbance: Any) -> None:
+        super().step(thrust, rpy, disturbance)
+        if self.k == 6:  # the NaN is in: the failure is reported once this step returns
+            import atexit
+            import signal
+
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            atexit.register(time.sleep, 2.0)
+
+
 class RaisingPlant(QuadrotorModel):
     name = "raising"
     description = "raises at tick 3"
@@ -235,6 +253,24 @@ def test_a_failing_plant_model_fails_the_lockstep_swarm_as_the_simulator(tmp_pat
     for k in FLIGHT_FIELDS:
         assert res[k] == ref.results[k], k
     assert res["failures"][0]["cause"] == "plugin_error" and res["failures"][0]["kind"] == "plant"
+    assert res["processes"]["plant"] == 4, res["processes"]
+
+
+@pytest.mark.swarm
+def test_a_failed_plant_exits_4_even_when_slow_to_leave(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """After its plug-in failed, the plant leaves by itself with status 4 (docs/architecture.md);
+    the supervisor stops the others and waits for it before any signal, so results.json's
+    ``processes.plant`` is 4, not the SIGTERM (-15) that caught it on its way out."""
+    import os
+
+    from test_swarm import _up
+
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")]))
+    out = tmp_path / "out"
+    cp = _up(scenario_variant(tmp_path, time_limit_s=1.0), out, unique_swarm("se"), "--plant-model", "test_plants:SlowExitPlant")
+    assert cp.returncode == 4, cp.stdout[-3000:]
+    res = read_results(out)
+    assert res["failures"][0]["kind"] == "plant" and res["processes"]["plant"] == 4, res["processes"]
 
 
 @pytest.mark.parametrize(("name", "check", "needle"), [
