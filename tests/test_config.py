@@ -271,6 +271,12 @@ REJECTIONS: list[tuple[str, Mutator, str, tuple[str, ...]]] = [
      "timing.control_rate_hz", ("<= 1e+06",)),
     ("sim time beyond the wire's 10 days", lambda d: d["timing"].update(control_rate_hz=1.0, physics_rate_hz=100.0,
      time_limit_s=900_000.0), "timing.time_limit_s", ("10 days",)),
+    # ESO gains the discrete observer cannot follow at the control rate (issue 43)
+    ("eso gains unstable at 100 Hz", _set("eso/beta", [1e6, 1e12, 1e18]), "eso.beta",
+     ("unit circle", "got 1e+04", "w < 2/dt = 200 rad/s")),
+    ("eso gains unstable at 2 Hz", lambda d: d["timing"].update(control_rate_hz=2.0, physics_rate_hz=200.0), "eso.beta",
+     ("dt = 0.5 s", "got 1.5", "w < 2/dt = 4 rad/s")),
+    ("eso gains on the bound", _set("eso/beta", [600.0, 120000.0, 8e6]), "eso.beta", ("got 1",)),  # w = 200: |1 - w dt| = 1
     # start or goal inside an obstacle inflated by r_f (obstacle 1: base centre (1.00, 0.45, 0), r_o 0.14, h_o 0.4)
     ("start inside inflated cylinder", _set("leader/start", [1.00 + 0.14 + 0.2, 0.45, 0.2]), "leader.start",
      ("obstacles[0]", "r_f=0.277")),
@@ -289,6 +295,33 @@ def test_rejects(mutate: Mutator, field: str, needles: tuple[str, ...]) -> None:
     d = base()
     mutate(d)
     reject(d, field, *needles)
+
+
+def test_eso_bound_is_the_observer_as_stepped() -> None:
+    """The bound scenario validation puts on ``eso.beta`` (config.eso_spectral_radius) is the
+    observer agents/eso.py runs: its estimation error, stepped by eso_step, shrinks per tick by the
+    spectral radius when it is below 1 and grows by it above; bandwidth gains just inside the
+    bound w < 2/dt are a valid scenario."""
+    from zenswarm.agents.eso import bandwidth_gains, eso_step
+    from zenswarm.scenario.config import eso_spectral_radius
+
+    dt, g = 0.01, 9.81
+    q, u = np.array([0.3, -0.2, 1.0]), np.array([0.0, 0.0, g])  # a UAV at rest, hovering: d = 0
+    for beta in [(15.0, 75.0, 125.0), bandwidth_gains(150.0), (1.0, 1e4, 1e6), (100.0, 100.0, 1e5), (1e6, 1e12, 1e18)]:
+        rho = eso_spectral_radius(beta, dt)
+        est = (q + 0.01, np.full(3, 0.02), np.full(3, -0.03))  # an initial estimation error
+        norms = []
+        with np.errstate(all="ignore"):
+            for _ in range(60):
+                est = eso_step(*est, q, u, beta, dt, g)
+                norms.append(float(np.linalg.norm(np.concatenate([est[0] - q, est[1], est[2]]))))
+        per_tick = (norms[-1] / norms[-21]) ** (1 / 20) if norms[-21] > 0 else 0.0
+        assert (per_tick < 1.0) == (rho < 1.0), (beta, rho, per_tick)
+        if 1e-300 < norms[-1] < 1e300:
+            assert per_tick == pytest.approx(rho, rel=0.1), (beta, rho, per_tick)
+    d = base()
+    d["eso"]["beta"] = list(bandwidth_gains(199.0))  # just inside w < 2/dt = 200 rad/s
+    assert scenario_from_dict(d).eso.beta == pytest.approx(bandwidth_gains(199.0))
 
 
 def test_bounds_accept_their_edges() -> None:

@@ -154,6 +154,28 @@ def test_sim_command_line_a_plug_in_calling_sys_exit_is_plugin_error(tmp_path: P
     assert (f["cause"], f["uavs"], f["tick"]) == ("plugin_error", [2], 12) and "raised SystemExit: 3" in f["detail"], f
 
 
+def test_badly_tuned_built_in_gains_are_bad_input_or_a_divergence_not_a_plugin_error(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """ESO gains the discrete observer cannot follow at the control rate are bad input (exit 2
+    naming eso.beta, nothing flown, no numpy warning); gains inside that bound that still fly
+    badly are judged as the flight they give (here: a UAV diverges), never as a failure of the
+    built-in controller ``paper``."""
+    import warnings
+
+    from zenswarm.agents.eso import bandwidth_gains
+    from zenswarm.compose.cli import main
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a numpy overflow warning would fail the test
+        rc = main(["sim", str(SCENARIOS / "paper_example1.toml"), "--set", "eso.beta=[1e6,1e12,1e18]", "--out", "/nonexistent/x"])
+        err = capsys.readouterr().err
+        assert rc == 2 and "eso.beta" in err and "200 rad/s" in err, err
+        f = api.fly("paper_example1", mode="sim", duration=2.0, overrides={"eso.beta": list(bandwidth_gains(199.0))})
+    causes = {x["cause"] for x in f.results["failures"]}
+    assert "uav_diverged" in causes and "plugin_error" not in causes and f.exit_code == 1, f.results["failures"]
+
+
 def test_scenario_check_validates_plug_in_parameters_as_a_flight(tmp_path: Path, on_path: None) -> None:
     """`scenario check` refuses what `sim` refuses: an unknown or bad plug-in parameter, exit 2
     naming the field, before anything is flown."""

@@ -86,6 +86,7 @@ __all__ = [
     "GraphConfig",
     "GeneratorConfig",
     "EsoConfig",
+    "eso_spectral_radius",
     "ControllerConfig",
     "AgentsConfig",
     "PlantConfig",
@@ -265,9 +266,42 @@ def _validate_timing(s: Scenario) -> None:
         )
 
 
+def eso_spectral_radius(beta: Any, dt: float) -> float:
+    """Spectral radius of the observer's discrete error dynamics, eq. (27) as
+    :func:`zenswarm.agents.eso.eso_step` steps it (explicit Euler every control period ``dt``, s):
+    per axis the estimation error e = (q - q_hat, v - v_hat, d - d_hat) follows
+    e_{k+1} = (I + dt A_e) e_k (plus the terms of the true state's own change), A_e = [[-b1, 1, 0],
+    [-b2, 0, 1], [-b3, 0, 0]] (the per-axis block of eq. 31). The observer converges iff every
+    eigenvalue of I + dt A_e lies inside the unit circle (the radius < 1); then it does for every
+    shorter step too (a realtime agent's sub-steps), the Euler disc being convex."""
+    b1, b2, b3 = (float(x) for x in beta)
+    a_e = np.array([[-b1, 1.0, 0.0], [-b2, 0.0, 1.0], [-b3, 0.0, 0.0]])
+    return float(np.max(np.abs(np.linalg.eigvals(np.eye(3) + dt * a_e))))
+
+
+def _validate_eso(s: Scenario) -> None:
+    """``[eso] beta`` must make the discrete observer stable at the control rate
+    (:func:`eso_spectral_radius` < 1): gains that cannot converge at the scenario's rate are bad
+    input (they would overflow in the first second and end as a non-finite command), not a
+    flight to judge."""
+    dt = s.timing.dt
+    with np.errstate(all="ignore"):
+        rho = eso_spectral_radius(s.eso.beta, dt)
+    if not rho < 1.0:  # also NaN
+        beta = ", ".join(f"{float(b):g}" for b in s.eso.beta)
+        raise ScenarioError(
+            "eso.beta",
+            f"[{beta}] makes the observer (eq. 27, explicit Euler every control tick, dt = {dt:g} s) diverge: the "
+            f"eigenvalues of its discrete error dynamics I + dt*A_e must lie inside the unit circle (spectral radius "
+            f"< 1), got {rho:.4g}. With bandwidth gains beta = (3w, 3w^2, w^3) (A_e's eigenvalues all at -w) the bound "
+            f"is w < 2/dt = {2.0 / dt:g} rad/s; or raise timing.control_rate_hz",
+        )
+
+
 def validate(s: Scenario) -> None:
     """Cross-field checks; raises :class:`ScenarioError` naming the field."""
     _validate_timing(s)
+    _validate_eso(s)
     if s.leader.k_rep_max < s.leader.k_rep_min:
         raise ScenarioError("leader.k_rep_max", f"must be >= leader.k_rep_min ({s.leader.k_rep_max} < {s.leader.k_rep_min})")
 
