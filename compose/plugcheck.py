@@ -21,9 +21,16 @@ it that need it:
    synthetic commands about hover (thrust, attitude setpoints within +-0.1 rad) and the scenario's
    disturbance, keeps its state (q, v, rpy, w) (N, 3) and finite.
 3. **deterministic**: the same ticks again with fresh instances give identical outputs, bit for bit.
+   A difference names the first differing output (field, tick, UAV) and, when no clock or global
+   randomness was touched, its cause: state kept outside the instance (a class or module attribute).
 4. **pure ticks**: during ``reset``/``share``/``step`` (``ref``/``advance``; a plant model's ``step``) the clock (``time``),
    sockets, ``open`` and unseeded randomness (``random``, numpy's global generator) raise;
    constructing the plug-in may do what it likes.
+   **shared state** (a controller's): each UAV's controller flown alone in a fresh process of its
+   own (as ``zenswarm up`` runs it; its neighbours' shared values replayed) gives the outputs it
+   gave beside the others in one process (as ``zenswarm sim`` runs them); a difference is state
+   shared between UAVs, named by field, tick and UAV. A planner or a plant model is one instance
+   in both modes (what outlives it is the deterministic check's).
 5. **flight**: the short flight (:data:`DEFAULT_DURATION_S` of SCENARIO) in the in-process
    simulator, on the vehicles' real states: the plug-in must not fail there (``plugin_error``:
    an exception, a non-finite or wrongly shaped output, named with its tick and UAV).
@@ -267,56 +274,80 @@ def _synthetic_state(sc: Scenario, k: int) -> tuple[np.ndarray, np.ndarray]:
     return q0 + drift, 0.05 * np.cos(0.05 * k + np.arange(n))[:, None] * np.array([1.0, 0.5, 0.2])
 
 
-def _tick_controllers(cls: type, params: Any, sc: Scenario, ticks: int, guard: bool) -> list[np.ndarray]:
+Output = tuple[str, np.ndarray]
+"""One output of a plug-in in the check's flight: what it is (field, tick, UAV, e.g. ``UAV 2
+step().thrust at tick 37``) and its value."""
+
+
+def _tick_controllers(
+    cls: type, params: Any, sc: Scenario, ticks: int, guard: bool, alone: int | None = None,
+    replay: list[list[Any]] | None = None, record: list[list[Any]] | None = None,
+) -> list[Output]:
     """Every UAV's controller (built and ticked as every runner does: :func:`zenswarm.agents.api.make_controller`,
     :func:`~zenswarm.agents.api.prepare`, :func:`~zenswarm.agents.api.finish`) for ``ticks``
-    ticks on synthetic inputs; the outputs, flattened."""
+    ticks on synthetic inputs; the outputs, labelled. ``alone`` (0-based): only that UAV's
+    controller is built and ticked (as in its own swarm process), its neighbours' shared values
+    taken from ``replay`` (per tick, per UAV: ``(q, v, extra)`` as ``record`` collects them from a
+    run of all)."""
     from zenswarm.agents.api import Shared, finish, make_controller, prepare
 
     mass, g = _mass_g(sc)
-    ctrls = [make_controller(sc, i, mass, g) for i in range(sc.n)]
+    uavs = list(range(sc.n)) if alone is None else [alone]
+    ctrls = {i: make_controller(sc, i, mass, g) for i in uavs}
     leads = _leader_refs(sc, ticks)
     shares = dict(getattr(cls, "shares", {}))
-    out: list[np.ndarray] = []
+    out: list[Output] = []
     dt = sc.timing.dt
     cm = pure_ticks if guard else _nothing
+
+    def put(x: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
+        a = _finite(x, shape, what)
+        out.append((what, a))
+        return a
+
     for k in range(ticks):
         q, v = _synthetic_state(sc, k)
         with cm():
             if k == 0:
-                for i, c in enumerate(ctrls):
+                for i, c in ctrls.items():
                     c.reset(q[i].copy(), v[i].copy())
-            shared = [c.share() for c in ctrls]
-        for i, s in enumerate(shared):
-            out += [_finite(s.q, (3,), f"UAV {i + 1} share().q at tick {k}"), _finite(s.v, (3,), f"UAV {i + 1} share().v at tick {k}")]
+            mine = {i: c.share() for i, c in ctrls.items()}
+        shared: list[Any] = [Shared(q_, v_, extra) for q_, v_, extra in replay[k]] if replay is not None else [None] * sc.n
+        for i, s in mine.items():
+            shared[i] = s
+            put(s.q, (3,), f"UAV {i + 1} share().q at tick {k}")
+            put(s.v, (3,), f"UAV {i + 1} share().v at tick {k}")
             for name, shape in shares.items():
                 if name not in s.extra:
                     raise AssertionError(f"UAV {i + 1} share() at tick {k}: declared extra {name!r} missing")
-                out.append(_finite(s.extra[name], tuple(shape), f"UAV {i + 1} share().extra[{name!r}] at tick {k}"))
+                put(s.extra[name], tuple(shape), f"UAV {i + 1} share().extra[{name!r}] at tick {k}")
+        if record is not None:
+            record.append([(np.array(x.q, dtype=float), np.array(x.v, dtype=float), {n: np.array(e) for n, e in x.extra.items()})
+                           for x in shared])
         with cm():
-            cmds = []
-            for i, c in enumerate(ctrls):
+            cmds = {}
+            for i, c in ctrls.items():
                 nbrs = [shared[nb.index] for nb in c.ctx.neighbours]
                 lead = Shared(*leads[k]) if c.ctx.pinned else None
-                cmds.append(finish(c, q[i].copy(), v[i].copy(), prepare(c, nbrs, lead), dt))
-        for i, cmd in enumerate(cmds):
-            t = _finite(cmd.thrust, (), f"UAV {i + 1} step().thrust at tick {k}")
+                cmds[i] = finish(c, q[i].copy(), v[i].copy(), prepare(c, nbrs, lead), dt)
+        for i, cmd in cmds.items():
+            t = put(cmd.thrust, (), f"UAV {i + 1} step().thrust at tick {k}")
             if t < 0:
                 raise AssertionError(f"UAV {i + 1} step().thrust at tick {k}: negative ({float(t)} N)")
-            out += [t.reshape(1), _finite(cmd.rpy, (3,), f"UAV {i + 1} step().rpy at tick {k}")]
-            out.append(_finite(cmd.u, (3,), f"UAV {i + 1} step().u at tick {k}"))
-            out.append(_finite(cmd.d_hat, (3,), f"UAV {i + 1} step().d_hat at tick {k}"))
+            put(cmd.rpy, (3,), f"UAV {i + 1} step().rpy at tick {k}")
+            put(cmd.u, (3,), f"UAV {i + 1} step().u at tick {k}")
+            put(cmd.d_hat, (3,), f"UAV {i + 1} step().d_hat at tick {k}")
     return out
 
 
-def _tick_plant(cls: type, params: Any, sc: Scenario, ticks: int, guard: bool) -> list[np.ndarray]:
+def _tick_plant(cls: type, params: Any, sc: Scenario, ticks: int, guard: bool) -> list[Output]:
     """The plant model (in a :class:`zenswarm.plant.core.PlantCore`, as every runner has it) for
     ``ticks`` ticks of synthetic commands about hover; its state of every tick."""
     from zenswarm.plant.core import STATE_FIELDS, PlantCore
 
     core = PlantCore(sc)  # PluginFailure (a non-finite or mis-shaped state) is the check's failure
     n, p = sc.n, core.params
-    out: list[np.ndarray] = []
+    out: list[Output] = []
     cm = pure_ticks if guard else _nothing
     phase = np.arange(n)[:, None] + np.array([0.0, 1.0, 2.0])
     for k in range(ticks):
@@ -327,11 +358,11 @@ def _tick_plant(cls: type, params: Any, sc: Scenario, ticks: int, guard: bool) -
         with cm():
             core.step(k)
         st = core.state
-        out += [_finite(getattr(st, f), (n, 3), f"state.{f} after tick {k}").copy() for f in STATE_FIELDS]
+        out += [(f"state.{f} after tick {k}", _finite(getattr(st, f), (n, 3), f"state.{f} after tick {k}").copy()) for f in STATE_FIELDS]
     return out
 
 
-def _tick_planner(cls: type, params: Any, sc: Scenario, ticks: int, guard: bool) -> list[np.ndarray]:
+def _tick_planner(cls: type, params: Any, sc: Scenario, ticks: int, guard: bool) -> list[Output]:
     """The planner for ``ticks`` ticks; its (q0, v0) of every tick."""
     from zenswarm.leader.planner import PlannerContext
 
@@ -341,14 +372,15 @@ def _tick_planner(cls: type, params: Any, sc: Scenario, ticks: int, guard: bool)
         r_f=sc.r_f, dt=tm.dt, substeps=tm.substeps, rng=plugin_rng(sc.seed, 0), leader=sc.leader,
     )
     pl = cls(ctx, params)
-    out: list[np.ndarray] = []
+    out: list[Output] = []
     cm = pure_ticks if guard else _nothing
     for k in range(ticks):
         with cm():
             q0, v0 = pl.ref()
             q0, v0 = np.array(q0, dtype=float), np.array(v0, dtype=float)
             again = [np.array(x, dtype=float) for x in pl.ref()]
-        out += [_finite(q0, (3,), f"ref().q0 at tick {k}"), _finite(v0, (3,), f"ref().v0 at tick {k}")]
+        out += [(f"ref().q0 at tick {k}", _finite(q0, (3,), f"ref().q0 at tick {k}")),
+                (f"ref().v0 at tick {k}", _finite(v0, (3,), f"ref().v0 at tick {k}"))]
         if not (np.array_equal(again[0], q0) and np.array_equal(again[1], v0)):
             raise AssertionError(f"ref() at tick {k} changed the state: a second call gave {again[0].tolist()}, {again[1].tolist()}")
         with cm():
@@ -472,17 +504,19 @@ def check_plugin(
     except Exception as e:  # noqa: BLE001 - a plug-in's own error is a failed check, reported
         problems, params = [f"{type(e).__name__}: {e}"], None
     checks.append(Check("interface", "FAIL" if problems else "PASS", "; ".join(problems) or _interface_text(kind, cls)))
-    ticker: dict[str, Callable[[type, Any, Scenario, int, bool], list[np.ndarray]]] = {
+    ticker: dict[str, Callable[[type, Any, Scenario, int, bool], list[Output]]] = {
         "controller": _tick_controllers, "planner": _tick_planner, "plant": _tick_plant,
     }  # fmt: skip
     tick = ticker[kind]
     ticks = sc.timing.n_ticks
-    first: list[np.ndarray] | None = None
+    first: list[Output] | None = None
+    replay: list[list[Any]] = []  # a controller's: every UAV's shared values per tick (for the shared-state check)
     if problems:
         checks.append(Check("outputs", "SKIP", "the interface check failed"))
     else:
         try:
-            first = tick(cls, params, sc, ticks, False)
+            first = _tick_controllers(cls, params, sc, ticks, False, record=replay) if kind == "controller" else tick(
+                cls, params, sc, ticks, False)
             what = f"{ticks} ticks x {sc.n} UAVs" if kind != "planner" else f"{ticks} ticks"
             checks.append(Check("outputs", "PASS", f"{what}: shapes and finiteness as declared"))
         except Exception as e:  # noqa: BLE001 - a plug-in's own error is a failed check, reported
@@ -491,8 +525,16 @@ def check_plugin(
     if first is None:
         checks.append(Check("deterministic", "SKIP", "the outputs check failed"))
         checks.append(Check("pure ticks", "SKIP", "the outputs check failed"))
+        checks.append(Check("shared state", "SKIP", "the outputs check failed"))
     else:
         checks += _repeatable(cls, params, sc, ticks, tick, first)
+        if kind != "controller":
+            checks.append(Check("shared state", "PASS", f"one {kind} instance flies every UAV, in the simulator and in the "
+                                "swarm alike; state outliving the instance is the deterministic check's"))
+        elif checks[-2].status != "PASS":
+            checks.append(Check("shared state", "SKIP", "the deterministic check failed"))
+        else:
+            checks.append(_shared_state(name, sc, ticks, first, replay))
     if problems:
         checks.append(Check("flight", "SKIP", "the interface check failed"))
     else:
@@ -529,36 +571,148 @@ def _raised(e: BaseException) -> str:
     return f"{type(e).__name__}: {e}{where}"
 
 
+OUTLIVES_INSTANCE = (
+    "state kept outside the instance (a class or module attribute): it outlives the instance, so a fresh one "
+    "in the same process starts from what the last left. The simulator (and api.fly, a campaign's worker) runs "
+    "every UAV's controller and many flights in one process, the swarm one per process: they would fly differently"
+)
+"""The cause named when two fresh runs differ without touching the clock or global randomness."""
+
+SHARED_BETWEEN_UAVS = (
+    "state shared between UAVs (a class or module attribute): in `zenswarm sim` every UAV's controller runs in one "
+    "process and sees the others' writes, in `zenswarm up` each runs in its own process and does not, so the two "
+    "modes fly differently. Keep per-UAV state on self"
+)
+"""The cause named when a UAV flown alone differs from the same UAV flown beside the others."""
+
+
 def _repeatable(
-    cls: type, params: Any, sc: Scenario, ticks: int, tick: Callable[[type, Any, Scenario, int, bool], list[np.ndarray]],
-    first: list[np.ndarray],
+    cls: type, params: Any, sc: Scenario, ticks: int, tick: Callable[[type, Any, Scenario, int, bool], list[Output]],
+    first: list[Output],
 ) -> list[Check]:
-    """The deterministic and pure-ticks checks: the outputs again, fresh, then under the guard."""
+    """The deterministic and pure-ticks checks: the outputs again, fresh, then under the guard.
+    Two fresh runs that differ while the guard saw no clock or global randomness: the state
+    outlived the instance (:data:`OUTLIVES_INSTANCE`), named with the first differing output."""
     out: list[Check] = []
-    try:
-        again = tick(cls, params, sc, ticks, False)
-        same = len(again) == len(first) and all(np.array_equal(a, b) for a, b in zip(first, again, strict=True))
-        out.append(Check("deterministic", "PASS" if same else "FAIL",
-                         "two fresh runs on the same inputs: identical, bit for bit" if same else _first_diff(first, again)))
-    except Exception as e:  # noqa: BLE001 - reported as the check's failure
-        out.append(Check("deterministic", "FAIL", _raised(e)))
+    impure: str | None = None
+    guarded: list[Output] | BaseException | None = None
     try:
         guarded = tick(cls, params, sc, ticks, True)
-        same = len(guarded) == len(first) and all(np.array_equal(a, b) for a, b in zip(first, guarded, strict=True))
-        out.append(Check("pure ticks", "PASS" if same else "FAIL", "no clock, socket, file or unseeded randomness during ticks"
-                         if same else "outputs change when the clock, sockets, files and global randomness are unavailable"))
     except Impure as e:
-        out.append(Check("pure ticks", "FAIL", str(e)))
+        impure = str(e)
     except Exception as e:  # noqa: BLE001 - reported as the check's failure
-        out.append(Check("pure ticks", "FAIL", _raised(e)))
+        guarded = e
+    try:
+        again = tick(cls, params, sc, ticks, False)
+        diff = _first_diff(first, again, "between two fresh runs in one process")
+        if not diff:
+            out.append(Check("deterministic", "PASS", "two fresh runs on the same inputs: identical, bit for bit"))
+        else:
+            cause = OUTLIVES_INSTANCE if impure is None else f"the clock or global randomness (see pure ticks: {impure})"
+            out.append(Check("deterministic", "FAIL", f"{diff}. Cause: {cause}"))
+    except Exception as e:  # noqa: BLE001 - reported as the check's failure
+        again, diff = None, "raised"
+        out.append(Check("deterministic", "FAIL", _raised(e)))
+    if impure is not None:
+        out.append(Check("pure ticks", "FAIL", impure))
+    elif isinstance(guarded, BaseException):
+        out.append(Check("pure ticks", "FAIL", _raised(guarded)))
+    else:
+        assert guarded is not None
+        changed = _first_diff(first, guarded, "when the clock, sockets, files and global randomness are unavailable")
+        if not changed:
+            out.append(Check("pure ticks", "PASS", "no clock, socket, file or unseeded randomness during ticks"))
+        elif diff:
+            out.append(Check("pure ticks", "PASS", "no clock, socket, file or unseeded randomness called during ticks "
+                             "(the outputs differ from run to run anyway: see deterministic)"))
+        else:
+            out.append(Check("pure ticks", "FAIL", f"{changed} (the plug-in caught their failure and did something else)"))
     return out
 
 
-def _first_diff(a: list[np.ndarray], b: list[np.ndarray]) -> str:
+def _first_diff(a: list[Output], b: list[Output], how: str) -> str:
+    """The first output that differs between runs ``a`` and ``b`` ("" if none), named by field,
+    tick and UAV (a plant model's state row: its UAV), with both values."""
+    for (label, x), (label_b, y) in zip(a, b, strict=False):
+        if label != label_b:
+            return f"the runs' outputs differ in kind {how}: {label} where {label_b}"
+        if np.array_equal(x, y):
+            continue
+        if x.ndim == 2 and x.shape == y.shape:  # (N, 3): one row per UAV
+            row = int(np.flatnonzero(~np.all(x == y, axis=1))[0])
+            return f"UAV {row + 1} {label} differs {how}: {x[row].tolist()} != {y[row].tolist()}"
+        return f"{label} differs {how}: {x.tolist()} != {y.tolist()}"
     if len(a) != len(b):
-        return f"the second run gave {len(b)} outputs, the first {len(a)}"
-    i = next(i for i, (x, y) in enumerate(zip(a, b, strict=True)) if not np.array_equal(x, y))
-    return f"output {i} differs between two fresh runs: {a[i].tolist()} != {b[i].tolist()}"
+        return f"{len(b)} outputs {how}, {len(a)} in the first run"
+    return ""
+
+
+ALONE_MAX_UAVS = 4
+"""UAVs the shared-state check flies alone, each in a process of its own: all up to this many,
+else the first two and the last two."""
+
+
+def _shared_state(name: str, sc: Scenario, ticks: int, together: list[Output], replay: list[list[Any]]) -> Check:
+    """Each UAV's controller flown alone in a fresh process of its own (as ``zenswarm up`` runs
+    it), its neighbours' shared values replayed from the run of all UAVs in one process (as
+    ``zenswarm sim`` runs them), must give that UAV's outputs of the run of all, bit for bit.
+    One fresh interpreter (:func:`_alone_child`) imports zenswarm once and forks a process per
+    UAV before the plug-in's module is imported: each starts from the plug-in's pristine state."""
+    import pickle
+    import subprocess
+    import sys
+
+    n = sc.n
+    uavs = list(range(n)) if n <= ALONE_MAX_UAVS else [0, 1, n - 2, n - 1]
+    payload = pickle.dumps({"path": list(sys.path), "name": name, "sc": sc, "uavs": uavs, "ticks": ticks, "replay": replay})
+    p = subprocess.run([sys.executable, "-c", "from zenswarm.compose.plugcheck import _alone_child; _alone_child()"],
+                       input=payload, capture_output=True, timeout=600)
+    try:
+        results: dict[int, Any] = pickle.loads(p.stdout)
+    except Exception:  # noqa: BLE001 - reported as the check's failure
+        tail = p.stderr.decode(errors="replace").strip()[-500:]
+        return Check("shared state", "FAIL", f"the UAVs flown alone, each in a process of its own, gave nothing "
+                     f"(exit status {p.returncode}): {tail}")
+    for i in uavs:
+        got = results.get(i)
+        if not isinstance(got, list):
+            return Check("shared state", "FAIL", f"UAV {i + 1}'s controller alone in a process of its own: {got}")
+        mine = [o for o in together if o[0].startswith(f"UAV {i + 1} ")]
+        diff = _first_diff(mine, got, f"when UAV {i + 1} flies alone (its own process, as in `zenswarm up`) and beside "
+                                      "the others (one process, as in `zenswarm sim`)")
+        if diff:
+            return Check("shared state", "FAIL", f"{diff}. Cause: {SHARED_BETWEEN_UAVS}")
+    who = ", ".join(str(i + 1) for i in uavs)
+    return Check("shared state", "PASS", f"UAV {who} alone, each in a process of its own: the same outputs as beside the others")
+
+
+def _alone_child() -> None:
+    """The shared-state check's fresh interpreter (pickled request on stdin): for each UAV a
+    forked process builds and ticks that UAV's controller alone, from the plug-in's pristine
+    module state; {UAV: its labelled outputs, or the error's text} pickled on stdout."""
+    import pickle
+    import sys
+
+    req = pickle.loads(sys.stdin.buffer.read())
+    sys.path[:] = req["path"]
+    sc: Scenario = req["sc"]
+    results: dict[int, Any] = {}
+    with tempfile.TemporaryDirectory(prefix="zenswarm-alone-") as tmp:
+        for i in req["uavs"]:
+            path = Path(tmp) / f"uav{i}.pickle"
+            pid = os.fork()
+            if pid == 0:  # the UAV's own process: nothing of the plug-in imported or run yet
+                try:
+                    cls = resolve("controller", req["name"], "NAME")
+                    params = decode_params(cls, sc.agents.params, "agents.params")
+                    got: Any = _tick_controllers(cls, params, sc, req["ticks"], False, alone=i, replay=req["replay"])
+                except BaseException as e:  # noqa: BLE001 - the parent reports it
+                    got = _raised(e)
+                path.write_bytes(pickle.dumps(got))
+                os._exit(0)
+            os.waitpid(pid, 0)
+            results[i] = pickle.loads(path.read_bytes()) if path.is_file() else "its process died"
+    sys.stdout.buffer.write(pickle.dumps(results))
 
 
 def _interface_text(kind: str, cls: type) -> str:

@@ -19,6 +19,7 @@ from zenswarm.agents.paper import PaperController
 from zenswarm.compose.cli import main
 from zenswarm.compose.plugcheck import check_plugin
 from zenswarm.leader.planner import AapfPlanner
+from zenswarm.plant.api import QuadrotorModel
 from zenswarm.scenario.config import load_scenario
 from zenswarm.scenario.plugins import KINDS, available
 
@@ -112,6 +113,35 @@ class CrossTalkController(PaperController):
         return Command(cmd.thrust + 1e-6 * len(self.table), cmd.rpy, cmd.u, cmd.d_hat)
 
 
+class CounterPlant(QuadrotorModel):
+    """Counts its steps in a class attribute: every instance in the process adds to one count."""
+
+    name = "counter"
+    description = "a class-level step counter nudges every UAV"
+    steps = 0
+
+    def step(self, thrust: np.ndarray, rpy: np.ndarray, disturbance: Any) -> None:
+        CounterPlant.steps += 1
+        super().step(thrust, rpy, disturbance)
+        self.state.q[:, 2] += 1e-9 * CounterPlant.steps
+
+
+class SwarmOnlyController(PaperController):
+    """Passes every in-process check, but UAV 2's thrust depends on the process it runs in (an
+    agent process of the swarm: ``python -m zenswarm agent``): only the sim == swarm flight sees it."""
+
+    two_phase = False
+    name = "swarm-only"
+    description = "UAV 2 flies differently in a swarm process"
+
+    def step(self, q: np.ndarray, v: np.ndarray, neighbours: Sequence[Shared | None], leader: Shared | None, dt: float) -> Command:
+        import sys
+
+        cmd = super().step(q, v, neighbours, leader, dt)
+        nudge = 1e-6 if self.ctx.i == 1 and "agent" in sys.argv else 0.0
+        return Command(cmd.thrust + nudge, cmd.rpy, cmd.u, cmd.d_hat)
+
+
 class MutableParamsController(PaperController):
     name = "mutable"
     description = "Params not frozen"
@@ -149,7 +179,12 @@ def _status(name: str, **kw: Any) -> dict[str, str]:
         ("ClockController", "pure ticks", "time.monotonic()"),
         ("FilePlanner", "pure ticks", "open()"),
         ("UnseededPlanner", "pure ticks", "numpy.random.random()"),
-        ("DriftController", "deterministic", "differs between two fresh runs"),
+        ("DriftController", "deterministic", "UAV 1 step().thrust at tick 0 differs between two fresh runs in one process"),
+        ("DriftController", "deterministic", "Cause: state kept outside the instance (a class or module attribute)"),
+        ("CrossTalkController", "shared state", "UAV 1 step().thrust at tick 1 differs when UAV 1 flies alone"),
+        ("CrossTalkController", "shared state", "Cause: state shared between UAVs (a class or module attribute)"),
+        ("CounterPlant", "deterministic", "UAV 1 state.q after tick 0 differs between two fresh runs in one process"),
+        ("CounterPlant", "deterministic", "Cause: state kept outside the instance"),
         ("NanController", "outputs", "step().thrust at tick 5: not finite"),
         ("MutableParamsController", "interface", "Params must be frozen"),
         ("WrongSignatureController", "interface", "step must accept step(self, q, v, neighbours, leader, dt)"),
@@ -177,7 +212,7 @@ def test_a_plug_in_that_raises_gets_every_check_reported_never_a_traceback(capsy
     out = capsys.readouterr()
     assert "Traceback" not in out.out + out.err
     lines = [ln.split()[:2] for ln in out.out.splitlines() if ln.startswith("  ")]
-    assert [ln[1] for ln in lines] == ["interface", "outputs", "deterministic", "pure", "flight", "sim"], out.out
+    assert [ln[1] for ln in lines] == ["interface", "outputs", "deterministic", "pure", "shared", "flight", "sim"], out.out
     assert out.out.rstrip().endswith("result: FAIL (outputs, flight)"), out.out
 
 
@@ -200,8 +235,8 @@ def test_every_built_in_plug_in_passes(kind: str, name: str) -> None:
     got_kind, _, checks = check_plugin(name, EX1, duration=2.0)
     assert got_kind == kind
     assert [(c.name, c.status) for c in checks] == [
-        ("interface", "PASS"), ("outputs", "PASS"), ("deterministic", "PASS"), ("pure ticks", "PASS"), ("flight", "PASS"),
-        ("sim == swarm", "PASS"),
+        ("interface", "PASS"), ("outputs", "PASS"), ("deterministic", "PASS"), ("pure ticks", "PASS"), ("shared state", "PASS"),
+        ("flight", "PASS"), ("sim == swarm", "PASS"),
     ], "\n".join(f"{c.name}: {c.status}: {c.detail}" for c in checks)  # text: pytest shortens a list's repr
 
 
@@ -211,9 +246,9 @@ def test_a_sim_swarm_mismatch_names_the_first_field_tick_uav_and_the_usual_cause
 
     tests = str(Path(__file__).parent)
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")]))
-    _, _, checks = check_plugin("test_plugcheck:CrossTalkController", EX1, duration=1.0)
+    _, _, checks = check_plugin("test_plugcheck:SwarmOnlyController", EX1, duration=1.0)
     got = {c.name: (c.status, c.detail) for c in checks}
-    assert [got[n][0] for n in ("interface", "outputs", "deterministic", "pure ticks", "flight")] == ["PASS"] * 5, got
+    assert [got[n][0] for n in ("interface", "outputs", "deterministic", "pure ticks", "shared state", "flight")] == ["PASS"] * 6, got
     status, detail = got["sim == swarm"]
     assert status == "FAIL" and "first difference: series.thrust" in detail and "first at tick 0" in detail, detail
     assert "UAV 2)" in detail and "Usual causes:" in detail and "module or class variable" in detail, detail
