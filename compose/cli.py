@@ -104,7 +104,8 @@ def _run_check(args: argparse.Namespace) -> int:
     print(
         f"{args.scenario}: OK  name={s.name}  N={s.n}  r_f={s.r_f:.3f} m  obstacles={len(s.obstacles)}  "
         f"control {s.timing.control_rate_hz:g} Hz  physics {s.timing.physics_rate_hz:g} Hz  "
-        f"time limit {s.timing.time_limit_s:g} s  controller {s.agents.controller}  planner {planner_name(s)}"
+        f"time limit {s.timing.time_limit_s:g} s  controller {s.agents.controller}  planner {planner_name(s)}  "
+        f"plant model {s.plant.model}"
     )
     return 0
 

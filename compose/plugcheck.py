@@ -67,7 +67,7 @@ import numpy as np
 from msgspec.structs import replace as replace_table
 
 from zenswarm.errors import ScenarioError
-from zenswarm.scenario.config import Scenario, load_scenario, scenario_to_dict
+from zenswarm.scenario.config import Scenario, scenario_to_dict
 from zenswarm.scenario.plugins import GROUPS, KINDS, PluginError, decode_params, plant_vehicle, plugin_rng, resolve, select
 
 __all__ = ["add_check_parser", "run_check", "Check", "check_plugin"]
@@ -743,14 +743,22 @@ def add_check_parser(psub: argparse._SubParsersAction) -> None:
     c.add_argument("--duration", type=float, default=DEFAULT_DURATION_S, metavar="S",
                    help=f"sim seconds of the sim-versus-swarm flight (default {DEFAULT_DURATION_S:g})")
     c.add_argument("--no-swarm", action="store_true", help="skip the sim-versus-swarm flight (no process started)")
+    c.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="override a field of SCENARIO by its dotted path, as on sim and up, e.g. --set agents.params.gain=0.8 "
+        "(VALUE read as TOML, else as a string; repeatable; validated as the file is)",
+    )
     c.set_defaults(func=run_check)
 
 
 def run_check(args: argparse.Namespace) -> int:
+    from zenswarm.scenario.overrides import load_file, parse_assignment
+
     if not (args.duration > 0 and np.isfinite(args.duration)):
         raise ScenarioError("--duration", f"must be a finite number > 0, got {args.duration!r}")
     path = args.scenario or Path(__file__).resolve().parent / "scenarios" / "paper_example1.toml"
-    sc = load_scenario(path)
+    overrides = dict(parse_assignment(text) for text in getattr(args, "overrides", None) or [])
+    sc = load_file(path, overrides)
     kind, cls, checks = check_plugin(args.name, sc, args.kind, args.duration, swarm=not args.no_swarm)
     print(f"zenswarm plugins check {args.name}: {kind} {cls.__module__}:{cls.__qualname__}, scenario {sc.name} ({path})")
     for ck in checks:

@@ -145,6 +145,14 @@ def test_plant_table_in_scenarios_and_on_the_command_line() -> None:
     assert plant_vehicle(sc).mass == 0.03 and plant_vehicle(SC) == QuadParams.from_vehicle(SC.vehicle)
 
 
+def test_scenario_check_names_the_plant_model(capsys: pytest.CaptureFixture[str]) -> None:
+    """`scenario check`'s OK line names what would fly: controller, planner and plant model."""
+    assert main(["scenario", "check", str(EX1)]) == 0
+    assert "controller paper  planner aapf  plant model quadrotor" in capsys.readouterr().out
+    assert main(["scenario", "check", str(EX1), "--plant-model", "test_plants:NanPlant"]) == 0
+    assert "plant model test_plants:NanPlant" in capsys.readouterr().out
+
+
 def test_the_built_in_model_is_the_old_plant_step_bit_for_bit() -> None:
     """PlantCore with the built-in model == step_held on a PlantState, with gusts and attitude noise."""
     sc = replace(SC, disturbance=replace_table(SC.disturbance, wind=(0.2, -0.1, 0.0), gust_std=0.3, attitude_std=0.5))

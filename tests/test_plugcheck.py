@@ -228,6 +228,19 @@ def test_exit_status_and_report(capsys: pytest.CaptureFixture[str]) -> None:
     assert "--duration" in capsys.readouterr().err
 
 
+def test_set_overrides_the_scenario_as_on_sim_and_up(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """``plugins check --set KEY=VALUE``: the plug-in's parameters (and any field) as ``sim --set``
+    gives them; a bad override is exit 2 naming it."""
+    monkeypatch.syspath_prepend(str(Path(__file__).parent))
+    args = ["plugins", "check", "plugin_fixtures:MisbehavingController", "--no-swarm", "--duration", "1"]
+    assert main([*args, "--set", "agents.params.how=nan", "--set", "agents.params.tick=7"]) == 1
+    out = capsys.readouterr().out
+    assert "FAIL  outputs" in out and "UAV 2 step().thrust at tick 7: not finite" in out, out
+    assert main([*args, "--set", "agents.params.tick=100000"]) == 0, capsys.readouterr().out  # never misbehaves in 1 s
+    assert main([*args, "--set", "timing.no_such_field=1"]) == 2
+    assert "timing.no_such_field" in capsys.readouterr().err
+
+
 @pytest.mark.swarm
 @pytest.mark.parametrize(("kind", "name"), BUILTINS)
 def test_every_built_in_plug_in_passes(kind: str, name: str) -> None:
