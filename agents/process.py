@@ -60,6 +60,11 @@ from zenswarm.scenario.plugins import plant_vehicle
 
 __all__ = ["AgentOptions", "run", "subscriptions"]
 
+REALTIME_JOIN_GRACE_S = 1.0
+"""Sim seconds into a realtime flight within which an agent's first state is an on-time start
+(the plant's clock starts once every agent is up; its first states may pass before the agent
+subscribed), not a late join to report."""
+
 
 @dataclass(frozen=True)
 class AgentOptions:
@@ -160,12 +165,16 @@ class _Agent:
         self.proc.publish(self.cmd_key, wire.Cmd(t=t_ns, seq=self.seq, thrust=cmd.thrust, rpy=cmd.rpy, u=cmd.u, d_hat=cmd.d_hat))
 
     def start(self, st: wire.State, k: int) -> None:
-        """(Re)start the controller from a measured state and share ref(k)."""
+        """(Re)start the controller from a measured state and share ref(k). A late join (a rejoin,
+        a restarted process, a lockstep start after tick 0, a realtime one more than
+        :data:`REALTIME_JOIN_GRACE_S` into the flight) is said; a realtime agent whose first
+        state is one of the first ticks (the plant's clock starts once every agent is up) joined on time."""
+        late = self.gen > 0 or (k > 0 and (not self.proc.options.realtime or k * self.dt > REALTIME_JOIN_GRACE_S))
         self.gen += 1
         checked_reset(self.ctrl, self.bound, k, st.q, st.v)
         self.stamp = st.q
         self.publish_ref(k * self.dt_ns)
-        if k > 0:
+        if late:
             self.proc.log(f"{self.me}: joined at tick {k} (t = {k * self.dt:.2f} s), generator restarted from the measured state")
 
     def restart(self) -> None:

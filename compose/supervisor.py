@@ -54,6 +54,10 @@ __all__ = ["add_parsers", "UpOptions", "up_options", "Supervisor", "role_names",
 LIVE_CHECK_S = 0.25
 """Wall seconds between two looks at whether the flight's outcome is decided (early end)."""
 
+PROGRESS_SAME_T_S = 10.0
+"""Wall seconds between two progress lines at the same sim time (the processes starting, a
+stalled flight); a line is printed every ``--progress-every`` s while sim time moves."""
+
 COLLECTOR_QUEUE = 4_000_000
 """Capacity of the supervisor's bus queue, in messages (drained every ~50 ms, so it never fills)."""
 
@@ -385,7 +389,8 @@ class Supervisor:
             if rec.popen.poll() is None:
                 time.sleep(0.3)
             self._terminate([rec], 60.0)
-            for line in rec.lines[-1:] if self.recording_loss is None else ():
+            # its closing line (what it wrote): already on the console unless children are quiet
+            for line in rec.lines[-1:] if self.recording_loss is None and self.args.quiet_children else ():
                 self.say(line)
 
     @staticmethod
@@ -803,6 +808,7 @@ class Supervisor:
     def _watch(self, collector: Collector) -> int:
         """Watch the flight until it ends; returns the exit code so far (see :meth:`_finish`)."""
         last_print = last_check = 0.0
+        last_t: float | None = None  # sim time the last progress line showed, s (to its 0.01 s)
         wall0 = time.monotonic()
         tap = self._live_tap()
         while True:
@@ -832,8 +838,11 @@ class Supervisor:
                     self.say(why)
                     return EXIT_OK
             now = time.monotonic()
-            if now - last_print >= self.args.progress_every and not self.args.quiet:
-                last_print = now
+            due = now - last_print >= self.args.progress_every and not self.args.quiet
+            # a line when sim time moved (a start-up or a stall repeats the same one only every PROGRESS_SAME_T_S)
+            shown = round(max(collector.sim_t_ns, 0) / 1e9, 2)
+            if due and (shown != last_t or now - last_print >= PROGRESS_SAME_T_S):
+                last_print, last_t = now, shown
                 self._progress(collector, now - wall0)
             gc_safe_point()
             time.sleep(0.05)
@@ -1404,7 +1413,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="fly the whole time limit even after the outcome is decided (by default a stalled leader or a "
         "diverged UAV ends the run early; the verdict names the failure either way)",
     )
-    p.add_argument("--progress-every", type=float, default=1.0, metavar="S", help="seconds between progress lines")
+    p.add_argument("--progress-every", type=float, default=1.0, metavar="S", help="seconds between progress lines while sim time moves (at the same sim time, e.g. while the processes start: every 10 s)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--quiet-children", action="store_true", help="do not echo the processes' own output")
     p.add_argument(

@@ -269,3 +269,20 @@ def test_record_and_report_match_the_run(tmp_path: Path) -> None:
     v = zenswarm("verify", str(rec), "--agent", "all", timeout=120)
     assert v.returncode == 0, v.stdout
     assert v.stdout.count("verified 400 ticks") == 3, v.stdout
+
+
+def test_console_says_each_thing_once(tmp_path: Path) -> None:
+    """A realtime flight, recorded, with a progress line asked every 0.2 s (issue 43): the start-up
+    (processes starting, sim time 0) gives one ``t=  0.00`` line, not one per interval (again
+    only after 10 s of the same sim time); the recorder's closing line is printed once; no
+    ``joined at tick`` for agents that started with the flight (only a late join says it)."""
+    out, rec = tmp_path / "out", tmp_path / "f.mcap"
+    scen = scenario_variant(tmp_path, time_limit_s=2.0)
+    cp = _up(scen, out, unique_swarm("once"), "--realtime", "--record", str(rec), "--progress-every", "0.2", timeout=200)
+    assert cp.returncode in (0, 1), cp.stdout[-3000:]
+    lines = cp.stdout.splitlines()
+    zero = [ln for ln in lines if "t=  0.00/" in ln]
+    assert 1 <= len(zero) <= 2, "\n".join(zero)  # 2: a start-up of more than 10 s on a starved machine
+    closing = [ln for ln in lines if "messages on" in ln and str(rec) in ln]
+    assert len(closing) == 1, "\n".join(closing)
+    assert not [ln for ln in lines if "joined at tick" in ln], cp.stdout[-3000:]
