@@ -1413,7 +1413,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="fly the whole time limit even after the outcome is decided (by default a stalled leader or a "
         "diverged UAV ends the run early; the verdict names the failure either way)",
     )
-    p.add_argument("--progress-every", type=float, default=1.0, metavar="S", help="seconds between progress lines while sim time moves (at the same sim time, e.g. while the processes start: every 10 s)")
+    p.add_argument("--progress-every", type=float, default=1.0, metavar="S", help="seconds between progress lines while sim time moves "
+                   "(at the same sim time, e.g. while the processes start: every 10 s)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--quiet-children", action="store_true", help="do not echo the processes' own output")
     p.add_argument(
