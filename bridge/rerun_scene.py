@@ -176,7 +176,8 @@ def _escape(name: str) -> str:
 
 
 def blueprint() -> Any:
-    """The default layout: the 3D scene beside plots of the errors, clearances and link delivery."""
+    """The default layout: the 3D scene beside plots of the errors, the clearances, the leader's
+    d_obs against d0, and link delivery."""
     import rerun.blueprint as rrb
 
     return rrb.Blueprint(
@@ -186,6 +187,11 @@ def blueprint() -> Any:
                 rrb.TimeSeriesView(origin="/metrics/formation_error_m", name="formation error ||q_i - q0 - h_i||, m"),
                 rrb.TimeSeriesView(origin="/metrics/tracking_error_m", name="tracking error ||q*_i - q_i||, m"),
                 rrb.TimeSeriesView(origin="/metrics/clearance_m", name="clearance to obstacles, m"),
+                rrb.TimeSeriesView(
+                    origin="/metrics",
+                    contents=["/metrics/leader_d_obs_m", "/metrics/d0_m"],
+                    name="virtual leader: d_obs(q0) against d0 (eq. 10), m",
+                ),
                 rrb.TimeSeriesView(
                     origin="/metrics",
                     contents=["/metrics/link_delivery/**", "/metrics/failsafe_uavs", "/metrics/min_inter_uav_m"],
@@ -216,6 +222,8 @@ class RerunScene:
         for i, col in enumerate(self.colors):  # each UAV's plots in its colour in the scene
             for fig in ("formation_error_m", "tracking_error_m", "clearance_m"):
                 rec.log(f"metrics/{fig}/uav{i + 1}", rr.SeriesLines(colors=[_u8((*col, 1.0))], names=[f"uav {i + 1}"]), static=True)
+        rec.log("metrics/leader_d_obs_m", rr.SeriesLines(colors=[[20, 20, 20]], names=["d_obs(q0)"], widths=[2.0]), static=True)
+        rec.log("metrics/d0_m", rr.SeriesLines(colors=[_u8((0.95, 0.55, 0.15, 1.0))], names=["d0"]), static=True)
         self.frames = 0
 
     def put(self, f: Any, diag: dict[str, dict[str, Any]]) -> None:

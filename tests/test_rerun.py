@@ -673,3 +673,31 @@ def test_live_view_close_is_bounded_and_says_what_did_not_reach_the_viewer(fligh
     assert f"{view.frames} frames logged" in said[0], said
     assert took < 35.0, f"close took {took:.1f} s"  # the flush's bound, the viewer's SIGINT grace, disconnect's bound
     assert view.server.proc.poll() is not None, "the viewer's process was stopped"
+
+
+def test_default_view_plots_the_leaders_d_obs_against_d0_and_marks_start_and_goal(flight):
+    """Shown by default (issue 43): a plot of the leader's d_obs(q0) with d0 in the layout; the
+    start labelled; the goal seen at the flight's scale (a marker of 0.15 m at least, the
+    formation's sphere of radius r_f around it, a pole from the ground), not a 5 cm dot."""
+    from zenswarm.bridge.rerun_scene import blueprint
+    from zenswarm.bridge.scene import static_entities
+
+    sc, _ = flight
+    views: list = []
+    stack = [blueprint().root_container]
+    while stack:
+        c = stack.pop()
+        if hasattr(c, "class_identifier"):  # a view (a container has a kind and holds views)
+            views.append(c)
+        else:
+            stack += c.contents
+    plotted = [v for v in views if v.class_identifier == "TimeSeries" and isinstance(v.contents, list)]
+    assert any({"/metrics/leader_d_obs_m", "/metrics/d0_m"} <= set(v.contents) for v in plotted), [(v.name, v.contents) for v in views]
+    ents = {e.id: e for e in static_entities(sc)}
+    assert [lab.text for lab in ents["start"].labels] == ["start"]
+    assert max(c.size for c in ents["start"].cubes) >= 0.15
+    goal = ents["goal"]
+    assert [lab.text for lab in goal.labels] == ["goal"]
+    sizes = sorted(sph.diameter for sph in goal.spheres)
+    assert sizes[0] >= 0.15 and sizes[-1] == pytest.approx(2 * sc.r_f), sizes
+    assert goal.lines and goal.lines[0].points[0][2] == 0.0, "a pole from the ground to the goal"
