@@ -31,8 +31,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-import _common as C
 from test_rerun import Browser, DataStream
+
+import _common as C
 
 SCENARIO = C.REPO / "compose" / "scenarios" / "paper_example1.toml"
 
@@ -106,7 +107,8 @@ def main() -> int:
             for name, py in pythons.items():
                 row = one(py, a.duration, Path(tmp), f"{name}{r}")
                 rows[name].append(row)
-                print(f"run {r + 1} {name}: " + ", ".join(f"{k} {C.fmt(v) if isinstance(v, float) else v}" for k, v in row.items()), flush=True)
+                cells = ", ".join(f"{k} {C.fmt(v) if isinstance(v, float) else v}" for k, v in row.items())
+                print(f"run {r + 1} {name}: {cells}", flush=True)
     for name, rs in rows.items():
         print(f"{name}: median {C.fmt(C.median(x['mb_received'] for x in rs))} MB received, "
               f"last byte {C.fmt(C.median(x['last_byte_after_end_s'] for x in rs))} s after the end; "

@@ -19,6 +19,10 @@ run's compute time). Figures (PNG, matplotlib Agg, no display needed), after the
 ``clearance.png``        each UAV's distance to the nearest obstacle surface (capped cylinder) against
                          the vehicle radius (contact), and the leader sphere's clearance d_obs(q0)
                          against the threshold d0.
+``commands.png``         per UAV, what the vehicle was asked and did: the commanded collective
+                         thrust against the thrust its measured motion implies, m ||dv/dt + g e_z||
+                         (drag and disturbances included), and the commanded roll, pitch, yaw
+                         (``rpy_cmd``) against the measured attitude (``rpy``).
 ``links.png``            messages per key in the recording (and how many the report's decoder
                          rejected), and the drop/reject/timeout counters each process reported in
                          its last ``diag`` message (recordings only).
@@ -82,6 +86,7 @@ FIGURES = (
     "formation_errors_vehicles.png",
     "tracking_errors.png",
     "clearance.png",
+    "commands.png",
     "links.png",
 )
 """Figures of a report from a recording (``links.png`` only from a recording)."""
@@ -571,6 +576,54 @@ def plot_clearance(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequence[s
     return _save(fig, path, formats)[0]
 
 
+COMMAND_UAVS = 6
+"""``commands.png`` shows the first this many UAVs (a row each)."""
+
+
+def plot_commands(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequence[str] = ("png",)) -> Path:
+    """Per UAV (rows, the first :data:`COMMAND_UAVS`): the commanded collective thrust (N) against
+    the thrust the measured motion implies, m ||dv/dt + g e_z|| (dv/dt by central differences of
+    the sampled velocity; drag and disturbances included), and the commanded roll, pitch and yaw
+    (``rpy_cmd``, the inversion after eq. 28) against the measured attitude (``rpy``), degrees."""
+    from zenswarm.vehicle.params import QuadParams
+
+    qp = QuadParams.from_vehicle(sc.vehicle)
+    n = min(ts.q.shape[1], COMMAND_UAVS)
+    colors = _uav_colors(ts.q.shape[1])
+    fig = _figure((14.0, 2.3 * n + 1.2), left=0.07, right=0.99, bottom=0.5 / (2.3 * n + 1.2), top=1 - 0.75 / (2.3 * n + 1.2),
+                  wspace=0.25, hspace=0.35)  # fmt: skip
+    axes = np.atleast_2d(fig.subplots(n, 4, sharex=True))
+    t = ts.t
+    if len(t) > 1:
+        acc = np.gradient(ts.v, t, axis=0)
+    else:
+        acc = np.zeros_like(ts.v)
+    implied = qp.mass * np.linalg.norm(acc + np.array([0.0, 0.0, qp.g]), axis=2)
+    for i in range(n):
+        ax = axes[i, 0]
+        ax.plot(t, ts.thrust[:, i], color=colors[i], lw=1.2, label="commanded")
+        ax.plot(t, implied[:, i], color="k", lw=0.8, alpha=0.7, label=r"implied: $m\|\dot v + g e_z\|$")
+        ax.axhline(qp.mass * qp.g, color="0.5", lw=0.6, ls=":")
+        ax.set_ylabel(f"UAV {i + 1}\nthrust [N]")
+        for c, name in enumerate(("roll", "pitch", "yaw")):
+            ax = axes[i, c + 1]
+            ax.plot(t, np.degrees(ts.rpy_cmd[:, i, c]), color=colors[i], lw=1.2, label="commanded")
+            ax.plot(t, np.degrees(ts.rpy[:, i, c]), color="k", lw=0.8, alpha=0.7, label="measured")
+            if i == 0:
+                ax.set_title(f"{name} [deg]", fontsize=10)
+        if i == 0:
+            axes[0, 0].set_title("collective thrust [N] (dotted: m g)", fontsize=10)
+    for ax in axes.flat:
+        ax.grid(True, alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("t [s]")
+    axes[0, 0].legend(fontsize=7, loc="best")
+    axes[0, 1].legend(fontsize=7, loc="best")
+    more = f" (the first {n} of {ts.q.shape[1]} UAVs)" if ts.q.shape[1] > n else ""
+    fig.suptitle(f"{sc.name}: commanded against achieved thrust and attitude{more}")
+    return _save(fig, path, formats)[0]
+
+
 _FAULT_RE = re.compile(r"drop|reject|timeout|late|lost|loss|stale|held|miss|undecodable|error", re.IGNORECASE)
 
 
@@ -793,6 +846,7 @@ def report_from_series(
         plot_vehicle_formation_errors(ts, scenario, out / "formation_errors_vehicles.png", fm),
         plot_tracking_errors(ts, scenario, out / "tracking_errors.png", fm),
         plot_clearance(ts, scenario, out / "clearance.png", fm),
+        plot_commands(ts, scenario, out / "commands.png", fm),
     ]
     net = network_plan(scenario, faults)
     if net is not None:
@@ -889,6 +943,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         description=(
             "Write the flight report of a recording into OUT: trajectories_3d.png, "
             "formation_errors.png (generator), formation_errors_vehicles.png, tracking_errors.png, clearance.png, "
+            "commands.png (commanded against achieved thrust and attitude), "
             "links.png, effective_graph.png (runs with a radio model, capacity queue or link trace) and results.json "
             "(the same fields as `zenswarm sim`). Works from the MCAP file alone; a "
             "truncated or damaged recording is reported from what can be read, with a warning on stderr (also for "

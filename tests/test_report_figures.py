@@ -151,3 +151,38 @@ def test_up_report_format_is_checked_before_anything_starts(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--report-format" in err and "'tiff'" in err, err
     assert not (tmp_path / "o").exists()
+
+
+def test_commands_figure_shows_commanded_against_achieved_per_uav(flight, tmp_path, figures):  # noqa: F811
+    """commands.png: a row per UAV; the commanded thrust and attitude are the series' ``thrust``
+    and ``rpy_cmd`` (the controller's command, not the measured attitude ``rpy``), beside the
+    thrust the motion implies and the measured attitude."""
+    sc, sim = flight
+    ts = sim.series
+    assert np.isfinite(ts.rpy_cmd).all() and not np.array_equal(ts.rpy_cmd, ts.rpy)
+    report.plot_commands(ts, sc, tmp_path / "commands.png")
+    axes = np.asarray(figures["commands"].axes).reshape(sc.n, 4)
+    for i in range(sc.n):
+        np.testing.assert_array_equal(axes[i, 0].get_lines()[0].get_ydata(), ts.thrust[:, i])
+        for c in range(3):
+            cmd, measured = axes[i, c + 1].get_lines()[:2]
+            np.testing.assert_array_equal(cmd.get_ydata(), np.degrees(ts.rpy_cmd[:, i, c]))
+            np.testing.assert_array_equal(measured.get_ydata(), np.degrees(ts.rpy[:, i, c]))
+    # the implied thrust of a hovering vehicle is its weight: the plotted curve ends near m g
+    from zenswarm.vehicle.params import QuadParams
+
+    qp = QuadParams.from_vehicle(sc.vehicle)
+    implied = axes[0, 0].get_lines()[1].get_ydata()
+    assert abs(implied[-1] - ts.thrust[-1, 0]) < 0.05 * qp.mass * qp.g
+
+
+def test_a_series_saved_without_rpy_cmd_loads_with_it_unknown(flight, tmp_path):  # noqa: F811
+    from zenswarm.judge.metrics import TimeSeries
+
+    _, sim = flight
+    old = {f: getattr(sim.series, f) for f in TimeSeries.FIELDS if f != "rpy_cmd"}
+    np.savez_compressed(tmp_path / "old.npz", **old)
+    ts = TimeSeries.load(str(tmp_path / "old.npz"))
+    assert ts.rpy_cmd.shape == ts.rpy.shape and np.isnan(ts.rpy_cmd).all()
+    sim.series.save(str(tmp_path / "new.npz"))
+    np.testing.assert_array_equal(TimeSeries.load(str(tmp_path / "new.npz")).rpy_cmd, sim.series.rpy_cmd)
