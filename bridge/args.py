@@ -18,6 +18,8 @@ from zenswarm.process.security import ClientSecurity
 from zenswarm.scenario.config import check_seed
 
 __all__ = [
+    "FIGURE_FORMATS",
+    "figure_formats",
     "add_rt_priority_arg",
     "positive_float",
     "seed_arg",
@@ -27,6 +29,24 @@ __all__ = [
     "client_security",
     "add_process_args",
 ]
+
+
+FIGURE_FORMATS = ("png", "svg", "pdf")
+"""The formats a report's figures can be written in (``zenswarm report --format``, ``up --report-format``)."""
+
+
+def figure_formats(text: str) -> tuple[str, ...]:
+    """argparse ``type`` of ``FMT[,FMT...]`` among :data:`FIGURE_FORMATS`: ``png,svg,pdf`` ->
+    ("png", "svg", "pdf"), in order, each once; anything else names the bad value."""
+    got: list[str] = []
+    for word in (w.strip().lower() for w in text.split(",")):
+        if word not in FIGURE_FORMATS:
+            raise argparse.ArgumentTypeError(
+                f"{word!r} is not a figure format: expected a comma-separated list of {', '.join(FIGURE_FORMATS)}"
+            )
+        if word not in got:
+            got.append(word)
+    return tuple(got)
 
 
 def positive_float(text: str) -> float:

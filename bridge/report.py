@@ -19,6 +19,10 @@ run's compute time). Figures (PNG, matplotlib Agg, no display needed), after the
 ``clearance.png``        each UAV's distance to the nearest obstacle surface (capped cylinder) against
                          the vehicle radius (contact), and the leader sphere's clearance d_obs(q0)
                          against the threshold d0.
+``commands.png``         per UAV, what the vehicle was asked and did: the commanded collective
+                         thrust against the thrust its measured motion implies, m ||dv/dt + g e_z||
+                         (drag and disturbances included), and the commanded roll, pitch, yaw
+                         (``rpy_cmd``) against the measured attitude (``rpy``).
 ``links.png``            messages per key in the recording (and how many the report's decoder
                          rejected), and the drop/reject/timeout counters each process reported in
                          its last ``diag`` message (recordings only).
@@ -48,6 +52,7 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
+from zenswarm.bridge.args import FIGURE_FORMATS, figure_formats
 from zenswarm.bus import wire
 from zenswarm.errors import RecordingError, ScenarioError, ZenswarmError
 from zenswarm.judge.metrics import TimeSeries, compute_results
@@ -81,11 +86,26 @@ FIGURES = (
     "formation_errors_vehicles.png",
     "tracking_errors.png",
     "clearance.png",
+    "commands.png",
     "links.png",
 )
 """Figures of a report from a recording (``links.png`` only from a recording)."""
 
 _DPI = 120
+
+VIEW_3D = (24.0, -125.0)
+"""Elevation and azimuth (degrees, matplotlib's ``view_init``) of the 3D trajectories figure."""
+
+
+def _save(fig: Any, path: Path, formats: Sequence[str] = ("png",)) -> list[Path]:
+    """Write ``fig`` as ``path`` with each suffix of ``formats`` (the first is the figure's own
+    path's); returns the files written."""
+    out = []
+    for fmt in formats:
+        f = path.with_suffix("." + fmt)
+        fig.savefig(f, dpi=_DPI)
+        out.append(f)
+    return out
 _STYLES = ("-", "--", "-.", ":")
 """Line styles by UAV, so curves that coincide (symmetric UAVs) stay visible."""
 
@@ -280,7 +300,31 @@ def _finite_rows(a: np.ndarray) -> np.ndarray:
     return a[np.all(np.isfinite(a), axis=-1)]
 
 
-def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
+GOAL_MS = 13.0
+"""The goal's star in the top view, points."""
+
+
+def hidden_behind_obstacles(p: np.ndarray, sc: Scenario, elev: float, azim: float) -> np.ndarray:
+    """Which points of ``p`` (T, 3) m a viewer looking from elevation ``elev`` and azimuth
+    ``azim`` (degrees, matplotlib's ``view_init``; orthographic) sees behind an obstacle of
+    ``sc``: farther than the obstacle's axis and inside its outline (the cylinder and its cap
+    seen from there), (T,) bool; rows with a NaN are False."""
+    e, a = math.radians(elev), math.radians(azim)
+    eye = np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])  # towards the viewer
+    right = np.array([-math.sin(a), math.cos(a), 0.0])
+    up = np.cross(eye, right)
+    out = np.zeros(len(p), dtype=bool)
+    for ob in sc.obstacles:
+        d = p - np.asarray(ob.center, dtype=float)
+        r, h = ob.radius, ob.height
+        lateral, height, depth = d @ right, d @ up, d @ eye
+        lo = -r * math.sin(e)  # the base's ellipse, its near edge
+        hi = h * math.cos(e) + r  # the cap's top
+        out |= (np.abs(lateral) <= r) & (height >= lo) & (height <= hi) & (depth < 0.0)
+    return out & np.all(np.isfinite(p), axis=-1)
+
+
+def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequence[str] = ("png",)) -> Path:
     """3D trajectories (paper Fig. 4) plus a top view with formation snapshots."""
     n = ts.q.shape[1]
     colors = _uav_colors(n)
@@ -301,28 +345,37 @@ def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
     pad = 0.06 * span.max()
     lo, hi = lo - pad, hi + pad
     lo[2] = min(lo[2], 0.0)  # show the ground
-    span = hi - lo
-    aspect = np.maximum(span, 0.25 * span.max())  # equal scaling, but never a flat box
-    grow = aspect - span
-    lo[:2] -= 0.5 * grow[:2]
-    hi[:2] += 0.5 * grow[:2]
-    hi[2] += grow[2]  # z grows upward only: the ground stays at the bottom
+    aspect = hi - lo  # to scale: one metre is as long on x, y and z
 
+    # Drawn in a fixed order (mplot3d sorts artists by their mean depth, which puts whole paths
+    # over or under whole obstacles): obstacles (translucent) at zorder 2; each path's parts
+    # hidden behind an obstacle from this view under them (zorder 1), the rest over them (3).
+    ax.computed_zorder = False
     for ob in sc.obstacles:
-        ax.plot_surface(*_cylinder_mesh(ob), color="0.55", alpha=0.35, linewidth=0, shade=True)
-        ax.plot_surface(*_cap_mesh(ob), color="0.55", alpha=0.35, linewidth=0, shade=True)
+        ax.plot_surface(*_cylinder_mesh(ob), color="0.55", alpha=0.4, linewidth=0, shade=True, zorder=2)
+        ax.plot_surface(*_cap_mesh(ob), color="0.55", alpha=0.4, linewidth=0, shade=True, zorder=2)
     q0 = ts.q0
-    ax.plot(q0[:, 0], q0[:, 1], q0[:, 2], color="k", ls="--", lw=1.4, label="virtual leader $q_0$")
+
+    def path3d(p: np.ndarray, **kw: Any) -> None:
+        hidden = hidden_behind_obstacles(p, sc, *VIEW_3D)
+        front, back = p.copy(), p.copy()
+        front[hidden] = np.nan  # a segment is drawn where both its ends are
+        back[~hidden] = np.nan
+        ax.plot(front[:, 0], front[:, 1], front[:, 2], zorder=3, **kw)
+        kw.pop("label", None)
+        ax.plot(back[:, 0], back[:, 1], back[:, 2], zorder=1, **kw)
+
+    path3d(q0, color="k", ls="--", lw=1.4, label="virtual leader $q_0$")
     for i in range(n):
         qi = ts.q[:, i]
-        ax.plot(qi[:, 0], qi[:, 1], qi[:, 2], color=colors[i], lw=1.5, label=f"UAV {i + 1}")
+        path3d(qi, color=colors[i], lw=1.5, label=f"UAV {i + 1}")
         f = _finite_rows(qi)
         if len(f):
-            ax.scatter(*f[0], color=colors[i], marker="o", s=22, depthshade=False)
-            ax.scatter(*f[-1], color=colors[i], marker="^", s=30, depthshade=False)
+            ax.scatter(*f[0], color=colors[i], marker="o", s=22, depthshade=False, zorder=4)
+            ax.scatter(*f[-1], color=colors[i], marker="^", s=30, depthshade=False, zorder=4)
     st, gl = np.asarray(sc.leader.start, float), np.asarray(sc.leader.goal, float)
-    ax.scatter(*st, color="k", marker="s", s=40, depthshade=False, label="start")
-    ax.scatter(*gl, color="tab:green", marker="*", s=160, depthshade=False, label="goal")
+    ax.scatter(*st, color="k", marker="s", s=40, depthshade=False, label="start", zorder=4)
+    ax.scatter(*gl, color="tab:green", marker="*", s=160, depthshade=False, label="goal", zorder=4)
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
     ax.set_zlim(lo[2], hi[2])
@@ -331,8 +384,8 @@ def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
     ax.set_ylabel("y [m]")
     ax.zaxis.set_rotate_label(False)
     ax.set_zlabel("z [m]", rotation=90)
-    ax.view_init(elev=24, azim=-125)
-    ax.set_title("3D trajectories (o start, ^ end)")
+    ax.view_init(elev=VIEW_3D[0], azim=VIEW_3D[1])
+    ax.set_title("3D trajectories to scale (o start, ^ end)")
     ax.legend(loc="upper left", fontsize=8)
 
     # top view: obstacles, paths, formation snapshots, enclosing circle r_f
@@ -353,9 +406,14 @@ def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
             poly = np.vstack([ts.q[k], ts.q[k][:1]]) if n > 2 else ts.q[k]
             top.plot(poly[:, 0], poly[:, 1], color="0.3", lw=0.7, alpha=0.7)
             top.add_patch(Circle((q0[k, 0], q0[k, 1]), sc.r_f, fill=False, ls=":", lw=0.8, color="0.4"))
-            top.annotate(f"{ts.t[k]:.1f} s", (q0[k, 0], q0[k, 1]), fontsize=7, color="0.25", xytext=(3, -9), textcoords="offset points")
+            near_goal = np.hypot(*(q0[k, :2] - gl[:2])) < sc.r_f
+            # beside the goal's star (13 pt wide), not on it: under it, right of it
+            xytext = (9, -17) if near_goal else (3, -9)
+            top.annotate(
+                f"{ts.t[k]:.1f} s", (q0[k, 0], q0[k, 1]), fontsize=7, color="0.25", xytext=xytext, textcoords="offset points"
+            )
     top.plot(*st[:2], "ks", ms=6)
-    top.plot(*gl[:2], "*", color="tab:green", ms=13)
+    top.plot(*gl[:2], "*", color="tab:green", ms=GOAL_MS)
     top.set_aspect("equal", adjustable="datalim")
     top.set_xlabel("x [m]")
     top.set_ylabel("y [m]")
@@ -363,8 +421,7 @@ def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
     top.grid(True, alpha=0.3)
     top.legend(loc="best", fontsize=8)
     fig.suptitle(f"{sc.name}: trajectories of the virtual leader and {n} UAVs")
-    fig.savefig(path, dpi=_DPI)
-    return path
+    return _save(fig, path, formats)[0]
 
 
 def _snapshot_ticks(q0: np.ndarray, good: np.ndarray, count: int) -> np.ndarray:
@@ -378,7 +435,10 @@ def _snapshot_ticks(q0: np.ndarray, good: np.ndarray, count: int) -> np.ndarray:
     return good[np.unique(np.clip(idx, 0, len(good) - 1))]
 
 
-def _plot_error_grid(t: np.ndarray, pos: np.ndarray, vel: np.ndarray, path: Path, title: str, plabel: str, vlabel: str) -> Path:
+def _plot_error_grid(
+    t: np.ndarray, pos: np.ndarray, vel: np.ndarray, path: Path, title: str, plabel: str, vlabel: str,
+    settle_s: float | None = None, formats: Sequence[str] = ("png",),
+) -> Path:
     """2 x 3 grid: position (top) and velocity (bottom) error components, one line per UAV."""
     n = pos.shape[1]
     colors = _uav_colors(n)
@@ -390,18 +450,21 @@ def _plot_error_grid(t: np.ndarray, pos: np.ndarray, vel: np.ndarray, path: Path
             for i in range(n):
                 ax.plot(t, err[:, i, c], color=colors[i], ls=_STYLES[i % len(_STYLES)], lw=1.1, label=f"UAV {i + 1}")
             ax.axhline(0.0, color="0.5", lw=0.6)
+            if settle_s is not None:
+                ax.axvline(settle_s, color="tab:purple", ls="--", lw=0.9, label=f"settle time {settle_s:g} s")
             ax.set_title(f"{lab}, {axis} [{unit}]", fontsize=10)
             ax.grid(True, alpha=0.3)
             ax.ticklabel_format(axis="y", style="sci", scilimits=(-2, 3), useMathText=True)
             if row == 1:
                 ax.set_xlabel("t [s]")
     axes[0, 0].legend(fontsize=8, loc="best")
-    fig.suptitle(title)
-    fig.savefig(path, dpi=_DPI)
-    return path
+    if settle_s is not None:
+        title += f"\n(dashed: the settle time {settle_s:g} s, after which the verdict takes the maximum formation error)"
+    fig.suptitle(title, fontsize=11)
+    return _save(fig, path, formats)[0]
 
 
-def plot_formation_errors(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
+def plot_formation_errors(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequence[str] = ("png",)) -> Path:
     """Generator formation errors q*_i - q0 - h_i and v*_i - v0 (eqs 16-17; paper Figs 5 and 7)."""
     h = np.asarray(sc.offsets, dtype=float)
     ep = ts.qref - ts.q0[:, None, :] - h[None]
@@ -414,10 +477,12 @@ def plot_formation_errors(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
         f"{sc.name}: formation errors of the reference generator, eqs (16)-(17)",
         r"$q^*_i - q_0 - h_i$",
         r"$v^*_i - v_0$",
+        settle_s=sc.timing.settle_time_s,
+        formats=formats,
     )
 
 
-def plot_vehicle_formation_errors(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
+def plot_vehicle_formation_errors(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequence[str] = ("png",)) -> Path:
     """The vehicles' formation errors q_i - q0 - h_i and v_i - v0: where the UAVs really are
     against their places in the formation (what the verdict's max_formation_error_m measures)."""
     h = np.asarray(sc.offsets, dtype=float)
@@ -429,10 +494,12 @@ def plot_vehicle_formation_errors(ts: TimeSeries, sc: Scenario, path: Path) -> P
         f"{sc.name}: formation errors of the vehicles (measured states)",
         r"$q_i - q_0 - h_i$",
         r"$v_i - v_0$",
+        settle_s=sc.timing.settle_time_s,
+        formats=formats,
     )
 
 
-def plot_tracking_errors(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
+def plot_tracking_errors(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequence[str] = ("png",)) -> Path:
     """Tracking errors q*_i - q_i and v*_i - v_i (composite controller, eq. 28; paper Figs 6 and 8)."""
     return _plot_error_grid(
         ts.t,
@@ -442,6 +509,8 @@ def plot_tracking_errors(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
         f"{sc.name}: trajectory tracking errors under the composite controller, eq. (28)",
         r"$q^*_i - q_i$",
         r"$v^*_i - v_i$",
+        settle_s=sc.timing.settle_time_s,
+        formats=formats,
     )
 
 
@@ -462,7 +531,7 @@ def uav_clearance(q: np.ndarray, sc: Scenario) -> np.ndarray:
     return c
 
 
-def plot_clearance(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
+def plot_clearance(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequence[str] = ("png",)) -> Path:
     """UAV clearance to the nearest obstacle, and the leader sphere's d_obs against d0."""
     n = ts.q.shape[1]
     colors = _uav_colors(n)
@@ -504,8 +573,55 @@ def plot_clearance(ts: TimeSeries, sc: Scenario, path: Path) -> Path:
             ax.legend(fontsize=8, loc="upper right")
     ax2.set_xlabel("t [s]")
     fig.suptitle(f"{sc.name}: obstacle clearance")
-    fig.savefig(path, dpi=_DPI)
-    return path
+    return _save(fig, path, formats)[0]
+
+
+COMMAND_UAVS = 6
+"""``commands.png`` shows the first this many UAVs (a row each)."""
+
+
+def plot_commands(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequence[str] = ("png",)) -> Path:
+    """Per UAV (rows, the first :data:`COMMAND_UAVS`): the commanded collective thrust (N) against
+    the thrust the measured motion implies, m ||dv/dt + g e_z|| (dv/dt by central differences of
+    the sampled velocity; drag and disturbances included), and the commanded roll, pitch and yaw
+    (``rpy_cmd``, the inversion after eq. 28) against the measured attitude (``rpy``), degrees."""
+    from zenswarm.vehicle.params import QuadParams
+
+    qp = QuadParams.from_vehicle(sc.vehicle)
+    n = min(ts.q.shape[1], COMMAND_UAVS)
+    colors = _uav_colors(ts.q.shape[1])
+    fig = _figure((14.0, 2.3 * n + 1.2), left=0.07, right=0.99, bottom=0.5 / (2.3 * n + 1.2), top=1 - 0.75 / (2.3 * n + 1.2),
+                  wspace=0.25, hspace=0.35)  # fmt: skip
+    axes = np.atleast_2d(fig.subplots(n, 4, sharex=True))
+    t = ts.t
+    if len(t) > 1:
+        acc = np.gradient(ts.v, t, axis=0)
+    else:
+        acc = np.zeros_like(ts.v)
+    implied = qp.mass * np.linalg.norm(acc + np.array([0.0, 0.0, qp.g]), axis=2)
+    for i in range(n):
+        ax = axes[i, 0]
+        ax.plot(t, ts.thrust[:, i], color=colors[i], lw=1.2, label="commanded")
+        ax.plot(t, implied[:, i], color="k", lw=0.8, alpha=0.7, label=r"implied: $m\|\dot v + g e_z\|$")
+        ax.axhline(qp.mass * qp.g, color="0.5", lw=0.6, ls=":")
+        ax.set_ylabel(f"UAV {i + 1}\nthrust [N]")
+        for c, name in enumerate(("roll", "pitch", "yaw")):
+            ax = axes[i, c + 1]
+            ax.plot(t, np.degrees(ts.rpy_cmd[:, i, c]), color=colors[i], lw=1.2, label="commanded")
+            ax.plot(t, np.degrees(ts.rpy[:, i, c]), color="k", lw=0.8, alpha=0.7, label="measured")
+            if i == 0:
+                ax.set_title(f"{name} [deg]", fontsize=10)
+        if i == 0:
+            axes[0, 0].set_title("collective thrust [N] (dotted: m g)", fontsize=10)
+    for ax in axes.flat:
+        ax.grid(True, alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("t [s]")
+    axes[0, 0].legend(fontsize=7, loc="best")
+    axes[0, 1].legend(fontsize=7, loc="best")
+    more = f" (the first {n} of {ts.q.shape[1]} UAVs)" if ts.q.shape[1] > n else ""
+    fig.suptitle(f"{sc.name}: commanded against achieved thrust and attitude{more}")
+    return _save(fig, path, formats)[0]
 
 
 _FAULT_RE = re.compile(r"drop|reject|timeout|late|lost|loss|stale|held|miss|undecodable|error", re.IGNORECASE)
@@ -551,28 +667,38 @@ def _plot_key_counts(ax: Any, fl: Flight, keys: list[str]) -> None:
 
 
 def _plot_fault_counters(ax: Any, faults: list[tuple[str, float]]) -> None:
-    """The fault counters as bars (red: nonzero)."""
-    if faults:
-        yf = np.arange(len(faults))
-        vals = np.array([v for _, v in faults])
-        ax.barh(yf, vals, color=["tab:red" if v > 0 else "0.7" for v in vals])
-        ax.set_yticks(yf, [lab for lab, _ in faults], fontsize=8)
+    """The nonzero fault counters as bars; the ones at zero named in one line, not drawn."""
+    nonzero = [(lab, v) for lab, v in faults if v != 0]
+    zero = len(faults) - len(nonzero)
+    if nonzero:
+        yf = np.arange(len(nonzero))
+        vals = np.array([v for _, v in nonzero])
+        ax.barh(yf, vals, color="tab:red")
+        ax.set_yticks(yf, [lab for lab, _ in nonzero], fontsize=8)
         ax.invert_yaxis()
         for yy, v in zip(yf, vals, strict=True):
             ax.annotate(f"{v:g}", (v, yy), xytext=(2, 0), textcoords="offset points", va="center", fontsize=7)
         ax.set_xlim(0, max(1.0, float(vals.max()) * 1.15))
-        nz = int(np.count_nonzero(vals))
-        ax.set_title(f"drop / reject / timeout counters ({nz} of {len(vals)} nonzero)", fontsize=10)
+        ax.set_title(f"drop / reject / timeout counters: {len(nonzero)} of {len(faults)} nonzero", fontsize=10)
+        ax.set_xlabel("count (last diag message of each process)")
+        ax.grid(True, axis="x", alpha=0.3)
     else:
-        ax.text(0.5, 0.5, "no diag messages with drop/reject counters\nin this recording", ha="center", va="center", transform=ax.transAxes)
+        text = (
+            f"all {zero} drop / reject / timeout counters are zero\n(last diag message of each process)"
+            if faults
+            else "no diag messages with drop/reject counters\nin this recording"
+        )
+        ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, fontsize=9)
         ax.set_title("drop / reject / timeout counters", fontsize=10)
+        ax.set_xticks([])
         ax.set_yticks([])
-    ax.set_xlabel("count (last diag message of each process)")
-    ax.grid(True, axis="x", alpha=0.3)
+    if nonzero and zero:
+        ax.text(1.0, -0.12, f"{zero} more counters at zero, not drawn", transform=ax.transAxes, ha="right", va="top", fontsize=7)
 
 
-def plot_links(fl: Flight, path: Path) -> Path:
-    """Messages per key, the report decoder's rejects per key, and each process's fault counters.
+def plot_links(fl: Flight, path: Path, formats: Sequence[str] = ("png",)) -> Path:
+    """Messages per key, the report decoder's rejects per key, and each process's nonzero fault
+    counters (those at zero are counted in one line, not drawn: they would take half the figure).
 
     Fault counters are every numeric counter of a process's last diag message whose name says
     drop, reject, timeout, late, lost/loss, stale, held, miss, undecodable or error; per-link counters (their name
@@ -580,14 +706,14 @@ def plot_links(fl: Flight, path: Path) -> Path:
     """
     keys = sorted(fl.message_counts, key=lambda k: (_short_key(k, fl.swarm).split("/")[0], _key_order(k), k))
     faults = _fault_counters(fl)
-    nrows = max(len(keys), len(faults), 1)
-    fig = _figure((13.0, max(4.0, 0.24 * nrows + 1.6)), layout="constrained")
-    ax1, ax2 = fig.subplots(1, 2)
+    nonzero = sum(1 for _, v in faults if v != 0)
+    nrows = max(len(keys), nonzero, 1)
+    fig = _figure((12.0, max(3.0, 0.2 * nrows + 1.3)), layout="constrained")
+    ax1, ax2 = fig.subplots(1, 2, width_ratios=(1.3, 1.0))
     _plot_key_counts(ax1, fl, keys)
     _plot_fault_counters(ax2, faults)
     fig.suptitle(f"bus traffic of swarm '{fl.swarm}' ({fl.mode})")
-    fig.savefig(path, dpi=_DPI)
-    return path
+    return _save(fig, path, formats)[0]
 
 
 def _key_order(topic: str) -> int:
@@ -627,7 +753,7 @@ def recorded_fault_plan(rec: Recording) -> FaultPlan | None:
         raise RecordingError(f"{rec.path}: metadata fault_args unusable ({e})") from None
 
 
-def plot_effective_graph(ts: TimeSeries, sc: Scenario, faults: FaultPlan, path: Path) -> Path:
+def plot_effective_graph(ts: TimeSeries, sc: Scenario, faults: FaultPlan, path: Path, formats: Sequence[str] = ("png",)) -> Path:
     """The effective communication graph over time (:func:`zenswarm.link.swarm.graph_series`,
     recomputed from the fault plan and the flown series, as ``results.json``'s ``effective_graph``):
     the connected components per tick with the ticks where the leader-rooted spanning tree of
@@ -691,33 +817,41 @@ def plot_effective_graph(ts: TimeSeries, sc: Scenario, faults: FaultPlan, path: 
         ax_h.legend(fontsize=7)
     ax_h.grid(True, alpha=0.3)
     fig.suptitle("communication: effective graph, delivery and latency")
-    fig.savefig(path, dpi=_DPI)
-    return path
+    return _save(fig, path, formats)[0]
 
 
 # =========================================================================== reports
 
 
-def report_from_series(ts: TimeSeries, scenario: Scenario, out_dir: str | Path, faults: FaultPlan | None = None) -> list[Path]:
+def _written(first: Path, formats: Sequence[str]) -> list[Path]:
+    """The files a figure was written as: ``first`` with each suffix of ``formats``."""
+    return [first.with_suffix("." + f) for f in formats]
+
+
+def report_from_series(
+    ts: TimeSeries, scenario: Scenario, out_dir: str | Path, faults: FaultPlan | None = None, formats: Sequence[str] = ("png",)
+) -> list[Path]:
     """Write the figures that need only the time series (trajectories, formation and tracking
-    errors, clearance) into ``out_dir`` (created); returns their paths. With ``faults`` (the run's
-    link-fault plan) that has a radio model, a capacity queue or a trace, also
-    ``effective_graph.png`` (:func:`plot_effective_graph`)."""
+    errors, clearance) into ``out_dir`` (created), each in every format of ``formats``
+    (:data:`zenswarm.bridge.args.FIGURE_FORMATS`); returns their paths. With ``faults`` (the run's link-fault plan) that has a
+    radio model, a capacity queue or a trace, also ``effective_graph.png`` (:func:`plot_effective_graph`)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if len(ts.t) == 0:
         raise ZenswarmError("the time series is empty: nothing to plot")
-    files = [
-        plot_trajectories(ts, scenario, out / "trajectories_3d.png"),
-        plot_formation_errors(ts, scenario, out / "formation_errors.png"),
-        plot_vehicle_formation_errors(ts, scenario, out / "formation_errors_vehicles.png"),
-        plot_tracking_errors(ts, scenario, out / "tracking_errors.png"),
-        plot_clearance(ts, scenario, out / "clearance.png"),
+    fm = tuple(formats) or ("png",)
+    firsts = [
+        plot_trajectories(ts, scenario, out / "trajectories_3d.png", fm),
+        plot_formation_errors(ts, scenario, out / "formation_errors.png", fm),
+        plot_vehicle_formation_errors(ts, scenario, out / "formation_errors_vehicles.png", fm),
+        plot_tracking_errors(ts, scenario, out / "tracking_errors.png", fm),
+        plot_clearance(ts, scenario, out / "clearance.png", fm),
+        plot_commands(ts, scenario, out / "commands.png", fm),
     ]
     net = network_plan(scenario, faults)
     if net is not None:
-        files.append(plot_effective_graph(ts, scenario, net, out / "effective_graph.png"))
-    return files
+        firsts.append(plot_effective_graph(ts, scenario, net, out / "effective_graph.png", fm))
+    return [f for first in firsts for f in _written(first, fm)]
 
 
 def results_from_flight(fl: Flight, full_time: bool = False) -> dict[str, Any]:
@@ -733,13 +867,18 @@ def results_from_flight(fl: Flight, full_time: bool = False) -> dict[str, Any]:
 
 
 def report_recording(
-    path: str | Path, out_dir: str | Path, full_time: bool = False, warn: Callable[[str], None] | None = None
+    path: str | Path,
+    out_dir: str | Path,
+    full_time: bool = False,
+    warn: Callable[[str], None] | None = None,
+    formats: Sequence[str] = ("png",),
 ) -> list[Path]:
     """The full report of a recording: every figure of :data:`FIGURES` and ``results.json``, and
     ``effective_graph.png`` when the run had a radio model, a capacity queue or a trace (the
     scenario's ``[faults]`` and the fault flags in the recording's metadata).
 
-    full_time: judge every recorded tick, as ``--full-time`` runs do. warn: called with each
+    full_time: judge every recorded tick, as ``--full-time`` runs do. formats: the figures'
+    formats (:data:`zenswarm.bridge.args.FIGURE_FORMATS`), each figure once per format. warn: called with each
     thing the reader must know (:attr:`Recording.notes`): a truncated or damaged recording (then
     also which sim time the report covers), payloads not recorded."""
     rec = load_recording(path)
@@ -751,8 +890,9 @@ def report_recording(
             sc = rec.scenario
             warn(f"the report covers sim time 0 to {len(fl.series.t) * sc.timing.dt:.2f} s of the {sc.timing.time_limit_s:g} s time limit")
     out = Path(out_dir)
-    files = report_from_series(fl.series, fl.scenario, out, faults=recorded_fault_plan(rec))
-    files.append(plot_links(fl, out / "links.png"))
+    fm = tuple(formats) or ("png",)
+    files = report_from_series(fl.series, fl.scenario, out, faults=recorded_fault_plan(rec), formats=fm)
+    files += _written(plot_links(fl, out / "links.png", fm), fm)
     res = results_from_flight(fl, full_time=full_time)
     res["recording"] = str(rec.path)
     res["recording_truncated"] = rec.truncated
@@ -782,14 +922,14 @@ def _run_report(args: argparse.Namespace) -> int:
         if ts.q.ndim != 3 or ts.q.shape[1] != sc.n:
             got = ts.q.shape[1] if ts.q.ndim == 3 else "?"
             raise ScenarioError("--scenario", f"{args.scenario} has {sc.n} UAVs but {args.series} has {got}")
-        files = report_from_series(ts, sc, args.out, faults=plan_for(sc))
+        files = report_from_series(ts, sc, args.out, faults=plan_for(sc), formats=args.format)
     else:
         import sys
 
         def warn(text: str) -> None:
             print(f"report: warning: {args.recording}: {text}", file=sys.stderr, flush=True)
 
-        files = report_recording(args.recording, args.out, full_time=args.full_time, warn=warn)
+        files = report_recording(args.recording, args.out, full_time=args.full_time, warn=warn, formats=args.format)
     for f in files:
         print(f)
     return 0
@@ -803,6 +943,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         description=(
             "Write the flight report of a recording into OUT: trajectories_3d.png, "
             "formation_errors.png (generator), formation_errors_vehicles.png, tracking_errors.png, clearance.png, "
+            "commands.png (commanded against achieved thrust and attitude), "
             "links.png, effective_graph.png (runs with a radio model, capacity queue or link trace) and results.json "
             "(the same fields as `zenswarm sim`). Works from the MCAP file alone; a "
             "truncated or damaged recording is reported from what can be read, with a warning on stderr (also for "
@@ -814,6 +955,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="output directory (created)")
     p.add_argument("--series", type=Path, metavar="NPZ", help="a timeseries.npz written by zenswarm sim or zenswarm up")
     p.add_argument("--scenario", type=Path, metavar="TOML", help="with --series: the scenario file of that run")
+    p.add_argument(
+        "--format",
+        type=figure_formats,
+        default=("png",),
+        metavar="FMT[,FMT...]",
+        help=f"the figures' formats, comma-separated, of {', '.join(FIGURE_FORMATS)} (default png; e.g. png,svg,pdf: each "
+        "figure in each; SVG and PDF are vector, for papers)",
+    )
     p.add_argument(
         "--full-time",
         action="store_true",

@@ -46,6 +46,7 @@ import threading
 import time
 import urllib.parse
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -78,14 +79,26 @@ FAINT = 0.5
 """Shapes with alpha below this are drawn as a transparent fill with a wireframe (``<kind>_faint``)."""
 
 
+QUIET_SDK_LOG = "warn,re_grpc_client=off,re_sdk=off"
+"""``RUST_LOG`` of the live view's rerun-sdk (unless the user set one): its gRPC client and
+recording stream log a connection severed at the end (a viewer that could not keep up) as errors;
+:meth:`RerunLiveView.close` says it in one line instead."""
+
+
 def require_rerun(flag: str) -> None:
     """Raise :class:`ScenarioError` naming ``flag`` and the extra when rerun-sdk is not installed."""
+    quiet = "RUST_LOG" not in os.environ and "rerun" not in sys.modules
+    if quiet:  # the SDK reads RUST_LOG once, when first imported
+        os.environ["RUST_LOG"] = QUIET_SDK_LOG
     try:
         import rerun  # noqa: F401
     except ImportError:
         raise ScenarioError(
             flag, f"needs the Rerun SDK (rerun-sdk), not installed: pip install '{EXTRA}' (from a checkout: pip install -e '.[rerun]')"
         ) from None
+    finally:
+        if quiet:
+            os.environ.pop("RUST_LOG", None)  # the swarm's processes (Zenoh's logging) do not inherit it
 
 
 def _u8(c: tuple[float, float, float, float]) -> list[int]:
@@ -163,7 +176,8 @@ def _escape(name: str) -> str:
 
 
 def blueprint() -> Any:
-    """The default layout: the 3D scene beside plots of the errors, clearances and link delivery."""
+    """The default layout: the 3D scene beside plots of the errors, the clearances, the leader's
+    d_obs against d0, and link delivery."""
     import rerun.blueprint as rrb
 
     return rrb.Blueprint(
@@ -173,6 +187,11 @@ def blueprint() -> Any:
                 rrb.TimeSeriesView(origin="/metrics/formation_error_m", name="formation error ||q_i - q0 - h_i||, m"),
                 rrb.TimeSeriesView(origin="/metrics/tracking_error_m", name="tracking error ||q*_i - q_i||, m"),
                 rrb.TimeSeriesView(origin="/metrics/clearance_m", name="clearance to obstacles, m"),
+                rrb.TimeSeriesView(
+                    origin="/metrics",
+                    contents=["/metrics/leader_d_obs_m", "/metrics/d0_m"],
+                    name="virtual leader: d_obs(q0) against d0 (eq. 10), m",
+                ),
                 rrb.TimeSeriesView(
                     origin="/metrics",
                     contents=["/metrics/link_delivery/**", "/metrics/failsafe_uavs", "/metrics/min_inter_uav_m"],
@@ -203,6 +222,8 @@ class RerunScene:
         for i, col in enumerate(self.colors):  # each UAV's plots in its colour in the scene
             for fig in ("formation_error_m", "tracking_error_m", "clearance_m"):
                 rec.log(f"metrics/{fig}/uav{i + 1}", rr.SeriesLines(colors=[_u8((*col, 1.0))], names=[f"uav {i + 1}"]), static=True)
+        rec.log("metrics/leader_d_obs_m", rr.SeriesLines(colors=[[20, 20, 20]], names=["d_obs(q0)"], widths=[2.0]), static=True)
+        rec.log("metrics/d0_m", rr.SeriesLines(colors=[_u8((0.95, 0.55, 0.15, 1.0))], names=["d0"]), static=True)
         self.frames = 0
 
     def put(self, f: Any, diag: dict[str, dict[str, Any]]) -> None:
@@ -339,7 +360,7 @@ class RerunServer:
             "--serve-web", "--bind", HOST, "--port", str(grpc_port), "--web-viewer-port", str(web_port),
             "--server-memory-limit", "25%",
         ]
-        env = dict(os.environ, RUST_LOG=os.environ.get("RUST_LOG", "info"))
+        env = dict(os.environ, RUST_LOG="info")  # it says its ports at level info
         self.proc = subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True,
             start_new_session=True, preexec_fn=_pdeathsig, env=env,
@@ -391,6 +412,27 @@ def _plain(text: str) -> str:
     return _ANSI.sub("", text)
 
 
+CLOSE_FLUSH_S = 5.0
+"""How long :meth:`RerunLiveView.close` waits for the logged frames to reach Rerun's server."""
+
+LIVE_FLUSH_TICK_S = 0.5
+"""The live view's Rerun batcher sends what was logged every this many wall seconds (rerun-sdk's
+default for a network sink is 8 ms: each frame's every entity then went out as a chunk of its
+own, about 40 chunks per frame; with 0.5 s about 5 frames share one chunk per entity, 4x fewer
+bytes: BENCHMARKS.md, "Live view in Rerun")."""
+
+
+def live_batcher() -> Any:
+    """The ``rr.ChunkBatcherConfig`` of the live view's recording stream (:data:`LIVE_FLUSH_TICK_S`)."""
+    import rerun as rr
+
+    return rr.ChunkBatcherConfig(flush_tick=LIVE_FLUSH_TICK_S)
+
+
+def _stderr(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
 class RerunLiveView(PacedView):
     """The live view in Rerun: :class:`RerunServer` on ``port`` (the web viewer's; 0: any free)
     fed with the frames of swarm ``swarm`` flying ``sc`` (:class:`zenswarm.bridge.scene.LatestFrames`),
@@ -399,14 +441,19 @@ class RerunLiveView(PacedView):
 
     viewer = "rerun"
 
-    def __init__(self, sc: Any, swarm: str, port: int, *, flag: str = "--live", hz: float = 10.0, trail_s: float = 10.0) -> None:
+    def __init__(
+        self, sc: Any, swarm: str, port: int, *, flag: str = "--live", hz: float = 10.0, trail_s: float = 10.0,
+        warn: Callable[[str], None] = _stderr,
+    ) -> None:
+        require_rerun(flag)
         import rerun as rr
 
         super().__init__(sc, swarm, hz, trail_s)
         self.server = RerunServer(port, flag=flag)
         self.url = self.server.url
         self.port = self.server.web_port
-        self.rec = rr.RecordingStream("zenswarm", recording_id=f"{swarm}:{time.time_ns()}")
+        self.rec = rr.RecordingStream("zenswarm", recording_id=f"{swarm}:{time.time_ns()}", batcher_config=live_batcher())
+        self.warn = warn
         self.rec.connect_grpc(self.server.grpc_url, default_blueprint=blueprint())
         self.rec.send_recording_name(f"{sc.name} (swarm {swarm}, live)")
         self.scene = RerunScene(sc, self.rec)
@@ -426,10 +473,36 @@ class RerunLiveView(PacedView):
         self.frames += 1
         return True
 
-    def close(self) -> None:
-        """Send what is logged, then stop the viewer's process (a browser showing it keeps what it received)."""
+    def close(self, timeout_s: float = CLOSE_FLUSH_S) -> None:
+        """Send what is logged and disconnect (waiting ``timeout_s`` for each at most), then stop
+        the viewer's process (a browser showing it keeps what it received). Never raises and
+        never changes the flight's outcome: if not everything went out in time (a browser
+        reading slowly holds the server back), says so in one line (:attr:`warn`), stops the
+        viewer and lets the rest go."""
+        problem = ""
+        done: threading.Thread | None = None
         try:
-            self.rec.flush(timeout_sec=10.0)
-            self.rec.disconnect()
+            try:
+                self.rec.flush(timeout_sec=timeout_s)
+            except RuntimeError as e:  # rerun-sdk: "Flush timed out - not all log messages were sent"
+                problem = _plain(str(e)).strip().rstrip(".") or type(e).__name__
+            if not problem:
+                done = threading.Thread(target=self.rec.disconnect, name="rerun-disconnect", daemon=True)
+                done.start()
+                done.join(timeout_s)
+                if done.is_alive():
+                    problem = "the viewer's server did not take the last frames"
+            if problem:
+                self.warn(
+                    f"live view (Rerun): not everything reached the viewer ({problem} within {timeout_s:g} s; "
+                    f"{self.frames} frames logged); the viewer stops now"
+                )
+                self.server.close()  # the connection goes with it: the SDK stops waiting
+                if done is None:
+                    done = threading.Thread(target=self.rec.disconnect, name="rerun-disconnect", daemon=True)
+                    done.start()
+                done.join(timeout_s)
+        except Exception as e:  # noqa: BLE001 -- a view never changes the mission's exit status
+            self.warn(f"live view (Rerun): closing it failed: {e}")
         finally:
             self.server.close()

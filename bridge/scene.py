@@ -415,15 +415,29 @@ def static_entities(sc: Any) -> list[Entity]:
             )
         )
     goal = np.asarray(sc.leader.goal, dtype=float)
+    start = np.asarray(sc.leader.start, dtype=float)
+    marker = max(0.15, 0.5 * sc.r_f)  # m: seen at the scale of the whole flight, not a dot
+    green = (0.1, 0.75, 0.2)
     ents.append(
         Entity(
             "goal",
             static=True,
-            spheres=[Sphere(goal, 0.05, _rgba((0.1, 0.75, 0.2), 0.9))],
-            labels=[Label(goal + (0, 0, 0.08), "goal", _rgba((0.1, 0.6, 0.2), 1.0), 14.0)],
+            spheres=[
+                Sphere(goal, marker, _rgba(green, 0.9)),
+                Sphere(goal, 2.0 * sc.r_f, _rgba(green, 0.15)),  # where the formation's sphere of radius r_f ends
+            ],
+            lines=[Polyline([goal * (1, 1, 0), goal], _rgba(green, 0.9), 2.0, "strip")],  # a pole from the ground
+            labels=[Label(goal + (0.0, 0.0, sc.r_f + 0.1), "goal", _rgba((0.1, 0.6, 0.2), 1.0), 14.0)],
         )
     )
-    ents.append(Entity("start", static=True, cubes=[Cube(sc.leader.start, 0.04, _rgba((0.2, 0.2, 0.2), 0.9))]))
+    ents.append(
+        Entity(
+            "start",
+            static=True,
+            cubes=[Cube(start, marker, _rgba(_DARK, 0.9))],
+            labels=[Label(start + (0.0, 0.0, marker + 0.1), "start", _rgba(_DARK, 1.0), 14.0)],
+        )
+    )
     return ents
 
 

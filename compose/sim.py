@@ -219,7 +219,7 @@ class _Swarm:
                 one = Command(float(cmd.thrust[i]), cmd.rpy[i], cmd.u[i], cmd.d_hat[i])
                 _collect(failed, b.check, k, STAGE_STEP, what, check_command(one))
             raise PluginsFailed(failed)
-        ts.u[k], ts.thrust[k], ts.d_hat[k] = cmd.u, cmd.thrust, cmd.d_hat
+        ts.u[k], ts.thrust[k], ts.d_hat[k], ts.rpy_cmd[k] = cmd.u, cmd.thrust, cmd.d_hat, cmd.rpy
         self.plant.hold_all(cmd.thrust, cmd.rpy, k)
 
     def _shares(self, lk: _Links | None, k: int, q: np.ndarray, v: np.ndarray) -> list[Any]:
@@ -274,7 +274,7 @@ class _Swarm:
             if cmd is None:
                 continue  # the tick ends with this stage's failures, after every agent's step ran
             ts.qref[k, i], ts.vref[k, i] = shared[i].q, shared[i].v
-            ts.u[k, i], ts.thrust[k, i], ts.d_hat[k, i] = cmd.u, cmd.thrust, cmd.d_hat
+            ts.u[k, i], ts.thrust[k, i], ts.d_hat[k, i], ts.rpy_cmd[k, i] = cmd.u, cmd.thrust, cmd.d_hat, cmd.rpy
             if lk is not None:
                 lk.cmd[i].offer(k, k, (cmd.thrust, cmd.rpy))
             else:

@@ -31,6 +31,7 @@ from zenswarm.bridge.args import (
     add_override_args,
     add_plugin_args,
     add_rt_priority_arg,
+    figure_formats,
     link_faults,
     positive_float,
     scenario_of,
@@ -122,6 +123,7 @@ class UpOptions:
     external_timeout: float = DEFAULT_EXTERNAL_TIMEOUT_S
     record: Path | None = None
     report: bool = False
+    report_format: tuple[str, ...] = ("png",)
     listen: tuple[str, ...] = ()
     connect: tuple[str, ...] = ()
     router_connect: tuple[str, ...] = ()
@@ -172,6 +174,7 @@ def up_options(args: argparse.Namespace) -> UpOptions:
         external_timeout=args.external_timeout,
         record=args.record,
         report=args.report,
+        report_format=args.report_format,
         listen=tuple(args.listen or ()),
         connect=tuple(args.connect or ()),
         router_connect=tuple(args.router_connect or ()),
@@ -604,7 +607,8 @@ class Supervisor:
             from zenswarm.bridge.report import report_recording
 
             written = report_recording(
-                recording, out / "report", full_time=self.args.full_time, warn=lambda text: self.say(f"report: warning: {text}")
+                recording, out / "report", full_time=self.args.full_time, warn=lambda text: self.say(f"report: warning: {text}"),
+                formats=self.args.report_format,
             )
         except ZenswarmError as e:
             self.say(f"report failed: {e}")
@@ -1335,6 +1339,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--report",
         action="store_true",
         help="with --record: write the flight report (figures like the paper's, results.json) to OUT/report from the recording",
+    )
+    p.add_argument(
+        "--report-format",
+        type=figure_formats,
+        default=("png",),
+        metavar="FMT[,FMT...]",
+        help="with --report: the figures' formats, comma-separated, of png, svg, pdf (default png)",
     )
     p.add_argument(
         "--listen",

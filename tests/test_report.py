@@ -66,7 +66,7 @@ def _samples(sc, series):
                 (
                     keys.cmd(i + 1),
                     t,
-                    wire.encode(wire.Cmd(t, k, float(series.thrust[k, i]), series.rpy[k, i], series.u[k, i], series.d_hat[k, i])),
+                    wire.encode(wire.Cmd(t, k, float(series.thrust[k, i]), series.rpy_cmd[k, i], series.u[k, i], series.d_hat[k, i])),
                 )
             )
     t_end = (len(series.t) - 1) * dt_ns
@@ -193,7 +193,7 @@ def test_report_plots_the_effective_graph_of_a_radio_run(flight, recording, tmp_
 def test_flight_from_recording_equals_the_simulated_series(flight, recording):
     sc, sim = flight
     fl = report.flight_from_recording(report.load_recording(recording[0]))
-    for f in ("t", "q0", "v0", "qref", "vref", "q", "v", "rpy", "u", "thrust", "d_hat"):
+    for f in ("t", "q0", "v0", "qref", "vref", "q", "v", "rpy", "u", "thrust", "d_hat", "rpy_cmd"):
         np.testing.assert_array_equal(getattr(fl.series, f), getattr(sim.series, f), err_msg=f)
 
 

@@ -57,8 +57,11 @@ class TimeSeries:
     """One flight sampled at every control tick k (T samples, N UAVs).
 
     t: (T,) s. q0, v0: (T, 3) leader. qref, vref: (T, N, 3) generator output q*, v*.
-    q, v, rpy: (T, N, 3) measured UAV state (m, m/s, rad). u: (T, N, 3) virtual control, m/s^2.
-    thrust: (T, N) N. d_hat: (T, N, 3) ESO disturbance estimate, m/s^2.
+    q, v, rpy: (T, N, 3) measured UAV state (m, m/s, rad; rpy is the attitude the vehicle has).
+    u: (T, N, 3) virtual control, m/s^2. thrust: (T, N) N, the commanded collective thrust.
+    d_hat: (T, N, 3) ESO disturbance estimate, m/s^2. rpy_cmd: (T, N, 3) rad, the commanded
+    (desired) roll, pitch, yaw the controller sent with the thrust (the inversion after eq. 28;
+    NaN in a series saved before it was recorded).
     """
 
     t: np.ndarray
@@ -72,8 +75,9 @@ class TimeSeries:
     u: np.ndarray
     thrust: np.ndarray
     d_hat: np.ndarray
+    rpy_cmd: np.ndarray
 
-    FIELDS = ("t", "q0", "v0", "qref", "vref", "q", "v", "rpy", "u", "thrust", "d_hat")
+    FIELDS = ("t", "q0", "v0", "qref", "vref", "q", "v", "rpy", "u", "thrust", "d_hat", "rpy_cmd")
 
     def formation_error(self, offsets: Any) -> np.ndarray:
         """The vehicles' formation error per tick and UAV: ||q_i - q0 - h_i||, (T, N) m, from
@@ -109,6 +113,7 @@ class TimeSeries:
             u=nan3(),
             thrust=np.full((T, n), np.nan),
             d_hat=nan3(),
+            rpy_cmd=nan3(),
         )
 
     def truncated(self, T: int) -> TimeSeries:
@@ -121,7 +126,9 @@ class TimeSeries:
     @classmethod
     def load(cls, path: str) -> TimeSeries:
         with np.load(path) as z:
-            return cls(**{f: np.array(z[f]) for f in cls.FIELDS})
+            got = {f: np.array(z[f]) for f in cls.FIELDS if f in z.files or f != "rpy_cmd"}
+        got.setdefault("rpy_cmd", np.full_like(got["rpy"], np.nan))  # saved before it was recorded
+        return cls(**got)
 
 
 def compute_results(

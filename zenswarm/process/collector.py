@@ -378,6 +378,7 @@ class Collector:
                 ts.u[k, idx - 1] = msg.u
                 ts.thrust[k, idx - 1] = msg.thrust
                 ts.d_hat[k, idx - 1] = msg.d_hat
+                ts.rpy_cmd[k, idx - 1] = msg.rpy
 
     def series(self, upto_tick: int | None = None, fill: bool = False) -> TimeSeries:
         """The collected series up to ``upto_tick``; ``fill`` forward-fills gaps (realtime)."""
