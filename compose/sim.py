@@ -301,8 +301,7 @@ def radio_results(scenario: Scenario, faults: FaultPlan | None, series: TimeSeri
     series starts at the first tick every process had a value)."""
     if faults is None or not (faults.radio_active or faults.queues is not None or faults.trace is not None):
         return {}
-    A = np.asarray(scenario.graph.adjacency, dtype=float)
-    nbrs = [[int(j) for j in np.flatnonzero(A[i])] for i in range(scenario.n)]
+    nbrs = [scenario.neighbours(i) for i in range(scenario.n)]
     pinned = [float(b) > 0 for b in scenario.graph.pinning]
     dt = scenario.timing.dt
     first = int(round(float(series.t[0]) / dt)) if len(series.t) else 0
