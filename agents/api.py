@@ -179,11 +179,11 @@ def received(msg: Any, shares: Mapping[str, tuple[int, ...]]) -> Shared | None:
 
 def context_of(scenario: Scenario, i: int, mass: float, g: float, rng: np.random.Generator) -> ControllerContext:
     """Agent i's (0-based) :class:`ControllerContext` from the scenario."""
-    A = np.asarray(scenario.graph.adjacency, dtype=float)
-    h = np.asarray(scenario.offsets, dtype=float)
-    nbrs = tuple(Neighbour(int(j), float(A[i, j]), h[j].copy()) for j in np.flatnonzero(A[i]))
+    graph = scenario.comm_graph  # built once per scenario: O(k_i) per agent
+    h = scenario.offsets_array
+    nbrs = tuple(Neighbour(int(j), float(a), h[j].copy()) for j, a in zip(graph.nbr[i], graph.w[i], strict=True))
     return ControllerContext(
-        i=i, offset=h[i].copy(), neighbours=nbrs, pinning=float(scenario.graph.pinning[i]), mass=mass, g=g,
+        i=i, offset=h[i].copy(), neighbours=nbrs, pinning=float(graph.b[i]), mass=mass, g=g,
         dt=scenario.timing.dt, rng=rng, scenario=scenario,
     )
 

@@ -8,8 +8,9 @@ as documented in :mod:`zenswarm.compose.sim`. It is THE agent tick: the agent pr
 simulator and a recording reproduces its agents bit for bit.
 
 :class:`StackedAgents` is the same tick for all N agents at once (the simulator's fast path
-without link faults): its state arrays are (N, 3), its rates run :meth:`AgentCore.rates`'s
-function row by row, and its :meth:`~AgentCore.command` and :meth:`~AgentCore.advance` ARE
+without link faults): its state arrays are (N, 3), its rates are :meth:`AgentCore.rates`'s
+equations vectorised over agents (the same element-wise operations in the same order per row:
+bit for bit), and its :meth:`~AgentCore.command` and :meth:`~AgentCore.advance` ARE
 :class:`AgentCore`'s (inherited; the same numpy functions, which work row-wise on (N, 3)).
 """
 
@@ -24,7 +25,7 @@ import numpy as np
 
 from zenswarm.agents.controller import composite_control, invert_thrust_attitude
 from zenswarm.agents.eso import eso_step
-from zenswarm.agents.generator import generator_rates
+from zenswarm.agents.generator import generator_rates, generator_rates_slots, neighbour_slots
 
 if TYPE_CHECKING:  # pragma: no cover
     from zenswarm.scenario.config import Scenario
@@ -70,16 +71,17 @@ class AgentRow:
 
     @classmethod
     def from_scenario(cls, scenario: Scenario, i: int, mass: float, g: float) -> AgentRow:
-        A = np.asarray(scenario.graph.adjacency, dtype=float)
-        h = np.asarray(scenario.offsets, dtype=float)
-        nbr = tuple(int(j) for j in np.flatnonzero(A[i]))
+        graph = scenario.comm_graph  # built once per scenario: this is O(k_i), not O(N^2)
+        h = scenario.offsets_array
+        idx = graph.nbr[i]
+        nbr = tuple(int(j) for j in idx)
         return cls(
             i=i,
             h=h[i].copy(),
             neighbours=nbr,
-            weights=A[i, list(nbr)].copy(),
-            h_nbr=h[list(nbr)].copy() if nbr else np.zeros((0, 3)),
-            b=float(scenario.graph.pinning[i]),
+            weights=graph.w[i].copy(),
+            h_nbr=h[idx].copy() if nbr else np.zeros((0, 3)),
+            b=float(graph.b[i]),
             mu1=scenario.generator.mu1,
             mu2=scenario.generator.mu2,
             beta=cast("tuple[float, float, float]", tuple(scenario.eso.beta)),
@@ -274,26 +276,27 @@ class StackedAgents(AgentCore):
     """All N agents of a scenario as one :class:`AgentCore` with (N, 3) state arrays.
 
     For the in-process simulator without link faults (every agent hears every input of every
-    tick). :meth:`rates_all` runs the generator function of :meth:`AgentCore.rates` for each row
-    in turn; :meth:`command`, :meth:`advance` and :meth:`finish` are :class:`AgentCore`'s. The
-    rows' scenario-wide gains (kp, kd, beta, mass, g, yaw, dt, eso) are those of row 0.
+    tick). :meth:`rates_all` computes what :meth:`AgentCore.rates` computes for every row at
+    once (:func:`zenswarm.agents.generator.generator_rates_slots`); :meth:`command`, :meth:`advance`
+    and :meth:`finish` are :class:`AgentCore`'s. The rows' scenario-wide gains (kp, kd, beta, mass, g, yaw, dt, eso) are those of row 0.
     """
 
     def __init__(self, rows: Sequence[AgentRow]) -> None:
         super().__init__(rows[0])
         self.rows = list(rows)
         self.h_all = np.array([r.h for r in self.rows])
+        self.slots = neighbour_slots([np.asarray(r.neighbours, dtype=np.int64) for r in self.rows],
+                                     [r.weights for r in self.rows], np.array([r.b for r in self.rows]))
 
     def rates_all(self, q0: np.ndarray, v0: np.ndarray) -> Rates:
         """Step 3 for every agent: ((N, 3), (N, 3)), row i as :meth:`AgentCore.rates` of agent i
-        with all its neighbours present and the leader's (q0, v0) (3,) given."""
+        with all its neighbours present and the leader's (q0, v0) (3,) given: eqs (16)-(17)
+        vectorised over agents (:func:`zenswarm.agents.generator.generator_rates_slots`, the same
+        operations in the same order, bit for bit)."""
         q, v = self.q_ref, self.v_ref
         assert q is not None and v is not None, "reset() first"
-        dq, dv = np.empty_like(q), np.empty_like(v)
-        for i, r in enumerate(self.rows):
-            nbr = list(r.neighbours)
-            dq[i], dv[i] = generator_rates(q[i], v[i], r.h, q[nbr], v[nbr], r.h_nbr, r.weights, r.b, q0, v0, r.mu1, r.mu2)
-        return dq, dv
+        r = self.row
+        return generator_rates_slots(q, v, self.h_all, self.slots, q0, v0, r.mu1, r.mu2)
 
     def _command_of(self, F: Any, phi: Any, theta: Any, u: np.ndarray, d_used: np.ndarray, dv: np.ndarray) -> AgentCommand:
         rpy = np.empty((len(F), 3))

@@ -760,8 +760,7 @@ def plot_effective_graph(ts: TimeSeries, sc: Scenario, faults: FaultPlan, path: 
     Lemma 1 held, each ref/leader link up or down per tick (raster), each link's delivery ratio
     (ticks >= 1: the start-up exchange is never faulted) and the histogram of the delivered
     messages' delays (queue wait + serialization + delay/jitter or trace), in ms."""
-    A = np.asarray(sc.graph.adjacency, dtype=float)
-    nbrs = [[int(j) for j in np.flatnonzero(A[i])] for i in range(sc.n)]
+    nbrs = [sc.neighbours(i) for i in range(sc.n)]
     pinned = [float(b) > 0 for b in sc.graph.pinning]
     T = _last_data_tick(ts) + 1
     gs = graph_series(faults, nbrs, pinned, ts.q[:T], ts.q0[:T], sc.timing.dt)

@@ -443,10 +443,10 @@ def static_entities(sc: Any) -> list[Entity]:
 
 def _graph_lines(sc: Any, f: Frame) -> list[Polyline]:
     """The formation links: UAV pairs with a_ij > 0 (grey) and pinned UAVs b_i > 0 to the leader (blue)."""
-    A = np.asarray(sc.graph.adjacency, dtype=float)
     b = np.asarray(sc.graph.pinning, dtype=float)
-    n = len(A)
-    pts = [p for i in range(n) for j in range(i + 1, n) if A[i, j] > 0 and _finite(f.q[i]) and _finite(f.q[j]) for p in (f.q[i], f.q[j])]
+    n = len(b)
+    pairs = [(i - 1, j - 1) for i, j, _ in sc.comm_graph.edge_list()]  # i < j, in row order
+    pts = [p for i, j in pairs if _finite(f.q[i]) and _finite(f.q[j]) for p in (f.q[i], f.q[j])]
     out = []
     if pts:
         out.append(Polyline(pts, _rgba((0.35, 0.35, 0.35), 0.6), 1.0, "pairs"))

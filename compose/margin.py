@@ -270,7 +270,7 @@ def _lambda(M: np.ndarray) -> tuple[float, float]:
 def default_duration(scenario: Scenario, max_delay_s: float) -> float:
     """Run length (s) by default: 6 of the slowest delay-free time constants,
     1 / (min(mu1, mu2) lambda_min(M)), plus twice the largest delay, at least 30 s, at most 1200 s."""
-    M = graph_matrix(np.asarray(scenario.graph.adjacency), np.asarray(scenario.graph.pinning))
+    M = graph_matrix(scenario.comm_graph.dense(), scenario.comm_graph.b)
     lam_min, _ = _lambda(M)
     g = scenario.generator
     slow = 1.0 / (min(g.mu1, g.mu2) * lam_min)
@@ -279,7 +279,7 @@ def default_duration(scenario: Scenario, max_delay_s: float) -> float:
 
 def analytic_summary(scenario: Scenario, max_ticks: int) -> dict[str, Any]:
     """The analytic figures of :mod:`zenswarm.campaign.delaymargin` for a scenario's graph and gains."""
-    A = np.asarray(scenario.graph.adjacency, dtype=float)
+    A = scenario.comm_graph.dense()
     b = np.asarray(scenario.graph.pinning, dtype=float)
     g, dt = scenario.generator, scenario.timing.dt
     M = graph_matrix(A, b)
@@ -318,7 +318,7 @@ def empirical_margin(
 ) -> tuple[MarginResult, dict[str, Any]]:
     """Bisect the uniform link delay of ``scenario`` (module docstring). Returns the search
     result and the run settings (duration, window, leader velocity, per-delay judgements)."""
-    A = np.asarray(scenario.graph.adjacency, dtype=float)
+    A = scenario.comm_graph.dense()
     b = np.asarray(scenario.graph.pinning, dtype=float)
     h = np.asarray(scenario.offsets, dtype=float)
     q_init = np.asarray(scenario.initial_positions, dtype=float)

@@ -38,8 +38,9 @@ def check_scenario(d: dict[str, Any], n: int, spacing: float, shape: str) -> Non
     s = scenario_from_dict(d)
     assert s.n == n
     h = np.asarray(s.offsets)
-    A = np.asarray(s.graph.adjacency)
+    A = s.comm_graph.dense()  # the file names its topology; the scenario builds it
     b = np.asarray(s.graph.pinning)
+    assert np.array_equal(A, adjacency_matrix(h, d["graph"]["topology"], d["graph"].get("k", 2)))
 
     # graph: symmetric 0/1, no self loops, connected; Lemma 1: M = L + B positive definite
     assert np.array_equal(A, A.T) and set(np.unique(A)) <= {0.0, 1.0} and not np.any(np.diag(A))

@@ -543,7 +543,7 @@ def test_acl_follows_the_graph(ex1):
     A = ex1.graph
     for i in range(1, ex1.n + 1):
         p = f"agent:{i}"
-        row = {k.state(i)} | {k.ref(j + 1) for j in A.neighbours(i - 1)} | ({k.leader_ref} if A.pinning[i - 1] > 0 else set())
+        row = {k.state(i)} | {k.ref(j + 1) for j in ex1.neighbours(i - 1)} | ({k.leader_ref} if A.pinning[i - 1] > 0 else set())
         assert _allowed(acl, p, "declare_subscriber", "ingress") == row
         assert _allowed(acl, p, "put", "egress") == row
         assert _allowed(acl, p, "put", "ingress") == {k.ref(i), k.cmd(i), k.diag(p)}
@@ -551,7 +551,7 @@ def test_acl_follows_the_graph(ex1):
         assert _allowed(acl, p, "liveliness_token", "ingress") == {k.alive(p), k.alive(p) + "/*"}
         assert _allowed(acl, p, "declare_queryable", "ingress") == set()
         # it watches the processes it waits for, and the sender tokens of its inputs
-        deps = ["plant"] + [f"agent:{j + 1}" for j in A.neighbours(i - 1)] + (["leader"] if A.pinning[i - 1] > 0 else [])
+        deps = ["plant"] + [f"agent:{j + 1}" for j in ex1.neighbours(i - 1)] + (["leader"] if A.pinning[i - 1] > 0 else [])
         watch = {k.alive(d) for d in deps} | {k.alive(d) + "/*" for d in deps + ["bridge"]}
         assert _allowed(acl, p, "declare_liveliness_subscriber", "ingress") == watch
         assert _allowed(acl, p, "liveliness_query", "ingress") == watch

@@ -233,6 +233,29 @@ def test_close_pairs_equals_brute_force(seed: int) -> None:
     assert len(ii) == 40 * 39 // 2
 
 
+@pytest.mark.parametrize("shape", ["cloud", "ring", "grid", "line"])
+def test_close_pairs_grid_finds_what_the_sweep_finds_in_its_order(shape: str) -> None:
+    """The grid's candidates (issue 42: a 1000-UAV ring made the sweep compare ~30 successors a
+    tick) give the sweep's pairs and distances in the sweep's order, bit for bit (so a flight's
+    contacts are listed as before), ties and duplicates included."""
+    from zenswarm.vehicle.geometry import _sweep_pairs
+
+    rng = np.random.default_rng(7)
+    n = 400
+    a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    p = {
+        "cloud": rng.uniform(-3.0, 3.0, size=(n, 3)),
+        "ring": np.stack([20 * np.cos(a), 20 * np.sin(a), 0.4 + rng.normal(size=n) * 0.01], axis=1),
+        "grid": np.round(rng.uniform(-2.0, 2.0, size=(n, 3)), 1),  # on a lattice: ties and duplicates
+        "line": rng.normal(size=(n, 3)) * np.array([100.0, 0.01, 0.01]),
+    }[shape]
+    order = np.argsort(p[:, int(np.argmax(np.ptp(p, axis=0)))], kind="stable")
+    for cutoff in (0.05, 0.2, 0.31, 1.0):
+        got, want = close_pairs(p, cutoff), _sweep_pairs(p, cutoff, order)
+        for x, y in zip(got, want):
+            assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), cutoff
+
+
 @pytest.mark.slow
 def test_large_swarm_pairs_match_the_small_swarm_path_with_linear_memory() -> None:
     """N above the all-pairs limit: per-tick sweep. Same minimum and contacts as brute force, and

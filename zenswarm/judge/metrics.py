@@ -18,7 +18,7 @@ from zenswarm.judge.verdict import criteria_from_scenario, judge
 
 __all__ = [
     "TimeSeries", "compute_results", "add_failure", "flight_differences", "lockstep_stalls",
-    "RESULT_FIELDS", "FLIGHT_FIELDS", "RESULTS_SCHEMA_VERSION",
+    "RESULT_FIELDS", "FLIGHT_FIELDS", "RESULTS_SCHEMA_VERSION", "COMPRESS_MAX_BYTES",
 ]  # fmt: skip
 
 RESULTS_SCHEMA_VERSION = 2
@@ -50,6 +50,11 @@ FLIGHT_FIELDS = RESULT_FIELDS + (
 )
 """The fields two judgements of the same flight agree on (a run and its report, the simulator and
 the lockstep swarm); not the wall time nor the bus statistics."""
+
+
+COMPRESS_MAX_BYTES = 32 << 20
+"""Largest time series (bytes of its arrays) :meth:`TimeSeries.save` compresses (deflate costs
+about 45 ms of CPU per MB and saves about 15 % on flight data; above this it is stored)."""
 
 
 @dataclass
@@ -120,8 +125,14 @@ class TimeSeries:
         return TimeSeries(**{f: getattr(self, f)[:T] for f in self.FIELDS})
 
     def save(self, path: str) -> None:
-        """Write a compressed ``.npz`` (one array per field)."""
-        np.savez_compressed(path, **{f: getattr(self, f) for f in self.FIELDS})
+        """Write an ``.npz`` (one array per field): compressed up to :data:`COMPRESS_MAX_BYTES` of
+        data, stored beyond (flight data compresses by about 15 %: at 1000 UAVs x 10 s, 176 MB
+        stored in 0.2 s of CPU, 150 MB compressed in 7.7 s). ``np.load`` reads either."""
+        arrays = {f: getattr(self, f) for f in self.FIELDS}
+        if sum(a.nbytes for a in arrays.values()) <= COMPRESS_MAX_BYTES:
+            np.savez_compressed(path, **arrays)
+        else:
+            np.savez(path, **arrays)
 
     @classmethod
     def load(cls, path: str) -> TimeSeries:

@@ -192,7 +192,7 @@ def scenario_links(scenario: ScenarioTables) -> list[tuple[str, str, str]]:
     """Every directed link ``(src, dst, kind)`` of the scenario: each agent's state, its
     neighbours' refs and (if pinned) the leader's ref, then every agent's command to the plant."""
     g = scenario.graph
-    links = [lk for i in range(scenario.n) for lk in agent_links(i + 1, [j + 1 for j in g.neighbours(i)], g.pinning[i] > 0)]
+    links = [lk for i in range(scenario.n) for lk in agent_links(i + 1, [j + 1 for j in scenario.neighbours(i)], g.pinning[i] > 0)]
     return links + plant_links(scenario.n)
 
 

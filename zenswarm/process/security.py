@@ -680,12 +680,12 @@ def _grants(process: str, sc: Scenario, k: wire.Keys) -> list[tuple[tuple[str, .
         if i > sc.n:
             raise CredentialsError(f"{process}: scenario {sc.name!r} has only {sc.n} UAVs")
         pub += [k.ref(i), k.cmd(i)]
-        sub += [k.state(i)] + [k.ref(j + 1) for j in sc.graph.neighbours(i - 1)]
+        sub += [k.state(i)] + [k.ref(j + 1) for j in sc.neighbours(i - 1)]
         if sc.graph.pinning[i - 1] > 0:
             sub.append(k.leader_ref)
         # an agent watches the liveliness of the processes it waits for (not to wait on the dead),
         # and the sender tokens of its inputs (its state comes from the plant or the bridge)
-        nbrs = [wire.agent(j + 1) for j in sc.graph.neighbours(i - 1)]
+        nbrs = [wire.agent(j + 1) for j in sc.neighbours(i - 1)]
         lead = ["leader"] if sc.graph.pinning[i - 1] > 0 else []
         watch = [k.alive(p) for p in ["plant"] + nbrs + lead] + sender_tokens(["plant", "bridge"] + nbrs + lead)
         extra += query_mission + watching(watch)

@@ -17,7 +17,8 @@ The sections and their meaning (see ``compose/scenarios/paper_example1.toml`` fo
                  planner (plug-in name, :mod:`zenswarm.scenario.plugins`) and ``[leader.params]`` (its parameters)
 ``[[obstacles]]`` center (base centre), radius, height: cylinder capped by a hemisphere (Remark 1)
 ``[formation]``  offsets h_i (N, 3), initial_positions q_i(0) (N, 3)
-``[graph]``      adjacency A (N, N) symmetric, pinning b (N,)
+``[graph]``      the graph A as adjacency (N, N) symmetric, or edges [[i, j, a_ij], ...], or a topology
+                 by name (ring, star, complete, knn with k); pinning b (N,) (:mod:`zenswarm.scenario.graph`)
 ``[generator]``  mu1, mu2 (eqs 16-17)
 ``[eso]``        beta = [beta1, beta2, beta3], enabled (eq. 27)
 ``[controller]`` kp (3,), kd (3,), yaw (eq. 28 and the inversion after it)
@@ -46,6 +47,7 @@ from __future__ import annotations
 
 import tomllib
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +56,7 @@ import numpy as np
 
 from zenswarm.bus.wire import MAX_T_NS
 from zenswarm.errors import ScenarioError
+from zenswarm.scenario.graph import CommGraph
 from zenswarm.schema import (
     MAX_SEED,
     AgentsConfig,
@@ -161,6 +164,34 @@ class Scenario:
     def n(self) -> int:
         """Number of follower UAVs N."""
         return len(self.offsets)
+
+    @cached_property
+    def comm_graph(self) -> CommGraph:
+        """The graph A and pinning b as neighbour lists (:class:`zenswarm.scenario.graph.CommGraph`),
+        built and checked once per scenario from whichever form ``[graph]`` has: O(N + E) for
+        ``edges`` and the topologies but knn's distances, O(N^2) for a dense ``adjacency``.
+        Raises ScenarioError naming the field (on load: :func:`validate` builds it)."""
+        g = self.graph
+        if g.adjacency is not None:
+            cg = CommGraph.from_dense(g.adjacency, g.pinning)
+        elif g.edges is not None:
+            cg = CommGraph.from_edges(g.edges, self.n, g.pinning)
+        else:
+            assert g.topology is not None, "the schema requires one form"
+            cg = CommGraph.from_topology(g.topology, g.k, self.offsets_array, g.pinning)
+        cg.check_pinning()
+        return cg
+
+    @cached_property
+    def offsets_array(self) -> np.ndarray:
+        """Formation offsets h (N, 3) m as one read-only float64 array (built once)."""
+        h = np.array(self.offsets, dtype=float).reshape(-1, 3)
+        h.setflags(write=False)
+        return h
+
+    def neighbours(self, i: int) -> list[int]:
+        """0-based neighbours j (a_ij > 0) of 0-based UAV i, increasing."""
+        return self.comm_graph.neighbours(i)
 
     @property
     def vehicle_radius(self) -> float:
@@ -305,30 +336,7 @@ def validate(s: Scenario) -> None:
     if s.leader.k_rep_max < s.leader.k_rep_min:
         raise ScenarioError("leader.k_rep_max", f"must be >= leader.k_rep_min ({s.leader.k_rep_max} < {s.leader.k_rep_min})")
 
-    A = np.asarray(s.graph.adjacency, dtype=float)
-    b = np.asarray(s.graph.pinning, dtype=float)
-    n = s.n
-    if np.any(A < 0):
-        i, j = np.argwhere(A < 0)[0]
-        raise ScenarioError(f"graph.adjacency[{i}][{j}]", "weights must be >= 0")
-    if not np.array_equal(A, A.T):
-        i, j = np.argwhere(A != A.T)[0]
-        raise ScenarioError(
-            "graph.adjacency", f"must be symmetric (undirected graph): a[{i}][{j}]={A[i, j]} but a[{j}][{i}]={A[j, i]}"
-        )
-    if np.any(np.diag(A) != 0):
-        i = int(np.flatnonzero(np.diag(A))[0])
-        raise ScenarioError(f"graph.adjacency[{i}][{i}]", "diagonal must be 0 (no self loops)")
-    if np.any(b < 0):
-        raise ScenarioError("graph.pinning", "weights must be >= 0")
-    M = np.diag(A.sum(axis=1)) - A + np.diag(b)
-    lam_min = float(np.min(np.linalg.eigvalsh(M))) if n else 0.0
-    if lam_min <= 1e-12:
-        raise ScenarioError(
-            "graph.pinning",
-            "the leader reaches no spanning tree: M = L + B is not positive definite "
-            f"(smallest eigenvalue {lam_min:.3g}); pin at least one UAV in every connected component",
-        )
+    s.comm_graph  # noqa: B018 -- builds the graph and checks it (forms, entries, Lemma 1), O(N + E)
 
     # Start and goal must be outside every obstacle inflated by r_f (cylinder + cap surfaces).
 
@@ -401,7 +409,7 @@ def scenario_to_dict(s: Scenario) -> dict[str, Any]:
         "leader": {k: v for k, v in to_builtins(s.leader).items() if not (k in ("planner", "params") and not v)},
         "obstacles": [to_builtins(o) for o in s.obstacles],
         "formation": {"offsets": [list(h) for h in s.offsets], "initial_positions": [list(q) for q in s.initial_positions]},
-        "graph": to_builtins(s.graph),
+        "graph": to_builtins(s.graph, omit_defaults=True),  # the form the file has (a sparse one stays sparse)
         "generator": to_builtins(s.generator),
         "eso": to_builtins(s.eso),
         "controller": to_builtins(s.controller),

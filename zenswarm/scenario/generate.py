@@ -41,6 +41,7 @@ import numpy as np
 
 from zenswarm.errors import ScenarioError
 from zenswarm.scenario.config import Obstacle, check_seed, scenario_from_dict
+from zenswarm.scenario.graph import TOPOLOGIES, components, topology_neighbours
 from zenswarm.vehicle.geometry import obstacle_clearance
 
 __all__ = [
@@ -58,7 +59,6 @@ __all__ = [
 ]
 
 SHAPES: tuple[str, ...] = ("circle", "v", "grid")
-TOPOLOGIES: tuple[str, ...] = ("ring", "star", "complete", "knn")
 PINNINGS: tuple[str, ...] = ("first", "all", "random")
 
 START: tuple[float, float, float] = (0.0, 0.0, 0.4)
@@ -173,7 +173,9 @@ def adjacency_matrix(offsets: np.ndarray, topology: str = "ring", k: int = 2) ->
     ``knn``: each UAV ~ its k nearest UAVs by offset distance (ties broken by index), then
     symmetrised (a_ij = max(a_ij, a_ji)); while disconnected, the closest pair of UAVs between
     the component of UAV 1 and the rest is joined (at most N - 1 joins). k is clamped to N - 1.
-    offsets: (N, 3) m.
+    offsets: (N, 3) m. The dense form of what a scenario's ``[graph] topology`` names (the
+    scenario builds it as neighbour lists, :func:`zenswarm.scenario.graph.topology_neighbours`,
+    edge for edge the same: ``tests/test_graph.py``).
     """
     h = np.asarray(offsets, dtype=float)
     n = h.shape[0]
@@ -224,7 +226,12 @@ def pinning_vector(adjacency: np.ndarray, pinning: str = "first", rng: np.random
     UAV, which is exactly the condition for M to be positive definite.
     """
     A = np.asarray(adjacency, dtype=float)
-    n = A.shape[0]
+    return _pinning(connected_components(A), A.shape[0], pinning, rng)
+
+
+def _pinning(comps: list[list[int]], n: int, pinning: str, rng: np.random.Generator | None) -> np.ndarray:
+    """:func:`pinning_vector` from the graph's connected components (sorted lists of 0-based
+    nodes, ordered by their smallest node)."""
     if pinning not in PINNINGS:
         raise ValueError(f"unknown pinning {pinning!r} (choose from {', '.join(PINNINGS)})")
     b = np.zeros(n)
@@ -236,7 +243,7 @@ def pinning_vector(adjacency: np.ndarray, pinning: str = "first", rng: np.random
         if rng is None:
             raise ValueError("pinning='random' needs a numpy Generator rng")
         b[rng.random(n) < RANDOM_PIN_PROBABILITY] = 1.0
-    for comp in connected_components(A):
+    for comp in comps:
         if not np.any(b[comp] > 0):
             pick = comp[0] if pinning != "random" else int(comp[int(rng.integers(len(comp)))])  # type: ignore[union-attr]
             b[pick] = 1.0
@@ -370,8 +377,8 @@ def generate_scenario(
     jitter = np.clip(rng_jitter.normal(0.0, 0.05 * spacing, size=(n, 3)), -jitter_bound, jitter_bound)
     q0 = np.vectorize(_r)(start + h + jitter)
 
-    A = adjacency_matrix(h, topology, k)
-    b = pinning_vector(A, pinning, rng_pin)
+    nbr = topology_neighbours(h, topology, k)  # the graph the file names, as the scenario builds it
+    b = _pinning(components(nbr), n, pinning, rng_pin)
 
     obstacles = _place_obstacles(
         n_obstacles,
@@ -419,8 +426,9 @@ def generate_scenario(
             "offsets": [[float(v) for v in row] for row in h],
             "initial_positions": [[float(v) for v in row] for row in q0],
         },
-        "graph": {
-            "adjacency": [[float(v) for v in row] for row in A],
+        "graph": {  # by name: a few bytes at any N (the dense matrix was N^2 numbers)
+            "topology": topology,
+            **({"k": int(k)} if topology == "knn" else {}),
             "pinning": [float(v) for v in b],
         },
         "generator": dict(PAPER_GENERATOR),

@@ -28,6 +28,7 @@ from msgspec import Meta, field
 from zenswarm.errors import ScenarioError
 
 __all__ = [
+    "Topology",
     "ScenarioTables",
     "Table",
     "ScenarioMeta",
@@ -194,15 +195,48 @@ class FormationConfig(Table, frozen=True):
             raise ScenarioError("formation.initial_positions", f"expected {n} rows, got {len(self.initial_positions)}")
 
 
-class GraphConfig(Table, frozen=True):
-    """``[graph]``: communication graph among followers: adjacency A (N, N), pinning b (N,)."""
+Topology = Literal["ring", "star", "complete", "knn"]
+"""A named graph topology (:data:`zenswarm.scenario.graph.TOPOLOGIES`)."""
 
-    adjacency: tuple[tuple[float, ...], ...]
+
+class GraphConfig(Table, frozen=True, kw_only=True):
+    """``[graph]``: the undirected communication graph A among followers in one of three forms,
+    and the pinning b (N,) (each b_i >= 0):
+
+    * ``adjacency``: the dense matrix A (N, N), symmetric, weights >= 0, zero diagonal;
+    * ``edges``: ``[[i, j, a_ij], ...]``, UAV numbers 1..N, weights > 0, each edge once;
+    * ``topology`` (``ring``, ``star``, ``complete``, ``knn``) and, for ``knn``, ``k`` >= 1:
+      the generator's graph over the formation offsets (unit weights).
+
+    Exactly one form. The graph itself (:class:`zenswarm.scenario.graph.CommGraph`, neighbour
+    lists) and the checks that need N or the offsets are the scenario's
+    (``Scenario.comm_graph``)."""
+
+    adjacency: tuple[tuple[float, ...], ...] | None = None
+    edges: tuple[tuple[int, int, float], ...] | None = None
+    topology: Topology | None = None
+    k: Annotated[int, Meta(ge=1)] | None = None
     pinning: tuple[float, ...]
 
+    def __post_init__(self) -> None:
+        given = [name for name in ("adjacency", "edges", "topology") if getattr(self, name) is not None]
+        if len(given) != 1:
+            what = " and ".join(given) if given else "none"
+            raise ScenarioError("graph", f"give the graph in exactly one form: adjacency, edges or topology (got {what})")
+        if self.topology == "knn" and self.k is None:
+            raise ScenarioError("graph.k", 'missing required key (topology = "knn" needs k, the neighbours per UAV)')
+        if self.k is not None and self.topology != "knn":
+            raise ScenarioError("graph.k", 'only with topology = "knn"')
+
     def neighbours(self, i: int) -> list[int]:
-        """0-based indices j with a_ij > 0 for 0-based agent index i."""
-        return [j for j, a in enumerate(self.adjacency[i]) if a > 0]
+        """0-based indices j with a_ij > 0 for 0-based agent index i, of the ``adjacency`` and
+        ``edges`` forms (O(N) and O(E)); a ``topology`` needs the offsets: use
+        ``Scenario.neighbours``, which answers for every form from the graph built once."""
+        if self.adjacency is not None:
+            return [j for j, a in enumerate(self.adjacency[i]) if a > 0]
+        if self.edges is not None:
+            return sorted({(b if a == i + 1 else a) - 1 for a, b, _ in self.edges if i + 1 in (a, b) and a != b})
+        raise ValueError(f"graph.topology = {self.topology!r} is built from the formation offsets: use Scenario.neighbours")
 
 
 class GeneratorConfig(Table, frozen=True):
@@ -444,11 +478,12 @@ class ScenarioFile(Table, frozen=True, kw_only=True):
     def __post_init__(self) -> None:
         n = len(self.formation.offsets)
         g = self.graph
-        if len(g.adjacency) != n:
-            raise ScenarioError("graph.adjacency", f"expected {n} rows, got {len(g.adjacency)}")
-        for r, row in enumerate(g.adjacency):
-            if len(row) != n:
-                raise ScenarioError(f"graph.adjacency[{r}]", f"expected a list of length {n}, got {len(row)}")
+        if g.adjacency is not None:
+            if len(g.adjacency) != n:
+                raise ScenarioError("graph.adjacency", f"expected {n} rows, got {len(g.adjacency)}")
+            for r, row in enumerate(g.adjacency):
+                if len(row) != n:
+                    raise ScenarioError(f"graph.adjacency[{r}]", f"expected a list of length {n}, got {len(row)}")
         if len(g.pinning) != n:
             raise ScenarioError("graph.pinning", f"expected a list of length {n}, got {len(g.pinning)}")
 
@@ -597,6 +632,10 @@ class ScenarioTables(Protocol):
 
     @property
     def graph(self) -> GraphConfig: ...
+
+    def neighbours(self, i: int) -> list[int]:
+        """0-based neighbours j (a_ij > 0) of 0-based UAV i, increasing (whatever form ``[graph]`` has)."""
+        ...
 
     @property
     def faults(self) -> FaultsTable | None: ...

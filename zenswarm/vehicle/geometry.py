@@ -83,10 +83,14 @@ def d_obs_many(q0: np.ndarray, ob: Any, r_f: float) -> np.ndarray:
 def close_pairs(p: np.ndarray, cutoff: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every pair of points closer than ``cutoff``: (i, j, distance) with i < j.
 
-    p: (N, 3) m, finite. A sweep along the axis of largest spread: points sorted on it are
-    compared with their s-th successor for s = 1, 2, ... while any such gap is below the cutoff,
-    so memory is O(N) and the work O(N * the largest number of points within ``cutoff`` along that
-    axis) instead of O(N^2). Returns three arrays of equal length (int, int, float).
+    p: (N, 3) m, finite. Returns three arrays of equal length (int, int, float), in the order of
+    a sweep along the axis of largest spread (points sorted on it, stable; pairs by their gap s
+    in that order, then by the first point's rank): the order :func:`_sweep_pairs` finds them in.
+    The candidates come from a grid of cells a little wider than ``cutoff`` (a close pair lies in
+    the same or adjacent cells), so memory and work are O(N * the points per neighbourhood)
+    whatever the swarm's shape (a sweep costs O(N * the points within ``cutoff`` along one axis):
+    the whole width of a large ring's ends); where the grid would not fit 63-bit cell keys, or
+    ``cutoff`` is infinite, the sweep itself.
     """
     n = len(p)
     empty = (np.empty(0, dtype=np.intp), np.empty(0, dtype=np.intp), np.empty(0))
@@ -94,6 +98,65 @@ def close_pairs(p: np.ndarray, cutoff: float) -> tuple[np.ndarray, np.ndarray, n
         return empty
     axis = int(np.argmax(np.ptp(p, axis=0)))
     order = np.argsort(p[:, axis], kind="stable")
+    cand = _grid_candidates(p, cutoff) if math.isfinite(cutoff) else None
+    if cand is None:
+        return _sweep_pairs(p, cutoff, order)
+    rank = np.empty(n, dtype=np.intp)
+    rank[order] = np.arange(n)
+    ra, rb = rank[cand[0]], rank[cand[1]]
+    lo, hi = np.minimum(ra, rb), np.maximum(ra, rb)
+    d = np.linalg.norm(p[order[hi]] - p[order[lo]], axis=1)  # the sweep's operands, in its order
+    keep = np.flatnonzero(d < cutoff)
+    if len(keep) == 0:
+        return empty
+    lo, hi, d = lo[keep], hi[keep], d[keep]
+    by = np.lexsort((lo, hi - lo))  # gap s first, then the first point's rank: the sweep's order
+    a, b = order[lo[by]], order[hi[by]]
+    return np.minimum(a, b), np.maximum(a, b), d[by]
+
+
+def _grid_candidates(p: np.ndarray, cutoff: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Every unordered pair (i, j) of points in the same or adjacent cells (27-neighbourhood) of
+    a grid of cells 1.01 ``cutoff`` wide: a superset of the pairs closer than ``cutoff``. None if
+    the cell keys would not fit 63 bits."""
+    n = len(p)
+    w = 1.01 * cutoff
+    cell = np.floor((p - p.min(axis=0)) / w).astype(np.int64) + 1  # >= 1: a neighbour's coordinate >= 0
+    dims = cell.max(axis=0) + 2
+    if float(dims[0]) * float(dims[1]) * float(dims[2]) >= 2.0**62:
+        return None
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    srt = np.argsort(key, kind="stable")
+    ks = key[srt]
+    idx = np.arange(n)
+    ii: list[np.ndarray] = []
+    jj: list[np.ndarray] = []
+    # the cell itself and 13 of its 26 neighbours: each unordered pair of cells once
+    offsets = [(0, 0, 0)] + [(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if (x, y, z) > (0, 0, 0)]
+    for x, y, z in offsets:
+        nk = key + (x * dims[1] + y) * dims[2] + z
+        first = np.searchsorted(ks, nk, side="left")
+        cnt = np.searchsorted(ks, nk, side="right") - first
+        total = int(cnt.sum())
+        if total == 0:
+            continue
+        i = np.repeat(idx, cnt)
+        j = srt[np.repeat(first, cnt) + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))]
+        if (x, y, z) == (0, 0, 0):
+            m = i < j
+            i, j = i[m], j[m]
+        ii.append(i)
+        jj.append(j)
+    if not ii:
+        return np.empty(0, dtype=np.intp), np.empty(0, dtype=np.intp)
+    return np.concatenate(ii), np.concatenate(jj)
+
+
+def _sweep_pairs(p: np.ndarray, cutoff: float, order: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`close_pairs` by a sweep along the axis ``order`` sorts the points on: each point
+    compared with its s-th successor for s = 1, 2, ... while any such gap is below ``cutoff``."""
+    n = len(p)
+    axis = int(np.argmax(np.ptp(p, axis=0)))
     ps = p[order]
     xs = ps[:, axis]
     ii, jj, dd = [], [], []
@@ -109,5 +172,5 @@ def close_pairs(p: np.ndarray, cutoff: float) -> tuple[np.ndarray, np.ndarray, n
             jj.append(np.maximum(a, b))
             dd.append(d[keep])
     if not ii:
-        return empty
+        return np.empty(0, dtype=np.intp), np.empty(0, dtype=np.intp), np.empty(0)
     return np.concatenate(ii), np.concatenate(jj), np.concatenate(dd)
