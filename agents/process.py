@@ -158,11 +158,11 @@ class _Agent:
         elif pos:
             self.proc.publish(self.ref_key, wire.Ref(t=t_ns, seq=self.seq, q=sh.q, v=sh.v, pos=pos))
         else:
-            self.proc.publish(self.ref_key, wire.Ref(t=t_ns, seq=self.seq, q=sh.q, v=sh.v))
+            self.proc.put(self.ref_key, wire.encode_ref(t_ns, self.seq, sh.q, sh.v))
 
     def publish_cmd(self, t_ns: int, cmd: Command) -> None:
         self.seq += 1
-        self.proc.publish(self.cmd_key, wire.Cmd(t=t_ns, seq=self.seq, thrust=cmd.thrust, rpy=cmd.rpy, u=cmd.u, d_hat=cmd.d_hat))
+        self.proc.put(self.cmd_key, wire.encode_cmd(t_ns, self.seq, cmd.thrust, cmd.rpy, cmd.u, cmd.d_hat))
 
     def start(self, st: wire.State, k: int) -> None:
         """(Re)start the controller from a measured state and share ref(k). A late join (a rejoin,
@@ -250,7 +250,7 @@ class _LockstepAgent:
         # A two-phase controller's first phase depends on the references only: run it as soon
         # as every input of tick k is in, usually while the plant integrates, so that when
         # state(k) arrives only the second phase stands between it and cmd(k).
-        if a.boxes or not getattr(a.ctrl, "two_phase", False) or (self.early is not None and self.early.k == k):
+        if (self.early is not None and self.early.k == k) or a.boxes or not getattr(a.ctrl, "two_phase", False):
             return
         msgs = [inbox.get(key, k) for key in a.input_keys]
         if None in msgs:

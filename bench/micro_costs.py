@@ -10,6 +10,8 @@ BENCHMARKS.md's "what dominates the cost").
 * simulator: ``generator_rates_all`` for N = 3, 16, 32 (the in-process simulator's per-agent
   Python loop);
 * leader: ``integrate_leader`` over one control period (paper example 1, at the start);
+* with ``--process-layer S...`` (alone): the swarm's process layer without zenoh, see
+  :func:`process_layer` (``--ticks`` lockstep ticks of each scenario, a fresh interpreter per run);
 * with ``--bus``: the cost of ``Publisher.put`` as the swarm declares its publishers
   (``SwarmProcess.publisher``: RELIABLE, BLOCK, express=True) against express=False, 16 puts of
   a State payload per round (what the plant does each tick for 16 UAVs), to a router in this
@@ -21,6 +23,7 @@ time of this process, ``time.process_time_ns``, so other jobs on the machine mat
 
     python bench/micro_costs.py
     python bench/micro_costs.py --runs 7 --calls 3000 --json bench/results/micro.json
+    python bench/micro_costs.py --runs 3 --process-layer example1 gen16 gen32 --ticks 500
 """
 
 from __future__ import annotations
@@ -174,6 +177,143 @@ def bus_costs(rounds: int, runs: int) -> dict[str, dict[str, float]]:
     return {k: {"wall_us_median": C.median(v["wall"]), "cpu_us_median": C.median(v["cpu"])} for k, v in out.items()}
 
 
+class _Sample:
+    """What SwarmProcess.handle_sample reads of a zenoh sample: its payload (no sender id)."""
+
+    __slots__ = ("payload", "source_info", "_b")
+
+    def __init__(self, payload: bytes) -> None:
+        self.payload = self
+        self.source_info = None
+        self._b = payload
+
+    def to_bytes(self) -> bytes:
+        return self._b
+
+
+
+def process_layer(scenario: Path, ticks: int) -> dict[str, float]:
+    """CPU of the swarm's process layer per lockstep tick, zenoh left out: the plant, the leader
+    and every agent (their ``SwarmProcess`` and lockstep shells, as ``zenswarm up`` starts them)
+    in this one process, each message handed from the publisher's ``put`` to every subscriber's
+    ``handle_sample`` by a plain call (decode, input guard, inbox, lockstep, control law or
+    physics, encode), in the order a router would deliver it. CPU us per tick of this process
+    (``total``), shared out by role in proportion of their wall time."""
+    import collections
+
+    from zenswarm.agents import process as ap
+    from zenswarm.bus import wire
+    from zenswarm.leader import process as lp
+    from zenswarm.plant import process as pp
+    from zenswarm.process import runtime as rt
+    from zenswarm.scenario.config import load_scenario
+
+    sc = load_scenario(scenario)
+    queue: collections.deque = collections.deque()
+    subs: dict[str, list] = collections.defaultdict(list)
+    cpu: dict[str, int] = collections.defaultdict(int)
+
+    class Pub:
+        def __init__(self, key: str) -> None:
+            self.key = key
+            self.id = None
+
+        def put(self, payload: bytes, source_info: object = None) -> None:
+            queue.append((self.key, payload))
+
+    rt.zenoh.SourceInfo = lambda *a: None  # type: ignore[assignment,misc]
+    rt.SwarmProcess.publisher = lambda self, key: self._pubs.setdefault(key, Pub(key))  # type: ignore[method-assign]
+    rt.SwarmProcess.publish_diag = lambda self, *a, **k: None  # type: ignore[method-assign]
+
+    def proc(name: str) -> rt.SwarmProcess:
+        p = rt.SwarmProcess(name, rt.ProcessOptions(swarm="bench"))
+        p.scenario = sc
+        return p
+
+    def sub(p: rt.SwarmProcess, key: str, kind: str, role: str) -> None:
+        senders = rt.expected_senders(p.keys, key)
+        p.guard  # noqa: B018
+        subs[key].append((p, kind, senders, role))
+
+    plant_p = proc("plant")
+    plant = pp._Plant(plant_p)
+    lsp = pp._LockstepPlant(plant)
+    plant_p.on_input = lsp.ls.poke
+    for key in plant.cmd_keys:
+        sub(plant_p, key, "cmd", "plant")
+    lead_p = proc("leader")
+    leader = lp._Leader(lead_p)
+    lsl = rt.Lockstep(leader.n_ticks, leader.ready, leader.step, 5.0, lead_p.stop, can_force=lambda k: False)
+    lead_p.on_input = lsl.poke
+    sub(lead_p, lead_p.keys.clock, "clock", "leader")
+    agents = []
+    for i in range(1, sc.n + 1):
+        p = proc(wire.agent(i))
+        a = ap._Agent(p, i)
+        la = ap._LockstepAgent(a)
+        p.on_input = la.ls.poke
+        for key, kind in ap.subscriptions(a.keys, a.row):
+            sub(p, key, kind, "agents")
+        agents.append(la)
+    t0 = time.process_time_ns()
+    lsl.poke()
+    for la in agents:
+        la.ls.poke()
+    with lsp.ls.lock:
+        plant.publish_tick(0)
+    cpu["start"] += time.process_time_ns() - t0
+    clock = time.perf_counter_ns  # the shares (process_time_ns costs 4 us a call here)
+    c_start = time.process_time_ns()
+    while queue and lsp.ls.k < ticks:
+        key, payload = queue.popleft()
+        for p, kind, senders, role in subs.get(key, ()):
+            c0 = clock()
+            p.handle_sample(key, kind, _Sample(payload), senders)
+            cpu[role] += clock() - c0
+    c_all = time.process_time_ns() - c_start
+    for ls in [lsp.ls, lsl] + [la.ls for la in agents]:
+        if ls.error is not None:
+            raise ls.error
+    n = lsp.ls.k
+    if n < min(ticks, plant.n_ticks):
+        raise SystemExit(f"process layer: the plant stopped at tick {n} of {min(ticks, plant.n_ticks)}")
+    import hashlib
+
+    st = plant.core.state
+    digest = hashlib.sha256(b"".join(x.tobytes() for x in (st.q, st.v, st.rpy, st.w))).hexdigest()[:16]
+    roles = ("plant", "leader", "agents")
+    wall = sum(cpu[r] for r in roles)
+    return {"ticks": n, "state_sha256": digest, "total": c_all / n / 1e3} | {
+        role: c_all * cpu[role] / wall / n / 1e3 for role in roles}
+
+
+def _main_process_layer(a: argparse.Namespace, info: dict) -> int:
+    """--process-layer: each run in a fresh interpreter (the patches of process_layer stay there)."""
+    import json
+    import os
+    import subprocess
+    import tempfile
+
+    rows, out = [], {}
+    with tempfile.TemporaryDirectory(prefix="zenswarm-micro-") as tmp:
+        for spec in a.process_layer:
+            label, path = C.scenario_file(spec, Path(tmp), 10.0)
+            runs = []
+            for _ in range(a.runs):
+                code = ("import json, sys; sys.path.insert(0, sys.argv[1]); import micro_costs; from pathlib import Path; "
+                        "print(json.dumps(micro_costs.process_layer(Path(sys.argv[2]), int(sys.argv[3]))))")
+                r = subprocess.run([sys.executable, "-c", code, str(Path(__file__).resolve().parent), str(path), str(a.ticks)],
+                                   check=True, capture_output=True, text=True, cwd=C.REPO)
+                runs.append(json.loads(r.stdout.strip().splitlines()[-1]))
+            med = {k: C.median([r[k] for r in runs]) for k in ("total", "plant", "leader", "agents")}
+            out[label] = {"median_us_per_tick": med, "ticks": runs[0]["ticks"], "state_sha256": runs[0]["state_sha256"], "runs": runs}
+            rows.append([label, runs[0]["ticks"], med["total"], med["plant"], med["leader"], med["agents"], runs[0]["state_sha256"]])
+    print(C.table(["scenario", "ticks", "CPU us/tick", "plant", "leader", "agents", "final state sha256"], rows))
+    C.write_json(a.json, {"benchmark": "micro_costs --process-layer", "command": C.command_line(), "machine": info,
+                          "loadavg_at_end": list(os.getloadavg()), "summary": out})
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     import os
     import tempfile
@@ -183,10 +323,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--calls", type=int, default=2000, help="calls per repeat (default 2000)")
     ap.add_argument("--json", type=Path, metavar="FILE", help="write the figures to FILE")
     ap.add_argument("--bus", action="store_true", help="also measure Publisher.put (express on/off) through a router")
+    ap.add_argument("--process-layer", nargs="+", metavar="S",
+                    help="only the swarm's process layer in one process (process_layer) on these scenarios "
+                         "(example1, example2, gen<N>, or TOML paths): CPU us per lockstep tick by role, median of --runs")
+    ap.add_argument("--ticks", type=int, default=500, help="lockstep ticks per --process-layer run (default 500)")
     a = ap.parse_args(argv)
     info = C.machine_info()
     for line in C.machine_lines(info):
         print(line)
+    if a.process_layer:
+        return _main_process_layer(a, info)
     with tempfile.TemporaryDirectory(prefix="zenswarm-micro-") as tmp:
         cs = cases(Path(tmp))
         res: dict[str, list[float]] = {name: [] for name, _ in cs}

@@ -21,7 +21,7 @@ While the swarm flies, the process tree is sampled every 0.25 s (/proc/<pid>/sta
 CPU cores each role used in the middle 80 % of the flight tell where the CPU goes
 (supervisor = router + result collector; plant; leader; all agents together).
 
-Scenarios (default: example1 example2 gen3 gen8 gen16 gen32): the paper examples run their
+Scenarios (default: example1 example2 gen3 gen8 gen16 gen32 gen64): the paper examples run their
 full 70 s; generated ``gen<N>`` scenarios (``zenswarm scenario generate --n N --shape circle
 --topology knn --k 3 --obstacles 2 --seed 1``) are shortened to ``--gen-time-limit`` (default
 10 s of flight: per-tick cost is what is measured; the mission then "fails" for lack of time,
@@ -48,7 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _common as C
 
-DEFAULT_SCENARIOS = ["example1", "example2", "gen3", "gen8", "gen16", "gen32"]
+DEFAULT_SCENARIOS = ["example1", "example2", "gen3", "gen8", "gen16", "gen32", "gen64"]
 STAMPS = Path(__file__).resolve().parent / "stamps"
 PARTS = ("plant publish spread", "hop plant->agent", "agent", "hop agent->plant", "plant integrate+publish")
 

@@ -56,7 +56,7 @@ class _Leader:
         """ref(k) of the core's tick k: (q0, v0)."""
         self.seq += 1
         q0, v0 = self.core.ref()
-        self.proc.publish(self.keys.leader_ref, wire.Ref(t=self.core.k * self.dt_ns, seq=self.seq, q=q0.copy(), v=v0))
+        self.proc.put(self.keys.leader_ref, wire.encode_ref(self.core.k * self.dt_ns, self.seq, q0, v0))
 
     def diag(self, info: dict | None = None) -> None:
         self.proc.counters.update(self.core.planner.counters())

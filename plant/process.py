@@ -78,6 +78,7 @@ class _Plant:
         self.n_ticks = sc.timing.n_ticks
         self.realtime = proc.options.realtime
         self.cmd_keys = [self.keys.cmd(i + 1) for i in range(self.n)]
+        self.state_keys = [self.keys.state(i + 1) for i in range(self.n)]
         self.agents = [wire.agent(i + 1) for i in range(self.n)]
         self.boxes: dict[str, Box] = {}
         self.seq = 0
@@ -105,11 +106,9 @@ class _Plant:
         self.seq += 1
         t = k * self.dt_ns
         st = self.core.state
-        for i in range(self.n):  # the states first: they are what the agents wait for
-            self.proc.publish(
-                self.keys.state(i + 1),
-                wire.State(t=t, seq=self.seq, q=st.q[i].copy(), v=st.v[i].copy(), rpy=st.rpy[i].copy(), w=st.w[i].copy()),
-            )
+        put, enc, seq = self.proc.put, wire.encode_state, self.seq
+        for key, q, v, rpy, w in zip(self.state_keys, st.q, st.v, st.rpy, st.w, strict=True):
+            put(key, enc(t, seq, q, v, rpy, w))  # the states first: they are what the agents wait for
         if self.realtime or k == 0:  # lockstep: publish_clock_early
             self.proc.publish(self.keys.clock, wire.Clock(t=t, seq=self.seq))
 
@@ -148,8 +147,14 @@ class _LockstepPlant:
         self.seen: set[str] = set()  # agents seen alive
         self.back: set[str] = set()  # agents that died and have sent nothing since (restarted: not waited for)
         self.sender = dict(zip(plant.cmd_keys, plant.agents, strict=True))
+        self.index = {key: i for i, key in enumerate(plant.cmd_keys)}
+        # tick k and the UAVs (indices) whose cmd(k) is not in yet: ready(k) checks only these
+        self.missing_k = -1
+        self.missing: set[int] = set()
 
     def on_msg(self, key: str, k: int, msg: wire.Cmd) -> None:  # under the lockstep lock
+        if k == self.missing_k:
+            self.missing.discard(self.index.get(key, -1))
         if self.p.boxes:
             self.p.boxes[key].offer(k, msg.seq, msg)
         if self.back:
@@ -175,7 +180,10 @@ class _LockstepPlant:
         p, inbox = self.p, self.proc.inbox
         if p.boxes:
             return all(b.ready(k) or not self.needed(i, k) for i, b in enumerate(p.boxes.values()))
-        return all(inbox.get(key, k) is not None or not self.needed(i, k) for i, key in enumerate(p.cmd_keys))
+        if k != self.missing_k:  # once per tick; then on_msg takes each command off
+            self.missing_k = k
+            self.missing = {i for i, key in enumerate(p.cmd_keys) if inbox.get(key, k) is None}
+        return all(not self.needed(i, k) for i in self.missing)
 
     def pace(self) -> None:
         """While an agent is down, run no faster than real time: failsafe timers and restart

@@ -491,3 +491,23 @@ def test_router_command_serves_until_sigterm_and_refuses_a_bad_setting() -> None
             p.wait()
     bad = subprocess.run([*cmd[:-2], "--set", "adminspace/enabled"], capture_output=True, text=True, timeout=30)
     assert bad.returncode == 1 and "--set 'adminspace/enabled': expected PATH=JSON" in bad.stderr, bad.stderr
+
+
+def test_free_udp_block_takes_overlapping_blocks() -> None:
+    """More vehicles than the send offset (64 > 40): the two blocks overlap, and every port of
+    their union is free. (Each port was bound twice before, which always failed: a 64-UAV
+    flight could not start, even with the simulated plant.)"""
+    import socket
+
+    from zenswarm.bus import free_udp_block
+
+    base = free_udp_block(64, also=(40,))
+    socks = []
+    try:
+        for p in range(base, base + 104):
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            socks.append(s)
+            s.bind(("127.0.0.1", p))
+    finally:
+        for s in socks:
+            s.close()

@@ -712,3 +712,44 @@ def test_flooding_every_key_of_a_flying_swarm(tmp_path: Path) -> None:
 
 if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "flood":
     sys.exit(_flood_main(sys.argv[2:]))
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.tuples(st.sampled_from(["A", "B"]), st.integers(0, 3), st.integers(-3, 12), st.integers(-1, 3),
+                          st.sampled_from([0.0, 0.001, 0.5]), st.booleans(), st.integers(-2, 3)), max_size=80),
+       st.booleans())
+def test_the_guards_quick_accept_agrees_with_the_full_check(steps: list[tuple[Any, ...]], check_sender: bool) -> None:
+    """InputGuard._accept_next (the usual message, accepted in fewer steps) accepts exactly what
+    the full check accepts, and leaves the same stream state: random streams (senders, seq and
+    tick jumps, repeats, silences, the receiver's tick, tokens) through two guards, one without it."""
+    from zenswarm.process.runtime import InputGuard
+
+    v = np.array([1.0, 2.0, 3.0])
+    now = [0.0]
+    c_tick: list[int | None] = [None]
+
+    def guard() -> InputGuard:
+        return InputGuard(dt_ns=10_000_000, n_ticks=40, horizon_ticks=2, check_sender=check_sender,
+                          now_tick=lambda: c_tick[0], clock=lambda: now[0], growth_period_s=0.01)
+
+    fast, full = guard(), guard()
+    full._accept_next = lambda *a: False  # type: ignore[method-assign]
+    tick = {"A": 0, "B": 0}
+    seq = {"A": 0, "B": 0}
+    for zid, dseq, dtick, c, dt_s, token, big in steps:
+        now[0] += dt_s
+        c_tick[0] = None if c < 0 else c * 5
+        seq[zid] += dseq
+        tick[zid] += dtick
+        if token:
+            for g in (fast, full):
+                g.token("plant", zid, big >= 0)
+        q = v * 1e10 if big == 3 else v
+        msg = wire.decode("state", wire.encode(wire.State(t=max(tick[zid], 0) * 10_000_000, seq=max(seq[zid], 0), q=q, v=v, rpy=v, w=v)))
+        key = K.state(1 + (big == -2))
+        verdicts = [g.check(key, ("plant", "bridge"), max(tick[zid], 0), msg, zid) for g in (fast, full)]
+        assert verdicts[0] == verdicts[1]
+        for k in fast._keys:
+            a, b = fast._keys[k], full._keys[k]
+            assert [getattr(a, s) for s in a.__slots__] == [getattr(b, s) for s in b.__slots__]
+    assert (fast.accepted, fast.reasons) == (full.accepted, full.reasons)

@@ -538,3 +538,40 @@ def test_property_random_msgpack_never_raise(obj: Any, kind: str) -> None:
     else:  # whatever is accepted is a valid message that re-encodes to an accepted payload
         assert out.kind == kind
         assert w.decode(kind, w.encode(out)) == out
+
+
+# ----------------------------------------------------------------------------- hot-path encoders
+_f64 = st.floats(allow_nan=False, allow_infinity=False, width=64)
+_vec3 = st.lists(_f64, min_size=3, max_size=3).map(lambda x: np.array(x, dtype=np.float64))
+_t = st.integers(0, w.MAX_T_NS)
+_seq = st.integers(0, w.MAX_SEQ)
+
+
+@settings(max_examples=300, suppress_health_check=[HealthCheck.too_slow])
+@given(_t, _seq, _vec3, _vec3, _vec3, _vec3, _f64)
+def test_hot_path_encoders_give_the_messages_bytes(t: int, seq: int, a: np.ndarray, b: np.ndarray, c: np.ndarray,
+                                                    d: np.ndarray, f: float) -> None:
+    assert w.encode_state(t, seq, a, b, c, d) == w.encode(w.State(t=t, seq=seq, q=a, v=b, rpy=c, w=d))
+    assert w.encode_ref(t, seq, a, b) == w.encode(w.Ref(t=t, seq=seq, q=a, v=b))
+    assert w.encode_cmd(t, seq, f, a, b, c) == w.encode(w.Cmd(t=t, seq=seq, thrust=f, rpy=a, u=b, d_hat=c))
+    assert w.encode_cmd(t, seq, np.float64(f), a, b, c) == w.encode_cmd(t, seq, f, a, b, c)
+
+
+def test_hot_path_encoders_check_as_the_constructors() -> None:
+    ok = np.array([1.0, 2.0, 3.0])
+    # not the usual types: the checked path, the same bytes
+    assert w.encode_state(1, 2, [1, 2, 3], ok, ok, ok) == w.encode(w.State(t=1, seq=2, q=ok, v=ok, rpy=ok, w=ok))
+    assert w.encode_cmd(1, 2, 1, ok, ok, ok) == w.encode(w.Cmd(t=1, seq=2, thrust=1.0, rpy=ok, u=ok, d_hat=ok))
+    # a sum that overflows is not a bad value: the checked path takes it
+    huge = np.array([1.7e308, 1.7e308, 0.0])
+    assert w.encode_ref(1, 2, huge, ok) == w.encode(w.Ref(t=1, seq=2, q=huge, v=ok))
+    for bad, field, reason in ((np.array([1.0, np.nan, 0.0]), "q", "nonfinite"), (np.array([1.0, np.inf]), "q", "length")):
+        with pytest.raises(w.MessageError) as e:
+            w.encode_state(1, 2, bad, ok, ok, ok)
+        assert (e.value.field, e.value.reason) == (field, reason)
+    with pytest.raises(w.MessageError) as e:
+        w.encode_ref(-1, 2, ok, ok)
+    assert (e.value.field, e.value.reason) == ("t", "negative")
+    with pytest.raises(w.MessageError) as e:
+        w.encode_cmd(1, 2, math.inf, ok, ok, ok)
+    assert (e.value.field, e.value.reason) == ("thrust", "nonfinite")

@@ -5,9 +5,9 @@ folder on ``PYTHONPATH`` and sets ``ZENSWARM_BENCH_STAMPS=<dir>`` for ``zenswarm
 plant, the leader and every agent it starts (``python -m zenswarm plant|leader|agent ...``) get
 two wrappers, and nothing else changes (no source file of the project is touched):
 
-* ``SwarmProcess.publish`` and ``wire.encode``: the ``CLOCK_MONOTONIC`` time (``time.monotonic_ns``,
-  system-wide on Linux, so comparable across processes) when ``publish`` has encoded a message,
-  i.e. right before its ``put``, by (key, seq) (the original ``publish`` runs unchanged); and, for
+* ``SwarmProcess.put`` (every publication passes there, encoded): the ``CLOCK_MONOTONIC`` time
+  (``time.monotonic_ns``, system-wide on Linux, so comparable across processes) when a message is
+  encoded, right before its ``put``, by (key, seq) (the original ``put`` runs unchanged); and, for
   ``Diag`` messages, the loop counters they carry (loop_ticks, missed_deadlines) so the in-flight
   share of missed deadlines can be separated from start-up.
 * ``wire.Decoder.decode``: the time a sample reached the receiving process's Zenoh callback,
@@ -38,8 +38,9 @@ if _DIR:
 def _install(role: str, out_dir: str) -> None:
     import atexit
     import json
-    import threading
     import time
+
+    import msgspec
 
     from zenswarm.bus import wire
     from zenswarm.process import runtime
@@ -49,30 +50,20 @@ def _install(role: str, out_dir: str) -> None:
     rx: dict[str, list] = {}
     diags: list = []
 
-    orig_publish = runtime.SwarmProcess.publish
-    orig_encode = wire.encode
-    current = threading.local()
+    orig_put = runtime.SwarmProcess.put
+    peek = msgspec.msgpack.Decoder()
 
-    def encode(msg):  # wire.encode; stamps right after encoding, i.e. just before put
-        data = orig_encode(msg)
-        key = getattr(current, "key", None)
-        if key is not None:
-            t = mono()
-            lst = pub.get(key)
-            if lst is None:
-                lst = pub[key] = []
-            lst.append((msg.seq, msg.t, t))
-            if msg.kind == "diag":
-                info = msg.info
-                diags.append((t, info.get("loop_ticks"), info.get("missed_deadlines"), info.get("jitter_mean_ms")))
-        return data
-
-    def publish(self, key, msg):  # wraps SwarmProcess.publish (which encodes, then puts)
-        current.key = key
-        try:
-            return orig_publish(self, key, msg)
-        finally:
-            current.key = None
+    def put(self, key, payload):  # SwarmProcess.put (every publication: encoded, about to be put)
+        t = mono()
+        m = peek.decode(payload)
+        lst = pub.get(key)
+        if lst is None:
+            lst = pub[key] = []
+        lst.append((m["seq"], m["t"], t))
+        if m["k"] == "diag":
+            info = m["info"]
+            diags.append((t, info.get("loop_ticks"), info.get("missed_deadlines"), info.get("jitter_mean_ms")))
+        return orig_put(self, key, payload)
 
     orig_decode = wire.Decoder.decode
 
@@ -86,8 +77,7 @@ def _install(role: str, out_dir: str) -> None:
             lst.append((msg.seq, msg.t, t))
         return msg
 
-    runtime.SwarmProcess.publish = publish
-    wire.encode = encode
+    runtime.SwarmProcess.put = put
     wire.Decoder.decode = decode
 
     def dump() -> None:

@@ -179,6 +179,7 @@ def free_udp_block(n: int, host: str = "127.0.0.1", also: Sequence[int] = ()) ->
     and p+d .. p+d+n-1 too for each offset d in ``also`` (e.g. 40: the simulated vehicles' send
     ports with PX4 SITL's direction)."""
     top = max([0, *also]) + n
+    offsets = sorted({d + k for d in (0, *also) for k in range(n)})  # the blocks may overlap (n > d)
     for _ in range(200):
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s0:
             s0.bind((host, 0))
@@ -187,11 +188,10 @@ def free_udp_block(n: int, host: str = "127.0.0.1", also: Sequence[int] = ()) ->
             continue
         socks = []
         try:
-            for d in (0, *also):
-                for k in range(n):
-                    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                    socks.append(s)
-                    s.bind((host, base + d + k))
+            for off in offsets:
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                socks.append(s)
+                s.bind((host, base + off))
             return base
         except OSError:
             continue

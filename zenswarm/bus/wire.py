@@ -109,6 +109,9 @@ __all__ = [
     "Extra",
     "MAX_EXTRA",
     "encode",
+    "encode_state",
+    "encode_ref",
+    "encode_cmd",
     "decode",
     "Decoder",
 ]
@@ -772,6 +775,61 @@ def encode(msg: Message) -> bytes:
     if len(data) > _LIMIT[msg.kind]:
         raise MessageError("msg", "oversize", f"{len(data)} bytes > {_LIMIT[msg.kind]} for {msg.kind}")
     return data
+
+
+# --------------------------------------------------------------------------- encode, hot paths
+# The swarm's per-tick messages are encoded straight from their fields: the same bytes as
+# ``encode(State(...))`` (tests/test_wire.py checks it), without building the message (a
+# constructor copies and checks every vector, then the encoder calls back into Python for each
+# one). The checks are the constructor's, done at once on the plain floats: when a field is not a
+# float64 (3,) array, a float or an int in range, or a value is not finite, the checked path runs
+# (the same bytes, or the constructor's MessageError).
+
+_plain_encoder: Final = msgspec.msgpack.Encoder()
+
+
+def _floats3(x: Any) -> list[float] | None:
+    """``x`` as a list of 3 Python floats if it is a float64 (3,) array, else None."""
+    if type(x) is np.ndarray and x.dtype is _F64 and x.shape == (3,):
+        return x.tolist()  # type: ignore[no-any-return]
+    return None
+
+
+def _ok_t_seq(t: Any, seq: Any) -> bool:
+    return type(t) is int and 0 <= t <= MAX_T_NS and type(seq) is int and 0 <= seq <= MAX_SEQ
+
+
+def encode_state(t: int, seq: int, q: Vec3, v: Vec3, rpy: Vec3, w: Vec3) -> bytes:
+    """``encode(State(t=t, seq=seq, q=q, v=v, rpy=rpy, w=w))``, the same bytes, faster (the
+    plant's states: one per UAV per tick). No ``stamp``. Raises MessageError as the constructor."""
+    a, b, c, d = _floats3(q), _floats3(v), _floats3(rpy), _floats3(w)
+    if a is not None and b is not None and c is not None and d is not None and _ok_t_seq(t, seq) \
+            and _isfinite(sum(a) + sum(b) + sum(c) + sum(d)):  # finite sum: every element finite
+        return _plain_encoder.encode({"v": SCHEMA_VERSION, "k": "state", "t": t, "seq": seq,
+                                      "q": a, "vel": b, "rpy": c, "w": d})
+    return encode(State(t=t, seq=seq, q=q, v=v, rpy=rpy, w=w))
+
+
+def encode_ref(t: int, seq: int, q: Vec3, v: Vec3) -> bytes:
+    """``encode(Ref(t=t, seq=seq, q=q, v=v))`` (no ``extra``, no ``pos``), the same bytes, faster
+    (an agent's reference, the leader's). Raises MessageError as the constructor."""
+    a, b = _floats3(q), _floats3(v)
+    if a is not None and b is not None and _ok_t_seq(t, seq) and _isfinite(sum(a) + sum(b)):
+        return _plain_encoder.encode({"v": SCHEMA_VERSION, "k": "ref", "t": t, "seq": seq, "q": a, "vel": b})
+    return encode(Ref(t=t, seq=seq, q=q, v=v))
+
+
+def encode_cmd(t: int, seq: int, thrust: float, rpy: Vec3, u: Vec3, d_hat: Vec3) -> bytes:
+    """``encode(Cmd(t=t, seq=seq, thrust=thrust, rpy=rpy, u=u, d_hat=d_hat))``, the same bytes,
+    faster (an agent's command). Raises MessageError as the constructor."""
+    a, b, c = _floats3(rpy), _floats3(u), _floats3(d_hat)
+    if type(thrust) is np.float64:
+        thrust = float(thrust)  # the same float64
+    if a is not None and b is not None and c is not None and type(thrust) is float and _ok_t_seq(t, seq) \
+            and _isfinite(thrust + sum(a) + sum(b) + sum(c)):
+        return _plain_encoder.encode({"v": SCHEMA_VERSION, "k": "cmd", "t": t, "seq": seq,
+                                      "thrust": thrust, "rpy": a, "u": b, "d_hat": c})
+    return encode(Cmd(t=t, seq=seq, thrust=thrust, rpy=rpy, u=u, d_hat=d_hat))
 
 
 # --------------------------------------------------------------------------- decode
