@@ -38,10 +38,13 @@ What it answers, from bitcraze's crazyflie-firmware (``src/modules/src``; CRTP p
 * generic setpoint (port 7): STOP, POSITION (x, y, z m, yaw deg), VELOCITY_WORLD (m/s, yaw rate
   deg/s), and the meta command notify-setpoint-stop (``crtp_commander_generic.c``);
 * high-level commander (port 8): set group mask, takeoff and land (v2: height, yaw, use current
-  yaw, duration), go to (v2), stop; takeoff only from idle, land only when flying; a finished
-  landing stops the motors (``crtp_commander_high_level.c``). Its setpoints have priority 1 and
-  the CRTP setpoints 2: once setpoints are streamed the high-level commander is ignored until
-  notify-setpoint-stop (``commander.h``);
+  yaw, duration), go to (v2), stop; takeoff only from a stopped planner, land unless already
+  landing, both from the vehicle's state when the planner is stopped; a finished landing stops
+  the planner, and a stopped planner sends the null setpoint (motors off)
+  (``crtp_commander_high_level.c``, ``planner.c``). Its setpoints have priority 1 and the CRTP
+  setpoints 2: a CRTP setpoint stops the planner, and the high-level commander is heard again
+  only after notify-setpoint-stop relaxes the priority (``commander.c``): the clean handover back
+  is land (or take off), then notify-setpoint-stop;
 * the commander watchdog (``supervisor.c``): a flying vehicle that has heard no setpoint for
   COMMANDER_WDT_TIMEOUT_STABILIZE (500 ms) levels out (roll = pitch = 0, yaw rate 0, thrust
   kept); after COMMANDER_WDT_TIMEOUT_SHUTDOWN (2 s) its motors stop and it is *locked* (a
@@ -99,7 +102,7 @@ LOG_MAX_PAYLOAD = 26  # 30 bytes - block id - 3-byte timestamp
 WDT_STABILIZE_S, WDT_SHUTDOWN_S = 0.5, 2.0  # supervisor.c COMMANDER_WDT_TIMEOUT_*
 IS_FLYING_HYSTERESIS_S = 2.0  # supervisor.c
 LANDING_TIMEOUT_S, PREFLIGHT_TIMEOUT_S = 3.0, 30.0  # platform_defaults.h
-PRIORITY_DISABLE, PRIORITY_HIGHLEVEL, PRIORITY_CRTP = 0, 1, 2  # commander.h
+PRIORITY_DISABLE, PRIORITY_LOWEST, PRIORITY_HIGHLEVEL, PRIORITY_CRTP = 0, 1, 1, 2  # commander.h
 
 # log types (log.h) -> struct code
 LOG_TYPES = {1: "B", 2: "H", 3: "I", 4: "b", 5: "h", 6: "i", 7: "f", 8: "e"}
@@ -286,12 +289,18 @@ class SimCrazyflie:
                 self.armed = False
 
     def _take_setpoint(self, priority: int, now: float) -> bool:
-        """The commander takes a setpoint of at least the active priority (``commander.c``)."""
+        """``commanderSetSetpoint``: a setpoint of at least the active priority is taken (its
+        timestamp feeds the watchdog); one above the high-level commander's stops its planner,
+        which forgets its state (``commander.c``)."""
         if priority < self.priority:
-            self._count("setpoints_ignored")
+            if priority > PRIORITY_HIGHLEVEL:
+                self._count("setpoints_ignored")
             return False
         self.priority = priority
         self.sp_time = now
+        if priority > PRIORITY_HIGHLEVEL and self.hl.state != "idle":
+            self.hl.state = "idle"
+            self._count("hl_stopped_by_setpoint")
         return True
 
     # ------------------------------------------------------------------ receive
@@ -558,8 +567,8 @@ class SimCrazyflie:
         if ch == 1:  # meta: notify setpoint stop [0, remain valid ms]
             if d[0] == 0:
                 remain = struct.unpack_from("<I", d, 1)[0] / 1000.0 if len(d) >= 5 else 0.0
-                self.priority = PRIORITY_HIGHLEVEL if self.priority > PRIORITY_HIGHLEVEL else self.priority
-                self.sp_time = min(self.sp_time, now - WDT_STABILIZE_S + remain)
+                self.priority = PRIORITY_LOWEST  # commanderRelaxPriority
+                self.sp_time = min(self.sp_time, now - WDT_SHUTDOWN_S + remain)
                 self._count("notify_setpoint_stop")
             return
         typ = d[0]
@@ -594,8 +603,8 @@ class SimCrazyflie:
             if not (math.isfinite(height) and math.isfinite(yaw) and math.isfinite(duration) and duration > 0):
                 self._count("hl_rejected")
                 return
-            if (cmd == 7 and self.hl.state != "idle") or (cmd == 8 and self.hl.state != "flying"):
-                self._count("hl_rejected")  # planner.c: takeoff only from idle, land only when flying
+            if (cmd == 7 and self.hl.state != "idle") or (cmd == 8 and self.hl.state == "landing"):
+                self._count("hl_rejected")  # planner.c: takeoff only from idle, land unless landing
                 return
             start = self._hl_start(q, now)
             yaw1 = float(rpy[2]) if use_current else yaw
@@ -625,17 +634,15 @@ class SimCrazyflie:
     def control(self, now: float, dt: float, q: np.ndarray, v: np.ndarray, rpy: np.ndarray) -> tuple[float, np.ndarray]:
         """The supervisor, the commanders and the watchdog for one loop period: the thrust (N) and
         attitude (phi, theta, psi rad) the plant model flies."""
-        # the high-level commander's setpoint enters the commander at its priority every tick
-        if self.hl.state != "idle":
-            if self._take_setpoint(PRIORITY_HIGHLEVEL, now):
-                self.sp_kind = "hl"
-        elif self.priority <= PRIORITY_HIGHLEVEL and self.sp_kind == "hl":
-            self._take_setpoint(PRIORITY_HIGHLEVEL, now)  # idle: it sends the null setpoint
-        age = now - self.sp_time
-        self._supervise(now, age)
+        # the high-level commander's setpoint enters the commander at its priority every tick: its
+        # trajectory, or the null setpoint (motors off) when its planner is stopped
         if self.hl.state == "landing" and self.hl.sample(now)[3]:
             self.hl.state = "idle"  # a finished landing stops the planner (and the motors)
             self._count("hl_landed")
+        if self._take_setpoint(PRIORITY_HIGHLEVEL, now):
+            self.sp_kind = "hl"
+        age = now - self.sp_time
+        self._supervise(now, age)
         if self.param_values["kalman.resetEstimation"]:
             self.param_values["kalman.resetEstimation"] = 0.0
         can_fly = self.sup in ("armed", "flying", "level_out", "landed")

@@ -233,18 +233,25 @@ def test_watchdog_levels_out_then_stops_the_motors(scf: SyncCrazyflie, fleet: Cr
 
 
 @pytest.mark.slow
-def test_streamed_setpoints_take_priority_over_the_high_level_commander(scf: SyncCrazyflie, fleet: CrazyflieFleet) -> None:
+def test_streamed_setpoints_take_priority_then_hand_back_to_a_landing(scf: SyncCrazyflie, fleet: CrazyflieFleet) -> None:
     cf = scf.cf
     cf.supervisor.send_arming_request(True)
     wait_until(lambda: cf.supervisor.is_armed, 1.0, "armed")
     cf.commander.send_setpoint(0, 0, 0, 0)
-    stream(cf, 0.3, 0, 0, 0, 30000)
-    cf.high_level_commander.takeoff(0.5, 1.0)  # ignored while the low-level stream has priority
-    stream(cf, 0.3, 0, 0, 0, 30000)
-    assert fleet.vehicles[0].sp_kind == "rpyt"
+    stream(cf, 0.4, 0, 0, 0, 44000)
+    cf.high_level_commander.takeoff(1.0, 1.0)  # the next streamed setpoint stops the planner again
+    stream(cf, 0.3, 0, 0, 0, 36000)
+    veh = fleet.vehicles[0]
+    assert veh.sp_kind == "rpyt" and veh.hl.state == "idle"
+    z = fleet.state.q[0, 2]
+    assert z > 0.05
+    # the handover: stop streaming, land, relax the priority
+    cf.high_level_commander.land(0.0, 1.5)
     cf.commander.send_notify_setpoint_stop()
-    time.sleep(1.2)
-    assert fleet.vehicles[0].sp_kind == "hl"
+    time.sleep(0.3)
+    assert veh.sp_kind == "hl" and veh.hl.state == "landing" and veh.sup == "flying"
+    wait_until(lambda: fleet.state.q[0, 2] == 0.0, 4.0, "landed by the high-level commander")
+    assert veh.counters.get("supervisor_locked", 0) == 0  # no watchdog trip on the way
 
 
 @pytest.mark.slow
