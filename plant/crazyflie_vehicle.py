@@ -514,7 +514,7 @@ class SimCrazyflie:
                 return False
             self.armed = True
             self._set_sup("armed", now)
-            self._count("armed")
+            self._count("arm_accepted")
             return True
         self.armed = False
         self._set_sup("preflight" if self.sup != "locked" else "locked", now)
