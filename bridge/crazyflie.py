@@ -178,6 +178,7 @@ class CrazyflieBridge:
         self.started_at = time.monotonic()
         self.period = 1.0 / settings.rate_hz
         self.log_period_ms = max(10, int(round(1000.0 / settings.rate_hz / 10.0)) * 10)
+        self.grace_until = -math.inf  # after a stall of our own loop: silence is not judged until then
 
     # ------------------------------------------------------------------ helpers
     def _count(self, name: str, k: float = 1) -> None:
@@ -302,8 +303,12 @@ class CrazyflieBridge:
 
     # ------------------------------------------------------------------ loop interface
     def note_stall(self, gap_s: float) -> None:
+        """A gap of the bridge's own loop of 0.25 s or more (an overloaded host): the log blocks
+        that arrived meanwhile are still queued in cflib's threads, so link silence is not judged
+        for ``link_timeout_s`` after it (no false ``link_lost``)."""
         if gap_s >= 0.25:
             self._count("loop_stalls")
+            self.grace_until = time.monotonic() + self.s.link_timeout_s
 
     def poll(self, now: float) -> None:
         """Link health from the log blocks: silent for ``link_timeout_s`` -> unhealthy
@@ -321,7 +326,7 @@ class CrazyflieBridge:
                 continue
             if link.phase in (CONNECTING, LOGS, REFUSED, DONE) or link.pos_rx == -math.inf:
                 continue
-            if link.healthy and silent > self.s.link_timeout_s:
+            if link.healthy and silent > self.s.link_timeout_s and now >= self.grace_until:
                 link.healthy = False
                 self.changed = True
                 self._count("link_lost")
