@@ -68,7 +68,9 @@ def test_bad_uris_name_the_field(uri: str, why: str) -> None:
 
 def test_duplicates_and_missing_uavs_are_errors() -> None:
     with pytest.raises(ScenarioError, match="UAVs 1 and 3 have the same URI") as e:
-        crazyflie_settings(replace(SC, crazyflie=CrazyflieTable(uris=("radio://0/80/2M/E7E7E7E701", "usb://0", "radio://0/80/2M/e7e7e7e701"))))
+        crazyflie_settings(
+            replace(SC, crazyflie=CrazyflieTable(uris=("radio://0/80/2M/E7E7E7E701", "usb://0", "radio://0/80/2M/e7e7e7e701")))
+        )
     assert e.value.field == "crazyflie.uris"
     with pytest.raises(ScenarioError, match="UAV 4 does not exist") as e:
         crazyflie_settings(SC, {"uri": {4: "usb://0"}})
