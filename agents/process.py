@@ -364,14 +364,15 @@ def _run_realtime(a: _Agent) -> int:
     proc = a.proc
     for key, kind in subscriptions(a.keys, a.row):
         proc.subscribe(key, kind)
-    proc.watch_alive(["plant"])
+    proc.watch_alive(["plant", "bridge"])  # the plant, or a vehicle bridge in its place
     proc.announce()
     clock = WallClock(a.dt, proc.stop)
     last_state_t = -1
     k_prev: int | None = None
     limit_ns = wire.t_ns(a.sc.timing.time_limit_s)
-    while not (last_state_t >= 0 and not proc.is_alive("plant")) and clock.wait():
-        # (the plant gone: its last messages may never come, the flight is over)
+    while not (last_state_t >= 0 and not (proc.is_alive("plant") and proc.is_alive("bridge"))) and clock.wait():
+        # (the plant or bridge gone: its last messages may never come, the flight is over; a UAV
+        # whose vehicle the bridge lost gets no state at the last tick)
         proc.release_delayed()
         st = proc.inbox.latest.get(a.state_key)
         if st is None or st.t == last_state_t:

@@ -73,9 +73,16 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     replay.add_parsers(sub)
     info.add_parser(sub)
     _add_recover(sub)
-    from zenswarm.bridge import mavlink
+    from zenswarm.bridge import crazyflie, mavlink
 
-    mavlink.add_parsers(sub)
+    b = sub.add_parser(
+        "bridge",
+        help="connect the swarm bus to the outside (MAVLink vehicles, Crazyflies)",
+        description="Bridges between the swarm bus and the outside world.",
+    )
+    bsub = b.add_subparsers(dest="bridge_cmd", metavar="{mavlink,crazyflie}", required=True)
+    mavlink.add_mavlink_parser(bsub)
+    crazyflie.add_crazyflie_parser(bsub)
     for modname in ("zenswarm.bridge.report", "zenswarm.bridge.export"):
         try:
             mod = __import__(modname, fromlist=["add_parser"])

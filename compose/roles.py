@@ -142,6 +142,48 @@ def add_vehicles_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_main_mavlink_fleet)
 
 
+def _main_crazyflie_fleet(args: argparse.Namespace) -> int:
+    """``crazyflie-vehicle SCENARIO``: the scenario's quadrotors as simulated Crazyflies speaking
+    CRTP over UDP (:mod:`zenswarm.plant.crazyflie_vehicle`; no Zenoh session)."""
+    from zenswarm.errors import ScenarioError
+    from zenswarm.plant.crazyflie_vehicle import run_fleet
+    from zenswarm.scenario.config import load_scenario
+    from zenswarm.scenario.plugins import DEFAULTS
+
+    sc = load_scenario(args.scenario)
+    if sc.plant.model != DEFAULTS["plant"]:
+        raise ScenarioError(
+            "plant.model", f"plant model {sc.plant.model!r} cannot fly as simulated Crazyflies: they fly zenswarm's own model"
+        )
+    if not 1 <= args.base_port <= 65535 - sc.n:
+        raise ScenarioError("--base-port", f"must leave room for {sc.n} UDP ports below 65536, got {args.base_port}")
+    return run_fleet(sc, base_port=args.base_port, host=args.host, duration=args.duration)
+
+
+def add_crazyflie_vehicles_parser(sub: argparse._SubParsersAction) -> None:
+    """``crazyflie-vehicle SCENARIO --base-port P`` (:mod:`zenswarm.plant.crazyflie_vehicle`)."""
+    from pathlib import Path
+
+    from zenswarm.plant import crazyflie_vehicle
+
+    p = sub.add_parser(
+        "crazyflie-vehicle",
+        help="run the scenario's quadrotors as simulated Crazyflies (CRTP over UDP, cflib's udp:// driver)",
+        description=(crazyflie_vehicle.__doc__ or "").split("\n\n")[0],
+    )
+    p.add_argument("scenario", type=Path, help="scenario TOML (N vehicles, [vehicle], [timing])")
+    p.add_argument(
+        "--base-port",
+        type=int,
+        default=crazyflie_vehicle.DEFAULT_BASE_PORT,
+        metavar="P",
+        help="Crazyflie i at udp://HOST:P+i-1 (default 19850, where cflib scans)",
+    )
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until SIGTERM/SIGINT)")
+    p.set_defaults(func=_main_crazyflie_fleet)
+
+
 def add_plant_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "plant",
@@ -168,6 +210,7 @@ def add_plant_parser(sub: argparse._SubParsersAction) -> None:
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     add_plant_parser(sub)
     add_vehicles_parser(sub)
+    add_crazyflie_vehicles_parser(sub)
     add_leader_parser(sub)
     add_agent_parser(sub)
 

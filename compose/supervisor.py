@@ -89,9 +89,9 @@ def role_names(n: int) -> list[str]:
 def swarm_roles(n: int, plant: str = "sim") -> list[str]:
     """The roles ``zenswarm up --plant PLANT`` runs for n UAVs, in start order (the recorder,
     started first with ``--record``, aside): with ``mavlink`` the simulated vehicles and the
-    bridge take the plant's place."""
+    bridge take the plant's place (also with ``crazyflie``: simulated Crazyflies and the Crazyflie bridge)."""
     names = role_names(n)
-    return ["vehicles", "bridge"] + names[1:] if plant == "mavlink" else names
+    return ["vehicles", "bridge"] + names[1:] if plant in ("mavlink", "crazyflie") else names
 
 
 def _pdeathsig(sig: int = signal.SIGKILL) -> None:  # runs in the child between fork and exec
@@ -119,6 +119,7 @@ class UpOptions:
     realtime: bool = False
     plant: str = "sim"
     mavlink_base_port: int | None = None
+    crazyflie_base_port: int | None = None
     external: tuple[str, ...] = ()
     external_timeout: float = DEFAULT_EXTERNAL_TIMEOUT_S
     record: Path | None = None
@@ -170,6 +171,7 @@ def up_options(args: argparse.Namespace) -> UpOptions:
         realtime=args.realtime,
         plant=args.plant,
         mavlink_base_port=args.mavlink_base_port,
+        crazyflie_base_port=args.crazyflie_base_port,
         external=tuple(args.external or ()),
         external_timeout=args.external_timeout,
         record=args.record,
@@ -215,7 +217,7 @@ class Supervisor:
     """Starts and watches one swarm. ``run()`` returns the exit code."""
 
     def __init__(self, args: UpOptions, scenario: Scenario) -> None:
-        if args.plant == "mavlink":
+        if args.plant in ("mavlink", "crazyflie"):
             args = replace(args, realtime=True)  # real vehicles (or their simulation over UDP) run on the wall clock
         self.args = args
         self.sc = scenario
@@ -254,6 +256,8 @@ class Supervisor:
         self.plugin_failures: list[PluginFailure] = []  # what processes that exited with 4 reported
         # the vehicles' ports P+i (the bridge listens) and their send ports P+40+i, all free
         self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n, also=(SITL_SEND_OFFSET,))
+        # --plant crazyflie: simulated Crazyflie i on udp://127.0.0.1:P+i
+        self.cf_base_port = (args.crazyflie_base_port or bus.free_udp_block(scenario.n)) if args.plant == "crazyflie" else None
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
         self.live: Any = None  # --live: the view (zenswarm.bridge.live.open_view), bound by _run_up before run()
 
@@ -288,6 +292,8 @@ class Supervisor:
         argv = [sys.executable, "-m", "zenswarm"]
         if role == "recorder":
             return argv + self._recorder_argv()
+        if role == "vehicles" and self.cf_base_port is not None:  # simulated Crazyflies (CRTP over UDP, no Zenoh)
+            return argv + ["crazyflie-vehicle", str(self.args.scenario), "--base-port", str(self.cf_base_port)]
         if role == "vehicles":  # simulated MAVLink vehicles (no Zenoh): the bridge talks to them over UDP
             a = self.args
             # as PX4 SITL and real autopilots: each vehicle's NED about where it booted, and
@@ -319,6 +325,11 @@ class Supervisor:
 
     def _bridge_argv(self) -> list[str]:
         a = self.args
+        if self.cf_base_port is not None:  # the Crazyflie bridge; to the simulated ones unless they are external
+            argv = ["bridge", "crazyflie", str(a.scenario), "--swarm", a.swarm, *self._join_words()]
+            if "vehicles" not in a.external:
+                argv += [w for i in range(self.sc.n) for w in ("--uri", f"{i + 1}=udp://127.0.0.1:{self.cf_base_port + i}")]
+            return argv + a.faults.argv() + (["--expect", "recorder"] if a.record is not None else [])
         argv = ["bridge", "mavlink", str(a.scenario), "--base-port", str(self.mav_base_port), "--swarm", a.swarm]
         argv += self._join_words()
         # the simulated vehicles (own origins, SITL ports): listen where vehicle i sends, and put
@@ -1063,6 +1074,10 @@ class Supervisor:
         self._add_stop_failure(res, code)
         for e in res["failsafe"]:
             until = f"{e['to_s']:.2f} s" if e["to_s"] is not None else "the end"
+            if {"link_lost", "lost"} & set(e["modes"]):  # the bridge lost the vehicle: its own failsafe flies it
+                self.say(f"failsafe: UAV {e['uav']} {' then '.join(e['modes'])} from sim time {e['from_s']:.2f} s to {until}: "
+                         "the bridge lost its link; the vehicle's own failsafe flew it")  # fmt: skip
+                continue
             self.say(f"failsafe: UAV {e['uav']} flown by the plant ({' then '.join(e['modes'])}) from sim time "
                      f"{e['from_s']:.2f} s to {until}: agent:{e['uav']}'s commands were stale")
         out.mkdir(parents=True, exist_ok=True)
@@ -1129,12 +1144,14 @@ def check_up_args(args: UpOptions, sc: Scenario) -> None:
         if r not in names:
             raise ScenarioError("--external", f"unknown role {r!r}: this swarm's roles are {', '.join(names)}")
     _check_kills(args, sc, names)
-    if args.plant == "mavlink" and sc.plant.model != DEFAULTS["plant"]:
+    if args.plant in ("mavlink", "crazyflie") and sc.plant.model != DEFAULTS["plant"]:
         where = "--plant-model" if args.plant_model is not None else "plant.model"
         raise ScenarioError(
-            where, f"plant model {sc.plant.model!r} cannot fly with --plant mavlink: the simulated MAVLink vehicles "
-            f"fly zenswarm's own model ({DEFAULTS['plant']!r}); drop --plant mavlink, or the plant model"
+            where, f"plant model {sc.plant.model!r} cannot fly with --plant {args.plant}: the simulated vehicles "
+            f"fly zenswarm's own model ({DEFAULTS['plant']!r}); drop --plant {args.plant}, or the plant model"
         )
+    if args.plant == "crazyflie":
+        check_crazyflie(args, sc)
     if args.plant == "mavlink" and args.mavlink_base_port is not None:
         check_mavlink_ports(args.mavlink_base_port, sc.n)
     check_output_dir(args.out, "--out")
@@ -1146,7 +1163,24 @@ def check_rt_priority(args: UpOptions) -> None:
     """``--rt-priority P``: 1-99, a realtime flight (``--realtime`` or ``--plant mavlink``), and
     permitted to this user (:func:`zenswarm.process.rtsched.probe`): else :class:`ScenarioError` naming the
     flag and the remedy, before anything starts."""
-    rtsched.validate(args.rt_priority, realtime=args.realtime or args.plant == "mavlink", how="--realtime or --plant mavlink")
+    rtsched.validate(args.rt_priority, realtime=args.realtime or args.plant != "sim", how="--realtime or --plant mavlink")
+
+
+def check_crazyflie(args: UpOptions, sc: Scenario) -> None:
+    """``--plant crazyflie``: cflib installed, and ``--crazyflie-base-port P`` leaves P..P+N-1 free
+    (the simulated Crazyflies' ports), else :class:`ScenarioError` (exit 2, before anything starts)."""
+    import importlib.util
+
+    if importlib.util.find_spec("cflib") is None:
+        raise ScenarioError("--plant", "--plant crazyflie needs cflib: pip install 'zenswarm[crazyflie]'")
+    base = args.crazyflie_base_port
+    if base is not None:
+        if not 1 <= base <= 65535 - sc.n + 1:
+            raise ScenarioError("--crazyflie-base-port", f"expected a port in 1..{65535 - sc.n + 1} ({sc.n} UAVs), got {base}")
+        busy = [p for p in range(base, base + sc.n) if bus.udp_ports_in_use([p], "127.0.0.1")]
+        if busy:
+            raise ScenarioError("--crazyflie-base-port", f"UDP port {busy[0]} on 127.0.0.1 is in use; the simulated Crazyflies "
+                                f"need P..P+{sc.n - 1} free (P = {base})")  # fmt: skip
 
 
 def check_mavlink_ports(base: int, n: int, host: str = "127.0.0.1") -> None:
@@ -1302,10 +1336,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--realtime", action="store_true", help="wall-clock mode: fixed-rate loops, latest value wins")
     p.add_argument(
         "--plant",
-        choices=("sim", "mavlink"),
+        choices=("sim", "mavlink", "crazyflie"),
         default="sim",
         help="sim: the simulated plant process (default); mavlink: simulated MAVLink vehicles over UDP flown "
-        "through the MAVLink bridge (zenswarm bridge mavlink), realtime",
+        "through the MAVLink bridge (zenswarm bridge mavlink), realtime; crazyflie: simulated Crazyflies (CRTP over "
+        "UDP) flown through cflib by the Crazyflie bridge (zenswarm bridge crazyflie), realtime (docs/crazyflie.md)",
+    )
+    p.add_argument(
+        "--crazyflie-base-port", type=int, metavar="P",
+        help="with --plant crazyflie: simulated Crazyflie i on udp://127.0.0.1:P+i-1; checked free (default: free ports)",
     )
     p.add_argument(
         "--mavlink-base-port", type=int, metavar="P",

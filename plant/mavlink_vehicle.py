@@ -1279,8 +1279,7 @@ def run_fleet(
         gc_startup_done()  # sockets open, vehicles built: see zenswarm.process.runtime.GcPolicy (safe points: WallClock.wait)
         rtsched.apply_after_startup(lambda text: print(f"mavlink-vehicle: {text}", flush=True))
         why = fleet.run(stop, duration)
-        print(f"mavlink-vehicle: stopped ({why}); overruns {fleet.overruns}; {gc_policy().counters()}; " + str(fleet.status()),
-              flush=True)
+        print(f"mavlink-vehicle: stopped ({why}); overruns {fleet.overruns}; {gc_policy().counters()}; " + str(fleet.status()), flush=True)
     finally:
         fleet.close()
     return 0

@@ -142,8 +142,16 @@ class _LockstepPlant:
         self.proc = plant.proc
         # while an agent is down, run no faster than real time
         self.pacer = WallClock(plant.dt, catch_up=False)
-        self.ls = Lockstep(plant.n_ticks, self.ready, self.step, self.proc.options.lockstep_timeout, self.proc.stop, on_msg=self.on_msg,
-                           kill_at=self.proc.options.kill_at_tick, name=self.proc.name)
+        self.ls = Lockstep(
+            plant.n_ticks,
+            self.ready,
+            self.step,
+            self.proc.options.lockstep_timeout,
+            self.proc.stop,
+            on_msg=self.on_msg,
+            kill_at=self.proc.options.kill_at_tick,
+            name=self.proc.name,
+        )
         self.seen: set[str] = set()  # agents seen alive
         self.back: set[str] = set()  # agents that died and have sent nothing since (restarted: not waited for)
         self.sender = dict(zip(plant.cmd_keys, plant.agents, strict=True))
@@ -248,7 +256,8 @@ class _LockstepPlant:
         def behind() -> list[str]:
             latest = proc.inbox.latest
             return [
-                a for a, key in zip(p.agents, p.cmd_keys, strict=True)
+                a
+                for a, key in zip(p.agents, p.cmd_keys, strict=True)
                 if proc.is_alive(a) and ((m := latest.get(key)) is None or m.t < last_t)
             ]
 

@@ -31,6 +31,7 @@ PURE_MODULES = [
     "plant/disturbance.py",
     "plant/failsafe.py",
     "zenswarm/vehicle/frames.py",
+    "zenswarm/vehicle/crazyflie.py",
     "zenswarm/judge/metrics.py",
     "zenswarm/judge/verdict.py",
     "zenswarm/vehicle/geometry.py",

@@ -341,7 +341,8 @@ class Collector:
             return
         if isinstance(msg, wire.Diag):
             fs = msg.info.get("failsafe")
-            if msg.process == "plant" and isinstance(fs, str) and (self.failsafe_log[-1][1] if self.failsafe_log else "none") != fs:
+            last = self.failsafe_log[-1][1] if self.failsafe_log else "none"
+            if msg.process in ("plant", "bridge") and isinstance(fs, str) and last != fs:  # the bridge: a lost vehicle
                 self.failsafe_log.append((int(msg.t), fs))
             self.diag[msg.process] = {**msg.counters, **{k: v for k, v in msg.info.items() if isinstance(v, (int, float, bool, str))}}
             return

@@ -33,6 +33,7 @@ The sections and their meaning (see ``compose/scenarios/paper_example1.toml`` fo
 ``[failsafe]``   the plant's command-loss failsafe (``Scenario.failsafe``, :func:`failsafe_config`)
 ``[restart]``    the supervisor's restart backoff (``Scenario.restart``, :func:`zenswarm.compose.policy.restart_policy`)
 ``[mavlink]``    MAVLink bridge and vehicles (``Scenario.mavlink``, :func:`zenswarm.vehicle.autopilot.mavlink_settings`)
+``[crazyflie]``  Crazyflie bridge (``Scenario.crazyflie``, :func:`zenswarm.vehicle.crazyflie_settings.crazyflie_settings`)
 
 Any other section or key is an error naming it.
 
@@ -61,6 +62,7 @@ from zenswarm.schema import (
     MAX_SEED,
     AgentsConfig,
     ControllerConfig,
+    CrazyflieTable,
     DisturbanceConfig,
     EsoConfig,
     FailsafeConfig,
@@ -159,6 +161,7 @@ class Scenario:
     failsafe: FailsafeConfig | None = None
     restart: RestartTable | None = None
     mavlink: MavlinkTable | None = None
+    crazyflie: CrazyflieTable | None = None
 
     @property
     def n(self) -> int:
@@ -247,6 +250,7 @@ def scenario_from_dict(d: dict[str, Any]) -> Scenario:
         failsafe=doc.failsafe,
         restart=doc.restart,
         mavlink=doc.mavlink,
+        crazyflie=doc.crazyflie,
     )
     validate(scen)
     return scen
@@ -365,6 +369,10 @@ def _validate_extra(s: Scenario) -> None:
         from zenswarm.vehicle.autopilot import mavlink_settings
 
         mavlink_settings(s)
+    if s.crazyflie is not None:
+        from zenswarm.vehicle.crazyflie_settings import crazyflie_settings
+
+        crazyflie_settings(s)
 
 
 def failsafe_config(section: FailsafeConfig | dict[str, Any] | None) -> FailsafeConfig:
@@ -425,7 +433,7 @@ def scenario_to_dict(s: Scenario) -> dict[str, Any]:
     veh = {k: v for k, v in to_builtins(s.vehicle).items() if v is not None}
     if veh:
         d["vehicle"] = veh
-    for name in ("faults", "failsafe", "restart", "mavlink"):
+    for name in ("faults", "failsafe", "restart", "mavlink", "crazyflie"):
         table = getattr(s, name)
         if table is not None:
             d[name] = to_builtins(table, omit_defaults=True)

@@ -52,6 +52,7 @@ __all__ = [
     "LinkFaultsTable",
     "FaultsTable",
     "MavlinkTable",
+    "CrazyflieTable",
     "ScenarioFile",
     "MAX_SEED",
     "check_seed",
@@ -449,6 +450,27 @@ class MavlinkTable(Table, frozen=True):
     ground_z: float = 0.0
 
 
+class CrazyflieTable(Table, frozen=True):
+    """``[crazyflie]``: the Crazyflie bridge (see
+    :func:`zenswarm.vehicle.crazyflie_settings.crazyflie_settings` for every key; ``None``: the derived default)."""
+
+    uris: tuple[Annotated[str, Meta(min_length=1)], ...] | None = None
+    host: Annotated[str, Meta(min_length=1)] = "127.0.0.1"
+    base_port: Annotated[int, Meta(ge=1, le=65535)] = 19850
+    rate_hz: Annotated[float, Meta(ge=10, le=500)] | None = None
+    takeoff: bool = True
+    takeoff_duration_s: Pos = 2.0
+    takeoff_tolerance_m: Pos = 0.08
+    takeoff_timeout_s: Pos = 15.0
+    connect_timeout_s: Pos = 15.0
+    link_timeout_s: Pos = 0.5
+    cmd_timeout_s: Pos = 0.5
+    land_duration_s: Pos = 2.0
+    land_timeout_s: NonNeg = 10.0
+    start_timeout_s: NonNeg = 60.0
+    yaw_gain: Pos = 4.0
+
+
 # ----------------------------------------------------------------------------- the document
 
 
@@ -474,6 +496,7 @@ class ScenarioFile(Table, frozen=True, kw_only=True):
     failsafe: FailsafeConfig | None = None
     restart: RestartTable | None = None
     mavlink: MavlinkTable | None = None
+    crazyflie: CrazyflieTable | None = None
 
     def __post_init__(self) -> None:
         n = len(self.formation.offsets)
@@ -642,3 +665,6 @@ class ScenarioTables(Protocol):
 
     @property
     def mavlink(self) -> MavlinkTable | None: ...
+
+    @property
+    def crazyflie(self) -> CrazyflieTable | None: ...

@@ -1,0 +1,213 @@
+"""Issue 46 end to end: agents -> Crazyflie bridge -> cflib -> CRTP over UDP -> simulated
+Crazyflies, started by ``zenswarm up --plant crazyflie`` (realtime, on the wall clock); a link
+lost mid-flight (the test's own fleet, external vehicles); and bad input (malformed, duplicate
+and out-of-range URIs, an unreachable vehicle), each with no traceback and nothing left behind.
+
+Each test has its own swarm name, router port and UDP ports. Bounds are generous: realtime flight
+on a loaded 2-core host.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import threading
+import time
+import tomllib
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("cflib", reason="cflib is not installed (pip install -e '.[crazyflie]')")
+
+from zenswarm.bus import free_port, free_udp_block
+from zenswarm.plant.crazyflie_vehicle import CrazyflieFleet
+from zenswarm.scenario.config import load_scenario
+from zenswarm.scenario.generate import to_toml
+
+from swarmtest import (
+    ROOT,
+    SCENARIOS,
+    kill_mentioning,
+    processes_mentioning,
+    read_results,
+    unique_swarm,
+    wait_port_free,
+    zenswarm,
+)
+
+pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
+
+N_UAV = 3
+
+
+def _udp_free(base: int, n: int) -> bool:
+    socks = []
+    try:
+        for k in range(n):
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            socks.append(s)
+            s.bind(("127.0.0.1", base + k))
+        return True
+    except OSError:
+        return False
+    finally:
+        for s in socks:
+            s.close()
+
+
+def _scenario(tmp: Path, crazyflie: dict | None = None, **timing: float) -> Path:
+    d = tomllib.loads((SCENARIOS / "paper_example1.toml").read_text())
+    d["timing"].update(timing)
+    if crazyflie is not None:
+        d["crazyflie"] = crazyflie
+    p = tmp / "cf.toml"
+    p.write_text(to_toml(d))
+    return p
+
+
+def _no_traceback(text: str) -> None:
+    assert "Traceback" not in text, text[-3000:]
+
+
+def _up(scenario: Path, out: Path, swarm: str, port: int, *extra: str, timeout: float = 240.0) -> subprocess.CompletedProcess:
+    try:
+        return zenswarm(
+            "up", str(scenario), "--out", str(out), "--swarm", swarm, "--listen", f"tcp/127.0.0.1:{port}",
+            "--plant", "crazyflie", "--progress-every", "5", *extra, timeout=timeout,
+        )  # fmt: skip
+    finally:
+        leftovers = processes_mentioning(f"--swarm {swarm}")
+        kill_mentioning(f"--swarm {swarm}")
+        assert not leftovers, f"processes left behind: {leftovers}"
+        assert wait_port_free(port), f"router port {port} still bound after exit"
+
+
+def test_example1_through_the_crazyflie_bridge_reaches_the_goal_and_lands(tmp_path: Path) -> None:
+    swarm, port, base = unique_swarm("cf"), free_port(), free_udp_block(N_UAV)
+    out = tmp_path / "run"
+    try:
+        cp = _up(SCENARIOS / "paper_example1.toml", out, swarm, port, "--crazyflie-base-port", str(base), "--stop-at-goal")
+    finally:
+        left = processes_mentioning(f"--base-port {base}")
+        kill_mentioning(f"--base-port {base}")
+    assert not left, f"vehicles left behind: {left}"
+    assert _udp_free(base, N_UAV), "the simulated Crazyflies' ports are still bound"
+    _no_traceback(cp.stdout)
+    res = read_results(out)
+    assert cp.returncode == 0, cp.stdout[-4000:]
+    assert res["mode"] == "realtime"
+    assert res["goal_reached"] and res["success"], {k: v for k, v in res.items() if k != "diagnostics"}
+    assert res["min_obstacle_clearance_m"] > 0 and not res["obstacle_collision"]
+    assert res["min_inter_uav_distance_m"] > 0.05 and not res["uav_collision"]
+    assert res["rms_tracking_error_m"] < 0.1  # the formation was flown through cflib (the sim plant: 0.006 m)
+    assert res["decoder_rejects"]["rejected"] == 0
+    veh = res["vehicles"]
+    assert veh["phases"] == "1:done,2:done,3:done" and veh["link_lost"] == 0 and veh["armed_uavs"] == 0, veh
+    assert 0 <= veh["max_state_age_ms"] < 1000, veh  # from the vehicles' own log timestamps
+    d = res["diagnostics"]["bridge"]
+    assert d["setpoints_rpyt"] > 1000 and d["states_published"] > 1000, d
+    assert "mission clock started with UAV(s) [1, 2, 3]" in cp.stdout
+    assert "landed by the high-level commander" in cp.stdout
+
+
+def test_link_lost_mid_flight_is_the_named_failsafe_and_results_are_written(tmp_path: Path) -> None:
+    sc = load_scenario(SCENARIOS / "paper_example1.toml")
+    base = free_udp_block(N_UAV)
+    fleet = CrazyflieFleet.from_scenario(sc, base_port=base).start()
+    scenario = _scenario(tmp_path, {"uris": fleet.uris()})
+    swarm, port, out = unique_swarm("cfl"), free_port(), tmp_path / "run"
+    cut: dict[str, float] = {}
+
+    def cut_link() -> None:  # once UAV 2 flies its agent's setpoints, its link goes silent for good
+        veh_deadline = time.monotonic() + 120.0
+        while time.monotonic() < veh_deadline:
+            if fleet.vehicles[1].counters.get("setpoints_rpyt", 0) > 200:
+                fleet.silence(1, 1e6)
+                cut["at"] = time.monotonic()
+                return
+            time.sleep(0.05)
+
+    t = threading.Thread(target=cut_link, daemon=True)
+    t.start()
+    try:
+        cp = _up(scenario, out, swarm, port, "--external", "vehicles", "--duration", "8")
+    finally:
+        fleet.stop()
+    assert "at" in cut, "the flight never started"
+    _no_traceback(cp.stdout)
+    res = read_results(out)
+    fs = [e for e in res["failsafe"] if e["uav"] == 2]
+    assert fs and "link_lost" in fs[0]["modes"], res["failsafe"]
+    assert res["vehicles"]["link_lost"] >= 1
+    assert "failsafe: UAV 2 link_lost" in cp.stdout
+    # the vehicle's own watchdog: level out, then the motors stopped and it is locked
+    assert fleet.vehicles[1].sup == "locked", fleet.status()[1]
+    assert fleet.vehicles[1].counters.get("supervisor_level_out", 0) == 1
+    assert cp.returncode == 1 and not res["success"]  # UAV 2 never reached its slot
+    # the others landed; the lost one is left to its own watchdog
+    assert res["vehicles"]["phases"] == "1:done,2:lost,3:done", res["vehicles"]
+
+
+def _bridge(scenario: Path, *flags: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    swarm = unique_swarm("cfb")
+    try:
+        return zenswarm("bridge", "crazyflie", str(scenario), "--swarm", swarm, *flags, timeout=timeout)
+    finally:
+        left = processes_mentioning(f"--swarm {swarm}")
+        kill_mentioning(f"--swarm {swarm}")
+        assert not left, left
+
+
+@pytest.mark.parametrize(
+    ("flags", "table", "needle"),
+    [
+        (["--uri", "1=radio://0/200/2M/E7E7E7E701"], None, "radio channel must be 0..125"),
+        (["--uri", "2=udp://127.0.0.1"], None, "not a Crazyflie link URI"),
+        (["--uri", "1=udp://127.0.0.1:19850", "--uri", "2=udp://127.0.0.1:19850"], None, "same URI"),
+        (["--uri", "4=udp://127.0.0.1:19853"], None, "UAV 4 does not exist"),
+        ([], {"uris": ["udp://127.0.0.1:1", "udp://127.0.0.1:2"]}, "expected 3 URIs"),
+        ([], {"uris": ["radio://0/80/2M/E7E7E7E701", "radio://0/80/2M/e7e7e7e701", "usb://0"]}, "same URI"),
+    ],
+)
+def test_bad_uris_exit_2_naming_them(tmp_path: Path, flags: list[str], table: dict | None, needle: str) -> None:
+    cp = _bridge(_scenario(tmp_path, table), *flags)
+    assert cp.returncode == 2, cp.stdout
+    assert needle in cp.stdout
+    _no_traceback(cp.stdout)
+
+
+def test_bad_uri_in_the_scenario_is_refused_by_up_before_anything_starts(tmp_path: Path) -> None:
+    swarm, port = unique_swarm("cfu"), free_port()
+    cp = _up(_scenario(tmp_path, {"uris": ["udp://127.0.0.1:1", "bogus", "udp://127.0.0.1:3"]}), tmp_path / "o", swarm, port)
+    assert cp.returncode == 2 and "crazyflie.uris[1]" in cp.stdout, cp.stdout
+    _no_traceback(cp.stdout)
+    assert not (tmp_path / "o" / "results.json").exists()
+
+
+def test_unreachable_vehicle_is_named_and_the_run_ends_cleanly(tmp_path: Path) -> None:
+    base = free_udp_block(N_UAV)  # nobody listens there
+    scenario = _scenario(tmp_path, {"uris": [f"udp://127.0.0.1:{base + i}" for i in range(N_UAV)], "connect_timeout_s": 2.0})
+    swarm, port, out = unique_swarm("cfn"), free_port(), tmp_path / "run"
+    cp = _up(scenario, out, swarm, port, "--external", "vehicles", "--duration", "5", timeout=120.0)
+    _no_traceback(cp.stdout)
+    assert "unreachable: no answer from udp://127.0.0.1:" in cp.stdout, cp.stdout[-3000:]
+    assert cp.returncode == 3, cp.stdout[-3000:]  # the bridge had no UAV to fly
+    res = read_results(out)
+    assert res["vehicles"]["phases"] == "1:refused,2:refused,3:refused"
+
+
+def test_crazyflie_vehicle_busy_port_is_exit_2(tmp_path: Path) -> None:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    busy = s.getsockname()[1]
+    try:
+        cp = subprocess.run(
+            [sys.executable, "-m", "zenswarm", "crazyflie-vehicle", str(SCENARIOS / "paper_example1.toml"), "--base-port", str(busy)],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT, timeout=60,
+        )  # fmt: skip
+    finally:
+        s.close()
+    assert cp.returncode == 2 and "--base-port" in cp.stdout and "cannot be bound" in cp.stdout, cp.stdout
+    _no_traceback(cp.stdout)

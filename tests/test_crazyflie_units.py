@@ -1,0 +1,81 @@
+"""The Crazyflie bridge's pure parts: the legacy setpoint of an agent's command (signs, yaw loop,
+thrust clamp) and the ``[crazyflie]`` settings (URIs checked, overrides, errors naming the
+field). No process, no link."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+
+from zenswarm.bridge.crazyflie import rpyt_of
+from zenswarm.errors import ScenarioError
+from zenswarm.scenario.config import load_scenario
+from zenswarm.schema import CrazyflieTable
+from zenswarm.vehicle import crazyflie as cfu
+from zenswarm.vehicle.crazyflie_settings import check_uri, crazyflie_settings
+
+from swarmtest import SCENARIOS
+
+SC = load_scenario(SCENARIOS / "paper_example1.toml")
+
+
+def test_rpyt_of_an_agent_command() -> None:
+    hover = 0.027 * 9.81
+    roll, pitch, yawrate, thrust, clamped = rpyt_of(hover, (0.1, -0.05, 0.0), 0.2, 4.0)
+    assert roll == pytest.approx(math.degrees(0.1)) and pitch == pytest.approx(math.degrees(-0.05))  # cflib negates pitch itself
+    assert yawrate == pytest.approx(math.degrees(0.8))  # yaw 0.2 rad left of the reference: turn clockwise, cflib's positive
+    assert thrust == cfu.thrust_to_command(hover)[0] and not clamped
+    *_, thrust, clamped = rpyt_of(0.596, (0.0, 0.0, 0.0), 0.0, 4.0)  # the scenario's max_thrust
+    assert thrust == cfu.MAX_THRUST and clamped
+    *_, thrust, clamped = rpyt_of(-1.0, (0.0, 0.0, 0.0), 0.0, 4.0)
+    assert thrust == 0 and not clamped
+
+
+def test_default_uris_are_the_simulated_vehicles() -> None:
+    s = crazyflie_settings(SC)
+    assert s.uris == ("udp://127.0.0.1:19850", "udp://127.0.0.1:19851", "udp://127.0.0.1:19852")
+    assert s.rate_hz == SC.timing.control_rate_hz and s.link_timeout_s == 0.5
+    s = crazyflie_settings(SC, {"uri": {2: "radio://0/80/2M/E7E7E7E702"}, "base_port": 20000, "rate_hz": 50})
+    assert s.uris == ("udp://127.0.0.1:20000", "radio://0/80/2M/E7E7E7E702", "udp://127.0.0.1:20002") and s.rate_hz == 50
+
+
+@pytest.mark.parametrize(
+    "uri", ["radio://0/80/2M/E7E7E7E701", "radio://1/125/250K", "udp://127.0.0.1:19850", "udp://cf-sim.lab:1", "usb://0"]
+)
+def test_good_uris(uri: str) -> None:
+    assert check_uri("f", uri) == uri
+
+
+@pytest.mark.parametrize(
+    ("uri", "why"),
+    [
+        ("radio://0/126/2M/E7E7E7E701", "channel"),
+        ("radio://0/80/3M/E7E7E7E701", "not a Crazyflie link URI"),
+        ("radio://0/80/2M/E7E7E7", "not a Crazyflie link URI"),
+        ("udp://127.0.0.1:70000", "port"),
+        ("udp://127.0.0.1", "not a Crazyflie link URI"),
+        ("tcp://127.0.0.1:5000", "not a Crazyflie link URI"),
+        ("", "not a Crazyflie link URI"),
+    ],
+)
+def test_bad_uris_name_the_field(uri: str, why: str) -> None:
+    with pytest.raises(ScenarioError, match=why) as e:
+        check_uri("crazyflie.uris[0]", uri)
+    assert e.value.field == "crazyflie.uris[0]"
+
+
+def test_duplicates_and_missing_uavs_are_errors() -> None:
+    with pytest.raises(ScenarioError, match="UAVs 1 and 3 have the same URI") as e:
+        crazyflie_settings(
+            replace(SC, crazyflie=CrazyflieTable(uris=("radio://0/80/2M/E7E7E7E701", "usb://0", "radio://0/80/2M/e7e7e7e701")))
+        )
+    assert e.value.field == "crazyflie.uris"
+    with pytest.raises(ScenarioError, match="UAV 4 does not exist") as e:
+        crazyflie_settings(SC, {"uri": {4: "usb://0"}})
+    assert e.value.field == "--uri"
+    with pytest.raises(ScenarioError, match="expected 3 URIs"):
+        crazyflie_settings(replace(SC, crazyflie=CrazyflieTable(uris=("usb://0",))))
+    with pytest.raises(ScenarioError, match="same URI"):
+        crazyflie_settings(SC, {"uri": {1: "udp://127.0.0.1:19851"}})  # UAV 2's default
