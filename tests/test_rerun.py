@@ -635,7 +635,8 @@ def test_up_realtime_live_rerun_with_a_browser_attached(tmp_path):
     text = "".join(line for _, line in lines)
     res = json.loads((out / "results.json").read_text())
     assert proc.returncode == (0 if res["success"] else 1), text[-3000:]
-    assert "Traceback" not in text and "RuntimeError" not in text and " ERROR " not in text, text[-3000:]
+    assert "Traceback" not in text and "RuntimeError" not in text, text[-3000:]
+    assert "re_sdk" not in text and "re_grpc_client" not in text, f"rerun-sdk's own log lines: {text[-3000:]}"
     assert not processes_mentioning(f"--web-viewer-port {web}"), "the viewer's process outlived the flight"
     assert stream is not None and stream.pieces, f"the browser received nothing from Rerun's data server ({stream and stream.urls})"
     # the flight's end: the supervisor's verdict line

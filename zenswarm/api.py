@@ -150,7 +150,8 @@ class Flight:
 
     series: one sample per control tick (:class:`zenswarm.judge.metrics.TimeSeries`: ``t`` (T,) s,
     ``q0``/``v0`` (T, 3) leader, ``qref``/``vref`` (T, N, 3) references, ``q``/``v``/``rpy``
-    (T, N, 3) vehicle states, ``u`` (T, N, 3) m/s^2, ``thrust`` (T, N) N, ``d_hat`` (T, N, 3)).
+    (T, N, 3) measured vehicle states, ``u`` (T, N, 3) m/s^2, ``thrust`` (T, N) N commanded,
+    ``d_hat`` (T, N, 3), ``rpy_cmd`` (T, N, 3) rad commanded attitude).
     results: ``results.json`` as a dict (schema in docs/verdict.md). exit_code: what the command
     line would have returned (0 success, 1 mission failed, 3 a process died, 4 a plug-in failed:
     ``plugin_error``, 130 interrupted). ``formation_error``: (T, N) m, per tick.
