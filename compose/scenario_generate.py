@@ -47,7 +47,8 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         help="write a random but valid scenario file (N UAVs, formation, graph, obstacles)",
         description=(
             "Generate a scenario TOML with N UAVs in a formation shape, a connected communication "
-            "graph, pinning that satisfies Lemma 1 (M = L + B positive definite) and seeded, "
+            "graph (written by name: [graph] topology, and k for knn), pinning that satisfies Lemma 1 "
+            "(M = L + B positive definite) and seeded, "
             "non-overlapping capped-cylinder obstacles between the leader's start and goal. "
             "Gains are the paper's. The file is validated before it is written."
         ),

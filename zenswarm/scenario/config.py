@@ -391,6 +391,12 @@ def load_scenario(path: str | Path) -> Scenario:
     A relative ``[faults] trace`` path is made relative to the scenario file's directory.
     Raises :class:`ScenarioError` (field ``file``) when the file is missing or not valid TOML.
     """
+    return scenario_of_document(read_document(path), path)
+
+
+def read_document(path: str | Path) -> dict[str, Any]:
+    """A scenario file parsed as TOML (not validated: :func:`scenario_of_document`); ScenarioError
+    (field ``file``) when it is missing or not valid TOML."""
     p = Path(path)
     try:
         raw = p.read_bytes()
@@ -402,9 +408,15 @@ def load_scenario(path: str | Path) -> Scenario:
         doc = tomllib.loads(raw.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise ScenarioError("file", f"{p} is not valid TOML: {e}") from None
+    return doc
+
+
+def scenario_of_document(doc: dict[str, Any], path: str | Path) -> Scenario:
+    """The validated scenario of a document :func:`read_document` read from ``path`` (a relative
+    ``[faults] trace`` made relative to the file's directory)."""
     sc = scenario_from_dict(doc)
     if sc.faults is not None and sc.faults.trace is not None and not Path(sc.faults.trace).is_absolute():
-        sc = replace(sc, faults=msgspec.structs.replace(sc.faults, trace=str(p.parent.absolute() / sc.faults.trace)))
+        sc = replace(sc, faults=msgspec.structs.replace(sc.faults, trace=str(Path(path).parent.absolute() / sc.faults.trace)))
     return sc
 
 

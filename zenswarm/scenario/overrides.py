@@ -188,12 +188,12 @@ def load_file(path: Any, overrides: Mapping[str, Any]) -> Scenario:
 
     import msgspec
 
-    from zenswarm.scenario.config import load_scenario
+    from zenswarm.scenario.config import read_document, scenario_of_document
 
-    sc = load_scenario(path)  # the file's own errors first, as such
+    doc = read_document(path)  # parsed once (a large scenario's TOML is its slowest part)
+    sc = scenario_of_document(doc, path)  # the file's own errors first, as such
     if not overrides:
         return sc
-    doc = tomllib.loads(Path(path).read_text(encoding="utf-8"))
     sc = validated(doc, overrides, plugins=False)
     if sc.faults is not None and sc.faults.trace is not None and not Path(sc.faults.trace).is_absolute():
         trace = str(Path(path).parent.absolute() / sc.faults.trace)
