@@ -56,8 +56,16 @@ Log variables (names, types and units as the firmware's): ``stateEstimate.{x,y,z
 ``pm.batteryLevel`` (%), ``pm.state``, ``radio.rssi``, ``supervisor.info``. Parameters: see
 :data:`PARAMS`.
 
-Not simulated: memories, trajectories in memory, tumble detection, the Kalman filter (the state
-is the true state), external position (extpos packets on port 6 are counted and ignored),
+* localization (port 6): external position (channel 0 EXT_POSITION ``<fff``, the generic
+  channel's EXT_POSE, channel 2 EXT_POSITION_PACKED for this vehicle's id = its number i)
+  (``crtp_localization_service.c``). The estimator: the true state until the first external
+  position; from then on the last measurement dead-reckoned on the velocity with a small bias
+  (:data:`ESTIMATOR_DRIFT_M_S`), so a silent feed drifts. The logged ``stateEstimate.x/y/z``, the
+  high-level commander and the position controller use that estimate (the motion is the
+  plant's true one).
+
+Not simulated: memories, trajectories in memory, tumble detection, the Kalman filter (the
+estimate is the true state, or the external positions as above), the quaternion of EXT_POSE,
 radio link statistics (the UDP driver has none), console text.
 
 Test hooks: :meth:`CrazyflieFleet.silence` drops one vehicle's traffic both ways for a while
@@ -102,6 +110,9 @@ LOG_MAX_PAYLOAD = 26  # 30 bytes - block id - 3-byte timestamp
 WDT_STABILIZE_S, WDT_SHUTDOWN_S = 0.5, 2.0  # supervisor.c COMMANDER_WDT_TIMEOUT_*
 IS_FLYING_HYSTERESIS_S = 2.0  # supervisor.c
 LANDING_TIMEOUT_S, PREFLIGHT_TIMEOUT_S = 3.0, 30.0  # platform_defaults.h
+LOC_EXT_POSE = 8  # crtp_localization_service.c, the generic channel's EXT_POSE
+ESTIMATOR_DRIFT_M_S = np.array([0.02, 0.02, 0.0])
+"""The simulated estimator's velocity bias, m/s, once it follows external positions (:meth:`SimCrazyflie.estimate`)."""
 PRIORITY_DISABLE, PRIORITY_LOWEST, PRIORITY_HIGHLEVEL, PRIORITY_CRTP = 0, 1, 1, 2  # commander.h
 
 # log types (log.h) -> struct code
@@ -245,6 +256,10 @@ class SimCrazyflie:
         self.level_thrust = 0  # the thrust kept while levelling out
         self.flight_s = 0.0
         self.vbat = 4.15
+        # estimator (external position)
+        self.radio_id = (index + 1) & 0xFF  # the radio address's last byte (EXT_POSITION_PACKED's id)
+        self.extpos_q: np.ndarray | None = None
+        self.extpos_t = 0.0
 
     # ------------------------------------------------------------------ helpers
     def _count(self, name: str, k: int = 1) -> None:
@@ -351,9 +366,47 @@ class SimCrazyflie:
         elif port == PORT_HL and ch == 0:
             self._high_level(d, now, q, rpy)
         elif port == PORT_LOCALIZATION:
-            self._count("localization_ignored")
+            self._localization(ch, d, now)
         else:
             self._count("rx_unhandled")
+
+    # ---- localization (crtp_localization_service.c)
+    def _localization(self, ch: int, d: bytes, now: float) -> None:
+        """Port 6: channel 0 EXT_POSITION ``<fff`` (x, y, z m); channel 1 (generic) type 8 EXT_POSE
+        ``<B7f`` (x, y, z m, qx, qy, qz, qw: the position is taken, the quaternion ignored);
+        channel 2 EXT_POSITION_PACKED, up to 4 items ``<Bhhh`` (id, x, y, z mm), the item whose id
+        is this vehicle's (the radio address's last byte; here the vehicle's number i) taken.
+        Anything else on the port is counted and ignored."""
+        if ch == 0:
+            self.feed_position(struct.unpack_from("<fff", d), now)
+        elif ch == 1 and d[:1] == bytes([LOC_EXT_POSE]):
+            self.feed_position(struct.unpack_from("<fff", d, 1), now)
+        elif ch == 2:
+            for k in range(0, len(d) - 6, 7):
+                ident, x, y, z = struct.unpack_from("<Bhhh", d, k)
+                if ident == self.radio_id:
+                    self.feed_position((x / 1000.0, y / 1000.0, z / 1000.0), now)
+        else:
+            self._count("localization_ignored")
+
+    def feed_position(self, xyz: Any, now: float) -> None:
+        """An external position measurement (m, the positioning system's frame): the estimator's
+        position from now on (see :meth:`estimate`)."""
+        p = np.array([float(c) for c in xyz])
+        if not np.all(np.isfinite(p)):
+            self._count("extpos_rejected")
+            return
+        self.extpos_q, self.extpos_t = p, now
+        self._count("extpos")
+
+    def estimate(self, now: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """The estimator's position (m): the true one until an external position arrives; then the
+        last measurement dead-reckoned on the velocity with a bias, ``p_ext + (v +
+        ESTIMATOR_DRIFT_M_S) (now - t_ext)`` (the Kalman filter's prediction between measurements;
+        the bias stands for what a real one drifts without them: 1 cm per half second)."""
+        if self.extpos_q is None:
+            return q
+        return self.extpos_q + (v + ESTIMATOR_DRIFT_M_S) * (now - self.extpos_t)
 
     def _link(self, ch: int, d: bytes, now: float) -> None:
         if ch == 0:  # echo
@@ -805,8 +858,9 @@ class CrazyflieFleet:
         roll, pitch, yaw = cfu.attitude_to_log(st.rpy[i])
         now = time.monotonic()
         w = np.degrees(st.w[i])
+        q = veh.estimate(now, st.q[i], st.v[i])
         table = {
-            "stateEstimate.x": st.q[i, 0], "stateEstimate.y": st.q[i, 1], "stateEstimate.z": st.q[i, 2],
+            "stateEstimate.x": q[0], "stateEstimate.y": q[1], "stateEstimate.z": q[2],
             "stateEstimate.vx": st.v[i, 0], "stateEstimate.vy": st.v[i, 1], "stateEstimate.vz": st.v[i, 2],
             "stateEstimate.roll": roll, "stateEstimate.pitch": pitch, "stateEstimate.yaw": yaw,
             "stabilizer.roll": roll, "stabilizer.pitch": pitch, "stabilizer.yaw": yaw,
@@ -822,13 +876,14 @@ class CrazyflieFleet:
     def poll(self, now: float) -> None:
         st = self.state
         for i, veh in enumerate(self.vehicles):
-            veh.receive(now, st.q[i], st.rpy[i])
+            veh.receive(now, veh.estimate(now, st.q[i], st.v[i]), st.rpy[i])
 
     def tick(self, now: float) -> None:
         """One loop period: control, a physics chunk, the log blocks that are due."""
         st = self.state
         for i, veh in enumerate(self.vehicles):
-            f, att = veh.control(now, self.period, st.q[i].copy(), st.v[i].copy(), st.rpy[i].copy())
+            q_est = veh.estimate(now, st.q[i], st.v[i]).copy()  # the controllers fly the estimate
+            f, att = veh.control(now, self.period, q_est, st.v[i].copy(), st.rpy[i].copy())
             self.thrust[i] = f
             self.rpy_cmd[i] = att
         for _ in range(self.chunk):
