@@ -71,7 +71,9 @@ radio link statistics (the UDP driver has none), console text.
 Test hooks: :meth:`CrazyflieFleet.silence` drops one vehicle's traffic both ways for a while
 (physics goes on: a lost link), :meth:`CrazyflieFleet.status`.
 
-``zenswarm crazyflie-vehicle SCENARIO --base-port P`` runs the fleet until SIGTERM/SIGINT.
+``zenswarm crazyflie-vehicle SCENARIO --base-port P`` runs the fleet until SIGTERM/SIGINT; with
+``--mocap --swarm S --connect EP`` it is also the motion-capture system: :class:`MocapFeeder`
+publishes the true positions on ``swarm/S/mocap/<i>``.
 """
 
 from __future__ import annotations
@@ -832,6 +834,7 @@ class CrazyflieFleet:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
+        self.on_tick: Callable[[float], None] | None = None  # called after every tick (the mocap feeder)
 
     @classmethod
     def from_scenario(cls, sc: Any, base_port: int = DEFAULT_BASE_PORT, host: str = "127.0.0.1") -> CrazyflieFleet:
@@ -893,6 +896,8 @@ class CrazyflieFleet:
         for i, veh in enumerate(self.vehicles):
             if veh.blocks:
                 veh.send_logs(now, self._values(i))
+        if self.on_tick is not None:
+            self.on_tick(now)
 
     def _ground(self) -> None:
         st = self.state
@@ -971,10 +976,68 @@ class CrazyflieFleet:
         ]  # fmt: skip
 
 
-def run_fleet(sc: Any, *, base_port: int = DEFAULT_BASE_PORT, host: str = "127.0.0.1", duration: float | None = None) -> int:
+class MocapFeeder:
+    """A motion-capture system for the simulated fleet: publishes every vehicle's true position
+    on ``swarm/<name>/mocap/<i>`` (:mod:`zenswarm.bus.mocap`) at ``rate_hz``, from the fleet's
+    loop (:attr:`CrazyflieFleet.on_tick`)."""
+
+    def __init__(self, fleet: CrazyflieFleet, session: Any, prefix: str, rate_hz: float = 100.0) -> None:
+        from zenswarm.bus.mocap import mocap_key
+
+        self.fleet = fleet
+        self.pubs = [session.declare_publisher(mocap_key(prefix, i + 1)) for i in range(fleet.n)]
+        self.period = 1.0 / float(rate_hz)
+        self.next_t = 0.0
+        self.sent = 0
+        self.mute: set[int] = set()  # vehicles (0-based) whose feed is cut (a test hook: a lost marker)
+
+    def __call__(self, now: float) -> None:
+        from zenswarm.bus.mocap import encode_mocap
+
+        if now < self.next_t:
+            return
+        self.next_t = max(self.next_t + self.period, now - self.period)
+        t = time.time()
+        for i, pub in enumerate(self.pubs):
+            if i not in self.mute:
+                pub.put(encode_mocap(t, *self.fleet.state.q[i]))
+        self.sent += 1
+
+    def close(self) -> None:
+        from zenswarm.bus import undeclare
+
+        for pub in self.pubs:
+            undeclare(pub)
+
+
+def run_fleet(
+    sc: Any, *, base_port: int = DEFAULT_BASE_PORT, host: str = "127.0.0.1", duration: float | None = None,
+    mocap: tuple[str, list[str]] | None = None, mocap_hz: float = 100.0,
+) -> int:  # fmt: skip
     """Run the fleet of scenario ``sc`` in the calling thread until SIGTERM/SIGINT (or
-    ``duration`` s). A port that cannot be bound: :class:`ScenarioError` naming it (exit 2)."""
+    ``duration`` s). A port that cannot be bound: :class:`ScenarioError` naming it (exit 2).
+    ``mocap`` = (swarm name, Zenoh connect endpoints): also publish the vehicles' true positions
+    as a motion-capture feed (:class:`MocapFeeder`) at ``mocap_hz``."""
     fleet = CrazyflieFleet.from_scenario(sc, base_port=base_port, host=host)
+    if mocap is None:
+        return _run_fleet(fleet, duration)
+    from zenswarm import bus
+    from zenswarm.bus.wire import Keys
+
+    try:
+        with bus.open_session(bus.client_config(mocap[1]), handle_signals=False) as session:
+            feeder = MocapFeeder(fleet, session, Keys(mocap[0]).prefix, mocap_hz)
+            fleet.on_tick = feeder
+            try:
+                return _run_fleet(fleet, duration, f"; mocap on swarm/{mocap[0]}/mocap/<i> at {mocap_hz:g} Hz")
+            finally:
+                fleet.on_tick = None
+                feeder.close()
+    finally:
+        fleet.close()
+
+
+def _run_fleet(fleet: CrazyflieFleet, duration: float | None, extra: str = "") -> int:
     stop = threading.Event()
 
     def on_signal(signum: int, frame: Any) -> None:
@@ -983,7 +1046,7 @@ def run_fleet(sc: Any, *, base_port: int = DEFAULT_BASE_PORT, host: str = "127.0
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, on_signal)
     try:
-        print(f"crazyflie-vehicle: ready: {fleet.n} Crazyflie(s) at " + ", ".join(fleet.uris()), flush=True)
+        print(f"crazyflie-vehicle: ready: {fleet.n} Crazyflie(s) at " + ", ".join(fleet.uris()) + extra, flush=True)
         why = fleet.run(stop, duration)
         print(f"crazyflie-vehicle: stopped ({why}); overruns {fleet.overruns}; {fleet.status()}", flush=True)
     finally:

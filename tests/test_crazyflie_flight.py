@@ -211,3 +211,37 @@ def test_crazyflie_vehicle_busy_port_is_exit_2(tmp_path: Path) -> None:
         s.close()
     assert cp.returncode == 2 and "--base-port" in cp.stdout and "cannot be bound" in cp.stdout, cp.stdout
     _no_traceback(cp.stdout)
+
+
+def test_flight_with_extpos_forwards_the_mocap_feed_to_the_vehicles(tmp_path: Path) -> None:
+    """positioning = "extpos": the simulated vehicles are the mocap system too (``crazyflie-vehicle
+    --mocap``, swarm/<name>/mocap/<i>), the bridge forwards each position with cflib's extpos."""
+    swarm, port, base = unique_swarm("cfx"), free_port(), free_udp_block(N_UAV)
+    out = tmp_path / "run"
+    scenario = _scenario(tmp_path, {"positioning": "extpos"})
+    try:
+        cp = _up(scenario, out, swarm, port, "--crazyflie-base-port", str(base), "--duration", "6")
+    finally:
+        left = processes_mentioning(f"--base-port {base}")
+        kill_mentioning(f"--base-port {base}")
+    assert not left, f"vehicles left behind: {left}"
+    _no_traceback(cp.stdout)
+    assert f"mocap on swarm/{swarm}/mocap/<i>" in cp.stdout, cp.stdout[-3000:]
+    assert "positioning extpos: forwarding" in cp.stdout
+    res = read_results(out)
+    veh = res["vehicles"]
+    assert veh["positioning"] == "extpos" and not res["failsafe"], (veh, res["failsafe"])
+    assert veh["phases"] == "1:done,2:done,3:done", veh  # armed only with a fed position, flown, landed
+    assert 0 <= veh["max_extpos_age_ms"] < 1000, veh  # the feed went on to the end
+    # forwarded at the feed's rate (100 Hz) to 3 vehicles through takeoff, about 6 s of mission and the landing
+    assert res["diagnostics"]["bridge"]["extpos_sent"] > 900, res["diagnostics"]["bridge"]
+    assert res["decoder_rejects"]["rejected"] == 0
+    assert "mission clock started with UAV(s) [1, 2, 3]" in cp.stdout
+
+
+def test_bad_positioning_exits_2_naming_it(tmp_path: Path) -> None:
+    cp = _bridge(_scenario(tmp_path, {"positioning": "vicon"}))
+    assert cp.returncode == 2, cp.stdout
+    assert "crazyflie.positioning" in cp.stdout and "vicon" in cp.stdout, cp.stdout
+    _no_traceback(cp.stdout)
+
