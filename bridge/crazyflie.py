@@ -43,10 +43,16 @@ cflib's link to its URI (``radio://0/80/2M/E7E7E7E701``, ``udp://HOST:PORT``, ``
    which hands control back to it), and the UAV is ``done`` once ``supervisor.info`` says it is no
    longer flying (at most ``land_timeout_s``); then the links close.
 
+With ``positioning = "extpos"`` the bridge also forwards the external positioning feed
+(``swarm/<name>/mocap/<i>``, :mod:`zenswarm.bus.mocap`) to each vehicle as it arrives (cflib
+``extpos.send_extpos``), arms a vehicle only once its feed runs, and lands one whose feed is silent
+for ``link_timeout_s`` (the named failsafe ``positioning_lost``).
+
 Diagnostics (``diag/bridge``): per UAV its phase, reason, URI, health, battery (V and %),
 supervisor bits, link quality (state packets received over those expected in the last second),
 state age (ms, from the vehicle's own log timestamps: the clock offset is the fastest delivery
-seen) and the traffic counted both ways (``tx_bytes``, ``rx_bytes``, ``tx_packets``, ``rx_packets``).
+seen), the fed position's age (``extpos_age_ms``) and count (``extpos_sent``) and the traffic
+counted both ways (``tx_bytes``, ``rx_bytes``, ``tx_packets``, ``rx_packets``).
 """
 
 from __future__ import annotations
@@ -132,6 +138,9 @@ class CfLink:
         self.probe: socket.socket | None = None  # udp:// links: the null-packet probe before cflib opens the link
         self.probe_t = -math.inf
         self.opened = False
+        self.mocap_rx = -math.inf  # monotonic s of the last fed position (positioning = extpos)
+        self.extpos_sent = 0
+        self.positioning_lost = False
 
     def unwrap_ms(self, ts: int) -> float:
         """The 24-bit ms log timestamp as seconds since the vehicle booted (wraps every 4.66 h)."""
@@ -157,6 +166,8 @@ class CfLink:
             "battery_pct": self.battery_pct, "rssi": self.rssi, "link_quality": self.link_quality(now, rate_hz),
             "silent_s": round(now - self.pos_rx, 3) if math.isfinite(self.pos_rx) else None,
             "state_age_ms": round(self.state_age_s * 1000.0, 2) if self.state_age_s is not None else -1.0,
+            "extpos_sent": self.extpos_sent,
+            "extpos_age_ms": round((now - self.mocap_rx) * 1000.0, 1) if math.isfinite(self.mocap_rx) else -1.0,
             **self.traffic,
         }  # fmt: skip
 
@@ -179,6 +190,33 @@ class CrazyflieBridge:
         self.period = 1.0 / settings.rate_hz
         self.log_period_ms = max(10, int(round(1000.0 / settings.rate_hz / 10.0)) * 10)
         self.grace_until = -math.inf  # after a stall of our own loop: silence is not judged until then
+        self.extpos = settings.positioning == "extpos"
+
+    def on_mocap(self, uav: int, payload: bytes) -> None:
+        """A fed position of UAV ``uav`` (``swarm/<name>/mocap/<i>``, :mod:`zenswarm.bus.mocap`):
+        forwarded at once to its Crazyflie's estimator (cflib ``extpos.send_extpos``, CRTP port 6)
+        once its link is up; on the feed's thread, so at the feed's rate."""
+        from zenswarm.bus.mocap import decode_mocap
+
+        if not 1 <= uav <= len(self.links):
+            self._count("mocap_unknown_uav")
+            return
+        try:
+            m = decode_mocap(payload)
+        except ValueError:  # msgspec's DecodeError and ValidationError are ValueErrors
+            self._count("mocap_rejected")
+            return
+        if not all(math.isfinite(c) for c in (m.x, m.y, m.z)):
+            self._count("mocap_rejected")
+            return
+        link = self.links[uav - 1]
+        with link.lock:
+            link.mocap_rx = time.monotonic()
+            cf = link.cf if link.phase not in (CONNECTING, REFUSED, DONE, LOST) else None
+        if cf is not None and cf.is_connected():
+            cf.extpos.send_extpos(m.x, m.y, m.z)
+            link.extpos_sent += 1
+            self._count("extpos_sent")
 
     # ------------------------------------------------------------------ helpers
     def _count(self, name: str, k: float = 1) -> None:
@@ -339,6 +377,14 @@ class CrazyflieBridge:
                 self.log(f"bridge: uav {link.uav}: link back")
             if link.healthy and link.sup_info >= 0 and link.sup_info & BIT_LOCKED and link.phase in (READY, TAKEOFF, ARM):
                 self._set_phase(link, LOST, now, "locked by its commander watchdog (a reboot is needed)")
+            elif self.extpos and link.phase in (TAKEOFF, READY) and now >= self.grace_until:
+                quiet = now - link.mocap_rx
+                if quiet > self.s.link_timeout_s and link.healthy:
+                    link.positioning_lost = True
+                    self._count("positioning_lost")
+                    self.log(f"bridge: uav {link.uav}: no external position for {quiet:.2f} s: failsafe positioning_lost, "
+                             "landed by its high-level commander on its own (drifting) estimate")  # fmt: skip
+                    self._land(link, now, "positioning lost")
 
     def advance(self, now: float) -> None:
         for link in self.links:
@@ -363,6 +409,10 @@ class CrazyflieBridge:
             self._set_phase(link, REFUSED, now, "no state from the log blocks")
 
     def _step_arm(self, link: CfLink, now: float) -> None:
+        if self.extpos and now - link.mocap_rx > self.s.link_timeout_s:  # never arm without a position
+            if now - link.phase_t > self.s.connect_timeout_s:
+                self._set_phase(link, REFUSED, now, f"no external position on mocap/{link.uav} within {self.s.connect_timeout_s:g} s")
+            return
         if link.sup_info & BIT_ARMED:
             self._count("armed")
             if self.s.takeoff:
@@ -469,6 +519,7 @@ class CrazyflieBridge:
         """The named failsafe for the collector: ``"2:link_lost,3:lost"``, or ``"none"``."""
         parts = [f"{lk.uav}:link_lost" for lk in self.links if not lk.healthy and lk.phase not in (DONE, REFUSED)]
         parts += [f"{lk.uav}:lost" for lk in self.links if lk.phase == LOST]
+        parts += [f"{lk.uav}:positioning_lost" for lk in self.links if lk.positioning_lost]
         return ",".join(parts) or "none"
 
     def info(self, now: float) -> dict[str, Any]:
@@ -479,6 +530,8 @@ class CrazyflieBridge:
             "airborne_uavs": sum(1 for u in uavs.values() if u["flying"]),
             "unhealthy_uavs": sum(1 for lk in self.links if not lk.healthy),
             "max_state_age_ms": max((u["state_age_ms"] for u in uavs.values()), default=-1.0),
+            "positioning": self.s.positioning,
+            "max_extpos_age_ms": max((u["extpos_age_ms"] for u in uavs.values()), default=-1.0),
             "failsafe": self.failsafe(),
             "refused": sum(1 for lk in self.links if lk.phase == REFUSED),
             "link_lost": int(self.counters["link_lost"]),
@@ -586,17 +639,36 @@ def _run(proc: Any) -> int:
         proc.subscribe(key, "cmd")
     bridge = CrazyflieBridge(settings, sc, proc.counters, latest, proc.log)
     proc.announce()
+    mocap_sub = None
+    if bridge.extpos:  # the external positioning feed, forwarded to each vehicle (zenswarm.bus.mocap)
+        from zenswarm.bus.mocap import mocap_all
+
+        def on_mocap(sample: Any) -> None:
+            tail = str(sample.key_expr).rsplit("/", 1)[-1]
+            if tail.isdigit():
+                bridge.on_mocap(int(tail), sample.payload.to_bytes())
+
+        mocap_sub = proc._zenoh().declare_subscriber(mocap_all(proc.keys.prefix), on_mocap)
+        proc.log(f"bridge: positioning extpos: forwarding {mocap_all(proc.keys.prefix)} to the vehicles")
     loop = _BridgeLoop(proc, bridge, settings)  # type: ignore[arg-type]
     proc.log(
         f"bridge: {sc.n} Crazyflie(s), {1 / loop.period:g} Hz setpoints, " + ", ".join(f"uav {lk.uav}: {lk.uri}" for lk in bridge.links)
     )
+    t_end: float | None = None
     try:
         bridge.open()
         loop.fly()
         loop.land()
+        t_end = time.monotonic()  # the final figures (ages) as of the end of the flight, not after closing the links
     finally:
+        if mocap_sub is not None:
+            from zenswarm.bus import undeclare
+
+            undeclare(mocap_sub)
         bridge.close()
-    proc.publish_diag(max(loop.k_tick, 0) * loop.dt_ns, {**bridge.info(time.monotonic()), "finished": loop.finished, "closed": True})
+    proc.publish_diag(
+        max(loop.k_tick, 0) * loop.dt_ns, {**bridge.info(t_end or time.monotonic()), "finished": loop.finished, "closed": True}
+    )
     return loop.code
 
 
@@ -619,6 +691,7 @@ def _cli_overrides(args: argparse.Namespace) -> dict[str, Any]:
         "land_timeout_s": getattr(args, "land_timeout", None),
         "connect_timeout_s": getattr(args, "connect_timeout", None),
         "start_timeout_s": getattr(args, "start_timeout", None),
+        "positioning": getattr(args, "positioning", None),
     }
 
 
@@ -669,6 +742,8 @@ def add_crazyflie_parser(bridge_sub: argparse._SubParsersAction) -> None:
     g.add_argument("--connect-timeout", type=float, metavar="S", help="give a vehicle up if cflib has not connected after S")
     g.add_argument("--land-timeout", type=float, metavar="S", help="wait at most S for the vehicles to land")
     g.add_argument("--start-timeout", type=float, metavar="S", help="start the mission after S even if some UAV is not ready")
+    g.add_argument("--positioning", choices=("onboard", "extpos"),
+                   help="extpos: forward swarm/<name>/mocap/<i> to each vehicle (overrides crazyflie.positioning)")  # fmt: skip
     g.add_argument("--no-wait-alive", action="store_true", help="start the mission clock without waiting for the leader and agents")
     g.add_argument("--expect", action="append", metavar="PROCESS", help="also wait for this process before starting the mission clock")
     p.set_defaults(func=_main_args)

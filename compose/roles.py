@@ -157,7 +157,17 @@ def _main_crazyflie_fleet(args: argparse.Namespace) -> int:
         )
     if not 1 <= args.base_port <= 65535 - sc.n:
         raise ScenarioError("--base-port", f"must leave room for {sc.n} UDP ports below 65536, got {args.base_port}")
-    return run_fleet(sc, base_port=args.base_port, host=args.host, duration=args.duration)
+    mocap = None
+    if args.mocap:
+        from zenswarm import bus
+        from zenswarm.bus.wire import validate_swarm_name
+
+        if not args.swarm or not args.connect:
+            raise ScenarioError("--mocap", "needs --swarm NAME and --connect ENDPOINT (where the bridge listens for the feed)")
+        mocap = (validate_swarm_name(args.swarm), bus.check_endpoint_syntax(args.connect, "--connect"))
+    if not args.mocap_hz > 0:
+        raise ScenarioError("--mocap-hz", f"must be > 0, got {args.mocap_hz}")
+    return run_fleet(sc, base_port=args.base_port, host=args.host, duration=args.duration, mocap=mocap, mocap_hz=args.mocap_hz)
 
 
 def add_crazyflie_vehicles_parser(sub: argparse._SubParsersAction) -> None:
@@ -181,6 +191,14 @@ def add_crazyflie_vehicles_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until SIGTERM/SIGINT)")
+    p.add_argument(
+        "--mocap",
+        action="store_true",
+        help="also be the motion-capture system: publish the true positions on swarm/NAME/mocap/<i> (positioning = extpos)",
+    )
+    p.add_argument("--mocap-hz", type=float, default=100.0, metavar="HZ", help="the feed's rate (default 100 Hz)")
+    p.add_argument("--swarm", metavar="NAME", help="swarm name of the mocap feed")
+    p.add_argument("--connect", action="append", metavar="ENDPOINT", help="Zenoh router of the mocap feed (repeatable)")
     p.set_defaults(func=_main_crazyflie_fleet)
 
 

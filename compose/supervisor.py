@@ -293,7 +293,10 @@ class Supervisor:
         if role == "recorder":
             return argv + self._recorder_argv()
         if role == "vehicles" and self.cf_base_port is not None:  # simulated Crazyflies (CRTP over UDP, no Zenoh)
-            return argv + ["crazyflie-vehicle", str(self.args.scenario), "--base-port", str(self.cf_base_port)]
+            argv += ["crazyflie-vehicle", str(self.args.scenario), "--base-port", str(self.cf_base_port)]
+            if self.sc.crazyflie is not None and self.sc.crazyflie.positioning == "extpos":  # they are the mocap system too
+                argv += ["--mocap", "--swarm", self.args.swarm, *[w for ep in self.connect_endpoints for w in ("--connect", ep)]]
+            return argv
         if role == "vehicles":  # simulated MAVLink vehicles (no Zenoh): the bridge talks to them over UDP
             a = self.args
             # as PX4 SITL and real autopilots: each vehicle's NED about where it booted, and
@@ -799,11 +802,13 @@ class Supervisor:
     def _vehicles_figures(self, collector: Collector) -> dict[str, Any] | None:
         """results.json ``vehicles``: the MAVLink vehicles as the bridge last reported them
         (phases, armed/airborne/unhealthy counts, worst link latency and state age in ms, -1 if
-        unmeasured) and the vehicles process's exit status; None without ``--plant mavlink``."""
+        unmeasured; the Crazyflie bridge's positioning and oldest fed position's age, ms) and the
+        vehicles process's exit status; None without ``--plant mavlink``."""
         if "vehicles" not in self.children and "bridge" not in collector.diag:
             return None
         d = collector.diag.get("bridge", {})
-        keys = ("phases", "armed_uavs", "airborne_uavs", "unhealthy_uavs", "max_latency_ms", "max_state_age_ms", "refused", "link_lost")
+        keys = ("phases", "armed_uavs", "airborne_uavs", "unhealthy_uavs", "max_latency_ms", "max_state_age_ms", "refused", "link_lost",
+                "positioning", "max_extpos_age_ms")  # fmt: skip
         out: dict[str, Any] = {k: d[k] for k in keys if k in d}
         c = self.children.get("vehicles")
         if c is not None:

@@ -56,14 +56,24 @@ Log variables (names, types and units as the firmware's): ``stateEstimate.{x,y,z
 ``pm.batteryLevel`` (%), ``pm.state``, ``radio.rssi``, ``supervisor.info``. Parameters: see
 :data:`PARAMS`.
 
-Not simulated: memories, trajectories in memory, tumble detection, the Kalman filter (the state
-is the true state), external position (extpos packets on port 6 are counted and ignored),
+* localization (port 6): external position (channel 0 EXT_POSITION ``<fff``, the generic
+  channel's EXT_POSE, channel 2 EXT_POSITION_PACKED for this vehicle's id = its number i)
+  (``crtp_localization_service.c``). The estimator: the true state until the first external
+  position; from then on the last measurement dead-reckoned on the velocity with a small bias
+  (:data:`ESTIMATOR_DRIFT_M_S`), so a silent feed drifts. The logged ``stateEstimate.x/y/z``, the
+  high-level commander and the position controller use that estimate (the motion is the
+  plant's true one).
+
+Not simulated: memories, trajectories in memory, tumble detection, the Kalman filter (the
+estimate is the true state, or the external positions as above), the quaternion of EXT_POSE,
 radio link statistics (the UDP driver has none), console text.
 
 Test hooks: :meth:`CrazyflieFleet.silence` drops one vehicle's traffic both ways for a while
 (physics goes on: a lost link), :meth:`CrazyflieFleet.status`.
 
-``zenswarm crazyflie-vehicle SCENARIO --base-port P`` runs the fleet until SIGTERM/SIGINT.
+``zenswarm crazyflie-vehicle SCENARIO --base-port P`` runs the fleet until SIGTERM/SIGINT; with
+``--mocap --swarm S --connect EP`` it is also the motion-capture system: :class:`MocapFeeder`
+publishes the true positions on ``swarm/S/mocap/<i>``.
 """
 
 from __future__ import annotations
@@ -102,6 +112,9 @@ LOG_MAX_PAYLOAD = 26  # 30 bytes - block id - 3-byte timestamp
 WDT_STABILIZE_S, WDT_SHUTDOWN_S = 0.5, 2.0  # supervisor.c COMMANDER_WDT_TIMEOUT_*
 IS_FLYING_HYSTERESIS_S = 2.0  # supervisor.c
 LANDING_TIMEOUT_S, PREFLIGHT_TIMEOUT_S = 3.0, 30.0  # platform_defaults.h
+LOC_EXT_POSE = 8  # crtp_localization_service.c, the generic channel's EXT_POSE
+ESTIMATOR_DRIFT_M_S = np.array([0.02, 0.02, 0.0])
+"""The simulated estimator's velocity bias, m/s, once it follows external positions (:meth:`SimCrazyflie.estimate`)."""
 PRIORITY_DISABLE, PRIORITY_LOWEST, PRIORITY_HIGHLEVEL, PRIORITY_CRTP = 0, 1, 1, 2  # commander.h
 
 # log types (log.h) -> struct code
@@ -245,6 +258,10 @@ class SimCrazyflie:
         self.level_thrust = 0  # the thrust kept while levelling out
         self.flight_s = 0.0
         self.vbat = 4.15
+        # estimator (external position)
+        self.radio_id = (index + 1) & 0xFF  # the radio address's last byte (EXT_POSITION_PACKED's id)
+        self.extpos_q: np.ndarray | None = None
+        self.extpos_t = 0.0
 
     # ------------------------------------------------------------------ helpers
     def _count(self, name: str, k: int = 1) -> None:
@@ -351,9 +368,47 @@ class SimCrazyflie:
         elif port == PORT_HL and ch == 0:
             self._high_level(d, now, q, rpy)
         elif port == PORT_LOCALIZATION:
-            self._count("localization_ignored")
+            self._localization(ch, d, now)
         else:
             self._count("rx_unhandled")
+
+    # ---- localization (crtp_localization_service.c)
+    def _localization(self, ch: int, d: bytes, now: float) -> None:
+        """Port 6: channel 0 EXT_POSITION ``<fff`` (x, y, z m); channel 1 (generic) type 8 EXT_POSE
+        ``<B7f`` (x, y, z m, qx, qy, qz, qw: the position is taken, the quaternion ignored);
+        channel 2 EXT_POSITION_PACKED, up to 4 items ``<Bhhh`` (id, x, y, z mm), the item whose id
+        is this vehicle's (the radio address's last byte; here the vehicle's number i) taken.
+        Anything else on the port is counted and ignored."""
+        if ch == 0:
+            self.feed_position(struct.unpack_from("<fff", d), now)
+        elif ch == 1 and d[:1] == bytes([LOC_EXT_POSE]):
+            self.feed_position(struct.unpack_from("<fff", d, 1), now)
+        elif ch == 2:
+            for k in range(0, len(d) - 6, 7):
+                ident, x, y, z = struct.unpack_from("<Bhhh", d, k)
+                if ident == self.radio_id:
+                    self.feed_position((x / 1000.0, y / 1000.0, z / 1000.0), now)
+        else:
+            self._count("localization_ignored")
+
+    def feed_position(self, xyz: Any, now: float) -> None:
+        """An external position measurement (m, the positioning system's frame): the estimator's
+        position from now on (see :meth:`estimate`)."""
+        p = np.array([float(c) for c in xyz])
+        if not np.all(np.isfinite(p)):
+            self._count("extpos_rejected")
+            return
+        self.extpos_q, self.extpos_t = p, now
+        self._count("extpos")
+
+    def estimate(self, now: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """The estimator's position (m): the true one until an external position arrives; then the
+        last measurement dead-reckoned on the velocity with a bias, ``p_ext + (v +
+        ESTIMATOR_DRIFT_M_S) (now - t_ext)`` (the Kalman filter's prediction between measurements;
+        the bias stands for what a real one drifts without them: 1 cm per half second)."""
+        if self.extpos_q is None:
+            return q
+        return self.extpos_q + (v + ESTIMATOR_DRIFT_M_S) * (now - self.extpos_t)
 
     def _link(self, ch: int, d: bytes, now: float) -> None:
         if ch == 0:  # echo
@@ -779,6 +834,7 @@ class CrazyflieFleet:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
+        self.on_tick: Callable[[float], None] | None = None  # called after every tick (the mocap feeder)
 
     @classmethod
     def from_scenario(cls, sc: Any, base_port: int = DEFAULT_BASE_PORT, host: str = "127.0.0.1") -> CrazyflieFleet:
@@ -805,8 +861,9 @@ class CrazyflieFleet:
         roll, pitch, yaw = cfu.attitude_to_log(st.rpy[i])
         now = time.monotonic()
         w = np.degrees(st.w[i])
+        q = veh.estimate(now, st.q[i], st.v[i])
         table = {
-            "stateEstimate.x": st.q[i, 0], "stateEstimate.y": st.q[i, 1], "stateEstimate.z": st.q[i, 2],
+            "stateEstimate.x": q[0], "stateEstimate.y": q[1], "stateEstimate.z": q[2],
             "stateEstimate.vx": st.v[i, 0], "stateEstimate.vy": st.v[i, 1], "stateEstimate.vz": st.v[i, 2],
             "stateEstimate.roll": roll, "stateEstimate.pitch": pitch, "stateEstimate.yaw": yaw,
             "stabilizer.roll": roll, "stabilizer.pitch": pitch, "stabilizer.yaw": yaw,
@@ -822,13 +879,14 @@ class CrazyflieFleet:
     def poll(self, now: float) -> None:
         st = self.state
         for i, veh in enumerate(self.vehicles):
-            veh.receive(now, st.q[i], st.rpy[i])
+            veh.receive(now, veh.estimate(now, st.q[i], st.v[i]), st.rpy[i])
 
     def tick(self, now: float) -> None:
         """One loop period: control, a physics chunk, the log blocks that are due."""
         st = self.state
         for i, veh in enumerate(self.vehicles):
-            f, att = veh.control(now, self.period, st.q[i].copy(), st.v[i].copy(), st.rpy[i].copy())
+            q_est = veh.estimate(now, st.q[i], st.v[i]).copy()  # the controllers fly the estimate
+            f, att = veh.control(now, self.period, q_est, st.v[i].copy(), st.rpy[i].copy())
             self.thrust[i] = f
             self.rpy_cmd[i] = att
         for _ in range(self.chunk):
@@ -838,6 +896,8 @@ class CrazyflieFleet:
         for i, veh in enumerate(self.vehicles):
             if veh.blocks:
                 veh.send_logs(now, self._values(i))
+        if self.on_tick is not None:
+            self.on_tick(now)
 
     def _ground(self) -> None:
         st = self.state
@@ -916,10 +976,68 @@ class CrazyflieFleet:
         ]  # fmt: skip
 
 
-def run_fleet(sc: Any, *, base_port: int = DEFAULT_BASE_PORT, host: str = "127.0.0.1", duration: float | None = None) -> int:
+class MocapFeeder:
+    """A motion-capture system for the simulated fleet: publishes every vehicle's true position
+    on ``swarm/<name>/mocap/<i>`` (:mod:`zenswarm.bus.mocap`) at ``rate_hz``, from the fleet's
+    loop (:attr:`CrazyflieFleet.on_tick`)."""
+
+    def __init__(self, fleet: CrazyflieFleet, session: Any, prefix: str, rate_hz: float = 100.0) -> None:
+        from zenswarm.bus.mocap import mocap_key
+
+        self.fleet = fleet
+        self.pubs = [session.declare_publisher(mocap_key(prefix, i + 1)) for i in range(fleet.n)]
+        self.period = 1.0 / float(rate_hz)
+        self.next_t = 0.0
+        self.sent = 0
+        self.mute: set[int] = set()  # vehicles (0-based) whose feed is cut (a test hook: a lost marker)
+
+    def __call__(self, now: float) -> None:
+        from zenswarm.bus.mocap import encode_mocap
+
+        if now < self.next_t:
+            return
+        self.next_t = max(self.next_t + self.period, now - self.period)
+        t = time.time()
+        for i, pub in enumerate(self.pubs):
+            if i not in self.mute:
+                pub.put(encode_mocap(t, *self.fleet.state.q[i]))
+        self.sent += 1
+
+    def close(self) -> None:
+        from zenswarm.bus import undeclare
+
+        for pub in self.pubs:
+            undeclare(pub)
+
+
+def run_fleet(
+    sc: Any, *, base_port: int = DEFAULT_BASE_PORT, host: str = "127.0.0.1", duration: float | None = None,
+    mocap: tuple[str, list[str]] | None = None, mocap_hz: float = 100.0,
+) -> int:  # fmt: skip
     """Run the fleet of scenario ``sc`` in the calling thread until SIGTERM/SIGINT (or
-    ``duration`` s). A port that cannot be bound: :class:`ScenarioError` naming it (exit 2)."""
+    ``duration`` s). A port that cannot be bound: :class:`ScenarioError` naming it (exit 2).
+    ``mocap`` = (swarm name, Zenoh connect endpoints): also publish the vehicles' true positions
+    as a motion-capture feed (:class:`MocapFeeder`) at ``mocap_hz``."""
     fleet = CrazyflieFleet.from_scenario(sc, base_port=base_port, host=host)
+    if mocap is None:
+        return _run_fleet(fleet, duration)
+    from zenswarm import bus
+    from zenswarm.bus.wire import Keys
+
+    try:
+        with bus.open_session(bus.client_config(mocap[1]), handle_signals=False) as session:
+            feeder = MocapFeeder(fleet, session, Keys(mocap[0]).prefix, mocap_hz)
+            fleet.on_tick = feeder
+            try:
+                return _run_fleet(fleet, duration, f"; mocap on swarm/{mocap[0]}/mocap/<i> at {mocap_hz:g} Hz")
+            finally:
+                fleet.on_tick = None
+                feeder.close()
+    finally:
+        fleet.close()
+
+
+def _run_fleet(fleet: CrazyflieFleet, duration: float | None, extra: str = "") -> int:
     stop = threading.Event()
 
     def on_signal(signum: int, frame: Any) -> None:
@@ -928,7 +1046,7 @@ def run_fleet(sc: Any, *, base_port: int = DEFAULT_BASE_PORT, host: str = "127.0
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, on_signal)
     try:
-        print(f"crazyflie-vehicle: ready: {fleet.n} Crazyflie(s) at " + ", ".join(fleet.uris()), flush=True)
+        print(f"crazyflie-vehicle: ready: {fleet.n} Crazyflie(s) at " + ", ".join(fleet.uris()) + extra, flush=True)
         why = fleet.run(stop, duration)
         print(f"crazyflie-vehicle: stopped ({why}); overruns {fleet.overruns}; {fleet.status()}", flush=True)
     finally:

@@ -211,3 +211,88 @@ def test_crazyflie_vehicle_busy_port_is_exit_2(tmp_path: Path) -> None:
         s.close()
     assert cp.returncode == 2 and "--base-port" in cp.stdout and "cannot be bound" in cp.stdout, cp.stdout
     _no_traceback(cp.stdout)
+
+
+def test_flight_with_extpos_forwards_the_mocap_feed_to_the_vehicles(tmp_path: Path) -> None:
+    """positioning = "extpos": the simulated vehicles are the mocap system too (``crazyflie-vehicle
+    --mocap``, swarm/<name>/mocap/<i>), the bridge forwards each position with cflib's extpos."""
+    swarm, port, base = unique_swarm("cfx"), free_port(), free_udp_block(N_UAV)
+    out = tmp_path / "run"
+    scenario = _scenario(tmp_path, {"positioning": "extpos"})
+    try:
+        cp = _up(scenario, out, swarm, port, "--crazyflie-base-port", str(base), "--duration", "6")
+    finally:
+        left = processes_mentioning(f"--base-port {base}")
+        kill_mentioning(f"--base-port {base}")
+    assert not left, f"vehicles left behind: {left}"
+    _no_traceback(cp.stdout)
+    assert f"mocap on swarm/{swarm}/mocap/<i>" in cp.stdout, cp.stdout[-3000:]
+    assert "positioning extpos: forwarding" in cp.stdout
+    res = read_results(out)
+    veh = res["vehicles"]
+    assert veh["positioning"] == "extpos" and not res["failsafe"], (veh, res["failsafe"])
+    assert veh["phases"] == "1:done,2:done,3:done", veh  # armed only with a fed position, flown, landed
+    assert 0 <= veh["max_extpos_age_ms"] < 1000, veh  # the feed went on to the end
+    # forwarded at the feed's rate (100 Hz) to 3 vehicles through takeoff, about 6 s of mission and the landing
+    assert res["diagnostics"]["bridge"]["extpos_sent"] > 900, res["diagnostics"]["bridge"]
+    assert res["decoder_rejects"]["rejected"] == 0
+    assert "mission clock started with UAV(s) [1, 2, 3]" in cp.stdout
+
+
+def test_bad_positioning_exits_2_naming_it(tmp_path: Path) -> None:
+    cp = _bridge(_scenario(tmp_path, {"positioning": "vicon"}))
+    assert cp.returncode == 2, cp.stdout
+    assert "crazyflie.positioning" in cp.stdout and "vicon" in cp.stdout, cp.stdout
+    _no_traceback(cp.stdout)
+
+
+def test_feed_lost_mid_flight_is_positioning_lost_and_the_vehicle_lands(tmp_path: Path) -> None:
+    """UAV 2's mocap feed stops mid-flight: the named failsafe positioning_lost, and the bridge
+    lands it with its high-level commander (the others fly on)."""
+    from zenswarm import bus
+    from zenswarm.bus.wire import Keys
+    from zenswarm.plant.crazyflie_vehicle import MocapFeeder
+
+    sc = load_scenario(SCENARIOS / "paper_example1.toml")
+    base = free_udp_block(N_UAV)
+    fleet = CrazyflieFleet.from_scenario(sc, base_port=base).start()
+    scenario = _scenario(tmp_path, {"uris": fleet.uris(), "positioning": "extpos"})
+    swarm, port, out = unique_swarm("cfp"), free_port(), tmp_path / "run"
+    cut: dict[str, float] = {}
+    done = threading.Event()
+
+    def feed() -> None:  # the lab's motion-capture system, on the swarm's router
+        conf = bus.client_config([f"tcp/127.0.0.1:{port}"], connect_timeout_s=60.0)
+        with bus.open_session(conf, handle_signals=False) as session:
+            feeder = MocapFeeder(fleet, session, Keys(swarm).prefix, 100.0)
+            fleet.on_tick = feeder
+            try:
+                deadline = time.monotonic() + 120.0
+                while time.monotonic() < deadline and not done.is_set():
+                    if "at" not in cut and fleet.vehicles[1].counters.get("setpoints_rpyt", 0) > 200:
+                        feeder.mute.add(1)
+                        cut["at"] = time.monotonic()
+                    time.sleep(0.05)
+            finally:
+                fleet.on_tick = None
+                feeder.close()
+
+    t = threading.Thread(target=feed, daemon=True)
+    t.start()
+    try:
+        cp = _up(scenario, out, swarm, port, "--external", "vehicles", "--duration", "8")
+    finally:
+        done.set()
+        t.join(10.0)
+        fleet.stop()
+    assert "at" in cut, "the flight never started"
+    _no_traceback(cp.stdout)
+    res = read_results(out)
+    fs = [e for e in res["failsafe"] if e["uav"] == 2]
+    assert fs and "positioning_lost" in fs[0]["modes"], res["failsafe"]
+    assert "uav 2: no external position for" in cp.stdout
+    assert not [e for e in res["failsafe"] if e["uav"] != 2], res["failsafe"]
+    # landed by its high-level commander, not cut by the watchdog
+    assert fleet.vehicles[1].counters.get("hl_land", 0) >= 1 and fleet.vehicles[1].sup != "locked", fleet.status()[1]
+    assert fleet.state.q[1, 2] == 0.0, fleet.status()[1]
+    assert res["vehicles"]["phases"] == "1:done,2:done,3:done", res["vehicles"]

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import socket
+import struct
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -270,3 +271,59 @@ def test_silenced_vehicle_drops_the_link_both_ways(fleet: CrazyflieFleet) -> Non
         assert s.recv(64)[1:] == b"pong"
     finally:
         s.close()
+
+
+def _logged_positions(cf: Crazyflie) -> tuple[LogConfig, list[dict]]:
+    got: list[dict] = []
+    lc = LogConfig("extpos", period_in_ms=20)
+    for a in ("x", "y", "z"):
+        lc.add_variable(f"stateEstimate.{a}", "float")
+    lc.data_received_cb.add_callback(lambda ts, data, conf: got.append(data))
+    cf.log.add_config(lc)
+    lc.start()
+    return lc, got
+
+
+def _xyz(d: dict) -> np.ndarray:
+    return np.array([d["stateEstimate.x"], d["stateEstimate.y"], d["stateEstimate.z"]])
+
+
+def test_logged_position_follows_extpos_sent_with_cflibs_api(scf: SyncCrazyflie, fleet: CrazyflieFleet) -> None:
+    """crtp_localization_service.c: EXT_POSITION feeds the estimator, whose position is logged."""
+    cf = scf.cf
+    lc, got = _logged_positions(cf)
+    wait_until(lambda: got, 2.0, "the first log packet")
+    assert np.allclose(_xyz(got[-1]), [0.3, -0.2, 0.0], atol=1e-6)  # no external position yet: the true state
+    for target in ([1.25, -0.5, 0.75], [-2.0, 3.5, 0.1]):
+        for _ in range(5):
+            cf.extpos.send_extpos(*target)
+            time.sleep(0.02)
+        n = len(got)
+        wait_until(lambda n=n: len(got) > n + 2, 2.0, "log packets after the extpos")
+        # the vehicle stands still on the ground: the estimate is the fed position (+ the drift bias)
+        assert np.allclose(_xyz(got[-1]), target, atol=0.01), (got[-1], target)
+    assert fleet.state.q[0].tolist() == pytest.approx([0.3, -0.2, 0.0])  # the true state did not move
+    # EXT_POSE (the generic channel), as cflib's send_extpose sends it
+    cf.extpos.send_extpose(0.5, 0.6, 0.7, 0.0, 0.0, 0.0, 1.0)
+    n = len(got)
+    wait_until(lambda: len(got) > n + 2, 2.0, "log packets after the extpose")
+    assert np.allclose(_xyz(got[-1]), [0.5, 0.6, 0.7], atol=0.01)
+    # a silent feed: the estimate drifts (dead reckoning with a bias)
+    time.sleep(1.0)
+    drift = _xyz(got[-1]) - [0.5, 0.6, 0.7]
+    assert 0.01 < np.hypot(drift[0], drift[1]) < 0.2, drift
+    lc.stop()
+    assert fleet.vehicles[0].counters.get("extpos", 0) == 11
+
+
+def test_extpos_packed_takes_the_item_with_the_vehicles_id(fleet: CrazyflieFleet) -> None:
+    """EXT_POSITION_PACKED (port 6, channel 2): items <Bhhh (id, mm); only this vehicle's id counts."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        items = struct.pack("<Bhhh", 7, 9000, 9000, 9000) + struct.pack("<Bhhh", 1, 1500, -250, 800)
+        s.sendto(bytes([(6 << 4) | 0x0C | 2]) + items, ("127.0.0.1", fleet.vehicles[0].port))
+        wait_until(lambda: fleet.vehicles[0].counters.get("extpos", 0) == 1, 2.0, "the packed extpos")
+    finally:
+        s.close()
+    v = fleet.vehicles[0]
+    assert v.extpos_q is not None and np.allclose(v.extpos_q, [1.5, -0.25, 0.8])

@@ -469,6 +469,7 @@ class CrazyflieTable(Table, frozen=True):
     land_timeout_s: NonNeg = 10.0
     start_timeout_s: NonNeg = 60.0
     yaw_gain: Pos = 4.0
+    positioning: Literal["onboard", "extpos"] = "onboard"
 
 
 # ----------------------------------------------------------------------------- the document

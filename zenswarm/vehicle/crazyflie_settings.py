@@ -59,6 +59,7 @@ class CrazyflieSettings:
     land_timeout_s: float
     start_timeout_s: float
     yaw_gain: float
+    positioning: str
 
 
 _KEYS = {
@@ -77,6 +78,8 @@ _KEYS = {
     "land_timeout_s": "how long to wait for the vehicles to land, s",
     "start_timeout_s": "start the mission after this long even if some UAV is not ready, s",
     "yaw_gain": "the bridge's yaw loop, 1/s: yaw rate = gain * (yaw* - yaw) (the legacy setpoint flies a yaw rate)",
+    "positioning": "onboard (the vehicle positions itself: Lighthouse, or a feed of its own) or extpos (the bridge forwards "
+    "swarm/<name>/mocap/<i> to it)",
 }
 
 
