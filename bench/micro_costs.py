@@ -7,6 +7,7 @@ BENCHMARKS.md's "what dominates the cost").
   validation);
 * plant: one control period of physics (``timing.substeps`` x ``plant.quadrotor.step``) for N = 3,
   16, 32 UAVs;
+* plant, the simulator's path: ``plant.quadrotor.step_held`` (Python floats) for N = 3, 8;
 * simulator: ``generator_rates_all`` for N = 3, 16, 32 (the in-process simulator's per-agent
   Python loop);
 * leader: ``integrate_leader`` over one control period (paper example 1, at the start);
@@ -54,7 +55,7 @@ def cases(tmpdir: Path):
     from zenswarm.agents.generator import generator_rates_all
     from zenswarm.bus import wire
     from zenswarm.leader.aapf import AapfParams, integrate_leader
-    from zenswarm.plant.quadrotor import initial_state, step
+    from zenswarm.plant.quadrotor import initial_state, step, step_held
     from zenswarm.scenario.config import load_scenario
     from zenswarm.vehicle.params import QuadParams
 
@@ -103,6 +104,16 @@ def cases(tmpdir: Path):
                 step(st, F, rpy, params, h)
 
         out.append((f"plant: one control period ({ex1.timing.substeps} physics steps), N={n}", period))
+
+    for n in (3, 8):  # the simulator's path: step_held, on Python floats for N <= SCALAR_MAX_N
+        st = initial_state(np.zeros((n, 3)) + np.array([0.0, 0.0, 0.4]))
+        F = np.full(n, params.mass * params.g)
+        rpy = np.tile([0.05, -0.03, 0.0], (n, 1))  # a small tilt: the attitude loop at work
+
+        def held(st=st, F=F, rpy=rpy) -> None:
+            step_held(st, F, rpy, params, h, ex1.timing.substeps)
+
+        out.append((f"plant: step_held, one control period ({ex1.timing.substeps} physics steps), N={n}", held))
 
     for n in (3, 16, 32):
         rng = np.random.default_rng(0)

@@ -82,6 +82,13 @@ class FailsafeState:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Applied (thrust (N,), rpy (N, 3)) for tick k given each UAV's command age (s)."""
         out_t, out_r = thrust, rpy
+        if not any(self.modes):  # all NOMINAL: nothing changes while every command is fresh
+            h = self.cfg.hover_after_s
+            for age in ages_s:
+                if not age <= h:
+                    break
+            else:
+                return out_t, out_r
         for i, age in enumerate(ages_s):
             old = self.modes[i]
             new = mode_for_age(age, old, self.cfg)

@@ -618,7 +618,12 @@ def _rows(x: Any, n: int, shape: tuple[int, ...]) -> list[Any]:
 def _step_held_scalar(state: PlantState, c: _Compiled, thrust_cmd: Any, rpy_cmd: Any, nsub: int, samples: list[Any] | None) -> None:
     """:func:`step_held` on Python floats, UAV by UAV: every operation of :func:`step`, in its
     order (``fmax(a, b)`` = ``a if a >= b else b`` as numpy's for a non-NaN bound, ``%`` as
-    ``np.remainder``, ``np.ceil``'s signed zero kept). Writes the state only at the end."""
+    ``np.remainder``, ``np.ceil``'s signed zero kept). Writes the state only at the end.
+
+    Skipped where they provably give the same bits: sin/cos of (phi, theta) at the start of a
+    sub-step are those of the previous sub-step's eq. (1) (same angles); the wrap of eq. (4) is
+    Theta + 0.0 for |Theta| < 3 rad (the ceil is -0.0 there); the cos(theta) guard is a no-op
+    for |cos(theta)| >= COS_THETA_MIN."""
     (
         (lo0, lo1, lo2),
         (hi0, hi1, hi2),
@@ -640,6 +645,9 @@ def _step_held_scalar(state: PlantState, c: _Compiled, thrust_cmd: Any, rpy_cmd:
     ) = c.scalars
     n = c.n
     pi, two_pi, inv = _PI, _TWO_PI, 1.0 / _TWO_PI
+    # negated bounds, once (negation is exact)
+    nrh0, nrh1, nrh2, nih0, nih1, nih2, nth0, nth1, nth2 = -rh0, -rh1, -rh2, -ih0, -ih1, -ih2, -th0, -th1, -th2
+    ncos_min = -cos_min
     sin, cos, ceil, copysign, fabs = math.sin, math.cos, math.ceil, math.copysign, math.fabs
     Q, V, R, W = state.q.tolist(), state.v.tolist(), state.rpy.tolist(), state.w.tolist()
     IN, PR = state.rate_int.tolist(), state.rate_err_prev.tolist()
@@ -667,37 +675,39 @@ def _step_held_scalar(state: PlantState, c: _Compiled, thrust_cmd: Any, rpy_cmd:
         i0, i1, i2 = IN[i]
         p0, p1, p2 = PR[i]
         fdm = F * fdt_m  # F dt / m
+        # sin/cos of (phi, theta) at Theta_k: those of step 3 of the previous sub-step (same angles)
+        sf, st, cf, ct = sin(r0), sin(r1), cos(r0), cos(r1)
         for j in range(nsub):
             # ---- onboard attitude controller: angle P -> rate PID -> torque
             e0 = (pi - ((pi - (c0 - r0)) % two_pi)) * ak0
-            e0 = e0 if e0 >= -rh0 else -rh0
+            e0 = e0 if e0 >= nrh0 else nrh0
             e0 = e0 if e0 <= rh0 else rh0
             e1 = (pi - ((pi - (c1 - r1)) % two_pi)) * ak1
-            e1 = e1 if e1 >= -rh1 else -rh1
+            e1 = e1 if e1 >= nrh1 else nrh1
             e1 = e1 if e1 <= rh1 else rh1
             e2 = (pi - ((pi - (c2 - r2)) % two_pi)) * ak2
-            e2 = e2 if e2 >= -rh2 else -rh2
+            e2 = e2 if e2 >= nrh2 else nrh2
             e2 = e2 if e2 <= rh2 else rh2
             e0 = e0 - w0  # rate error e_w
             e1 = e1 - w1
             e2 = e2 - w2
             i0 = i0 + e0 * dt
-            i0 = i0 if i0 >= -ih0 else -ih0
+            i0 = i0 if i0 >= nih0 else nih0
             i0 = i0 if i0 <= ih0 else ih0
             i1 = i1 + e1 * dt
-            i1 = i1 if i1 >= -ih1 else -ih1
+            i1 = i1 if i1 >= nih1 else nih1
             i1 = i1 if i1 <= ih1 else ih1
             i2 = i2 + e2 * dt
-            i2 = i2 if i2 >= -ih2 else -ih2
+            i2 = i2 if i2 >= nih2 else nih2
             i2 = i2 if i2 <= ih2 else ih2
             t0 = e0 * ke0 - p0 * kp0 + i0 * ki0
-            t0 = t0 if t0 >= -th0 else -th0
+            t0 = t0 if t0 >= nth0 else nth0
             t0 = t0 if t0 <= th0 else th0
             t1 = e1 * ke1 - p1 * kp1 + i1 * ki1
-            t1 = t1 if t1 >= -th1 else -th1
+            t1 = t1 if t1 >= nth1 else nth1
             t1 = t1 if t1 <= th1 else th1
             t2 = e2 * ke2 - p2 * kp2 + i2 * ki2
-            t2 = t2 if t2 >= -th2 else -th2
+            t2 = t2 if t2 >= nth2 else nth2
             t2 = t2 if t2 <= th2 else th2
             p0, p1, p2 = e0, e1, e2
             # ---- 1. attitude dynamics, eq. (5)
@@ -712,23 +722,34 @@ def _step_held_scalar(state: PlantState, c: _Compiled, thrust_cmd: Any, rpy_cmd:
             w1 = w1 + d1
             w2 = w2 + d2
             # ---- 2. Euler kinematics, eq. (4), T at Theta_k times the new omega
-            sf, st, cf, ct = sin(r0), sin(r1), cos(r0), cos(r1)
-            a = fabs(ct)
-            a = a if a >= cos_min else cos_min
-            ct = copysign(a, ct)
+            # guard |cos(theta)| >= cos_min, sign kept (a no-op unless |ct| < cos_min or NaN)
+            if not (ct >= cos_min or ct <= ncos_min):
+                a = fabs(ct)
+                a = a if a >= cos_min else cos_min
+                ct = copysign(a, ct)
             E2 = (sf * w1 + cf * w2) / ct
             E1 = cf * w1 - sf * w2
             E0 = w0 + st * E2
             r0 = r0 + E0 * dt
             r1 = r1 + E1 * dt
             r2 = r2 + E2 * dt
-            # wrap to (-pi, pi]: Theta -= 2 pi ceil(Theta / (2 pi) - 1/2); np.ceil gives -0.0 on (-1, 0]
-            x = r0 * inv - 0.5
-            r0 = r0 - (ceil(x) or copysign(0.0, x)) * two_pi
-            x = r1 * inv - 0.5
-            r1 = r1 - (ceil(x) or copysign(0.0, x)) * two_pi
-            x = r2 * inv - 0.5
-            r2 = r2 - (ceil(x) or copysign(0.0, x)) * two_pi
+            # wrap to (-pi, pi]: Theta -= 2 pi ceil(Theta / (2 pi) - 1/2); np.ceil gives -0.0 on (-1, 0].
+            # For |Theta| < 3 that ceil is -0.0, so the wrap is Theta - (-0.0) = Theta + 0.0 exactly.
+            if -3.0 < r0 < 3.0:
+                r0 = r0 + 0.0
+            else:
+                x = r0 * inv - 0.5
+                r0 = r0 - (ceil(x) or copysign(0.0, x)) * two_pi
+            if -3.0 < r1 < 3.0:
+                r1 = r1 + 0.0
+            else:
+                x = r1 * inv - 0.5
+                r1 = r1 - (ceil(x) or copysign(0.0, x)) * two_pi
+            if -3.0 < r2 < 3.0:
+                r2 = r2 + 0.0
+            else:
+                x = r2 * inv - 0.5
+                r2 = r2 - (ceil(x) or copysign(0.0, x)) * two_pi
             # ---- 3. translational dynamics, eq. (1), with R(Theta_{k+1})
             sf, st, sp, cf, ct, cp = sin(r0), sin(r1), sin(r2), cos(r0), cos(r1), cos(r2)
             cfF = cf * fdm

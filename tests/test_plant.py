@@ -442,6 +442,29 @@ def test_step_held_equals_step_bit_for_bit(n):
         assert_bitwise_equal(a, b, (n, trial, nsub))
 
 
+def test_step_held_equals_step_at_the_edges_of_its_fast_paths():
+    """The scalar path skips the angle wrap for |angle| < 3 rad and the cos(theta) guard for
+    |cos(theta)| >= COS_THETA_MIN; at and around those edges (angles at +-3, +-pi and one ulp
+    inside, signed zeros; pitch at +-pi/2) it still equals step bit for bit."""
+    rng = np.random.default_rng(7)
+    edges = [3.0, -3.0, np.nextafter(3.0, 0.0), np.nextafter(-3.0, 0.0), np.nextafter(3.0, 4.0),
+             np.nextafter(-3.0, -4.0), math.pi, -math.pi, np.nextafter(math.pi, 0.0),
+             np.nextafter(-math.pi, 0.0), math.pi / 2, -math.pi / 2, 0.0, -0.0]
+    n = 3
+    for trial in range(60):
+        a = random_state(rng, n)
+        a.rpy[:] = rng.choice(edges, size=(n, 3))
+        a.w[:] = rng.normal(scale=rng.choice([1e-9, 1.0, 50.0]), size=(n, 3))
+        b = a.copy()
+        thrust = rng.uniform(0.0, 0.6, n)
+        cmd = a.rpy + rng.choice([0.0, 1e-12, 3.0, -3.0, 6.0], size=(n, 3))
+        nsub = int(rng.integers(1, 12))
+        for _ in range(nsub):
+            step(a, thrust, cmd, P, DT)
+        step_held(b, thrust, cmd, P, DT, nsub)
+        assert_bitwise_equal(a, b, (trial, nsub))
+
+
 @pytest.mark.parametrize("n", [3, SCALAR_MAX_N + 2])
 def test_step_held_with_disturbances_draws_and_applies_them_as_the_loop(n):
     """A seeded disturbance sampler is called once per sub-step, in order: the generator ends
