@@ -94,6 +94,7 @@ from typing import Any
 import numpy as np
 
 from zenswarm.errors import ScenarioError
+from zenswarm.plant.fleet import FleetThread
 from zenswarm.plant.quadrotor import PlantState, initial_state, step
 from zenswarm.vehicle import crazyflie as cfu
 from zenswarm.vehicle.params import QuadParams
@@ -799,11 +800,13 @@ class SimCrazyflie:
         self.sock.close()
 
 
-class CrazyflieFleet:
+class CrazyflieFleet(FleetThread):
     """N simulated Crazyflies, integrated in real time; vehicle i (0-based) on UDP
     ``host:base_port + i``. :meth:`start` / :meth:`stop` run it in a background thread (tests,
     embedding), :meth:`run` in the calling thread (the CLI). ``state`` is the plant's
     :class:`zenswarm.plant.quadrotor.PlantState` (ENU; read it, do not write it while running)."""
+
+    thread_name = "crazyflie-fleet"
 
     def __init__(self, q0: Any, params: QuadParams, base_port: int = DEFAULT_BASE_PORT, host: str = "127.0.0.1",
                  physics_hz: float = 1000.0, chunk: int = 10) -> None:  # fmt: skip
@@ -935,37 +938,6 @@ class CrazyflieFleet:
             except (OSError, ValueError):
                 time.sleep(0.001)
         return "stop requested"
-
-    def start(self) -> CrazyflieFleet:
-        if self._thread is not None:
-            raise RuntimeError("fleet already started")
-
-        def target() -> None:
-            try:
-                self.run(self._stop)
-            except BaseException as e:  # noqa: BLE001 - reported through .error
-                self.error = e
-
-        self._thread = threading.Thread(target=target, name="crazyflie-fleet", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self, timeout: float = 5.0) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
-            self._thread = None
-        self.close()
-
-    def close(self) -> None:
-        for v in self.vehicles:
-            v.close()
-
-    def __enter__(self) -> CrazyflieFleet:
-        return self.start()
-
-    def __exit__(self, *exc: Any) -> None:
-        self.stop()
 
     def status(self) -> list[dict[str, Any]]:
         """One line of facts per vehicle (for logs and tests)."""

@@ -76,6 +76,7 @@ import numpy as np
 
 from zenswarm.errors import ScenarioError
 from zenswarm.plant.disturbance import DisturbanceModel
+from zenswarm.plant.fleet import FleetThread
 from zenswarm.plant.mavlink_params import ParamStore, ardupilot_params, px4_params
 from zenswarm.plant.quadrotor import PlantState, initial_state, step
 from zenswarm.vehicle import frames
@@ -985,7 +986,7 @@ def vehicle_options(sc: Any) -> VehicleOptions:
     )
 
 
-class MavlinkFleet:
+class MavlinkFleet(FleetThread):
     """N simulated quadrotors as MAVLink vehicles, integrated in real time.
 
     Parameters
@@ -1006,6 +1007,8 @@ class MavlinkFleet:
     :meth:`run` (in the calling thread, for the CLI). Attribute ``state`` is the
     :class:`zenswarm.plant.quadrotor.PlantState` (ENU, read it, do not write it while running).
     """
+
+    thread_name = "mavlink-fleet"
 
     def __init__(
         self,
@@ -1175,38 +1178,6 @@ class MavlinkFleet:
             resyncs = clock.resyncs
             clock.wait()
             self.overruns += clock.resyncs - resyncs
-
-    def start(self) -> MavlinkFleet:
-        """Run the loop in a daemon thread."""
-        if self._thread is not None:
-            raise RuntimeError("fleet already started")
-
-        def target() -> None:
-            try:
-                self.run(self._stop)
-            except BaseException as e:  # noqa: BLE001 - reported through .error
-                self.error = e
-
-        self._thread = threading.Thread(target=target, name="mavlink-fleet", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self, timeout: float = 5.0) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
-            self._thread = None
-        self.close()
-
-    def close(self) -> None:
-        for veh in self.vehicles:
-            veh.close()
-
-    def __enter__(self) -> MavlinkFleet:
-        return self.start()
-
-    def __exit__(self, *exc: Any) -> None:
-        self.stop()
 
     def status(self) -> list[dict[str, Any]]:
         """One line of facts per vehicle (for logs and tests)."""
