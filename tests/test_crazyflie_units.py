@@ -79,3 +79,17 @@ def test_duplicates_and_missing_uavs_are_errors() -> None:
         crazyflie_settings(replace(SC, crazyflie=CrazyflieTable(uris=("usb://0",))))
     with pytest.raises(ScenarioError, match="same URI"):
         crazyflie_settings(SC, {"uri": {1: "udp://127.0.0.1:19851"}})  # UAV 2's default
+
+
+def test_mocap_message_roundtrips_and_rejects_garbage() -> None:
+    import msgspec
+
+    from zenswarm.bus.mocap import decode_mocap, encode_mocap, mocap_key
+
+    m = decode_mocap(encode_mocap(1.5, 0.25, -1.0, 0.75))
+    assert (m.t, m.x, m.y, m.z) == (1.5, 0.25, -1.0, 0.75)
+    assert decode_mocap(msgspec.msgpack.encode([2.0, 1, 2, 3])).z == 3.0  # what a lab's feeder publishes
+    assert mocap_key("swarm/demo", 2) == "swarm/demo/mocap/2"
+    for bad in (b"\x00", msgspec.msgpack.encode([1.0, 2.0]), msgspec.msgpack.encode({"x": 1.0})):
+        with pytest.raises(ValueError):
+            decode_mocap(bad)
