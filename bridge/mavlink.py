@@ -1399,6 +1399,10 @@ class _BridgeLoop:
         deadline = time.monotonic() + self.settings.land_timeout_s
         while time.monotonic() < deadline:
             now = time.monotonic()
+            # a stall here (the host loaded by the other processes ending with the mission) is
+            # the bridge's own, as in fly(): not judged as the vehicles' silence
+            bridge.note_stall(now - self.last)
+            self.last = now
             bridge.poll(now)
             bridge.send(now)
             if bridge.land_step(now):

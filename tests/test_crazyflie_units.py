@@ -79,3 +79,46 @@ def test_duplicates_and_missing_uavs_are_errors() -> None:
         crazyflie_settings(replace(SC, crazyflie=CrazyflieTable(uris=("usb://0",))))
     with pytest.raises(ScenarioError, match="same URI"):
         crazyflie_settings(SC, {"uri": {1: "udp://127.0.0.1:19851"}})  # UAV 2's default
+
+
+def test_mocap_message_roundtrips_and_rejects_garbage() -> None:
+    import msgspec
+
+    from zenswarm.bus.mocap import decode_mocap, encode_mocap, mocap_key
+
+    m = decode_mocap(encode_mocap(1.5, 0.25, -1.0, 0.75))
+    assert (m.t, m.x, m.y, m.z) == (1.5, 0.25, -1.0, 0.75)
+    assert decode_mocap(msgspec.msgpack.encode([2.0, 1, 2, 3])).z == 3.0  # what a lab's feeder publishes
+    assert mocap_key("swarm/demo", 2) == "swarm/demo/mocap/2"
+    for bad in (b"\x00", msgspec.msgpack.encode([1.0, 2.0]), msgspec.msgpack.encode({"x": 1.0})):
+        with pytest.raises(ValueError):
+            decode_mocap(bad)
+
+
+def test_a_stall_of_the_landing_loop_is_no_link_lost() -> None:
+    """The end of the mission: the other processes end at once and the loaded host starves the
+    bridge for 0.6 s; the log blocks that came meanwhile are still queued in cflib's threads.
+    The landing loop must treat that as its own stall (``note_stall``), as the flight loop does,
+    not as three vehicles falling silent at once (``link_lost`` x 3)."""
+    import collections
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    from zenswarm.bridge.crazyflie import READY, CrazyflieBridge
+    from zenswarm.bridge.mavlink import _BridgeLoop
+
+    settings = replace(crazyflie_settings(SC), land_timeout_s=0.2)
+    counters: collections.Counter = collections.Counter()
+    bridge = CrazyflieBridge(settings, SC, counters, lambda i: (None, math.inf), lambda s: None)
+    proc = SimpleNamespace(scenario=SC, args=SimpleNamespace(), stop=threading.Event(), counters=counters,
+                           log=lambda s: None, publish_diag=lambda t, d: None)  # fmt: skip
+    loop = _BridgeLoop(proc, bridge, settings)  # type: ignore[arg-type]
+    now = time.monotonic()
+    for link in bridge.links:  # flying; their last state arrived just before the stall
+        link.phase, link.phase_t, link.pos_rx = READY, now - 10.0, now - 0.6
+    loop.finished = True
+    loop.last = now - 0.6  # the loop's last iteration, before the host starved it
+    loop.land()
+    assert counters["link_lost"] == 0 and all(lk.healthy for lk in bridge.links), counters
+    assert counters["loop_stalls"] == 1
