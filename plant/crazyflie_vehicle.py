@@ -489,14 +489,19 @@ class SimCrazyflie:
         return 0
 
     def send_logs(self, now: float, values: Callable[[int], float]) -> None:
-        """Every running block whose period is due: ``[id, ms timestamp (24 bit), values]``."""
+        """Every running block whose period is due: ``[id, ms timestamp (24 bit), values]``, the
+        timestamp the time the block was due (the values are those of ``now``)."""
         for bid, blk in self.blocks.items():
             if not blk.running or now + 1e-4 < blk.next_due:
                 continue
+            # stamped when its period was due, as the firmware's periodic log timer stamps it: a
+            # loop that ran late sends late, but never two stamps closer than a period (no burst)
+            due = min(blk.next_due, now)
             blk.next_due += blk.period_s
-            if blk.next_due < now:  # late by more than a period: no burst
+            if blk.next_due < now:  # late by more than a period: skip the missed ones, stamp now
                 blk.next_due = now + blk.period_s
-            out = bytearray([bid]) + struct.pack("<I", self.ms(now) & 0xFFFFFF)[:3]
+                due = now
+            out = bytearray([bid]) + struct.pack("<I", self.ms(due) & 0xFFFFFF)[:3]
             for typ, ident in blk.ops:
                 code = LOG_TYPES[typ]
                 v = values(ident)
