@@ -1,7 +1,7 @@
 """Subcommands of the flight recorder, wired into ``zenswarm`` by :func:`add_parsers`.
 
-``record`` (:mod:`zenswarm.bridge.recorder`), ``replay`` and ``verify`` (:mod:`zenswarm.bridge.replay`),
-``recover`` (:mod:`zenswarm.bridge.mcapio`), ``info`` (:mod:`zenswarm.bridge.info`);
+``record`` (:mod:`zenswarm.bridge.recording.recorder`), ``replay`` and ``verify`` (:mod:`zenswarm.bridge.replay`),
+``recover`` (:mod:`zenswarm.bridge.recording.mcapio`), ``info`` (:mod:`zenswarm.bridge.recording.info`);
 ``report`` (:mod:`zenswarm.bridge.report`) and ``export``
 (:mod:`zenswarm.bridge.export`) when those modules are present.
 """
@@ -17,7 +17,7 @@ __all__ = ["add_parsers"]
 
 
 def _run_recover(args: argparse.Namespace) -> int:
-    from zenswarm.bridge.mcapio import recover
+    from zenswarm.bridge.recording.mcapio import recover
     from zenswarm.process.paths import check_output_file
 
     check_output_file(args.out, "--out")
@@ -67,7 +67,8 @@ def _add_recover(sub: argparse._SubParsersAction) -> None:
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Register ``record``, ``replay``, ``verify``, ``recover``, ``info`` (and ``report``/``export``
     when :mod:`zenswarm.bridge.report` / :mod:`zenswarm.bridge.export` exist)."""
-    from zenswarm.bridge import info, recorder, replay
+    from zenswarm.bridge import replay
+    from zenswarm.bridge.recording import info, recorder
 
     recorder.add_parser(sub)
     replay.add_parsers(sub)

@@ -30,9 +30,9 @@ import msgpack
 import numpy as np
 
 from zenswarm.bridge import live
-from zenswarm.bridge.info import RecordingInfo, scan
-from zenswarm.bridge.mcapio import Recording, read_recording
 from zenswarm.bridge.playback import Controls, KeyboardControls, Pacer, TopicFilter, restamp
+from zenswarm.bridge.recording.info import RecordingInfo, scan
+from zenswarm.bridge.recording.mcapio import Recording, read_recording
 from zenswarm.bus import wire
 from zenswarm.errors import RecordingError, ScenarioError
 

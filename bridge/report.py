@@ -130,7 +130,7 @@ class Recording:
     metadata: the ``zenswarm`` metadata record(s), merged; scenario from its ``scenario_json``;
     swarm and mode (``lockstep``, ``realtime``; anything else counts as lockstep) from it too.
     truncated: the damage met while reading (file cut short, chunk failing its CRC), None for a
-    complete, intact file. notes: what a reader must be told (:meth:`zenswarm.bridge.mcapio.Recording.notes`:
+    complete, intact file. notes: what a reader must be told (:meth:`zenswarm.bridge.recording.mcapio.Recording.notes`:
     truncated or damaged, oversize payloads the recorder did not record).
     """
 
@@ -150,14 +150,14 @@ class Recording:
 
 
 def load_recording(path: str | Path) -> Recording:
-    """Load a recording and the scenario it carries (read by :func:`zenswarm.bridge.mcapio.read_recording`,
+    """Load a recording and the scenario it carries (read by :func:`zenswarm.bridge.recording.mcapio.read_recording`,
     leniently: a truncated file or a corrupted chunk costs only what is unreadable, and
     :attr:`Recording.truncated` says what happened).
 
     Raises :class:`RecordingError` naming the file when it is missing, not an MCAP file, has no
     ``zenswarm`` metadata record, or its scenario is missing or invalid.
     """
-    from zenswarm.bridge import mcapio
+    from zenswarm.bridge.recording import mcapio
 
     p = Path(path)
     r = mcapio.read_recording(p, strict=False)

@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from zenswarm.bridge.mcapio import DROPPED_OVERSIZE, RECORDER_END, RECORDER_LIBRARIES, _SequenceGaps, read_recording
+from zenswarm.bridge.recording.mcapio import DROPPED_OVERSIZE, RECORDER_END, RECORDER_LIBRARIES, _SequenceGaps, read_recording
 from zenswarm.bus import wire
 
 __all__ = ["ChannelInfo", "RecordingInfo", "scan", "scenario_hash", "format_info", "add_parser"]
