@@ -279,7 +279,7 @@ def export_rerun(recording: str | Path, out: str | Path, *, scene_hz: float = 20
     import rerun as rr
 
     from zenswarm.bridge.foxglove import ExportSummary, _json_items, interleave, scene_frames
-    from zenswarm.bridge.report import flight_from_recording, load_recording
+    from zenswarm.bridge.reports.report import flight_from_recording, load_recording
     from zenswarm.bridge.scene import frame_from_series
     from zenswarm.bus import wire
 

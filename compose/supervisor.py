@@ -618,7 +618,7 @@ class Supervisor:
                 "the report is partial, from what was recorded before"
             )
         try:
-            from zenswarm.bridge.report import report_recording
+            from zenswarm.bridge.reports.report import report_recording
 
             written = report_recording(
                 recording, out / "report", full_time=self.args.full_time, warn=lambda text: self.say(f"report: warning: {text}"),

@@ -442,7 +442,7 @@ def _check_swarm(backend: Backend, plan: Plan, runs: Sequence[Run], doc: dict[st
 
 def _maybe_report(out: Path) -> None:
     try:
-        from zenswarm.bridge.sweep_report import write_report  # type: ignore[import-not-found,unused-ignore]
+        from zenswarm.bridge.reports.sweep_report import write_report  # type: ignore[import-not-found,unused-ignore]
     except ImportError:
         return
     try:
@@ -630,9 +630,9 @@ def _report_main(argv: Sequence[str]) -> int:
     p.add_argument("dir", type=Path, help="the campaign directory (--out of zenswarm sweep)")
     args = p.parse_args(argv)
     try:
-        from zenswarm.bridge.sweep_report import write_report  # type: ignore[import-not-found,unused-ignore]
+        from zenswarm.bridge.reports.sweep_report import write_report  # type: ignore[import-not-found,unused-ignore]
     except ImportError:
-        print("zenswarm: error: sweep report is not in this build (zenswarm.bridge.sweep_report)", file=sys.stderr)
+        print("zenswarm: error: sweep report is not in this build (zenswarm.bridge.reports.sweep_report)", file=sys.stderr)
         return 2
     print(write_report(args.dir))
     return 0
