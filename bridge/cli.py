@@ -3,7 +3,7 @@
 ``record`` (:mod:`zenswarm.bridge.recording.recorder`), ``replay`` and ``verify`` (:mod:`zenswarm.bridge.replay`),
 ``recover`` (:mod:`zenswarm.bridge.recording.mcapio`), ``info`` (:mod:`zenswarm.bridge.recording.info`);
 ``report`` (:mod:`zenswarm.bridge.reports.report`) and ``export``
-(:mod:`zenswarm.bridge.export`) when those modules are present.
+(:mod:`zenswarm.bridge.views.export`) when those modules are present.
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def _add_recover(sub: argparse._SubParsersAction) -> None:
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Register ``record``, ``replay``, ``verify``, ``recover``, ``info`` (and ``report``/``export``
-    when :mod:`zenswarm.bridge.reports.report` / :mod:`zenswarm.bridge.export` exist)."""
+    when :mod:`zenswarm.bridge.reports.report` / :mod:`zenswarm.bridge.views.export` exist)."""
     from zenswarm.bridge import replay
     from zenswarm.bridge.recording import info, recorder
 
@@ -84,7 +84,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     bsub = b.add_subparsers(dest="bridge_cmd", metavar="{mavlink,crazyflie}", required=True)
     mavlink.add_mavlink_parser(bsub)
     crazyflie.add_crazyflie_parser(bsub)
-    for modname in ("zenswarm.bridge.reports.report", "zenswarm.bridge.export"):
+    for modname in ("zenswarm.bridge.reports.report", "zenswarm.bridge.views.export"):
         try:
             mod = __import__(modname, fromlist=["add_parser"])
         except ImportError as e:

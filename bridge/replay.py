@@ -29,10 +29,10 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from zenswarm.bridge import live
 from zenswarm.bridge.playback import Controls, KeyboardControls, Pacer, TopicFilter, restamp
 from zenswarm.bridge.recording.info import RecordingInfo, scan
 from zenswarm.bridge.recording.mcapio import Recording, read_recording
+from zenswarm.bridge.views import live
 from zenswarm.bus import wire
 from zenswarm.errors import RecordingError, ScenarioError
 

@@ -974,7 +974,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Stand-alone entry (``python -m zenswarm.bridge.reports.report ...``): the ``report`` command only
     (``zenswarm`` wires ``report`` and ``export`` through :mod:`zenswarm.bridge.cli`; this module
-    does not import :mod:`zenswarm.bridge.foxglove`, which imports it)."""
+    does not import :mod:`zenswarm.bridge.views.foxglove`, which imports it)."""
     import sys
 
     parser = argparse.ArgumentParser(prog="zenswarm")
