@@ -1,6 +1,6 @@
 """Subcommands of the flight recorder, wired into ``zenswarm`` by :func:`add_parsers`.
 
-``record`` (:mod:`zenswarm.bridge.recording.recorder`), ``replay`` and ``verify`` (:mod:`zenswarm.bridge.replay`),
+``record`` (:mod:`zenswarm.bridge.recording.recorder`), ``replay`` and ``verify`` (:mod:`zenswarm.bridge.replay.replay`),
 ``recover`` (:mod:`zenswarm.bridge.recording.mcapio`), ``info`` (:mod:`zenswarm.bridge.recording.info`);
 ``report`` (:mod:`zenswarm.bridge.reports.report`) and ``export``
 (:mod:`zenswarm.bridge.views.export`) when those modules are present.
@@ -67,8 +67,8 @@ def _add_recover(sub: argparse._SubParsersAction) -> None:
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Register ``record``, ``replay``, ``verify``, ``recover``, ``info`` (and ``report``/``export``
     when :mod:`zenswarm.bridge.reports.report` / :mod:`zenswarm.bridge.views.export` exist)."""
-    from zenswarm.bridge import replay
     from zenswarm.bridge.recording import info, recorder
+    from zenswarm.bridge.replay import replay
 
     recorder.add_parser(sub)
     replay.add_parsers(sub)

@@ -23,10 +23,10 @@ import msgpack
 import numpy as np
 import pytest
 
-from zenswarm.bridge.playback import Controls, KeyboardControls, TopicFilter, parse_keys, restamp
 from zenswarm.bridge.recording.info import scan
 from zenswarm.bridge.recording.recorder import McapSink, build_metadata
-from zenswarm.bridge.replay import replay
+from zenswarm.bridge.replay.playback import Controls, KeyboardControls, TopicFilter, parse_keys, restamp
+from zenswarm.bridge.replay.replay import replay
 from zenswarm.bus import wire
 from zenswarm.compose.cli import main
 from zenswarm.errors import RecordingError, ScenarioError

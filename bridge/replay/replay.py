@@ -29,9 +29,9 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from zenswarm.bridge.playback import Controls, KeyboardControls, Pacer, TopicFilter, restamp
 from zenswarm.bridge.recording.info import RecordingInfo, scan
 from zenswarm.bridge.recording.mcapio import Recording, read_recording
+from zenswarm.bridge.replay.playback import Controls, KeyboardControls, Pacer, TopicFilter, restamp
 from zenswarm.bridge.views import live
 from zenswarm.bus import wire
 from zenswarm.errors import RecordingError, ScenarioError
@@ -159,7 +159,7 @@ def _plan(path: str | Path, *, clock: str | None, start_s: float | None, end_s: 
 
 class _Player:
     """One replay's publishing side: a publisher per (rewritten) key, declared at first use,
-    paced by :class:`zenswarm.bridge.playback.Pacer`, progress lines; counts in ``stats``."""
+    paced by :class:`zenswarm.bridge.replay.playback.Pacer`, progress lines; counts in ``stats``."""
 
     def __init__(self, session: Any, plan: _Plan, *, swarm: str | None, pacer: Pacer, stop: threading.Event,
                  stats: ReplayStats, progress: Callable[[str], None] | None, wait_subscribers_s: float,
