@@ -74,7 +74,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     replay.add_parsers(sub)
     info.add_parser(sub)
     _add_recover(sub)
-    from zenswarm.bridge import crazyflie, mavlink
+    from zenswarm.bridge.vehicles import crazyflie, mavlink
 
     b = sub.add_parser(
         "bridge",
