@@ -171,6 +171,13 @@ class Box(LinkInbox):
         j = self.due(k)
         return j is None or (self.has(j) and self.known(j))
 
+    def timed_out(self, k: int) -> None:
+        """Not :meth:`ready` at tick k (its due message was not offered) and the lockstep wait gave
+        up: the due message's timeout is counted (:meth:`LinkInbox.mark_timeout`)."""
+        due = self.due(k)
+        assert due is not None, "a box that is not ready has a due message"
+        self.mark_timeout(due)
+
 
 def due_tick(box: Box | None, k: int) -> int:
     """The send tick of the message a lockstep receiver waits for at tick k: k without link
