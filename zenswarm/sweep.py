@@ -55,7 +55,7 @@ from zenswarm.campaign import (
     parse_sample,
     plan_from_toml,
 )
-from zenswarm.errors import ScenarioError, ZenswarmError
+from zenswarm.errors import ScenarioError, run_command
 from zenswarm.link import plan_for
 from zenswarm.process.paths import check_output_dir
 from zenswarm.scenario.plugins import check_selection
@@ -650,17 +650,14 @@ def _margin_main(argv: Sequence[str]) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """``zenswarm sweep ARGS`` (argv without the word ``sweep``); exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    try:
-        if argv and argv[0] == "report":
-            return _report_main(argv[1:])
-        if argv and argv[0] == "margin":
-            return _margin_main(argv[1:])
-        args = build_parser().parse_args(argv)
-        plan, out = _plan_from_args(args)
-        return run_campaign(plan, out, ["zenswarm", "sweep", *argv], args.workers, args.scheduler, args.quiet)
-    except ZenswarmError as e:
-        print(f"zenswarm: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("zenswarm: interrupted", file=sys.stderr)
-        return 130
+    return run_command(lambda: _sweep(argv))
+
+
+def _sweep(argv: list[str]) -> int:
+    if argv and argv[0] == "report":
+        return _report_main(argv[1:])
+    if argv and argv[0] == "margin":
+        return _margin_main(argv[1:])
+    args = build_parser().parse_args(argv)
+    plan, out = _plan_from_args(args)
+    return run_campaign(plan, out, ["zenswarm", "sweep", *argv], args.workers, args.scheduler, args.quiet)

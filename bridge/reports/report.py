@@ -54,7 +54,7 @@ import numpy as np
 
 from zenswarm.bridge.args import FIGURE_FORMATS, figure_formats
 from zenswarm.bus import wire
-from zenswarm.errors import RecordingError, ScenarioError, ZenswarmError
+from zenswarm.errors import RecordingError, ScenarioError, ZenswarmError, run_command
 from zenswarm.judge.metrics import TimeSeries, compute_results
 from zenswarm.link import FaultPlan, graph_series, plan_for
 from zenswarm.process.paths import check_output_dir
@@ -975,17 +975,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Stand-alone entry (``python -m zenswarm.bridge.reports.report ...``): the ``report`` command only
     (``zenswarm`` wires ``report`` and ``export`` through :mod:`zenswarm.bridge.cli`; this module
     does not import :mod:`zenswarm.bridge.views.foxglove`, which imports it)."""
-    import sys
 
     parser = argparse.ArgumentParser(prog="zenswarm")
     sub = parser.add_subparsers(dest="command", required=True)
     add_parsers(sub)
     args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except ZenswarmError as e:
-        print(f"zenswarm: error: {e}", file=sys.stderr)
-        return 2
+    return run_command(lambda: args.func(args))
 
 
 if __name__ == "__main__":  # pragma: no cover
