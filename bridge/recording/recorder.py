@@ -646,6 +646,8 @@ def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: 
 
 def run(args: argparse.Namespace) -> int:
     """Run the recorder until SIGTERM/SIGINT or ``--duration``. Exit code 0 on a clean stop."""
+    # One session's life in order (open, subscribe, record, close in one try/finally): reads better
+    # whole than with its setup and its end in other functions.
     from zenswarm.scenario.config import load_scenario, scenario_to_dict
 
     gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work

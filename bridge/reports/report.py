@@ -332,7 +332,15 @@ def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequenc
     gs = fig.add_gridspec(1, 2, width_ratios=[1.35, 1.0], left=0.0, right=0.98, bottom=0.08, top=0.9, wspace=0.12)
     ax = fig.add_subplot(gs[0, 0], projection="3d")
     top = fig.add_subplot(gs[0, 1])
+    _trajectories_3d(ax, ts, sc, colors)
+    _trajectories_top(top, ts, sc, colors)
+    fig.suptitle(f"{sc.name}: trajectories of the virtual leader and {n} UAVs")
+    return _save(fig, path, formats)[0]
 
+
+def _trajectories_3d(ax: Any, ts: TimeSeries, sc: Scenario, colors: Sequence[Any]) -> None:
+    """The 3D view of :func:`plot_trajectories`: obstacles, paths, starts and ends, to scale."""
+    n = ts.q.shape[1]
     pts = [_finite_rows(ts.q0)] + [_finite_rows(ts.q[:, i]) for i in range(n)]
     pts.append(np.asarray([sc.leader.start, sc.leader.goal], dtype=float))
     for ob in sc.obstacles:
@@ -388,9 +396,15 @@ def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequenc
     ax.set_title("3D trajectories to scale (o start, ^ end)")
     ax.legend(loc="upper left", fontsize=8)
 
-    # top view: obstacles, paths, formation snapshots, enclosing circle r_f
+
+def _trajectories_top(top: Any, ts: TimeSeries, sc: Scenario, colors: Sequence[Any]) -> None:
+    """The top view of :func:`plot_trajectories`: obstacles, paths, formation snapshots with the
+    enclosing circle r_f."""
     from matplotlib.patches import Circle
 
+    n = ts.q.shape[1]
+    q0 = ts.q0
+    st, gl = np.asarray(sc.leader.start, float), np.asarray(sc.leader.goal, float)
     for k, ob in enumerate(sc.obstacles):
         xc, yc, _ = ob.center
         top.add_patch(Circle((xc, yc), ob.radius, color="0.55", alpha=0.5))
@@ -420,8 +434,6 @@ def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequenc
     top.set_title(f"top view: formation snapshots, enclosing circle $r_f$={sc.r_f:.3f} m")
     top.grid(True, alpha=0.3)
     top.legend(loc="best", fontsize=8)
-    fig.suptitle(f"{sc.name}: trajectories of the virtual leader and {n} UAVs")
-    return _save(fig, path, formats)[0]
 
 
 def _snapshot_ticks(q0: np.ndarray, good: np.ndarray, count: int) -> np.ndarray:
