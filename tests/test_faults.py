@@ -1,4 +1,4 @@
-"""Link-fault model (zenswarm.link.faults): parsing, pure decisions, statistics against closed forms,
+"""Link-fault model (zenswarm.link: units, names, plan, decisions, inbox, config): parsing, pure decisions, statistics against closed forms,
 partitions, lockstep delivery ticks and the receiver's hold-last-value inbox.
 
 Statistical tolerances are stated per test; the seeds are fixed, so every test is deterministic.
