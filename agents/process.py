@@ -197,13 +197,6 @@ class _Agent:
         self.publish_ref(t + self.dt_ns)
 
 
-def _mark_timeout(box: Box, k: int) -> None:
-    """``box`` is not ready at tick k (its due message was not offered) and the wait timed out."""
-    due = box.due(k)
-    assert due is not None, "a box that is not ready has a due message"
-    box.mark_timeout(due)
-
-
 class _LockstepAgent:
     """The lockstep tick of an agent: wait for its inputs of tick k (:class:`Lockstep`), then tick."""
 
@@ -289,7 +282,7 @@ class _LockstepAgent:
         if forced:
             for b in boxes.values():
                 if not b.ready(k):
-                    _mark_timeout(b, k)
+                    b.timed_out(k)
         got = {key: b.at(k) for key, b in boxes.items()}
         held_state = got.pop(self.a.state_key)
         inputs = {key: h.value for key, h in got.items() if h is not None}

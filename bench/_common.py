@@ -17,7 +17,6 @@ import os
 import platform
 import re
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -375,9 +374,10 @@ class TreeSampler(threading.Thread):
 
 # --------------------------------------------------------------------------- zenswarm up
 def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A TCP port free on 127.0.0.1 a moment ago (zenswarm.bus.free_port; imported here only when asked)."""
+    from zenswarm.bus import free_port
+
+    return free_port()
 
 
 def port_is_free(port: int) -> bool:

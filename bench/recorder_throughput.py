@@ -28,7 +28,7 @@ import numpy as np
 import zenoh
 
 from zenswarm import bus
-from zenswarm.bridge.mcapio import read_recording
+from zenswarm.bridge.recording.mcapio import read_recording
 from zenswarm.bus import wire
 
 

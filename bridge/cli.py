@@ -1,9 +1,9 @@
 """Subcommands of the flight recorder, wired into ``zenswarm`` by :func:`add_parsers`.
 
-``record`` (:mod:`zenswarm.bridge.recorder`), ``replay`` and ``verify`` (:mod:`zenswarm.bridge.replay`),
-``recover`` (:mod:`zenswarm.bridge.mcapio`), ``info`` (:mod:`zenswarm.bridge.info`);
-``report`` (:mod:`zenswarm.bridge.report`) and ``export``
-(:mod:`zenswarm.bridge.export`) when those modules are present.
+``record`` (:mod:`zenswarm.bridge.recording.recorder`), ``replay`` and ``verify`` (:mod:`zenswarm.bridge.replay.replay`),
+``recover`` (:mod:`zenswarm.bridge.recording.mcapio`), ``info`` (:mod:`zenswarm.bridge.recording.info`);
+``report`` (:mod:`zenswarm.bridge.reports.report`) and ``export``
+(:mod:`zenswarm.bridge.views.export`) when those modules are present.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ __all__ = ["add_parsers"]
 
 
 def _run_recover(args: argparse.Namespace) -> int:
-    from zenswarm.bridge.mcapio import recover
+    from zenswarm.bridge.recording.mcapio import recover
     from zenswarm.process.paths import check_output_file
 
     check_output_file(args.out, "--out")
@@ -66,14 +66,15 @@ def _add_recover(sub: argparse._SubParsersAction) -> None:
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Register ``record``, ``replay``, ``verify``, ``recover``, ``info`` (and ``report``/``export``
-    when :mod:`zenswarm.bridge.report` / :mod:`zenswarm.bridge.export` exist)."""
-    from zenswarm.bridge import info, recorder, replay
+    when :mod:`zenswarm.bridge.reports.report` / :mod:`zenswarm.bridge.views.export` exist)."""
+    from zenswarm.bridge.recording import info, recorder
+    from zenswarm.bridge.replay import replay
 
     recorder.add_parser(sub)
     replay.add_parsers(sub)
     info.add_parser(sub)
     _add_recover(sub)
-    from zenswarm.bridge import crazyflie, mavlink
+    from zenswarm.bridge.vehicles import crazyflie, mavlink
 
     b = sub.add_parser(
         "bridge",
@@ -83,7 +84,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     bsub = b.add_subparsers(dest="bridge_cmd", metavar="{mavlink,crazyflie}", required=True)
     mavlink.add_mavlink_parser(bsub)
     crazyflie.add_crazyflie_parser(bsub)
-    for modname in ("zenswarm.bridge.report", "zenswarm.bridge.export"):
+    for modname in ("zenswarm.bridge.reports.report", "zenswarm.bridge.views.export"):
         try:
             mod = __import__(modname, fromlist=["add_parser"])
         except ImportError as e:

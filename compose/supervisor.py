@@ -36,7 +36,7 @@ from zenswarm.bridge.args import (
     positive_float,
     scenario_of,
 )
-from zenswarm.bridge.live import FOXGLOVE_DEFAULT, LIVE_HELP, LiveTarget, live_target
+from zenswarm.bridge.views.live import FOXGLOVE_DEFAULT, LIVE_HELP, LiveTarget, live_target
 from zenswarm.bus import wire
 from zenswarm.compose.policy import restart_policy
 from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
@@ -618,7 +618,7 @@ class Supervisor:
                 "the report is partial, from what was recorded before"
             )
         try:
-            from zenswarm.bridge.report import report_recording
+            from zenswarm.bridge.reports.report import report_recording
 
             written = report_recording(
                 recording, out / "report", full_time=self.args.full_time, warn=lambda text: self.say(f"report: warning: {text}"),
@@ -1234,7 +1234,7 @@ def _run_up(ns: argparse.Namespace) -> int:
         return _run_only(args)
     sup = Supervisor(args, sc)
     if args.live is not None:  # bound now: a port in use is exit 2 before any process starts
-        from zenswarm.bridge.live import open_view
+        from zenswarm.bridge.views.live import open_view
 
         sup.live = open_view(args.live, sc, args.swarm)
         sup.say(sup.live.how_to_open())

@@ -18,7 +18,7 @@ no step moves the leader by more than ``STEP_FRACTION`` of its current clearance
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Protocol, Sequence
+from typing import TYPE_CHECKING, Callable, Protocol, Sequence
 
 import numpy as np
 
@@ -231,6 +231,17 @@ def _force_and_margin(x: float, y: float, z: float, p: AapfParams) -> tuple[floa
     fx = -k_att * (x - gx)
     fy = -k_att * (y - gy)
     fz = -k_att * (z - gz)
+    return _add_repulsion(x, y, z, fx, fy, fz, p)
+
+
+def _add_repulsion(
+    x: float, y: float, z: float, fx: float, fy: float, fz: float, p: AapfParams
+) -> tuple[float, float, float, float]:
+    """An attraction (fx, fy, fz) at q0 = (x, y, z) plus the repulsion of eqs (10)-(13), then the
+    speed limit: (v_x, v_y, v_z, min d_obs). Plain floats (see :func:`_force_and_margin`); the
+    escape planner adds the same repulsion to its own attraction
+    (:func:`zenswarm.leader.escape.escape_force`).
+    """
     d0 = p.d0
     d_floor = D_FLOOR_FRACTION * d0
     inv_d0 = 1.0 / d0
@@ -316,17 +327,27 @@ def integrate_leader(
 
     q0: (3,) m. dt: s. Returns (q0 at t + dt, info).
     """
+    return _integrate(q0, dt, lambda x, y, z: _force_and_margin(x, y, z, p), p.d0, min_substeps)
+
+
+def _integrate(
+    q0: np.ndarray, dt: float, field: Callable[[float, float, float], tuple[float, float, float, float]], d0: float,
+    min_substeps: int,
+) -> tuple[np.ndarray, LeaderStepInfo]:
+    """The sub-stepping of :func:`integrate_leader` under any leader field ``field(x, y, z) ->
+    (v_x, v_y, v_z, min d_obs)`` (the AAPF's, or the escape planner's); ``d0``: m, the repulsion
+    band that sets the clearance floor and where sub-steps start being limited."""
     x, y, z = float(q0[0]), float(q0[1]), float(q0[2])
     h_nom = dt / max(1, int(min_substeps))
     remaining = dt
     n = 0
-    d_floor = D_FLOOR_FRACTION * p.d0
-    near = p.d0 * 4.0
+    d_floor = D_FLOOR_FRACTION * d0
+    near = d0 * 4.0
     while remaining > 1e-15 * dt:
         if n >= MAX_SUBSTEPS:
             return np.array([x, y, z]), LeaderStepInfo(n, True)
         h = h_nom if h_nom < remaining else remaining
-        vx, vy, vz, margin = _force_and_margin(x, y, z, p)
+        vx, vy, vz, margin = field(x, y, z)
         if margin < near:
             lim = STEP_FRACTION * (margin if margin > d_floor else d_floor)
             speed = math.sqrt(vx * vx + vy * vy + vz * vz)

@@ -51,13 +51,12 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 from zenswarm.leader.aapf import (
-    D_FLOOR_FRACTION,
-    MAX_SUBSTEPS,
-    STEP_FRACTION,
     AapfParams,
     LeaderStepInfo,
     ObstacleLike,
+    _add_repulsion,
     _force_and_margin,
+    _integrate,
 )
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -337,48 +336,8 @@ def escape_force(x: float, y: float, z: float, E: EscapeParams) -> tuple[float, 
             ex, ey, ez = tx, ty, tz
         m = k_att * (dist + S - s_c)
         fx, fy, fz = m * ex, m * ey, m * ez
-    # repulsion, eqs (10)-(13): the arithmetic of zenswarm.leader.aapf._force_and_margin
-    d0 = p.d0
-    d_floor = D_FLOOR_FRACTION * d0
-    inv_d0 = 1.0 / d0
-    margin = math.inf
-    for xc, yc, top, ro in p._obs_t:
-        dx = x - xc
-        dy = y - yc
-        if z <= top:
-            r = math.sqrt(dx * dx + dy * dy)
-            if r == 0.0:
-                nx, ny, nz = 1.0, 0.0, 0.0
-            else:
-                nx, ny, nz = dx / r, dy / r, 0.0
-        else:
-            dz = z - top
-            r = math.sqrt(dx * dx + dy * dy + dz * dz)
-            if r == 0.0:
-                nx, ny, nz = 0.0, 0.0, 1.0
-            else:
-                nx, ny, nz = dx / r, dy / r, dz / r
-        d = r - ro - p.r_f
-        if d < margin:
-            margin = d
-        if d > d0:
-            continue
-        if p.adaptive:
-            frac = 1.0 - (d if d > 0.0 else 0.0) / d0
-            k = p.k_rep_min + (p.k_rep_max - p.k_rep_min) * (frac if frac < 1.0 else 1.0)
-        else:
-            k = p.k_rep_fixed
-        dd = d if d > d_floor else d_floor
-        c = k / (dd * dd) * (1.0 / dd - inv_d0)
-        fx += c * nx
-        fy += c * ny
-        fz += c * nz
-    if p.speed_limit > 0.0:
-        sp = math.sqrt(fx * fx + fy * fy + fz * fz)
-        if sp > p.speed_limit:
-            f = p.speed_limit / sp
-            fx, fy, fz = fx * f, fy * f, fz * f
-    return fx, fy, fz, margin
+    # repulsion, eqs (10)-(13), and the speed limit: the AAPF's own (bit for bit)
+    return _add_repulsion(x, y, z, fx, fy, fz, p)
 
 
 def escape_velocity(q0: np.ndarray, E: EscapeParams) -> np.ndarray:
@@ -398,27 +357,4 @@ def integrate_escape(
     straight path it gives the AAPF's result bit for bit. q0: (3,) m. dt: s. Returns (q0 at
     t + dt, info).
     """
-    x, y, z = float(q0[0]), float(q0[1]), float(q0[2])
-    h_nom = dt / max(1, int(min_substeps))
-    remaining = dt
-    n = 0
-    d_floor = D_FLOOR_FRACTION * E.aapf.d0
-    near = E.aapf.d0 * 4.0
-    while remaining > 1e-15 * dt:
-        if n >= MAX_SUBSTEPS:
-            return np.array([x, y, z]), LeaderStepInfo(n, True)
-        h = h_nom if h_nom < remaining else remaining
-        vx, vy, vz, margin = escape_force(x, y, z, E)
-        if margin < near:
-            lim = STEP_FRACTION * (margin if margin > d_floor else d_floor)
-            speed = math.sqrt(vx * vx + vy * vy + vz * vz)
-            while speed * h > lim and h > 1e-9 * dt:
-                h *= 0.5
-        if remaining - h < 1e-12 * dt:
-            h = remaining
-        x += h * vx
-        y += h * vy
-        z += h * vz
-        remaining -= h
-        n += 1
-    return np.array([x, y, z]), LeaderStepInfo(n, False)
+    return _integrate(q0, dt, lambda x, y, z: escape_force(x, y, z, E), E.aapf.d0, min_substeps)

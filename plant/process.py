@@ -55,13 +55,6 @@ class PlantOptions:
     expect: tuple[str, ...] = ()
 
 
-def _mark_timeout(box: Box, k: int) -> None:
-    """``box`` is not ready at tick k (its due message was not offered) and the wait timed out."""
-    due = box.due(k)
-    assert due is not None, "a box that is not ready has a due message"
-    box.mark_timeout(due)
-
-
 class _Plant:
     """The plant's keys, links and publications around its :class:`PlantCore`."""
 
@@ -208,7 +201,7 @@ class _LockstepPlant:
             if p.boxes:
                 b = p.boxes[key]
                 if forced and not b.ready(k):
-                    _mark_timeout(b, k)
+                    b.timed_out(k)
                 held = b.at(k)
                 if held is not None:
                     p.core.hold(i, held.value.thrust, held.value.rpy, held.send_tick)

@@ -135,7 +135,7 @@ def test_supervisor_sigkill_takes_the_swarm_down_and_frees_its_ports(tmp_path: P
         kill_mentioning(f"--swarm {swarm}")
     assert not left, f"outlived the supervisor by 10 s: {left}"
     assert wait_port_free(port, 5.0), f"router port {port} still bound after the supervisor's death"
-    from zenswarm.bridge.mcapio import read_recording
+    from zenswarm.bridge.recording.mcapio import read_recording
 
     n_msgs = sum(1 for _ in read_recording(rec).messages(lambda topic: topic.endswith("/state")))
     assert n_msgs > 0
@@ -356,7 +356,7 @@ def test_remote_host_lost_for_good(tmp_path: Path, netns) -> None:  # noqa: F811
     assert [(d["process"], d["how"]) for d in res["process_deaths"]] == [("agent:2", "liveliness token gone (external)")], res
     assert [f["cause"] for f in res["failures"]] == ["process_died"], res["failures"]
     # the recording was closed: readable as it is (strict), and it ends where the flight did
-    from zenswarm.bridge.mcapio import read_recording
+    from zenswarm.bridge.recording.mcapio import read_recording
 
     recording = read_recording(rec)
     states = [m.publish_time / 1e9 for m in recording.messages(lambda topic: topic.endswith("/uav/1/state"))]
@@ -401,7 +401,7 @@ def test_disk_full_while_recording(tmp_path: Path, small_fs: Path) -> None:
     loss = res["recording_loss"]
     assert "No space left on device" in loss["error"] and "end marker and footer written" in loss["error"], loss
     # the recording: readable as it is (strict), every message up to the cut, the stop reason named
-    from zenswarm.bridge.mcapio import read_recording
+    from zenswarm.bridge.recording.mcapio import read_recording
 
     recording = read_recording(rec)
     states = sorted(m.publish_time / 1e9 for m in recording.messages(lambda topic: topic.endswith("/uav/1/state")))

@@ -14,12 +14,12 @@ from typing import Any
 
 import pytest
 
-from zenswarm.bridge import recorder
-from zenswarm.bridge.mcapio import RECORDER_END, read_recording
-from zenswarm.bridge.recorder import McapSink, build_metadata
+from zenswarm.bridge.recording import recorder
+from zenswarm.bridge.recording.mcapio import RECORDER_END, read_recording
+from zenswarm.bridge.recording.recorder import McapSink, build_metadata
 from zenswarm.bus import wire
 from zenswarm.errors import ScenarioError
-from zenswarm.link.faults import plan_from_cli
+from zenswarm.link.config import plan_from_cli
 from zenswarm.link.swarm import Box, due_tick
 from zenswarm.process.collector import Collector
 from zenswarm.process.paths import OUTPUT_LOCK, lock_output_dir

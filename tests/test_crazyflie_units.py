@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import pytest
 
-from zenswarm.bridge.crazyflie import rpyt_of
+from zenswarm.bridge.vehicles.crazyflie import rpyt_of
 from zenswarm.errors import ScenarioError
 from zenswarm.scenario.config import load_scenario
 from zenswarm.schema import CrazyflieTable
@@ -105,8 +105,8 @@ def test_a_stall_of_the_landing_loop_is_no_link_lost() -> None:
     import time
     from types import SimpleNamespace
 
-    from zenswarm.bridge.crazyflie import READY, CrazyflieBridge
-    from zenswarm.bridge.mavlink import _BridgeLoop
+    from zenswarm.bridge.vehicles.crazyflie import READY, CrazyflieBridge
+    from zenswarm.bridge.vehicles.mavlink import _BridgeLoop
 
     settings = replace(crazyflie_settings(SC), land_timeout_s=0.2)
     counters: collections.Counter = collections.Counter()

@@ -28,7 +28,7 @@ from zenswarm.campaign.delaymargin import (
 )
 from zenswarm.compose import margin
 from zenswarm.compose.sim import simulate
-from zenswarm.link.faults import delivery_tick
+from zenswarm.link.units import delivery_tick
 from zenswarm.scenario.config import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]

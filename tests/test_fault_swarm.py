@@ -114,7 +114,7 @@ def test_sigkill_of_agent2_restarts_and_completes(zenswarm_fly, tmp_path: Path) 
     assert any("nominal -> hover" in ln for ln in fs) and any("-> nominal" in ln for ln in fs), fs
     json.dumps(res)
     # the recording shows the failsafe interval: the plant's diag says UAV 2 hovered, then nominal
-    from zenswarm.bridge.mcapio import read_recording
+    from zenswarm.bridge.recording.mcapio import read_recording
     from zenswarm.bus import wire
 
     marks = []

@@ -1,4 +1,4 @@
-"""Link-fault model (zenswarm.link.faults): parsing, pure decisions, statistics against closed forms,
+"""Link-fault model (zenswarm.link: units, names, plan, decisions, inbox, config): parsing, pure decisions, statistics against closed forms,
 partitions, lockstep delivery ticks and the receiver's hold-last-value inbox.
 
 Statistical tolerances are stated per test; the seeds are fixed, so every test is deterministic.
@@ -15,26 +15,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from zenswarm.errors import ScenarioError
-from zenswarm.link.faults import (
-    BLOCK,
-    FaultPlan,
-    FaultState,
-    GilbertElliott,
-    LinkFaultSpec,
-    LinkInbox,
-    Partition,
-    agent_links,
-    decide,
-    delivery_tick,
-    link_kind,
-    parse_duration,
-    parse_loss,
-    parse_partition,
-    parse_process,
-    plan_from_cli,
-    plan_from_scenario,
-    plant_links,
-)
+from zenswarm.link.config import plan_from_cli, plan_from_scenario
+from zenswarm.link.decisions import BLOCK, FaultState, decide
+from zenswarm.link.inbox import LinkInbox
+from zenswarm.link.names import agent_links, link_kind, parse_process, plant_links
+from zenswarm.link.plan import FaultPlan, GilbertElliott, LinkFaultSpec, Partition, parse_partition
+from zenswarm.link.units import delivery_tick, parse_duration, parse_loss
 
 A1, A2, A3 = "agent:1", "agent:2", "agent:3"
 

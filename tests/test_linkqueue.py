@@ -11,7 +11,8 @@ import pytest
 from zenswarm.bus import wire
 from zenswarm.compose.sim import simulate
 from zenswarm.errors import ScenarioError
-from zenswarm.link.faults import FaultState, plan_from_scenario
+from zenswarm.link.config import plan_from_scenario
+from zenswarm.link.decisions import FaultState
 from zenswarm.link.queue import LinkQueues, QueueSpec, message_size, parse_capacity, parse_queue
 from zenswarm.link.swarm import Box, plan_for, scenario_links
 from zenswarm.link.trace import parse_trace

@@ -1,8 +1,8 @@
-"""The live view (bridge/live.py, `zenswarm up --live`): Foxglove WebSocket clients, headless.
+"""The live view (bridge/views/live.py, `zenswarm up --live`): Foxglove WebSocket clients, headless.
 
 A short lockstep flight of paper example 1 with ``--live PORT``: a client speaking the Foxglove
 WebSocket protocol under its first name only (subprotocol ``foxglove.websocket.v1``, which the
-foxglove-sdk's own server refuses; the live view's server, bridge/live.py's, accepts both names)
+foxglove-sdk's own server refuses; the live view's server, bridge/views/live.py's, accepts both names)
 connects, checks the advertised channels and schemas (/scene and /tf with Foxglove's official
 protobuf descriptors, the SDK's; /metrics with its JSON Schema), subscribes to them, and decodes
 what it receives with those schemas. The flight itself equals the in-process simulator bit for
@@ -156,7 +156,7 @@ def test_live_frames_wait_for_every_uavs_first_state() -> None:
     show a swarm of one (a /tf without uav2, uav3). The view waits for every UAV's first state,
     but not for ever: a UAV still missing more than STALE_S of sim time after the first state is
     left out and the others are shown."""
-    from zenswarm.bridge.scene import LatestFrames, poses
+    from zenswarm.bridge.views.scene import LatestFrames, poses
     from zenswarm.bus import wire
     from zenswarm.scenario.config import load_scenario
 
@@ -194,7 +194,7 @@ def test_live_view_accepts_both_names_of_the_protocol() -> None:
     """In this process, no flight: the live view's server selects the name the client offers
     (``foxglove.sdk.v1`` when both are), sends its first messages, and refuses a client offering
     neither (HTTP 400, as the SDK's server does)."""
-    from zenswarm.bridge.live import LiveView
+    from zenswarm.bridge.views.live import LiveView
     from zenswarm.scenario.config import load_scenario
 
     view = LiveView(load_scenario(ROOT / "compose" / "scenarios" / "paper_example1.toml"), "names", 0)
@@ -242,7 +242,7 @@ def test_layout_file_refers_only_to_what_the_live_view_and_export_publish() -> N
     Import from file): every panel of the tree configured and every configured panel placed; its
     topics published (the handshake test checks they are advertised); every /metrics field a plot
     reads is in the metrics' JSON Schema; the 3D panel follows the scene's frame."""
-    from zenswarm.bridge.scene import METRICS_SCHEMA, WORLD
+    from zenswarm.bridge.views.scene import METRICS_SCHEMA, WORLD
 
     layout = json.loads(LAYOUT.read_text())
     config = layout["configById"]
@@ -366,7 +366,7 @@ def feed_tick(view, k: int) -> int:
 
 @pytest.fixture
 def view():
-    from zenswarm.bridge.live import LiveView
+    from zenswarm.bridge.views.live import LiveView
     from zenswarm.scenario.config import load_scenario
 
     v = LiveView(load_scenario(EX1), "server", 0)
@@ -387,7 +387,7 @@ def test_the_live_view_listens_on_one_port_only() -> None:
     psutil = pytest.importorskip("psutil", reason="psutil (a dependency of rerun-sdk, zenswarm[rerun]) lists the sockets")
     code = (
         "import sys\n"
-        "from zenswarm.bridge.live import LiveView\n"
+        "from zenswarm.bridge.views.live import LiveView\n"
         "from zenswarm.scenario.config import load_scenario\n"
         "view = LiveView(load_scenario(sys.argv[1]), 'ports', 0)\n"
         "print(view.port, flush=True)\n"
@@ -427,7 +427,7 @@ def test_live_view_sends_what_the_export_writes(view, tmp_path: Path) -> None:
     import foxglove
     from mcap.reader import make_reader
 
-    from zenswarm.bridge.foxglove_scene import SceneChannels
+    from zenswarm.bridge.views.foxglove_scene import SceneChannels
 
     made = []
     frame = view.latest.frame
@@ -546,7 +546,7 @@ def test_a_slow_client_does_not_hold_up_publishing(view) -> None:
     """A client that stops reading: publishing returns at once whatever it does, its queue is
     bounded (the oldest dropped), and another client still gets the newest message; when it goes
     away (reset), the server forgets it."""
-    from zenswarm.bridge.live import BACKLOG
+    from zenswarm.bridge.views.live import BACKLOG
 
     server = view.server
     scene = view.channels[0]

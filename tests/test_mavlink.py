@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from zenswarm.bridge.mavlink import (
+from zenswarm.bridge.vehicles.mavlink import (
     AP_COPTER_MODES,
     PX4_HOLD,
     PX4_LAND,

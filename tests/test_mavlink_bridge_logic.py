@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from zenswarm.bridge import mavlink as mavlink_mod
-from zenswarm.bridge.mavlink import (
+from zenswarm.bridge.vehicles import mavlink as mavlink_mod
+from zenswarm.bridge.vehicles.mavlink import (
     AP_COPTER_MODES,
     PX4_OFFBOARD,
     Bridge,
@@ -349,7 +349,7 @@ def test_state_stamp_is_the_vehicle_time_on_the_mission_clock():
     """The published state's ``ts``: LOCAL_POSITION_NED.time_boot_ms through the TIMESYNC clock
     offset, in ns since mission time 0; none before a TIMESYNC answer (the fallback offset is for
     the diagnostic only)."""
-    from zenswarm.bridge.mavlink import _BridgeLoop
+    from zenswarm.bridge.vehicles.mavlink import _BridgeLoop
     from zenswarm.bus import wire
 
     b, _, _ = _bridge({})

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from zenswarm.bridge.mavlink import AP_COPTER_MODES, Bridge, mavlink_settings
+from zenswarm.bridge.vehicles.mavlink import AP_COPTER_MODES, Bridge, mavlink_settings
 from zenswarm.bus import free_udp_block, wire
 from zenswarm.plant.mavlink_vehicle import MavlinkFleet, VehicleOptions
 from zenswarm.scenario.config import scenario_from_dict

@@ -84,7 +84,7 @@ def test_spec_plant_in_a_recorded_run_waits_for_the_recorder(tmp_path: Path) -> 
     """With ``--record`` the supervisor starts the recorder; a plant that waits for its token too
     (``--expect recorder``) gets every tick, from 0, into the recording. A 3 s mission: the goal is
     not reached (exit 1, ``timeout``), which is not what this test is about."""
-    from zenswarm.bridge.mcapio import read_recording
+    from zenswarm.bridge.recording.mcapio import read_recording
 
     rec = tmp_path / "flight.mcap"
     scen = scenario_variant(tmp_path, time_limit_s=3.0)

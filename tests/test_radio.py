@@ -14,7 +14,9 @@ from zenswarm.bus import wire
 from zenswarm.compose.sim import simulate
 from zenswarm.errors import ScenarioError
 from zenswarm.judge.metrics import flight_differences
-from zenswarm.link.faults import FaultPlan, FaultState, LinkFaultSpec, plan_from_scenario, plan_with_radio
+from zenswarm.link.config import plan_from_scenario, plan_with_radio
+from zenswarm.link.decisions import FaultState
+from zenswarm.link.plan import FaultPlan, LinkFaultSpec
 from zenswarm.link.radio import RadioModel, components, drop_probability, leader_reaches_all, parse_distance, parse_fade, radio_reason
 from zenswarm.link.swarm import Box, distance, effective_graph, plan_for
 from zenswarm.scenario.config import load_scenario, scenario_from_dict

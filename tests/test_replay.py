@@ -23,10 +23,10 @@ import msgpack
 import numpy as np
 import pytest
 
-from zenswarm.bridge.info import scan
-from zenswarm.bridge.playback import Controls, KeyboardControls, TopicFilter, parse_keys, restamp
-from zenswarm.bridge.recorder import McapSink, build_metadata
-from zenswarm.bridge.replay import replay
+from zenswarm.bridge.recording.info import scan
+from zenswarm.bridge.recording.recorder import McapSink, build_metadata
+from zenswarm.bridge.replay.playback import Controls, KeyboardControls, TopicFilter, parse_keys, restamp
+from zenswarm.bridge.replay.replay import replay
 from zenswarm.bus import wire
 from zenswarm.compose.cli import main
 from zenswarm.errors import RecordingError, ScenarioError
@@ -356,7 +356,7 @@ def test_replay_into_one_live_agent_reproduces_its_references_and_loops_are_acce
     """Agent 2 alone, lockstep: the recorded plant state of UAV 2, the neighbours' and the
     leader's references replayed to it; its references and commands equal the recorded ones bit
     for bit in the first pass, and it ticks on through the re-stamped second pass."""
-    from zenswarm.bridge.mcapio import read_recording
+    from zenswarm.bridge.recording.mcapio import read_recording
     from zenswarm.bus import client_config, open_session
 
     path, swarm, long_sc = flight

@@ -1,4 +1,4 @@
-"""Flight report and Foxglove export from an MCAP recording (bridge/report.py, bridge/foxglove.py).
+"""Flight report and Foxglove export from an MCAP recording (bridge/reports/report.py, bridge/views/foxglove.py).
 
 The recording is built here, not by the recorder: paper example 1 flown for 3 s by the in-process
 simulator, each tick's samples encoded as the swarm's wire messages on their keys with t = k dt
@@ -21,8 +21,8 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from zenswarm.bridge import foxglove as fx
-from zenswarm.bridge import report
+from zenswarm.bridge.reports import report
+from zenswarm.bridge.views import foxglove as fx
 from zenswarm.bus import wire
 from zenswarm.compose.cli import main as cli_main
 from zenswarm.compose.sim import simulate

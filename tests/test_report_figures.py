@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from test_report import SWARM, _toml, flight, recording  # noqa: F401  (fixtures)
 
-from zenswarm.bridge import report
+from zenswarm.bridge.reports import report
 from zenswarm.compose.cli import main as cli_main
 from zenswarm.scenario.config import scenario_to_dict
 

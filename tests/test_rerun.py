@@ -1,4 +1,4 @@
-"""Rerun (bridge/rerun_scene.py): ``zenswarm export FILE --rerun OUT.rrd`` read back with Rerun's
+"""Rerun (bridge/views/rerun_scene.py): ``zenswarm export FILE --rerun OUT.rrd`` read back with Rerun's
 own reader and checked against the recording and the Foxglove export of the same frames; the
 live view ``--live rerun`` (Rerun's web viewer and gRPC server, the rerun-sdk wheel's) loaded in
 a real browser, headless Chromium (Debian package ``chromium``, which ``.ci/run`` installs),
@@ -101,7 +101,7 @@ def test_rrd_export_holds_the_scene_and_figures_of_the_recording(flight, tmp_pat
     entities, one frame per 50 ms of sim time on the sim_time timeline (its only timeline), each
     UAV where the recording has it, with its attitude, and the same figures as the Foxglove
     export's /metrics (one scene code, two encoders)."""
-    from zenswarm.bridge.scene import quat_rpy
+    from zenswarm.bridge.views.scene import quat_rpy
 
     sc, sim = flight
     rec = tmp_path / "flight.mcap"
@@ -280,8 +280,8 @@ def test_rerun_web_viewer_renders_the_flight_in_a_real_browser(flight, tmp_path)
         pytest.skip("chromium is not installed and could not be installed here (.ci/run: apt-get install -y chromium, as root)")
     import psutil
 
-    from zenswarm.bridge.rerun_scene import RerunLiveView
-    from zenswarm.bridge.scene import palette
+    from zenswarm.bridge.views.rerun_scene import RerunLiveView
+    from zenswarm.bridge.views.scene import palette
 
     sc, sim = flight
     swarm = unique_swarm("rr")
@@ -331,7 +331,7 @@ def test_up_live_rerun_serves_the_flight(tmp_path):
     there; Rerun's own client (``rerun URL --save F.rrd``, the wheel's executable, itself bound to
     loopback) receives the flight from the gRPC server: each UAV where the flight had it, in sim
     time; the flight is the simulator's bit for bit, and the viewer's process is gone afterwards."""
-    from zenswarm.bridge.rerun_scene import _rerun_executable
+    from zenswarm.bridge.views.rerun_scene import _rerun_executable
     from zenswarm.judge.metrics import TimeSeries
 
     scenario = scenario_variant(tmp_path, time_limit_s=2.0)
@@ -398,7 +398,7 @@ def test_replay_live_rerun_serves_the_recorded_flight(flight, tmp_path):
     recording has it; the viewer's process stops with the replay."""
     from test_replay import router
 
-    from zenswarm.bridge.rerun_scene import _rerun_executable
+    from zenswarm.bridge.views.rerun_scene import _rerun_executable
     from zenswarm.bus import client_config, open_session
 
     sc, sim = flight
@@ -453,7 +453,7 @@ def test_live_frames_show_one_tick_not_a_mix(flight):
     """The live views' frames (scene.LatestFrames, both viewers'): messages of a tick arrive one
     by one; a frame built between them shows the tick every UAV has reached, each UAV and the
     leader at that tick; a UAV far behind (stale) does not hold the others back."""
-    from zenswarm.bridge.scene import LatestFrames
+    from zenswarm.bridge.views.scene import LatestFrames
 
     sc, sim = flight
     ts, keys = sim.series, wire.Keys("mix")
@@ -509,8 +509,8 @@ def test_export_flags_are_checked_before_any_work(tmp_path, capsys):
 def test_link_health_and_failsafe_are_series(flight, tmp_path):
     """With link faults the agents count per link; the Rerun scene logs each link's delivery ratio
     and age, and the failsafe count, as scalar series (read back with Rerun's reader)."""
-    from zenswarm.bridge.rerun_scene import RerunScene
-    from zenswarm.bridge.scene import frame_from_series
+    from zenswarm.bridge.views.rerun_scene import RerunScene
+    from zenswarm.bridge.views.scene import frame_from_series
 
     sc, sim = flight
     path = tmp_path / "links.rrd"
@@ -656,7 +656,7 @@ def test_live_view_close_is_bounded_and_says_what_did_not_reach_the_viewer(fligh
     browser reading slowly, which holds the server back): ``close`` waits a bounded time, says
     in one line that not everything reached the viewer, raises nothing (a view never changes the
     mission's exit status; issue 43: ``RuntimeError: Flush timed out``) and stops the viewer."""
-    from zenswarm.bridge.rerun_scene import RerunLiveView
+    from zenswarm.bridge.views.rerun_scene import RerunLiveView
 
     sc, sim = flight
     swarm = unique_swarm("rrst")
@@ -680,8 +680,8 @@ def test_default_view_plots_the_leaders_d_obs_against_d0_and_marks_start_and_goa
     """Shown by default (issue 43): a plot of the leader's d_obs(q0) with d0 in the layout; the
     start labelled; the goal seen at the flight's scale (a marker of 0.15 m at least, the
     formation's sphere of radius r_f around it, a pole from the ground), not a 5 cm dot."""
-    from zenswarm.bridge.rerun_scene import blueprint
-    from zenswarm.bridge.scene import static_entities
+    from zenswarm.bridge.views.rerun_scene import blueprint
+    from zenswarm.bridge.views.scene import static_entities
 
     sc, _ = flight
     views: list = []

@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import os
 import queue
-import socket
 import stat
 import subprocess
 import sys
@@ -197,7 +196,7 @@ if __name__ == "__main__":
 
 import pytest  # noqa: E402
 
-from zenswarm.bus import wire  # noqa: E402
+from zenswarm.bus import free_port, wire  # noqa: E402
 from zenswarm.process import security  # noqa: E402
 from zenswarm.process.security import (  # noqa: E402
     CredentialsError,
@@ -209,12 +208,6 @@ from zenswarm.process.security import (  # noqa: E402
     router_security_config,
 )
 from zenswarm.scenario.config import load_scenario  # noqa: E402
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Worker:

@@ -1,4 +1,4 @@
-"""zenswarm.bridge.sweep_report: the report of a campaign directory (issue 17, point 4).
+"""zenswarm.bridge.reports.sweep_report: the report of a campaign directory (issue 17, point 4).
 
 Pure tests on synthetic campaign directories (campaign.json + runs.parquet written with pyarrow, the
 contract of docs/campaigns.md); every expected figure is computed here from the rows, independently
@@ -20,8 +20,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from zenswarm.bridge import sweep_report
-from zenswarm.bridge.sweep_report import load_campaign, wilson_interval, write_report
+from zenswarm.bridge.reports import sweep_report
+from zenswarm.bridge.reports.sweep_report import load_campaign, wilson_interval, write_report
 from zenswarm.errors import CampaignError, ZenswarmError
 
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -9,8 +9,9 @@ the command, :mod:`zenswarm.api`, :mod:`zenswarm.sweep`, the pytest plugin); the
 
 This module holds the version and nothing that imports a layer: importing any part of zenswarm
 runs it. The base's modules had other names before 0.2 (``zenswarm.config``, ``zenswarm.faults``,
-...); :data:`MOVED` maps each to its new name, and importing an old name gives the module under
-its new name with a :class:`DeprecationWarning` (no second copy of a module is ever made).
+...), and the bridge's before its folders (``zenswarm.bridge.mavlink``, ...); :data:`MOVED` maps
+each to its new name, and importing an old name gives the module under its new name with a
+:class:`DeprecationWarning` (no second copy of a module is ever made).
 """
 
 from __future__ import annotations
@@ -49,8 +50,24 @@ MOVED: dict[str, str] = {
     "zenswarm.paths": "zenswarm.process.paths",
     "zenswarm.delaymargin": "zenswarm.campaign.delaymargin",
     "zenswarm.policy": "zenswarm.compose.policy",
+    # the bridge's modules before its folders (issue 44); zenswarm.bridge.replay is now the folder
+    # (its module: zenswarm.bridge.replay.replay)
+    "zenswarm.bridge.mcapio": "zenswarm.bridge.recording.mcapio",
+    "zenswarm.bridge.recorder": "zenswarm.bridge.recording.recorder",
+    "zenswarm.bridge.info": "zenswarm.bridge.recording.info",
+    "zenswarm.bridge.playback": "zenswarm.bridge.replay.playback",
+    "zenswarm.bridge.report": "zenswarm.bridge.reports.report",
+    "zenswarm.bridge.sweep_report": "zenswarm.bridge.reports.sweep_report",
+    "zenswarm.bridge.scene": "zenswarm.bridge.views.scene",
+    "zenswarm.bridge.foxglove": "zenswarm.bridge.views.foxglove",
+    "zenswarm.bridge.foxglove_scene": "zenswarm.bridge.views.foxglove_scene",
+    "zenswarm.bridge.rerun_scene": "zenswarm.bridge.views.rerun_scene",
+    "zenswarm.bridge.live": "zenswarm.bridge.views.live",
+    "zenswarm.bridge.export": "zenswarm.bridge.views.export",
+    "zenswarm.bridge.mavlink": "zenswarm.bridge.vehicles.mavlink",
+    "zenswarm.bridge.crazyflie": "zenswarm.bridge.vehicles.crazyflie",
 }
-"""Old module name -> new name (0.1 -> 0.2, issue 29)."""
+"""Old module name -> new name (0.1 -> 0.2, issue 29; the bridge's folders, issue 44)."""
 
 
 class _Moved(importlib.abc.MetaPathFinder, importlib.abc.Loader):

@@ -55,7 +55,7 @@ from zenswarm.campaign import (
     parse_sample,
     plan_from_toml,
 )
-from zenswarm.errors import ScenarioError, ZenswarmError
+from zenswarm.errors import ScenarioError, run_command
 from zenswarm.link import plan_for
 from zenswarm.process.paths import check_output_dir
 from zenswarm.scenario.plugins import check_selection
@@ -442,7 +442,7 @@ def _check_swarm(backend: Backend, plan: Plan, runs: Sequence[Run], doc: dict[st
 
 def _maybe_report(out: Path) -> None:
     try:
-        from zenswarm.bridge.sweep_report import write_report  # type: ignore[import-not-found,unused-ignore]
+        from zenswarm.bridge.reports.sweep_report import write_report  # type: ignore[import-not-found,unused-ignore]
     except ImportError:
         return
     try:
@@ -630,9 +630,9 @@ def _report_main(argv: Sequence[str]) -> int:
     p.add_argument("dir", type=Path, help="the campaign directory (--out of zenswarm sweep)")
     args = p.parse_args(argv)
     try:
-        from zenswarm.bridge.sweep_report import write_report  # type: ignore[import-not-found,unused-ignore]
+        from zenswarm.bridge.reports.sweep_report import write_report  # type: ignore[import-not-found,unused-ignore]
     except ImportError:
-        print("zenswarm: error: sweep report is not in this build (zenswarm.bridge.sweep_report)", file=sys.stderr)
+        print("zenswarm: error: sweep report is not in this build (zenswarm.bridge.reports.sweep_report)", file=sys.stderr)
         return 2
     print(write_report(args.dir))
     return 0
@@ -650,17 +650,14 @@ def _margin_main(argv: Sequence[str]) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """``zenswarm sweep ARGS`` (argv without the word ``sweep``); exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    try:
-        if argv and argv[0] == "report":
-            return _report_main(argv[1:])
-        if argv and argv[0] == "margin":
-            return _margin_main(argv[1:])
-        args = build_parser().parse_args(argv)
-        plan, out = _plan_from_args(args)
-        return run_campaign(plan, out, ["zenswarm", "sweep", *argv], args.workers, args.scheduler, args.quiet)
-    except ZenswarmError as e:
-        print(f"zenswarm: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("zenswarm: interrupted", file=sys.stderr)
-        return 130
+    return run_command(lambda: _sweep(argv))
+
+
+def _sweep(argv: list[str]) -> int:
+    if argv and argv[0] == "report":
+        return _report_main(argv[1:])
+    if argv and argv[0] == "margin":
+        return _margin_main(argv[1:])
+    args = build_parser().parse_args(argv)
+    plan, out = _plan_from_args(args)
+    return run_campaign(plan, out, ["zenswarm", "sweep", *argv], args.workers, args.scheduler, args.quiet)

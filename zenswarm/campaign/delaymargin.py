@@ -32,7 +32,7 @@ Two delay models, never to be mixed up:
   (F2) is the Levin-May condition, applied per eigenvalue of the symmetric M.
 
 A link delay tau becomes an integer number of ticks d = ceil(tau / dt - 1e-9)
-(:func:`delay_ticks`, the same as :func:`zenswarm.link.faults.delivery_tick`): the receiver holds the
+(:func:`delay_ticks`, the same as :func:`zenswarm.link.units.delivery_tick`): the receiver holds the
 message of tick k - d at tick k.
 
 Units: dt, tau in s; mu1, mu2 in 1/s (with unit weights a_ij, b_i).
@@ -92,7 +92,7 @@ def graph_matrix(A: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def delay_ticks(tau: float, dt: float) -> int:
     """Ticks of delay d a link delay tau (s) becomes at control period dt (s):
-    ceil(tau / dt - 1e-9) (as :func:`zenswarm.link.faults.delivery_tick`)."""
+    ceil(tau / dt - 1e-9) (as :func:`zenswarm.link.units.delivery_tick`)."""
     if not dt > 0 or not (tau >= 0 and math.isfinite(tau)):
         raise ValueError(f"need dt > 0 and a finite tau >= 0, got dt={dt!r}, tau={tau!r}")
     return max(0, math.ceil(tau / dt - _EPS_TICK))

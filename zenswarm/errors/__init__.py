@@ -1,6 +1,10 @@
-"""The project's one exception hierarchy."""
+"""The project's one exception hierarchy, the exit statuses, and the wrapper that turns one into
+the other at a command line (:func:`run_command`)."""
 
 from __future__ import annotations
+
+import sys
+from collections.abc import Callable
 
 
 class ZenswarmError(Exception):
@@ -31,6 +35,13 @@ class RecordingError(ZenswarmError):
 class CampaignError(ZenswarmError):
     """A campaign directory (``zenswarm sweep --out DIR``) is missing, unreadable or malformed."""
 
+
+EXIT_BAD_INPUT = 2
+"""Exit status of a command refused before any work: a :class:`ZenswarmError` (bad input, a busy
+port, a missing file, ...), said on stderr."""
+
+EXIT_INTERRUPTED = 130
+"""Exit status of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it)."""
 
 EXIT_PLUGIN_FAILED = 4
 """Exit status of ``zenswarm sim``, ``zenswarm up`` and a swarm process when a plug-in failed
@@ -95,3 +106,18 @@ class PluginFailure(ZenswarmError):
             str(d["kind"]), str(d["plugin"]), str(d["process"]), tuple(int(u) for u in uavs), int(str(d["tick"])),
             int(str(d["stage"])), str(d["call"]), str(d["detail"]), None if field is None else str(field),
         )
+
+
+def run_command(body: Callable[[], int | None], label: str = "zenswarm") -> int:
+    """Run a command's ``body`` and return its exit status (None: 0). A :class:`ZenswarmError` is
+    printed as ``label: error: ...`` on stderr, exit :data:`EXIT_BAD_INPUT`; Ctrl-C as ``label:
+    interrupted``, exit :data:`EXIT_INTERRUPTED`. The command lines' one wrapper (``zenswarm
+    sweep``, ``python -m zenswarm.bridge.reports.report``, ...)."""
+    try:
+        return int(body() or 0)
+    except ZenswarmError as e:
+        print(f"{label}: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print(f"{label}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED

@@ -11,14 +11,21 @@ swarm's processes decide alike. Realtime runs release kept messages late through
 
 This package's namespace is the one entry point: every module outside it imports
 ``zenswarm.link``, never one of its modules (an import-linter contract, ``bash .ci/lint``); its
-modules are the model's parts: :mod:`~zenswarm.link.names` (processes and links),
-:mod:`~zenswarm.link.faults` (the plan and the decisions), :mod:`~zenswarm.link.radio`,
-:mod:`~zenswarm.link.queue` (capacity and queueing), :mod:`~zenswarm.link.trace` (trace replay) and
-:mod:`~zenswarm.link.swarm` (the plan of a scenario's swarm, its boxes and graph series).
+modules are the model's parts: :mod:`~zenswarm.link.units` (durations, probabilities, ticks),
+:mod:`~zenswarm.link.names` (processes and links), :mod:`~zenswarm.link.plan` (the plan),
+:mod:`~zenswarm.link.decisions` (one message's fate), :mod:`~zenswarm.link.inbox` (the lockstep
+receiver), :mod:`~zenswarm.link.config` (a plan from a scenario and the command line),
+:mod:`~zenswarm.link.radio`, :mod:`~zenswarm.link.queue` (capacity and queueing),
+:mod:`~zenswarm.link.trace` (trace replay) and :mod:`~zenswarm.link.swarm` (the plan of a
+scenario's swarm, its boxes and graph series). :mod:`~zenswarm.link.faults` keeps the names of
+the model's single module (before issue 44) for old code.
 """
 
-from zenswarm.link.faults import FaultPlan, FaultState, Held, LinkFaultSpec, delivery_tick, parse_duration, plan_from_scenario
+from zenswarm.link.config import plan_from_scenario
+from zenswarm.link.decisions import FaultState
+from zenswarm.link.inbox import Held
 from zenswarm.link.names import KINDS, agent_links, link_kind, parse_process, plant_links
+from zenswarm.link.plan import FaultPlan, LinkFaultSpec
 from zenswarm.link.queue import message_size, parse_capacity
 from zenswarm.link.radio import parse_distance
 from zenswarm.link.swarm import (
@@ -34,6 +41,7 @@ from zenswarm.link.swarm import (
     plan_for,
     scenario_links,
 )
+from zenswarm.link.units import delivery_tick, parse_duration
 
 __all__ = [
     "FaultPlan", "FaultState", "Held", "LinkFaultSpec", "delivery_tick", "parse_duration", "plan_from_scenario",

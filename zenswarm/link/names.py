@@ -1,8 +1,21 @@
 """Names on the swarm's links: processes (``plant``, ``leader``, ``agent:<i>``), the message kinds
 and which directed links ``(src, dst, kind)`` a swarm has.
 
-``ref``: agent -> agent, ``leader``: leader -> agent, ``state``: plant -> agent, ``cmd``: agent ->
-plant (:mod:`zenswarm.link.faults` and :mod:`zenswarm.link.trace` name links with these).
+Process names are ``plant``, ``leader`` and ``agent:<i>`` (UAVs numbered 1..N as in the paper).
+A link carries one kind of message:
+
+=========  =====================  ===========================================
+kind       direction              wire key
+=========  =====================  ===========================================
+``ref``    ``agent:j -> agent:i``  ``uav/<j>/ref``   (q*_j, v*_j), eqs (16)-(17)
+``leader`` ``leader -> agent:i``   ``leader/ref``    (q0, v0), eq. (15)
+``state``  ``plant -> agent:i``    ``uav/<i>/state`` measured state
+``cmd``    ``agent:i -> plant``    ``uav/<i>/cmd``   thrust and attitude
+=========  =====================  ===========================================
+
+(Both reference messages are ``k: "ref"`` on the wire; the fault model tells them apart so that the
+leader's reference can be faulted separately.) The rest of the model (:mod:`zenswarm.link.plan`,
+:mod:`zenswarm.link.trace`, ...) names links with these.
 """
 
 from __future__ import annotations
@@ -10,7 +23,12 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable
 
-__all__ = ["KINDS", "KIND_ROLES", "PROCESS_RE", "parse_process", "role_of", "link_kind", "agent_links", "plant_links"]
+from zenswarm.errors import ScenarioError
+
+__all__ = [
+    "KINDS", "KIND_ROLES", "PROCESS_RE", "parse_process", "role_of", "link_kind", "agent_links", "plant_links", "parse_target",
+    "check_exists",
+]  # fmt: skip
 
 #: Message kinds, see the module docstring.
 KINDS: tuple[str, ...] = ("ref", "leader", "state", "cmd")
@@ -72,3 +90,33 @@ def agent_links(i: int, neighbours: Iterable[int], pinned: bool) -> list[tuple[s
 def plant_links(n: int) -> list[tuple[str, str, str]]:
     """Incoming links of the plant: every agent's command, agents 1..n."""
     return [(f"agent:{i}", "plant", "cmd") for i in range(1, int(n) + 1)]
+
+
+def parse_target(text: str) -> str:
+    """``agent:2`` (a process: every link to and from it) or ``agent:1->agent:2`` (one directed link)."""
+    if not isinstance(text, str) or not text.strip():
+        raise ValueError(f"invalid partition target {text!r}: expected a process or src->dst")
+    if "->" in text:
+        a, _, b = text.partition("->")
+        try:
+            sa, sb = parse_process(a), parse_process(b)
+        except ValueError as e:
+            raise ValueError(f"invalid partition target {text!r}: {e}") from None
+        if sa == sb:
+            raise ValueError(f"invalid partition target {text!r}: a link needs two different processes")
+        return f"{sa}->{sb}"
+    try:
+        return parse_process(text)
+    except ValueError as e:
+        raise ValueError(f"invalid partition target {text!r}: {e}") from None
+
+
+def check_exists(path: str, target: str, n: int | None) -> None:
+    """Raise :class:`ScenarioError` naming ``path`` when ``target`` (a process, a link
+    ``src->dst`` or a glob) names an agent beyond the scenario's ``n`` UAVs; ``n=None``: no check."""
+    if n is None:
+        return
+    for part in target.split("->"):
+        m = PROCESS_RE.match(part.strip())
+        if m and m.group(2) is not None and not 1 <= int(m.group(2)) <= n:
+            raise ScenarioError(path, f"{part.strip()} does not exist: the scenario has {n} UAVs (agent:1 to agent:{n})")

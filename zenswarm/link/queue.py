@@ -1,7 +1,7 @@
 """Bandwidth and queueing on the swarm's links: a capacity in bytes/s and a bounded FIFO queue.
 
 Pure: numpy, msgspec (through :mod:`zenswarm.bus.wire`) and the standard library; no clock, no files.
-Used by :mod:`zenswarm.link.faults` (a :class:`~zenswarm.link.faults.FaultState` adds what this module
+Used by :mod:`zenswarm.link.decisions` (a :class:`~zenswarm.link.decisions.FaultState` adds what this module
 computes to every decision), so the simulator and the lockstep processes agree bit for bit.
 
 Model

@@ -1,10 +1,10 @@
 """Radio links: delivery that depends on the distance between sender and receiver.
 
 Pure (numpy and the standard library only; no zenoh, no files, no clock). The link-fault model of
-:mod:`zenswarm.link.faults` decides a message's fate from (seed, link, tick); a :class:`RadioModel` on a
+:mod:`zenswarm.link.decisions` decides a message's fate from (seed, link, tick); a :class:`RadioModel` on a
 link adds a decision that also depends on the *geometry*: the distance ``d`` (m) between the
 sender's and the receiver's true positions. Two models, combinable with each other and with the
-independent and Gilbert-Elliott losses, delays and partitions of :mod:`zenswarm.link.faults`:
+independent and Gilbert-Elliott losses, delays and partitions of :mod:`zenswarm.link.decisions`:
 
 * **hard range** ``range_m``: a message with ``d > range_m`` is dropped (reason ``range``);
 * **logistic fall-off** ``fade_50_m``, ``fade_width_m``: delivered with probability
@@ -12,7 +12,7 @@ independent and Gilbert-Elliott losses, delays and partitions of :mod:`zenswarm.
   one width inside / outside it, 98 % / 2 % at four widths (the smooth version of a range, as
   used for packet-reception-rate curves of low-power radios). Dropped with reason ``fade`` when
   ``u < 1 - p(d)``, ``u`` the link's uniform of stream ``radio`` at the message's sequence number
-  (:meth:`zenswarm.link.faults.FaultState.uniform`: counter-based, so a decision is a pure function of
+  (:meth:`zenswarm.link.decisions.FaultState.uniform`: counter-based, so a decision is a pure function of
   (seed, link, tick, d)).
 
 No distance-dependent latency: propagation over the tens of metres of a formation takes

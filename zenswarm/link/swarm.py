@@ -1,4 +1,4 @@
-"""Link faults wired into the simulator and the processes (the model is :mod:`zenswarm.link.faults`).
+"""Link faults wired into the simulator and the processes (the model: :mod:`zenswarm.link.plan`, :mod:`zenswarm.link.decisions`).
 
 Faults are applied where a message is received, per directed link ``(src, dst, kind)``:
 
@@ -6,7 +6,7 @@ Faults are applied where a message is received, per directed link ``(src, dst, k
   (``leader``), ``agent:i -> plant`` (``cmd``).
 
 Lockstep: the decision for a link's message of tick k is a pure function of (seed, link, k)
-(:class:`zenswarm.link.faults.FaultState`); the receiver holds the newest delivered value
+(:class:`zenswarm.link.decisions.FaultState`); the receiver holds the newest delivered value
 (:class:`Box`). The in-process simulator makes the same decisions with the same boxes, so a faulty
 lockstep swarm still equals the simulator bit for bit. The messages of tick 0 (the start-up
 exchange that initialises every generator) are never faulted.
@@ -27,17 +27,11 @@ from typing import Any
 import numpy as np
 
 from zenswarm.errors import ScenarioError
-from zenswarm.link.faults import (
-    Delivery,
-    FaultPlan,
-    FaultState,
-    LinkInbox,
-    agent_links,
-    plan_from_cli,
-    plan_from_scenario,
-    plan_with_radio,
-    plant_links,
-)
+from zenswarm.link.config import plan_from_cli, plan_from_scenario, plan_with_radio
+from zenswarm.link.decisions import Delivery, FaultState
+from zenswarm.link.inbox import LinkInbox
+from zenswarm.link.names import agent_links, plant_links
+from zenswarm.link.plan import FaultPlan
 from zenswarm.link.queue import LinkQueues
 from zenswarm.link.radio import GEOMETRY_TICK_OFFSET, components, leader_reaches_all, radio_reason
 from zenswarm.link.trace import LinkTrace, load_trace
@@ -59,7 +53,7 @@ def distance(a: Any, b: Any) -> float:
 class Box(LinkInbox):
     """:class:`LinkInbox` whose tick-0 message is always delivered at once (start-up exchange).
 
-    On a link with a radio model (:meth:`zenswarm.link.faults.FaultPlan.radio_for`) a message's fate
+    On a link with a radio model (:meth:`zenswarm.link.plan.FaultPlan.radio_for`) a message's fate
     also depends on the distance between the sender's position (given to :meth:`offer` as
     ``pos``) and the receiver's own position at the message's geometry tick (given to
     :meth:`own_position`; :data:`zenswarm.link.radio.GEOMETRY_TICK_OFFSET`). An offered message
@@ -177,6 +171,13 @@ class Box(LinkInbox):
         j = self.due(k)
         return j is None or (self.has(j) and self.known(j))
 
+    def timed_out(self, k: int) -> None:
+        """Not :meth:`ready` at tick k (its due message was not offered) and the lockstep wait gave
+        up: the due message's timeout is counted (:meth:`LinkInbox.mark_timeout`)."""
+        due = self.due(k)
+        assert due is not None, "a box that is not ready has a due message"
+        self.mark_timeout(due)
+
 
 def due_tick(box: Box | None, k: int) -> int:
     """The send tick of the message a lockstep receiver waits for at tick k: k without link
@@ -230,7 +231,7 @@ def plan_for(
     link_trace: str | None = None,
 ) -> FaultPlan | None:
     """The fault plan of a run: the scenario's ``[faults]`` table, then the CLI shortcuts
-    (``link_range``, ``link_fade``: :func:`zenswarm.link.faults.plan_with_radio`); the capacity queues
+    (``link_range``, ``link_fade``: :func:`zenswarm.link.config.plan_with_radio`); the capacity queues
     of the scenario's links (:class:`zenswarm.link.queue.LinkQueues`) and the trace
     (:mod:`zenswarm.link.trace`; ``link_trace`` replaces the scenario's).
 
@@ -396,7 +397,7 @@ def graph_series(
 
     Link ``src -> dst`` (a ``ref`` link ``agent:j -> agent:i`` for every neighbour j of agent i,
     a ``leader`` link for every pinned agent) is *up* at tick k when its message of tick k is
-    delivered: not dropped by any fault (:meth:`zenswarm.link.faults.FaultState.decide_batch`: loss,
+    delivered: not dropped by any fault (:meth:`zenswarm.link.decisions.FaultState.decide_batch`: loss,
     burst, partition, trace, full queue) nor by its radio model at the geometry of that tick (the
     plant's positions ``q`` (T, n, 3) and the leader's ``q0`` (T, 3), as recorded;
     :mod:`zenswarm.link.radio`), the same decision the receive boxes make (:class:`Box`). Tick 0 is

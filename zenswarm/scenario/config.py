@@ -29,7 +29,7 @@ The sections and their meaning (see ``compose/scenarios/paper_example1.toml`` fo
 ``[mission]``    how the flight is judged (:mod:`zenswarm.judge.verdict`): slot_tolerance_m,
                  settle_window_s, stall_speed_m_s, stall_window_s, divergence_m
 ``[disturbance]`` wind, sine_amplitude, sine_freq_hz, gust_std, gust_tau_s (accelerations, m/s^2)
-``[faults]``     link faults (``Scenario.faults``, :func:`zenswarm.link.faults.plan_from_scenario`)
+``[faults]``     link faults (``Scenario.faults``, :func:`zenswarm.link.config.plan_from_scenario`)
 ``[failsafe]``   the plant's command-loss failsafe (``Scenario.failsafe``, :func:`failsafe_config`)
 ``[restart]``    the supervisor's restart backoff (``Scenario.restart``, :func:`zenswarm.compose.policy.restart_policy`)
 ``[mavlink]``    MAVLink bridge and vehicles (``Scenario.mavlink``, :func:`zenswarm.vehicle.autopilot.mavlink_settings`)

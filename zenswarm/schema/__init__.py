@@ -12,7 +12,7 @@ msgspec's path ``$.obstacles[1].radius`` mapped to ours.
 
 Units are SI, positions in the inertial ENU frame (z up). The checks that need numbers of the
 whole scenario (the graph's Lemma 1, start/goal clearance, run-size bounds, durations in the
-``[faults]`` table) live with their owners (:mod:`zenswarm.scenario.config`, :mod:`zenswarm.link.faults`,
+``[faults]`` table) live with their owners (:mod:`zenswarm.scenario.config`, :mod:`zenswarm.link.config`,
 :mod:`zenswarm.vehicle.autopilot`), which read these Structs.
 """
 
@@ -73,7 +73,7 @@ Prob = Annotated[float, Meta(ge=0, le=1)]
 Vec3 = tuple[float, float, float]
 PosVec3 = tuple[Pos, Pos, Pos]
 Duration = str | float
-"""A duration string with a unit (``"50ms"``), or the number 0 (checked by :mod:`zenswarm.link.faults`)."""
+"""A duration string with a unit (``"50ms"``), or the number 0 (checked by :mod:`zenswarm.link.config`)."""
 
 
 class Table(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -399,7 +399,7 @@ class LinkFaultsTable(Table, frozen=True):
 
 
 class FaultsTable(Table, frozen=True):
-    """``[faults]``: link faults (see :func:`zenswarm.link.faults.plan_from_scenario` and docs/faults.md);
+    """``[faults]``: link faults (see :func:`zenswarm.link.config.plan_from_scenario` and docs/faults.md);
     capacity, queue, medium: :mod:`zenswarm.link.queue`; trace: a CSV file (:mod:`zenswarm.link.trace`),
     relative to the scenario file; hold: the hold horizon of the references (a duration, e.g.
     ``"0.5s"``: a neighbour or leader last heard longer ago is left out of eqs (16)-(17))."""

@@ -5,7 +5,7 @@ read) and returns a :class:`RecordingInfo`: the file's state (footer and summary
 recorder's end marker, the damage met), the ``zenswarm`` metadata (swarm, mode, scenario name and
 hash), the span in sim time (the payloads' ``t``, MCAP ``publish_time``) and in wall time
 (receive time, MCAP ``log_time``), and per channel the message count, payload bytes and rates
-over sim and wall time. :mod:`zenswarm.bridge.replay` uses the same scan to validate its window
+over sim and wall time. :mod:`zenswarm.bridge.replay.replay` uses the same scan to validate its window
 and filters.
 
 Exit status of the command: 0 for a complete recording, 1 for one that is readable but not
@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from zenswarm.bridge.mcapio import DROPPED_OVERSIZE, RECORDER_END, RECORDER_LIBRARIES, _SequenceGaps, read_recording
+from zenswarm.bridge.recording.mcapio import DROPPED_OVERSIZE, RECORDER_END, RECORDER_LIBRARIES, _SequenceGaps, read_recording
 from zenswarm.bus import wire
 
 __all__ = ["ChannelInfo", "RecordingInfo", "scan", "scenario_hash", "format_info", "add_parser"]

@@ -4,10 +4,10 @@ labels and lines, in ENU world coordinates), the vehicles' poses (:func:`poses`)
 flight's figures (:func:`metrics`, flattened to time series by :func:`metric_series`). Two
 encoders turn it into a viewer's format, so both viewers show the same scene from one code:
 
-* Foxglove (:mod:`zenswarm.bridge.foxglove_scene`): ``foxglove.SceneUpdate`` on ``/scene``,
+* Foxglove (:mod:`zenswarm.bridge.views.foxglove_scene`): ``foxglove.SceneUpdate`` on ``/scene``,
   ``foxglove.FrameTransforms`` on ``/tf``, JSON on ``/metrics`` (:data:`METRICS_SCHEMA`), for
   ``zenswarm export --foxglove`` (a file) and ``zenswarm up/replay --live`` (the WebSocket server);
-* Rerun (:mod:`zenswarm.bridge.rerun_scene`): Rerun archetypes under ``world/...`` and scalar time
+* Rerun (:mod:`zenswarm.bridge.views.rerun_scene`): Rerun archetypes under ``world/...`` and scalar time
   series under ``metrics/...`` on the ``sim_time`` timeline, for ``zenswarm export --rerun`` (an
   ``.rrd`` file) and ``--live rerun`` (Rerun's own web viewer and gRPC server).
 
@@ -697,8 +697,8 @@ def metric_series(m: dict[str, Any]) -> dict[str, float]:
 
 
 class PacedView(ABC):
-    """What both live views share (:class:`zenswarm.bridge.live.LiveView`,
-    :class:`zenswarm.bridge.rerun_scene.RerunLiveView`): the swarm's newest messages
+    """What both live views share (:class:`zenswarm.bridge.views.live.LiveView`,
+    :class:`zenswarm.bridge.views.rerun_scene.RerunLiveView`): the swarm's newest messages
     (:class:`LatestFrames`, :meth:`feed`) and a frame published at most ``hz`` per wall second
     (:meth:`maybe_publish`); a view implements :meth:`publish`."""
 

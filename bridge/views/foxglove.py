@@ -7,7 +7,7 @@ schema per message kind (``zenswarm.State``, ``zenswarm.Ref``, ``zenswarm.Cmd``,
 them (``v``, ``k``, ``t``, ``seq``, ``q``, ``vel``...). Topics are the recorded Zenoh keys.
 
 On top of that it adds, at ``--scene-hz`` (default 20 Hz) of sim time, the frames of
-:mod:`zenswarm.bridge.scene`, encoded by :mod:`zenswarm.bridge.foxglove_scene` (the code ``zenswarm up
+:mod:`zenswarm.bridge.views.scene`, encoded by :mod:`zenswarm.bridge.views.foxglove_scene` (the code ``zenswarm up
 --live`` serves to the Foxglove app too):
 
 ``/scene``    ``foxglove.SceneUpdate``: obstacles with their caps and d0 bands, the UAVs, the
@@ -15,7 +15,7 @@ On top of that it adds, at ``--scene-hz`` (default 20 Hz) of sim time, the frame
               its enclosing sphere of radius r_f, start and goal.
 ``/tf``       ``foxglove.FrameTransforms``: ``world`` -> ``leader`` and ``world`` -> ``uav<i>``.
 ``/metrics``  JSON: formation and tracking errors, clearances, failsafe state, per-link delivery
-              and age (:data:`zenswarm.bridge.scene.METRICS_SCHEMA`).
+              and age (:data:`zenswarm.bridge.views.scene.METRICS_SCHEMA`).
 
 The two Foxglove types are encoded as protobuf with Foxglove's official schemas (the message
 types of the ``foxglove-sdk`` package, which embeds their descriptors in the file); the file is
@@ -38,7 +38,7 @@ from typing import Any
 
 import msgpack
 
-from zenswarm.bridge.scene import METRICS_TOPIC, SCENE_TOPIC, TF_TOPIC
+from zenswarm.bridge.views.scene import METRICS_TOPIC, SCENE_TOPIC, TF_TOPIC
 from zenswarm.bus import wire
 from zenswarm.errors import RecordingError, ZenswarmError
 
@@ -54,7 +54,7 @@ __all__ = [
     "scene_frames",
 ]
 
-# The Foxglove SDK is imported where it is used (here, and in zenswarm.bridge.foxglove_scene): this
+# The Foxglove SDK is imported where it is used (here, and in zenswarm.bridge.views.foxglove_scene): this
 # module is imported by the CLI of every zenswarm process.
 
 # =========================================================================== JSON Schemas: wire
@@ -227,11 +227,11 @@ class _Scene:
     frames: list[tuple[int, int]]
     stride: int
     trail_ticks: int
-    channels: Any  # zenswarm.bridge.foxglove_scene.SceneChannels
+    channels: Any  # zenswarm.bridge.views.foxglove_scene.SceneChannels
 
     def put(self, out: _Out, j: int, diag: dict[str, dict[str, Any]]) -> None:
         """Write frame j on /scene, /tf and /metrics."""
-        from zenswarm.bridge.scene import frame_from_series
+        from zenswarm.bridge.views.scene import frame_from_series
 
         ts_ns, k = self.frames[j]
         self.channels.put(frame_from_series(self.ts, k, self.trail_ticks, self.stride), out.base + ts_ns, diag)
@@ -249,7 +249,7 @@ def scene_frames(ts: Any, sc: Any, scene_hz: float, trail_s: float) -> tuple[lis
 
 def _scene(ts: Any, sc: Any, out: _Out, scene_hz: float, trail_s: float) -> _Scene | None:
     """The scene of the flight series ``ts`` (None without one)."""
-    from zenswarm.bridge.foxglove_scene import SceneChannels
+    from zenswarm.bridge.views.foxglove_scene import SceneChannels
 
     frames, stride, trail_ticks = scene_frames(ts, sc, scene_hz, trail_s)
     if not frames:
@@ -266,8 +266,8 @@ def interleave(
     """Walk the recorded messages ``items`` (JSON, in sim-time order) and the frames at sim times
     ``frame_times`` (ns) together: ``put_frame(j, diag)`` for frame j before the messages of a
     later sim time, with the diagnostics received up to then (process -> its newest, as
-    :func:`zenswarm.bridge.scene.diag_view`); ``put_message(t, topic, kind, json)`` for each message."""
-    from zenswarm.bridge.scene import diag_view
+    :func:`zenswarm.bridge.views.scene.diag_view`); ``put_message(t, topic, kind, json)`` for each message."""
+    from zenswarm.bridge.views.scene import diag_view
 
     diag: dict[str, dict[str, Any]] = {}
     j = 0
@@ -307,7 +307,7 @@ def export_foxglove(recording: str | Path, out: str | Path, *, scene_hz: float =
     import foxglove
     from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 
-    from zenswarm.bridge.report import flight_from_recording, load_recording
+    from zenswarm.bridge.reports.report import flight_from_recording, load_recording
 
     if not scene_hz > 0 or not math.isfinite(scene_hz):
         raise ZenswarmError(f"--scene-hz must be a positive number, got {scene_hz}")

@@ -3,7 +3,7 @@
 ``zenswarm record --swarm NAME --connect EP --out FILE.mcap [--scenario F] [--duration S]``
 
 Subscribes to ``swarm/<name>/**`` and writes each sample as it was received (file layout: see
-:mod:`zenswarm.bridge.mcapio`). It declares its liveliness token ``swarm/<name>/alive/recorder`` only
+:mod:`zenswarm.bridge.recording.mcapio`). It declares its liveliness token ``swarm/<name>/alive/recorder`` only
 once its subscriber is declared, so a plant that waits for the recorder loses nothing.
 
 Threads and crash safety
@@ -18,7 +18,7 @@ Threads and crash safety
   only its key and size (not a copy of it), and the writer counts it per key: count, bytes,
   largest. A flood of such payloads once wrote 1.76 GB of undecodable bytes into a recording.
   The counts go into the ``zenswarm`` metadata record (value ``dropped_oversize_json``, see
-  :mod:`zenswarm.bridge.mcapio`), rewritten at most once a second while they change and at the end, and
+  :mod:`zenswarm.bridge.recording.mcapio`), rewritten at most once a second while they change and at the end, and
   into the ``diag/recorder`` counters (``dropped_oversize``); ``zenswarm report`` and
   ``zenswarm verify`` say how many were dropped, on which keys, and why.
 * One writer thread owns the ``mcap.writer.Writer``: it registers a channel per new key, takes
@@ -70,7 +70,7 @@ import msgpack
 
 from zenswarm import __version__, bus
 from zenswarm.bridge.args import add_fault_args, add_plugin_args, add_security_args, client_security, link_faults
-from zenswarm.bridge.mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME, RECORDER_END
+from zenswarm.bridge.recording.mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME, RECORDER_END
 from zenswarm.bus import wire
 from zenswarm.process import security
 from zenswarm.process.paths import check_output_file
@@ -429,7 +429,7 @@ class McapSink:
         }
 
     def _end_metadata(self) -> dict[str, str]:
-        """The recorder's end marker (:data:`zenswarm.bridge.mcapio.RECORDER_END`), written on a
+        """The recorder's end marker (:data:`zenswarm.bridge.recording.mcapio.RECORDER_END`), written on a
         clean stop after the last message: when and why it stopped, and its statistics."""
         st = self.stats
         stats = {**st.counters(0), "first_log_time_ns": st.first_log_time, "last_log_time_ns": st.last_log_time,
@@ -646,6 +646,8 @@ def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: 
 
 def run(args: argparse.Namespace) -> int:
     """Run the recorder until SIGTERM/SIGINT or ``--duration``. Exit code 0 on a clean stop."""
+    # One session's life in order (open, subscribe, record, close in one try/finally): reads better
+    # whole than with its setup and its end in other functions.
     from zenswarm.scenario.config import load_scenario, scenario_to_dict
 
     gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work

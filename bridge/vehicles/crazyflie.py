@@ -4,7 +4,7 @@ line of the agents.
 
 ``zenswarm bridge crazyflie SCENARIO --swarm S --connect EP [--uri I=URI ...]`` takes the plant's
 place on the swarm bus in realtime mode, as the MAVLink bridge does (the mission clock, pacing,
-liveliness wait and landing loop are :mod:`zenswarm.bridge.mavlink`'s). For each UAV i it opens
+liveliness wait and landing loop are :mod:`zenswarm.bridge.vehicles.mavlink`'s). For each UAV i it opens
 cflib's link to its URI (``radio://0/80/2M/E7E7E7E701``, ``udp://HOST:PORT``, ``usb://0``;
 :mod:`zenswarm.vehicle.crazyflie_settings`) and then:
 
@@ -24,7 +24,7 @@ cflib's link to its URI (``radio://0/80/2M/E7E7E7E701``, ``udp://HOST:PORT``, ``
    a go-to to the initial position if the vehicle is not there; done within
    ``takeoff_tolerance_m`` and slower than 0.2 m/s, refused (and landed) after ``takeoff_timeout_s``;
 5. ``ready``: the high-level commander holds the vehicle until the mission clock starts (the
-   :class:`zenswarm.bridge.mavlink._BridgeLoop`); then every loop the bridge sends each ready UAV
+   :class:`zenswarm.bridge.vehicles.mavlink._BridgeLoop`); then every loop the bridge sends each ready UAV
    the legacy RPYT setpoint of its agent's latest command (:func:`rpyt_of`): roll and pitch in
    degrees with the firmware's signs, a yaw rate from the bridge's yaw loop, the thrust through the
    Crazyflie 2.1's thrust map (:mod:`zenswarm.vehicle.crazyflie`), clamped to what the commander
@@ -173,7 +173,7 @@ class CfLink:
 
 
 class CrazyflieBridge:
-    """Every UAV's Crazyflie link and phase; the interface :class:`zenswarm.bridge.mavlink._BridgeLoop`
+    """Every UAV's Crazyflie link and phase; the interface :class:`zenswarm.bridge.vehicles.mavlink._BridgeLoop`
     drives (poll, advance, send, state_enu, sample_time, info, landing)."""
 
     def __init__(self, settings: CrazyflieSettings, sc: Any, counters: Any, get_cmd: Any, log: Any) -> None:
@@ -618,7 +618,7 @@ class CrazyflieBridge:
 
 
 def _run(proc: Any) -> int:
-    from zenswarm.bridge.mavlink import _BridgeLoop
+    from zenswarm.bridge.vehicles.mavlink import _BridgeLoop
     from zenswarm.link import FaultState
 
     sc = proc.scenario

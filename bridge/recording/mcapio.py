@@ -3,7 +3,7 @@
 Pure-ish: the :mod:`mcap` library, the standard library and nothing of Zenoh. Shared by the
 recorder's tools (``zenswarm replay``, ``zenswarm recover``) and the flight report.
 
-A zenswarm recording (written by :mod:`zenswarm.bridge.recorder`) is an MCAP file with
+A zenswarm recording (written by :mod:`zenswarm.bridge.recording.recorder`) is an MCAP file with
 
 * one channel per concrete Zenoh key (``topic`` = the key, e.g. ``swarm/demo/uav/2/state``),
   ``message_encoding = "msgpack"`` (MCAP's well-known encoding), no schema (``schema_id = 0``,
@@ -19,7 +19,7 @@ A zenswarm recording (written by :mod:`zenswarm.bridge.recorder`) is an MCAP fil
   right after the header; when the scenario comes from the leader's mission rather than
   ``--scenario``, a second one carrying ``scenario_json`` follows when it arrives. Readers merge
   them in file order (:attr:`Recording.metadata`). When the recorder did not record oversize
-  payloads (over the decoders' size bound, :func:`zenswarm.bridge.recorder.payload_limit`), a further
+  payloads (over the decoders' size bound, :func:`zenswarm.bridge.recording.recorder.payload_limit`), a further
   ``zenswarm`` record carries ``dropped_oversize_json`` (:data:`DROPPED_OVERSIZE`: json of
   key -> ``{"count", "bytes", "largest", "limit"}``, cumulative, rewritten while they change)
   and ``payload_limit_bytes`` / ``mission_payload_limit_bytes``; for a file without summary,
@@ -27,7 +27,7 @@ A zenswarm recording (written by :mod:`zenswarm.bridge.recorder`) is an MCAP fil
   (:attr:`Recording.dropped_oversize`, :meth:`Recording.notes`); on a clean stop the recorder
   writes a last ``zenswarm`` record, its end marker (:data:`RECORDER_END`:
   ``recorder_end_unix_ns``, ``recorder_stop_reason``, ``recorder_stats_json``);
-* small zstd chunks closed at least every :data:`zenswarm.bridge.recorder.DEFAULT_FLUSH_INTERVAL_S`, and
+* small zstd chunks closed at least every :data:`zenswarm.bridge.recording.recorder.DEFAULT_FLUSH_INTERVAL_S`, and
   on a clean stop a summary section (statistics, channels, chunk and metadata indexes) + footer.
 
 Reading is done by a bounded record walker of our own on top of ``mcap.records`` (the parsing

@@ -29,10 +29,10 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from zenswarm.bridge import live
-from zenswarm.bridge.info import RecordingInfo, scan
-from zenswarm.bridge.mcapio import Recording, read_recording
-from zenswarm.bridge.playback import Controls, KeyboardControls, Pacer, TopicFilter, restamp
+from zenswarm.bridge.recording.info import RecordingInfo, scan
+from zenswarm.bridge.recording.mcapio import Recording, read_recording
+from zenswarm.bridge.replay.playback import Controls, KeyboardControls, Pacer, TopicFilter, restamp
+from zenswarm.bridge.views import live
 from zenswarm.bus import wire
 from zenswarm.errors import RecordingError, ScenarioError
 
@@ -159,7 +159,7 @@ def _plan(path: str | Path, *, clock: str | None, start_s: float | None, end_s: 
 
 class _Player:
     """One replay's publishing side: a publisher per (rewritten) key, declared at first use,
-    paced by :class:`zenswarm.bridge.playback.Pacer`, progress lines; counts in ``stats``."""
+    paced by :class:`zenswarm.bridge.replay.playback.Pacer`, progress lines; counts in ``stats``."""
 
     def __init__(self, session: Any, plan: _Plan, *, swarm: str | None, pacer: Pacer, stop: threading.Event,
                  stats: ReplayStats, progress: Callable[[str], None] | None, wait_subscribers_s: float,
@@ -427,6 +427,8 @@ def replay(
     ``wait_subscribers_s`` for a subscriber to match. Options that do not fit the recording
     raise :class:`ScenarioError` first.
     """
+    # Over 80 lines only by its 22 keyword arguments and their description; the body is one
+    # session's flow (check, plan, open, play, close) and reads better whole.
     from zenswarm import bus
 
     _check_flags(rate, clock_rate, loops, swarm, wait_for)
@@ -460,20 +462,7 @@ def replay(
         if clock_rate is not None and clock_key is not None:
             th = _clock_thread(player, sess, clock_key, clock_rate, plan.dt_ns, clock_stop, stats)
         try:
-            while not stop.is_set() and not controls.quit:
-                stats.loops += 1
-                if not player.play_once(path, stats.loops == 1):
-                    stats.stopped_by = "nothing selected in the window" if stats.loops == 1 else "interrupted"
-                    break
-                if not repeat or (loops is not None and stats.loops >= loops):
-                    stats.stopped_by = "end of recording" if not (stop.is_set() or controls.quit) else "interrupted"
-                    break
-                if not player.next_pass():
-                    stats.stopped_by = "end of recording (no sim time to loop on)"
-                    break
-                pacer.anchor = None  # the next pass starts at once
-            else:
-                stats.stopped_by = "interrupted"
+            _play_passes(player, path, pacer, stats, stop, controls, repeat, loops)
             # from the first message published: the session's start and the wait for subscribers are not playing time
             stats.wall_s = time.monotonic() - (pacer.started if pacer.started is not None else wall0)
             if linger_s > 0 and not stop.is_set():
@@ -485,6 +474,28 @@ def replay(
     stats.max_lag_s = pacer.max_lag_s
     stats.span_s = (player.played_hi - (player.played_lo or 0)) / 1e9 if player.played_lo is not None else 0.0
     return stats
+
+
+def _play_passes(
+    player: _Player, path: str | Path, pacer: Pacer, stats: ReplayStats, stop: threading.Event, controls: Controls,
+    repeat: bool, loops: int | None,
+) -> None:
+    """Play the recording once, or pass after pass (``repeat``; at most ``loops`` passes), until its
+    end, ``stop`` or quit; ``stats.stopped_by`` says which."""
+    while not stop.is_set() and not controls.quit:
+        stats.loops += 1
+        if not player.play_once(path, stats.loops == 1):
+            stats.stopped_by = "nothing selected in the window" if stats.loops == 1 else "interrupted"
+            break
+        if not repeat or (loops is not None and stats.loops >= loops):
+            stats.stopped_by = "end of recording" if not (stop.is_set() or controls.quit) else "interrupted"
+            break
+        if not player.next_pass():
+            stats.stopped_by = "end of recording (no sim time to loop on)"
+            break
+        pacer.anchor = None  # the next pass starts at once
+    else:
+        stats.stopped_by = "interrupted"
 
 
 def _run_replay(args: argparse.Namespace) -> int:
@@ -979,6 +990,13 @@ def _run_verify(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
+    """Register ``replay`` and ``verify``."""
+    _add_replay_parser(sub)
+    _add_verify_parser(sub)
+
+
+def _add_replay_parser(sub: argparse._SubParsersAction) -> None:
+    # The flags of one command in the order --help lists them: reads better whole than cut into groups.
     p = sub.add_parser(
         "replay",
         help="republish a recording onto Zenoh (with ros2 bag play's controls), or verify an agent against it (--verify)",
@@ -1056,6 +1074,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--strict", action="store_true", help="with --verify: refuse a truncated or damaged recording")
     p.set_defaults(func=_run_replay)
 
+
+def _add_verify_parser(sub: argparse._SubParsersAction) -> None:
     v = sub.add_parser(
         "verify",
         help="check that agents reproduce their recorded commands bit for bit (same as replay --verify)",

@@ -54,7 +54,7 @@ import numpy as np
 
 from zenswarm.bridge.args import FIGURE_FORMATS, figure_formats
 from zenswarm.bus import wire
-from zenswarm.errors import RecordingError, ScenarioError, ZenswarmError
+from zenswarm.errors import RecordingError, ScenarioError, ZenswarmError, run_command
 from zenswarm.judge.metrics import TimeSeries, compute_results
 from zenswarm.link import FaultPlan, graph_series, plan_for
 from zenswarm.process.paths import check_output_dir
@@ -130,7 +130,7 @@ class Recording:
     metadata: the ``zenswarm`` metadata record(s), merged; scenario from its ``scenario_json``;
     swarm and mode (``lockstep``, ``realtime``; anything else counts as lockstep) from it too.
     truncated: the damage met while reading (file cut short, chunk failing its CRC), None for a
-    complete, intact file. notes: what a reader must be told (:meth:`zenswarm.bridge.mcapio.Recording.notes`:
+    complete, intact file. notes: what a reader must be told (:meth:`zenswarm.bridge.recording.mcapio.Recording.notes`:
     truncated or damaged, oversize payloads the recorder did not record).
     """
 
@@ -150,14 +150,14 @@ class Recording:
 
 
 def load_recording(path: str | Path) -> Recording:
-    """Load a recording and the scenario it carries (read by :func:`zenswarm.bridge.mcapio.read_recording`,
+    """Load a recording and the scenario it carries (read by :func:`zenswarm.bridge.recording.mcapio.read_recording`,
     leniently: a truncated file or a corrupted chunk costs only what is unreadable, and
     :attr:`Recording.truncated` says what happened).
 
     Raises :class:`RecordingError` naming the file when it is missing, not an MCAP file, has no
     ``zenswarm`` metadata record, or its scenario is missing or invalid.
     """
-    from zenswarm.bridge import mcapio
+    from zenswarm.bridge.recording import mcapio
 
     p = Path(path)
     r = mcapio.read_recording(p, strict=False)
@@ -332,7 +332,15 @@ def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequenc
     gs = fig.add_gridspec(1, 2, width_ratios=[1.35, 1.0], left=0.0, right=0.98, bottom=0.08, top=0.9, wspace=0.12)
     ax = fig.add_subplot(gs[0, 0], projection="3d")
     top = fig.add_subplot(gs[0, 1])
+    _trajectories_3d(ax, ts, sc, colors)
+    _trajectories_top(top, ts, sc, colors)
+    fig.suptitle(f"{sc.name}: trajectories of the virtual leader and {n} UAVs")
+    return _save(fig, path, formats)[0]
 
+
+def _trajectories_3d(ax: Any, ts: TimeSeries, sc: Scenario, colors: Sequence[Any]) -> None:
+    """The 3D view of :func:`plot_trajectories`: obstacles, paths, starts and ends, to scale."""
+    n = ts.q.shape[1]
     pts = [_finite_rows(ts.q0)] + [_finite_rows(ts.q[:, i]) for i in range(n)]
     pts.append(np.asarray([sc.leader.start, sc.leader.goal], dtype=float))
     for ob in sc.obstacles:
@@ -388,9 +396,15 @@ def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequenc
     ax.set_title("3D trajectories to scale (o start, ^ end)")
     ax.legend(loc="upper left", fontsize=8)
 
-    # top view: obstacles, paths, formation snapshots, enclosing circle r_f
+
+def _trajectories_top(top: Any, ts: TimeSeries, sc: Scenario, colors: Sequence[Any]) -> None:
+    """The top view of :func:`plot_trajectories`: obstacles, paths, formation snapshots with the
+    enclosing circle r_f."""
     from matplotlib.patches import Circle
 
+    n = ts.q.shape[1]
+    q0 = ts.q0
+    st, gl = np.asarray(sc.leader.start, float), np.asarray(sc.leader.goal, float)
     for k, ob in enumerate(sc.obstacles):
         xc, yc, _ = ob.center
         top.add_patch(Circle((xc, yc), ob.radius, color="0.55", alpha=0.5))
@@ -420,8 +434,6 @@ def plot_trajectories(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequenc
     top.set_title(f"top view: formation snapshots, enclosing circle $r_f$={sc.r_f:.3f} m")
     top.grid(True, alpha=0.3)
     top.legend(loc="best", fontsize=8)
-    fig.suptitle(f"{sc.name}: trajectories of the virtual leader and {n} UAVs")
-    return _save(fig, path, formats)[0]
 
 
 def _snapshot_ticks(q0: np.ndarray, good: np.ndarray, count: int) -> np.ndarray:
@@ -972,20 +984,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Stand-alone entry (``python -m zenswarm.bridge.report ...``): the ``report`` command only
+    """Stand-alone entry (``python -m zenswarm.bridge.reports.report ...``): the ``report`` command only
     (``zenswarm`` wires ``report`` and ``export`` through :mod:`zenswarm.bridge.cli`; this module
-    does not import :mod:`zenswarm.bridge.foxglove`, which imports it)."""
-    import sys
+    does not import :mod:`zenswarm.bridge.views.foxglove`, which imports it)."""
 
     parser = argparse.ArgumentParser(prog="zenswarm")
     sub = parser.add_subparsers(dest="command", required=True)
     add_parsers(sub)
     args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except ZenswarmError as e:
-        print(f"zenswarm: error: {e}", file=sys.stderr)
-        return 2
+    return run_command(lambda: args.func(args))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,10 +1,10 @@
-"""The Foxglove encoder of the scene (:mod:`zenswarm.bridge.scene`, the neutral description of
+"""The Foxglove encoder of the scene (:mod:`zenswarm.bridge.views.scene`, the neutral description of
 what the view shows): ``foxglove.SceneUpdate`` on ``/scene``, ``foxglove.FrameTransforms`` on
 ``/tf`` (protobuf, Foxglove's official schemas as the ``foxglove-sdk`` package ships them) and
-JSON on ``/metrics`` (:data:`zenswarm.bridge.scene.METRICS_SCHEMA`). One code for both Foxglove
+JSON on ``/metrics`` (:data:`zenswarm.bridge.views.scene.METRICS_SCHEMA`). One code for both Foxglove
 outputs: ``zenswarm export --foxglove`` writes these frames to an MCAP file
-(:mod:`zenswarm.bridge.foxglove`), ``zenswarm up --live`` / ``zenswarm replay --live`` serve them
-to the Foxglove app over its WebSocket protocol (:mod:`zenswarm.bridge.live`).
+(:mod:`zenswarm.bridge.views.foxglove`), ``zenswarm up --live`` / ``zenswarm replay --live`` serve them
+to the Foxglove app over its WebSocket protocol (:mod:`zenswarm.bridge.views.live`).
 
 Every ``/scene`` message holds the whole scene (a seek shows it complete), every entity in the
 ``world`` frame with lifetime 0 (until replaced); every stamp is the caller's ``stamp_ns``.
@@ -20,7 +20,7 @@ from foxglove import Channel, Context
 from foxglove import messages as fm
 from foxglove.channels import FrameTransformsChannel, SceneUpdateChannel
 
-from zenswarm.bridge.scene import (
+from zenswarm.bridge.views.scene import (
     METRICS_SCHEMA,
     METRICS_TOPIC,
     SCENE_TOPIC,
@@ -139,8 +139,8 @@ def _entity(e: Entity, stamp_ns: int) -> fm.SceneEntity:
 
 def scene_update(f: Frame, sc: Any, stamp_ns: int, colors: list[tuple[float, float, float]]) -> fm.SceneUpdate:
     """The ``foxglove.SceneUpdate`` of frame ``f`` of scenario ``sc``: the whole scene
-    (:func:`zenswarm.bridge.scene.describe`), every entity stamped ``stamp_ns``; ``colors`` from
-    :func:`zenswarm.bridge.scene.palette`."""
+    (:func:`zenswarm.bridge.views.scene.describe`), every entity stamped ``stamp_ns``; ``colors`` from
+    :func:`zenswarm.bridge.views.scene.palette`."""
     return fm.SceneUpdate(deletions=[], entities=[_entity(e, stamp_ns) for e in describe(f, sc, colors)])
 
 
@@ -151,7 +151,7 @@ def _transform(ts: fm.Timestamp, p: Pose) -> fm.FrameTransform:
 
 
 def frame_transforms(f: Frame, stamp_ns: int) -> fm.FrameTransforms:
-    """``foxglove.FrameTransforms`` of frame ``f`` (:func:`zenswarm.bridge.scene.poses`): world -> leader, world -> uav<i>."""
+    """``foxglove.FrameTransforms`` of frame ``f`` (:func:`zenswarm.bridge.views.scene.poses`): world -> leader, world -> uav<i>."""
     ts = _time(stamp_ns)
     return fm.FrameTransforms(transforms=[_transform(ts, p) for p in poses(f)])
 

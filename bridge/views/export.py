@@ -1,6 +1,6 @@
 """``zenswarm export``: a recording for a viewer. ``--foxglove FILE --out OUT.mcap`` (or ``FILE
---out OUT.mcap``): an MCAP file for Foxglove (:mod:`zenswarm.bridge.foxglove`); ``FILE --rerun
-OUT.rrd``: a Rerun recording (:mod:`zenswarm.bridge.rerun_scene`, extra ``zenswarm[rerun]``);
+--out OUT.mcap``): an MCAP file for Foxglove (:mod:`zenswarm.bridge.views.foxglove`); ``FILE --rerun
+OUT.rrd``: a Rerun recording (:mod:`zenswarm.bridge.views.rerun_scene`, extra ``zenswarm[rerun]``);
 both at once. Every flag is checked before either is written (exit 2 naming it)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from zenswarm.bridge.foxglove import SCENE_TOPIC, TF_TOPIC, export_foxglove
+from zenswarm.bridge.views.foxglove import SCENE_TOPIC, TF_TOPIC, export_foxglove
 
 __all__ = ["add_parsers"]
 
@@ -32,7 +32,7 @@ def _run_export(args: argparse.Namespace) -> int:
     if args.out is not None:
         check_output_file(args.out, "--out")
     if args.rerun is not None:
-        from zenswarm.bridge.rerun_scene import require_rerun
+        from zenswarm.bridge.views.rerun_scene import require_rerun
 
         require_rerun("--rerun")
         check_output_file(args.rerun, "--rerun")
@@ -47,7 +47,7 @@ def _run_export(args: argparse.Namespace) -> int:
         )
         print(s.out)
     if args.rerun is not None:
-        from zenswarm.bridge.rerun_scene import export_rerun
+        from zenswarm.bridge.views.rerun_scene import export_rerun
 
         r = export_rerun(source, args.rerun, scene_hz=args.scene_hz, trail_s=args.trail_s)
         print(f"{r.out}: {r.frames} frames for Rerun on the sim_time timeline (open it: rerun {r.out})")

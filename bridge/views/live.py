@@ -4,14 +4,14 @@
 :class:`FoxgloveServer` (this module's, on the ``websockets`` package) under both names of the
 protocol (subprotocols ``foxglove.sdk.v1`` and ``foxglove.websocket.v1``). ``--live
 rerun[:PORT]``: Rerun's own web viewer and gRPC server
-(:class:`zenswarm.bridge.rerun_scene.RerunLiveView`, extra ``zenswarm[rerun]``). :func:`open_view`
+(:class:`zenswarm.bridge.views.rerun_scene.RerunLiveView`, extra ``zenswarm[rerun]``). :func:`open_view`
 makes either from a :class:`LiveTarget`.
 
-Both keep the newest messages of the swarm (:class:`zenswarm.bridge.scene.LatestFrames`, fed
+Both keep the newest messages of the swarm (:class:`zenswarm.bridge.views.scene.LatestFrames`, fed
 per message: cheap enough for the supervisor's bus loop) and, at most ``hz`` times per wall
-second (``maybe_publish``), make a :class:`zenswarm.bridge.scene.Frame` of one tick and log it:
+second (``maybe_publish``), make a :class:`zenswarm.bridge.views.scene.Frame` of one tick and log it:
 here on ``/scene``, ``/tf`` and ``/metrics``, encoded by the code ``zenswarm export --foxglove``
-writes files with (:mod:`zenswarm.bridge.foxglove_scene`: Foxglove's official message types of
+writes files with (:mod:`zenswarm.bridge.views.foxglove_scene`: Foxglove's official message types of
 the ``foxglove-sdk`` package, protobuf; the metrics as JSON), the same bytes and schemas. Foxglove
 frames are stamped ``base + sim time``, base the wall time the server started, so the app's plots
 run in sim time; Rerun's are on its ``sim_time`` timeline.
@@ -53,7 +53,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from zenswarm.bridge.scene import PacedView
+from zenswarm.bridge.views.scene import PacedView
 from zenswarm.errors import ScenarioError
 
 __all__ = [
@@ -157,8 +157,8 @@ class LiveView(PacedView):
     viewer = "foxglove"
 
     def __init__(self, sc: Any, swarm: str, port: int, *, flag: str = "--live", hz: float = LIVE_HZ, trail_s: float = 10.0) -> None:
-        from zenswarm.bridge.foxglove_scene import frame_transforms, scene_update
-        from zenswarm.bridge.scene import metrics, palette
+        from zenswarm.bridge.views.foxglove_scene import frame_transforms, scene_update
+        from zenswarm.bridge.views.scene import metrics, palette
 
         super().__init__(sc, swarm, hz, trail_s)
         self._encoders = (scene_update, frame_transforms, metrics)
@@ -233,13 +233,13 @@ class ChannelInfo:
 
 def scene_channels() -> tuple[ChannelInfo, ChannelInfo, ChannelInfo]:
     """``/scene``, ``/tf`` and ``/metrics`` as ``zenswarm export --foxglove`` writes them
-    (:class:`zenswarm.bridge.foxglove_scene.SceneChannels`): Foxglove's official protobuf schemas
+    (:class:`zenswarm.bridge.views.foxglove_scene.SceneChannels`): Foxglove's official protobuf schemas
     of ``foxglove.SceneUpdate`` and ``foxglove.FrameTransforms`` from the foxglove-sdk (the
     FileDescriptorSets its message types carry), and the metrics' JSON Schema serialised as the
     SDK's ``Channel`` does."""
     from foxglove import messages as fm
 
-    from zenswarm.bridge.scene import METRICS_SCHEMA, METRICS_TOPIC, SCENE_TOPIC, TF_TOPIC
+    from zenswarm.bridge.views.scene import METRICS_SCHEMA, METRICS_TOPIC, SCENE_TOPIC, TF_TOPIC
 
     scene, tf = fm.SceneUpdate.get_schema(), fm.FrameTransforms.get_schema()
     return (
@@ -536,10 +536,10 @@ class BusViewer:
 
 def open_view(target: LiveTarget, sc: Any, swarm: str, *, flag: str = "--live") -> Any:
     """The live view ``target`` asks for: a Foxglove :class:`LiveView`, or Rerun's web viewer and
-    gRPC server (:class:`zenswarm.bridge.rerun_scene.RerunLiveView`). Bound or started now: a
+    gRPC server (:class:`zenswarm.bridge.views.rerun_scene.RerunLiveView`). Bound or started now: a
     port in use, or Rerun not installed, raises :class:`ScenarioError` naming ``flag``."""
     if target.viewer == "rerun":
-        from zenswarm.bridge.rerun_scene import RerunLiveView, require_rerun
+        from zenswarm.bridge.views.rerun_scene import RerunLiveView, require_rerun
 
         require_rerun(flag)
         return RerunLiveView(sc, swarm, target.port, flag=flag)
@@ -549,7 +549,7 @@ def open_view(target: LiveTarget, sc: Any, swarm: str, *, flag: str = "--live") 
 def replay_viewer(path: Path, swarm: str | None, target: LiveTarget, connect: list[str]) -> BusViewer:
     """``zenswarm replay FILE --live [PORT|rerun]``: the live view of the swarm the replay
     publishes (``swarm``, or the recorded one), scenario from the recording's metadata."""
-    from zenswarm.bridge.report import load_recording
+    from zenswarm.bridge.reports.report import load_recording
 
     rec = load_recording(path)
     view = open_view(target, rec.scenario, swarm or rec.swarm)

@@ -1,5 +1,5 @@
 """The parts of ``zenswarm replay`` that need no Zenoh: topic filters, the playback clock, loop
-re-stamping and the keyboard controls. :mod:`zenswarm.bridge.replay` puts them together.
+re-stamping and the keyboard controls. :mod:`zenswarm.bridge.replay.replay` puts them together.
 
 Times: sim time = a payload's ``t`` (ns, MCAP ``publish_time``); receive time = MCAP
 ``log_time`` (ns since the Unix epoch); wall pacing on ``time.monotonic()`` (s).

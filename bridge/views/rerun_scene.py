@@ -1,4 +1,4 @@
-"""The Rerun encoder of the scene (:mod:`zenswarm.bridge.scene`, the neutral description of what
+"""The Rerun encoder of the scene (:mod:`zenswarm.bridge.views.scene`, the neutral description of what
 the view shows), for the open-source `Rerun <https://rerun.io>`_ viewer (the ``rerun-sdk``
 package, extra ``zenswarm[rerun]``):
 
@@ -13,7 +13,7 @@ What is logged (entity paths), every frame on the ``sim_time`` timeline (a durat
 sim time t):
 
 ``world``                        view coordinates ENU (right-handed, z up), m; static
-``world/<entity>/<kind>``        each entity of :func:`zenswarm.bridge.scene.describe` (``obstacle/1``,
+``world/<entity>/<kind>``        each entity of :func:`zenswarm.bridge.views.scene.describe` (``obstacle/1``,
                                  ``d0_band/1``, ``goal``, ``start``, ``leader``, ``uav/1``, ``links``,
                                  ``trails``) as archetypes: ``spheres`` (Ellipsoids3D), ``cylinders``
                                  (Cylinders3D), ``cubes`` (Boxes3D), ``arrows`` (Arrows3D), ``labels``
@@ -22,9 +22,9 @@ sim time t):
                                  references q*_i) under ``<kind>_faint`` as a transparent fill with a
                                  wireframe. The obstacles, bands, goal and start are static (logged once);
                                  a part that goes away (an arrow when the UAV stops) is cleared.
-``world/frames/<child>``         the poses of :func:`zenswarm.bridge.scene.poses` (Transform3D and
+``world/frames/<child>``         the poses of :func:`zenswarm.bridge.views.scene.poses` (Transform3D and
                                  its axes): ``leader``, ``uav<i>`` with the measured attitude
-``metrics/<name>``               Scalars: :func:`zenswarm.bridge.scene.metric_series` of the frame's
+``metrics/<name>``               Scalars: :func:`zenswarm.bridge.views.scene.metric_series` of the frame's
                                  figures (``formation_error_m/uav1``, ``clearance_m/uav2``,
                                  ``max_tracking_error_m``, ``link_delivery/<link>``, ...)
 
@@ -53,7 +53,7 @@ from typing import Any
 
 import numpy as np
 
-from zenswarm.bridge.scene import PacedView
+from zenswarm.bridge.views.scene import PacedView
 from zenswarm.errors import RecordingError, ScenarioError, ZenswarmError
 
 __all__ = [
@@ -211,7 +211,7 @@ class RerunScene:
     def __init__(self, sc: Any, rec: Any) -> None:
         import rerun as rr
 
-        from zenswarm.bridge.scene import palette
+        from zenswarm.bridge.views.scene import palette
 
         self.sc = sc
         self.rec = rec
@@ -227,11 +227,11 @@ class RerunScene:
         self.frames = 0
 
     def put(self, f: Any, diag: dict[str, dict[str, Any]]) -> None:
-        """Log frame ``f`` (:class:`zenswarm.bridge.scene.Frame`) at its sim time, with the figures
+        """Log frame ``f`` (:class:`zenswarm.bridge.views.scene.Frame`) at its sim time, with the figures
         of ``diag`` (process -> its newest diagnostics)."""
         import rerun as rr
 
-        from zenswarm.bridge.scene import describe, metric_series, metrics, poses
+        from zenswarm.bridge.views.scene import describe, metric_series, metrics, poses
 
         rec = self.rec
         rec.set_time(TIMELINE, duration=np.timedelta64(int(f.t_ns), "ns"))
@@ -278,9 +278,9 @@ def export_rerun(recording: str | Path, out: str | Path, *, scene_hz: float = 20
     and renamed into place when complete. Raises RecordingError for an unusable input."""
     import rerun as rr
 
-    from zenswarm.bridge.foxglove import ExportSummary, _json_items, interleave, scene_frames
-    from zenswarm.bridge.report import flight_from_recording, load_recording
-    from zenswarm.bridge.scene import frame_from_series
+    from zenswarm.bridge.reports.report import flight_from_recording, load_recording
+    from zenswarm.bridge.views.foxglove import ExportSummary, _json_items, interleave, scene_frames
+    from zenswarm.bridge.views.scene import frame_from_series
     from zenswarm.bus import wire
 
     if not scene_hz > 0 or not math.isfinite(scene_hz):
@@ -435,8 +435,8 @@ def _stderr(text: str) -> None:
 
 class RerunLiveView(PacedView):
     """The live view in Rerun: :class:`RerunServer` on ``port`` (the web viewer's; 0: any free)
-    fed with the frames of swarm ``swarm`` flying ``sc`` (:class:`zenswarm.bridge.scene.LatestFrames`),
-    at most ``hz`` per wall second. The same interface as :class:`zenswarm.bridge.live.LiveView`
+    fed with the frames of swarm ``swarm`` flying ``sc`` (:class:`zenswarm.bridge.views.scene.LatestFrames`),
+    at most ``hz`` per wall second. The same interface as :class:`zenswarm.bridge.views.live.LiveView`
     (:meth:`feed`, :meth:`maybe_publish`, :meth:`publish`, :meth:`close`, :meth:`how_to_open`)."""
 
     viewer = "rerun"
