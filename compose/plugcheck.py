@@ -459,7 +459,8 @@ def difference_text(diffs: list[str], res: dict[str, Any], lockstep_timeout: flo
 
 def _flight(sc: Scenario) -> Check:
     """The short flight in the simulator: no plug-in failure (``plugin_error``)."""
-    from zenswarm.compose.sim import failure_text, simulate
+    from zenswarm.compose.sim import simulate
+    from zenswarm.judge.results import failure_text
 
     res = simulate(sc).results
     bad = [f for f in res["failures"] if f["cause"] == "plugin_error"]

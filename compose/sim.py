@@ -25,7 +25,6 @@ The distributed lockstep swarm runs exactly these steps, each in the process tha
 
 from __future__ import annotations
 
-import json
 import math
 import signal
 import sys
@@ -53,10 +52,16 @@ from zenswarm.agents.api import (
 from zenswarm.agents.core import AgentRow, StackedAgents
 from zenswarm.agents.paper import PaperController
 from zenswarm.errors import PluginFailure
-from zenswarm.judge.metrics import TimeSeries, add_failure, add_plugin_failures, compute_results, exit_code_of
-from zenswarm.judge.verdict import criteria_from_scenario, decide_end
+from zenswarm.judge.metrics import TimeSeries, exit_code_of
+from zenswarm.judge.results import closing_lines, flight_results
+from zenswarm.judge.results import failure_text as failure_text  # re-exported: these moved to zenswarm.judge.results
+from zenswarm.judge.results import radio_results as radio_results
+from zenswarm.judge.results import summary_line as summary_line
+from zenswarm.judge.results import write_outputs as write_outputs
+from zenswarm.judge.verdict import criteria_from_scenario
+from zenswarm.judge.watch import EndWatch
 from zenswarm.leader.core import LeaderCore
-from zenswarm.link import Box, FaultPlan, FaultState, Held, box_counters, effective_graph
+from zenswarm.link import Box, FaultPlan, FaultState, Held, box_counters
 from zenswarm.plant.core import PlantCore
 from zenswarm.scenario.config import Scenario
 from zenswarm.scenario.plugins import STAGE_SHARE, STAGE_STEP, Boundary, first_failures, plant_vehicle
@@ -71,11 +76,6 @@ class SimResult:
 
 
 ProgressFn = Callable[[int, int, float], None]
-
-DECIDE_EVERY = 50
-"""Ticks between two checks of :func:`zenswarm.judge.verdict.decide_end` (the run ends after the tick it
-names: checking in blocks costs less and ends at the same tick)."""
-
 
 class PluginsFailed(Exception):
     """Plug-ins failed in one stage of a tick (:class:`zenswarm.errors.PluginFailure` each):
@@ -301,21 +301,6 @@ class _Swarm:
         return {"link_counters": self.links.counters(), "failsafe_events": [list(e) for e in self.plant.failsafe.events]}
 
 
-def radio_results(scenario: Scenario, faults: FaultPlan | None, series: TimeSeries) -> dict:
-    """``effective_graph`` of a run with a radio model, a capacity queue or a link trace
-    (:func:`zenswarm.link.swarm.effective_graph`; {} without any): the same figures for ``sim`` and
-    ``up``, computed from the recorded series (its first row's tick from its time: a realtime
-    series starts at the first tick every process had a value)."""
-    if faults is None or not (faults.radio_active or faults.queues is not None or faults.trace is not None):
-        return {}
-    nbrs = [scenario.neighbours(i) for i in range(scenario.n)]
-    pinned = [float(b) > 0 for b in scenario.graph.pinning]
-    dt = scenario.timing.dt
-    first = int(round(float(series.t[0]) / dt)) if len(series.t) else 0
-    graph = effective_graph(faults, nbrs, pinned, series.q, series.q0, dt, first)
-    return {"effective_graph": graph}
-
-
 def _held(h: Held | None) -> Any:
     """The value a box holds (None before its first delivery)."""
     return None if h is None else h.value
@@ -330,51 +315,42 @@ def _present(h: Held | None) -> Held:
 
 class _Flight:
     """Ticks a :class:`_Swarm` into a time series; ``flown``: ticks whose samples are complete
-    (what a Ctrl-C keeps)."""
+    (what a Ctrl-C keeps). When it ends is the end-of-flight watch's (:class:`zenswarm.judge.watch.EndWatch`),
+    the supervisor's too."""
 
     def __init__(self, swarm: _Swarm, ts: TimeSeries, scenario: Scenario, progress: ProgressFn | None, full_time: bool) -> None:
         self.swarm = swarm
         self.ts = ts
-        self.crit = None if full_time else criteria_from_scenario(scenario)
+        self.crit = criteria_from_scenario(scenario)
+        self.full_time = full_time
         self.goal = np.asarray(scenario.leader.goal, dtype=float)
         self.progress = progress
         self.flown = 0
         self.failures: list[PluginFailure] = []  # the plug-in failures the run ended on
 
-    def _decided(self, lo: int, hi: int) -> int | None:
-        """The tick in [lo, hi) that decided the run (:func:`zenswarm.judge.verdict.decide_end`), if any."""
-        ts = self.ts
-        return None if self.crit is None else decide_end(ts.q0, ts.q, ts.qref, self.crit, lo, hi)
-
     def run(self, T: int) -> int:
         """Tick until T, or until the tick that decided the run (unless ``full_time``), or until
         a plug-in failed (:attr:`failures`: the failures of its first (tick, stage); the ticks
         before it are judged, unless the run was decided before). Returns the ticks flown."""
-        checked = 0  # ticks already given to decide_end
+        watch = EndWatch(self.crit, T, full_time=self.full_time)
         try:
             for k in range(T):
-                if k - checked >= DECIDE_EVERY:  # the run ends after a tick that decided its outcome
-                    stop = self._decided(checked, k)
-                    if stop is not None:
-                        self.flown = stop + 1
-                        return self.flown
-                    checked = k
+                if watch.due(k) and (end := watch.block(self.ts, k)) is not None:  # ends after the deciding tick
+                    self.flown = end.upto
+                    return self.flown
                 self.flown = k
                 self.swarm.tick(k, self.ts)
                 if self.progress is not None and (k % 100 == 0 or k == T - 1):
                     self.progress(k + 1, T, float(np.linalg.norm(self.swarm.leader.q0 - self.goal)))
         except (PluginsFailed, PluginFailure) as e:
             first = first_failures(e.failures if isinstance(e, PluginsFailed) else [e])
-            upto = min(first[0].tick, T)  # the ticks before the failed one are complete
-            stop = self._decided(checked, upto)
-            if stop is not None:  # decided before the plug-in failed: as the swarm's supervisor judges it
-                self.flown = stop + 1
-                return self.flown
-            self.flown = upto
-            self.failures = first
+            end = watch.plugin_failed(self.ts, first[0].tick)  # the ticks before the failed one are complete
+            self.flown = end.upto
+            if end.plugin_failed:  # else decided before the plug-in failed: as the swarm's supervisor judges it
+                self.failures = first
             return self.flown
-        stop = self._decided(checked, T)
-        self.flown = T if stop is None else stop + 1
+        end = watch.block(self.ts, T)
+        self.flown = T if end is None else end.upto
         return self.flown
 
 
@@ -418,15 +394,11 @@ def simulate(
     wall = time.perf_counter() - wall0
     if flown < T:
         ts = ts.truncated(flown)
-    results = compute_results(ts, scenario, wall_time_s=wall, early_end=not full_time)
-    if interrupted:
-        add_failure(results, "interrupted", f"interrupted (Ctrl-C) at sim time {flown * dt:.2f} s", flown * dt)
-    if failed:
-        add_plugin_failures(results, failed, dt)
-    if swarm is None:
-        return SimResult(ts, results)
-    results.update(swarm.fault_results())
-    results.update(radio_results(scenario, faults, ts))
+    results = flight_results(
+        ts, scenario, wall_time_s=wall, full_time=full_time, faults=faults if swarm is not None else None,
+        facts=swarm.fault_results() if swarm is not None else {},  # link_counters, failsafe_events
+        t_s=flown * dt, interrupted="Ctrl-C" if interrupted else None, plugin_failures=failed,
+    )  # fmt: skip
     return SimResult(ts, results)
 
 
@@ -456,13 +428,6 @@ class ProgressPrinter:
         )
 
 
-def write_outputs(out: Path, series: TimeSeries, results: dict) -> None:
-    """Write ``results.json`` and ``timeseries.npz`` into ``out`` (created if needed)."""
-    out.mkdir(parents=True, exist_ok=True)
-    series.save(str(out / "timeseries.npz"))
-    (out / "results.json").write_text(json.dumps(results, indent=2, sort_keys=True) + "\n")
-
-
 def apply_overrides(scenario: Scenario, no_eso: bool = False, fixed_gain: float | None = None) -> Scenario:
     """Scenario copy with the CLI's comparison switches applied."""
     if no_eso:
@@ -486,10 +451,9 @@ def run_sim_cli(scenario: Scenario, out: Path, quiet: bool = False, faults: Faul
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     write_outputs(out, res.series, res.results)
-    r = res.results
-    print(summary_line(r))
-    print(f"wrote {out / 'results.json'} and {out / 'timeseries.npz'}")
-    return exit_code_of(r)
+    for line in closing_lines(res.results, out):
+        print(line)
+    return exit_code_of(res.results)
 
 
 def _interrupt_on_signals() -> dict[int, Any]:
@@ -499,53 +463,3 @@ def _interrupt_on_signals() -> dict[int, Any]:
     if threading.current_thread() is not threading.main_thread():
         return {}
     return {sig: signal.signal(sig, signal.default_int_handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-
-def _fmt(x: object, unit: str = " m") -> str:
-    """A figure to 4 significant digits (``0.2513 m``, ``1.43e-05 m``); ``n/a`` for None."""
-    return "n/a" if x is None else f"{x:.4g}{unit}"
-
-
-MAX_SUMMARY_FAILURES = 6
-"""Failures named in the summary line; results.json lists them all."""
-
-
-def failure_text(f: dict) -> str:
-    """``collision_ground uav 2 at 3.41 s`` for one failure of a results dict."""
-    uavs = f.get("uavs") or []
-    who = f" uav {uavs[0]}" if len(uavs) == 1 else (f" uavs {','.join(map(str, uavs))}" if uavs else "")
-    when = f" at {f['t_s']:.2f} s" if f.get("t_s") is not None else ""
-    if f["cause"] == "plugin_error":  # which plug-in, which call, what was wrong
-        who = who or f" {f.get('process', '?')}"
-        return f"{f['cause']}{who}{when} ({f.get('kind')} {f.get('plugin')!r} {f.get('call')}(): {_tail(f)})"
-    return f"{f['cause']}{who}{when}"
-
-
-def _tail(f: dict) -> str:
-    """The part of a plug-in failure's detail after its preamble (the exception or the bad field)."""
-    detail = str(f.get("detail", ""))
-    return detail.split("(): ", 1)[1] if "(): " in detail else detail
-
-
-def summary_line(r: dict) -> str:
-    """One line: the verdict with its named failures, the goal time and the headline figures."""
-    fails = r.get("failures") or []
-    if r["success"]:
-        verdict = "SUCCESS"
-    else:
-        named = "; ".join(failure_text(f) for f in fails[:MAX_SUMMARY_FAILURES])
-        more = f"; (+{len(fails) - MAX_SUMMARY_FAILURES} more in results.json)" if len(fails) > MAX_SUMMARY_FAILURES else ""
-        verdict = f"FAILED: {named}{more}" if fails else "FAILED"
-    ttg = r.get("time_to_goal_s")
-    wall = r.get("wall_time_s")
-    goal = f"reached at {ttg:.2f} s" if ttg is not None else "NOT reached"
-    return (
-        f"{r['scenario']}: {verdict}\n"
-        f"  goal {goal}  "
-        f"max formation error {_fmt(r.get('max_formation_error_m'))} "
-        f"(vehicles; generator {_fmt(r.get('max_generator_formation_error_m'))})  "
-        f"final slot error {_fmt(r.get('max_final_slot_error_m'))}  rms tracking {_fmt(r.get('rms_tracking_error_m'))}\n"
-        f"  min margin to obstacles {_fmt(r.get('min_obstacle_margin_m'))}  between UAVs {_fmt(r.get('min_inter_uav_margin_m'))}  "
-        f"(vehicle radius {_fmt(r.get('vehicle_radius_m'))})  sim {r.get('sim_time_s', 0.0):.2f} s"
-        + (f"  wall {wall:.2f} s" if wall is not None else "")
-    )

@@ -22,7 +22,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import zenoh
 
 from zenswarm import bus
@@ -39,9 +38,11 @@ from zenswarm.bridge.args import (
 from zenswarm.bridge.views.live import FOXGLOVE_DEFAULT, LIVE_HELP, LiveTarget, live_target
 from zenswarm.bus import wire
 from zenswarm.compose.policy import restart_policy
+from zenswarm.compose.progress import SwarmProgress
 from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
-from zenswarm.judge import verdict
-from zenswarm.judge.metrics import add_failure, add_plugin_failures, compute_results
+from zenswarm.judge.results import closing_lines, flight_results, write_outputs
+from zenswarm.judge.verdict import criteria_from_scenario
+from zenswarm.judge.watch import EndWatch
 from zenswarm.link import LinkFaults
 from zenswarm.process import rtsched, security
 from zenswarm.process.collector import Collector
@@ -54,10 +55,6 @@ __all__ = ["add_parsers", "UpOptions", "up_options", "Supervisor", "role_names",
 
 LIVE_CHECK_S = 0.25
 """Wall seconds between two looks at whether the flight's outcome is decided (early end)."""
-
-PROGRESS_SAME_T_S = 10.0
-"""Wall seconds between two progress lines at the same sim time (the processes starting, a
-stalled flight); a line is printed every ``--progress-every`` s while sim time moves."""
 
 COLLECTOR_QUEUE = 4_000_000
 """Capacity of the supervisor's bus queue, in messages (drained every ~50 ms, so it never fills)."""
@@ -247,11 +244,9 @@ class Supervisor:
         self.restart_at: dict[str, float] = {}
         self.restarts: dict[str, int] = {}
         self.deaths: list[dict] = []
-        self.upto = -1  # ticks to judge when the run ended early, decided; -1: ran its course
-        self.criteria = verdict.criteria_from_scenario(scenario)
-        self._stall_checked = 0
-        self._in_slots_since: int | None = None
-        self._deciding = False  # the live look saw the outcome decided; waiting for the exact tick
+        # when the flight ends (decided, --stop-at-goal, a plug-in failed) and which ticks are judged
+        self.watch = EndWatch(criteria_from_scenario(scenario), scenario.timing.n_ticks, full_time=args.full_time,
+                              stop_at_goal=args.stop_at_goal, realtime=args.realtime)
         self.recording_loss: dict | None = None  # the recorder died mid-flight (_recorder_died)
         self.plugin_failures: list[PluginFailure] = []  # what processes that exited with 4 reported
         # the vehicles' ports P+i (the bridge listens) and their send ports P+40+i, all free
@@ -651,73 +646,6 @@ class Supervisor:
         if len(parts) == 3 and self.collector is not None:
             self.collector.token(parts[1], parts[2], str(sample.kind).endswith("PUT"))
 
-    def _live_verdict(self, collector: Collector) -> str | None:
-        """Has the flight's outcome been decided (:mod:`zenswarm.judge.verdict`)? Then say why, and set
-        ``self.upto`` (the ticks to judge). Cheap: the leader's series (decoded as it arrives) and
-        each UAV's newest state; the exact decision is taken again on the whole series after."""
-        c = self.criteria
-        q0 = collector.q0
-        lead_known = collector.leader_ticks
-        if not self.args.full_time:
-            k = verdict.leader_stall_tick(q0, c, self._stall_checked, lead_known)
-            self._stall_checked = max(self._stall_checked, lead_known)
-            if k is not None:
-                self._deciding = True
-        if self._deciding:  # decided live: stop once the series holds the deciding tick
-            return self._decided_exactly(collector)
-        states, refs = collector.latest("state"), collector.latest("ref")
-        n = self.sc.n
-        if len(states) < n:
-            return None
-        kmin = min(states[i][0] for i in range(1, n + 1))
-        q = np.array([states[i][1] for i in range(1, n + 1)])
-        if not self.args.full_time and len(refs) == n:
-            qref = np.array([refs[i][1] for i in range(1, n + 1)])
-            if verdict.uav_decided(q, qref, c) is not None:
-                self._deciding = True
-                return self._decided_exactly(collector)
-        if self.args.stop_at_goal and collector.goal_tick is not None:
-            return self._settled_at_goal(collector, q, kmin)
-        return None
-
-    def _settled_at_goal(self, collector: Collector, q: np.ndarray, kmin: int) -> str | None:
-        """``--stop-at-goal`` once the goal is reached: every UAV in its slot (``q`` (N, 3) m, the
-        newest states, the oldest of tick ``kmin``) for the settle window? Then say so and set
-        ``self.upto``."""
-        c = self.criteria
-        if not verdict.in_slots(q, c):
-            self._in_slots_since = None
-            return None
-        if self._in_slots_since is None:
-            self._in_slots_since = kmin
-        if kmin - self._in_slots_since + 1 < c.settle_ticks:
-            return None
-        ts = collector.series(kmin + 1, fill=self.args.realtime)  # the exact check
-        if not (len(ts.t) >= c.settle_ticks and verdict.in_slots(ts.q[-c.settle_ticks :], c)):
-            return None
-        self.upto = kmin + 1
-        goal_tick = collector.goal_tick if collector.goal_tick is not None else kmin
-        return (
-            f"goal reached at sim time {goal_tick * c.dt:.2f} s and every UAV in its slot for "
-            f"{c.settle_window_s:g} s at {kmin * c.dt:.2f} s; stopping (--stop-at-goal)"
-        )
-
-    def _decided_exactly(self, collector: Collector) -> str | None:
-        """The exact decision (:func:`zenswarm.judge.verdict.decide_end`) on the ticks complete so far:
-        says why and sets ``self.upto`` when found; None while those ticks are still on the way."""
-        if self.args.realtime:  # skipped ticks hold the previous value, as in the results
-            ts = collector.series(int(max(collector.sim_t_ns, 0) // collector.dt_ns), fill=True)
-        else:
-            ts = collector.series(collector.complete_ticks(collector.T))
-        k = verdict.decide_end(ts.q0, ts.q, ts.qref, self.criteria)
-        if k is None:
-            return None
-        self.upto = int(round(ts.t[k] / self.criteria.dt)) + 1
-        why = verdict.judge(ts.t[: k + 1], ts.q0[: k + 1], ts.q[: k + 1], ts.qref[: k + 1], self.criteria).failures
-        first = next((f for f in why if f.cause in verdict.TERMINAL), None)
-        text = first.detail if first is not None else "the outcome is decided"
-        return f"at sim time {ts.t[k]:.2f} s {text}; ending the run (--full-time flies on)"
-
     def _recorder_died(self, child: Child, rc: int, collector: Collector) -> None:
         """The recorder is not a vehicle: its death does not end the flight. The loss is said
         now and goes into results.json (``recording_loss``); the file keeps what was written
@@ -827,9 +755,10 @@ class Supervisor:
 
     def _watch(self, collector: Collector) -> int:
         """Watch the flight until it ends; returns the exit code so far (see :meth:`_finish`)."""
-        last_print = last_check = 0.0
-        last_t: float | None = None  # sim time the last progress line showed, s (to its 0.01 s)
+        last_check = 0.0
         wall0 = time.monotonic()
+        a, sc = self.args, self.sc
+        progress = SwarmProgress(sc.leader.goal, sc.timing.time_limit_s, a.progress_every, a.quiet, self.say, wall0)
         tap = self._live_tap()
         while True:
             collector.poll(self._bus_sub, tap)
@@ -853,49 +782,31 @@ class Supervisor:
             self._inject_kills(collector)
             if now - last_check >= LIVE_CHECK_S:
                 last_check = now
-                why = self._live_verdict(collector)
-                if why:
-                    self.say(why)
+                end = self.watch.look(collector)  # has the flight's outcome been decided (or, --stop-at-goal, the goal)?
+                if end is not None:
+                    self.say(end.why)
                     return EXIT_OK
-            now = time.monotonic()
-            due = now - last_print >= self.args.progress_every and not self.args.quiet
-            # a line when sim time moved (a start-up or a stall repeats the same one only every PROGRESS_SAME_T_S)
-            shown = round(max(collector.sim_t_ns, 0) / 1e9, 2)
-            if due and (shown != last_t or now - last_print >= PROGRESS_SAME_T_S):
-                last_print, last_t = now, shown
-                self._progress(collector, now - wall0)
+            progress(time.monotonic(), collector.sim_t_ns, collector.leader_q, self._health)
             gc_safe_point()
             time.sleep(0.05)
 
     def _await_last_tick(self, collector: Collector) -> None:
         """Lockstep, every process done: a process's last messages (the last ticks' clock, refs and
         commands) are sent as it exits and may still be on their way through the router, so poll
-        until the last tick flown (:meth:`_last_tick_flown`) is complete, at most
+        until the last tick flown (:meth:`Collector.last_tick_flown`) is complete, at most
         ``--lockstep-timeout``. Without this wait a loaded machine judged a series whose last ticks
         were partly missing (NaN where the simulator has values). Realtime: nothing to wait for (a
         tick without a message holds the previous value)."""
         if self.args.realtime or collector.sim_t_ns < 0:
             return
         deadline = time.monotonic() + self.args.lockstep_timeout
-        while not collector.tick_complete(last := self._last_tick_flown(collector)):
+        while not collector.tick_complete(last := collector.last_tick_flown()):
             if time.monotonic() > deadline or self.stop.is_set():
                 self.say(f"the messages of tick {last} did not all arrive within {self.args.lockstep_timeout:g} s "
                          "(--lockstep-timeout) after the processes ended; judging what arrived")
                 return
             time.sleep(0.01)
             collector.poll(self._bus_sub, self._live_tap())
-
-    @staticmethod
-    def _last_tick_flown(collector: Collector) -> int:
-        """Lockstep, every process ended with status 0: the plant ran every tick of the time limit
-        (its loop ends only there, or when it is stopped), so the last tick flown is T - 1, whatever
-        the collector's clock says yet: the plant's final clocks travel with the last ticks'
-        messages, and a clock seen only up to an earlier tick judged the ticks after it missing.
-        A plant stopped early says so in its final diagnostics (``finished`` false): then the last
-        tick of the clock seen."""
-        if (collector.diag.get("plant") or {}).get("finished") is False:
-            return min(collector.T, int(collector.sim_t_ns // collector.dt_ns) + 1) - 1
-        return collector.T - 1
 
     def _live_tap(self) -> Any:
         """The live view's feed (``--live``), else None."""
@@ -956,7 +867,7 @@ class Supervisor:
         that could fail in the same (tick, stage) has either given its output of that stage or
         failed too (the processes run concurrently; the simulator calls them in turn), then
         judge: the ticks before the failed one, unless the outcome was decided before it (as
-        the simulator). Sets ``self.upto``; returns 4, or 0 when the run was decided before."""
+        the simulator: :meth:`EndWatch.plugin_failed`). Returns 4, or 0 when the run was decided before."""
         deadline = time.monotonic() + self.args.lockstep_timeout + 10.0
         while True:
             collector.poll(self._bus_sub, self._live_tap())
@@ -974,17 +885,12 @@ class Supervisor:
                 self.say("not every process gave its output of the failed tick in time; judging what arrived")
                 break
             time.sleep(0.02)
+        end = self.watch.plugin_failed(collector, first[0].tick)
+        if not end.plugin_failed:  # decided before the plug-in failed: the run had ended there
+            self.plugin_failures = []
+            self.say(end.why)
+            return EXIT_OK
         self.plugin_failures = first
-        k = min(first[0].tick, collector.T)
-        if not self.args.full_time and not self.args.realtime and k > 0:
-            ts = collector.series(k)
-            d = verdict.decide_end(ts.q0, ts.q, ts.qref, self.criteria)
-            if d is not None:  # decided before the plug-in failed: the run had ended there
-                self.upto = d + 1
-                self.plugin_failures = []
-                self.say(f"the outcome was decided at sim time {d * self.criteria.dt:.2f} s, before the plug-in failed")
-                return EXIT_OK
-        self.upto = k
         return EXIT_PLUGIN_FAILED
 
     def _resolved(self, collector: Collector, first: list[PluginFailure]) -> bool:
@@ -1043,93 +949,52 @@ class Supervisor:
                 self.children[role].popen.kill()
                 del self.pending_kills[role]
 
-    def _progress(self, collector: Collector, el: float) -> None:
-        """The progress line: sim time, speed-up over ``el`` wall seconds, leader to goal, health."""
-        sc = self.sc
-        t = max(collector.sim_t_ns, 0) / 1e9
-        lq = collector.leader_q
-        goal = np.asarray(sc.leader.goal, dtype=float)
-        dist = f"{np.linalg.norm(lq - goal):.3f} m" if lq is not None else "-"
-        health = self._health()
-        self.say(f"t={t:6.2f}/{sc.timing.time_limit_s:g} s  {t / el if el > 0 else 0:5.1f}x  leader->goal {dist}  {health}")
-
-    def _judged_ticks(self, collector: Collector, code: int, fill: bool) -> int | None:
-        """How many ticks the results judge: None for the whole time limit."""
-        if code in (EXIT_OK, EXIT_PLUGIN_FAILED):
-            return self.upto if self.upto >= 0 else None  # ended early: decided, --stop-at-goal, or a plug-in failed
-        upto = int(max(collector.sim_t_ns, 0) // collector.dt_ns)  # stopped: the ticks flown so far
-        return upto if fill else collector.complete_ticks(upto)  # and only those whose every state arrived
-
     def _finish(self, collector: Collector, code: int, out: Path) -> int:
         """Judge the flight, write OUT/results.json and OUT/timeseries.npz (and the report with
         ``--report``); the exit code: ``code`` if not 0, else 0 or 1 by the verdict."""
         sc = self.sc
         # realtime, or a process that was down: a tick without a message holds the previous value
         fill = self.args.realtime or bool(self.deaths)
-        ts = collector.series(self._judged_ticks(collector, code, fill), fill=fill)
+        stopped = code not in (EXIT_OK, EXIT_PLUGIN_FAILED)  # by a dead process or a signal: judge the ticks flown
+        ts = collector.series(self.watch.judged_ticks(collector, stopped, fill), fill=fill)
         collector.close()  # every sample is in the series: free the spool
-        res = compute_results(ts, sc, wall_time_s=time.monotonic() - self.t_start, early_end=not self.args.full_time)
-        self._add_run_facts(res, collector)
-        from zenswarm.compose.sim import radio_results
-
-        res.update(radio_results(sc, self.args.faults.plan(sc), ts))
-        if collector.foreign:
-            self.say(f"ignored {collector.foreign} messages from sessions that are not their key's process "
-                     f"(on {len(collector.foreign_by_key)} keys; results.json: foreign_samples)")
-        self._add_stop_failure(res, code)
-        for e in res["failsafe"]:
-            until = f"{e['to_s']:.2f} s" if e["to_s"] is not None else "the end"
-            if {"link_lost", "lost"} & set(e["modes"]):  # the bridge lost the vehicle: its own failsafe flies it
-                self.say(f"failsafe: UAV {e['uav']} {' then '.join(e['modes'])} from sim time {e['from_s']:.2f} s to {until}: "
-                         "the bridge lost its link; the vehicle's own failsafe flew it")  # fmt: skip
-                continue
-            self.say(f"failsafe: UAV {e['uav']} flown by the plant ({' then '.join(e['modes'])}) from sim time "
-                     f"{e['from_s']:.2f} s to {until}: agent:{e['uav']}'s commands were stale")
-        out.mkdir(parents=True, exist_ok=True)
-        ts.save(str(out / "timeseries.npz"))
-        (out / "results.json").write_text(json.dumps(res, indent=2, sort_keys=True, default=str) + "\n")
-        from zenswarm.compose.sim import summary_line
-
-        for line in summary_line(res).split("\n"):
+        dead = getattr(self, "failed", "?")  # exit 3: the process that died for good
+        how = next((d["how"] for d in reversed(self.deaths) if d["process"] == dead), "unknown")
+        res = flight_results(
+            ts, sc, wall_time_s=time.monotonic() - self.t_start, full_time=self.args.full_time, faults=self.args.faults.plan(sc),
+            facts=self._run_facts(collector), died=(dead, how) if code == EXIT_PROCESS_FAILED else None,
+            interrupted=self.stop_reason if code == EXIT_INTERRUPTED else None,
+            plugin_failures=self.plugin_failures if code == EXIT_PLUGIN_FAILED else (),
+        )  # fmt: skip
+        write_outputs(out, ts, res)
+        for line in closing_lines(res, out):
             self.say(line)
-        self.say(f"wrote {out / 'results.json'} and {out / 'timeseries.npz'}")
         if self.args.record is not None and self.args.report:
             self._report(out, self.args.record)
         if code != EXIT_OK:
             return code
         return EXIT_OK if res["success"] else EXIT_MISSION_FAILED
 
-    def _add_run_facts(self, res: dict[str, Any], collector: Collector) -> None:
+    def _run_facts(self, collector: Collector) -> dict[str, Any]:
         """What results.json says of the run beside the verdict: mode, processes, recording, diagnostics."""
-        res["mode"] = "realtime" if self.args.realtime else "lockstep"
-        res["swarm"] = self.args.swarm
-        res["router"] = list(self.listen)  # the endpoints the router listened on (its port: chosen free without --listen)
-        # a child stopped by terminate_all has its code on popen only (returncode is set when one dies)
-        res["processes"] = {name: c.returncode if c.returncode is not None else c.popen.poll() for name, c in self.children.items()}
-        res["vehicles"] = self._vehicles_figures(collector)
-        res["process_deaths"] = self.deaths
-        if self.args.record is not None:
-            res["recording"] = str(self.args.record)
+        a = self.args
+        res: dict[str, Any] = {
+            "mode": "realtime" if a.realtime else "lockstep",
+            "swarm": a.swarm,
+            "router": list(self.listen),  # the endpoints the router listened on (its port: chosen free without --listen)
+            # a child stopped by terminate_all has its code on popen only (returncode is set when one dies)
+            "processes": {name: c.returncode if c.returncode is not None else c.popen.poll() for name, c in self.children.items()},
+            "vehicles": self._vehicles_figures(collector),
+            "process_deaths": self.deaths,
+            "restarts": self.restarts,
+            **collector.facts(),  # failsafe, diagnostics, decoder_rejects, foreign_samples
+            "supervisor_zenoh_threads": bus.zenoh_threads(),  # the router's (ZENOH_RUNTIME_ROUTER)
+        }
+        if a.record is not None:
+            res["recording"] = str(a.record)
             if self.recording_loss is not None:
                 res["recording_loss"] = self.recording_loss
-        res["restarts"] = self.restarts
-        res["failsafe"] = collector.failsafe_intervals()  # UAVs the plant held: their agents' commands were stale
-        res["diagnostics"] = collector.diag
-        res["supervisor_zenoh_threads"] = bus.zenoh_threads()  # the router's (ZENOH_RUNTIME_ROUTER)
-        res["decoder_rejects"] = collector.decoder.counters()
-        res["foreign_samples"] = dict(sorted(collector.foreign_by_key.items()))  # not in the series
-
-    def _add_stop_failure(self, res: dict[str, Any], code: int) -> None:
-        """A run stopped by a dead process (3) or a signal (130) fails for that reason too."""
-        t_end = res["sim_time_s"]
-        if code == EXIT_PROCESS_FAILED:
-            dead = getattr(self, "failed", "?")
-            how = next((d["how"] for d in reversed(self.deaths) if d["process"] == dead), "unknown")
-            add_failure(res, "process_died", f"process {dead} died ({how})", t_end, process=dead)
-        elif code == EXIT_INTERRUPTED:
-            add_failure(res, "interrupted", f"interrupted ({self.stop_reason}) at sim time {t_end:.2f} s", t_end)
-        elif code == EXIT_PLUGIN_FAILED:
-            add_plugin_failures(res, self.plugin_failures, self.sc.timing.dt)
+        return res
 
 
 def check_up_args(args: UpOptions, sc: Scenario) -> None:

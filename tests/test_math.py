@@ -34,6 +34,7 @@ PURE_MODULES = [
     "zenswarm/vehicle/crazyflie.py",
     "zenswarm/judge/metrics.py",
     "zenswarm/judge/verdict.py",
+    "zenswarm/judge/watch.py",
     "zenswarm/vehicle/geometry.py",
     "zenswarm/vehicle/inversion.py",
     "zenswarm/campaign/delaymargin.py",

@@ -31,7 +31,7 @@ of the AAPF away from the goal (``leader_stalled``), and a UAV that no longer tr
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -348,6 +348,249 @@ def _pairs_chunk(
     return best
 
 
+@dataclass
+class _Scan:
+    """What one pass over a flight's ticks found (:func:`_scan`): the closest obstacle clearance
+    and each UAV's first obstacle contact (uav -> (tick, obstacle, clearance)); each UAV's first
+    ground contact after take-off (uav -> (tick, z)) and the lowest altitude after it; the closest
+    UAV distance and each pair's first contact (pair -> (tick, distance)); the largest vehicle and
+    generator formation errors after the settle time; the sum and count of squared tracking
+    errors; whether every state was finite. m, 0-based indices."""
+
+    n: int
+    clear_min: float = math.inf
+    clear_first: dict[int, tuple[int, int, float]] = field(default_factory=dict)
+    ground_first: dict[int, tuple[int, float]] = field(default_factory=dict)
+    airborne: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    alt_min: float = math.inf
+    pair_min: float = math.inf
+    pair_first: dict[tuple[int, int], tuple[int, float]] = field(default_factory=dict)
+    ferr_max: float = -math.inf
+    gerr_max: float = -math.inf
+    sq_sum: float = 0.0
+    sq_count: int = 0
+    finite: bool = True
+
+    def __post_init__(self) -> None:
+        self.airborne = np.zeros(self.n, dtype=bool)
+
+
+def _scan_obstacles(s: _Scan, qs: np.ndarray, a: int, c: Criteria) -> None:
+    """Ticks qs (t, N, 3) from tick a: each UAV centre's clearance to each obstacle surface; contact below the radius."""
+    r = c.vehicle_radius_m
+    for o, ob in enumerate(c.obstacles):
+        cl = obstacle_clearance_many(qs, ob)
+        with np.errstate(invalid="ignore"):
+            if np.any(np.isfinite(cl)):
+                s.clear_min = min(s.clear_min, float(np.nanmin(cl)))
+            hit = cl < r
+        for i in np.flatnonzero(hit.any(axis=0)).tolist():
+            k = int(np.argmax(hit[:, i]))
+            if int(i) not in s.clear_first or s.clear_first[int(i)][0] > a + k:
+                s.clear_first[int(i)] = (a + k, o, float(cl[k, i]))
+
+
+def _scan_ground(s: _Scan, qs: np.ndarray, fin_q: np.ndarray, a: int, r: float) -> None:
+    """Ticks qs (t, N, 3) from tick a (fin_q (t, N): finite positions): a UAV that has reached z >= r and then goes below z = 0."""
+    z = qs[..., 2]
+    with np.errstate(invalid="ignore"):
+        up = np.logical_or.accumulate(z >= r, axis=0) | s.airborne[None]
+        if np.any(up & fin_q):
+            s.alt_min = min(s.alt_min, float(np.min(z[up & fin_q])))
+        below = up & (z < 0.0)
+    s.airborne = up[-1] if len(up) else s.airborne
+    for i in np.flatnonzero(below.any(axis=0)).tolist():
+        if int(i) not in s.ground_first:
+            k = int(np.flatnonzero(below[:, i])[0])
+            s.ground_first[int(i)] = (a + k, float(z[k, i]))
+
+
+def _scan_errors(s: _Scan, t: np.ndarray, q0: np.ndarray, qs: np.ndarray, qref: np.ndarray, c: Criteria) -> None:
+    """Ticks of one chunk (t (t,), q0 (t, 3), qs and qref (t, N, 3)): the formation errors after the
+    settle time (vehicles and generator), the tracking error."""
+    late = t >= c.settle_time_s
+    if np.any(late):
+        lead = q0[late][:, None, :] + c.offsets[None]
+        fe = np.linalg.norm(qs[late] - lead, axis=2)
+        ge = np.linalg.norm(qref[late] - lead, axis=2)
+        if np.any(np.isfinite(fe)):
+            s.ferr_max = max(s.ferr_max, float(np.nanmax(fe)))
+        if np.any(np.isfinite(ge)):
+            s.gerr_max = max(s.gerr_max, float(np.nanmax(ge)))
+    te = np.linalg.norm(qref - qs, axis=2)
+    te = te[np.isfinite(te)]
+    s.sq_sum += float(np.sum(te * te))
+    s.sq_count += len(te)
+
+
+def _scan(t: np.ndarray, q0: np.ndarray, q: np.ndarray, qref: np.ndarray, c: Criteria, n: int) -> _Scan:
+    """One pass over the flight in chunks of ticks (memory linear in N): contacts, margins, errors."""
+    s = _Scan(n)
+    for a, b in _chunks(len(t), n):
+        qs = q[a:b]
+        fin_q = np.isfinite(qs).all(axis=2)  # (t, N)
+        s.finite &= bool(fin_q.all()) and bool(np.isfinite(q0[a:b]).all())
+        _scan_obstacles(s, qs, a, c)
+        _scan_ground(s, qs, fin_q, a, c.vehicle_radius_m)
+        if n > 1:  # UAV pairs: the closest distance, and the first contact of each pair
+            s.pair_min = _pairs_chunk(qs, fin_q, a, 2.0 * c.vehicle_radius_m, s.pair_min, s.pair_first)
+        _scan_errors(s, t[a:b], q0[a:b], qs, qref[a:b], c)
+    return s
+
+
+def _slot_errors(q: np.ndarray, c: Criteria) -> list[float | None]:
+    """Per UAV, the largest distance to its slot goal + h_i over the final window of q (T, N, 3)
+    (None: not finite there); [] without ticks."""
+    T = len(q)
+    if not T:
+        return []
+    W = min(c.settle_ticks, T)
+    e = np.linalg.norm(q[T - W : T] - (c.goal + c.offsets)[None], axis=2)  # (W, N)
+    with np.errstate(invalid="ignore"):
+        worst = np.where(np.isfinite(e).all(axis=0), np.max(np.where(np.isfinite(e), e, 0.0), axis=0), np.inf)
+    return [_num(float(x)) for x in worst]
+
+
+def _terminal_failures(
+    t: np.ndarray, q0: np.ndarray, q: np.ndarray, qref: np.ndarray, stop: int, c: Criteria
+) -> tuple[list[Failure], dict[str, Any] | None]:
+    """The failures that decided the run at tick ``stop`` (:func:`decide_end`): a UAV diverged or
+    went non-finite, the leader stalled (with the stall's report, else None)."""
+    T = len(t)
+    failures: list[Failure] = []
+    qs_stop = q[stop]
+    div = _diverged(q, qref, stop, stop + 1, c)
+    if div is not None and div[0] == stop:
+        k, i, cause = div
+        if cause == "non_finite":
+            failures.append(Failure("non_finite", float(t[k]) if k < T else None, f"UAV {i + 1}'s state is not finite", (i + 1,)))
+        else:
+            e_i: float | None = float(np.linalg.norm(qs_stop[i] - qref[stop, i]))
+            failures.append(
+                Failure(
+                    "uav_diverged",
+                    float(t[k]) if k < T else None,
+                    f"UAV {i + 1} is {e_i:.2f} m from its reference q*_{i + 1} (divergence at {c.divergence_m:g} m)",
+                    (i + 1,),
+                    where=_point(qs_stop[i]),
+                )
+            )
+    if _stalled(q0, stop, stop + 1, c) != stop:
+        return failures, None
+    where = q0[stop]
+    within = [o for o, ob in enumerate(c.obstacles) if float(d_obs_many(where, ob, c.r_f)) <= c.d0]
+    moved = float(np.linalg.norm(q0[stop] - q0[stop - c.stall_ticks]))
+    stall_info: dict[str, Any] = {
+        "t_s": float(t[stop]) if stop < T else None,
+        "where": [float(x) for x in where],
+        "goal_distance_m": float(np.linalg.norm(where - c.goal)),
+        "moved_m": moved,
+        "window_s": c.stall_window_s,
+        "obstacles_within_d0": within,
+    }
+    failures.append(
+        Failure(
+            "leader_stalled",
+            stall_info["t_s"],
+            f"the virtual leader moved {moved:.3f} m in {c.stall_window_s:g} s at "
+            f"({where[0]:.2f}, {where[1]:.2f}, {where[2]:.2f}), {stall_info['goal_distance_m']:.2f} m from the goal, "
+            f"obstacles within d0={c.d0:g} m: {within} (a local minimum of the AAPF)",
+            where=_point(where),
+        )
+    )
+    return failures, stall_info
+
+
+def _non_finite_failure(t: np.ndarray, q0: np.ndarray, q: np.ndarray) -> Failure:
+    """The first non-finite state of a flight that has one: a UAV's, else the leader's."""
+    bad = ~np.isfinite(q).all(axis=2)
+    ks = np.flatnonzero(bad.any(axis=1))
+    if len(ks):
+        k = int(ks[0])
+        i = int(np.flatnonzero(bad[k])[0])
+        return Failure("non_finite", float(t[k]), f"UAV {i + 1}'s state is not finite", (i + 1,))
+    k = int(np.flatnonzero(~np.isfinite(q0).all(axis=1))[0])
+    return Failure("non_finite", float(t[k]), "the virtual leader's state is not finite")
+
+
+def _contact_failures(t: np.ndarray, q: np.ndarray, s: _Scan, r: float) -> list[Failure]:
+    """The contacts :func:`_scan` found: obstacles, the ground, UAV pairs (the first
+    :data:`MAX_LISTED_PAIRS` one by one, the rest in one entry), each in time order."""
+    failures: list[Failure] = []
+    for i, (k, o, cl_k) in sorted(s.clear_first.items(), key=lambda x: x[1][0]):
+        failures.append(
+            Failure(
+                "collision_obstacle",
+                float(t[k]),
+                f"UAV {i + 1} came within {cl_k:.3f} m of obstacle {o}'s surface (vehicle radius {r:.4f} m)",
+                (i + 1,),
+                obstacle=o,
+                where=_point(q[k, i]),
+            )
+        )
+    for i, (k, zk) in sorted(s.ground_first.items(), key=lambda x: x[1][0]):
+        failures.append(
+            Failure("collision_ground", float(t[k]), f"UAV {i + 1} went below the ground (z = {zk:.3f} m) after take-off", (i + 1,))
+        )
+    pairs = sorted(s.pair_first.items(), key=lambda x: x[1][0])
+    for (i, j), (k, d) in pairs[:MAX_LISTED_PAIRS]:
+        failures.append(
+            Failure(
+                "collision_uav", float(t[k]), f"UAVs {i + 1} and {j + 1} came {d:.3f} m apart (contact below {2 * r:.4f} m)", (i + 1, j + 1)
+            )
+        )
+    if len(pairs) > MAX_LISTED_PAIRS:
+        t_more = float(t[pairs[MAX_LISTED_PAIRS][1][0]])
+        failures.append(Failure("collision_uav", t_more, f"{len(pairs) - MAX_LISTED_PAIRS} more UAV pairs came into contact"))
+    return failures
+
+
+def _course_failures(
+    t: np.ndarray,
+    q: np.ndarray,
+    dist_goal: np.ndarray,
+    slot_err: list[float | None],
+    end_tick: int,
+    n_ticks: int,
+    stalled: bool,
+    c: Criteria,
+) -> list[Failure]:
+    """A flight that ran its course (not ended by a decided outcome): without the goal, unless the
+    leader stalled (named already), ``timeout`` at the time limit or ``incomplete`` before it;
+    with the goal, ``uav_off_slot`` for each UAV not settled in its slot (``slot_err``, :func:`_slot_errors`)."""
+    T = len(t)
+    t_end = float(t[-1])
+    if not np.any(dist_goal <= c.goal_tolerance_m):
+        if stalled:
+            return []
+        d_end = float(dist_goal[-1])
+        if end_tick >= n_ticks:
+            return [Failure("timeout", t_end, f"the virtual leader did not reach the goal by the time limit ({d_end:.3f} m from it)")]
+        return [
+            Failure(
+                "incomplete",
+                t_end,
+                f"the flight stopped at {t_end:.2f} s, before the time limit, with the leader {d_end:.3f} m from the goal",
+            )
+        ]
+    W = min(c.settle_ticks, T)
+    failures = []
+    for i, e_i in enumerate(slot_err):
+        if e_i is None or e_i > c.slot_tolerance_m:
+            how = "not finite" if e_i is None else f"up to {e_i:.3f} m"
+            failures.append(
+                Failure(
+                    "uav_off_slot",
+                    t_end,
+                    f"UAV {i + 1} was {how} from its slot goal + h_{i + 1} in the last {W * c.dt:g} s "
+                    f"(tolerance {c.slot_tolerance_m:g} m)",
+                    (i + 1,),
+                    where=_point(q[T - 1, i]) if np.isfinite(q[T - 1, i]).all() else None,
+                )
+            )
+    return failures
+
+
 def judge(
     t: np.ndarray,
     q0: np.ndarray,
@@ -368,217 +611,47 @@ def judge(
     decided outcome and without the goal is ``incomplete`` (not ``timeout``): the tool that
     stopped it names why (``interrupted``, ``process_died``).
     """
-    T = len(t)
-    n_ticks = T if n_ticks is None else n_ticks
+    n_ticks = len(t) if n_ticks is None else n_ticks
     n = q.shape[1] if q.ndim == 3 else len(c.offsets)
     stop = decide_end(q0, q, qref, c)
-    end = stop + 1 if (early_end and stop is not None) else T
+    ended_early = early_end and stop is not None
+    end = stop + 1 if (ended_early and stop is not None) else len(t)
     t, q0, q, qref = t[:end], q0[:end], q[:end], qref[:end]
     T = end
     # the tick the judged series ends at, from its time (not its length: a realtime series may
     # start after tick 0, when every process had produced a value)
     end_tick = int(round(float(t[-1]) / c.dt)) + 1 if T else 0
-    r = c.vehicle_radius_m
-    h = c.offsets
-    failures: list[Failure] = []
-
     dist_goal = np.linalg.norm(q0 - c.goal, axis=1) if T else np.empty(0)
     reached = np.flatnonzero(dist_goal <= c.goal_tolerance_m)
-    goal_reached = bool(len(reached))
-    time_to_goal = float(t[reached[0]]) if goal_reached else None
+    s = _scan(t, q0, q, qref, c, n)
+    slot_err = _slot_errors(q, c)
 
-    # one pass over chunks of ticks: contacts, margins, errors
-    clear_min = math.inf
-    clear_first: dict[int, tuple[int, int, float]] = {}  # uav -> (tick, obstacle, clearance)
-    ground_first: dict[int, tuple[int, float]] = {}  # uav -> (tick, z)
-    airborne = np.zeros(n, dtype=bool)
-    alt_min = math.inf
-    pair_min = math.inf
-    pair_first: dict[tuple[int, int], tuple[int, float]] = {}
-    ferr_max = gerr_max = -math.inf
-    sq_sum, sq_count = 0.0, 0
-    finite = True
-    for a, b in _chunks(T, n):
-        qs = q[a:b]
-        fin_q = np.isfinite(qs).all(axis=2)  # (t, N)
-        finite &= bool(fin_q.all()) and bool(np.isfinite(q0[a:b]).all())
-        # obstacles: clearance of each UAV centre to the surface; contact below the radius
-        for o, ob in enumerate(c.obstacles):
-            cl = obstacle_clearance_many(qs, ob)
-            with np.errstate(invalid="ignore"):
-                if np.any(np.isfinite(cl)):
-                    clear_min = min(clear_min, float(np.nanmin(cl)))
-                hit = cl < r
-            for i in np.flatnonzero(hit.any(axis=0)).tolist():
-                k = int(np.argmax(hit[:, i]))
-                if int(i) not in clear_first or clear_first[int(i)][0] > a + k:
-                    clear_first[int(i)] = (a + k, o, float(cl[k, i]))
-        # ground: a UAV that has reached z >= r and then goes below z = 0
-        z = qs[..., 2]
-        with np.errstate(invalid="ignore"):
-            up = np.logical_or.accumulate(z >= r, axis=0) | airborne[None]
-            if np.any(up & fin_q):
-                alt_min = min(alt_min, float(np.min(z[up & fin_q])))
-            below = up & (z < 0.0)
-        airborne = up[-1] if len(up) else airborne
-        for i in np.flatnonzero(below.any(axis=0)).tolist():
-            if int(i) not in ground_first:
-                k = int(np.flatnonzero(below[:, i])[0])
-                ground_first[int(i)] = (a + k, float(z[k, i]))
-        # UAV pairs: the closest distance, and the first contact of each pair
-        if n > 1:
-            pair_min = _pairs_chunk(qs, fin_q, a, 2.0 * r, pair_min, pair_first)
-        # formation errors after the settle time (vehicles and generator), tracking error
-        late = t[a:b] >= c.settle_time_s
-        if np.any(late):
-            lead = q0[a:b][late][:, None, :] + h[None]
-            fe = np.linalg.norm(qs[late] - lead, axis=2)
-            ge = np.linalg.norm(qref[a:b][late] - lead, axis=2)
-            if np.any(np.isfinite(fe)):
-                ferr_max = max(ferr_max, float(np.nanmax(fe)))
-            if np.any(np.isfinite(ge)):
-                gerr_max = max(gerr_max, float(np.nanmax(ge)))
-        te = np.linalg.norm(qref[a:b] - qs, axis=2)
-        te = te[np.isfinite(te)]
-        sq_sum += float(np.sum(te * te))
-        sq_count += len(te)
-
-    # final window: every UAV within the slot tolerance of goal + h_i
-    W = min(c.settle_ticks, T)
-    slot_err: list[float | None] = []
-    if T:
-        e = np.linalg.norm(q[T - W : T] - (c.goal + h)[None], axis=2)  # (W, N)
-        with np.errstate(invalid="ignore"):
-            worst = np.where(np.isfinite(e).all(axis=0), np.max(np.where(np.isfinite(e), e, 0.0), axis=0), np.inf)
-        slot_err = [_num(float(x)) for x in worst]
-    t_end = float(t[-1]) if T else 0.0
-
-    # ---- name the failures, in time order within each cause
-    stall_info: dict[str, Any] | None = None
-    if stop is not None:
-        qs_stop = q[stop]
-        div = _diverged(q, qref, stop, stop + 1, c)
-        if div is not None and div[0] == stop:
-            k, i, cause = div
-            if cause == "non_finite":
-                failures.append(Failure("non_finite", float(t[k]) if k < T else None, f"UAV {i + 1}'s state is not finite", (i + 1,)))
-            else:
-                e_i: float | None = float(np.linalg.norm(qs_stop[i] - qref[stop, i]))
-                failures.append(
-                    Failure(
-                        "uav_diverged",
-                        float(t[k]) if k < T else None,
-                        f"UAV {i + 1} is {e_i:.2f} m from its reference q*_{i + 1} (divergence at {c.divergence_m:g} m)",
-                        (i + 1,),
-                        where=_point(qs_stop[i]),
-                    )
-                )
-        if _stalled(q0, stop, stop + 1, c) == stop:
-            where = q0[stop]
-            within = [o for o, ob in enumerate(c.obstacles) if float(d_obs_many(where, ob, c.r_f)) <= c.d0]
-            moved = float(np.linalg.norm(q0[stop] - q0[stop - c.stall_ticks]))
-            stall_info = {
-                "t_s": float(t[stop]) if stop < T else None,
-                "where": [float(x) for x in where],
-                "goal_distance_m": float(np.linalg.norm(where - c.goal)),
-                "moved_m": moved,
-                "window_s": c.stall_window_s,
-                "obstacles_within_d0": within,
-            }
-            failures.append(
-                Failure(
-                    "leader_stalled",
-                    stall_info["t_s"],
-                    f"the virtual leader moved {moved:.3f} m in {c.stall_window_s:g} s at "
-                    f"({where[0]:.2f}, {where[1]:.2f}, {where[2]:.2f}), {stall_info['goal_distance_m']:.2f} m from the goal, "
-                    f"obstacles within d0={c.d0:g} m: {within} (a local minimum of the AAPF)",
-                    where=_point(where),
-                )
-            )
-    if T and not finite and not any(f.cause == "non_finite" for f in failures):
-        bad = ~np.isfinite(q).all(axis=2)
-        ks = np.flatnonzero(bad.any(axis=1))
-        if len(ks):
-            k = int(ks[0])
-            i = int(np.flatnonzero(bad[k])[0])
-            failures.append(Failure("non_finite", float(t[k]), f"UAV {i + 1}'s state is not finite", (i + 1,)))
-        else:
-            k = int(np.flatnonzero(~np.isfinite(q0).all(axis=1))[0])
-            failures.append(Failure("non_finite", float(t[k]), "the virtual leader's state is not finite"))
-    for i, (k, o, cl_k) in sorted(clear_first.items(), key=lambda x: x[1][0]):
-        failures.append(
-            Failure(
-                "collision_obstacle",
-                float(t[k]),
-                f"UAV {i + 1} came within {cl_k:.3f} m of obstacle {o}'s surface (vehicle radius {r:.4f} m)",
-                (i + 1,),
-                obstacle=o,
-                where=_point(q[k, i]),
-            )
-        )
-    for i, (k, zk) in sorted(ground_first.items(), key=lambda x: x[1][0]):
-        failures.append(
-            Failure("collision_ground", float(t[k]), f"UAV {i + 1} went below the ground (z = {zk:.3f} m) after take-off", (i + 1,))
-        )
-    pairs = sorted(pair_first.items(), key=lambda x: x[1][0])
-    for (i, j), (k, d) in pairs[:MAX_LISTED_PAIRS]:
-        failures.append(
-            Failure(
-                "collision_uav", float(t[k]), f"UAVs {i + 1} and {j + 1} came {d:.3f} m apart (contact below {2 * r:.4f} m)", (i + 1, j + 1)
-            )
-        )
-    if len(pairs) > MAX_LISTED_PAIRS:
-        t_more = float(t[pairs[MAX_LISTED_PAIRS][1][0]])
-        failures.append(Failure("collision_uav", t_more, f"{len(pairs) - MAX_LISTED_PAIRS} more UAV pairs came into contact"))
-    if T and not (early_end and stop is not None):  # the flight ran its course: did it get there?
-        if not goal_reached and stall_info is None:
-            d_end = float(dist_goal[-1])
-            if end_tick >= n_ticks:
-                failures.append(
-                    Failure("timeout", t_end, f"the virtual leader did not reach the goal by the time limit ({d_end:.3f} m from it)")
-                )
-            else:
-                failures.append(
-                    Failure(
-                        "incomplete",
-                        t_end,
-                        f"the flight stopped at {t_end:.2f} s, before the time limit, with the leader {d_end:.3f} m from the goal",
-                    )
-                )
-        elif goal_reached:
-            for i, e_i in enumerate(slot_err):
-                if e_i is None or e_i > c.slot_tolerance_m:
-                    how = "not finite" if e_i is None else f"up to {e_i:.3f} m"
-                    failures.append(
-                        Failure(
-                            "uav_off_slot",
-                            t_end,
-                            f"UAV {i + 1} was {how} from its slot goal + h_{i + 1} in the last {W * c.dt:g} s "
-                            f"(tolerance {c.slot_tolerance_m:g} m)",
-                            (i + 1,),
-                            where=_point(q[T - 1, i]) if np.isfinite(q[T - 1, i]).all() else None,
-                        )
-                    )
+    # the failures, in time order within each cause
+    failures, stall_info = _terminal_failures(t, q0, q, qref, stop, c) if stop is not None else ([], None)
+    if T and not s.finite and not any(f.cause == "non_finite" for f in failures):
+        failures.append(_non_finite_failure(t, q0, q))
+    failures += _contact_failures(t, q, s, c.vehicle_radius_m)
+    if T and not ended_early:  # the flight ran its course: did it get there?
+        failures += _course_failures(t, q, dist_goal, slot_err, end_tick, n_ticks, stall_info is not None, c)
     if T == 0:
         failures.append(Failure("no_data", None, "no tick of the flight has the UAVs' states"))
     failures.sort(key=lambda f: (f.t_s is None, f.t_s or 0.0))  # in time order (stable within a tick)
-    success = T > 0 and not failures
     return Verdict(
-        success=success,
+        success=T > 0 and not failures,
         failures=failures,
         end_tick=end_tick,
-        ended_early=early_end and stop is not None,
-        goal_reached=goal_reached,
-        time_to_goal_s=time_to_goal,
+        ended_early=ended_early,
+        goal_reached=bool(len(reached)),
+        time_to_goal_s=float(t[reached[0]]) if len(reached) else None,
         final_leader_goal_distance_m=_num(float(dist_goal[-1])) if T else None,
-        max_formation_error_m=_num(ferr_max),
-        max_generator_formation_error_m=_num(gerr_max),
-        rms_tracking_error_m=_num(math.sqrt(sq_sum / sq_count)) if sq_count else None,
+        max_formation_error_m=_num(s.ferr_max),
+        max_generator_formation_error_m=_num(s.gerr_max),
+        rms_tracking_error_m=_num(math.sqrt(s.sq_sum / s.sq_count)) if s.sq_count else None,
         final_slot_errors_m=slot_err,
-        min_obstacle_clearance_m=_num(clear_min),
-        min_inter_uav_distance_m=_num(pair_min),
-        min_altitude_m=_num(alt_min),
-        vehicle_radius_m=r,
-        finite=finite,
+        min_obstacle_clearance_m=_num(s.clear_min),
+        min_inter_uav_distance_m=_num(s.pair_min),
+        min_altitude_m=_num(s.alt_min),
+        vehicle_radius_m=c.vehicle_radius_m,
+        finite=s.finite,
         stall=stall_info,
     )

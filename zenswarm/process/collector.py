@@ -29,7 +29,7 @@ import numpy as np
 
 from zenswarm.bus import wire
 from zenswarm.errors import ZenswarmError
-from zenswarm.judge.metrics import TimeSeries
+from zenswarm.judge.metrics import TimeSeries, fill_forward
 from zenswarm.process.runtime import expected_senders, sample_sender
 from zenswarm.scenario.config import Scenario
 
@@ -136,7 +136,8 @@ class Spool:
 
 
 class Collector:
-    """Assembles the flight's time series from the bus (callback on the supervisor's session)."""
+    """Assembles the flight's time series from the bus (callback on the supervisor's session). It is
+    what the end-of-flight watch reads (:class:`zenswarm.judge.watch.LiveRecord`)."""
 
     def __init__(
         self, scenario: Scenario, keys: wire.Keys, spool_dir: str | Path | None = None, spool_block_bytes: int = SPOOL_BLOCK_BYTES
@@ -238,6 +239,31 @@ class Collector:
             live = self._live_keys.get(key)
             if live is not None:
                 self._last[live] = payload
+
+    def clock_ticks(self) -> int:
+        """The ticks the plant's clock has reached: 0 .. k - 1, k = sim time // dt (0 before its first clock)."""
+        return int(max(self.sim_t_ns, 0) // self.dt_ns)
+
+    def last_tick_flown(self) -> int:
+        """Lockstep, every process ended with status 0: the plant ran every tick of the time limit
+        (its loop ends only there, or when it is stopped), so the last tick flown is T - 1, whatever
+        this clock says yet: the plant's final clocks travel with the last ticks' messages, and a
+        clock seen only up to an earlier tick judged the ticks after it missing. A plant stopped
+        early says so in its final diagnostics (``finished`` false): then the last tick of the clock seen."""
+        if (self.diag.get("plant") or {}).get("finished") is False:
+            return min(self.T, self.clock_ticks() + 1) - 1
+        return self.T - 1
+
+    def facts(self) -> dict[str, Any]:
+        """What ``results.json`` says of the bus beside the verdict: ``failsafe`` (the UAVs the plant
+        or the bridge held, :meth:`failsafe_intervals`), each process's last ``diagnostics``, the
+        decoder's rejects and the ``foreign_samples`` (per key: not from their key's process, not in the series)."""
+        return {
+            "failsafe": self.failsafe_intervals(),
+            "diagnostics": self.diag,
+            "decoder_rejects": self.decoder.counters(),
+            "foreign_samples": dict(sorted(self.foreign_by_key.items())),
+        }
 
     def complete_ticks(self, upto: int) -> int:
         """How many ticks from 0, up to ``upto``, have every UAV's state (the rest were cut off
@@ -388,18 +414,6 @@ class Collector:
             T = self.T if upto_tick is None else max(0, min(self.T, upto_tick))
             ts = self.ts.truncated(T)
             ts = TimeSeries(**{f: np.array(getattr(ts, f)) for f in TimeSeries.FIELDS})
-        if fill and len(ts.t):
-            # realtime: a tick a process skipped holds its previous value (latest value wins);
-            # ticks before every process produced its first value are dropped.
-            first = 0
-            for f in TimeSeries.FIELDS:
-                a = getattr(ts, f)
-                for k in range(1, len(a)):
-                    bad = np.isnan(a[k])
-                    if np.any(bad):
-                        a[k][bad] = a[k - 1][bad]
-                rows = np.isnan(a.reshape(len(a), -1)).any(axis=1)
-                if np.any(rows):
-                    first = max(first, int(np.flatnonzero(rows)[-1]) + 1)
-            ts = TimeSeries(**{f: getattr(ts, f)[first:] for f in TimeSeries.FIELDS})
-        return ts
+        # realtime: a tick a process skipped holds its previous value (latest value wins);
+        # ticks before every process produced its first value are dropped
+        return fill_forward(ts) if fill else ts
