@@ -14,7 +14,7 @@ import pytest
 from zenswarm.judge.metrics import TimeSeries, compute_results
 from zenswarm.judge.results import closing_lines, summary_line
 from zenswarm.judge.verdict import Criteria, judge
-from zenswarm.judge.watch import DECIDE_EVERY, EndWatch, LiveRecord, Record
+from zenswarm.judge.watch import DECIDE_EVERY, Ending, EndWatch, LiveRecord, Record
 
 DT = 0.01
 T = 1000
@@ -267,3 +267,50 @@ def test_a_time_series_gives_its_ticks_as_the_collector_does(fill: bool) -> None
         return
     assert got.t[0] == pytest.approx(3 * DT) and len(got.t) == 17
     assert (got.q[10 - 3, 0] == ts.q[9, 0]).all() and not np.shares_memory(got.q, ts.q) and np.isnan(ts.q[10, 0]).all()
+
+
+def test_the_collector_fed_from_the_bus_ends_as_the_series_it_assembles() -> None:
+    """A real Collector (no process: the samples handed to it as the bus would) of a flight whose
+    UAV 2 is pushed off its reference by 1.3 cm a tick from tick 40: the supervisor's look ends it
+    after the tick the mission's divergence_m is first exceeded, as the simulator's exact look
+    on the same series does; the results judge that many ticks; the clock's ticks and the last
+    tick flown are read from the clock and the plant's final diagnostics."""
+    from zenswarm.bus import wire
+    from zenswarm.judge.verdict import criteria_from_scenario
+    from zenswarm.process.collector import Collector
+    from zenswarm.scenario.config import load_scenario
+
+    from swarmtest import SCENARIOS
+
+    sc = load_scenario(SCENARIOS / "paper_example1.toml")
+    keys = wire.Keys("watch")
+    col = Collector(sc, keys)
+    c = criteria_from_scenario(sc)
+    n, dt_ns, z = sc.n, col.dt_ns, (0.0, 0.0, 0.0)
+    off = int(np.floor(c.divergence_m / 0.013)) + 1  # ticks past 40 until 1.3 cm a tick is farther than divergence_m
+    assert 0.013 * off - c.divergence_m > 1e-4 and c.divergence_m - 0.013 * (off - 1) > 1e-4  # no tie
+    q0 = np.asarray(sc.leader.start, dtype=float)
+    h = np.asarray(sc.offsets, dtype=float).reshape(n, 3)
+    w = EndWatch(c, col.T)
+    assert col.clock_ticks() == 0 and w.look(col) is None
+    end = None
+    for k in range(40 + off + 20):
+        t = k * dt_ns
+        col.on_sample(keys.leader_ref, wire.encode(wire.Ref(t=t, seq=k, q=tuple(q0), v=z)))
+        for i in range(n):
+            q = q0 + h[i] + (np.array([0.0, 0.013 * max(0, k - 40), 0.0]) if i == 1 else 0.0)
+            col.on_sample(keys.state(i + 1), wire.encode(wire.State(t=t, seq=k, q=tuple(q), v=z, rpy=z, w=z)))
+            col.on_sample(keys.ref(i + 1), wire.encode(wire.Ref(t=t, seq=k, q=tuple(q0 + h[i]), v=z)))
+            col.on_sample(keys.cmd(i + 1), wire.encode(wire.Cmd(t=t, seq=k, thrust=1.0, rpy=z, u=z, d_hat=z)))
+        col.on_sample(keys.clock, wire.encode(wire.Clock(t=(k + 1) * dt_ns, seq=k + 1)))
+        if end is None and k % 5 == 4:
+            end = w.look(col)
+    assert end is not None and end.upto == 40 + off + 1, end
+    assert "UAV 2 is" in end.why and w.judged_ticks(col, stopped=False, fill=False) == end.upto
+    ts = col.series()
+    assert EndWatch(c, col.T).block(ts, 40 + off + 20) == Ending(40 + off + 1)
+    assert col.clock_ticks() == 40 + off + 20 and w.judged_ticks(col, stopped=True, fill=False) == 40 + off + 20
+    assert col.last_tick_flown() == col.T - 1  # every process ended with 0: the plant flew the whole limit
+    col.on_sample(keys.diag("plant"), wire.encode(wire.Diag(t=0, seq=1, process="plant", info={"finished": False})))
+    assert col.last_tick_flown() == 40 + off + 20  # stopped early: the clock's last tick
+    assert set(col.facts()) == {"failsafe", "diagnostics", "decoder_rejects", "foreign_samples"}
