@@ -1,5 +1,7 @@
 """What every swarm process shares (the roles and edges build on it).
 
+- :mod:`zenswarm.process.settings`: a flight's settings as one typed value (``FlightSettings``) and each
+  role's part (``RoleSettings``), and their one serialized form (msgpack).
 - :mod:`zenswarm.process.runtime`: a process's Zenoh session, its inbox of decoded inputs, lockstep
   waits, clocks, diagnostics, plug-in failures and exit statuses.
 - :mod:`zenswarm.process.security`: credentials and access control (``zenswarm keys``, ``up --secure``).

@@ -752,7 +752,9 @@ class ProcessOptions:
     """What every swarm process is started with (the common flags, typed; the command line is
     turned into these at the edge, :mod:`zenswarm.compose.roles`).
 
-    scenario: scenario TOML (None: fetched from the leader's mission key). swarm: key prefix
+    scenario: the scenario itself (parsed once by the front door: how ``zenswarm up`` starts its
+    roles, :class:`zenswarm.process.settings.RoleSettings`), or its TOML file (a role started by
+    hand), or None: fetched from the leader's mission key. swarm: key prefix
     ``swarm/<swarm>``. connect: Zenoh router endpoints (empty: ``tcp/127.0.0.1:7447``).
     realtime: wall clock, latest value wins (else lockstep). lockstep_timeout: wall seconds an
     input is waited for before it counts as a drop. keys, tls: credentials of a secured router
@@ -768,7 +770,7 @@ class ProcessOptions:
     (:class:`Lockstep`; ``zenswarm up --kill``), so the fault falls on the same tick in every run.
     """
 
-    scenario: Path | None = None
+    scenario: Scenario | Path | None = None
     swarm: str = "default"
     connect: tuple[str, ...] = ()
     realtime: bool = False
@@ -995,8 +997,11 @@ class SwarmProcess:
         return sc
 
     def _fetch_scenario(self) -> Scenario:
-        if self.options.scenario is not None:
-            return load_scenario(self.options.scenario)
+        given = self.options.scenario
+        if isinstance(given, Scenario):  # parsed by the front door (zenswarm.process.settings)
+            return given
+        if given is not None:
+            return load_scenario(given)
         # Fetch the mission from the leader (late joiners, other hosts). A reply that does not
         # decode or is not a valid scenario is counted (decoder / rejected.value) and skipped.
         deadline = time.monotonic() + 30.0
