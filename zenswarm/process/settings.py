@@ -28,7 +28,7 @@ import msgspec
 
 from zenswarm.errors import ScenarioError
 from zenswarm.link import LinkFaults
-from zenswarm.process.runtime import DEFAULT_LOCKSTEP_TIMEOUT_S, DEFAULT_ROUTER_LOST_TIMEOUT_S, ProcessOptions
+from zenswarm.process.options import DEFAULT_LOCKSTEP_TIMEOUT_S, DEFAULT_ROUTER_LOST_TIMEOUT_S, ProcessOptions
 from zenswarm.scenario.config import Scenario
 
 __all__ = ["FlightSettings", "RoleSettings", "LiveView", "encode", "decode_flight", "decode_role", "read_settings",
