@@ -202,9 +202,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         from zenswarm.compose.roles import run_role
 
         return run_role(argv)
-    args = build_parser().parse_args(argv)
+    if argv[:2] == ["up", "--settings"]:  # api.fly's supervisor: its typed settings on stdin (not in `up --help`)
+        from zenswarm.compose.supervisor import run_settings_argv
+
+        def func() -> int:
+            return run_settings_argv(argv[1:])
+    else:
+        args = build_parser().parse_args(argv)
+
+        def func() -> int:
+            return int(args.func(args) or 0)
     try:
-        return int(args.func(args) or 0)
+        return func()
     except ZenswarmError as e:
         print(f"zenswarm: error: {e}", file=sys.stderr)
         return 2

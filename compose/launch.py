@@ -13,12 +13,13 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from zenswarm.compose.supervisor import UpOptions
+from zenswarm.process.settings import FlightSettings, encode
 
 __all__ = ["UpRun", "up_argv", "run_up", "processes_mentioning", "processes_of", "kill_processes_of", "live_flights", "stop_flight"]
 
@@ -35,17 +36,11 @@ class UpRun:
     leftovers: tuple[str, ...]
 
 
-def up_argv(o: UpOptions) -> list[str]:
-    """The command line of ``zenswarm up`` for these options (this interpreter's). Covers the
-    options a programmatic flight uses: swarm, out, listen, lockstep timeout, kills, restart,
-    realtime, real-time priority, full time, record, link faults; progress every 5 s."""
-    argv = [sys.executable, "-m", "zenswarm", "up", str(o.scenario), "--out", str(o.out), "--swarm", o.swarm]
-    argv += [w for ep in o.listen for w in ("--listen", ep)]
-    argv += ["--progress-every", "5", "--lockstep-timeout", repr(o.lockstep_timeout)]
-    argv += [w for role, t in o.kill for w in ("--kill", f"{role}@{t!r}s")]
-    argv += ["--restart"] * o.restart + ["--realtime"] * o.realtime + ["--full-time"] * o.full_time
-    argv += ["--record", str(o.record)] if o.record is not None else []
-    return argv + o.rt_argv() + o.faults.argv()
+def up_argv(o: FlightSettings) -> list[str]:
+    """The command line of the ``zenswarm up`` child that flies ``o`` (this interpreter's): it
+    reads the settings on its standard input (:func:`run_up`); ``--swarm`` names it in the process
+    table."""
+    return [sys.executable, "-m", "zenswarm", "up", "--settings", "-", "--swarm", o.swarm]
 
 
 def processes_mentioning(text: str) -> list[tuple[int, str]]:
@@ -107,15 +102,19 @@ def stop_flight(p: subprocess.Popen[str], grace_s: float = 10.0) -> None:
             continue
 
 
-def run_up(opts: UpOptions, timeout: float) -> UpRun:
-    """Run ``zenswarm up`` (:func:`up_argv`) to its end or for at most ``timeout`` wall seconds,
-    in its own process group; whatever happens, nothing of ``opts.swarm`` is left running."""
+def run_up(opts: FlightSettings, timeout: float) -> UpRun:
+    """Run ``zenswarm up`` (:func:`up_argv`, ``opts`` on its standard input) to its end or for at
+    most ``timeout`` wall seconds, in its own process group; whatever happens, nothing of
+    ``opts.swarm`` is left running."""
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
-    p = subprocess.Popen(
-        up_argv(opts), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True,
-        start_new_session=True, env=env,
-    )
+    with tempfile.TemporaryFile() as settings:  # a file of its own, already gone from the disk
+        settings.write(encode(opts))
+        settings.seek(0)
+        p = subprocess.Popen(
+            up_argv(opts), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=settings, text=True,
+            start_new_session=True, env=env,
+        )
     with _LIVE_LOCK:
         _LIVE[p.pid] = p
     timed_out = False

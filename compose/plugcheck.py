@@ -408,9 +408,9 @@ def _sim_vs_swarm(sc: Scenario, seed: int) -> str:
     from zenswarm.bus.wire import Keys
     from zenswarm.compose.launch import run_up
     from zenswarm.compose.sim import simulate
-    from zenswarm.compose.supervisor import UpOptions
     from zenswarm.judge.metrics import TimeSeries, flight_differences
     from zenswarm.link import LinkFaults
+    from zenswarm.process.settings import FlightSettings
     from zenswarm.scenario.generate import to_toml
 
     faults = LinkFaults(FAULTS["link_delay"], FAULTS["link_jitter"], FAULTS["link_loss"], (), seed)
@@ -424,7 +424,9 @@ def _sim_vs_swarm(sc: Scenario, seed: int) -> str:
         swarm = f"check{uuid.uuid4().hex[:10]}"
         Keys(swarm)  # a valid swarm name
         # no --listen: the supervisor chooses the router's port (another one if it is taken before the bind)
-        opts = UpOptions(scenario=scen, swarm=swarm, out=Path(tmp) / "out", faults=faults, lockstep_timeout=LOCKSTEP_TIMEOUT_S)
+        # the swarm flies sc itself (its supervisor and roles get it typed); the file is its label
+        opts = FlightSettings(scenario=sc, scenario_file=scen, swarm=swarm, out=Path(tmp) / "out", faults=faults,
+                              lockstep_timeout=LOCKSTEP_TIMEOUT_S, progress_every=5.0)
         run = run_up(opts, timeout=600.0)
         if run.timed_out or not (opts.out / "results.json").is_file():
             tail = "\n".join(run.log.splitlines()[-15:])

@@ -4,6 +4,11 @@ The edge of the roles: here the command line of ``zenswarm plant|leader|agent`` 
 turned into the roles' typed options (:class:`zenswarm.process.runtime.ProcessOptions`,
 :class:`zenswarm.agents.process.AgentOptions`, :class:`zenswarm.plant.process.PlantOptions`),
 which their ``run`` functions take. A bad flag is a usage error (exit 2) before any work.
+
+The supervisor of ``zenswarm up`` starts its roles as ``zenswarm ROLE [--id I] --swarm NAME
+--settings - --supervisor PID``: the role reads its :class:`zenswarm.process.settings.RoleSettings`
+on standard input (:func:`run_settings`), not from flags; the words on the command line only name
+it in the process table. ``zenswarm up --only ROLE`` runs :func:`run_settings` in its own process.
 """
 
 from __future__ import annotations
@@ -13,9 +18,11 @@ import sys
 from collections.abc import Sequence
 
 from zenswarm.bridge.args import add_process_args, add_rt_priority_arg
+from zenswarm.errors import ScenarioError
 from zenswarm.process.runtime import ProcessOptions
+from zenswarm.process.settings import RoleSettings
 
-__all__ = ["add_parsers", "agent_options", "plant_options", "process_options"]
+__all__ = ["add_parsers", "agent_options", "plant_options", "process_options", "run_role", "run_settings"]
 
 
 def process_options(args: argparse.Namespace) -> ProcessOptions:
@@ -238,19 +245,63 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 ROLE_PARSERS = {"agent": add_agent_parser, "leader": add_leader_parser, "plant": add_plant_parser}
 
 
+def run_settings(settings: RoleSettings) -> int:
+    """Run the role these settings name (``plant``, ``leader``, ``agent:<i>``) in this process."""
+    role = settings.role
+    if role.startswith("agent:"):
+        from zenswarm.agents.process import AgentOptions
+        from zenswarm.agents.process import run as run_agent
+
+        return run_agent(AgentOptions(id=int(role.split(":", 1)[1]), process=settings.process_options()))
+    if role == "leader":
+        from zenswarm.leader.process import run as run_leader
+
+        return run_leader(settings.process_options())
+    if role == "plant":
+        from zenswarm.plant.process import PlantOptions
+        from zenswarm.plant.process import run as run_plant
+
+        return run_plant(PlantOptions(process=settings.process_options(), expect=settings.expect))
+    raise ScenarioError("--settings", f"unknown role {role!r}: expected plant, leader or agent:<i>")
+
+
+def _settings_of(argv: list[str]) -> RoleSettings:
+    """``ROLE [--id I] --swarm NAME --settings FILE [--supervisor PID]`` (what the supervisor
+    starts): the :class:`RoleSettings` in FILE (``-``: standard input), which must be this role's
+    and this swarm's."""
+    from zenswarm.process.settings import decode_role, read_settings
+
+    p = argparse.ArgumentParser(prog=f"zenswarm {argv[0]}", description="run a role with its typed settings (zenswarm up's child)")
+    if argv[0] == "agent":
+        p.add_argument("--id", type=int, required=True, metavar="I")
+    p.add_argument("--swarm", required=True)
+    p.add_argument("--settings", required=True, metavar="FILE", help="msgpack of the RoleSettings; - for standard input")
+    p.add_argument("--supervisor", type=int, metavar="PID", help="the supervisor that started it (a label for the process table)")
+    ns = p.parse_args(argv[1:])
+    settings = decode_role(read_settings(ns.settings))
+    role = f"agent:{ns.id}" if argv[0] == "agent" else argv[0]
+    if (settings.role, settings.swarm) != (role, ns.swarm):
+        raise ScenarioError("--settings", f"the settings of {settings.role} in swarm {settings.swarm!r}, "
+                                          f"not of {role} in swarm {ns.swarm!r}")  # fmt: skip
+    return settings
+
+
 def run_role(argv: Sequence[str]) -> int:
     """Run one role's command line (``agent --id 2 ...``, ``leader ...``, ``plant ...``) in this
     process, as ``zenswarm`` would: a :class:`zenswarm.errors.ZenswarmError` is printed as
-    ``zenswarm: error: ...`` (exit 2), Ctrl-C is exit 130."""
+    ``zenswarm: error: ...`` (exit 2), Ctrl-C is exit 130. With ``--settings FILE`` (the
+    supervisor's children) the role's settings are read from FILE, not from flags."""
     from zenswarm.errors import ZenswarmError
 
     argv = list(argv)
     if not argv or argv[0] not in ROLE_PARSERS:
         raise ValueError(f"not a role's command line: {argv[:1]!r} (expected one of {', '.join(ROLE_PARSERS)})")
-    parser = argparse.ArgumentParser(prog="zenswarm")
-    ROLE_PARSERS[argv[0]](parser.add_subparsers(dest="command", metavar="COMMAND", required=True))
-    args = parser.parse_args(argv)
     try:
+        if "--settings" in argv:
+            return run_settings(_settings_of(argv))
+        parser = argparse.ArgumentParser(prog="zenswarm")
+        ROLE_PARSERS[argv[0]](parser.add_subparsers(dest="command", metavar="COMMAND", required=True))
+        args = parser.parse_args(argv)
         return int(args.func(args) or 0)
     except ZenswarmError as e:
         print(f"zenswarm: error: {e}", file=sys.stderr)

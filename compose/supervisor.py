@@ -12,16 +12,20 @@ from __future__ import annotations
 import argparse
 import ctypes
 import json
+import math
 import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import msgspec
+import numpy as np
 import zenoh
 
 from zenswarm import bus
@@ -48,10 +52,20 @@ from zenswarm.process import rtsched, security
 from zenswarm.process.collector import Collector
 from zenswarm.process.paths import check_output_dir, check_output_file, lock_output_dir
 from zenswarm.process.runtime import PLUGIN_FAILURE_MARK, gc_policy, gc_safe_point, gc_startup_done, kill_self_line
+from zenswarm.process.settings import (
+    DEFAULT_EXTERNAL_TIMEOUT_S,
+    FlightSettings,
+    LiveView,
+    RoleSettings,
+    decode_flight,
+    encode,
+    read_settings,
+)
 from zenswarm.scenario.config import Scenario
 from zenswarm.scenario.plugins import DEFAULTS, STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
 
-__all__ = ["add_parsers", "UpOptions", "up_options", "Supervisor", "role_names", "swarm_roles", "check_up_args"]
+__all__ = ["add_parsers", "UpOptions", "flight_settings", "up_options", "fly", "run_settings_argv", "Supervisor", "role_names",
+           "swarm_roles", "check_up_args"]
 
 LIVE_CHECK_S = 0.25
 """Wall seconds between two looks at whether the flight's outcome is decided (early end)."""
@@ -62,10 +76,6 @@ COLLECTOR_QUEUE = 4_000_000
 EXIT_OK, EXIT_MISSION_FAILED, EXIT_BAD_INPUT, EXIT_PROCESS_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 SITL_SEND_OFFSET = 40
 """With ``--plant mavlink`` simulated vehicle i sends from UDP P+40+i (PX4 SITL: 14580+i -> 14540+i)."""
-
-DEFAULT_EXTERNAL_TIMEOUT_S = 60.0
-"""``--external-timeout``: how long an external role may take to announce itself (the plant
-waits as long for the processes it needs before its first tick)."""
 
 ROUTER_PORT_TRIES = 5
 """Without ``--listen`` the router's port is a free one, chosen a moment before the router binds
@@ -105,64 +115,25 @@ def _pdeathsig_term() -> None:
     _pdeathsig(signal.SIGTERM)
 
 
-@dataclass(frozen=True)
-class UpOptions:
-    """What ``zenswarm up`` was asked for: its flags, typed (built from the command line by
-    :func:`up_options`; the flags' help says what each means). Durations in wall seconds."""
+UpOptions = FlightSettings
+"""What ``zenswarm up`` was asked for, typed: :class:`zenswarm.process.settings.FlightSettings`
+(its older name)."""
 
-    scenario: Path
-    swarm: str = "default"
-    out: Path = Path("runs/up")
-    realtime: bool = False
-    plant: str = "sim"
-    mavlink_base_port: int | None = None
-    crazyflie_base_port: int | None = None
-    external: tuple[str, ...] = ()
-    external_timeout: float = DEFAULT_EXTERNAL_TIMEOUT_S
-    record: Path | None = None
-    report: bool = False
-    report_format: tuple[str, ...] = ("png",)
-    listen: tuple[str, ...] = ()
-    connect: tuple[str, ...] = ()
-    router_connect: tuple[str, ...] = ()
-    secure: bool = False
-    tls: bool = False
-    keys: Path | None = None
-    insecure: bool = False
-    only: str | None = None
-    lockstep_timeout: float = 5.0
-    kill: tuple[tuple[str, float], ...] = ()  # (process, sim time s)
-    restart: bool = False
-    stop_at_goal: bool = False
-    full_time: bool = False
-    progress_every: float = 1.0
-    quiet: bool = False
-    quiet_children: bool = False
-    faults: LinkFaults = field(default_factory=LinkFaults)
-    controller: str | None = None  # plug-in names overriding the scenario's (zenswarm.scenario.plugins.select)
-    planner: str | None = None
-    plant_model: str | None = None
-    live: LiveTarget | None = None  # --live [PORT|rerun[:PORT]]: serve the flight to a viewer (zenswarm.bridge.live)
-    rt_priority: int | None = None  # --rt-priority P: the flying processes under SCHED_FIFO P (zenswarm.process.rtsched)
-    router_lost_timeout: float | None = None  # --only: give up on a lost router after S s (zenswarm.process.runtime)
-
-    def rt_argv(self) -> list[str]:
-        """``--rt-priority P`` for the flying processes (if given)."""
-        return [] if self.rt_priority is None else ["--rt-priority", str(self.rt_priority)]
-
-    def plugin_argv(self) -> list[str]:
-        """``--controller NAME`` / ``--planner NAME`` / ``--plant-model NAME`` for the processes (those given)."""
-        words: list[str] = []
-        for flag, name in (("--controller", self.controller), ("--planner", self.planner), ("--plant-model", self.plant_model)):
-            if name is not None:
-                words += [flag, name]
-        return words
+ROLES_BY_SETTINGS = ("plant", "leader", "agent")
+"""The roles started with their :class:`RoleSettings` on standard input; the recorder, the bridges
+and the simulated vehicles still take a command line (the edges' own flags)."""
 
 
-def up_options(args: argparse.Namespace) -> UpOptions:
-    """The flags of ``zenswarm up`` (:func:`add_parsers`) as :class:`UpOptions`."""
-    return UpOptions(
-        scenario=args.scenario,
+def flight_settings(args: argparse.Namespace) -> tuple[FlightSettings, dict[str, Any]]:
+    """The flags of ``zenswarm up`` (:func:`add_parsers`) as :class:`FlightSettings`, its scenario
+    parsed once (``--set``, ``--duration``, the plug-in flags applied and checked: a ScenarioError
+    naming the flag or field, exit 2), and the overrides given (to write the effective scenario
+    for the processes that take a file)."""
+    sc, overrides = scenario_of(args)
+    live: LiveTarget | None = args.live
+    settings = FlightSettings(
+        scenario=sc,
+        scenario_file=args.scenario,
         swarm=args.swarm,
         out=args.out,
         realtime=args.realtime,
@@ -194,10 +165,16 @@ def up_options(args: argparse.Namespace) -> UpOptions:
         controller=args.controller,
         planner=args.planner,
         plant_model=args.plant_model,
-        live=args.live,
+        live=None if live is None else LiveView(live.viewer, live.port),
         rt_priority=args.rt_priority,
         router_lost_timeout=args.router_lost_timeout,
     )
+    return settings, overrides
+
+
+def up_options(args: argparse.Namespace) -> FlightSettings:
+    """The flags of ``zenswarm up`` as :class:`FlightSettings` (:func:`flight_settings`)."""
+    return flight_settings(args)[0]
 
 
 @dataclass
@@ -213,11 +190,11 @@ class Child:
 class Supervisor:
     """Starts and watches one swarm. ``run()`` returns the exit code."""
 
-    def __init__(self, args: UpOptions, scenario: Scenario) -> None:
+    def __init__(self, args: FlightSettings, scenario: Scenario | None = None) -> None:
         if args.plant in ("mavlink", "crazyflie"):
-            args = replace(args, realtime=True)  # real vehicles (or their simulation over UDP) run on the wall clock
+            args = msgspec.structs.replace(args, realtime=True)  # real vehicles (or their simulation over UDP) run on the wall clock
         self.args = args
-        self.sc = scenario
+        self.sc = scenario = args.scenario if scenario is None else scenario
         self.keys = wire.Keys(args.swarm)
         rt = os.environ.get("ZENOH_RUNTIME")  # the user's choice, unless it is a swarm process's own
         self.user_runtime = None if rt == bus.ZENOH_RUNTIME_DEFAULT else rt  # None: ours (spawn, run)
@@ -283,12 +260,18 @@ class Supervisor:
 
     # ------------------------------------------------------------------ processes
     def child_argv(self, role: str) -> list[str]:
-        """The command line of ``role`` (a swarm role or ``recorder``), this interpreter's."""
+        """The command line of ``role`` (a swarm role or ``recorder``), this interpreter's. The
+        plant, the leader and the agents are named on it (role, ``--swarm``, this supervisor's pid:
+        to find them in the process table) and read their :class:`RoleSettings` (:meth:`role_settings`)
+        on standard input; the others take their flags."""
         argv = [sys.executable, "-m", "zenswarm"]
+        if role.partition(":")[0] in ROLES_BY_SETTINGS:
+            words = ["agent", "--id", role.split(":", 1)[1]] if role.startswith("agent:") else [role]
+            return argv + words + ["--swarm", self.args.swarm, "--settings", "-", "--supervisor", str(os.getpid())]
         if role == "recorder":
             return argv + self._recorder_argv()
         if role == "vehicles" and self.cf_base_port is not None:  # simulated Crazyflies (CRTP over UDP, no Zenoh)
-            argv += ["crazyflie-vehicle", str(self.args.scenario), "--base-port", str(self.cf_base_port)]
+            argv += ["crazyflie-vehicle", str(self.args.scenario_file), "--base-port", str(self.cf_base_port)]
             if self.sc.crazyflie is not None and self.sc.crazyflie.positioning == "extpos":  # they are the mocap system too
                 argv += ["--mocap", "--swarm", self.args.swarm, *[w for ep in self.connect_endpoints for w in ("--connect", ep)]]
             return argv
@@ -297,12 +280,12 @@ class Supervisor:
             # as PX4 SITL and real autopilots: each vehicle's NED about where it booted, and
             # vehicle i sending from P+40+i to P+i where the bridge listens (udpin)
             return argv + [
-                "mavlink-vehicle", str(a.scenario), "--base-port", str(self.mav_base_port), "--telemetry-hz", "100",
+                "mavlink-vehicle", str(a.scenario_file), "--base-port", str(self.mav_base_port), "--telemetry-hz", "100",
                 "--own-origin", "--sitl-ports", *a.rt_argv(),
             ]
         if role == "bridge":
             return argv + self._bridge_argv()
-        return argv + self._role_argv(role)
+        raise ValueError(f"not a process of this swarm: {role!r}")
 
     def _join_words(self) -> list[str]:
         """``--connect`` each endpoint, then ``--keys DIR [--tls]`` in secure mode."""
@@ -313,7 +296,7 @@ class Supervisor:
 
     def _recorder_argv(self) -> list[str]:
         a = self.args
-        argv = ["record", "--swarm", a.swarm, "--out", str(a.record), "--scenario", str(a.scenario)]
+        argv = ["record", "--swarm", a.swarm, "--out", str(a.record), "--scenario", str(a.scenario_file)]
         argv += [w for ep in self.connect_endpoints for w in ("--connect", ep)]
         if a.realtime:
             argv.append("--realtime")
@@ -324,11 +307,11 @@ class Supervisor:
     def _bridge_argv(self) -> list[str]:
         a = self.args
         if self.cf_base_port is not None:  # the Crazyflie bridge; to the simulated ones unless they are external
-            argv = ["bridge", "crazyflie", str(a.scenario), "--swarm", a.swarm, *self._join_words()]
+            argv = ["bridge", "crazyflie", str(a.scenario_file), "--swarm", a.swarm, *self._join_words()]
             if "vehicles" not in a.external:
                 argv += [w for i in range(self.sc.n) for w in ("--uri", f"{i + 1}=udp://127.0.0.1:{self.cf_base_port + i}")]
             return argv + a.faults.argv() + (["--expect", "recorder"] if a.record is not None else [])
-        argv = ["bridge", "mavlink", str(a.scenario), "--base-port", str(self.mav_base_port), "--swarm", a.swarm]
+        argv = ["bridge", "mavlink", str(a.scenario_file), "--base-port", str(self.mav_base_port), "--swarm", a.swarm]
         argv += self._join_words()
         # the simulated vehicles (own origins, SITL ports): listen where vehicle i sends, and put
         # its origin where it boots, on the ground under its initial position
@@ -337,43 +320,42 @@ class Supervisor:
             argv += ["--conn", f"{i + 1}=udpin:127.0.0.1:{self.mav_base_port + i}", "--origin", f"{i + 1}={q[0]!r},{q[1]!r},{gz!r}"]
         return argv + a.faults.argv() + (["--expect", "recorder"] if a.record is not None else []) + a.rt_argv()
 
-    def _role_argv(self, role: str) -> list[str]:
-        """plant, leader, agent:<i>: the plant waits for the recorder with ``--record``."""
+    def role_settings(self, role: str) -> RoleSettings:
+        """plant, leader, agent:<i>: what the role is started with (its part of the flight's
+        settings); the plant waits for the recorder with ``--record``. A role named by ``--kill``
+        in lockstep kills itself at the tick, on its first start only."""
         a = self.args
-        if role == "plant" and a.record is not None:
-            argv = ["plant", "--expect", "recorder"]
-        elif role.startswith("agent:"):
-            argv = ["agent", "--id", role.split(":", 1)[1]]
-        else:
-            argv = [role]
-        argv += ["--scenario", str(a.scenario), "--swarm", a.swarm, "--lockstep-timeout", str(a.lockstep_timeout)]
-        argv += [w for ep in self.connect_endpoints for w in ("--connect", ep)]
-        if a.realtime:
-            argv.append("--realtime")
-        if self.keys_dir is not None:
-            argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
         kill_at = self.kill_ticks.pop(role, None)  # the first start only: a restarted process is not killed again
         if kill_at is not None:
-            argv += ["--kill-at-tick", str(kill_at)]
             self.self_killed[role] = kill_at
             self.say(f"{role} will SIGKILL itself just before tick {kill_at} (sim time {kill_at * self.sc.timing.dt:.2f} s; --kill)")
-        return argv + a.faults.argv() + a.plugin_argv() + a.rt_argv()
+        expect = ("recorder",) if role == "plant" and a.record is not None else ()
+        return a.role(role, tuple(self.connect_endpoints), self.keys_dir, kill_at_tick=kill_at, expect=expect)
 
     def spawn(self, role: str) -> Child:
         env = dict(os.environ)
         env.setdefault("PYTHONUNBUFFERED", "1")
         if self.user_runtime is None:  # the swarm's processes: zenoh on one thread (bus.use_swarm_runtime)
             env["ZENOH_RUNTIME"] = bus.ZENOH_RUNTIME_DEFAULT
-        p = subprocess.Popen(
-            self.child_argv(role),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            text=True,
-            start_new_session=True,  # Ctrl-C reaches the supervisor only; it stops the children
-            preexec_fn=_pdeathsig_term if role == "recorder" else _pdeathsig,
-            env=env,
-        )
+        stdin: Any = subprocess.DEVNULL
+        if role.partition(":")[0] in ROLES_BY_SETTINGS:  # its settings on stdin: a file of its own, already gone from the disk
+            stdin = tempfile.TemporaryFile()
+            stdin.write(encode(self.role_settings(role)))
+            stdin.seek(0)
+        try:
+            p = subprocess.Popen(
+                self.child_argv(role),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                stdin=stdin,
+                text=True,
+                start_new_session=True,  # Ctrl-C reaches the supervisor only; it stops the children
+                preexec_fn=_pdeathsig_term if role == "recorder" else _pdeathsig,
+                env=env,
+            )
+        finally:
+            if stdin is not subprocess.DEVNULL:
+                stdin.close()  # the child holds its own descriptor
         c = Child(role, p, time.monotonic())
         c.reader = threading.Thread(target=self._pump, args=(c,), daemon=True)
         c.reader.start()
@@ -997,10 +979,12 @@ class Supervisor:
         return res
 
 
-def check_up_args(args: UpOptions, sc: Scenario) -> None:
+def check_up_args(args: FlightSettings, sc: Scenario) -> None:
     """Every flag of ``zenswarm up`` that names something (a role, an endpoint, an output path)
     is checked against ``sc`` before anything starts: :class:`ScenarioError` naming the flag,
     exit status 2, no process started and nothing lost."""
+    if not (math.isfinite(args.lockstep_timeout) and args.lockstep_timeout > 0):  # settings built in code (the flag's type checks it)
+        raise ScenarioError("--lockstep-timeout", f"must be a finite number > 0 (positive), got {args.lockstep_timeout!r}")
     bus.check_endpoint_syntax(list(args.listen), "--listen", listen=True)
     bus.check_endpoint_syntax(list(args.connect), "--connect")
     bus.check_endpoint_syntax(list(args.router_connect), "--router-connect")
@@ -1029,14 +1013,14 @@ def check_up_args(args: UpOptions, sc: Scenario) -> None:
         check_output_file(args.record, "--record")
 
 
-def check_rt_priority(args: UpOptions) -> None:
+def check_rt_priority(args: FlightSettings) -> None:
     """``--rt-priority P``: 1-99, a realtime flight (``--realtime`` or ``--plant mavlink``), and
     permitted to this user (:func:`zenswarm.process.rtsched.probe`): else :class:`ScenarioError` naming the
     flag and the remedy, before anything starts."""
     rtsched.validate(args.rt_priority, realtime=args.realtime or args.plant != "sim", how="--realtime or --plant mavlink")
 
 
-def check_crazyflie(args: UpOptions, sc: Scenario) -> None:
+def check_crazyflie(args: FlightSettings, sc: Scenario) -> None:
     """``--plant crazyflie``: cflib installed, and ``--crazyflie-base-port P`` leaves P..P+N-1 free
     (the simulated Crazyflies' ports), else :class:`ScenarioError` (exit 2, before anything starts)."""
     import importlib.util
@@ -1069,7 +1053,7 @@ def check_mavlink_ports(base: int, n: int, host: str = "127.0.0.1") -> None:
             )
 
 
-def _check_kills(args: UpOptions, sc: Scenario, names: list[str]) -> None:
+def _check_kills(args: FlightSettings, sc: Scenario, names: list[str]) -> None:
     """``--kill ROLE@T``: ROLE must be a process started here."""
     external = list(args.external)
     started = [r for r in names if r not in external] + (["recorder"] if args.record is not None else [])
@@ -1086,12 +1070,18 @@ def _check_kills(args: UpOptions, sc: Scenario, names: list[str]) -> None:
 
 
 def _run_up(ns: argparse.Namespace) -> int:
-    args = up_options(ns)
-    sc, overrides = scenario_of(ns)  # --set, --duration, a bad plug-in name or parameter: exit 2 now
-    args.faults.plan(sc)  # bad flags: exit 2 now
-    check_up_args(args, sc)
-    if overrides:  # every process reads the scenario as overridden: OUT/scenario.toml
-        args = replace(args, scenario=_write_effective(args, overrides))
+    args, overrides = flight_settings(ns)  # --set, --duration, a bad plug-in name or parameter: exit 2 now
+    args.faults.plan(args.scenario)  # bad flags: exit 2 now
+    check_up_args(args, args.scenario)
+    if overrides and not args.only:  # the processes that take a file read it as overridden: OUT/scenario.toml
+        args = msgspec.structs.replace(args, scenario_file=_write_effective(args, overrides))
+    return fly(args)
+
+
+def fly(args: FlightSettings) -> int:
+    """Fly these settings (checked: :func:`check_up_args`): the whole swarm under a
+    :class:`Supervisor`, or one role with ``--only``. The exit status."""
+    sc = args.scenario
     gc_policy()  # a bad ZENSWARM_GC: exit 2 now
     if args.only:
         if args.live is not None:
@@ -1101,7 +1091,7 @@ def _run_up(ns: argparse.Namespace) -> int:
     if args.live is not None:  # bound now: a port in use is exit 2 before any process starts
         from zenswarm.bridge.views.live import open_view
 
-        sup.live = open_view(args.live, sc, args.swarm)
+        sup.live = open_view(LiveTarget(args.live.viewer, args.live.port), sc, args.swarm)
         sup.say(sup.live.how_to_open())
     try:
         sup.t_start = time.monotonic()
@@ -1121,47 +1111,53 @@ def _run_up(ns: argparse.Namespace) -> int:
             sup.live.close()
 
 
-def _write_effective(args: UpOptions, overrides: dict[str, Any]) -> Path:
+def run_settings_argv(argv: list[str]) -> int:
+    """``zenswarm up --settings FILE --swarm NAME``: fly the :class:`FlightSettings` in FILE (``-``:
+    standard input), as :func:`zenswarm.api.fly` starts its supervisor (:mod:`zenswarm.compose.launch`).
+    Not for users (``zenswarm up --help`` does not list it): the settings are checked again here,
+    and ``--swarm`` (the name the process table shows) must be theirs."""
+    p = argparse.ArgumentParser(prog="zenswarm up", description="fly a flight's typed settings (zenswarm.api.fly's supervisor)")
+    p.add_argument("--settings", required=True, metavar="FILE", help="msgpack of the FlightSettings; - for standard input")
+    p.add_argument("--swarm", required=True)
+    ns = p.parse_args(argv)
+    args = decode_flight(read_settings(ns.settings))
+    if args.swarm != ns.swarm:
+        raise ScenarioError("--swarm", f"{ns.swarm!r}, but the settings fly swarm {args.swarm!r}")
+    args.faults.plan(args.scenario)
+    check_up_args(args, args.scenario)
+    return fly(args)
+
+
+def _write_effective(args: FlightSettings, overrides: dict[str, Any]) -> Path:
     """The scenario file with the overrides applied (``--set``, ``--duration``), written as
-    OUT/scenario.toml for the swarm's processes (``--only``: beside the scenario, named by swarm)."""
+    OUT/scenario.toml for the processes that take a file (the recorder, the bridges, the
+    simulated vehicles; the roles get the scenario itself)."""
     import tomllib
 
     from zenswarm.scenario.generate import to_toml
     from zenswarm.scenario.overrides import apply
 
-    doc = apply(tomllib.loads(Path(args.scenario).read_text(encoding="utf-8")), overrides)
+    src = Path(args.scenario_file)
+    doc = apply(tomllib.loads(src.read_text(encoding="utf-8")), overrides)
     trace = (doc.get("faults") or {}).get("trace")
     if isinstance(trace, str) and not Path(trace).is_absolute():  # relative to the original file
-        doc["faults"]["trace"] = str(Path(args.scenario).parent.absolute() / trace)
+        doc["faults"]["trace"] = str(src.parent.absolute() / trace)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    path = out / (f"scenario-{args.swarm}.toml" if args.only else "scenario.toml")
+    path = out / "scenario.toml"
     path.write_text(to_toml(doc))
     return path
 
 
-def _run_only(args: UpOptions) -> int:
-    """``--only ROLE``: run one role of a swarm in this process, against a remote router."""
-    from zenswarm.compose.roles import run_role
+def _run_only(args: FlightSettings) -> int:
+    """``--only ROLE``: run one role of a swarm in this process, against a remote router, with
+    its part of the settings (:meth:`FlightSettings.role`)."""
+    from zenswarm.compose.roles import run_settings
 
     role = args.only or ""
-    argv: list[str]
-    if role.startswith("agent:"):
-        argv = ["agent", "--id", role.split(":", 1)[1]]
-    elif role in ("plant", "leader"):
-        argv = [role]
-    else:
+    if not (role.startswith("agent:") or role in ("plant", "leader")):
         raise ScenarioError("--only", f"unknown role {role!r}: expected plant, leader or agent:<i>")
-    argv += ["--scenario", str(args.scenario), "--swarm", args.swarm, "--lockstep-timeout", str(args.lockstep_timeout)]
-    for ep in args.connect or ["tcp/127.0.0.1:7447"]:
-        argv += ["--connect", ep]
-    if args.realtime:
-        argv.append("--realtime")
-    if args.keys is not None:
-        argv += ["--keys", str(args.keys)] + (["--tls"] if args.tls else [])
-    if args.router_lost_timeout is not None:
-        argv += ["--router-lost-timeout", repr(args.router_lost_timeout)]
-    return run_role(argv + args.plugin_argv() + args.rt_argv())
+    return run_settings(args.role(role, args.connect or ("tcp/127.0.0.1:7447",), args.keys))
 
 
 def _parse_kill(text: str) -> tuple[str, float]:

@@ -440,8 +440,11 @@ def test_two_flights_at_once_with_default_settings(tmp_path: Path) -> None:
     finally:
         for u in ups:
             u.kill()
-        left = processes_mentioning(str(scenario))  # the swarm name is "default": find them by their scenario
-        kill_mentioning(str(scenario))
+        # the swarm name is "default": find the supervisors by their scenario, their roles by their supervisor
+        marks = [str(scenario)] + [f"--supervisor {u.p.pid} " for u in ups]
+        left = [found for mark in marks for found in processes_mentioning(mark)]
+        for mark in marks:
+            kill_mentioning(mark)
     assert not left, f"processes left behind: {left}"
     logs = "\n=====\n".join(u.log() for u in ups)
     assert rcs == [1, 1], logs  # 20 s do not reach the goal: the verdict, the same for both

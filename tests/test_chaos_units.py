@@ -186,9 +186,9 @@ def test_the_supervisor_waits_for_the_last_ticks_messages_after_every_process_en
     the simulator by the NaN of the last ticks: test_plugins, plugins check, issue 30 "flaky under
     load"). The clock goes out every CLOCK_EVERY_TICKS ticks, so the clock seen on time is a few
     ticks short of the end: the ticks after it are waited for too."""
-    import dataclasses
     from types import SimpleNamespace
 
+    import msgspec
     import numpy as np
 
     from zenswarm.compose.cli import build_parser
@@ -237,7 +237,7 @@ def test_the_supervisor_waits_for_the_last_ticks_messages_after_every_process_en
     # they never come: the wait is bounded and said, the run is judged on what arrived
     col = sup.collector = Collector(sc, keys)
     sup._bus_sub = _Router(now, [], after=0)
-    sup.args = dataclasses.replace(sup.args, lockstep_timeout=0.2)
+    sup.args = msgspec.structs.replace(sup.args, lockstep_timeout=0.2)  # the flight's settings: a msgspec Struct
     said: list[str] = []
     sup.say = said.append  # type: ignore[method-assign]
     assert sup._watch(col) == EXIT_OK

@@ -46,7 +46,7 @@ from swarmtest import (
 EX1 = SCENARIOS / "paper_example1.toml"
 DT_NS = 10_000_000  # paper example 1: 100 Hz
 SPOOF_SEQ = 2**62  # a seq above any real one: the spoofs below are rejected for their time, not their seq
-# the ticks an input guard remembers per key (zenswarm.process.runtime._KeyState.recent): a tick among them is a duplicate
+# the ticks an input guard remembers per key (zenswarm.process.guard._KeyState.recent): a tick among them is a duplicate
 RECENT_TICKS = 64
 # how far (ticks) a receiver may lag the clock the flood sees, loaded: a "past" message is older than both
 LAG_TICKS = 32

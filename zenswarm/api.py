@@ -41,12 +41,13 @@ import numpy as np
 from zenswarm.bus.wire import validate_process
 from zenswarm.compose.launch import kill_processes_of, live_flights, processes_of, run_up, stop_flight
 from zenswarm.compose.sim import simulate, summary_line, write_outputs
-from zenswarm.compose.supervisor import UpOptions, check_up_args
+from zenswarm.compose.supervisor import check_up_args
 from zenswarm.errors import EXIT_PLUGIN_FAILED, ScenarioError, ZenswarmError
 from zenswarm.judge.metrics import TimeSeries, exit_code_of, flight_differences
 from zenswarm.link import LinkFaults
 from zenswarm.process import rtsched
 from zenswarm.process.paths import check_output_dir
+from zenswarm.process.settings import FlightSettings
 from zenswarm.scenario.config import Scenario, scenario_to_dict
 from zenswarm.scenario.generate import to_toml
 from zenswarm.scenario.overrides import OverrideError, apply, copy_document, validated
@@ -437,6 +438,10 @@ def fly(
     record = None if record is None else Path(record)  # a path given as text works as well
     out = None if out is None else Path(out)
     rtsched.validate(rt_priority, realtime=realtime and mode == "swarm", how="mode='swarm', realtime=True", field="rt_priority")
+    if mode == "swarm" and (isinstance(lockstep_timeout, bool) or not isinstance(lockstep_timeout, (int, float)) or not (
+        np.isfinite(lockstep_timeout) and lockstep_timeout > 0
+    )):  # as --lockstep-timeout (exit 2 of the supervisor before the settings went typed)
+        raise ScenarioError("lockstep_timeout", f"must be a finite number of wall seconds > 0, got {lockstep_timeout!r}")
     if mode == "sim":
         for name, given in (("kill", kills), ("restart", restart), ("realtime", realtime), ("record", record is not None)):
             if given:
@@ -485,12 +490,13 @@ def _fly_swarm(
         run_dir = Path(tmp)
         out_dir = out if out is not None else run_dir / "out"
         scen_file = run_dir / "scenario.toml"
-        # the file the supervisor reads: the document flown, or the Scenario's own (the one conversion)
+        # the swarm flies sc itself (the supervisor and its roles get it typed, :class:`FlightSettings`); the
+        # file, the document flown or the Scenario's own, is for the recorder (it takes a file)
         scen_file.write_text(to_toml(doc if doc is not None else scenario_to_dict(sc)))
-        opts = UpOptions(
-            scenario=scen_file, swarm=swarm, out=out_dir, realtime=realtime, record=record, lockstep_timeout=lockstep_timeout,
-            kill=kills, restart=restart, full_time=full_time, faults=faults, listen=(f"tcp/127.0.0.1:{port}",) if port else (),
-            rt_priority=rt_priority,
+        opts = FlightSettings(
+            scenario=sc, scenario_file=scen_file, swarm=swarm, out=out_dir, realtime=realtime, record=record,
+            lockstep_timeout=lockstep_timeout, kill=kills, restart=restart, full_time=full_time, faults=faults,
+            listen=(f"tcp/127.0.0.1:{port}",) if port else (), rt_priority=rt_priority, progress_every=5.0,
         )
         check_up_args(opts, sc)  # the supervisor's own checks, here: bad input raises before anything starts
         run = run_up(opts, timeout)

@@ -1,7 +1,11 @@
 """What every swarm process shares (the roles and edges build on it).
 
-- :mod:`zenswarm.process.runtime`: a process's Zenoh session, its inbox of decoded inputs, lockstep
-  waits, clocks, diagnostics, plug-in failures and exit statuses.
+- :mod:`zenswarm.process.settings`: a flight's settings as one typed value (``FlightSettings``) and each
+  role's part (``RoleSettings``), and their one serialized form (msgpack).
+- :mod:`zenswarm.process.runtime`: a process's Zenoh session (``SwarmProcess``), diagnostics,
+  plug-in failures and exit statuses; its parts, one concept a module: ``options`` (``ProcessOptions``),
+  ``guard`` (the input guard), ``inbox``, ``clocks`` (a realtime loop's wall clock), ``lockstep``
+  (the lockstep loop, ``--kill-at-tick``), ``gcpolicy`` (the garbage collector at safe points).
 - :mod:`zenswarm.process.security`: credentials and access control (``zenswarm keys``, ``up --secure``).
 - :mod:`zenswarm.process.collector`: the flight's time series assembled from the bus (what ``up`` judges).
 - :mod:`zenswarm.process.rtsched`: ``SCHED_FIFO`` for a realtime flight's control loops.
