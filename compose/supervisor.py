@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any
 
 import msgspec
-import numpy as np
 import zenoh
 
 from zenswarm import bus
@@ -47,7 +46,6 @@ from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, Ze
 from zenswarm.judge.results import closing_lines, flight_results, write_outputs
 from zenswarm.judge.verdict import criteria_from_scenario
 from zenswarm.judge.watch import EndWatch
-from zenswarm.link import LinkFaults
 from zenswarm.process import rtsched, security
 from zenswarm.process.collector import Collector
 from zenswarm.process.paths import check_output_dir, check_output_file, lock_output_dir
@@ -231,7 +229,7 @@ class Supervisor:
         # --plant crazyflie: simulated Crazyflie i on udp://127.0.0.1:P+i
         self.cf_base_port = (args.crazyflie_base_port or bus.free_udp_block(scenario.n)) if args.plant == "crazyflie" else None
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
-        self.live: Any = None  # --live: the view (zenswarm.bridge.live.open_view), bound by _run_up before run()
+        self.live: Any = None  # --live: the view (zenswarm.bridge.views.live.open_view), bound by _run_up before run()
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:

@@ -41,7 +41,7 @@ waits as long for the processes it needs before its first tick)."""
 
 class LiveView(msgspec.Struct, frozen=True):
     """What ``--live`` asks for: ``viewer`` (``foxglove`` or ``rerun``) served on ``port``
-    (:mod:`zenswarm.bridge.live` opens it)."""
+    (:mod:`zenswarm.bridge.views.live` opens it)."""
 
     viewer: str
     port: int
@@ -132,7 +132,7 @@ class FlightSettings(msgspec.Struct, frozen=True, kw_only=True):
     controller: str | None = None  # plug-in names overriding the scenario's (zenswarm.scenario.plugins.select)
     planner: str | None = None
     plant_model: str | None = None
-    live: LiveView | None = None  # --live: serve the flight to a viewer (zenswarm.bridge.live)
+    live: LiveView | None = None  # --live: serve the flight to a viewer (zenswarm.bridge.views.live)
     rt_priority: int | None = None  # --rt-priority P: the flying processes under SCHED_FIFO P (zenswarm.process.rtsched)
     router_lost_timeout: float | None = None  # --only: give up on a lost router after S s (zenswarm.process.runtime)
 
