@@ -18,7 +18,7 @@ no step moves the leader by more than ``STEP_FRACTION`` of its current clearance
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Callable, Protocol, Sequence
+from typing import TYPE_CHECKING, Callable, Protocol, Sequence, TypeVar
 
 import numpy as np
 
@@ -327,15 +327,18 @@ def integrate_leader(
 
     q0: (3,) m. dt: s. Returns (q0 at t + dt, info).
     """
-    return _integrate(q0, dt, lambda x, y, z: _force_and_margin(x, y, z, p), p.d0, min_substeps)
+    return _integrate(q0, dt, _force_and_margin, p, p.d0, min_substeps)
+
+
+_F = TypeVar("_F")
 
 
 def _integrate(
-    q0: np.ndarray, dt: float, field: Callable[[float, float, float], tuple[float, float, float, float]], d0: float,
-    min_substeps: int,
+    q0: np.ndarray, dt: float, field: Callable[[float, float, float, _F], tuple[float, float, float, float]], params: _F,
+    d0: float, min_substeps: int,
 ) -> tuple[np.ndarray, LeaderStepInfo]:
-    """The sub-stepping of :func:`integrate_leader` under any leader field ``field(x, y, z) ->
-    (v_x, v_y, v_z, min d_obs)`` (the AAPF's, or the escape planner's); ``d0``: m, the repulsion
+    """The sub-stepping of :func:`integrate_leader` under any leader field ``field(x, y, z, params)
+    -> (v_x, v_y, v_z, min d_obs)`` (the AAPF's, or the escape planner's); ``d0``: m, the repulsion
     band that sets the clearance floor and where sub-steps start being limited."""
     x, y, z = float(q0[0]), float(q0[1]), float(q0[2])
     h_nom = dt / max(1, int(min_substeps))
@@ -347,7 +350,7 @@ def _integrate(
         if n >= MAX_SUBSTEPS:
             return np.array([x, y, z]), LeaderStepInfo(n, True)
         h = h_nom if h_nom < remaining else remaining
-        vx, vy, vz, margin = field(x, y, z)
+        vx, vy, vz, margin = field(x, y, z, params)
         if margin < near:
             lim = STEP_FRACTION * (margin if margin > d_floor else d_floor)
             speed = math.sqrt(vx * vx + vy * vy + vz * vz)

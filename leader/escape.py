@@ -357,4 +357,4 @@ def integrate_escape(
     straight path it gives the AAPF's result bit for bit. q0: (3,) m. dt: s. Returns (q0 at
     t + dt, info).
     """
-    return _integrate(q0, dt, lambda x, y, z: escape_force(x, y, z, E), E.aapf.d0, min_substeps)
+    return _integrate(q0, dt, escape_force, E, E.aapf.d0, min_substeps)
