@@ -313,11 +313,13 @@ def test_the_collector_rebuilds_the_records_with_their_declared_shapes() -> None
     z = np.zeros(3)
     for k in range(3):
         for i in range(1, SC.n + 1):
-            extra = {"torque": [float(k), float(i), 0.5], "rotor_thrust": [0.25 * i, 0.2, 0.3, float(k)], "other": [1.0, 2.0]}
+            extra = {"torque": [float(k), float(i), 0.5], "rotor_thrust": [0.25 * i, 0.2, 0.3, float(k)], "other": [1.0, 2.0],
+                     "thrust": [0.5 * k + i]}
             col.on_sample(keys.state(i), wire.encode_state(wire.t_ns(k * SC.timing.dt), k + 1, z, z, z, z, extra))
     ts = col.series(3)
-    assert list(ts.plant) == ["torque", "rotor_thrust", "other"]
+    assert list(ts.plant) == ["torque", "rotor_thrust", "other", "thrust"]
     assert ts.plant["torque"].shape == (3, 3, 3) and ts.plant["other"].shape == (3, 3, 2)
+    assert ts.plant["thrust"].shape == (3, 3) and ts.plant["thrust"][2].tolist() == [2.0, 3.0, 4.0]  # a scalar per UAV
     assert ts.plant["torque"][2, 1].tolist() == [2.0, 2.0, 0.5] and ts.plant["rotor_thrust"][1, 2].tolist() == [0.75, 0.2, 0.3, 1.0]
     col.close()
     unknown = Collector(select(SC, plant_model="no_module_xyz:Model"), keys)  # not loadable here: flat

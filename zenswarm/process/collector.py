@@ -18,6 +18,7 @@ series (``results.json``, ``timeseries.npz``) is the same to the bit.
 
 from __future__ import annotations
 
+import math
 import struct
 import tempfile
 import threading
@@ -396,9 +397,9 @@ class Collector:
                 if shape is None or int(np.prod(shape)) != len(vals):
                     shape = (len(vals),)
                 a = ts.plant[name] = np.full((self.T, self.sc.n, *shape), np.nan)
-            row = a[k, i]
-            if row.size == len(vals):
-                row[...] = np.reshape(np.array(vals, dtype=float), row.shape)
+            shape = a.shape[2:]
+            if math.prod(shape) == len(vals):  # (a scalar signal's a[k, i] is not a view: assign through a)
+                a[k, i] = np.reshape(np.array(vals, dtype=float), shape)
 
     def series(self, upto_tick: int | None = None, fill: bool = False) -> TimeSeries:
         """The collected series up to ``upto_tick``; ``fill`` forward-fills gaps (realtime)."""
