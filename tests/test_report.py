@@ -383,7 +383,7 @@ def test_report_cli_warns_on_a_truncated_recording(flight, tmp_path):
     dropped = {f"swarm/{SWARM}/uav/1/state": {"count": 4, "bytes": 400000, "largest": 100000, "limit": 65536}}
     write_recording(
         p, sc, sim.series, chunk_size=16 * 1024,
-        extra_metadata={"dropped_oversize_json": json.dumps(dropped), "payload_limit_bytes": "65536"}, plant=False,
+        extra_metadata={"dropped_oversize_json": json.dumps(dropped), "payload_limit_bytes": "65536"},
     )  # fmt: skip
     data = p.read_bytes()
     p.write_bytes(data[: len(data) // 2])
