@@ -8,7 +8,9 @@ it that need it:
    and ``description``, a ``Params`` that is a frozen :class:`msgspec.Struct` refusing unknown
    keys (checked by decoding an unknown key), and the scenario's params table decodes; a
    controller's ``shares`` maps names to shapes of positive ints; a plant model's ``vehicle()``
-   gives a :class:`zenswarm.vehicle.params.QuadParams`; the methods the runners call
+   gives a :class:`zenswarm.vehicle.params.QuadParams`, and its ``records`` declaration (names
+   to :class:`zenswarm.scenario.plugins.Signal` with shapes and units) is checked before anything
+   (a bad one is bad input: exit 2 naming ``records.<name>``); the methods the runners call
    take the arguments they are called with (``step(q, v, neighbours, leader, dt)``, a two-phase
    controller's ``prepare(neighbours, leader)`` and ``finish(q, v, prepared, dt)``, ``reset(q,
    v)``, ``share()``; a planner's ``ref()`` and ``advance()``; a plant model's
@@ -19,7 +21,9 @@ it that need it:
    >= 0, rpy (3,), u (3,), d_hat (3,); a planner's (q0, v0) are (3,) and finite and ``ref()``
    does not change its state; a plant model, stepped by :class:`zenswarm.plant.core.PlantCore` with
    synthetic commands about hover (thrust, attitude setpoints within +-0.1 rad) and the scenario's
-   disturbance, keeps its state (q, v, rpy, w) (N, 3) and finite.
+   disturbance, keeps its state (q, v, rpy, w) (N, 3) and finite, and its ``record()`` gives every
+   declared signal and no other, each (N, *shape) and finite (else the failure ``plugin_error``
+   of call ``record``, as the runners report it); the records are outputs of the checks below too.
 3. **deterministic**: the same ticks again with fresh instances give identical outputs, bit for bit.
    A difference names the first differing output (field, tick, UAV) and, when no clock or global
    randomness was touched, its cause: state kept outside the instance (a class or module attribute).
@@ -68,7 +72,17 @@ from msgspec.structs import replace as replace_table
 
 from zenswarm.errors import ScenarioError
 from zenswarm.scenario.config import Scenario, scenario_to_dict
-from zenswarm.scenario.plugins import GROUPS, KINDS, PluginError, decode_params, plant_vehicle, plugin_rng, resolve, select
+from zenswarm.scenario.plugins import (
+    GROUPS,
+    KINDS,
+    PluginError,
+    decode_params,
+    plant_vehicle,
+    plugin_rng,
+    records_of,
+    resolve,
+    select,
+)
 
 __all__ = ["add_check_parser", "run_check", "Check", "check_plugin"]
 
@@ -359,6 +373,9 @@ def _tick_plant(cls: type, params: Any, sc: Scenario, ticks: int, guard: bool) -
             core.step(k)
         st = core.state
         out += [(f"state.{f} after tick {k}", _finite(getattr(st, f), (n, 3), f"state.{f} after tick {k}").copy()) for f in STATE_FIELDS]
+        for name, sig in core.records.items():  # checked by the core (names, shapes, finite): kept per UAV
+            what = f"record.{name} after tick {k}"
+            out.append((what, _finite(core.recorded[name], (n, *sig.shape), what).reshape(n, -1).copy()))
     return out
 
 
@@ -500,6 +517,8 @@ def check_plugin(
     (kind, class, the checks in order). Bad input (an unknown name) raises ScenarioError; what
     the plug-in does wrong, whatever it raises, is a failed check."""
     kind, cls = resolve_kind(name, kind)
+    if kind == "plant":
+        records_of(cls, f"plant {name!r}")  # a bad declaration is bad input (exit 2, naming records.<name>)
     sc = _scenario_for(kind, name, sc, duration)
     checks: list[Check] = []
     try:
@@ -721,6 +740,9 @@ def _alone_child() -> None:
 def _interface_text(kind: str, cls: type) -> str:
     shares = dict(getattr(cls, "shares", {})) if kind == "controller" else {}
     extra = f", shares {shares}" if shares else ""
+    if kind == "plant":
+        recs = records_of(cls)
+        extra += (", records " + ", ".join(f"{n} {s.shape} {s.unit}" for n, s in recs.items())) if recs else ""
     return f"name, description, Params (frozen msgspec Struct, unknown keys refused, the scenario's table decodes){extra}"
 
 

@@ -64,7 +64,7 @@ from zenswarm.leader.core import LeaderCore
 from zenswarm.link import Box, FaultPlan, FaultState, Held, box_counters
 from zenswarm.plant.core import PlantCore
 from zenswarm.scenario.config import Scenario
-from zenswarm.scenario.plugins import STAGE_SHARE, STAGE_STEP, Boundary, first_failures, plant_vehicle
+from zenswarm.scenario.plugins import STAGE_SHARE, STAGE_STEP, Boundary, first_failures, plant_records, plant_vehicle
 
 __all__ = ["simulate", "SimResult", "run_sim_cli"]
 
@@ -194,6 +194,11 @@ class _Swarm:
         st = self.plant.state
         q, v = st.q.copy(), st.v.copy()
         ts.t[k], ts.q0[k], ts.v0[k], ts.q[k], ts.v[k], ts.rpy[k] = k * self.dt, q0, v0, q, v, st.rpy
+        for name, a in self.plant.recorded.items():  # what the plant model records, with its state
+            dst = ts.plant.get(name)
+            if dst is None:  # a series allocated without it
+                dst = ts.plant[name] = np.full((len(ts.t), *a.shape), np.nan)
+            dst[k] = a
         if self.stacked is not None:
             self._agents_stacked(self.stacked, k, q, v, q0, v0, ts)
         else:
@@ -374,7 +379,7 @@ def simulate(
     wall0 = time.perf_counter()
     dt = scenario.timing.dt
     T = scenario.timing.n_ticks if n_ticks is None else int(n_ticks)
-    ts = TimeSeries.allocate(T, scenario.n)
+    ts = TimeSeries.allocate(T, scenario.n, {name: sig.shape for name, sig in plant_records(scenario).items()})
     try:
         swarm: _Swarm | None = _Swarm(scenario, faults)
     except PluginsFailed as e:  # a plug-in's constructor raised: nothing flown
@@ -394,6 +399,8 @@ def simulate(
     wall = time.perf_counter() - wall0
     if flown < T:
         ts = ts.truncated(flown)
+    if flown == 0:
+        ts.plant = {}  # nothing recorded: as the swarm's collector has it (a series comes with its first value)
     results = flight_results(
         ts, scenario, wall_time_s=wall, full_time=full_time, faults=faults if swarm is not None else None,
         facts=swarm.fault_results() if swarm is not None else {},  # link_counters, failsafe_events

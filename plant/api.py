@@ -32,25 +32,40 @@ that raises (constructor or step) is reported the same way.
 
 A model must be deterministic (no clock, no I/O, randomness only from ``ctx.rng``), as
 ``zenswarm plugins check`` verifies.
+
+Recording internal signals (rotor thrusts, a motor-lag state, ...): declare ``records = {"name":
+Signal(shape, unit, description), ...}`` and return the values of the current tick from
+:meth:`PlantModel.record`, name -> (N, *shape) array. The runner calls it once after the
+constructor and once after every :meth:`PlantModel.step` (the same calls in ``zenswarm sim`` and
+``zenswarm up``), checks it (every declared name, nothing else, the shapes, finite), and records
+the values with the state they belong to: ``plant.<name>`` (T, N, *shape) in ``timeseries.npz``,
+and in each ``uav/<i>/state`` message (:attr:`zenswarm.bus.wire.State.extra`), so the flight's
+MCAP recording holds them. A bad declaration is refused before any work (exit 2, naming
+``records.<name>``); a ``record()`` that raises or returns a wrong value is the plug-in failure
+``plugin_error`` (call ``record``).
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 import msgspec
 import numpy as np
 
 from zenswarm.plant.quadrotor import PlantState, initial_state, step_held
-from zenswarm.vehicle.params import QuadParams
+from zenswarm.scenario.plugins import Signal
+from zenswarm.vehicle.params import ARM_LENGTH, KM_OVER_KF, QuadParams
 
 if TYPE_CHECKING:  # pragma: no cover
     from zenswarm.scenario.config import Scenario
 
-__all__ = ["NoParams", "PlantContext", "VehicleStates", "Disturbance", "PlantModel", "QuadrotorModel"]
+__all__ = ["NoParams", "PlantContext", "VehicleStates", "Disturbance", "PlantModel", "QuadrotorModel", "Signal", "rotor_mixer"]
+
+_NO_RECORDS: Mapping[str, np.ndarray] = MappingProxyType({})
 
 Disturbance = Callable[[int], tuple[Any, Any]]
 """``disturbance(j) -> (d_p, d_a)`` for physics sub-step j = 0 .. ctx.substeps - 1 of the tick:
@@ -101,11 +116,14 @@ class PlantContext:
 class PlantModel(ABC):
     """The dynamics of N vehicles. Class attributes: ``name`` (listed under), ``description``
     (one line), ``Params`` (a frozen :class:`msgspec.Struct` with ``forbid_unknown_fields=True``:
-    the scenario's ``[plant.params]`` decoded, unknown keys rejected naming the field)."""
+    the scenario's ``[plant.params]`` decoded, unknown keys rejected naming the field),
+    ``records`` (internal signals recorded with the flight: name -> :class:`Signal`, returned by
+    :meth:`record`)."""
 
     name: ClassVar[str] = ""
     description: ClassVar[str] = ""
     Params: ClassVar[type[msgspec.Struct]] = NoParams
+    records: ClassVar[Mapping[str, Signal]] = MappingProxyType({})
 
     def __init__(self, ctx: PlantContext, params: Any) -> None:
         self.ctx = ctx
@@ -138,17 +156,57 @@ class PlantModel(ABC):
         when it is inactive; call it for j = 0 .. ctx.substeps - 1, in order, once each (its
         gusts are a seeded random process: the draws must not depend on the model)."""
 
+    def record(self) -> Mapping[str, np.ndarray]:
+        """The declared :attr:`records` of the current tick (the state :attr:`state` holds now):
+        name -> float array (N, *shape), finite, every declared name and no other. Called once
+        after the constructor (tick 0) and once after every :meth:`step`; the runner copies what
+        it keeps before the next :meth:`step`, so views of arrays the model updates in place are
+        fine. Default: nothing (a model without ``records``)."""
+        return _NO_RECORDS
+
+
+def rotor_mixer(arm_length: float, km_over_kf: float) -> np.ndarray:
+    """The (4, 4) matrix M with f = M [F, tau_x, tau_y, tau_z]: the four rotor thrusts f (N) of
+    an X-configuration quadrotor that produce the collective thrust F (N) and the body torque tau
+    (N m, FLU). Rotors as the Crazyflie numbers them: 1 front right, 2 back right, 3 back left,
+    4 front left (seen from above, clockwise from the front right), each at arm_length (m) from
+    the centre on the diagonals, 1 and 3 turning counter-clockwise, 2 and 4 clockwise (seen from
+    above), a rotor's drag torque km_over_kf (m) times its thrust. The inverse of::
+
+        F     = f1 + f2 + f3 + f4
+        tau_x = a (-f1 - f2 + f3 + f4)        a = arm_length / sqrt(2)
+        tau_y = a (-f1 + f2 + f3 - f4)
+        tau_z = c (-f1 + f2 - f3 + f4)        c = km_over_kf
+    """
+    a = arm_length / np.sqrt(2.0)
+    c = km_over_kf
+    sx = np.array([-1.0, -1.0, 1.0, 1.0])
+    sy = np.array([-1.0, 1.0, 1.0, -1.0])
+    sz = np.array([-1.0, 1.0, -1.0, 1.0])
+    return np.stack([np.full(4, 0.25), sx / (4.0 * a), sy / (4.0 * a), sz / (4.0 * c)], axis=1)
+
 
 class QuadrotorModel(PlantModel):
     """zenswarm's own quadrotor: paper eqs 1-5, onboard attitude PID, semi-implicit Euler at the physics rate."""
 
     name = "quadrotor"
     description = "zenswarm's own quadrotor: paper eqs 1-5, onboard attitude PID, semi-implicit Euler at the physics rate"
+    records = MappingProxyType({
+        "thrust": Signal((), "N", "collective thrust applied over the tick's last physics sub-step (the command clamped "
+                         "to [0, max_thrust])"),
+        "torque": Signal((3,), "N m", "body torque (FLU) of the onboard attitude PID over that sub-step (clamped to max_torque)"),
+        "rotor_thrust": Signal((4,), "N", "the rotor thrusts of that wrench (rotor_mixer: Crazyflie X layout, M1 front right "
+                               "clockwise to M4 front left), unclipped: outside [0, max_thrust / 4] the rotors could not"),
+    })  # fmt: skip
 
     def __init__(self, ctx: PlantContext, params: Any) -> None:
         super().__init__(ctx, params)
         self.quad = ctx.vehicle
         self._state: PlantState = initial_state(ctx.initial_positions)
+        # tick 0: the wrench that holds the vehicles at rest, level (hover thrust, as the runner holds it)
+        self._state.wrench[:, 0] = self.quad.mass * self.quad.g
+        self._mix_t = np.ascontiguousarray(rotor_mixer(ARM_LENGTH, KM_OVER_KF).T)
+        self._rotor = np.zeros((ctx.n, 4))
 
     @property
     def state(self) -> PlantState:
@@ -160,3 +218,12 @@ class QuadrotorModel(PlantModel):
         :func:`~zenswarm.plant.quadrotor.step_held`), the command held."""
         c = self.ctx
         step_held(self._state, thrust, rpy, self.quad, c.h, c.substeps, disturbance)
+
+    def record(self) -> Mapping[str, np.ndarray]:
+        """``thrust`` (N,) N and ``torque`` (N, 3) N m: the wrench of the last physics sub-step
+        (:attr:`zenswarm.plant.quadrotor.PlantState.wrench`; at tick 0 hover thrust, no torque);
+        ``rotor_thrust`` (N, 4) N: that wrench through :func:`rotor_mixer` (the model applies the
+        wrench itself, it has no rotors: these are the thrusts the Crazyflie's rotors would need)."""
+        wr = self._state.wrench
+        np.matmul(wr, self._mix_t, out=self._rotor)
+        return {"thrust": wr[:, 0], "torque": wr[:, 1:], "rotor_thrust": self._rotor}

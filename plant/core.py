@@ -7,7 +7,8 @@ with the tick each was sent at), the failsafe and the disturbance model. Step 7 
 (see :mod:`zenswarm.compose.sim`) is :meth:`PlantCore.step`: the failsafe decides, from each
 command's age, what is applied (:mod:`zenswarm.plant.failsafe`), then the model advances one
 control period with it held (the built-in: ``timing.substeps`` physics sub-steps of
-:func:`zenswarm.plant.quadrotor.step_held`), and its state is checked (shapes, finite).
+:func:`zenswarm.plant.quadrotor.step_held`), and its state is checked (shapes, finite), then what
+the model records (:meth:`zenswarm.plant.api.PlantModel.record`: :attr:`PlantCore.recorded`).
 """
 
 from __future__ import annotations
@@ -21,9 +22,23 @@ from zenswarm.errors import PluginFailure
 from zenswarm.plant.api import PlantContext, PlantModel, VehicleStates
 from zenswarm.plant.disturbance import DisturbanceModel
 from zenswarm.plant.failsafe import FailsafeState, failsafe_config
-from zenswarm.scenario.plugins import PLANT_ROLE, STAGE_BUILD, STAGE_PLANT, Boundary, plant_selection, plant_vehicle, plugin_rng
+from zenswarm.scenario.plugins import (
+    PLANT_ROLE,
+    STAGE_BUILD,
+    STAGE_PLANT,
+    Boundary,
+    Signal,
+    plant_selection,
+    plant_vehicle,
+    plugin_rng,
+    records_of,
+)
 
 __all__ = ["PlantCore", "make_plant_model", "STATE_FIELDS"]
+
+_F64 = np.dtype(np.float64)
+_PY_SUM_MAX = 48
+"""A record of at most this many values is checked on Python floats, a larger one with numpy."""
 
 STATE_FIELDS = ("q", "v", "rpy", "w")
 """The state arrays a plant model exposes, each (N, 3) (:class:`zenswarm.plant.api.VehicleStates`)."""
@@ -59,6 +74,9 @@ class PlantCore:
     controller.yaw before the first); ``last_cmd_tick`` (N,): the tick each was sent at.
     ``state``: the model's :class:`zenswarm.plant.api.VehicleStates` (q, v, rpy, w: (N, 3) each).
     ``params``: the model's vehicle (:meth:`zenswarm.plant.api.PlantModel.vehicle`).
+    ``records``: the signals the model declares (name -> :class:`zenswarm.scenario.plugins.Signal`);
+    ``recorded``: their values with the current state, name -> float64 (N, *shape), checked
+    (read them before the next :meth:`step`: they may be the model's own arrays).
     """
 
     def __init__(self, scenario: Any) -> None:
@@ -75,6 +93,9 @@ class PlantCore:
         self.dist = DisturbanceModel(scenario.disturbance, n, np.random.default_rng(scenario.seed))
         self._shape = (n, 3)
         self._check_state(0, STAGE_BUILD)
+        self.records: dict[str, Signal] = records_of(type(self.model), f"plant {scenario.plant.model!r}")
+        self._rec_shapes = {name: (n, *sig.shape) for name, sig in self.records.items()}
+        self.recorded: dict[str, np.ndarray] = self._record(0, STAGE_BUILD)
         self.failsafe = FailsafeState(n, failsafe_config(scenario.failsafe))
         self.thrust = np.full(n, self.params.mass * self.params.g)
         self.rpy_cmd = np.zeros((n, 3))
@@ -113,7 +134,60 @@ class PlantCore:
         f_app, r_app = fs.apply(k, ages, st.q, st.v, self.thrust, self.rpy_cmd, p.mass, p.g, self.yaw)
         self.bound.call(k, STAGE_PLANT, "step", self.model.step, f_app, r_app, self.dist.sampler(k * self.dt, self.h))
         self._check_state(k)
+        if self.records:
+            self.recorded = self._record(k)
         return fs.events[before:]
+
+    def _record(self, k: int, stage: int = STAGE_PLANT) -> dict[str, np.ndarray]:
+        """The model's :meth:`~zenswarm.plant.api.PlantModel.record` after its constructor or its
+        step of tick k, checked: every declared name and no other, each a float array of shape
+        (N, *shape), finite; else :class:`zenswarm.errors.PluginFailure` (call ``record``, field
+        ``record.<name>``, the UAVs whose values are not finite)."""
+        if not self.records:
+            return {}
+        got = self.bound.call(k, stage, "record", self.model.record)
+        shapes = self._rec_shapes
+        try:  # the fast path: the declared names, float64 arrays of the declared shapes, a finite sum
+            if got.keys() == shapes.keys():
+                out: dict[str, np.ndarray] = {}
+                total = 0.0
+                for name, shape in shapes.items():
+                    a = got[name]
+                    if type(a) is not np.ndarray or a.dtype != _F64 or a.shape != shape:
+                        break
+                    out[name] = a  # a few values: summed as Python floats (cheaper than numpy's reduction)
+                    total += sum(a.ravel().tolist()) if a.size <= _PY_SUM_MAX else float(a.sum())
+                else:
+                    if math.isfinite(total):
+                        return out
+        except (AttributeError, TypeError, ValueError):
+            pass  # not a mapping of arrays: the slow path names what is wrong
+        return self._record_slow(k, stage, got)
+
+    def _record_slow(self, k: int, stage: int, got: Any) -> dict[str, np.ndarray]:
+        b = self.bound
+        if not hasattr(got, "keys") or not hasattr(got, "__getitem__"):
+            raise b.fail(k, stage, "record", "record", f"{type(got).__name__} is not a mapping of names to arrays")
+        for name in got.keys():
+            if name not in self.records:
+                raise b.fail(k, stage, "record", f"record.{name}", f"not declared in records ({', '.join(self.records)})")
+        out: dict[str, np.ndarray] = {}
+        for name, shape in self._rec_shapes.items():
+            if name not in got:
+                raise b.fail(k, stage, "record", f"record.{name}", "missing (declared in records)")
+            try:
+                a = np.asarray(got[name], dtype=float)
+            except (TypeError, ValueError):
+                raise b.fail(k, stage, "record", f"record.{name}", f"{type(got[name]).__name__} is not an array of numbers") from None
+            if a.shape != shape:
+                raise b.fail(k, stage, "record", f"record.{name}", f"shape {a.shape} != {shape}")
+            ok = np.isfinite(a.reshape(self.n, -1)).all(axis=1)
+            if not ok.all():
+                bad = tuple(int(i) + 1 for i in np.flatnonzero(~ok))
+                detail = f"record.{name}: not finite for UAV {', '.join(map(str, bad))} ({a[bad[0] - 1].tolist()} for UAV {bad[0]})"
+                raise PluginFailure(b.kind, b.plugin, b.process, bad, k, stage, "record", detail, f"record.{name}")
+            out[name] = a
+        return out
 
     def _check_state(self, k: int, stage: int = STAGE_PLANT) -> None:
         st = self.model.state

@@ -1,6 +1,7 @@
 """The plant process: simulates every UAV with the core model and is the clock in lockstep.
 
-Subscribes to each UAV's ``uav/<i>/cmd``; publishes ``clock`` and each ``uav/<i>/state``.
+Subscribes to each UAV's ``uav/<i>/cmd``; publishes ``clock`` and each ``uav/<i>/state`` (with what
+the plant model records, :attr:`zenswarm.plant.core.PlantCore.recorded`, in its ``extra``).
 Lockstep tick k: publish state_i(k) for all i, wait for every cmd_i(k) (a timeout
 counts as a drop and holds the UAV's previous command; an agent whose liveliness token is gone is
 not waited for), then integrate ``timing.substeps`` physics sub-steps. A UAV whose newest command
@@ -100,8 +101,14 @@ class _Plant:
         t = k * self.dt_ns
         st = self.core.state
         put, enc, seq = self.proc.put, wire.encode_state, self.seq
-        for key, q, v, rpy, w in zip(self.state_keys, st.q, st.v, st.rpy, st.w, strict=True):
-            put(key, enc(t, seq, q, v, rpy, w))  # the states first: they are what the agents wait for
+        recorded = self.core.recorded
+        if recorded:  # the model's records of this state, per UAV: name -> flat list of floats
+            rows = {name: a.reshape(self.n, -1).tolist() for name, a in recorded.items()}
+            for i, (key, q, v, rpy, w) in enumerate(zip(self.state_keys, st.q, st.v, st.rpy, st.w, strict=True)):
+                put(key, enc(t, seq, q, v, rpy, w, {name: r[i] for name, r in rows.items()}))
+        else:
+            for key, q, v, rpy, w in zip(self.state_keys, st.q, st.v, st.rpy, st.w, strict=True):
+                put(key, enc(t, seq, q, v, rpy, w))  # the states first: they are what the agents wait for
         if self.realtime or k == 0:  # lockstep: publish_clock_early
             self.proc.publish(self.keys.clock, wire.Clock(t=t, seq=self.seq))
 

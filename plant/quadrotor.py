@@ -162,6 +162,11 @@ class PlantState:
         Onboard controller: integral of the body-rate error, rad (clamped, anti-windup).
     rate_err_prev : (N, 3) ndarray
         Onboard controller: body-rate error of the previous sub-step, rad/s (derivative term).
+    wrench : (N, 4) ndarray
+        The wrench applied over the last sub-step :func:`step_held` ran (written at its last
+        sub-step, in place): [F, tau_x, tau_y, tau_z], the clamped collective thrust F (N) and the
+        onboard controller's clamped body torque tau (N m, FLU). Zeros unless given; :func:`step`
+        writes it only when asked (``wrench_out``). Not part of the dynamics: a record.
     """
 
     q: np.ndarray
@@ -171,6 +176,7 @@ class PlantState:
     rate_int: np.ndarray
     rate_err_prev: np.ndarray
     _cache: Any = field(default=None, repr=False, compare=False)
+    wrench: Any = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         n = np.shape(self.q)[0] if np.ndim(self.q) == 2 else -1
@@ -179,6 +185,10 @@ class PlantState:
             if a.shape != (n, 3):
                 raise ValueError(f"PlantState.{name} must have shape (N, 3) with N = len(q), got {a.shape}")
             object.__setattr__(self, name, a)
+        wr = np.zeros((n, 4)) if self.wrench is None else np.array(self.wrench, dtype=float)
+        if wr.shape != (n, 4):
+            raise ValueError(f"PlantState.wrench must have shape (N, 4) with N = len(q), got {wr.shape}")
+        self.wrench = wr
 
     @property
     def n(self) -> int:
@@ -195,6 +205,7 @@ class PlantState:
             w=self.w.copy(),
             rate_int=self.rate_int.copy(),
             rate_err_prev=self.rate_err_prev.copy(),
+            wrench=self.wrench.copy(),
         )
 
 
@@ -391,6 +402,7 @@ def step(
     dt: float,
     d_p: Any = None,
     d_a: Any = None,
+    wrench_out: bool = False,
 ) -> None:
     """Advance N quadrotors by one physics sub-step, in place.
 
@@ -412,6 +424,9 @@ def step(
     d_a : (N, 3) array_like or None
         Attitude disturbance as an angular acceleration, rad/s^2, body; eq. (5) with the
         disturbance torque J d_a. None = 0.
+    wrench_out : bool
+        Also write the sub-step's clamped thrust and torque into ``state.wrench`` (what
+        :func:`step_held` asks of its last sub-step).
 
     Notes
     -----
@@ -513,6 +528,10 @@ def step(
     add(tau, mul(I, ki, tmp), tau)
     fmin(fmax(tau, tau_lo, tau), tau_hi, tau)
     state.rate_err_prev = ew  # a fresh array each call
+    if wrench_out:  # before tau is overwritten below
+        wr = state.wrench
+        wr[:, 0] = F
+        wr[:, 1:] = tau
 
     # ---- 1. attitude dynamics, eq. (5): omega += dt (J^-1 (tau - omega x J omega) + d_a)
     wx, wy, wz = w.T  # column views of the state; they see the in-place update below
@@ -577,7 +596,7 @@ def step_held(
 
         for j in range(nsub):
             d_p, d_a = disturbance(j) if disturbance is not None else (None, None)
-            step(state, thrust_cmd, rpy_cmd, params, dt, d_p, d_a)
+            step(state, thrust_cmd, rpy_cmd, params, dt, d_p, d_a, wrench_out=j == nsub - 1)
 
     Parameters
     ----------
@@ -608,7 +627,7 @@ def step_held(
             pass  # nothing was written: the numpy path takes it from the same state
     for j in range(nsub):
         d_p, d_a = samples[j] if samples is not None else (None, None)
-        step(state, thrust_cmd, rpy_cmd, params, dt, d_p, d_a)
+        step(state, thrust_cmd, rpy_cmd, params, dt, d_p, d_a, j == nsub - 1)
 
 
 def _rows(x: Any, n: int, shape: tuple[int, ...]) -> list[Any]:
@@ -651,6 +670,7 @@ def _step_held_scalar(state: PlantState, c: _Compiled, thrust_cmd: Any, rpy_cmd:
     sin, cos, ceil, copysign, fabs = math.sin, math.cos, math.ceil, math.copysign, math.fabs
     Q, V, R, W = state.q.tolist(), state.v.tolist(), state.rpy.tolist(), state.w.tolist()
     IN, PR = state.rate_int.tolist(), state.rate_err_prev.tolist()
+    WR = [[0.0, 0.0, 0.0, 0.0]] * n  # the last sub-step's wrench per UAV
     T = np.broadcast_to(np.asarray(thrust_cmd, dtype=float), (n,)).tolist()
     C = np.broadcast_to(np.asarray(rpy_cmd, dtype=float), (n, 3)).tolist()
     if samples is not None:
@@ -772,8 +792,11 @@ def _step_held_scalar(state: PlantState, c: _Compiled, thrust_cmd: Any, rpy_cmd:
         W[i] = [w0, w1, w2]
         IN[i] = [i0, i1, i2]
         PR[i] = [p0, p1, p2]
+        if nsub:
+            WR[i] = [F, t0, t1, t2]
     if nsub == 0:
         return
+    state.wrench[...] = WR
     state.q[...] = Q
     state.v[...] = V
     state.rpy[...] = R

@@ -33,6 +33,13 @@ Disturbances:
   and ``wind_amplitude`` / ``wind_freq_hz`` (:class:`rotorpy.wind.default_winds.SinusoidWind`),
   summed. RotorPy's Dryden gusts draw from numpy's global generator, so they are not offered.
 
+Records (:attr:`RotorPyModel.records`, in ``timeseries.npz`` as ``plant.<name>`` and in each state
+message): ``rotor_speed`` (RotorPy's first-order motor state, rad/s), ``rotor_speed_cmd`` (what its
+controller commanded for the last step, rad/s: what the motors lag behind, time constant
+``tau_m`` = 72 ms) and ``rotor_thrust`` (k_eta omega^2 of each rotor, N: RotorPy's rotor thrust,
+its translational lift ``k_h`` being 0 for the Crazyflie), rotors in RotorPy's order r1 .. r4:
+front left, front right, back right, back left.
+
 The vehicle the agents fly (:meth:`RotorPyModel.vehicle`) is RotorPy's: mass 0.030 kg (zenswarm's
 Crazyflie 2.1 is 0.027 kg), inertia (1.43e-5, 1.43e-5, 2.89e-5) kg m^2, max thrust 4 k_eta
 omega_max^2 = 0.575 N, g = 9.81 m/s^2: the paper's controller computes its thrust with this mass.
@@ -40,12 +47,13 @@ omega_max^2 = 0.575 N, g = 9.81 m/s^2: the paper's controller computes its thrus
 
 from __future__ import annotations
 
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Literal
 
 import msgspec
 import numpy as np
 
-from zenswarm.plant.api import Disturbance, PlantContext, PlantModel
+from zenswarm.plant.api import Disturbance, PlantContext, PlantModel, Signal
 from zenswarm.scenario.plugins import PluginError
 from zenswarm.vehicle.params import QuadParams
 
@@ -84,6 +92,13 @@ class RotorPyModel(PlantModel):
 
     name = "rotorpy"
     description = "RotorPy's multirotor, Crazyflie parameters: rotor dynamics, aerodynamic drag, air wind; thrust + attitude (cmd_ctatt)"
+    records = MappingProxyType({
+        "rotor_speed": Signal((4,), "rad/s", "RotorPy's rotor speeds, its first-order motor state (r1..r4: front left, front right, "
+                              "back right, back left)"),
+        "rotor_speed_cmd": Signal((4,), "rad/s", "the rotor speeds RotorPy's controller commanded for the last step (clipped), "
+                                  "which the motors follow with time constant tau_m"),
+        "rotor_thrust": Signal((4,), "N", "each rotor's thrust k_eta * rotor_speed^2"),
+    })  # fmt: skip
 
     class Params(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         """``[plant.params]`` of the ``rotorpy`` model.
@@ -151,6 +166,8 @@ class RotorPyModel(PlantModel):
         self.s[:, 0:3] = ctx.initial_positions
         self.s[:, 9] = 1.0  # q = [0, 0, 0, 1]
         self.s[:, 16:] = hover
+        self.k_eta = float(qp["k_eta"])
+        self.cmd_speeds = np.full((n, 4), hover)  # the last step's commanded rotor speeds (hover before the first)
         self.steps = int(params.steps_per_tick)
         self.t_step = ctx.dt / self.steps
         self.sub_per_step = ctx.substeps // self.steps
@@ -208,6 +225,7 @@ class RotorPyModel(PlantModel):
                 state = Multirotor._unpack_state(s)
                 cmd = veh.get_cmd_motor_speeds(state, {"cmd_thrust": f[i], "cmd_q": quat[i]})
                 cmd = np.clip(cmd, veh.rotor_speed_min, veh.rotor_speed_max)
+                self.cmd_speeds[i] = cmd
                 extra = np.zeros(_STATE_LEN)
                 extra[3:6] = dp[i]
                 extra[10:13] = da[i]
@@ -225,3 +243,8 @@ class RotorPyModel(PlantModel):
                 self.s[i] = s_new
         self.tick += 1
         self._publish()
+
+    def record(self) -> dict[str, np.ndarray]:
+        """``rotor_speed`` (N, 4) rad/s, ``rotor_speed_cmd`` (N, 4) rad/s, ``rotor_thrust`` (N, 4) N (module docstring)."""
+        w = self.s[:, 16:20].copy()
+        return {"rotor_speed": w, "rotor_speed_cmd": self.cmd_speeds.copy(), "rotor_thrust": self.k_eta * (w * w)}

@@ -257,6 +257,9 @@ def test_a_failing_plant_model_fails_the_lockstep_swarm_as_the_simulator(tmp_pat
     got = TimeSeries.load(str(out / "timeseries.npz"))
     for name in TimeSeries.FIELDS:
         np.testing.assert_array_equal(getattr(got, name), getattr(ref.series, name), err_msg=f"{name}: swarm != simulator")
+    assert list(got.plant) == list(ref.series.plant) == ["thrust", "torque", "rotor_thrust"]  # its records (issue 43)
+    for name, a in ref.series.plant.items():
+        np.testing.assert_array_equal(got.plant[name], a, err_msg=f"plant.{name}: swarm != simulator")
     res = read_results(out)
     for k in FLIGHT_FIELDS:
         assert res[k] == ref.results[k], k
@@ -340,6 +343,15 @@ def test_rotorpy_sim_equals_lockstep_up_with_faults_and_verify(tmp_path: Path) -
     got = TimeSeries.load(str(out / "timeseries.npz"))
     for f in TimeSeries.FIELDS:
         np.testing.assert_array_equal(getattr(got, f), getattr(ref.series, f), err_msg=f"{f}: swarm != simulator")
+    # RotorPy's records (rotor speeds, their command, rotor thrusts: issue 43), bit for bit, and in the recording
+    assert list(got.plant) == list(ref.series.plant) == ["rotor_speed", "rotor_speed_cmd", "rotor_thrust"]
+    for name, a in ref.series.plant.items():
+        assert got.plant[name].tobytes() == a.tobytes(), f"plant.{name}: swarm != simulator"
+    from zenswarm.bridge.reports.report import flight_from_recording, load_recording
+
+    from_rec = flight_from_recording(load_recording(rec)).series
+    for name, a in ref.series.plant.items():
+        np.testing.assert_array_equal(from_rec.plant[name], a, err_msg=f"plant.{name}: recording != simulator")
     res = read_results(out)
     for k in FLIGHT_FIELDS:
         assert res[k] == ref.results[k], k

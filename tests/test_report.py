@@ -46,8 +46,9 @@ def flight():
     return sc, simulate(sc)
 
 
-def _samples(sc, series):
-    """(key, t_ns, payload) of a lockstep flight, in publication order per tick."""
+def _samples(sc, series, plant=True):
+    """(key, t_ns, payload) of a lockstep flight, in publication order per tick; ``plant``: the
+    states carry the plant model's records, as the plant process sends them."""
     keys = wire.Keys(SWARM)
     n = sc.n
     out = [(keys.mission, 0, wire.encode(wire.Mission(0, 0, scenario_to_dict(sc))))]
@@ -57,8 +58,10 @@ def _samples(sc, series):
         t = k * dt_ns
         assert t == wire.t_ns(float(series.t[k]))
         out.append((keys.clock, t, wire.encode(wire.Clock(t, k))))
-        for i in range(n):
-            out.append((keys.state(i + 1), t, wire.encode(wire.State(t, k, series.q[k, i], series.v[k, i], series.rpy[k, i], zero))))
+        for i in range(n):  # with what the plant model records, as the plant process sends it (issue 43)
+            extra = {name: a[k, i].ravel().tolist() for name, a in series.plant.items()} if plant else {}
+            out.append((keys.state(i + 1), t, wire.encode(wire.State(t, k, series.q[k, i], series.v[k, i], series.rpy[k, i], zero,
+                                                                     extra=extra))))
         out.append((keys.leader_ref, t, wire.encode(wire.Ref(t, k, series.q0[k], series.v0[k]))))
         for i in range(n):
             out.append((keys.ref(i + 1), t, wire.encode(wire.Ref(t, k, series.qref[k, i], series.vref[k, i]))))
@@ -82,11 +85,13 @@ def _samples(sc, series):
 
 
 def write_recording(
-    path: Path, sc, series, *, metadata: bool = True, chunk_size: int = 1 << 20, extra_metadata: dict | None = None
+    path: Path, sc, series, *, metadata: bool = True, chunk_size: int = 1 << 20, extra_metadata: dict | None = None,
+    plant: bool = True,
 ) -> int:
     """Write a recording of ``series`` as the recorder does; returns the number of messages.
-    extra_metadata: more values for the ``zenswarm`` record."""
-    samples = _samples(sc, series)
+    extra_metadata: more values for the ``zenswarm`` record. plant: False writes the states
+    without the plant model's records (as before issue 43)."""
+    samples = _samples(sc, series, plant)
     with open(path, "wb") as f:
         w = Writer(f, chunk_size=chunk_size)
         w.start(profile="", library="test_report")
@@ -349,7 +354,8 @@ def test_no_metadata_is_a_recording_error(flight, tmp_path):
 def test_truncated_recording_reports_what_it_holds(flight, tmp_path):
     sc, sim = flight
     p = tmp_path / "cut.mcap"
-    write_recording(p, sc, sim.series, chunk_size=16 * 1024)
+    # the states without the plant's records: the file is then cut where the last tick it holds is whole
+    write_recording(p, sc, sim.series, chunk_size=16 * 1024, plant=False)
     data = p.read_bytes()
     p.write_bytes(data[: len(data) // 2])
     rec = report.load_recording(p)

@@ -10,6 +10,7 @@ import signal
 import time
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -59,6 +60,11 @@ def _assert_equal_to_sim(scenario: Path, out: Path) -> dict:
         assert a.shape == b.shape, f
         assert not np.any(np.isnan(b)), f"{f}: the swarm run left gaps"
         np.testing.assert_allclose(b, a, rtol=0, atol=1e-9, err_msg=f"{f} differs from the in-process simulator")
+    # what the plant model records (the built-in: thrust, torque, rotor thrusts), bit for bit (issue 43)
+    assert list(got.plant) == list(ref.series.plant) == ["thrust", "torque", "rotor_thrust"]
+    for name, a in ref.series.plant.items():
+        assert not np.any(np.isnan(got.plant[name])), f"plant.{name}: the swarm run left gaps"
+        assert got.plant[name].tobytes() == a.tobytes(), f"plant.{name} differs from the in-process simulator"
     res = read_results(out)
     for k in FLIGHT_FIELDS:  # bit for bit: the verdict of the same flight, figures and failures
         assert res[k] == ref.results[k], k
@@ -290,6 +296,29 @@ def test_record_and_report_match_the_run(tmp_path: Path) -> None:
     v = zenswarm("verify", str(rec), "--agent", "all", timeout=120)
     assert v.returncode == 0, v.stdout
     assert v.stdout.count("verified 400 ticks") == 3, v.stdout
+    # the plant model's records are in the recording (issue 43): each state message's "x", read
+    # back with the mcap library, is the run's plant.<name> series of that tick and UAV
+    from mcap.reader import make_reader
+
+    ts = TimeSeries.load(str(out / "timeseries.npz"))
+    seen = 0
+    with rec.open("rb") as fh:
+        for _, channel, message in make_reader(fh).iter_messages():
+            parts = channel.topic.split("/")
+            if parts[-1] != "state":
+                continue
+            d = msgpack.unpackb(message.data)
+            k, i = round(d["t"] / 1e7), int(parts[-2]) - 1
+            assert list(d["x"]) == ["thrust", "torque", "rotor_thrust"], d
+            if k >= len(ts.t):
+                continue  # the final state (t = time limit) is past the series' last tick
+            for name, vals in d["x"].items():
+                assert np.array(vals).tobytes() == ts.plant[name][k, i].tobytes(), (name, k, i)
+            seen += 1
+    assert seen == 3 * len(ts.t) == 3 * 400, seen
+    assert (out / "report" / "plant.png").stat().st_size > 10_000
+    info = zenswarm("info", str(rec), timeout=60)
+    assert "plant:      records thrust [() N], torque [(3,) N m], rotor_thrust [(4,) N]" in info.stdout, info.stdout
 
 
 def test_console_says_each_thing_once(tmp_path: Path) -> None:

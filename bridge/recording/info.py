@@ -5,8 +5,9 @@ read) and returns a :class:`RecordingInfo`: the file's state (footer and summary
 recorder's end marker, the damage met), the ``zenswarm`` metadata (swarm, mode, scenario name and
 hash), the span in sim time (the payloads' ``t``, MCAP ``publish_time``) and in wall time
 (receive time, MCAP ``log_time``), and per channel the message count, payload bytes and rates
-over sim and wall time. :mod:`zenswarm.bridge.replay.replay` uses the same scan to validate its window
-and filters.
+over sim and wall time, and the signals the plant model recorded in the state messages (their
+``extra``: :attr:`zenswarm.plant.api.PlantModel.records`). :mod:`zenswarm.bridge.replay.replay` uses
+the same scan to validate its window and filters.
 
 Exit status of the command: 0 for a complete recording, 1 for one that is readable but not
 complete (no footer or summary: the recorder was killed; no end marker; a damaged chunk), 2 for
@@ -114,6 +115,12 @@ class RecordingInfo:
     sequence_gaps: dict[str, int] = field(default_factory=dict)
     """key -> messages missing by the recorder's per-channel sequence numbers (known lost)."""
     channels: list[ChannelInfo] = field(default_factory=list)
+    plant_records: dict[str, int] = field(default_factory=dict)
+    """The plant model's recorded signals in the state messages (:attr:`zenswarm.bus.wire.State.extra`,
+    from each state channel's first message): name -> values per UAV."""
+    plant_units: dict[str, str] = field(default_factory=dict)
+    """Their shapes and units as the recorded scenario's plant model declares them (when it can be
+    loaded here): name -> e.g. ``(4,) N``."""
 
     @property
     def complete(self) -> bool:
@@ -180,7 +187,7 @@ def scan(path: str | Path) -> RecordingInfo:
     for ch, m in rec.raw_messages():
         c = chans.get(ch.topic)
         if c is None:
-            c = chans[ch.topic] = ChannelInfo(ch.topic, dict(ch.metadata).get("kind", ""))
+            c = chans[ch.topic] = _new_channel(info, ch, m.data)
         c.messages += 1
         c.payload_bytes += len(m.data)
         c.first_log_ns = _min(c.first_log_ns, m.log_time)
@@ -234,7 +241,40 @@ def scan(path: str | Path) -> RecordingInfo:
         timing = sc.get("timing", {})
         if isinstance(timing, dict) and isinstance(timing.get("control_rate_hz"), (int, float)):
             info.control_rate_hz = float(timing["control_rate_hz"])
+        if info.plant_records:
+            info.plant_units = _plant_units(sc)
     return info
+
+
+def _new_channel(info: RecordingInfo, ch: Any, first_payload: bytes) -> ChannelInfo:
+    """A channel met for the first time; a state channel's first message says what the plant recorded."""
+    c = ChannelInfo(ch.topic, dict(ch.metadata).get("kind", ""))
+    if c.kind == "state":
+        _plant_records(info, first_payload)
+    return c
+
+
+def _plant_records(info: RecordingInfo, payload: bytes) -> None:
+    """The names and sizes of the plant records in one state payload (nothing if it does not decode)."""
+    try:
+        msg = wire.decode("state", payload)
+    except wire.WireDecodeError:
+        return
+    for name, vals in msg.extra.items():
+        info.plant_records.setdefault(name, len(vals))
+
+
+def _plant_units(sc: dict[str, Any]) -> dict[str, str]:
+    """name -> ``shape unit`` of the recorded scenario's plant model's records ({} when it cannot be loaded here)."""
+    from zenswarm.scenario.plugins import records_of, resolve
+
+    plant = sc.get("plant")
+    name = plant.get("model", "quadrotor") if isinstance(plant, dict) else "quadrotor"
+    try:
+        recs = records_of(resolve("plant", str(name)))
+    except Exception:  # noqa: BLE001 - a plug-in not installed here, or anything its import raised: no units
+        return {}
+    return {n: f"{s.shape} {s.unit}" for n, s in recs.items()}
 
 
 # --------------------------------------------------------------------------- text
@@ -315,6 +355,9 @@ def format_info(info: RecordingInfo) -> str:
         lines.append(
             "lost:       " + ", ".join(f"{k}: {n}" for k, n in info.sequence_gaps.items()) + " (gaps in the recorder's sequence numbers)"
         )
+    if info.plant_records:
+        recs = ", ".join(f"{n} [{info.plant_units.get(n, f'{k} values')}]" for n, k in info.plant_records.items())
+        lines.append(f"plant:      records {recs} (in each uav/<i>/state's extra; timeseries.npz: plant.<name>)")
     w = max([len("topic")] + [len(c.topic) for c in info.channels])
     lines.append("channels:")
     lines.append(f"  {'topic':<{w}}  {'kind':<10} {'messages':>8} {'Hz sim':>8} {'Hz wall':>8} {'bytes':>10}")

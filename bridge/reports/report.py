@@ -23,6 +23,10 @@ run's compute time). Figures (PNG, matplotlib Agg, no display needed), after the
                          thrust against the thrust its measured motion implies, m ||dv/dt + g e_z||
                          (drag and disturbances included), and the commanded roll, pitch, yaw
                          (``rpy_cmd``) against the measured attitude (``rpy``).
+``plant.png``            flights whose plant model records internal signals only
+                         (:attr:`zenswarm.plant.api.PlantModel.records`, ``plant.<name>`` in the
+                         series, e.g. the built-in's rotor thrusts and torque): one row per signal,
+                         its components over time for the first UAVs, with its unit.
 ``links.png``            messages per key in the recording (and how many the report's decoder
                          rejected), and the drop/reject/timeout counters each process reported in
                          its last ``diag`` message (recordings only).
@@ -87,9 +91,11 @@ FIGURES = (
     "tracking_errors.png",
     "clearance.png",
     "commands.png",
+    "plant.png",
     "links.png",
 )
-"""Figures of a report from a recording (``links.png`` only from a recording)."""
+"""Figures of a report from a recording (``links.png`` only from a recording, ``plant.png`` only
+when the plant model records signals: the built-in ``quadrotor`` and ``rotorpy`` do)."""
 
 _DPI = 120
 
@@ -636,6 +642,51 @@ def plot_commands(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequence[st
     return _save(fig, path, formats)[0]
 
 
+PLANT_UAVS = 3
+"""``plant.png`` shows the first this many UAVs (a column each)."""
+
+PLANT_SIGNALS = 8
+"""``plant.png`` shows the first this many recorded signals (a row each)."""
+
+
+def plot_plant_records(ts: TimeSeries, sc: Scenario, path: Path, formats: Sequence[str] = ("png",)) -> Path:
+    """What the plant model recorded (``ts.plant``): a row per signal (the first
+    :data:`PLANT_SIGNALS`), a column per UAV (the first :data:`PLANT_UAVS`), each component of the
+    signal over time, labelled with the model's declared unit when the model can be loaded here."""
+    from zenswarm.scenario.plugins import plant_records
+
+    try:
+        units = {n: s.unit for n, s in plant_records(sc).items()}
+    except Exception:  # noqa: BLE001 - a plug-in not installed where the report is made: no units
+        units = {}
+    names = list(ts.plant)[:PLANT_SIGNALS]
+    n_uav = ts.q.shape[1]
+    cols = min(n_uav, PLANT_UAVS)
+    h = 2.2 * len(names) + 1.2
+    fig = _figure((4.6 * cols + 1.0, h), left=0.09, right=0.98, bottom=0.5 / h, top=1 - 0.75 / h, wspace=0.25, hspace=0.4)
+    axes = np.atleast_2d(np.asarray(fig.subplots(len(names), cols, sharex=True, squeeze=False)))
+    for r, name in enumerate(names):
+        a = ts.plant[name]
+        flat = a.reshape(a.shape[0], a.shape[1], -1)
+        for i in range(cols):
+            ax = axes[r, i]
+            for c in range(flat.shape[2]):
+                ax.plot(ts.t, flat[:, i, c], lw=1.0, label=f"[{c}]" if flat.shape[2] > 1 else None)
+            if r == 0:
+                ax.set_title(f"UAV {i + 1}", fontsize=10)
+            if i == 0:
+                unit = units.get(name)
+                ax.set_ylabel(f"{name}" + (f" [{unit}]" if unit else ""))
+            if i == cols - 1 and flat.shape[2] > 1:
+                ax.legend(fontsize=7, loc="best")
+            ax.grid(True, alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("t [s]")
+    more = f" (the first {cols} of {n_uav} UAVs)" if n_uav > cols else ""
+    fig.suptitle(f"{sc.name}: what the plant model {sc.plant.model!r} recorded{more}")
+    return _save(fig, path, formats)[0]
+
+
 _FAULT_RE = re.compile(r"drop|reject|timeout|late|lost|loss|stale|held|miss|undecodable|error", re.IGNORECASE)
 
 
@@ -859,6 +910,8 @@ def report_from_series(
         plot_clearance(ts, scenario, out / "clearance.png", fm),
         plot_commands(ts, scenario, out / "commands.png", fm),
     ]
+    if ts.plant:
+        firsts.append(plot_plant_records(ts, scenario, out / "plant.png", fm))
     net = network_plan(scenario, faults)
     if net is not None:
         firsts.append(plot_effective_graph(ts, scenario, net, out / "effective_graph.png", fm))
@@ -955,6 +1008,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
             "Write the flight report of a recording into OUT: trajectories_3d.png, "
             "formation_errors.png (generator), formation_errors_vehicles.png, tracking_errors.png, clearance.png, "
             "commands.png (commanded against achieved thrust and attitude), "
+            "plant.png (what the plant model recorded, e.g. rotor thrusts), "
             "links.png, effective_graph.png (runs with a radio model, capacity queue or link trace) and results.json "
             "(the same fields as `zenswarm sim`). Works from the MCAP file alone; a "
             "truncated or damaged recording is reported from what can be read, with a warning on stderr (also for "

@@ -126,6 +126,16 @@ def wire_json_schema(kind: str) -> dict[str, Any]:
             "maximum": wire.MAX_T_NS,
             "description": "when the vehicle measured q and vel, on the sim-time clock, ns (t - ts: the state's age)",
         }
+    if kind in ("state", "ref"):  # optional: a plug-in's extra quantities (the plant model's records, a controller's shares)
+        what = "what the plant model records with this state" if kind == "state" else "a controller plug-in's extra shared quantities"
+        props["x"] = {
+            "type": "object",
+            "maxProperties": wire.MAX_EXTRA,
+            "additionalProperties": {"type": "array", "items": {"type": "number"}},
+            "description": f"{what}: name -> flat values (row-major)",
+        }
+    if kind == "ref":
+        props["p"] = _vec3("the sender's true position when a radio model is active, m, ENU")
     return {
         "title": _KIND_TITLES[kind],
         "description": _KIND_DESCRIPTIONS[kind],

@@ -15,7 +15,7 @@ Wire layout (``v`` is always :data:`SCHEMA_VERSION`; velocity travels as ``"vel"
 ``"v"`` is the version; fields are packed in this order)::
 
     clock    {v, k:"clock",   t, seq}
-    state    {v, k:"state",   t, seq, q[3], vel[3], rpy[3], w[3]}
+    state    {v, k:"state",   t, seq, q[3], vel[3], rpy[3], w[3] [, ts] [, x{name: [float...]}]}
     ref      {v, k:"ref",     t, seq, q[3], vel[3] [, x{name: [float...]}]}   uav/<i>/ref, leader/ref
     cmd      {v, k:"cmd",     t, seq, thrust, rpy[3], u[3], d_hat[3]}
     mission  {v, k:"mission", t, seq, scenario{...}}
@@ -674,6 +674,9 @@ class State(_Msg, frozen=True, omit_defaults=True):
     the TIMESYNC clock offset), so ``t - stamp`` is the state's age by the vehicle's clock;
     None (left out of the payload) when the publisher has no such clock (the simulated plant:
     its states are exact at t).
+    extra (wire ``"x"``, optional): what the plant model records with this state
+    (:attr:`zenswarm.plant.api.PlantModel.records`), name -> flat float64 values (row-major);
+    left out of the payload when empty (a model that records nothing, a real vehicle's bridge).
     """
 
     kind: ClassVar[str] = "state"
@@ -684,6 +687,7 @@ class State(_Msg, frozen=True, omit_defaults=True):
     rpy: Vec3
     w: Vec3
     stamp: Stamp = msgspec.field(default=None, name="ts")
+    extra: Extra = msgspec.field(default_factory=dict, name="x")
 
 
 class Ref(_Msg, frozen=True, omit_defaults=True):
@@ -799,15 +803,34 @@ def _ok_t_seq(t: Any, seq: Any) -> bool:
     return type(t) is int and 0 <= t <= MAX_T_NS and type(seq) is int and 0 <= seq <= MAX_SEQ
 
 
-def encode_state(t: int, seq: int, q: Vec3, v: Vec3, rpy: Vec3, w: Vec3) -> bytes:
-    """``encode(State(t=t, seq=seq, q=q, v=v, rpy=rpy, w=w))``, the same bytes, faster (the
-    plant's states: one per UAV per tick). No ``stamp``. Raises MessageError as the constructor."""
+def encode_state(
+    t: int, seq: int, q: Vec3, v: Vec3, rpy: Vec3, w: Vec3, extra: Mapping[str, list[float]] | None = None
+) -> bytes:
+    """``encode(State(t=t, seq=seq, q=q, v=v, rpy=rpy, w=w, extra=extra))``, the same bytes,
+    faster (the plant's states: one per UAV per tick). No ``stamp``. ``extra``: name -> list of
+    Python floats (what the plant model records; None or empty: none). Raises MessageError as the
+    constructor."""
     a, b, c, d = _floats3(q), _floats3(v), _floats3(rpy), _floats3(w)
     if a is not None and b is not None and c is not None and d is not None and _ok_t_seq(t, seq) \
             and _isfinite(sum(a) + sum(b) + sum(c) + sum(d)):  # finite sum: every element finite
-        return _plain_encoder.encode({"v": SCHEMA_VERSION, "k": "state", "t": t, "seq": seq,
-                                      "q": a, "vel": b, "rpy": c, "w": d})
-    return encode(State(t=t, seq=seq, q=q, v=v, rpy=rpy, w=w))
+        if not extra:
+            return _plain_encoder.encode({"v": SCHEMA_VERSION, "k": "state", "t": t, "seq": seq,
+                                          "q": a, "vel": b, "rpy": c, "w": d})
+        if _plain_extra(extra):
+            return _plain_encoder.encode({"v": SCHEMA_VERSION, "k": "state", "t": t, "seq": seq,
+                                          "q": a, "vel": b, "rpy": c, "w": d, "x": extra})
+    return encode(State(t=t, seq=seq, q=q, v=v, rpy=rpy, w=w, extra=cast(Any, extra or {})))
+
+
+def _plain_extra(extra: Mapping[str, Any]) -> bool:
+    """``extra`` is what the constructor would keep unchanged: at most MAX_EXTRA str keys, each
+    a list of Python floats whose sum is finite (so every one is)."""
+    if type(extra) is not dict or len(extra) > MAX_EXTRA:
+        return False
+    for k, x in extra.items():
+        if type(k) is not str or type(x) is not list or not all(type(e) is float for e in x) or not _isfinite(sum(x)):
+            return False
+    return True
 
 
 def encode_ref(t: int, seq: int, q: Vec3, v: Vec3) -> bytes:

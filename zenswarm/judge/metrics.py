@@ -8,7 +8,7 @@ the same flight gives the same JSON.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -66,7 +66,9 @@ class TimeSeries:
     u: (T, N, 3) virtual control, m/s^2. thrust: (T, N) N, the commanded collective thrust.
     d_hat: (T, N, 3) ESO disturbance estimate, m/s^2. rpy_cmd: (T, N, 3) rad, the commanded
     (desired) roll, pitch, yaw the controller sent with the thrust (the inversion after eq. 28;
-    NaN in a series saved before it was recorded).
+    NaN in a series saved before it was recorded). plant: what the plant model records
+    (:attr:`zenswarm.plant.api.PlantModel.records`), name -> (T, N, *shape), sampled with the state
+    (``plant.<name>`` in the ``.npz``; empty for a model that records nothing).
     """
 
     t: np.ndarray
@@ -81,8 +83,25 @@ class TimeSeries:
     thrust: np.ndarray
     d_hat: np.ndarray
     rpy_cmd: np.ndarray
+    plant: dict[str, np.ndarray] = field(default_factory=dict)
 
     FIELDS = ("t", "q0", "v0", "qref", "vref", "q", "v", "rpy", "u", "thrust", "d_hat", "rpy_cmd")
+    """The fixed series (:attr:`plant` holds the plant model's own, by name)."""
+    PLANT_PREFIX = "plant."
+    """The ``.npz`` key of plant series NAME is ``plant.NAME``."""
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Every series by its ``.npz`` key: :data:`FIELDS`, then ``plant.<name>`` in order."""
+        out = {f: getattr(self, f) for f in self.FIELDS}
+        out.update((self.PLANT_PREFIX + name, a) for name, a in self.plant.items())
+        return out
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> TimeSeries:
+        """The inverse of :meth:`arrays`."""
+        pre = cls.PLANT_PREFIX
+        plant = {k[len(pre):]: a for k, a in arrays.items() if k.startswith(pre)}
+        return cls(**{f: arrays[f] for f in cls.FIELDS}, plant=plant)
 
     def formation_error(self, offsets: Any) -> np.ndarray:
         """The vehicles' formation error per tick and UAV: ||q_i - q0 - h_i||, (T, N) m, from
@@ -101,7 +120,8 @@ class TimeSeries:
         return np.asarray(np.linalg.norm(self.qref - self.q, axis=2))
 
     @classmethod
-    def allocate(cls, T: int, n: int) -> TimeSeries:
+    def allocate(cls, T: int, n: int, plant: dict[str, tuple[int, ...]] | None = None) -> TimeSeries:
+        """All NaN, for T ticks and n UAVs; ``plant``: the plant model's series, name -> shape per UAV."""
 
         def nan3() -> np.ndarray:
             return np.full((T, n, 3), np.nan)
@@ -119,10 +139,11 @@ class TimeSeries:
             thrust=np.full((T, n), np.nan),
             d_hat=nan3(),
             rpy_cmd=nan3(),
+            plant={name: np.full((T, n, *shape), np.nan) for name, shape in (plant or {}).items()},
         )
 
     def truncated(self, T: int) -> TimeSeries:
-        return TimeSeries(**{f: getattr(self, f)[:T] for f in self.FIELDS})
+        return TimeSeries.from_arrays({k: a[:T] for k, a in self.arrays().items()})
 
     def series(self, upto_tick: int | None = None, fill: bool = False) -> TimeSeries:
         """Ticks 0 .. ``upto_tick`` - 1 (all without it), its arrays views of this one's; ``fill``:
@@ -130,13 +151,14 @@ class TimeSeries:
         the simulator's series as it fills (:class:`zenswarm.judge.watch.Record`, as the
         supervisor's collector)."""
         ts = self if upto_tick is None else self.truncated(max(0, min(len(self.t), upto_tick)))
-        return fill_forward(TimeSeries(**{f: np.array(getattr(ts, f)) for f in self.FIELDS})) if fill else ts
+        return fill_forward(TimeSeries.from_arrays({k: np.array(a) for k, a in ts.arrays().items()})) if fill else ts
 
     def save(self, path: str) -> None:
-        """Write an ``.npz`` (one array per field): compressed up to :data:`COMPRESS_MAX_BYTES` of
-        data, stored beyond (flight data compresses by about 15 %: at 1000 UAVs x 10 s, 176 MB
-        stored in 0.2 s of CPU, 150 MB compressed in 7.7 s). ``np.load`` reads either."""
-        arrays = {f: getattr(self, f) for f in self.FIELDS}
+        """Write an ``.npz`` (one array per field, ``plant.<name>`` for the plant model's):
+        compressed up to :data:`COMPRESS_MAX_BYTES` of data, stored beyond (flight data
+        compresses by about 15 %: at 1000 UAVs x 10 s, 176 MB stored in 0.2 s of CPU, 150 MB
+        compressed in 7.7 s). ``np.load`` reads either."""
+        arrays: dict[str, Any] = self.arrays()
         if sum(a.nbytes for a in arrays.values()) <= COMPRESS_MAX_BYTES:
             np.savez_compressed(path, **arrays)
         else:
@@ -146,18 +168,20 @@ class TimeSeries:
     def load(cls, path: str) -> TimeSeries:
         with np.load(path) as z:
             got = {f: np.array(z[f]) for f in cls.FIELDS if f in z.files or f != "rpy_cmd"}
+            plant = {k[len(cls.PLANT_PREFIX):]: np.array(z[k]) for k in z.files if k.startswith(cls.PLANT_PREFIX)}
         got.setdefault("rpy_cmd", np.full_like(got["rpy"], np.nan))  # saved before it was recorded
-        return cls(**got)
+        return cls(**got, plant=plant)
 
 
 def fill_forward(ts: TimeSeries) -> TimeSeries:
     """Realtime: a tick a process skipped holds its previous value (latest value wins), in place;
-    returns the series without the ticks before every field had its first value."""
+    returns the series without the ticks before every field (the plant model's signals too) had its
+    first value."""
     if not len(ts.t):
         return ts
     first = 0
-    for f in TimeSeries.FIELDS:
-        a = getattr(ts, f)
+    arrays = ts.arrays()
+    for a in arrays.values():
         for k in range(1, len(a)):
             bad = np.isnan(a[k])
             if np.any(bad):
@@ -165,7 +189,7 @@ def fill_forward(ts: TimeSeries) -> TimeSeries:
         rows = np.isnan(a.reshape(len(a), -1)).any(axis=1)
         if np.any(rows):
             first = max(first, int(np.flatnonzero(rows)[-1]) + 1)
-    return TimeSeries(**{f: getattr(ts, f)[first:] for f in TimeSeries.FIELDS})
+    return TimeSeries.from_arrays({k: a[first:] for k, a in arrays.items()})
 
 
 def compute_results(
@@ -258,8 +282,12 @@ def flight_differences(a: TimeSeries, res_a: dict[str, Any], b: TimeSeries, res_
     lockstep swarm against the simulator)."""
     out: list[str] = []
     series: list[tuple[int, str]] = []
-    for f in TimeSeries.FIELDS:
-        x, y = getattr(a, f), getattr(b, f)
+    xs, ys = a.arrays(), b.arrays()
+    for f in [*xs, *(k for k in ys if k not in xs)]:
+        if f not in xs or f not in ys:
+            out.append(f"series.{f}: only in the {'first' if f in xs else 'second'} flight")
+            continue
+        x, y = xs[f], ys[f]
         if x.shape != y.shape:
             out.append(f"series.{f}: shape {x.shape} != {y.shape}")
         elif not np.array_equal(x, y, equal_nan=True):

@@ -18,6 +18,7 @@ series (``results.json``, ``timeseries.npz``) is the same to the bit.
 
 from __future__ import annotations
 
+import math
 import struct
 import tempfile
 import threading
@@ -182,6 +183,7 @@ class Collector:
         self.foreign = 0  # samples ignored: not from their key's process
         self.foreign_by_key: dict[str, int] = {}
         self._senders: dict[str, tuple[str, ...]] = {}
+        self._rec_shapes = _declared_records(scenario)  # the plant model's signals: name -> shape per UAV
 
     def token(self, process: str, zid: str, alive: bool) -> None:
         """``alive/<process>/<zid>`` appeared (alive) or went away."""
@@ -401,11 +403,29 @@ class Collector:
                 ts.q[k, idx - 1] = msg.q
                 ts.v[k, idx - 1] = msg.v
                 ts.rpy[k, idx - 1] = msg.rpy
+                if msg.extra:
+                    self._put_records(ts, k, idx - 1, msg.extra)
             elif isinstance(msg, wire.Cmd) and idx is not None:
                 ts.u[k, idx - 1] = msg.u
                 ts.thrust[k, idx - 1] = msg.thrust
                 ts.d_hat[k, idx - 1] = msg.d_hat
                 ts.rpy_cmd[k, idx - 1] = msg.rpy
+
+    def _put_records(self, ts: TimeSeries, k: int, i: int, extra: dict[str, tuple[float, ...]]) -> None:
+        """A state message's plant records (:attr:`zenswarm.bus.wire.State.extra`) into
+        ``ts.plant``: each series allocated when its first value comes, (T, N, *shape) with the
+        plant model's declared shape (flat when the model cannot be resolved here, e.g. a
+        recording read where its plug-in is not installed, or the size does not match)."""
+        for name, vals in extra.items():
+            a = ts.plant.get(name)
+            if a is None:
+                shape = self._rec_shapes.get(name)
+                if shape is None or int(np.prod(shape)) != len(vals):
+                    shape = (len(vals),)
+                a = ts.plant[name] = np.full((self.T, self.sc.n, *shape), np.nan)
+            shape = a.shape[2:]
+            if math.prod(shape) == len(vals):  # (a scalar signal's a[k, i] is not a view: assign through a)
+                a[k, i] = np.reshape(np.array(vals, dtype=float), shape)
 
     def series(self, upto_tick: int | None = None, fill: bool = False) -> TimeSeries:
         """The collected series up to ``upto_tick``; ``fill`` forward-fills gaps (realtime)."""
@@ -413,7 +433,19 @@ class Collector:
         with self.lock:
             T = self.T if upto_tick is None else max(0, min(self.T, upto_tick))
             ts = self.ts.truncated(T)
-            ts = TimeSeries(**{f: np.array(getattr(ts, f)) for f in TimeSeries.FIELDS})
+            ts = TimeSeries.from_arrays({f: np.array(a) for f, a in ts.arrays().items()})
         # realtime: a tick a process skipped holds its previous value (latest value wins);
         # ticks before every process produced its first value are dropped
         return fill_forward(ts) if fill else ts
+
+
+def _declared_records(scenario: Scenario) -> dict[str, tuple[int, ...]]:
+    """The shapes per UAV of the signals the scenario's plant model records
+    (:func:`zenswarm.scenario.plugins.plant_records`); {} when the model cannot be resolved here
+    (its values are then kept flat)."""
+    from zenswarm.scenario.plugins import plant_records
+
+    try:
+        return {name: sig.shape for name, sig in plant_records(scenario).items()}
+    except Exception:  # noqa: BLE001 - a plug-in not installed here, or anything its import raised: keep the values flat
+        return {}

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import importlib
 import math
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import metadata
@@ -63,6 +64,11 @@ __all__ = [
     "PLANT_ROLE",
     "plant_vehicle",
     "plant_selection",
+    "Signal",
+    "plant_records",
+    "records_of",
+    "MAX_RECORDS",
+    "MAX_RECORD_VALUES",
     "PluginFailure",
     "Boundary",
     "STAGES",
@@ -286,6 +292,7 @@ def check_selection(
     decode_params(resolve("planner", planner_name(scenario), planner_field), scenario.leader.params, "leader.params")
     resolve("plant", scenario.plant.model, plant_field)
     plant_vehicle(scenario)
+    plant_records(scenario)
 
 
 # ----------------------------------------------------------------------------- the plug-in boundary
@@ -425,3 +432,72 @@ def plant_vehicle(scenario: Scenario) -> QuadParams:
     return vehicle
 
 
+# ----------------------------------------------------------------------------- a plant model's records
+
+
+@dataclass(frozen=True)
+class Signal:
+    """One internal signal a plant model records (:attr:`zenswarm.plant.api.PlantModel.records`):
+    its ``shape`` per UAV (a tuple of positive ints; ``()`` a scalar), its ``unit`` (SI, e.g.
+    ``"N"``, ``"rad/s"``, ``"N m"``; ``"1"`` for a dimensionless one) and a one-line
+    ``description``. The series is (T, N, *shape) in ``timeseries.npz`` (``plant.<name>``)."""
+
+    shape: tuple[int, ...]
+    unit: str
+    description: str = ""
+
+    @property
+    def size(self) -> int:
+        """Values per UAV: the product of ``shape`` (1 for a scalar)."""
+        return math.prod(self.shape)
+
+
+MAX_RECORDS: Final = 64
+"""Most signals a plant model records (they travel in each state message, :attr:`zenswarm.bus.wire.State.extra`)."""
+
+MAX_RECORD_VALUES: Final = 1024
+"""Most values per UAV a plant model records, all signals together (a state message stays well under
+:data:`zenswarm.bus.wire.MAX_PAYLOAD`)."""
+
+_RECORD_NAME: Final = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}")
+
+
+def records_of(cls: type, who: str = "plant model") -> dict[str, Signal]:
+    """The signals plant model class ``cls`` declares (its ``records``), checked: a mapping of
+    names (letters, digits, ``_``; not starting with a digit; at most 64 characters) to
+    :class:`Signal` with a shape of positive ints and a one-line unit, at most
+    :data:`MAX_RECORDS` signals and :data:`MAX_RECORD_VALUES` values per UAV. A bad
+    declaration raises :class:`PluginError` (exit 2) naming the field (``records``,
+    ``records.NAME``, ``records.NAME.shape`` or ``records.NAME.unit``) before any work starts."""
+    decl = getattr(cls, "records", None)
+    if decl is None:
+        return {}
+    if not isinstance(decl, Mapping):
+        raise PluginError("records", f"{who}: must map names to zenswarm.plant.api.Signal(shape, unit), got {type(decl).__name__}")
+    if len(decl) > MAX_RECORDS:
+        raise PluginError("records", f"{who}: at most {MAX_RECORDS} signals, got {len(decl)}")
+    out: dict[str, Signal] = {}
+    for name, sig in decl.items():
+        if not (isinstance(name, str) and _RECORD_NAME.fullmatch(name)):
+            raise PluginError("records", f"{who}: signal name {name!r} must be letters, digits and _ (not first a digit), at most 64")
+        field = f"records.{name}"
+        if not isinstance(sig, Signal):
+            raise PluginError(field, f"{who}: must be a zenswarm.plant.api.Signal(shape, unit), got {sig!r}")
+        shape = sig.shape
+        if not (isinstance(shape, tuple) and all(type(d) is int and d > 0 for d in shape)):
+            raise PluginError(f"{field}.shape", f"{who}: must be a tuple of positive ints (() for a scalar), got {shape!r}")
+        unit = sig.unit
+        if not (isinstance(unit, str) and unit.strip() and "\n" not in unit):
+            raise PluginError(f"{field}.unit", f"{who}: must be a non-empty one-line string (SI, e.g. 'N'; '1' if none), got {unit!r}")
+        out[name] = sig
+    total = sum(s.size for s in out.values())
+    if total > MAX_RECORD_VALUES:
+        raise PluginError("records", f"{who}: at most {MAX_RECORD_VALUES} values per UAV in all, got {total}")
+    return out
+
+
+def plant_records(scenario: Scenario) -> dict[str, Signal]:
+    """The signals the scenario's plant model records (:func:`records_of` of its class; PluginError
+    naming the field for a bad name, parameter or declaration)."""
+    cls, _ = plant_selection(scenario)
+    return records_of(cls, f"plant {scenario.plant.model!r}")

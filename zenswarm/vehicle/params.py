@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, cast
 if TYPE_CHECKING:  # pragma: no cover
     from zenswarm.schema import VehicleConfig
 
-__all__ = ["QuadParams", "THRUST_TO_WEIGHT"]
+__all__ = ["QuadParams", "THRUST_TO_WEIGHT", "ARM_LENGTH", "KM_OVER_KF"]
 
 G: float = 9.81
 """Standard gravity used throughout, m/s^2."""
@@ -57,6 +57,14 @@ _ARM = 0.0397
 _KM_OVER_KF = 7.94e-12 / 3.16e-10
 # Rotor drag-to-thrust coefficient ratio km/kf, m (gym-pybullet-drones cf2x.urdf: kf=3.16e-10,
 # km=7.94e-12).
+
+ARM_LENGTH: float = _ARM
+"""Motor arm length L of the Crazyflie 2.x, m (gym-pybullet-drones cf2x.urdf): the X layout's
+torque bounds below, and the rotor thrusts the built-in plant model records
+(:func:`zenswarm.plant.api.rotor_mixer`)."""
+
+KM_OVER_KF: float = _KM_OVER_KF
+"""A rotor's drag torque per unit of its thrust, km/kf, m (gym-pybullet-drones cf2x.urdf)."""
 
 _MAX_TORQUE = (
     2.0 * _ARM * (_MAX_THRUST / 4.0) / 2.0**0.5,

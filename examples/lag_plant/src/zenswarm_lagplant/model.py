@@ -15,6 +15,10 @@ and the reported body rate w is the Euler-angle rate Theta' (exact for small ang
 clamped to [0, max_thrust]; the vehicle (mass, g, max_thrust, max_tilt) is zenswarm's Crazyflie 2.1
 with the scenario's ``[vehicle]`` overrides (the default :meth:`PlantModel.vehicle`).
 
+It records one internal signal with the flight (``records``: ``plant.rpy_target`` in
+``timeseries.npz`` and in each state message of the recording): the attitude the lag follows,
+the setpoint after the tilt clamp, rad.
+
 Pure and deterministic: numpy only, no clock, no I/O, no randomness.
 """
 
@@ -25,7 +29,7 @@ from typing import Annotated, Any
 import msgspec
 import numpy as np
 
-from zenswarm.plant.api import Disturbance, PlantContext, PlantModel
+from zenswarm.plant.api import Disturbance, PlantContext, PlantModel, Signal
 
 __all__ = ["LagPlant", "LagParams", "LagStates"]
 
@@ -62,6 +66,7 @@ class LagPlant(PlantModel):
     name = "lag"
     description = "example plug-in: point-mass quadrotor, first-order attitude lag (tau_s), linear drag"
     Params = LagParams
+    records = {"rpy_target": Signal((3,), "rad", "the attitude the lag follows: the setpoint with roll and pitch clamped")}
 
     def __init__(self, ctx: PlantContext, params: Any) -> None:
         super().__init__(ctx, params)
@@ -69,6 +74,11 @@ class LagPlant(PlantModel):
         tilt = ctx.vehicle.max_tilt
         self._lo = np.array([-tilt, -tilt, -1e6])
         self._hi = np.array([tilt, tilt, 1e6])
+        self._target = np.zeros((ctx.n, 3))  # level before the first command
+        self._target[:, 2] = ctx.yaw
+
+    def record(self) -> dict[str, np.ndarray]:
+        return {"rpy_target": self._target}
 
     @property
     def state(self) -> LagStates:
@@ -78,7 +88,7 @@ class LagPlant(PlantModel):
         c, p, st = self.ctx, self.ctx.vehicle, self._st
         h, tau, drag = c.h, self.params.tau_s, self.params.drag
         F = np.fmin(np.fmax(np.asarray(thrust, dtype=float), 0.0), p.max_thrust)
-        target = np.fmin(np.fmax(np.asarray(rpy, dtype=float), self._lo), self._hi)
+        target = self._target = np.fmin(np.fmax(np.asarray(rpy, dtype=float), self._lo), self._hi)
         for j in range(c.substeps):
             d_p = disturbance(j)[0] if disturbance is not None else None
             rate = _wrap(target - st.rpy) / tau
