@@ -6,7 +6,10 @@ driven over the DevTools protocol as in tests/test_rerun.py) opens the printed U
 printed and stays until the end. Per run: the exit status and the mission's (results.json), the
 bytes the browser received from Rerun's gRPC data server (DevTools ``Network.dataReceived`` of its
 ``ReadMessages`` stream), how long after the flight's end (the verdict line) the last of it came,
-and whether the view said that not everything reached the viewer.
+what the viewer itself held at the flight's end (read in the page through the web viewer's
+``viewer_state()``, see ``tests/test_rerun.py``, ``VIEWER_STATE_JS``): the sim time it held and the
+age of its newest frame (its lag), and a few seconds later; and whether the view said that not
+everything reached the viewer.
 
 ``--python PY`` runs another checkout's zenswarm (its venv's python, run from that checkout) to
 compare against the code before a change; ``--runs N`` repeats, interleaved with ``--vs``.
@@ -31,7 +34,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-from test_rerun import Browser, DataStream
+from test_rerun import Browser, DataStream, settle_viewer
 
 import _common as C
 
@@ -72,7 +75,8 @@ def one(python: str, duration: float | None, tmp: Path, tag: str) -> dict:
         reader.start()
         proc.wait(timeout=600)
         reader.join(10)
-        time.sleep(2.0)
+        flown = json.loads((out / "results.json").read_text())["sim_time_s"] if (out / "results.json").is_file() else None
+        settle_viewer(stream, None if flown is None else flown - 0.5)
         stream.stop()
     finally:
         if proc.poll() is None:
@@ -84,9 +88,12 @@ def one(python: str, duration: float | None, tmp: Path, tag: str) -> dict:
     res = json.loads((out / "results.json").read_text()) if (out / "results.json").is_file() else {}
     end = next((t for t, x in lines if "SUCCESS" in x or "FAILED" in x), float("nan"))
     assert stream is not None
+    at_end = stream.viewer_at(time.time() - (time.monotonic() - end))
     return {
         "rc": proc.returncode, "success": res.get("success"), "sim_time_s": res.get("sim_time_s"),
         "mb_received": stream.bytes / 1e6, "last_byte_after_end_s": stream.last() - end,
+        "viewer_sim_at_end_s": at_end.sim if at_end else None, "viewer_lag_at_end_s": at_end.lag if at_end else None,
+        "viewer_sim_held_s": max((x.sim for x in stream.samples if x.sim is not None), default=None),
         "traceback": "Traceback" in text, "not_everything": "not everything reached the viewer" in text,
     }  # fmt: skip
 
@@ -111,7 +118,8 @@ def main() -> int:
                 print(f"run {r + 1} {name}: {cells}", flush=True)
     for name, rs in rows.items():
         print(f"{name}: median {C.fmt(C.median(x['mb_received'] for x in rs))} MB received, "
-              f"last byte {C.fmt(C.median(x['last_byte_after_end_s'] for x in rs))} s after the end; "
+              f"last byte {C.fmt(C.median(x['last_byte_after_end_s'] for x in rs))} s after the end, "
+              f"the viewer {C.fmt(C.median(x['viewer_lag_at_end_s'] or float('nan') for x in rs))} s behind at the end; "
               f"exit statuses {[x['rc'] for x in rs]}, tracebacks {sum(x['traceback'] for x in rs)}")  # fmt: skip
     C.write_json(a.json, {"command": C.command_line(), "machine": C.machine_info(), "runs": rows})
     return 0

@@ -378,6 +378,41 @@ def test_realtime_has_no_receiver_window_but_keeps_streams_monotonic() -> None:
     assert _diag(p)["rejected@uav/1/state.future"] == 3
 
 
+def test_realtime_stream_after_a_late_delivery_is_not_future() -> None:
+    """Realtime: a host (or the router) that stalls delivers one message late while its sender goes
+    on, and the sender, itself stalled, skips the ticks it missed. The on-time message after the
+    late one is where the stream's earlier messages put it, not "future" (12 such rejects of 940
+    inputs failed test_mavlink_flight's < 1 % once, both cores busy); a message later than
+    PACED_LATE_CREDIT_S no longer vouches for its stream's pace."""
+    from zenswarm.process.guard import PACED_LATE_CREDIT_S, InputGuard
+
+    now = [0.0]
+
+    def guard(paced: bool) -> InputGuard:
+        return InputGuard(dt_ns=10_000_000, n_ticks=100_000, growth_period_s=0.01, paced=paced, clock=lambda: now[0])
+
+    def feed(g: InputGuard, t: float, tick: int) -> str | None:
+        now[0] = t
+        m = wire.decode("state", _msg("state", tick, tick + 1))
+        return g.check(K.state(1), ("plant", "bridge"), tick, m, "P")
+
+    for paced in (False, True):
+        g = guard(paced)
+        assert all(feed(g, 0.01 * k, k) is None for k in range(11))  # ticks 0..10 on time, 10 ms apart
+        assert feed(g, 0.200, 11) is None  # tick 11 (sent at 0.11 s) delivered 90 ms late
+        verdict = feed(g, 0.2005, 20)  # the sender skipped 12..19 (stalled too); tick 20 on time
+        assert verdict == (None if paced else "future"), (paced, verdict)  # without pacing: the flake
+        assert feed(g, 0.21, 21) is None
+
+    # the credit is bounded: a message 4.9 s late vouches for at most PACED_LATE_CREDIT_S of pace
+    g = guard(True)
+    assert all(feed(g, 0.01 * k, k) is None for k in range(11))
+    assert feed(g, 5.0, 11) is None
+    reach = 11 + round(PACED_LATE_CREDIT_S / 0.01) + g.window
+    assert feed(g, 5.0, reach + 2) == "future"
+    assert feed(g, 5.0, reach) is None
+
+
 # --------------------------------------------------------------------------- property: never raises, always counts
 
 _floats = st.one_of(
@@ -717,11 +752,12 @@ if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "flood":
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(st.tuples(st.sampled_from(["A", "B"]), st.integers(0, 3), st.integers(-3, 12), st.integers(-1, 3),
                           st.sampled_from([0.0, 0.001, 0.5]), st.booleans(), st.integers(-2, 3)), max_size=80),
-       st.booleans())
-def test_the_guards_quick_accept_agrees_with_the_full_check(steps: list[tuple[Any, ...]], check_sender: bool) -> None:
+       st.booleans(), st.booleans())
+def test_the_guards_quick_accept_agrees_with_the_full_check(steps: list[tuple[Any, ...]], check_sender: bool, paced: bool) -> None:
     """InputGuard._accept_next (the usual message, accepted in fewer steps) accepts exactly what
     the full check accepts, and leaves the same stream state: random streams (senders, seq and
-    tick jumps, repeats, silences, the receiver's tick, tokens) through two guards, one without it."""
+    tick jumps, repeats, silences, the receiver's tick, tokens) through two guards, one without it;
+    paced (realtime) or not."""
     from zenswarm.process.runtime import InputGuard
 
     v = np.array([1.0, 2.0, 3.0])
@@ -730,7 +766,7 @@ def test_the_guards_quick_accept_agrees_with_the_full_check(steps: list[tuple[An
 
     def guard() -> InputGuard:
         return InputGuard(dt_ns=10_000_000, n_ticks=40, horizon_ticks=2, check_sender=check_sender,
-                          now_tick=lambda: c_tick[0], clock=lambda: now[0], growth_period_s=0.01)
+                          now_tick=lambda: c_tick[0], clock=lambda: now[0], growth_period_s=0.01, paced=paced)
 
     fast, full = guard(), guard()
     full._accept_next = lambda *a: False  # type: ignore[method-assign]

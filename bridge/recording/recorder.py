@@ -34,6 +34,10 @@ Threads and crash safety
   process; only a machine crash could lose more (we do not fsync: it would cost a disk sync
   four times a second for a guarantee that the goal does not ask for). Compression is zstd per
   chunk; small chunks compress a little worse, which is the price of the bound.
+* SIGTERM and SIGINT reach the main thread's stop event through a relay thread
+  (:class:`zenswarm.process.signals.SignalRelay`), never by setting the event in the signal
+  handler: the main thread waits on that event, and a handler run while it held the event's lock
+  would wait for it forever (the recorder then never exited).
 * A clean stop (SIGTERM, SIGINT, ``--duration``): undeclare the token and the subscriber,
   close the session, let the writer drain the queue, write the end marker (a last ``zenswarm``
   metadata record: ``recorder_end_unix_ns``, ``recorder_stop_reason`` and
@@ -75,6 +79,7 @@ from zenswarm.bus import wire
 from zenswarm.process import security
 from zenswarm.process.paths import check_output_file
 from zenswarm.process.runtime import gc_policy, gc_safe_point, gc_startup_done
+from zenswarm.process.signals import SignalRelay
 
 __all__ = [
     "PROCESS_NAME",
@@ -568,15 +573,32 @@ def _fetch_mission(session: Any, keys: wire.Keys, stop: threading.Event, on_scen
 
 
 class _Stop:
-    """The recorder's stop request: an event, and why it was set (the last line of the log)."""
+    """The recorder's stop request: an event, and why it was set (the last line of the log).
+
+    SIGINT/SIGTERM reach it through a :class:`zenswarm.process.signals.SignalRelay` (:meth:`install`):
+    the main thread waits on ``event`` all the time (``_wait_and_report``), and a handler that set
+    the event itself could run while the main thread held the event's lock, and wait for it forever
+    (a recorder that never exited after SIGTERM, seen once under load)."""
 
     def __init__(self) -> None:
         self.event = threading.Event()
         self.why = "stopped"
+        self.relay: SignalRelay | None = None
 
-    def on_signal(self, signum: int, frame: Any) -> None:
+    def install(self) -> None:
+        """SIGINT and SIGTERM set the event (main thread only)."""
+        self.relay = SignalRelay(self.on_signal, name="recorder-signals")
+
+    def on_signal(self, signum: int) -> None:
+        """A stop signal (called by the relay's thread, never in the signal handler)."""
         self.why = f"received {signal.Signals(signum).name}"
         self.event.set()
+
+    def close(self) -> None:
+        """Restore the previous signal handlers."""
+        if self.relay is not None:
+            self.relay.close()
+            self.relay = None
 
 
 def _undeclare(*entities: Any) -> None:
@@ -646,14 +668,20 @@ def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: 
 
 def run(args: argparse.Namespace) -> int:
     """Run the recorder until SIGTERM/SIGINT or ``--duration``. Exit code 0 on a clean stop."""
+    gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work
+    stop = _Stop()
+    stop.install()
+    try:
+        return _run(args, stop)
+    finally:
+        if not getattr(args, "exit_hard", True):  # in-process: restore the handlers; the command
+            stop.close()  # exits at once (main), where a second signal must change nothing
+
+
+def _run(args: argparse.Namespace, stop: _Stop) -> int:
     # One session's life in order (open, subscribe, record, close in one try/finally): reads better
     # whole than with its setup and its end in other functions.
     from zenswarm.scenario.config import load_scenario, scenario_to_dict
-
-    gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work
-    stop = _Stop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, stop.on_signal)
 
     def log(text: str) -> None:
         print(text, flush=True)

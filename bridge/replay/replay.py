@@ -16,7 +16,6 @@ import argparse
 import bisect
 import contextlib
 import math
-import signal
 import struct
 import sys
 import threading
@@ -35,6 +34,7 @@ from zenswarm.bridge.replay.playback import Controls, KeyboardControls, Pacer, T
 from zenswarm.bridge.views import live
 from zenswarm.bus import wire
 from zenswarm.errors import RecordingError, ScenarioError
+from zenswarm.process.signals import SignalRelay
 
 __all__ = [
     "ReplayStats",
@@ -503,17 +503,15 @@ def _run_replay(args: argparse.Namespace) -> int:
         return _run_verify(args)
     stop = threading.Event()
 
-    def on_signal(signum: int, frame: Any) -> None:
-        stop.set()
-
     def progress(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
     tty = sys.stdin is not None and sys.stdin.isatty()
     if args.start_paused and not tty:
         raise ScenarioError("--start-paused", "stdin is not a terminal: nothing could resume (space) or step (s) the replay")
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, on_signal)
+    # SIGINT/SIGTERM set `stop` through a relay thread, not in the handler: the pacer waits on `stop`
+    # in this thread, and a handler run while it held the event's lock would wait for it forever
+    SignalRelay(lambda signum: stop.set(), name="replay-signals")  # for the rest of the command
     controls = Controls(paused=args.start_paused)
     controls.on_change = lambda text: progress(f"replay: {text}")
     connect = args.connect or ["tcp/127.0.0.1:7447"]

@@ -54,6 +54,10 @@ Finite values above it are garbage, and would overflow to inf in the controllers
 GUARD_MARGIN_TICKS = 4
 """Ticks of slack on both sides of the time window, beyond the link-fault delay horizon."""
 
+PACED_LATE_CREDIT_S = 1.0
+"""Realtime input guard: a message delivered up to this late does not pull its stream's expected
+tick back (:class:`InputGuard`, ``paced``), so the on-time messages after it are not ``future``."""
+
 
 def sample_sender(sample: Any) -> str:
     """Session id (zid, hex) of a sample's publisher from its ``source_info``; ``""`` when the
@@ -165,6 +169,11 @@ class InputGuard:
        one does (a process catching up runs faster than the wall clock for a while), so a jump is
        taken when the next message agrees with the one refused (within ``window`` of it): one
        lost message per jump, and a single stray far tick moves nothing.
+       With ``paced`` (realtime: every stream's tick follows the wall clock) the stream's
+       expected position is not pulled back by a message that arrived late: a message delivered
+       up to :data:`PACED_LATE_CREDIT_S` late (a host or router that stalled while the sender
+       went on, then skipped the ticks it missed) keeps the position its on-time predecessors
+       had, so the on-time message after it is not ``future``.
 
     Accepted messages move the key's stream (pin, seq, tick). ``clock`` is injectable (tests).
     Thread-safe.
@@ -178,6 +187,7 @@ class InputGuard:
         horizon_ticks: int = 0,
         margin_ticks: int = GUARD_MARGIN_TICKS,
         growth_period_s: float = 0.01,
+        paced: bool = False,
         check_sender: bool = True,
         now_tick: Callable[[], int | None] | None = None,
         clock: Callable[[], float] = time.monotonic,
@@ -188,6 +198,7 @@ class InputGuard:
         self.window = int(horizon_ticks) + int(margin_ticks)
         self.cap = int(n_ticks) + self.window
         self.growth_period_s = max(float(growth_period_s), 1e-6)
+        self.paced = paced
         self.check_sender = check_sender
         self.now_tick = now_tick
         self.clock = clock
@@ -291,9 +302,9 @@ class InputGuard:
                     last_tick = c
             if tick > last_tick + self.window + (now - st.last_rx) / self.growth_period_s:
                 return False
+            st.last_rx = self._rx_after(st, tick, now)
             st.last_seq = seq
             st.last_tick = tick
-            st.last_rx = now
             st.recent.append(tick)
             st.ahead = None
             self.accepted += 1
@@ -318,10 +329,10 @@ class InputGuard:
             # accepted
             if repin:
                 st.reset()
+            st.last_rx = self._rx_after(st, tick, now)
             st.pin = zid
             st.last_seq = seq
             st.last_tick = tick
-            st.last_rx = now
             st.recent.append(tick)
             st.ahead = None
             return None
@@ -362,6 +373,17 @@ class InputGuard:
         if last_tick is not None and self._too_far_ahead(st, tick, last_tick if c is None else max(last_tick, c), now):
             return "future"
         return None
+
+    def _rx_after(self, st: _KeyState, tick: int, now: float) -> float:
+        """The stream's ``last_rx`` once ``tick`` is accepted at ``now`` (under the lock): the wall
+        time at which the stream was at ``tick``. Without ``paced``, or for a stream's first
+        message, ``now``. With ``paced`` a stream moves one tick per ``growth_period_s``, so a
+        message that arrived late (its tick behind where the stream's earlier messages put it by
+        now) keeps that earlier position, for at most :data:`PACED_LATE_CREDIT_S` of lateness."""
+        if not self.paced or st.last_tick is None or tick < st.last_tick:
+            return now
+        on_time = st.last_rx + (tick - st.last_tick) * self.growth_period_s
+        return max(min(now, on_time), now - PACED_LATE_CREDIT_S)
 
     def _too_far_ahead(self, st: _KeyState, tick: int, base: int, now: float) -> bool:
         """Check 6 relative to the stream: more than ``window`` ticks (plus one per

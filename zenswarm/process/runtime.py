@@ -265,6 +265,7 @@ class SwarmProcess:
                 n_ticks=sc.timing.n_ticks,
                 horizon_ticks=self._fault_horizon_ticks(),
                 growth_period_s=dt if realtime else min(dt, timeout),
+                paced=realtime,
                 check_sender=self.check_sender,
                 now_tick=self._now_tick,
                 prefix=self.keys.prefix + "/",
