@@ -172,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scenario(sub)
     _add_plugins(sub)
     _add_sweep(sub)
-    for modname in ("zenswarm.compose.supervisor", "zenswarm.compose.roles", "zenswarm.bridge.cli", "zenswarm.compose.keys"):
+    for modname in ("zenswarm.compose.up", "zenswarm.compose.roles", "zenswarm.bridge.cli", "zenswarm.compose.keys"):
         try:
             mod = __import__(modname, fromlist=["add_parsers"])
         except ImportError as e:
@@ -203,7 +203,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return run_role(argv)
     if argv[:2] == ["up", "--settings"]:  # api.fly's supervisor: its typed settings on stdin (not in `up --help`)
-        from zenswarm.compose.supervisor import run_settings_argv
+        from zenswarm.compose.up import run_settings_argv
 
         def func() -> int:
             return run_settings_argv(argv[1:])
