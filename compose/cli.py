@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from zenswarm.bridge.args import add_fault_args, add_override_args, add_plugin_args, link_faults, positive_float, scenario_of
-from zenswarm.errors import ZenswarmError
+from zenswarm.errors import ZenswarmError, run_command
 
 EPILOG = """\
 Quick start:
@@ -212,14 +212,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         def func() -> int:
             return int(args.func(args) or 0)
-    try:
-        return func()
-    except ZenswarmError as e:
-        print(f"zenswarm: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("zenswarm: interrupted", file=sys.stderr)
-        return 130
+    return run_command(func)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -31,7 +31,7 @@ from zenswarm import bus
 from zenswarm.bus import wire
 from zenswarm.compose.policy import restart_policy
 from zenswarm.compose.progress import SwarmProgress
-from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
+from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
 from zenswarm.judge.results import closing_lines, flight_results, write_outputs
 from zenswarm.judge.verdict import criteria_from_scenario
 from zenswarm.judge.watch import EndWatch
@@ -55,7 +55,10 @@ LIVE_CHECK_S = 0.25
 COLLECTOR_QUEUE = 4_000_000
 """Capacity of the supervisor's bus queue, in messages (drained every ~50 ms, so it never fills)."""
 
-EXIT_OK, EXIT_MISSION_FAILED, EXIT_BAD_INPUT, EXIT_PROCESS_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+EXIT_OK, EXIT_MISSION_FAILED, EXIT_PROCESS_FAILED = 0, 1, 3
+"""``zenswarm up``'s own exit statuses: the mission succeeded, it failed, a process died (bad input 2,
+a plug-in failure 4 and Ctrl-C 130 are :mod:`zenswarm.errors`'s)."""
+
 SITL_SEND_OFFSET = 40
 """With ``--plant mavlink`` simulated vehicle i sends from UDP P+40+i (PX4 SITL: 14580+i -> 14540+i)."""
 
