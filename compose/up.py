@@ -304,22 +304,8 @@ def _parse_kill(text: str) -> tuple[str, float]:
     return role, t
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "up",
-        help="fly a scenario as a distributed swarm (router + plant + leader + one process per UAV)",
-        description=(
-            "Start a Zenoh router inside this process, then the plant, the leader and one agent "
-            "process per UAV; show progress, merge their logs, stop everything on Ctrl-C, and write "
-            "OUT/results.json and OUT/timeseries.npz. Exit status: 0 mission succeeded, 1 mission "
-            "failed (goal not reached, collision), 2 bad input, 3 a process died, 4 a plug-in failed "
-            "(plugin_error: it raised, or gave a non-finite or wrongly shaped output), 130 interrupted."
-        ),
-    )
-    p.add_argument("scenario", type=Path, help="scenario TOML file")
-    p.add_argument("--swarm", default="default", help="swarm name (key prefix swarm/<name>); default: default")
-    p.add_argument("--out", type=Path, default=Path("runs/up"), help="output directory (default runs/up)")
-    p.add_argument("--realtime", action="store_true", help="wall-clock mode: fixed-rate loops, latest value wins")
+def _add_plant_args(p: argparse.ArgumentParser) -> None:
+    """The plant (``--plant``, its ports) and the roles started elsewhere (``--external``)."""
     p.add_argument(
         "--plant",
         choices=("sim", "mavlink", "crazyflie"),
@@ -353,6 +339,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help=f"seconds an --external role may take to announce itself before the swarm gives up with exit 3 "
         f"(default {DEFAULT_EXTERNAL_TIMEOUT_S:g}); progress lines show it as waiting meanwhile",
     )
+
+
+def _add_output_args(p: argparse.ArgumentParser) -> None:
+    """The recording and the report (``--record``, ``--report``, ``--report-format``)."""
     p.add_argument(
         "--record",
         type=Path,
@@ -372,6 +362,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         metavar="FMT[,FMT...]",
         help="with --report: the figures' formats, comma-separated, of png, svg, pdf (default png)",
     )
+
+
+def _add_network_args(p: argparse.ArgumentParser) -> None:
+    """The router's endpoints, security, and one role joining a router elsewhere (``--only``)."""
     p.add_argument(
         "--listen",
         action="append",
@@ -414,6 +408,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="with --only: seconds to wait for the remote router to come back once zenoh closed the link to it "
         "(its 10 s lease ran out) before the role gives up and exits 3 (default 30)",
     )
+
+
+def _add_run_args(p: argparse.ArgumentParser) -> None:
+    """How the flight runs and ends, faults injected, what is shown (``--lockstep-timeout`` .. ``--live``)."""
     p.add_argument(
         "--lockstep-timeout",
         type=positive_float,
@@ -462,6 +460,28 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help=f"watch the flight live. {LIVE_HELP}. Run by this supervisor, not by the swarm's processes; "
         "a port in use: exit 2 before the flight",
     )
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "up",
+        help="fly a scenario as a distributed swarm (router + plant + leader + one process per UAV)",
+        description=(
+            "Start a Zenoh router inside this process, then the plant, the leader and one agent "
+            "process per UAV; show progress, merge their logs, stop everything on Ctrl-C, and write "
+            "OUT/results.json and OUT/timeseries.npz. Exit status: 0 mission succeeded, 1 mission "
+            "failed (goal not reached, collision), 2 bad input, 3 a process died, 4 a plug-in failed "
+            "(plugin_error: it raised, or gave a non-finite or wrongly shaped output), 130 interrupted."
+        ),
+    )
+    p.add_argument("scenario", type=Path, help="scenario TOML file")
+    p.add_argument("--swarm", default="default", help="swarm name (key prefix swarm/<name>); default: default")
+    p.add_argument("--out", type=Path, default=Path("runs/up"), help="output directory (default runs/up)")
+    p.add_argument("--realtime", action="store_true", help="wall-clock mode: fixed-rate loops, latest value wins")
+    _add_plant_args(p)
+    _add_output_args(p)
+    _add_network_args(p)
+    _add_run_args(p)
     add_rt_priority_arg(p)
     add_fault_args(p)
     add_plugin_args(p)
