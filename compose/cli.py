@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from zenswarm.bridge.args import add_fault_args, add_override_args, add_plugin_args, link_faults, positive_float, scenario_of
-from zenswarm.errors import ZenswarmError
+from zenswarm.errors import ZenswarmError, run_command
 
 EPILOG = """\
 Quick start:
@@ -172,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scenario(sub)
     _add_plugins(sub)
     _add_sweep(sub)
-    for modname in ("zenswarm.compose.supervisor", "zenswarm.compose.roles", "zenswarm.bridge.cli", "zenswarm.compose.keys"):
+    for modname in ("zenswarm.compose.up", "zenswarm.compose.roles", "zenswarm.bridge.cli", "zenswarm.compose.keys"):
         try:
             mod = __import__(modname, fromlist=["add_parsers"])
         except ImportError as e:
@@ -203,7 +203,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return run_role(argv)
     if argv[:2] == ["up", "--settings"]:  # api.fly's supervisor: its typed settings on stdin (not in `up --help`)
-        from zenswarm.compose.supervisor import run_settings_argv
+        from zenswarm.compose.up import run_settings_argv
 
         def func() -> int:
             return run_settings_argv(argv[1:])
@@ -212,14 +212,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         def func() -> int:
             return int(args.func(args) or 0)
-    try:
-        return func()
-    except ZenswarmError as e:
-        print(f"zenswarm: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("zenswarm: interrupted", file=sys.stderr)
-        return 130
+    return run_command(func)
 
 
 if __name__ == "__main__":  # pragma: no cover

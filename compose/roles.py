@@ -14,7 +14,6 @@ it in the process table. ``zenswarm up --only ROLE`` runs :func:`run_settings` i
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Sequence
 
 from zenswarm.bridge.args import add_process_args, add_rt_priority_arg
@@ -291,21 +290,18 @@ def run_role(argv: Sequence[str]) -> int:
     process, as ``zenswarm`` would: a :class:`zenswarm.errors.ZenswarmError` is printed as
     ``zenswarm: error: ...`` (exit 2), Ctrl-C is exit 130. With ``--settings FILE`` (the
     supervisor's children) the role's settings are read from FILE, not from flags."""
-    from zenswarm.errors import ZenswarmError
+    from zenswarm.errors import run_command
 
     argv = list(argv)
     if not argv or argv[0] not in ROLE_PARSERS:
         raise ValueError(f"not a role's command line: {argv[:1]!r} (expected one of {', '.join(ROLE_PARSERS)})")
-    try:
+
+    def body() -> int:
         if "--settings" in argv:
             return run_settings(_settings_of(argv))
         parser = argparse.ArgumentParser(prog="zenswarm")
         ROLE_PARSERS[argv[0]](parser.add_subparsers(dest="command", metavar="COMMAND", required=True))
         args = parser.parse_args(argv)
         return int(args.func(args) or 0)
-    except ZenswarmError as e:
-        print(f"zenswarm: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("zenswarm: interrupted", file=sys.stderr)
-        return 130
+
+    return run_command(body)

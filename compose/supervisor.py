@@ -1,5 +1,7 @@
-"""``zenswarm up``: start a Zenoh router, then the plant, the leader and N agents as separate OS
-processes; watch them, show progress, merge their logs, stop them cleanly, write results.
+"""The supervisor of ``zenswarm up``: start a Zenoh router, then the plant, the leader and N agents
+as separate OS processes; watch them, show progress, merge their logs, stop them cleanly, write
+results. It takes a checked :class:`zenswarm.process.settings.FlightSettings`; the command line,
+its checks and the settings' building are :mod:`zenswarm.compose.up`'s.
 
 The supervisor's router session subscribes to the swarm's whole key space to assemble the
 flight's time series (the same :class:`zenswarm.judge.metrics.TimeSeries` the in-process simulator
@@ -9,10 +11,8 @@ is the only subscriber to the whole key space; the swarm's processes see only th
 
 from __future__ import annotations
 
-import argparse
 import ctypes
 import json
-import math
 import os
 import signal
 import subprocess
@@ -28,42 +28,26 @@ import msgspec
 import zenoh
 
 from zenswarm import bus
-from zenswarm.bridge.args import (
-    add_fault_args,
-    add_override_args,
-    add_plugin_args,
-    add_rt_priority_arg,
-    figure_formats,
-    link_faults,
-    positive_float,
-    scenario_of,
-)
-from zenswarm.bridge.views.live import FOXGLOVE_DEFAULT, LIVE_HELP, LiveTarget, live_target
 from zenswarm.bus import wire
 from zenswarm.compose.policy import restart_policy
 from zenswarm.compose.progress import SwarmProgress
-from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
+from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
 from zenswarm.judge.results import closing_lines, flight_results, write_outputs
 from zenswarm.judge.verdict import criteria_from_scenario
 from zenswarm.judge.watch import EndWatch
-from zenswarm.process import rtsched, security
+from zenswarm.process import security
 from zenswarm.process.collector import Collector
-from zenswarm.process.paths import check_output_dir, check_output_file, lock_output_dir
-from zenswarm.process.runtime import PLUGIN_FAILURE_MARK, gc_policy, gc_safe_point, gc_startup_done, kill_self_line
+from zenswarm.process.paths import check_output_dir, lock_output_dir
+from zenswarm.process.runtime import PLUGIN_FAILURE_MARK, gc_safe_point, gc_startup_done, kill_self_line
 from zenswarm.process.settings import (
-    DEFAULT_EXTERNAL_TIMEOUT_S,
     FlightSettings,
-    LiveView,
     RoleSettings,
-    decode_flight,
     encode,
-    read_settings,
 )
 from zenswarm.scenario.config import Scenario
-from zenswarm.scenario.plugins import DEFAULTS, STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
+from zenswarm.scenario.plugins import STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
 
-__all__ = ["add_parsers", "UpOptions", "flight_settings", "up_options", "fly", "run_settings_argv", "Supervisor", "role_names",
-           "swarm_roles", "check_up_args"]
+__all__ = ["Supervisor", "role_names", "swarm_roles"]
 
 LIVE_CHECK_S = 0.25
 """Wall seconds between two looks at whether the flight's outcome is decided (early end)."""
@@ -71,7 +55,10 @@ LIVE_CHECK_S = 0.25
 COLLECTOR_QUEUE = 4_000_000
 """Capacity of the supervisor's bus queue, in messages (drained every ~50 ms, so it never fills)."""
 
-EXIT_OK, EXIT_MISSION_FAILED, EXIT_BAD_INPUT, EXIT_PROCESS_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+EXIT_OK, EXIT_MISSION_FAILED, EXIT_PROCESS_FAILED = 0, 1, 3
+"""``zenswarm up``'s own exit statuses: the mission succeeded, it failed, a process died (bad input 2,
+a plug-in failure 4 and Ctrl-C 130 are :mod:`zenswarm.errors`'s)."""
+
 SITL_SEND_OFFSET = 40
 """With ``--plant mavlink`` simulated vehicle i sends from UDP P+40+i (PX4 SITL: 14580+i -> 14540+i)."""
 
@@ -113,66 +100,9 @@ def _pdeathsig_term() -> None:
     _pdeathsig(signal.SIGTERM)
 
 
-UpOptions = FlightSettings
-"""What ``zenswarm up`` was asked for, typed: :class:`zenswarm.process.settings.FlightSettings`
-(its older name)."""
-
 ROLES_BY_SETTINGS = ("plant", "leader", "agent")
 """The roles started with their :class:`RoleSettings` on standard input; the recorder, the bridges
 and the simulated vehicles still take a command line (the edges' own flags)."""
-
-
-def flight_settings(args: argparse.Namespace) -> tuple[FlightSettings, dict[str, Any]]:
-    """The flags of ``zenswarm up`` (:func:`add_parsers`) as :class:`FlightSettings`, its scenario
-    parsed once (``--set``, ``--duration``, the plug-in flags applied and checked: a ScenarioError
-    naming the flag or field, exit 2), and the overrides given (to write the effective scenario
-    for the processes that take a file)."""
-    sc, overrides = scenario_of(args)
-    live: LiveTarget | None = args.live
-    settings = FlightSettings(
-        scenario=sc,
-        scenario_file=args.scenario,
-        swarm=args.swarm,
-        out=args.out,
-        realtime=args.realtime,
-        plant=args.plant,
-        mavlink_base_port=args.mavlink_base_port,
-        crazyflie_base_port=args.crazyflie_base_port,
-        external=tuple(args.external or ()),
-        external_timeout=args.external_timeout,
-        record=args.record,
-        report=args.report,
-        report_format=args.report_format,
-        listen=tuple(args.listen or ()),
-        connect=tuple(args.connect or ()),
-        router_connect=tuple(args.router_connect or ()),
-        secure=args.secure,
-        tls=args.tls,
-        keys=args.keys,
-        insecure=args.insecure,
-        only=args.only,
-        lockstep_timeout=args.lockstep_timeout,
-        kill=tuple(args.kill or ()),
-        restart=args.restart,
-        stop_at_goal=args.stop_at_goal,
-        full_time=args.full_time,
-        progress_every=args.progress_every,
-        quiet=args.quiet,
-        quiet_children=args.quiet_children,
-        faults=link_faults(args),
-        controller=args.controller,
-        planner=args.planner,
-        plant_model=args.plant_model,
-        live=None if live is None else LiveView(live.viewer, live.port),
-        rt_priority=args.rt_priority,
-        router_lost_timeout=args.router_lost_timeout,
-    )
-    return settings, overrides
-
-
-def up_options(args: argparse.Namespace) -> FlightSettings:
-    """The flags of ``zenswarm up`` as :class:`FlightSettings` (:func:`flight_settings`)."""
-    return flight_settings(args)[0]
 
 
 @dataclass
@@ -975,373 +905,3 @@ class Supervisor:
             if self.recording_loss is not None:
                 res["recording_loss"] = self.recording_loss
         return res
-
-
-def check_up_args(args: FlightSettings, sc: Scenario) -> None:
-    """Every flag of ``zenswarm up`` that names something (a role, an endpoint, an output path)
-    is checked against ``sc`` before anything starts: :class:`ScenarioError` naming the flag,
-    exit status 2, no process started and nothing lost."""
-    if not (math.isfinite(args.lockstep_timeout) and args.lockstep_timeout > 0):  # settings built in code (the flag's type checks it)
-        raise ScenarioError("--lockstep-timeout", f"must be a finite number > 0 (positive), got {args.lockstep_timeout!r}")
-    bus.check_endpoint_syntax(list(args.listen), "--listen", listen=True)
-    bus.check_endpoint_syntax(list(args.connect), "--connect")
-    bus.check_endpoint_syntax(list(args.router_connect), "--router-connect")
-    check_rt_priority(args)
-    if args.only:
-        if args.only not in role_names(sc.n):
-            raise ScenarioError("--only", f"unknown role {args.only!r}: this swarm's roles are {', '.join(role_names(sc.n))}")
-        return  # one role here: nothing else is started, nothing written
-    names = swarm_roles(sc.n, args.plant)
-    for r in args.external:
-        if r not in names:
-            raise ScenarioError("--external", f"unknown role {r!r}: this swarm's roles are {', '.join(names)}")
-    _check_kills(args, sc, names)
-    if args.plant in ("mavlink", "crazyflie") and sc.plant.model != DEFAULTS["plant"]:
-        where = "--plant-model" if args.plant_model is not None else "plant.model"
-        raise ScenarioError(
-            where, f"plant model {sc.plant.model!r} cannot fly with --plant {args.plant}: the simulated vehicles "
-            f"fly zenswarm's own model ({DEFAULTS['plant']!r}); drop --plant {args.plant}, or the plant model"
-        )
-    if args.plant == "crazyflie":
-        check_crazyflie(args, sc)
-    if args.plant == "mavlink" and args.mavlink_base_port is not None:
-        check_mavlink_ports(args.mavlink_base_port, sc.n)
-    check_output_dir(args.out, "--out")
-    if args.record is not None:
-        check_output_file(args.record, "--record")
-
-
-def check_rt_priority(args: FlightSettings) -> None:
-    """``--rt-priority P``: 1-99, a realtime flight (``--realtime`` or ``--plant mavlink``), and
-    permitted to this user (:func:`zenswarm.process.rtsched.probe`): else :class:`ScenarioError` naming the
-    flag and the remedy, before anything starts."""
-    rtsched.validate(args.rt_priority, realtime=args.realtime or args.plant != "sim", how="--realtime or --plant mavlink")
-
-
-def check_crazyflie(args: FlightSettings, sc: Scenario) -> None:
-    """``--plant crazyflie``: cflib installed, and ``--crazyflie-base-port P`` leaves P..P+N-1 free
-    (the simulated Crazyflies' ports), else :class:`ScenarioError` (exit 2, before anything starts)."""
-    import importlib.util
-
-    if importlib.util.find_spec("cflib") is None:
-        raise ScenarioError("--plant", "--plant crazyflie needs cflib: pip install 'zenswarm[crazyflie]'")
-    base = args.crazyflie_base_port
-    if base is not None:
-        if not 1 <= base <= 65535 - sc.n + 1:
-            raise ScenarioError("--crazyflie-base-port", f"expected a port in 1..{65535 - sc.n + 1} ({sc.n} UAVs), got {base}")
-        busy = [p for p in range(base, base + sc.n) if bus.udp_ports_in_use([p], "127.0.0.1")]
-        if busy:
-            raise ScenarioError("--crazyflie-base-port", f"UDP port {busy[0]} on 127.0.0.1 is in use; the simulated Crazyflies "
-                                f"need P..P+{sc.n - 1} free (P = {base})")  # fmt: skip
-
-
-def check_mavlink_ports(base: int, n: int, host: str = "127.0.0.1") -> None:
-    """``--plant mavlink --mavlink-base-port P``: the simulated vehicle i (0-based) sends from UDP
-    P+40+i to P+i, where the bridge listens (PX4 SITL's direction): all 2n ports must be free on
-    ``host``, else :class:`ScenarioError` naming the flag and the first busy port (exit 2, before
-    anything starts; a busy port would otherwise kill the vehicles' process mid-start)."""
-    ports = [(base + i, f"where the bridge hears vehicle {i + 1}, P+{i}") for i in range(n)]
-    ports += [(base + SITL_SEND_OFFSET + i, f"vehicle {i + 1}'s send port, P+{SITL_SEND_OFFSET}+{i}") for i in range(n)]
-    for port, what in ports:
-        if bus.udp_ports_in_use([port], host):
-            raise ScenarioError(
-                "--mavlink-base-port",
-                f"UDP port {port} on {host} ({what}) is in use or not a port; the simulated vehicles need "
-                f"P..P+{n - 1} and P+{SITL_SEND_OFFSET}..P+{SITL_SEND_OFFSET + n - 1} free (P = {base})",
-            )
-
-
-def _check_kills(args: FlightSettings, sc: Scenario, names: list[str]) -> None:
-    """``--kill ROLE@T``: ROLE must be a process started here."""
-    external = list(args.external)
-    started = [r for r in names if r not in external] + (["recorder"] if args.record is not None else [])
-    for role, t in args.kill:
-        if role in started:
-            continue
-        if role in external:
-            why = "is --external, not started here"
-        elif role == "recorder":
-            why = "runs only with --record"
-        else:
-            why = f"is not a process of this swarm ({sc.n} UAVs)"
-        raise ScenarioError("--kill", f"{role}@{t:g}s: {role} {why}; processes started here: {', '.join(started)}")
-
-
-def _run_up(ns: argparse.Namespace) -> int:
-    args, overrides = flight_settings(ns)  # --set, --duration, a bad plug-in name or parameter: exit 2 now
-    args.faults.plan(args.scenario)  # bad flags: exit 2 now
-    check_up_args(args, args.scenario)
-    if overrides and not args.only:  # the processes that take a file read it as overridden: OUT/scenario.toml
-        args = msgspec.structs.replace(args, scenario_file=_write_effective(args, overrides))
-    return fly(args)
-
-
-def fly(args: FlightSettings) -> int:
-    """Fly these settings (checked: :func:`check_up_args`): the whole swarm under a
-    :class:`Supervisor`, or one role with ``--only``. The exit status."""
-    sc = args.scenario
-    gc_policy()  # a bad ZENSWARM_GC: exit 2 now
-    if args.only:
-        if args.live is not None:
-            raise ScenarioError("--live", "not with --only: the live view runs beside the supervisor of the whole swarm")
-        return _run_only(args)
-    sup = Supervisor(args, sc)
-    if args.live is not None:  # bound now: a port in use is exit 2 before any process starts
-        from zenswarm.bridge.views.live import open_view
-
-        sup.live = open_view(LiveTarget(args.live.viewer, args.live.port), sc, args.swarm)
-        sup.say(sup.live.how_to_open())
-    try:
-        sup.t_start = time.monotonic()
-        rc = sup.run()
-        if sup.live is not None and sup.live.viewer == "rerun" and sys.stdin is not None and sys.stdin.isatty():
-            # Rerun's server holds the whole flight: a browser opened now still gets all of it
-            sup.say(f"flight over; Rerun keeps serving it on {sup.live.url} until you press Enter (or Ctrl-C)")
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                signal.signal(sig, signal.default_int_handler)  # raise KeyboardInterrupt here, not set the flight's stop flag
-            try:
-                input()
-            except (EOFError, KeyboardInterrupt):
-                pass
-        return rc
-    finally:
-        if sup.live is not None:
-            sup.live.close()
-
-
-def run_settings_argv(argv: list[str]) -> int:
-    """``zenswarm up --settings FILE --swarm NAME``: fly the :class:`FlightSettings` in FILE (``-``:
-    standard input), as :func:`zenswarm.api.fly` starts its supervisor (:mod:`zenswarm.compose.launch`).
-    Not for users (``zenswarm up --help`` does not list it): the settings are checked again here,
-    and ``--swarm`` (the name the process table shows) must be theirs."""
-    p = argparse.ArgumentParser(prog="zenswarm up", description="fly a flight's typed settings (zenswarm.api.fly's supervisor)")
-    p.add_argument("--settings", required=True, metavar="FILE", help="msgpack of the FlightSettings; - for standard input")
-    p.add_argument("--swarm", required=True)
-    ns = p.parse_args(argv)
-    args = decode_flight(read_settings(ns.settings))
-    if args.swarm != ns.swarm:
-        raise ScenarioError("--swarm", f"{ns.swarm!r}, but the settings fly swarm {args.swarm!r}")
-    args.faults.plan(args.scenario)
-    check_up_args(args, args.scenario)
-    return fly(args)
-
-
-def _write_effective(args: FlightSettings, overrides: dict[str, Any]) -> Path:
-    """The scenario file with the overrides applied (``--set``, ``--duration``), written as
-    OUT/scenario.toml for the processes that take a file (the recorder, the bridges, the
-    simulated vehicles; the roles get the scenario itself)."""
-    import tomllib
-
-    from zenswarm.scenario.generate import to_toml
-    from zenswarm.scenario.overrides import apply
-
-    src = Path(args.scenario_file)
-    doc = apply(tomllib.loads(src.read_text(encoding="utf-8")), overrides)
-    trace = (doc.get("faults") or {}).get("trace")
-    if isinstance(trace, str) and not Path(trace).is_absolute():  # relative to the original file
-        doc["faults"]["trace"] = str(src.parent.absolute() / trace)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "scenario.toml"
-    path.write_text(to_toml(doc))
-    return path
-
-
-def _run_only(args: FlightSettings) -> int:
-    """``--only ROLE``: run one role of a swarm in this process, against a remote router, with
-    its part of the settings (:meth:`FlightSettings.role`)."""
-    from zenswarm.compose.roles import run_settings
-
-    role = args.only or ""
-    if not (role.startswith("agent:") or role in ("plant", "leader")):
-        raise ScenarioError("--only", f"unknown role {role!r}: expected plant, leader or agent:<i>")
-    return run_settings(args.role(role, args.connect or ("tcp/127.0.0.1:7447",), args.keys))
-
-
-def _parse_kill(text: str) -> tuple[str, float]:
-    """``agent:2@10s`` -> ("agent:2", 10.0); argparse turns ValueError into a usage error."""
-    role, sep, when = text.partition("@")
-    if not sep:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected ROLE@TIME, e.g. agent:2@10s")
-    try:
-        wire.validate_process(role)
-    except ZenswarmError:
-        raise argparse.ArgumentTypeError(f"{text!r}: unknown process {role!r} (plant, leader, agent:<i>, recorder)") from None
-    w = when.strip()
-    scale = 1.0
-    for suffix, f in (("ms", 1e-3), ("s", 1.0)):
-        if w.endswith(suffix):
-            w, scale = w[: -len(suffix)], f
-            break
-    try:
-        t = float(w) * scale
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: bad time {when!r} (e.g. 10s, 500ms)") from None
-    if not t >= 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: time must be >= 0")
-    return role, t
-
-
-def add_parsers(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "up",
-        help="fly a scenario as a distributed swarm (router + plant + leader + one process per UAV)",
-        description=(
-            "Start a Zenoh router inside this process, then the plant, the leader and one agent "
-            "process per UAV; show progress, merge their logs, stop everything on Ctrl-C, and write "
-            "OUT/results.json and OUT/timeseries.npz. Exit status: 0 mission succeeded, 1 mission "
-            "failed (goal not reached, collision), 2 bad input, 3 a process died, 4 a plug-in failed "
-            "(plugin_error: it raised, or gave a non-finite or wrongly shaped output), 130 interrupted."
-        ),
-    )
-    p.add_argument("scenario", type=Path, help="scenario TOML file")
-    p.add_argument("--swarm", default="default", help="swarm name (key prefix swarm/<name>); default: default")
-    p.add_argument("--out", type=Path, default=Path("runs/up"), help="output directory (default runs/up)")
-    p.add_argument("--realtime", action="store_true", help="wall-clock mode: fixed-rate loops, latest value wins")
-    p.add_argument(
-        "--plant",
-        choices=("sim", "mavlink", "crazyflie"),
-        default="sim",
-        help="sim: the simulated plant process (default); mavlink: simulated MAVLink vehicles over UDP flown "
-        "through the MAVLink bridge (zenswarm bridge mavlink), realtime; crazyflie: simulated Crazyflies (CRTP over "
-        "UDP) flown through cflib by the Crazyflie bridge (zenswarm bridge crazyflie), realtime (docs/crazyflie.md)",
-    )
-    p.add_argument(
-        "--crazyflie-base-port", type=int, metavar="P",
-        help="with --plant crazyflie: simulated Crazyflie i on udp://127.0.0.1:P+i-1; checked free (default: free ports)",
-    )
-    p.add_argument(
-        "--mavlink-base-port", type=int, metavar="P",
-        help="with --plant mavlink: vehicle i on UDP P+i-1, sending from P+40+i-1; all checked free (default: free ports)",
-    )
-    p.add_argument(
-        "--external",
-        action="append",
-        metavar="ROLE",
-        help="a role started elsewhere (e.g. another host or network namespace with --only); not spawned here: "
-        "one of plant, leader, agent:1..N (vehicles, bridge with --plant mavlink). Watched through its liveliness "
-        "token: if it goes away before the role finished, the swarm stops with exit 3, as for a process of ours "
-        "that died (an external role cannot be restarted from here)",
-    )
-    p.add_argument(
-        "--external-timeout",
-        type=positive_float,
-        default=DEFAULT_EXTERNAL_TIMEOUT_S,
-        metavar="S",
-        help=f"seconds an --external role may take to announce itself before the swarm gives up with exit 3 "
-        f"(default {DEFAULT_EXTERNAL_TIMEOUT_S:g}); progress lines show it as waiting meanwhile",
-    )
-    p.add_argument(
-        "--record",
-        type=Path,
-        metavar="FILE.mcap",
-        help="record every message of the swarm to this MCAP file (a recorder process started first, stopped last; "
-        "if it dies, the flight goes on and the loss is reported)",
-    )
-    p.add_argument(
-        "--report",
-        action="store_true",
-        help="with --record: write the flight report (figures like the paper's, results.json) to OUT/report from the recording",
-    )
-    p.add_argument(
-        "--report-format",
-        type=figure_formats,
-        default=("png",),
-        metavar="FMT[,FMT...]",
-        help="with --report: the figures' formats, comma-separated, of png, svg, pdf (default png)",
-    )
-    p.add_argument(
-        "--listen",
-        action="append",
-        metavar="ENDPOINT",
-        help="router listen endpoint (repeatable); default tcp/127.0.0.1:<free port>. "
-        "Use a non-loopback address so processes on other hosts can join",
-    )
-    p.add_argument(
-        "--connect",
-        action="append",
-        metavar="ENDPOINT",
-        help="endpoint the swarm's processes connect to (default: the router's listen endpoints); "
-        "with --only, the remote router to join",
-    )
-    p.add_argument("--router-connect", action="append", metavar="ENDPOINT", help="other routers this router connects to")
-    p.add_argument(
-        "--secure",
-        action="store_true",
-        help="router requires authentication (user/password) and enforces access control generated from the "
-        "scenario's graph; the default whenever the router listens on a non-loopback address",
-    )
-    p.add_argument("--tls", action="store_true", help="secure mode with mutual TLS (tls/ endpoints) instead of user/password")
-    p.add_argument(
-        "--keys",
-        type=Path,
-        metavar="DIR",
-        help="credentials from `zenswarm keys` (default with --secure: generate them into OUT/keys)",
-    )
-    p.add_argument("--insecure", action="store_true", help="allow an open router on a non-loopback address (not recommended)")
-    p.add_argument(
-        "--only",
-        metavar="ROLE",
-        help="run a single role here (plant, leader, agent:<i>) against a router elsewhere (--connect)",
-    )
-    p.add_argument(
-        "--router-lost-timeout",
-        type=positive_float,
-        default=None,
-        metavar="S",
-        help="with --only: seconds to wait for the remote router to come back once zenoh closed the link to it "
-        "(its 10 s lease ran out) before the role gives up and exits 3 (default 30)",
-    )
-    p.add_argument(
-        "--lockstep-timeout",
-        type=positive_float,
-        default=5.0,
-        metavar="S",
-        help="lockstep input wait (wall seconds, > 0) before a drop (default 5 s)",
-    )
-    p.add_argument(
-        "--kill",
-        action="append",
-        type=_parse_kill,
-        metavar="ROLE@T",
-        help="inject a SIGKILL into ROLE when sim time reaches T, e.g. agent:2@10s; ROLE must be a process started "
-        "here (plant, leader, agent:1..N, the recorder with --record; not --external ones) (repeatable; for tests "
-        "and demos). The recorder is not a vehicle: its death is reported (results.json: recording_loss), the "
-        "flight goes on. In lockstep the plant, leader and agents kill themselves just before the first tick at or "
-        "after T (--kill-at-tick), so the fault falls on the same tick in every run",
-    )
-    p.add_argument(
-        "--restart",
-        action="store_true",
-        help="restart crashed agents and the leader with the scenario's [restart] backoff (default policy if absent)",
-    )
-    p.add_argument(
-        "--stop-at-goal",
-        action="store_true",
-        help="end the run as soon as its success is decided: the leader reached the goal and every UAV has been "
-        "within mission.slot_tolerance_m of its slot for mission.settle_window_s (useful in realtime mode)",
-    )
-    p.add_argument(
-        "--full-time",
-        action="store_true",
-        help="fly the whole time limit even after the outcome is decided (by default a stalled leader or a "
-        "diverged UAV ends the run early; the verdict names the failure either way)",
-    )
-    p.add_argument("--progress-every", type=float, default=1.0, metavar="S", help="seconds between progress lines while sim time moves "
-                   "(at the same sim time, e.g. while the processes start: every 10 s)")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
-    p.add_argument("--quiet-children", action="store_true", help="do not echo the processes' own output")
-    p.add_argument(
-        "--live",
-        nargs="?",
-        const=FOXGLOVE_DEFAULT,
-        type=live_target,
-        metavar="PORT|rerun[:PORT]",
-        help=f"watch the flight live. {LIVE_HELP}. Run by this supervisor, not by the swarm's processes; "
-        "a port in use: exit 2 before the flight",
-    )
-    add_rt_priority_arg(p)
-    add_fault_args(p)
-    add_plugin_args(p)
-    add_override_args(p)
-    p.set_defaults(func=_run_up)

@@ -279,7 +279,8 @@ def test_keys_flag_of_another_swarm_or_size_is_refused_and_kept(tmp_path: Path) 
 def _security_of(out: Path, swarm: str, *extra: str):
     """Supervisor._security for `up EX1 --secure --out OUT --swarm SWARM` (no process started)."""
     from zenswarm.compose.cli import build_parser
-    from zenswarm.compose.supervisor import Supervisor, up_options
+    from zenswarm.compose.supervisor import Supervisor
+    from zenswarm.compose.up import up_options
     from zenswarm.scenario.config import load_scenario
 
     args = build_parser().parse_args(["up", str(EX1), "--secure", "--out", str(out), "--swarm", swarm, "--quiet", *extra])

@@ -192,7 +192,8 @@ def test_the_supervisor_waits_for_the_last_ticks_messages_after_every_process_en
     import numpy as np
 
     from zenswarm.compose.cli import build_parser
-    from zenswarm.compose.supervisor import EXIT_OK, Supervisor, up_options
+    from zenswarm.compose.supervisor import EXIT_OK, Supervisor
+    from zenswarm.compose.up import up_options
     from zenswarm.process.runtime import CLOCK_EVERY_TICKS
 
     scenario = scenario_variant(tmp_path, time_limit_s=0.1)
@@ -307,7 +308,8 @@ def test_the_routers_port_taken_before_it_binds_is_replaced_unless_given(tmp_pat
 
     from zenswarm import bus
     from zenswarm.compose.cli import build_parser
-    from zenswarm.compose.supervisor import Supervisor, up_options
+    from zenswarm.compose.supervisor import Supervisor
+    from zenswarm.compose.up import up_options
 
     sc = load_scenario(EX1)
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:

@@ -187,7 +187,8 @@ def test_external_watch_logic_without_processes(tmp_path: Path) -> None:
 
     from zenswarm.bus import wire
     from zenswarm.compose.cli import build_parser
-    from zenswarm.compose.supervisor import EXIT_PROCESS_FAILED, EXTERNAL_GONE_GRACE_S, Supervisor, up_options
+    from zenswarm.compose.supervisor import EXIT_PROCESS_FAILED, EXTERNAL_GONE_GRACE_S, Supervisor
+    from zenswarm.compose.up import up_options
     from zenswarm.process.collector import Collector
     from zenswarm.scenario.config import load_scenario
 

@@ -75,7 +75,7 @@ def _flags(*extra: str) -> Any:
 def test_the_flight_settings_of_the_command_line_round_trip(tmp_path: Path) -> None:
     """Every flag of ``zenswarm up`` lands in one FlightSettings (the scenario parsed once, the
     overrides and plug-in names in it), and the settings decode equal to what was encoded."""
-    from zenswarm.compose.supervisor import flight_settings
+    from zenswarm.compose.up import flight_settings
 
     args, overrides = flight_settings(_flags(
         "--out", str(tmp_path / "o"), "--realtime", "--record", str(tmp_path / "r.mcap"), "--report", "--report-format", "png,svg",
@@ -100,7 +100,7 @@ def test_a_role_gets_what_its_command_line_said() -> None:
     typed: the same ProcessOptions as ``zenswarm agent`` parsed from the words the supervisor used
     to write (the scenario itself in place of its file)."""
     from zenswarm.compose.roles import agent_options
-    from zenswarm.compose.supervisor import up_options
+    from zenswarm.compose.up import up_options
 
     args = up_options(_flags("--realtime", "--lockstep-timeout", "2.5", "--link-loss", "0.2", "--link-jitter", "5ms",
                              "--partition", "agent:2@1s-2s", "--seed", "7", "--planner", "aapf", "--tls", "--link-queue", "8"))  # fmt: skip
@@ -144,7 +144,8 @@ def test_the_supervisor_starts_each_role_with_its_settings_on_stdin(tmp_path: Pa
     import os
 
     from zenswarm.compose.roles import run_role
-    from zenswarm.compose.supervisor import Supervisor, up_options
+    from zenswarm.compose.supervisor import Supervisor
+    from zenswarm.compose.up import up_options
 
     args = up_options(_flags("--kill", "agent:2@0.5s", "--record", str(tmp_path / "r.mcap"), "--link-loss", "0.1"))
     sup = Supervisor(args)
@@ -172,7 +173,7 @@ def test_settings_of_another_role_or_swarm_are_refused(monkeypatch: pytest.Monke
     """A role started with the settings of another role, another swarm, or bytes that are no
     settings: exit 2 naming --settings, nothing run."""
     from zenswarm.compose.roles import run_role
-    from zenswarm.compose.supervisor import up_options
+    from zenswarm.compose.up import up_options
 
     ran = _recording_runs(monkeypatch)
     agent3 = encode(up_options(_flags()).role("agent:3", ()))

@@ -41,7 +41,7 @@ import numpy as np
 from zenswarm.bus.wire import validate_process
 from zenswarm.compose.launch import kill_processes_of, live_flights, processes_of, run_up, stop_flight
 from zenswarm.compose.sim import simulate, summary_line, write_outputs
-from zenswarm.compose.supervisor import check_up_args
+from zenswarm.compose.up import check_up_args
 from zenswarm.errors import EXIT_PLUGIN_FAILED, ScenarioError, ZenswarmError
 from zenswarm.judge.metrics import TimeSeries, exit_code_of, flight_differences
 from zenswarm.link import LinkFaults
@@ -324,7 +324,7 @@ def _duration_text(value: float | str | None, name: str) -> str | None:
 
 def _kills(kill: Iterable[tuple[str, float] | str]) -> tuple[tuple[str, float], ...]:
     """``[("agent:2", 1.0), "leader@2s"]`` -> ((process, sim time s), ...), checked."""
-    from zenswarm.compose.supervisor import _parse_kill
+    from zenswarm.compose.up import _parse_kill
 
     out = []
     for k in kill:

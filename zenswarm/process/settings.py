@@ -1,7 +1,7 @@
 """A flight's settings as one typed value, and what each of its processes is started with.
 
 The front door builds a :class:`FlightSettings` once: ``zenswarm up``'s command line
-(:func:`zenswarm.compose.supervisor.flight_settings`) or :func:`zenswarm.api.fly`'s arguments. It
+(:func:`zenswarm.compose.up.flight_settings`) or :func:`zenswarm.api.fly`'s arguments. It
 carries the scenario parsed and checked (overrides and plug-in names applied), so no process
 reads the scenario file again. The supervisor takes it, and hands each role it starts (plant,
 leader, agent i) that role's part, a :class:`RoleSettings`, in one serialized form: msgpack on the
@@ -96,7 +96,7 @@ class FlightSettings(msgspec.Struct, frozen=True, kw_only=True):
     ``--planner`` / ``--plant-model`` applied; ``--seed`` is in ``faults``). scenario_file: the
     file it came from (with overrides, the effective one the supervisor wrote), for the
     processes that still take a file: the recorder, the MAVLink and Crazyflie bridges and their
-    simulated vehicles. Built by :func:`zenswarm.compose.supervisor.flight_settings` (the
+    simulated vehicles. Built by :func:`zenswarm.compose.up.flight_settings` (the
     command line) or by :func:`zenswarm.api.fly`."""
 
     scenario: Scenario
