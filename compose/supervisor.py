@@ -11,7 +11,6 @@ is the only subscriber to the whole key space; the swarm's processes see only th
 
 from __future__ import annotations
 
-import ctypes
 import json
 import os
 import signal
@@ -20,7 +19,6 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +27,7 @@ import zenoh
 
 from zenswarm import bus
 from zenswarm.bus import wire
+from zenswarm.compose.children import Child, start_local
 from zenswarm.compose.policy import restart_policy
 from zenswarm.compose.progress import SwarmProgress
 from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
@@ -86,33 +85,9 @@ def swarm_roles(n: int, plant: str = "sim") -> list[str]:
     return ["vehicles", "bridge"] + names[1:] if plant in ("mavlink", "crazyflie") else names
 
 
-def _pdeathsig(sig: int = signal.SIGKILL) -> None:  # runs in the child between fork and exec
-    try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, sig)  # PR_SET_PDEATHSIG: die with the supervisor
-    except OSError:
-        pass
-
-
-def _pdeathsig_term() -> None:
-    """The recorder's: a SIGTERM when the supervisor dies, so it closes its MCAP file (summary
-    and footer written: readable as it is) before it exits; the flying roles get a SIGKILL."""
-    _pdeathsig(signal.SIGTERM)
-
-
 ROLES_BY_SETTINGS = ("plant", "leader", "agent")
 """The roles started with their :class:`RoleSettings` on standard input; the recorder, the bridges
 and the simulated vehicles still take a command line (the edges' own flags)."""
-
-
-@dataclass
-class Child:
-    name: str
-    popen: subprocess.Popen
-    started: float
-    returncode: int | None = None
-    reader: threading.Thread | None = None
-    lines: list[str] = field(default_factory=list)
 
 
 class Supervisor:
@@ -166,25 +141,23 @@ class Supervisor:
         with self.print_lock:
             print(f"[supervisor] {text}", flush=True)
 
-    def _pump(self, child: Child) -> None:
-        assert child.popen.stdout is not None
-        for raw in child.popen.stdout:
-            line = raw.rstrip("\n")
-            at = line.find(PLUGIN_FAILURE_MARK)
-            if at >= 0:  # a plug-in failed in this child (zenswarm.process.runtime.report_plugin_failure)
-                try:
-                    f = PluginFailure.from_dict(json.loads(line[at + len(PLUGIN_FAILURE_MARK) :]))
-                except (ValueError, KeyError, TypeError, AssertionError):
-                    pass
-                else:
-                    self.plugin_failures.append(f)
-                    self.say(f"plug-in failed: {f}")
-                    continue
-            child.lines.append(line)
-            del child.lines[:-50]
-            if not self.args.quiet_children:
-                with self.print_lock:
-                    print(f"[{child.name}] {line}", flush=True)
+    def _on_line(self, child: Child, line: str) -> bool:
+        """One line of a child's output: a plug-in's failure report is taken (not kept), the rest
+        printed (unless children are quiet) and kept."""
+        at = line.find(PLUGIN_FAILURE_MARK)
+        if at >= 0:  # a plug-in failed in this child (zenswarm.process.runtime.report_plugin_failure)
+            try:
+                f = PluginFailure.from_dict(json.loads(line[at + len(PLUGIN_FAILURE_MARK) :]))
+            except (ValueError, KeyError, TypeError, AssertionError):
+                pass
+            else:
+                self.plugin_failures.append(f)
+                self.say(f"plug-in failed: {f}")
+                return False
+        if not self.args.quiet_children:
+            with self.print_lock:
+                print(f"[{child.name}] {line}", flush=True)
+        return True
 
     # ------------------------------------------------------------------ processes
     def child_argv(self, role: str) -> list[str]:
@@ -271,22 +244,11 @@ class Supervisor:
             stdin.write(encode(self.role_settings(role)))
             stdin.seek(0)
         try:
-            p = subprocess.Popen(
-                self.child_argv(role),
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
-                stdin=stdin,
-                text=True,
-                start_new_session=True,  # Ctrl-C reaches the supervisor only; it stops the children
-                preexec_fn=_pdeathsig_term if role == "recorder" else _pdeathsig,
-                env=env,
-            )
+            c = start_local(role, self.child_argv(role), env, stdin, term_on_parent_death=role == "recorder")
         finally:
             if stdin is not subprocess.DEVNULL:
                 stdin.close()  # the child holds its own descriptor
-        c = Child(role, p, time.monotonic())
-        c.reader = threading.Thread(target=self._pump, args=(c,), daemon=True)
-        c.reader.start()
+        c.read(self._on_line)
         self.children[role] = c
         return c
 
@@ -308,7 +270,7 @@ class Supervisor:
             if name in self.children:
                 self._terminate([self.children[name]], grace)
         if rec is not None:
-            if rec.popen.poll() is None:
+            if rec.proc.poll() is None:
                 time.sleep(0.3)
             self._terminate([rec], 60.0)
             # its closing line (what it wrote): already on the console unless children are quiet
@@ -321,29 +283,25 @@ class Supervisor:
         deadline = time.monotonic() + grace_s
         for c in children:
             try:
-                c.popen.wait(timeout=max(0.0, deadline - time.monotonic()))
+                c.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 pass
 
     def _terminate(self, children: list, grace_s: float) -> None:
         for c in children:
-            if c.popen.poll() is None:
-                try:
-                    c.popen.send_signal(signal.SIGTERM)
-                except ProcessLookupError:
-                    pass
+            if c.proc.poll() is None:
+                c.proc.send_signal(signal.SIGTERM)
         deadline = time.monotonic() + grace_s
         for c in children:
             left = max(0.0, deadline - time.monotonic())
             try:
-                c.popen.wait(timeout=left)
+                c.proc.wait(timeout=left)
             except subprocess.TimeoutExpired:
                 self.say(f"{c.name} did not stop within {grace_s:.0f} s; killing it")
-                c.popen.kill()
-                c.popen.wait()
+                c.proc.kill()
+                c.proc.wait()
         for c in children:
-            if c.reader is not None:
-                c.reader.join(timeout=2.0)
+            c.join_output(2.0)
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         self.stop_reason = f"received {signal.Signals(signum).name}"
@@ -627,7 +585,7 @@ class Supervisor:
             return "up"
         if c.returncode is not None:
             return "exit " + str(c.returncode)
-        if name == "vehicles" and c.popen.poll() is None and self._bridge_hears_vehicles():
+        if name == "vehicles" and c.proc.poll() is None and self._bridge_hears_vehicles():
             return "up"
         return "leaving" if name in self.seen else "starting"
 
@@ -650,7 +608,7 @@ class Supervisor:
         out: dict[str, Any] = {k: d[k] for k in keys if k in d}
         c = self.children.get("vehicles")
         if c is not None:
-            out["process_exit"] = c.returncode if c.returncode is not None else c.popen.poll()
+            out["process_exit"] = c.status()
         return out
 
     def _health(self) -> str:
@@ -731,7 +689,7 @@ class Supervisor:
                 done = False
                 self._restart_if_due(c, now)
                 continue
-            rc = c.popen.poll()
+            rc = c.proc.poll()
             if rc is None:
                 if c.name not in ("recorder", "vehicles"):  # both are stopped once the rest is done
                     done = False
@@ -754,8 +712,7 @@ class Supervisor:
     def _took_plugin_failure(self, c: Child) -> bool:
         """A child that exited with 4: did it report its plug-in's failure
         (:data:`zenswarm.process.runtime.PLUGIN_FAILURE_MARK`, read by :meth:`_pump`)? If not, it died."""
-        if c.reader is not None:
-            c.reader.join(timeout=5.0)  # its last lines: the pipe ends with the process
+        c.join_output(5.0)  # its last lines: the output ends with the process
         return any(f.process == c.name for f in self.plugin_failures)
 
     def _external_plugin_failures(self, collector: Collector) -> None:
@@ -782,7 +739,7 @@ class Supervisor:
         while True:
             collector.poll(self._bus_sub, self._live_tap())
             for c in list(self.children.values()):
-                rc = c.popen.poll()
+                rc = c.proc.poll()
                 if rc is not None and c.returncode is None:
                     c.returncode = rc
                     if rc == EXIT_PLUGIN_FAILED:
@@ -832,8 +789,7 @@ class Supervisor:
         """A process of ours exited with status ``rc`` != 0: schedule its restart (None) when the
         policy allows, else the exit code (3)."""
         how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
-        if c.reader is not None:
-            c.reader.join(timeout=1.0)  # its pipe closed with it: its last lines are read at once
+        c.join_output(1.0)  # its output ended with it: its last lines are read at once
         tail = "; last output: " + " | ".join(c.lines[-3:]) if c.lines else ""
         t_s = max(collector.sim_t_ns, 0) / 1e9  # when the collector's clock (a few ticks behind, loaded) saw it
         k = self.self_killed.pop(c.name, None)
@@ -854,9 +810,9 @@ class Supervisor:
     def _inject_kills(self, collector: Collector) -> None:
         """``--kill ROLE@T``: SIGKILL each role whose time has come (sim time)."""
         for role, at_ns in list(self.pending_kills.items()):
-            if collector.sim_t_ns >= at_ns and role in self.children and self.children[role].popen.poll() is None:
+            if collector.sim_t_ns >= at_ns and role in self.children and self.children[role].proc.poll() is None:
                 self.say(f"injecting SIGKILL into {role} at sim time {collector.sim_t_ns / 1e9:.2f} s (--kill)")
-                self.children[role].popen.kill()
+                self.children[role].proc.kill()
                 del self.pending_kills[role]
 
     def _finish(self, collector: Collector, code: int, out: Path) -> int:
@@ -892,8 +848,8 @@ class Supervisor:
             "mode": "realtime" if a.realtime else "lockstep",
             "swarm": a.swarm,
             "router": list(self.listen),  # the endpoints the router listened on (its port: chosen free without --listen)
-            # a child stopped by terminate_all has its code on popen only (returncode is set when one dies)
-            "processes": {name: c.returncode if c.returncode is not None else c.popen.poll() for name, c in self.children.items()},
+            # a child stopped by terminate_all has its code on its process only (returncode is set when one dies)
+            "processes": {name: c.status() for name, c in self.children.items()},
             "vehicles": self._vehicles_figures(collector),
             "process_deaths": self.deaths,
             "restarts": self.restarts,

@@ -1,0 +1,138 @@
+"""The processes a supervisor starts, as handles it can poll, signal and read.
+
+:class:`Child` is one started role: its name, when it started, its output (the last lines kept,
+each line handed to a callback as it comes) and a :class:`Proc`: the OS process behind it. Here a
+:class:`LocalProc` (a :class:`subprocess.Popen` on this host); another launcher (a cluster's) gives
+its own :class:`Proc` and the supervisor watches both the same way.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import signal
+import subprocess
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+__all__ = ["Proc", "LocalProc", "Child", "start_local", "pdeathsig", "pdeathsig_term"]
+
+LINES_KEPT = 50
+"""How many of a child's last output lines are kept (the tail said when it dies)."""
+
+
+class Proc(Protocol):
+    """An OS process a supervisor started (here or on another host)."""
+
+    pid: int
+
+    def poll(self) -> int | None:
+        """The exit status once it ended (minus the signal number if a signal ended it), else None."""
+
+    def wait(self, timeout: float | None = None) -> int:
+        """Wait for it to end; :class:`subprocess.TimeoutExpired` after ``timeout`` s."""
+
+    def send_signal(self, sig: int) -> None:
+        """Send ``sig`` to it (nothing if it has already ended)."""
+
+    def kill(self) -> None:
+        """SIGKILL it."""
+
+    def output(self) -> Iterable[str]:
+        """Its output (stdout and stderr), line by line, newline stripped, until it ends."""
+
+
+class LocalProc:
+    """A :class:`Proc` on this host: a :class:`subprocess.Popen` with its output on a text pipe."""
+
+    def __init__(self, popen: subprocess.Popen) -> None:
+        self.popen = popen
+        self.pid = popen.pid
+
+    def poll(self) -> int | None:
+        return self.popen.poll()
+
+    def wait(self, timeout: float | None = None) -> int:
+        return self.popen.wait(timeout=timeout)
+
+    def send_signal(self, sig: int) -> None:
+        try:
+            self.popen.send_signal(sig)
+        except ProcessLookupError:
+            pass
+
+    def kill(self) -> None:
+        self.popen.kill()
+
+    def output(self) -> Iterable[str]:
+        assert self.popen.stdout is not None
+        for raw in self.popen.stdout:
+            yield raw.rstrip("\n")
+
+
+def pdeathsig(sig: int = signal.SIGKILL) -> None:  # runs in the child between fork and exec
+    """``PR_SET_PDEATHSIG``: the child gets ``sig`` when the thread that started it ends."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, sig)
+    except OSError:
+        pass
+
+
+def pdeathsig_term() -> None:
+    """The recorder's: a SIGTERM when the supervisor dies, so it closes its MCAP file (summary
+    and footer written: readable as it is) before it exits; the flying roles get a SIGKILL."""
+    pdeathsig(signal.SIGTERM)
+
+
+@dataclass
+class Child:
+    """One started role: its process, its output's last lines and its exit status once seen."""
+
+    name: str
+    proc: Proc
+    started: float
+    returncode: int | None = None
+    reader: threading.Thread | None = None
+    lines: list[str] = field(default_factory=list)
+
+    def read(self, on_line: Callable[[Child, str], bool]) -> None:
+        """Read the output in a thread of its own until the process ends: each line goes to
+        ``on_line``, and is kept (the last :data:`LINES_KEPT`) unless ``on_line`` returns False."""
+
+        def pump() -> None:
+            for line in self.proc.output():
+                if on_line(self, line):
+                    self.lines.append(line)
+                    del self.lines[:-LINES_KEPT]
+
+        self.reader = threading.Thread(target=pump, name=f"out-{self.name}", daemon=True)
+        self.reader.start()
+
+    def status(self) -> int | None:
+        """The exit status seen by the watch, else the process's own (None while it runs)."""
+        return self.returncode if self.returncode is not None else self.proc.poll()
+
+    def join_output(self, timeout: float) -> None:
+        """Wait (at most ``timeout`` s) for its last lines: the output ends with the process."""
+        if self.reader is not None:
+            self.reader.join(timeout=timeout)
+
+
+def start_local(name: str, argv: list[str], env: dict[str, str], stdin: Any, *, term_on_parent_death: bool = False) -> Child:
+    """Start ``argv`` on this host in a session of its own (Ctrl-C reaches the supervisor only; it
+    stops its children) that dies with the supervisor (SIGKILL, or SIGTERM with
+    ``term_on_parent_death``); ``stdin`` as :class:`subprocess.Popen` takes it."""
+    p = subprocess.Popen(
+        argv,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        stdin=stdin,
+        text=True,
+        start_new_session=True,
+        preexec_fn=pdeathsig_term if term_on_parent_death else pdeathsig,
+        env=env,
+    )
+    return Child(name, LocalProc(p), time.monotonic())
