@@ -28,15 +28,15 @@ import zenoh
 from zenswarm import bus
 from zenswarm.bus import wire
 from zenswarm.compose.children import Child, start_local
+from zenswarm.compose.credentials import router_security
 from zenswarm.compose.policy import restart_policy
 from zenswarm.compose.progress import SwarmProgress
-from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED, PluginFailure, ScenarioError, ZenswarmError
+from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED, PluginFailure, ZenswarmError
 from zenswarm.judge.results import closing_lines, flight_results, write_outputs
 from zenswarm.judge.verdict import criteria_from_scenario
 from zenswarm.judge.watch import EndWatch
-from zenswarm.process import security
 from zenswarm.process.collector import Collector
-from zenswarm.process.paths import check_output_dir, lock_output_dir
+from zenswarm.process.paths import lock_output_dir
 from zenswarm.process.runtime import PLUGIN_FAILURE_MARK, gc_safe_point, gc_startup_done, kill_self_line
 from zenswarm.process.settings import (
     FlightSettings,
@@ -398,65 +398,10 @@ class Supervisor:
         raise AssertionError("unreachable")  # the last try returns or raises
 
     def _security(self, listen: list[str], out: Path) -> tuple[dict, list[str]]:
-        """Router settings and listen endpoints for --secure/--tls (secure by default off loopback)."""
-        a = self.args
-        self.keys_dir = None
-        open_net = not all(security.is_loopback_endpoint(e) for e in listen)
-        asked = a.secure or a.tls or a.keys is not None
-        if not (asked or (open_net and not a.insecure)):
-            if open_net:
-                self.say("WARNING: --insecure on a non-loopback address: anyone who reaches the router can command the swarm")
-            return {}, listen
-        auth: security.AuthMode = "tls" if a.tls else "usrpwd"
-        if a.tls:
-            listen = [security.tls_endpoint(e) for e in listen]
-        # before anything starts: the processes would each die on such an endpoint
-        try:
-            security.check_endpoints([*listen, *a.connect], auth)
-        except security.CredentialsError as e:
-            why = "secure mode" if asked else "secure mode (the default when the router is not on loopback only)"
-            raise security.CredentialsError(f"{why}: {e}") from None
-        if a.keys is not None:
-            self.keys_dir = self._user_keys(a.keys)
-        else:
-            self.keys_dir = self._run_keys(out / "keys")
-        self.say(f"secure mode: {'mutual TLS' if a.tls else 'user/password'} authentication, access control from the graph")
-        return security.router_security_config(self.keys_dir, self.sc, a.swarm, auth=auth), listen
-
-    def _user_keys(self, keys: Path) -> Path:
-        """``--keys DIR``: the user's own credentials, checked against this swarm, never rewritten."""
-        swarm = self.args.swarm
-        try:
-            why = security.manifest_mismatch(security.load_manifest(keys), self.sc, swarm)
-        except security.CredentialsError as e:
-            raise ScenarioError("--keys", str(e)) from None
-        if why:
-            raise ScenarioError(
-                "--keys",
-                f"the credentials in {keys} {why}; generate matching ones with "
-                f"`zenswarm keys SCENARIO --swarm {swarm} --out DIR` (see docs/security.md)",
-            )
-        return keys
-
-    def _run_keys(self, keys_dir: Path) -> Path:
-        """Credentials generated for this OUT (``OUT/keys``): reused while they fit this swarm,
-        else generated again (and said so)."""
-        swarm = self.args.swarm
-        check_output_dir(keys_dir, "--out")
-        manifest = keys_dir / security.MANIFEST_FILE
-        why = None
-        if manifest.exists():
-            try:
-                why = security.manifest_mismatch(security.load_manifest(keys_dir), self.sc, swarm, all_files=True)
-            except security.CredentialsError as e:
-                why = f"are unreadable ({e})"
-        if why is not None or not manifest.exists():
-            security.generate_credentials(self.sc, keys_dir, swarm, force=True)
-            if why is None:
-                self.say(f"generated credentials for this run in {keys_dir}")
-            else:
-                self.say(f"regenerated the credentials in {keys_dir}: the previous ones {why}")
-        return keys_dir
+        """The router's settings and listen endpoints (:func:`~zenswarm.compose.credentials.router_security`); keeps the keys' dir."""
+        sec = router_security(self.args, self.sc, listen, out, self.say)
+        self.keys_dir = sec.keys_dir
+        return sec.settings, sec.listen
 
     def all_roles(self) -> list[str]:
         """Every role of this swarm (whoever starts it), in start order."""

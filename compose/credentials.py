@@ -1,0 +1,91 @@
+"""A flight's security, as ``zenswarm up`` sets it up before its router opens: open, or secure
+(user/password or mutual TLS, with access control generated from the scenario's graph), and the
+credentials' directory the roles join with (the user's ``--keys DIR``, else generated into
+``OUT/keys``). Secure is the default whenever the router listens on a non-loopback address.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from zenswarm.errors import ScenarioError
+from zenswarm.process import security
+from zenswarm.process.paths import check_output_dir
+from zenswarm.process.settings import FlightSettings
+from zenswarm.scenario.config import Scenario
+
+__all__ = ["RouterSecurity", "router_security", "user_keys", "run_keys"]
+
+
+@dataclass(frozen=True)
+class RouterSecurity:
+    """What the router is opened with: its config ``settings`` (``{}``: an open router), the
+    endpoints it ``listen``\\ s on (``tls/`` ones with ``--tls``), and the credentials' directory
+    the roles join with (None: an open router)."""
+
+    settings: dict[str, Any]
+    listen: list[str]
+    keys_dir: Path | None
+
+
+def router_security(args: FlightSettings, sc: Scenario, listen: list[str], out: Path, say: Callable[[str], None]) -> RouterSecurity:
+    """The router's security for ``--secure``/``--tls``/``--keys`` (secure by default off
+    loopback, unless ``--insecure``: then a warning is said). An endpoint secure mode cannot use,
+    or credentials that do not fit this swarm: an error before anything starts (exit 2)."""
+    open_net = not all(security.is_loopback_endpoint(e) for e in listen)
+    asked = args.secure or args.tls or args.keys is not None
+    if not (asked or (open_net and not args.insecure)):
+        if open_net:
+            say("WARNING: --insecure on a non-loopback address: anyone who reaches the router can command the swarm")
+        return RouterSecurity({}, listen, None)
+    auth: security.AuthMode = "tls" if args.tls else "usrpwd"
+    if args.tls:
+        listen = [security.tls_endpoint(e) for e in listen]
+    # before anything starts: the processes would each die on such an endpoint
+    try:
+        security.check_endpoints([*listen, *args.connect], auth)
+    except security.CredentialsError as e:
+        why = "secure mode" if asked else "secure mode (the default when the router is not on loopback only)"
+        raise security.CredentialsError(f"{why}: {e}") from None
+    keys_dir = user_keys(args.keys, sc, args.swarm) if args.keys is not None else run_keys(out / "keys", sc, args.swarm, say)
+    say(f"secure mode: {'mutual TLS' if args.tls else 'user/password'} authentication, access control from the graph")
+    return RouterSecurity(security.router_security_config(keys_dir, sc, args.swarm, auth=auth), listen, keys_dir)
+
+
+def user_keys(keys: Path, sc: Scenario, swarm: str) -> Path:
+    """``--keys DIR``: the user's own credentials, checked against this swarm, never rewritten;
+    :class:`ScenarioError` naming ``--keys`` if they do not fit."""
+    try:
+        why = security.manifest_mismatch(security.load_manifest(keys), sc, swarm)
+    except security.CredentialsError as e:
+        raise ScenarioError("--keys", str(e)) from None
+    if why:
+        raise ScenarioError(
+            "--keys",
+            f"the credentials in {keys} {why}; generate matching ones with "
+            f"`zenswarm keys SCENARIO --swarm {swarm} --out DIR` (see docs/security.md)",
+        )
+    return keys
+
+
+def run_keys(keys_dir: Path, sc: Scenario, swarm: str, say: Callable[[str], None]) -> Path:
+    """Credentials generated for this OUT (``OUT/keys``): reused while they fit this swarm,
+    else generated again (and said so)."""
+    check_output_dir(keys_dir, "--out")
+    manifest = keys_dir / security.MANIFEST_FILE
+    why = None
+    if manifest.exists():
+        try:
+            why = security.manifest_mismatch(security.load_manifest(keys_dir), sc, swarm, all_files=True)
+        except security.CredentialsError as e:
+            why = f"are unreadable ({e})"
+    if why is not None or not manifest.exists():
+        security.generate_credentials(sc, keys_dir, swarm, force=True)
+        if why is None:
+            say(f"generated credentials for this run in {keys_dir}")
+        else:
+            say(f"regenerated the credentials in {keys_dir}: the previous ones {why}")
+    return keys_dir
