@@ -23,7 +23,7 @@ __all__ = ["RouterSecurity", "router_security", "user_keys", "run_keys"]
 @dataclass(frozen=True)
 class RouterSecurity:
     """What the router is opened with: its config ``settings`` (``{}``: an open router), the
-    endpoints it ``listen``\\ s on (``tls/`` ones with ``--tls``), and the credentials' directory
+    endpoints it listens on (``listen``; ``tls/`` ones with ``--tls``), and the credentials' directory
     the roles join with (None: an open router)."""
 
     settings: dict[str, Any]

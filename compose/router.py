@@ -1,4 +1,6 @@
-"""``python -m zenswarm.compose.router --listen tcp/127.0.0.1:7447 [--connect EP] [--set PATH=JSON ...]``:
+"""A swarm's Zenoh router: the one ``zenswarm up``'s supervisor opens in its own process
+(:func:`open_router`, a free port taken again if another program bound it first), and
+``python -m zenswarm.compose.router --listen tcp/127.0.0.1:7447 [--connect EP] [--set PATH=JSON ...]``:
 run a swarm router (:func:`zenswarm.bus.serve_router`) until SIGTERM/SIGINT (exit 0). Prints one
 line ``ready <zid> <endpoints...>`` once listening; exit 1 with a message on stderr if it cannot
 start (a bad ``--set`` included)."""
@@ -8,12 +10,45 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
+
+import zenoh
 
 from zenswarm import bus
 
-__all__ = ["build_parser", "parse_settings", "main"]
+__all__ = ["ROUTER_PORT_TRIES", "open_router", "build_parser", "parse_settings", "main"]
+
+ROUTER_PORT_TRIES = 5
+"""Without ``--listen`` the router's port is a free one, chosen a moment before the router binds
+it; another program (a second flight started at the same moment) may take it in between. Then a
+new free port, up to this many ports in all."""
+
+
+def open_router(
+    listen: list[str], settings: dict[str, Any], *, router_connect: Sequence[str], given: bool, say: Callable[[str], None]
+) -> tuple[Any, zenoh.Session, list[str]]:
+    """A router's session in this process (its context manager, entered; the session; the
+    endpoints it listens on), with its config ``settings`` (security), linked to the routers
+    ``router_connect``. ``given`` false: the port was chosen free a moment ago, and if another
+    program bound it since (two flights started at once) the router takes a new free port, up to
+    :data:`ROUTER_PORT_TRIES` ports, and says so (``say``). A port ``given`` (``--listen``) is never
+    changed: :class:`zenswarm.bus.BusError` naming ``--listen`` (exit 2)."""
+    for attempt in range(1, ROUTER_PORT_TRIES + 1):
+        cm = bus.open_session(bus.router_config(listen, connect=list(router_connect), settings=settings), handle_signals=False)
+        try:
+            return cm, cm.__enter__(), listen
+        except bus.BusError as e:
+            if "Address already in use" not in str(e) or attempt == ROUTER_PORT_TRIES:
+                raise
+            if given:
+                raise bus.BusError(f"--listen {', '.join(listen)}: the port is taken by another program (another flight?); "
+                                   "give another port, or leave --listen out for a free one") from None
+            port = bus.free_port()
+            say(f"the router's port was taken by another program before the router bound it ({', '.join(listen)}); "
+                f"taking port {port}")
+            listen = [ep.rpartition(":")[0] + f":{port}" for ep in listen]
+    raise AssertionError("unreachable")  # the last try returns or raises
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -31,6 +31,7 @@ from zenswarm.compose.children import Child, start_local
 from zenswarm.compose.credentials import router_security
 from zenswarm.compose.policy import restart_policy
 from zenswarm.compose.progress import SwarmProgress
+from zenswarm.compose.router import open_router
 from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED, PluginFailure, ZenswarmError
 from zenswarm.judge.results import closing_lines, flight_results, write_outputs
 from zenswarm.judge.verdict import criteria_from_scenario
@@ -60,11 +61,6 @@ a plug-in failure 4 and Ctrl-C 130 are :mod:`zenswarm.errors`'s)."""
 
 SITL_SEND_OFFSET = 40
 """With ``--plant mavlink`` simulated vehicle i sends from UDP P+40+i (PX4 SITL: 14580+i -> 14540+i)."""
-
-ROUTER_PORT_TRIES = 5
-"""Without ``--listen`` the router's port is a free one, chosen a moment before the router binds
-it; another program (a second flight started at the same moment) may take it in between. Then a
-new free port, up to this many ports in all."""
 
 EXTERNAL_GONE_GRACE_S = 0.5
 """An external role's liveliness token must stay gone this long before the role counts as dead:
@@ -375,27 +371,9 @@ class Supervisor:
             session_cm.__exit__(None, None, None)
 
     def _open_router(self, listen: list[str], settings: dict) -> tuple[Any, zenoh.Session, list[str]]:
-        """The router's session (its context manager, entered; the session; the endpoints it
-        listens on). Without ``--listen`` the port was chosen free a moment ago: if another program
-        bound it since (two flights started at once), the router takes a new free port, up to
-        :data:`ROUTER_PORT_TRIES` ports, and says so. A port given with ``--listen`` is never changed:
-        :class:`zenswarm.bus.BusError` naming ``--listen`` (exit 2)."""
+        """The router's session (:func:`zenswarm.compose.router.open_router`: a free port taken again if another program bound it)."""
         a = self.args
-        for attempt in range(1, ROUTER_PORT_TRIES + 1):
-            cm = bus.open_session(bus.router_config(listen, connect=list(a.router_connect), settings=settings), handle_signals=False)
-            try:
-                return cm, cm.__enter__(), listen
-            except bus.BusError as e:
-                if "Address already in use" not in str(e) or attempt == ROUTER_PORT_TRIES:
-                    raise
-                if a.listen:
-                    raise bus.BusError(f"--listen {', '.join(listen)}: the port is taken by another program (another flight?); "
-                                       "give another port, or leave --listen out for a free one") from None
-                port = bus.free_port()
-                self.say(f"the router's port was taken by another program before the router bound it ({', '.join(listen)}); "
-                         f"taking port {port}")
-                listen = [ep.rpartition(":")[0] + f":{port}" for ep in listen]
-        raise AssertionError("unreachable")  # the last try returns or raises
+        return open_router(listen, settings, router_connect=a.router_connect, given=bool(a.listen), say=self.say)
 
     def _security(self, listen: list[str], out: Path) -> tuple[dict, list[str]]:
         """The router's settings and listen endpoints (:func:`~zenswarm.compose.credentials.router_security`); keeps the keys' dir."""
