@@ -29,6 +29,7 @@ from zenswarm import bus
 from zenswarm.bus import wire
 from zenswarm.compose.children import Child, start_local
 from zenswarm.compose.credentials import router_security
+from zenswarm.compose.liveliness import EXTERNAL_GONE_GRACE_S, ExternalRoles, Tokens
 from zenswarm.compose.policy import restart_policy
 from zenswarm.compose.progress import SwarmProgress
 from zenswarm.compose.router import open_router
@@ -47,7 +48,7 @@ from zenswarm.process.settings import (
 from zenswarm.scenario.config import Scenario
 from zenswarm.scenario.plugins import STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
 
-__all__ = ["Supervisor", "role_names", "swarm_roles"]
+__all__ = ["Supervisor", "role_names", "swarm_roles", "EXTERNAL_GONE_GRACE_S"]
 
 LIVE_CHECK_S = 0.25
 """Wall seconds between two looks at whether the flight's outcome is decided (early end)."""
@@ -61,11 +62,6 @@ a plug-in failure 4 and Ctrl-C 130 are :mod:`zenswarm.errors`'s)."""
 
 SITL_SEND_OFFSET = 40
 """With ``--plant mavlink`` simulated vehicle i sends from UDP P+40+i (PX4 SITL: 14580+i -> 14540+i)."""
-
-EXTERNAL_GONE_GRACE_S = 0.5
-"""An external role's liveliness token must stay gone this long before the role counts as dead:
-its final diagnostics (``finished``), sent just before a normal exit, reach the collector's queue
-first but are read on the watch loop's next poll."""
 
 
 def role_names(n: int) -> list[str]:
@@ -103,9 +99,6 @@ class Supervisor:
         self.stop = threading.Event()
         self.stop_reason = ""
         self.print_lock = threading.Lock()
-        self.alive: set[str] = set()
-        self.seen: set[str] = set()  # processes whose token appeared at least once
-        self.gone_at: dict[str, tuple[float, int]] = {}  # process -> when its token went away (monotonic s, sim ns)
         self.pending_kills: dict[str, int] = {role: wire.t_ns(t) for role, t in (args.kill or ())}
         # lockstep: a swarm role kills itself at the exact tick (--kill-at-tick, its first start
         # only), so the fault falls on the same tick in every run; the rest are killed from here
@@ -117,6 +110,12 @@ class Supervisor:
             for role in [r for r in self.pending_kills if r in ("plant", "leader") or r.startswith("agent:")]:
                 self.kill_ticks[role] = -(-self.pending_kills.pop(role) // dt_ns)  # the first tick at or after T
         self.policy = restart_policy(scenario.restart, force=args.restart)
+        self.connect_endpoints: list[str] = []  # where the roles join the router, once it listens
+        self.tokens = Tokens(self.keys, lambda: self.collector.sim_t_ns if self.collector is not None else -1)
+        self._on_liveliness, self.gone_at = self.tokens.on_token, self.tokens.gone_at  # (tests drive the tokens by these)
+        watched = [r for r in self.all_roles() if r in args.external and r != "vehicles"]  # the vehicles: no Zenoh, no token
+        self.external = ExternalRoles(watched, self.tokens, timeout_s=args.external_timeout, swarm=args.swarm,
+                                      time_limit_s=scenario.timing.time_limit_s, policy=self.policy, say=self.say)
         self.restart_at: dict[str, float] = {}
         self.restarts: dict[str, int] = {}
         self.deaths: list[dict] = []
@@ -339,8 +338,7 @@ class Supervisor:
                 # minutes of a large swarm's traffic, so the router never waits on this queue.
                 self._bus_sub = session.declare_subscriber(self.keys.all, zenoh.handlers.FifoChannel(COLLECTOR_QUEUE))
                 subs.append(self._bus_sub)
-                subs.append(session.liveliness().declare_subscriber(self.keys.alive_all, self._on_liveliness, history=True))
-                subs.append(session.liveliness().declare_subscriber(self.keys.alive_all + "/*", self._on_sender_token, history=True))
+                subs += self.tokens.subscribe(session, collector.token)
                 self.say(
                     f"swarm '{a.swarm}': router on {', '.join(listen)}; {sc.n} UAVs; "
                     f"{'realtime' if a.realtime else 'lockstep'}; scenario {sc.name}"
@@ -393,8 +391,7 @@ class Supervisor:
     def external_roles(self) -> list[str]:
         """The ``--external`` roles this supervisor watches through their liveliness tokens (the
         simulated MAVLink vehicles have no Zenoh session: they cannot be watched)."""
-        external = set(self.args.external)
-        return [r for r in self.all_roles() if r in external and r != "vehicles"]
+        return self.external.names
 
     def _report(self, out: Path, recording: Path) -> None:
         """Flight report from the recording (``--record``) alone (``--report``); partial if the recorder died."""
@@ -415,28 +412,6 @@ class Supervisor:
             return
         self.say(f"report: {len(written)} files in {out / 'report'}")
 
-    def _on_liveliness(self, sample: Any) -> None:
-        try:
-            _, _, proc = self.keys.parse(str(sample.key_expr))
-        except ZenswarmError:
-            return
-        if proc is None:
-            return
-        if str(sample.kind).endswith("PUT"):
-            self.alive.add(proc)
-            self.seen.add(proc)
-            self.gone_at.pop(proc, None)
-        else:
-            self.alive.discard(proc)
-            sim_t = self.collector.sim_t_ns if self.collector is not None else -1
-            self.gone_at[proc] = (time.monotonic(), max(sim_t, 0))
-
-    def _on_sender_token(self, sample: Any) -> None:
-        """``alive/<process>/<zid>``: which session is which process (for the collector)."""
-        parts = str(sample.key_expr).rsplit("/", 2)
-        if len(parts) == 3 and self.collector is not None:
-            self.collector.token(parts[1], parts[2], str(sample.kind).endswith("PUT"))
-
     def _recorder_died(self, child: Child, rc: int, collector: Collector) -> None:
         """The recorder is not a vehicle: its death does not end the flight. The loss is said
         now and goes into results.json (``recording_loss``); the file keeps what was written
@@ -454,63 +429,28 @@ class Supervisor:
             f"{self.args.record} holds what was written before (results.json: recording_loss){tail}"
         )
 
-    @staticmethod
-    def _token_names(role: str) -> tuple[str, ...]:
-        """The processes whose token stands for ``role``: an external plant may be the MAVLink
-        bridge run by hand (``zenswarm bridge mavlink``), which announces itself as ``bridge``."""
-        return ("plant", "bridge") if role == "plant" else (role,)
-
-    def _role_ended_normally(self, role: str, collector: Collector) -> bool:
-        """A role's token went away: did it end its part of the flight? Yes if its last
-        diagnostics say ``finished``, or if the plant's clock already reached the time limit (the
-        flight is over: the others leave once the plant is gone)."""
-        if any(collector.diag.get(p, {}).get("finished") is True for p in self._token_names(role)):
-            return True
-        return collector.sim_t_ns >= wire.t_ns(self.sc.timing.time_limit_s)
-
     def _watch_external(self, collector: Collector, now: float, since: float) -> int | None:
-        """``--external`` roles, known only through their liveliness tokens: one whose token
-        went away before it finished is a process that died (exit 3; this supervisor did not
-        start it, so it cannot restart it), one that never announced itself within
-        ``--external-timeout`` too. Returns the exit code, or None while all is well."""
-        a = self.args
-        for role in self.external_roles():
-            names = self._token_names(role)
-            if any(p in self.alive for p in names):
-                continue
-            t = max(collector.sim_t_ns, 0) / 1e9
-            if not any(p in self.seen for p in names):
-                if now - since < a.external_timeout:
-                    continue
-                self.say(f"external role {role} never announced itself within {a.external_timeout:g} s "
-                         f"(--external-timeout); start it with `zenswarm up SCENARIO --only {role} --swarm {a.swarm} "
-                         f"--connect {self.connect_endpoints[0]}`; aborting")
-                self.deaths.append({"process": role, "how": f"never announced itself within {a.external_timeout:g} s", "sim_time_s": t})
-                self.failed = role
-                return EXIT_PROCESS_FAILED
-            gone = max((g for p in names if (g := self.gone_at.get(p)) is not None), default=None)
-            if gone is None or now - gone[0] < EXTERNAL_GONE_GRACE_S or self._role_ended_normally(role, collector):
-                continue
-            t = gone[1] / 1e9
-            self.say(f"process {role} died (external: its liveliness token went away) at sim time {t:.2f} s")
-            self.deaths.append({"process": role, "how": "liveliness token gone (external)", "sim_time_s": t})
-            if self.policy.enabled and self.policy.allows(role):
-                self.say(f"{role} is external: this supervisor did not start it and cannot restart it; aborting the mission")
-            self.failed = role
-            return EXIT_PROCESS_FAILED
-        return None
+        """``--external`` roles, known only through their liveliness tokens: one whose token went
+        away before it finished, or that never announced itself within ``--external-timeout``, is a
+        process that died (:meth:`ExternalRoles.check`): exit 3. None while all is well."""
+        death = self.external.check(collector, now, since, self.connect_endpoints)
+        if death is None:
+            return None
+        self.deaths.append(death)
+        self.failed = death["process"]
+        return EXIT_PROCESS_FAILED
 
     def _child_state(self, name: str, c: Child) -> str:
         """One of our roles for the progress line: up, exit N, leaving or starting. The simulated
         MAVLink vehicles have no Zenoh session (no liveliness token): they are up while their
         process runs and the bridge reports a vehicle past ``connecting`` (it hears them)."""
-        if name in self.alive:
+        if name in self.tokens.alive:
             return "up"
         if c.returncode is not None:
             return "exit " + str(c.returncode)
         if name == "vehicles" and c.proc.poll() is None and self._bridge_hears_vehicles():
             return "up"
-        return "leaving" if name in self.seen else "starting"
+        return "leaving" if name in self.tokens.seen else "starting"
 
     def _bridge_hears_vehicles(self) -> bool:
         """The bridge's last diag shows a UAV past ``connecting`` (``phases`` = "1:ready,...")."""
@@ -538,10 +478,7 @@ class Supervisor:
         """The roles' states for the progress line: ours (up, starting, leaving, exit N) and the external
         ones (waiting until their token appears, up, gone)."""
         out = [f"{name}:{self._child_state(name, c)}" for name, c in self.children.items()]
-        for role in self.external_roles():
-            names = self._token_names(role)
-            state = "up" if any(p in self.alive for p in names) else ("gone" if any(p in self.seen for p in names) else "waiting")
-            out.append(f"{role}:{state}(external)")
+        out += self.external.health()
         return " ".join(out)
 
     def _watch(self, collector: Collector) -> int:
@@ -692,7 +629,7 @@ class Supervisor:
         failed = {f.process for f in first}
         exited = {name for name, c in self.children.items() if c.returncode is not None}
         if stage == STAGE_BUILD:
-            return all(r in self.seen or r in exited or r in failed for r in self.roles())
+            return all(r in self.tokens.seen or r in exited or r in failed for r in self.roles())
         if k > 0 and not collector.tick_complete(k - 1):
             return False
         if stage in (STAGE_SHARE, STAGE_STEP) and k < collector.T:
