@@ -11,7 +11,6 @@ is the only subscriber to the whole key space; the swarm's processes see only th
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -30,23 +29,23 @@ from zenswarm.bus import wire
 from zenswarm.compose.children import Child, start_local
 from zenswarm.compose.credentials import router_security
 from zenswarm.compose.liveliness import EXTERNAL_GONE_GRACE_S, ExternalRoles, Tokens
+from zenswarm.compose.plugin_failures import PluginFailures, failure_settled
 from zenswarm.compose.policy import restart_policy
 from zenswarm.compose.progress import SwarmProgress
 from zenswarm.compose.router import open_router
-from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED, PluginFailure, ZenswarmError
+from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED, ZenswarmError
 from zenswarm.judge.results import closing_lines, flight_results, write_outputs
 from zenswarm.judge.verdict import criteria_from_scenario
 from zenswarm.judge.watch import EndWatch
 from zenswarm.process.collector import Collector
 from zenswarm.process.paths import lock_output_dir
-from zenswarm.process.runtime import PLUGIN_FAILURE_MARK, gc_safe_point, gc_startup_done, kill_self_line
+from zenswarm.process.runtime import gc_safe_point, gc_startup_done, kill_self_line
 from zenswarm.process.settings import (
     FlightSettings,
     RoleSettings,
     encode,
 )
 from zenswarm.scenario.config import Scenario
-from zenswarm.scenario.plugins import STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
 
 __all__ = ["Supervisor", "role_names", "swarm_roles", "EXTERNAL_GONE_GRACE_S"]
 
@@ -115,7 +114,7 @@ class Supervisor:
         self._on_liveliness, self.gone_at = self.tokens.on_token, self.tokens.gone_at  # (tests drive the tokens by these)
         watched = [r for r in self.all_roles() if r in args.external and r != "vehicles"]  # the vehicles: no Zenoh, no token
         self.external = ExternalRoles(watched, self.tokens, timeout_s=args.external_timeout, swarm=args.swarm,
-                                      time_limit_s=scenario.timing.time_limit_s, policy=self.policy, say=self.say)
+                                      time_limit_s=scenario.timing.time_limit_s, policy=self.policy, say=lambda text: self.say(text))
         self.restart_at: dict[str, float] = {}
         self.restarts: dict[str, int] = {}
         self.deaths: list[dict] = []
@@ -123,7 +122,7 @@ class Supervisor:
         self.watch = EndWatch(criteria_from_scenario(scenario), scenario.timing.n_ticks, full_time=args.full_time,
                               stop_at_goal=args.stop_at_goal, realtime=args.realtime)
         self.recording_loss: dict | None = None  # the recorder died mid-flight (_recorder_died)
-        self.plugin_failures: list[PluginFailure] = []  # what processes that exited with 4 reported
+        self.plugin_failures = PluginFailures(lambda text: self.say(text))  # what processes that exited with 4 reported
         # the vehicles' ports P+i (the bridge listens) and their send ports P+40+i, all free
         self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n, also=(SITL_SEND_OFFSET,))
         # --plant crazyflie: simulated Crazyflie i on udp://127.0.0.1:P+i
@@ -139,16 +138,8 @@ class Supervisor:
     def _on_line(self, child: Child, line: str) -> bool:
         """One line of a child's output: a plug-in's failure report is taken (not kept), the rest
         printed (unless children are quiet) and kept."""
-        at = line.find(PLUGIN_FAILURE_MARK)
-        if at >= 0:  # a plug-in failed in this child (zenswarm.process.runtime.report_plugin_failure)
-            try:
-                f = PluginFailure.from_dict(json.loads(line[at + len(PLUGIN_FAILURE_MARK) :]))
-            except (ValueError, KeyError, TypeError, AssertionError):
-                pass
-            else:
-                self.plugin_failures.append(f)
-                self.say(f"plug-in failed: {f}")
-                return False
+        if self.plugin_failures.take_line(line):  # a plug-in failed in this child: taken, not printed
+            return False
         if not self.args.quiet_children:
             with self.print_lock:
                 print(f"[{child.name}] {line}", flush=True)
@@ -497,7 +488,7 @@ class Supervisor:
                 return EXIT_INTERRUPTED
             now = time.monotonic()
             done, code = self._check_children(collector, now)
-            self._external_plugin_failures(collector)
+            self.plugin_failures.from_diagnostics(collector.diag, self.external.names)  # --external roles' failures
             if code == EXIT_PLUGIN_FAILED or self.plugin_failures:
                 return self._drain_plugin_failures(collector)
             if code is None:
@@ -573,21 +564,7 @@ class Supervisor:
         """A child that exited with 4: did it report its plug-in's failure
         (:data:`zenswarm.process.runtime.PLUGIN_FAILURE_MARK`, read by :meth:`_pump`)? If not, it died."""
         c.join_output(5.0)  # its last lines: the output ends with the process
-        return any(f.process == c.name for f in self.plugin_failures)
-
-    def _external_plugin_failures(self, collector: Collector) -> None:
-        """A role on another host (``--external``) reports its plug-in's failure in its
-        diagnostics (:func:`zenswarm.process.runtime.report_plugin_failure`): take it as a child's line."""
-        for name in self.external_roles():
-            text = (collector.diag.get(name) or {}).get("plugin_failure")
-            if not isinstance(text, str) or any(f.process == name for f in self.plugin_failures):
-                continue
-            try:
-                f = PluginFailure.from_dict(json.loads(text))
-            except (ValueError, KeyError, TypeError, AssertionError):
-                continue
-            self.plugin_failures.append(f)
-            self.say(f"plug-in failed on {name}: {f}")
+        return self.plugin_failures.reported_by(c.name)
 
     def _drain_plugin_failures(self, collector: Collector) -> int:
         """A plug-in failed: wait until the flight before it is complete and every process
@@ -604,9 +581,12 @@ class Supervisor:
                     c.returncode = rc
                     if rc == EXIT_PLUGIN_FAILED:
                         self._took_plugin_failure(c)  # its last lines read
-            self._external_plugin_failures(collector)
-            first = first_failures(self.plugin_failures)
-            if self._resolved(collector, first) or self.stop.is_set():
+            self.plugin_failures.from_diagnostics(collector.diag, self.external.names)
+            first = self.plugin_failures.first()
+            exited = {name for name, c in self.children.items() if c.returncode is not None}
+            settled = failure_settled(collector, first, realtime=self.args.realtime, roles=self.roles(), announced=self.tokens.seen,
+                                      exited=exited)  # fmt: skip
+            if settled or self.stop.is_set():
                 break
             if time.monotonic() > deadline:
                 self.say("not every process gave its output of the failed tick in time; judging what arrived")
@@ -614,29 +594,11 @@ class Supervisor:
             time.sleep(0.02)
         end = self.watch.plugin_failed(collector, first[0].tick)
         if not end.plugin_failed:  # decided before the plug-in failed: the run had ended there
-            self.plugin_failures = []
+            self.plugin_failures.keep([])
             self.say(end.why)
             return EXIT_OK
-        self.plugin_failures = first
+        self.plugin_failures.keep(first)
         return EXIT_PLUGIN_FAILED
-
-    def _resolved(self, collector: Collector, first: list[PluginFailure]) -> bool:
-        """Lockstep: the ticks before the failed one are complete and every other process has
-        passed the failed (tick, stage) or failed in it. Realtime: at once (ticks are held)."""
-        if self.args.realtime:
-            return True
-        k, stage = first[0].order
-        failed = {f.process for f in first}
-        exited = {name for name, c in self.children.items() if c.returncode is not None}
-        if stage == STAGE_BUILD:
-            return all(r in self.tokens.seen or r in exited or r in failed for r in self.roles())
-        if k > 0 and not collector.tick_complete(k - 1):
-            return False
-        if stage in (STAGE_SHARE, STAGE_STEP) and k < collector.T:
-            have = collector.outputs_of_tick("ref" if stage == STAGE_SHARE else "cmd", k)
-            agents = [wire.agent(i + 1) for i in range(self.sc.n)]
-            return all(have[i] or a in failed or a in exited for i, a in enumerate(agents))
-        return True
 
     def _restart_if_due(self, c: Child, now: float) -> None:
         if now >= self.restart_at[c.name]:
@@ -690,7 +652,7 @@ class Supervisor:
             ts, sc, wall_time_s=time.monotonic() - self.t_start, full_time=self.args.full_time, faults=self.args.faults.plan(sc),
             facts=self._run_facts(collector), died=(dead, how) if code == EXIT_PROCESS_FAILED else None,
             interrupted=self.stop_reason if code == EXIT_INTERRUPTED else None,
-            plugin_failures=self.plugin_failures if code == EXIT_PLUGIN_FAILED else (),
+            plugin_failures=list(self.plugin_failures) if code == EXIT_PLUGIN_FAILED else (),
         )  # fmt: skip
         write_outputs(out, ts, res)
         for line in closing_lines(res, out):
