@@ -18,6 +18,8 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -28,13 +30,14 @@ from zenswarm import bus
 from zenswarm.bus import wire
 from zenswarm.compose.children import Child, start_local
 from zenswarm.compose.credentials import router_security
+from zenswarm.compose.flight_results import judge_and_write, recording_lost, run_facts
+from zenswarm.compose.hooks import EndHook, FlightEnd, Tap
 from zenswarm.compose.liveliness import EXTERNAL_GONE_GRACE_S, ExternalRoles, Tokens
 from zenswarm.compose.plugin_failures import PluginFailures, failure_settled
 from zenswarm.compose.policy import restart_policy
 from zenswarm.compose.progress import SwarmProgress
 from zenswarm.compose.router import open_router
-from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED, ZenswarmError
-from zenswarm.judge.results import closing_lines, flight_results, write_outputs
+from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED
 from zenswarm.judge.verdict import criteria_from_scenario
 from zenswarm.judge.watch import EndWatch
 from zenswarm.process.collector import Collector
@@ -128,7 +131,8 @@ class Supervisor:
         # --plant crazyflie: simulated Crazyflie i on udp://127.0.0.1:P+i
         self.cf_base_port = (args.crazyflie_base_port or bus.free_udp_block(scenario.n)) if args.plant == "crazyflie" else None
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
-        self.live: Any = None  # --live: the view (zenswarm.bridge.views.live.open_view), bound by _run_up before run()
+        self.taps: list[Tap] = []  # views fed every message of the bus (--live: attached by compose/up.py)
+        self.on_end: list[EndHook] = []  # called once the results are written (--report: attached by compose/up.py)
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -345,9 +349,9 @@ class Supervisor:
             finally:
                 self.terminate_all()
                 if self._bus_sub is not None:
-                    collector.poll(self._bus_sub, self._live_tap())  # what arrived after the last loop
-                if self.live is not None:
-                    self.live.publish()  # the flight's last frame
+                    collector.poll(self._bus_sub, self._tap())  # what arrived after the last loop
+                for t in self.taps:
+                    t.publish()  # the flight's last frame
                 for s in subs:
                     try:
                         s.undeclare()
@@ -384,41 +388,11 @@ class Supervisor:
         simulated MAVLink vehicles have no Zenoh session: they cannot be watched)."""
         return self.external.names
 
-    def _report(self, out: Path, recording: Path) -> None:
-        """Flight report from the recording (``--record``) alone (``--report``); partial if the recorder died."""
-        if self.recording_loss is not None:
-            self.say(
-                f"report: warning: the recorder died at sim time {self.recording_loss['died_at_sim_time_s']:.2f} s: "
-                "the report is partial, from what was recorded before"
-            )
-        try:
-            from zenswarm.bridge.reports.report import report_recording
-
-            written = report_recording(
-                recording, out / "report", full_time=self.args.full_time, warn=lambda text: self.say(f"report: warning: {text}"),
-                formats=self.args.report_format,
-            )
-        except ZenswarmError as e:
-            self.say(f"report failed: {e}")
-            return
-        self.say(f"report: {len(written)} files in {out / 'report'}")
-
     def _recorder_died(self, child: Child, rc: int, collector: Collector) -> None:
-        """The recorder is not a vehicle: its death does not end the flight. The loss is said
-        now and goes into results.json (``recording_loss``); the file keeps what was written
-        (chunks are flushed every 0.25 s; ``zenswarm recover`` closes it). The plant waited for
-        the recorder only before tick 0, so nothing waits for it now."""
-        how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
-        t = max(collector.sim_t_ns, 0) / 1e9
-        self.recording_loss = {"died_at_sim_time_s": t, "how": how, "recording": str(self.args.record)}
-        error = next((ln for ln in reversed(child.lines) if ln.startswith("recorder: error:")), None)
-        if error is not None:  # why it stopped, in its words (e.g. the disk is full: ENOSPC)
-            self.recording_loss["error"] = error.removeprefix("recorder: error: ")
-        tail = "; last output: " + " | ".join(child.lines[-3:]) if child.lines else ""
-        self.say(
-            f"recording lost: the recorder died ({how}) at sim time {t:.2f} s; the flight goes on unrecorded, "
-            f"{self.args.record} holds what was written before (results.json: recording_loss){tail}"
-        )
+        """The recorder is not a vehicle: its death does not end the flight; the loss is said and
+        kept for results.json (:func:`~zenswarm.compose.flight_results.recording_lost`). The plant
+        waited for the recorder only before tick 0, so nothing waits for it now."""
+        self.recording_loss = recording_lost(child, rc, collector.sim_t_ns, self.args.record, self.say)
 
     def _watch_external(self, collector: Collector, now: float, since: float) -> int | None:
         """``--external`` roles, known only through their liveliness tokens: one whose token went
@@ -449,22 +423,6 @@ class Supervisor:
         phases = str(d.get("phases", ""))
         return any(p.partition(":")[2] not in ("", "connecting") for p in phases.split(","))
 
-    def _vehicles_figures(self, collector: Collector) -> dict[str, Any] | None:
-        """results.json ``vehicles``: the MAVLink vehicles as the bridge last reported them
-        (phases, armed/airborne/unhealthy counts, worst link latency and state age in ms, -1 if
-        unmeasured; the Crazyflie bridge's positioning and oldest fed position's age, ms) and the
-        vehicles process's exit status; None without ``--plant mavlink``."""
-        if "vehicles" not in self.children and "bridge" not in collector.diag:
-            return None
-        d = collector.diag.get("bridge", {})
-        keys = ("phases", "armed_uavs", "airborne_uavs", "unhealthy_uavs", "max_latency_ms", "max_state_age_ms", "refused", "link_lost",
-                "positioning", "max_extpos_age_ms")  # fmt: skip
-        out: dict[str, Any] = {k: d[k] for k in keys if k in d}
-        c = self.children.get("vehicles")
-        if c is not None:
-            out["process_exit"] = c.status()
-        return out
-
     def _health(self) -> str:
         """The roles' states for the progress line: ours (up, starting, leaving, exit N) and the external
         ones (waiting until their token appears, up, gone)."""
@@ -478,11 +436,11 @@ class Supervisor:
         wall0 = time.monotonic()
         a, sc = self.args, self.sc
         progress = SwarmProgress(sc.leader.goal, sc.timing.time_limit_s, a.progress_every, a.quiet, self.say, wall0)
-        tap = self._live_tap()
+        tap = self._tap()
         while True:
             collector.poll(self._bus_sub, tap)
-            if self.live is not None:
-                self.live.maybe_publish(time.monotonic())
+            for t in self.taps:
+                t.maybe_publish(time.monotonic())
             if self.stop.is_set():
                 self.say(f"stopping: {self.stop_reason}")
                 return EXIT_INTERRUPTED
@@ -525,11 +483,19 @@ class Supervisor:
                          "(--lockstep-timeout) after the processes ended; judging what arrived")
                 return
             time.sleep(0.01)
-            collector.poll(self._bus_sub, self._live_tap())
+            collector.poll(self._bus_sub, self._tap())
 
-    def _live_tap(self) -> Any:
-        """The live view's feed (``--live``), else None."""
-        return self.live.feed if self.live is not None else None
+    def _tap(self) -> Callable[[str, bytes], None] | None:
+        """What the collector hands each message it takes to: the taps' feeds (None without one)."""
+        if len(self.taps) <= 1:
+            return self.taps[0].feed if self.taps else None
+        taps = list(self.taps)
+
+        def feed(key: str, payload: bytes) -> None:
+            for t in taps:
+                t.feed(key, payload)
+
+        return feed
 
     def _check_children(self, collector: Collector, now: float) -> tuple[bool, int | None]:
         """One look at the processes started here (restarting those due): (all done, exit code
@@ -574,7 +540,7 @@ class Supervisor:
         the simulator: :meth:`EndWatch.plugin_failed`). Returns 4, or 0 when the run was decided before."""
         deadline = time.monotonic() + self.args.lockstep_timeout + 10.0
         while True:
-            collector.poll(self._bus_sub, self._live_tap())
+            collector.poll(self._bus_sub, self._tap())
             for c in list(self.children.values()):
                 rc = c.proc.poll()
                 if rc is not None and c.returncode is None:
@@ -638,48 +604,23 @@ class Supervisor:
                 del self.pending_kills[role]
 
     def _finish(self, collector: Collector, code: int, out: Path) -> int:
-        """Judge the flight, write OUT/results.json and OUT/timeseries.npz (and the report with
-        ``--report``); the exit code: ``code`` if not 0, else 0 or 1 by the verdict."""
-        sc = self.sc
-        # realtime, or a process that was down: a tick without a message holds the previous value
-        fill = self.args.realtime or bool(self.deaths)
-        stopped = code not in (EXIT_OK, EXIT_PLUGIN_FAILED)  # by a dead process or a signal: judge the ticks flown
-        ts = collector.series(self.watch.judged_ticks(collector, stopped, fill), fill=fill)
-        collector.close()  # every sample is in the series: free the spool
+        """Judge the flight, write OUT/results.json and OUT/timeseries.npz
+        (:func:`~zenswarm.compose.flight_results.judge_and_write`), then call the end hooks (the
+        report with ``--report``); the exit code: ``code`` if not 0, else 0 or 1 by the verdict."""
+        a = self.args
         dead = getattr(self, "failed", "?")  # exit 3: the process that died for good
         how = next((d["how"] for d in reversed(self.deaths) if d["process"] == dead), "unknown")
-        res = flight_results(
-            ts, sc, wall_time_s=time.monotonic() - self.t_start, full_time=self.args.full_time, faults=self.args.faults.plan(sc),
-            facts=self._run_facts(collector), died=(dead, how) if code == EXIT_PROCESS_FAILED else None,
-            interrupted=self.stop_reason if code == EXIT_INTERRUPTED else None,
-            plugin_failures=list(self.plugin_failures) if code == EXIT_PLUGIN_FAILED else (),
+        facts = partial(run_facts, a, collector, listen=self.listen, children=self.children, deaths=self.deaths,
+                        restarts=self.restarts, recording_loss=self.recording_loss)  # fmt: skip
+        res = judge_and_write(
+            collector, self.watch, self.sc, out, stopped=code not in (EXIT_OK, EXIT_PLUGIN_FAILED), fill=a.realtime or bool(self.deaths),
+            full_time=a.full_time, faults=a.faults.plan(self.sc), facts=facts, t_start=self.t_start,
+            died=(dead, how) if code == EXIT_PROCESS_FAILED else None, interrupted=self.stop_reason if code == EXIT_INTERRUPTED else None,
+            plugin_failures=list(self.plugin_failures) if code == EXIT_PLUGIN_FAILED else (), say=self.say,
         )  # fmt: skip
-        write_outputs(out, ts, res)
-        for line in closing_lines(res, out):
-            self.say(line)
-        if self.args.record is not None and self.args.report:
-            self._report(out, self.args.record)
+        end = FlightEnd(out, code, res, a.record, self.recording_loss, self.say)
+        for hook in self.on_end:
+            hook(end)
         if code != EXIT_OK:
             return code
         return EXIT_OK if res["success"] else EXIT_MISSION_FAILED
-
-    def _run_facts(self, collector: Collector) -> dict[str, Any]:
-        """What results.json says of the run beside the verdict: mode, processes, recording, diagnostics."""
-        a = self.args
-        res: dict[str, Any] = {
-            "mode": "realtime" if a.realtime else "lockstep",
-            "swarm": a.swarm,
-            "router": list(self.listen),  # the endpoints the router listened on (its port: chosen free without --listen)
-            # a child stopped by terminate_all has its code on its process only (returncode is set when one dies)
-            "processes": {name: c.status() for name, c in self.children.items()},
-            "vehicles": self._vehicles_figures(collector),
-            "process_deaths": self.deaths,
-            "restarts": self.restarts,
-            **collector.facts(),  # failsafe, diagnostics, decoder_rejects, foreign_samples
-            "supervisor_zenoh_threads": bus.zenoh_threads(),  # the router's (ZENOH_RUNTIME_ROUTER)
-        }
-        if a.record is not None:
-            res["recording"] = str(a.record)
-            if self.recording_loss is not None:
-                res["recording_loss"] = self.recording_loss
-        return res

@@ -30,6 +30,7 @@ from zenswarm.bridge.args import (
 )
 from zenswarm.bridge.views.live import FOXGLOVE_DEFAULT, LIVE_HELP, LiveTarget, live_target
 from zenswarm.bus import wire
+from zenswarm.compose.end_report import report_hook
 from zenswarm.compose.supervisor import SITL_SEND_OFFSET, Supervisor, role_names, swarm_roles
 from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.process import rtsched
@@ -208,17 +209,21 @@ def fly(args: FlightSettings) -> int:
             raise ScenarioError("--live", "not with --only: the live view runs beside the supervisor of the whole swarm")
         return _run_only(args)
     sup = Supervisor(args, sc)
+    view: Any = None
     if args.live is not None:  # bound now: a port in use is exit 2 before any process starts
         from zenswarm.bridge.views.live import open_view
 
-        sup.live = open_view(LiveTarget(args.live.viewer, args.live.port), sc, args.swarm)
-        sup.say(sup.live.how_to_open())
+        view = open_view(LiveTarget(args.live.viewer, args.live.port), sc, args.swarm)
+        sup.taps.append(view)  # fed from the supervisor's bus loop
+        sup.say(view.how_to_open())
+    if args.record is not None and args.report:
+        sup.on_end.append(report_hook(args.report_format, full_time=args.full_time))  # from the recording, once results are written
     try:
         sup.t_start = time.monotonic()
         rc = sup.run()
-        if sup.live is not None and sup.live.viewer == "rerun" and sys.stdin is not None and sys.stdin.isatty():
+        if view is not None and view.viewer == "rerun" and sys.stdin is not None and sys.stdin.isatty():
             # Rerun's server holds the whole flight: a browser opened now still gets all of it
-            sup.say(f"flight over; Rerun keeps serving it on {sup.live.url} until you press Enter (or Ctrl-C)")
+            sup.say(f"flight over; Rerun keeps serving it on {view.url} until you press Enter (or Ctrl-C)")
             for sig in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(sig, signal.default_int_handler)  # raise KeyboardInterrupt here, not set the flight's stop flag
             try:
@@ -227,8 +232,8 @@ def fly(args: FlightSettings) -> int:
                 pass
         return rc
     finally:
-        if sup.live is not None:
-            sup.live.close()
+        if view is not None:
+            view.close()
 
 
 def run_settings_argv(argv: list[str]) -> int:

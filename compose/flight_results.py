@@ -1,0 +1,116 @@
+"""A supervised flight's results: judged on the series its collector assembled (the ticks its
+:class:`~zenswarm.judge.watch.EndWatch` says), written and said by the code the simulator's are
+(:mod:`zenswarm.judge.results`), with what only the supervisor knows beside the verdict
+(:func:`run_facts`: the mode, the router, its processes, their deaths and restarts, the vehicles as
+the bridge reported them, the recording and its loss, :func:`recording_lost`).
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from zenswarm import bus
+from zenswarm.compose.children import Child
+from zenswarm.errors import PluginFailure
+from zenswarm.judge.results import closing_lines, flight_results, write_outputs
+from zenswarm.judge.watch import EndWatch
+from zenswarm.link import FaultPlan
+from zenswarm.process.collector import Collector
+from zenswarm.process.settings import FlightSettings
+from zenswarm.scenario.config import Scenario
+
+__all__ = ["exit_how", "judge_and_write", "recording_lost", "run_facts", "vehicles_figures"]
+
+BRIDGE_FIGURES = ("phases", "armed_uavs", "airborne_uavs", "unhealthy_uavs", "max_latency_ms", "max_state_age_ms", "refused",
+                  "link_lost", "positioning", "max_extpos_age_ms")  # fmt: skip
+"""The fields of the bridge's last diagnostics results.json's ``vehicles`` keeps."""
+
+
+def exit_how(rc: int) -> str:
+    """``killed by SIGKILL`` or ``exit status 3``: how a process ended, as said and in results.json."""
+    return f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
+
+
+def judge_and_write(
+    collector: Collector, watch: EndWatch, sc: Scenario, out: Path, *, stopped: bool, fill: bool, full_time: bool,
+    faults: FaultPlan | None, facts: Callable[[], dict[str, Any]], t_start: float, died: tuple[str, str] | None, interrupted: str | None,
+    plugin_failures: Sequence[PluginFailure], say: Callable[[str], None],
+) -> dict[str, Any]:  # fmt: skip
+    """Judge the flight on the ticks ``watch`` says (``stopped`` by a dead process or a signal: the
+    ticks flown; ``fill``: a tick without a message holds the previous value), write
+    OUT/results.json and OUT/timeseries.npz, ``say`` the closing lines; the results. ``facts()``
+    (:func:`run_facts`) is asked once the series is taken (the decoder's counters then count the
+    spooled samples too), and the spool is then freed; ``t_start``: when the flight started
+    (monotonic s)."""
+    ts = collector.series(watch.judged_ticks(collector, stopped, fill), fill=fill)
+    collector.close()  # every sample is in the series: free the spool
+    res = flight_results(
+        ts, sc, wall_time_s=time.monotonic() - t_start, full_time=full_time, faults=faults, facts=facts(), died=died,
+        interrupted=interrupted, plugin_failures=plugin_failures,
+    )  # fmt: skip
+    write_outputs(out, ts, res)
+    for line in closing_lines(res, out):
+        say(line)
+    return res
+
+
+def run_facts(
+    args: FlightSettings, collector: Collector, *, listen: Sequence[str], children: Mapping[str, Child], deaths: list[dict[str, Any]],
+    restarts: dict[str, int], recording_loss: dict[str, Any] | None,
+) -> dict[str, Any]:  # fmt: skip
+    """What results.json says of the run beside the verdict: mode, router (the endpoints it
+    listened on), processes (exit statuses), vehicles, deaths, restarts, the collector's facts
+    (failsafe, diagnostics, decoder rejects, foreign samples), the recording and its loss."""
+    res: dict[str, Any] = {
+        "mode": "realtime" if args.realtime else "lockstep",
+        "swarm": args.swarm,
+        "router": list(listen),  # its port: chosen free without --listen
+        # a child stopped by terminate_all has its code on its process only (returncode is set when one dies)
+        "processes": {name: c.status() for name, c in children.items()},
+        "vehicles": vehicles_figures(children, collector.diag),
+        "process_deaths": deaths,
+        "restarts": restarts,
+        **collector.facts(),
+        "supervisor_zenoh_threads": bus.zenoh_threads(),  # the router's (ZENOH_RUNTIME_ROUTER)
+    }
+    if args.record is not None:
+        res["recording"] = str(args.record)
+        if recording_loss is not None:
+            res["recording_loss"] = recording_loss
+    return res
+
+
+def vehicles_figures(children: Mapping[str, Child], diag: Mapping[str, dict[str, Any]]) -> dict[str, Any] | None:
+    """results.json ``vehicles``: the MAVLink vehicles as the bridge last reported them
+    (phases, armed/airborne/unhealthy counts, worst link latency and state age in ms, -1 if
+    unmeasured; the Crazyflie bridge's positioning and oldest fed position's age, ms) and the
+    vehicles process's exit status; None without ``--plant mavlink`` (or crazyflie)."""
+    if "vehicles" not in children and "bridge" not in diag:
+        return None
+    d = diag.get("bridge", {})
+    out: dict[str, Any] = {k: d[k] for k in BRIDGE_FIGURES if k in d}
+    c = children.get("vehicles")
+    if c is not None:
+        out["process_exit"] = c.status()
+    return out
+
+
+def recording_lost(child: Child, rc: int, sim_t_ns: int, recording: Path | None, say: Callable[[str], None]) -> dict[str, Any]:
+    """The recorder (``child``) exited with ``rc`` mid-flight, at sim time ``sim_t_ns``: the loss,
+    as results.json's ``recording_loss`` (when, how, the file; why, in the recorder's words, e.g.
+    the disk is full), said now. The recorder is not a vehicle: the flight goes on; the file keeps
+    what was written (chunks are flushed every 0.25 s; ``zenswarm recover`` closes it)."""
+    how = exit_how(rc)
+    t = max(sim_t_ns, 0) / 1e9
+    loss: dict[str, Any] = {"died_at_sim_time_s": t, "how": how, "recording": str(recording)}
+    error = next((ln for ln in reversed(child.lines) if ln.startswith("recorder: error:")), None)
+    if error is not None:
+        loss["error"] = error.removeprefix("recorder: error: ")
+    tail = "; last output: " + " | ".join(child.lines[-3:]) if child.lines else ""
+    say(f"recording lost: the recorder died ({how}) at sim time {t:.2f} s; the flight goes on unrecorded, "
+        f"{recording} holds what was written before (results.json: recording_loss){tail}")  # fmt: skip
+    return loss
