@@ -15,7 +15,8 @@ from typing import Any
 from zenswarm.errors import ScenarioError
 from zenswarm.link import LinkFaults
 from zenswarm.process.security import ClientSecurity
-from zenswarm.scenario.config import check_seed
+from zenswarm.process.settings import RoleSettings
+from zenswarm.scenario.config import Scenario, check_seed
 
 __all__ = [
     "FIGURE_FORMATS",
@@ -28,6 +29,7 @@ __all__ = [
     "add_security_args",
     "client_security",
     "add_process_args",
+    "process_settings",
 ]
 
 
@@ -205,6 +207,18 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
         "in every run (what `zenswarm up --kill ROLE@T` passes its lockstep roles; default: never)",
     )
     add_rt_priority_arg(p)
+
+
+def process_settings(args: argparse.Namespace, role: str, scenario: Scenario | None, realtime: bool = False) -> RoleSettings:
+    """The flags of :func:`add_process_args` (and ``--expect``) as the settings of the swarm
+    process ``role``, its scenario parsed (None: fetched from the leader's mission); ``realtime``:
+    on the wall clock whatever ``--realtime`` says (the vehicle bridges)."""
+    return RoleSettings(
+        role=role, scenario=scenario, swarm=args.swarm, connect=tuple(args.connect or ()), realtime=realtime or bool(args.realtime),
+        lockstep_timeout=args.lockstep_timeout, keys=args.keys, tls=bool(args.tls), faults=link_faults(args),
+        controller=args.controller, planner=args.planner, plant_model=args.plant_model, rt_priority=args.rt_priority,
+        router_lost_timeout=args.router_lost_timeout, kill_at_tick=args.kill_at_tick, expect=tuple(getattr(args, "expect", None) or ()),
+    )  # fmt: skip
 
 
 def add_rt_priority_arg(p: argparse.ArgumentParser) -> None:

@@ -202,11 +202,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         from zenswarm.compose.roles import run_role
 
         return run_role(argv)
+    from zenswarm.compose.commands import edge_of
+
     if argv[:2] == ["up", "--settings"]:  # api.fly's supervisor: its typed settings on stdin (not in `up --help`)
         from zenswarm.compose.up import run_settings_argv
 
         def func() -> int:
             return run_settings_argv(argv[1:])
+    elif edge_of(argv) is not None:  # an edge process of `zenswarm up`: its typed settings on stdin (not in its --help)
+        from zenswarm.compose.commands import run_edge
+
+        def func() -> int:
+            return run_edge(argv)
     else:
         args = build_parser().parse_args(argv)
 

@@ -9,6 +9,11 @@ The supervisor of ``zenswarm up`` starts its roles as ``zenswarm ROLE [--id I] -
 --settings - --supervisor PID``: the role reads its :class:`zenswarm.process.settings.RoleSettings`
 on standard input (:func:`run_settings`), not from flags; the words on the command line only name
 it in the process table. ``zenswarm up --only ROLE`` runs :func:`run_settings` in its own process.
+
+The simulated vehicles (``mavlink-vehicle``, ``plant --mavlink``, ``crazyflie-vehicle``) take
+typed settings too (:class:`MavlinkFleetSettings`, :class:`CrazyflieFleetSettings`): built from
+their flags here, or read on standard input when ``zenswarm up`` starts them
+(:mod:`zenswarm.compose.commands`).
 """
 
 from __future__ import annotations
@@ -16,12 +21,16 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
+import msgspec
+
 from zenswarm.bridge.args import add_process_args, add_rt_priority_arg
 from zenswarm.errors import ScenarioError
 from zenswarm.process.runtime import ProcessOptions
 from zenswarm.process.settings import RoleSettings
+from zenswarm.scenario.config import Scenario
 
-__all__ = ["add_parsers", "agent_options", "plant_options", "process_options", "run_role", "run_settings"]
+__all__ = ["add_parsers", "agent_options", "plant_options", "process_options", "run_role", "run_settings", "MavlinkFleetSettings",
+           "mavlink_fleet_settings", "run_mavlink_fleet", "CrazyflieFleetSettings", "crazyflie_fleet_settings", "run_crazyflie_fleet"]
 
 
 def process_options(args: argparse.Namespace) -> ProcessOptions:
@@ -61,37 +70,67 @@ def _main_plant(args: argparse.Namespace) -> int:
     return run(plant_options(args))
 
 
-def _main_mavlink_fleet(args: argparse.Namespace) -> int:
-    """``plant --mavlink``: the scenario's quadrotors as simulated MAVLink vehicles over UDP
-    (:mod:`zenswarm.plant.mavlink_vehicle`; no Zenoh session: the MAVLink bridge is their swarm side)."""
-    from dataclasses import replace
+class MavlinkFleetSettings(msgspec.Struct, frozen=True, kw_only=True):
+    """What the simulated MAVLink vehicles are started with (``mavlink-vehicle``, ``plant
+    --mavlink``; ``zenswarm up --plant mavlink`` hands them on standard input): the scenario
+    (parsed), the swarm they fly in (a label: they open no Zenoh session), the flags of
+    :func:`add_vehicle_args` (None: the scenario's), the seed of their disturbances (None: the
+    scenario's), the plant model asked for (it must be zenswarm's own) and ``--rt-priority``."""
 
-    from zenswarm.errors import ScenarioError
-    from zenswarm.plant.mavlink_vehicle import run_fleet
+    scenario: Scenario
+    swarm: str | None = None
+    base_port: int | None = None
+    autopilot: str | None = None
+    telemetry_hz: float | None = None
+    duration: float | None = None
+    own_origin: bool = False
+    sitl_ports: bool = False
+    seed: int | None = None
+    plant_model: str | None = None
+    rt_priority: int | None = None
+
+
+def mavlink_fleet_settings(args: argparse.Namespace) -> MavlinkFleetSettings:
+    """The flags of ``mavlink-vehicle`` / ``plant --mavlink`` as :class:`MavlinkFleetSettings`
+    (the scenario file parsed: a ScenarioError naming it, exit 2)."""
     from zenswarm.scenario.config import load_scenario
-    from zenswarm.scenario.plugins import DEFAULTS
 
     if args.scenario is None:
         raise ScenarioError("--scenario", "plant --mavlink needs the scenario file (it has no bus to fetch it from)")
-    sc = load_scenario(args.scenario)
-    model = getattr(args, "plant_model", None) or sc.plant.model
+    return MavlinkFleetSettings(
+        scenario=load_scenario(args.scenario), swarm=getattr(args, "swarm", None), base_port=args.base_port,
+        autopilot=args.autopilot, telemetry_hz=args.telemetry_hz, duration=args.duration,
+        own_origin=bool(getattr(args, "own_origin", False)), sitl_ports=bool(getattr(args, "sitl_ports", False)),
+        seed=args.seed, plant_model=getattr(args, "plant_model", None), rt_priority=getattr(args, "rt_priority", None),
+    )  # fmt: skip
+
+
+def run_mavlink_fleet(s: MavlinkFleetSettings) -> int:
+    """The scenario's quadrotors as simulated MAVLink vehicles over UDP
+    (:mod:`zenswarm.plant.mavlink_vehicle`; no Zenoh session: the MAVLink bridge is their swarm side)."""
+    from dataclasses import replace
+
+    from zenswarm.plant.mavlink_vehicle import run_fleet
+    from zenswarm.scenario.plugins import DEFAULTS
+
+    sc = s.scenario
+    model = s.plant_model or sc.plant.model
     if model != DEFAULTS["plant"]:
         raise ScenarioError(
-            "--plant-model" if getattr(args, "plant_model", None) else "plant.model",
+            "--plant-model" if s.plant_model else "plant.model",
             f"plant model {model!r} cannot fly as MAVLink vehicles: they fly zenswarm's own model ({DEFAULTS['plant']!r})",
         )
-    if args.seed is not None:
-        sc = replace(sc, seed=int(args.seed))
+    if s.seed is not None:
+        sc = replace(sc, seed=int(s.seed))
     return run_fleet(
-        sc,
-        base_port=args.base_port,
-        autopilot=args.autopilot,
-        telemetry_hz=args.telemetry_hz,
-        duration=args.duration,
-        own_origin=bool(getattr(args, "own_origin", False)),
-        sitl_ports=bool(getattr(args, "sitl_ports", False)),
-        rt_priority=getattr(args, "rt_priority", None),
-    )
+        sc, base_port=s.base_port, autopilot=s.autopilot, telemetry_hz=s.telemetry_hz, duration=s.duration,
+        own_origin=s.own_origin, sitl_ports=s.sitl_ports, rt_priority=s.rt_priority,
+    )  # fmt: skip
+
+
+def _main_mavlink_fleet(args: argparse.Namespace) -> int:
+    """``plant --mavlink``, ``mavlink-vehicle``: :func:`run_mavlink_fleet` of their flags."""
+    return run_mavlink_fleet(mavlink_fleet_settings(args))
 
 
 def add_agent_parser(sub: argparse._SubParsersAction) -> None:
@@ -148,32 +187,63 @@ def add_vehicles_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_main_mavlink_fleet)
 
 
-def _main_crazyflie_fleet(args: argparse.Namespace) -> int:
-    """``crazyflie-vehicle SCENARIO``: the scenario's quadrotors as simulated Crazyflies speaking
-    CRTP over UDP (:mod:`zenswarm.plant.crazyflie_vehicle`; no Zenoh session)."""
-    from zenswarm.errors import ScenarioError
-    from zenswarm.plant.crazyflie_vehicle import run_fleet
+class CrazyflieFleetSettings(msgspec.Struct, frozen=True, kw_only=True):
+    """What the simulated Crazyflies are started with (``crazyflie-vehicle``; ``zenswarm up
+    --plant crazyflie`` hands them on standard input): the scenario (parsed), Crazyflie i at
+    ``udp://HOST:base_port+i-1``, ``duration`` (s; None: until SIGTERM/SIGINT), and with
+    ``mocap`` the motion-capture feed they publish at ``mocap_hz`` on ``swarm``'s bus through
+    ``connect``."""
+
+    scenario: Scenario
+    base_port: int
+    swarm: str | None = None
+    host: str = "127.0.0.1"
+    duration: float | None = None
+    mocap: bool = False
+    mocap_hz: float = 100.0
+    connect: tuple[str, ...] = ()
+
+
+def crazyflie_fleet_settings(args: argparse.Namespace) -> CrazyflieFleetSettings:
+    """The flags of ``crazyflie-vehicle`` as :class:`CrazyflieFleetSettings` (the scenario file
+    parsed: a ScenarioError naming it, exit 2)."""
     from zenswarm.scenario.config import load_scenario
+
+    return CrazyflieFleetSettings(
+        scenario=load_scenario(args.scenario), base_port=args.base_port, swarm=args.swarm, host=args.host, duration=args.duration,
+        mocap=bool(args.mocap), mocap_hz=args.mocap_hz, connect=tuple(args.connect or ()),
+    )  # fmt: skip
+
+
+def run_crazyflie_fleet(s: CrazyflieFleetSettings) -> int:
+    """The scenario's quadrotors as simulated Crazyflies speaking CRTP over UDP
+    (:mod:`zenswarm.plant.crazyflie_vehicle`; no Zenoh session but the mocap feed's)."""
+    from zenswarm.plant.crazyflie_vehicle import run_fleet
     from zenswarm.scenario.plugins import DEFAULTS
 
-    sc = load_scenario(args.scenario)
+    sc = s.scenario
     if sc.plant.model != DEFAULTS["plant"]:
         raise ScenarioError(
             "plant.model", f"plant model {sc.plant.model!r} cannot fly as simulated Crazyflies: they fly zenswarm's own model"
         )
-    if not 1 <= args.base_port <= 65535 - sc.n:
-        raise ScenarioError("--base-port", f"must leave room for {sc.n} UDP ports below 65536, got {args.base_port}")
+    if not 1 <= s.base_port <= 65535 - sc.n:
+        raise ScenarioError("--base-port", f"must leave room for {sc.n} UDP ports below 65536, got {s.base_port}")
     mocap = None
-    if args.mocap:
+    if s.mocap:
         from zenswarm import bus
         from zenswarm.bus.wire import validate_swarm_name
 
-        if not args.swarm or not args.connect:
+        if not s.swarm or not s.connect:
             raise ScenarioError("--mocap", "needs --swarm NAME and --connect ENDPOINT (where the bridge listens for the feed)")
-        mocap = (validate_swarm_name(args.swarm), bus.check_endpoint_syntax(args.connect, "--connect"))
-    if not args.mocap_hz > 0:
-        raise ScenarioError("--mocap-hz", f"must be > 0, got {args.mocap_hz}")
-    return run_fleet(sc, base_port=args.base_port, host=args.host, duration=args.duration, mocap=mocap, mocap_hz=args.mocap_hz)
+        mocap = (validate_swarm_name(s.swarm), bus.check_endpoint_syntax(list(s.connect), "--connect"))
+    if not s.mocap_hz > 0:
+        raise ScenarioError("--mocap-hz", f"must be > 0, got {s.mocap_hz}")
+    return run_fleet(sc, base_port=s.base_port, host=s.host, duration=s.duration, mocap=mocap, mocap_hz=s.mocap_hz)
+
+
+def _main_crazyflie_fleet(args: argparse.Namespace) -> int:
+    """``crazyflie-vehicle SCENARIO``: :func:`run_crazyflie_fleet` of its flags."""
+    return run_crazyflie_fleet(crazyflie_fleet_settings(args))
 
 
 def add_crazyflie_vehicles_parser(sub: argparse._SubParsersAction) -> None:

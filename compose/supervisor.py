@@ -14,7 +14,6 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -28,6 +27,7 @@ import zenoh
 
 from zenswarm import bus
 from zenswarm.bus import wire
+from zenswarm.compose import commands
 from zenswarm.compose.children import Child, start_local
 from zenswarm.compose.credentials import router_security
 from zenswarm.compose.flight_results import judge_and_write, recording_lost, run_facts
@@ -45,8 +45,6 @@ from zenswarm.process.paths import lock_output_dir
 from zenswarm.process.runtime import gc_safe_point, gc_startup_done, kill_self_line
 from zenswarm.process.settings import (
     FlightSettings,
-    RoleSettings,
-    encode,
 )
 from zenswarm.scenario.config import Scenario
 
@@ -77,11 +75,6 @@ def swarm_roles(n: int, plant: str = "sim") -> list[str]:
     bridge take the plant's place (also with ``crazyflie``: simulated Crazyflies and the Crazyflie bridge)."""
     names = role_names(n)
     return ["vehicles", "bridge"] + names[1:] if plant in ("mavlink", "crazyflie") else names
-
-
-ROLES_BY_SETTINGS = ("plant", "leader", "agent")
-"""The roles started with their :class:`RoleSettings` on standard input; the recorder, the bridges
-and the simulated vehicles still take a command line (the edges' own flags)."""
 
 
 class Supervisor:
@@ -116,14 +109,26 @@ class Supervisor:
         self.tokens = Tokens(self.keys, lambda: self.collector.sim_t_ns if self.collector is not None else -1)
         self._on_liveliness, self.gone_at = self.tokens.on_token, self.tokens.gone_at  # (tests drive the tokens by these)
         watched = [r for r in self.all_roles() if r in args.external and r != "vehicles"]  # the vehicles: no Zenoh, no token
-        self.external = ExternalRoles(watched, self.tokens, timeout_s=args.external_timeout, swarm=args.swarm,
-                                      time_limit_s=scenario.timing.time_limit_s, policy=self.policy, say=lambda text: self.say(text))
+        self.external = ExternalRoles(
+            watched,
+            self.tokens,
+            timeout_s=args.external_timeout,
+            swarm=args.swarm,
+            time_limit_s=scenario.timing.time_limit_s,
+            policy=self.policy,
+            say=lambda text: self.say(text),
+        )
         self.restart_at: dict[str, float] = {}
         self.restarts: dict[str, int] = {}
         self.deaths: list[dict] = []
         # when the flight ends (decided, --stop-at-goal, a plug-in failed) and which ticks are judged
-        self.watch = EndWatch(criteria_from_scenario(scenario), scenario.timing.n_ticks, full_time=args.full_time,
-                              stop_at_goal=args.stop_at_goal, realtime=args.realtime)
+        self.watch = EndWatch(
+            criteria_from_scenario(scenario),
+            scenario.timing.n_ticks,
+            full_time=args.full_time,
+            stop_at_goal=args.stop_at_goal,
+            realtime=args.realtime,
+        )
         self.recording_loss: dict | None = None  # the recorder died mid-flight (_recorder_died)
         self.plugin_failures = PluginFailures(lambda text: self.say(text))  # what processes that exited with 4 reported
         # the vehicles' ports P+i (the bridge listens) and their send ports P+40+i, all free
@@ -150,94 +155,30 @@ class Supervisor:
         return True
 
     # ------------------------------------------------------------------ processes
-    def child_argv(self, role: str) -> list[str]:
-        """The command line of ``role`` (a swarm role or ``recorder``), this interpreter's. The
-        plant, the leader and the agents are named on it (role, ``--swarm``, this supervisor's pid:
-        to find them in the process table) and read their :class:`RoleSettings` (:meth:`role_settings`)
-        on standard input; the others take their flags."""
-        argv = [sys.executable, "-m", "zenswarm"]
-        if role.partition(":")[0] in ROLES_BY_SETTINGS:
-            words = ["agent", "--id", role.split(":", 1)[1]] if role.startswith("agent:") else [role]
-            return argv + words + ["--swarm", self.args.swarm, "--settings", "-", "--supervisor", str(os.getpid())]
-        if role == "recorder":
-            return argv + self._recorder_argv()
-        if role == "vehicles" and self.cf_base_port is not None:  # simulated Crazyflies (CRTP over UDP, no Zenoh)
-            argv += ["crazyflie-vehicle", str(self.args.scenario_file), "--base-port", str(self.cf_base_port)]
-            if self.sc.crazyflie is not None and self.sc.crazyflie.positioning == "extpos":  # they are the mocap system too
-                argv += ["--mocap", "--swarm", self.args.swarm, *[w for ep in self.connect_endpoints for w in ("--connect", ep)]]
-            return argv
-        if role == "vehicles":  # simulated MAVLink vehicles (no Zenoh): the bridge talks to them over UDP
-            a = self.args
-            # as PX4 SITL and real autopilots: each vehicle's NED about where it booted, and
-            # vehicle i sending from P+40+i to P+i where the bridge listens (udpin)
-            return argv + [
-                "mavlink-vehicle", str(a.scenario_file), "--base-port", str(self.mav_base_port), "--telemetry-hz", "100",
-                "--own-origin", "--sitl-ports", *a.rt_argv(),
-            ]
-        if role == "bridge":
-            return argv + self._bridge_argv()
-        raise ValueError(f"not a process of this swarm: {role!r}")
-
-    def _join_words(self) -> list[str]:
-        """``--connect`` each endpoint, then ``--keys DIR [--tls]`` in secure mode."""
-        words = [w for ep in self.connect_endpoints for w in ("--connect", ep)]
-        if self.keys_dir is not None:
-            words += ["--keys", str(self.keys_dir)] + (["--tls"] if self.args.tls else [])
-        return words
-
-    def _recorder_argv(self) -> list[str]:
-        a = self.args
-        argv = ["record", "--swarm", a.swarm, "--out", str(a.record), "--scenario", str(a.scenario_file)]
-        argv += [w for ep in self.connect_endpoints for w in ("--connect", ep)]
-        if a.realtime:
-            argv.append("--realtime")
-        if self.keys_dir is not None:
-            argv += ["--keys", str(self.keys_dir)] + (["--tls"] if a.tls else [])
-        return argv + a.faults.argv() + a.plugin_argv()
-
-    def _bridge_argv(self) -> list[str]:
-        a = self.args
-        if self.cf_base_port is not None:  # the Crazyflie bridge; to the simulated ones unless they are external
-            argv = ["bridge", "crazyflie", str(a.scenario_file), "--swarm", a.swarm, *self._join_words()]
-            if "vehicles" not in a.external:
-                argv += [w for i in range(self.sc.n) for w in ("--uri", f"{i + 1}=udp://127.0.0.1:{self.cf_base_port + i}")]
-            return argv + a.faults.argv() + (["--expect", "recorder"] if a.record is not None else [])
-        argv = ["bridge", "mavlink", str(a.scenario_file), "--base-port", str(self.mav_base_port), "--swarm", a.swarm]
-        argv += self._join_words()
-        # the simulated vehicles (own origins, SITL ports): listen where vehicle i sends, and put
-        # its origin where it boots, on the ground under its initial position
-        gz = self.sc.mavlink.ground_z if self.sc.mavlink is not None else 0.0
-        for i, q in enumerate(self.sc.initial_positions):
-            argv += ["--conn", f"{i + 1}=udpin:127.0.0.1:{self.mav_base_port + i}", "--origin", f"{i + 1}={q[0]!r},{q[1]!r},{gz!r}"]
-        return argv + a.faults.argv() + (["--expect", "recorder"] if a.record is not None else []) + a.rt_argv()
-
-    def role_settings(self, role: str) -> RoleSettings:
-        """plant, leader, agent:<i>: what the role is started with (its part of the flight's
-        settings); the plant waits for the recorder with ``--record``. A role named by ``--kill``
-        in lockstep kills itself at the tick, on its first start only."""
-        a = self.args
+    def command(self, role: str) -> tuple[list[str], bytes]:
+        """What ``role`` is started with: its command line and its settings
+        (:func:`zenswarm.compose.commands.command`). A role named by ``--kill`` in lockstep kills
+        itself at the tick, on its first start only."""
         kill_at = self.kill_ticks.pop(role, None)  # the first start only: a restarted process is not killed again
         if kill_at is not None:
             self.self_killed[role] = kill_at
             self.say(f"{role} will SIGKILL itself just before tick {kill_at} (sim time {kill_at * self.sc.timing.dt:.2f} s; --kill)")
-        expect = ("recorder",) if role == "plant" and a.record is not None else ()
-        return a.role(role, tuple(self.connect_endpoints), self.keys_dir, kill_at_tick=kill_at, expect=expect)
+        at = commands.Launch(self.args, tuple(self.connect_endpoints), self.keys_dir, self.mav_base_port, self.cf_base_port, os.getpid())
+        return commands.command(role, at, kill_at)
 
     def spawn(self, role: str) -> Child:
         env = dict(os.environ)
         env.setdefault("PYTHONUNBUFFERED", "1")
         if self.user_runtime is None:  # the swarm's processes: zenoh on one thread (bus.use_swarm_runtime)
             env["ZENOH_RUNTIME"] = bus.ZENOH_RUNTIME_DEFAULT
-        stdin: Any = subprocess.DEVNULL
-        if role.partition(":")[0] in ROLES_BY_SETTINGS:  # its settings on stdin: a file of its own, already gone from the disk
-            stdin = tempfile.TemporaryFile()
-            stdin.write(encode(self.role_settings(role)))
-            stdin.seek(0)
+        argv, settings = self.command(role)
+        stdin = tempfile.TemporaryFile()  # its settings on stdin: a file of its own, already gone from the disk
+        stdin.write(settings)
+        stdin.seek(0)
         try:
-            c = start_local(role, self.child_argv(role), env, stdin, term_on_parent_death=role == "recorder")
+            c = start_local(role, argv, env, stdin, term_on_parent_death=role == "recorder")
         finally:
-            if stdin is not subprocess.DEVNULL:
-                stdin.close()  # the child holds its own descriptor
+            stdin.close()  # the child holds its own descriptor
         c.read(self._on_line)
         self.children[role] = c
         return c
@@ -479,8 +420,10 @@ class Supervisor:
         deadline = time.monotonic() + self.args.lockstep_timeout
         while not collector.tick_complete(last := collector.last_tick_flown()):
             if time.monotonic() > deadline or self.stop.is_set():
-                self.say(f"the messages of tick {last} did not all arrive within {self.args.lockstep_timeout:g} s "
-                         "(--lockstep-timeout) after the processes ended; judging what arrived")
+                self.say(
+                    f"the messages of tick {last} did not all arrive within {self.args.lockstep_timeout:g} s "
+                    "(--lockstep-timeout) after the processes ended; judging what arrived"
+                )
                 return
             time.sleep(0.01)
             collector.poll(self._bus_sub, self._tap())

@@ -194,7 +194,7 @@ def _run_up(ns: argparse.Namespace) -> int:
     args, overrides = flight_settings(ns)  # --set, --duration, a bad plug-in name or parameter: exit 2 now
     args.faults.plan(args.scenario)  # bad flags: exit 2 now
     check_up_args(args, args.scenario)
-    if overrides and not args.only:  # the processes that take a file read it as overridden: OUT/scenario.toml
+    if overrides and not args.only:  # the scenario flown, as a file: OUT/scenario.toml (a recording names it)
         args = msgspec.structs.replace(args, scenario_file=_write_effective(args, overrides))
     return fly(args)
 
@@ -255,8 +255,8 @@ def run_settings_argv(argv: list[str]) -> int:
 
 def _write_effective(args: FlightSettings, overrides: dict[str, Any]) -> Path:
     """The scenario file with the overrides applied (``--set``, ``--duration``), written as
-    OUT/scenario.toml for the processes that take a file (the recorder, the bridges, the
-    simulated vehicles; the roles get the scenario itself)."""
+    OUT/scenario.toml: the scenario flown, kept with the run's outputs and named by a recording
+    as its source (every process gets the scenario itself, :mod:`zenswarm.compose.commands`)."""
     import tomllib
 
     from zenswarm.scenario.generate import to_toml

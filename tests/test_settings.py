@@ -151,22 +151,101 @@ def test_the_supervisor_starts_each_role_with_its_settings_on_stdin(tmp_path: Pa
     sup = Supervisor(args)
     sup.say = lambda text: None  # type: ignore[method-assign]
     sup.connect_endpoints, sup.keys_dir = ["tcp/127.0.0.1:7111"], None
-    argv = sup.child_argv("agent:2")
-    words = ["agent", "--id", "2", "--swarm", "s1", "--settings", "-", "--supervisor", str(os.getpid())]
-    assert argv[argv.index("zenswarm") + 1 :] == words
-    first, again = sup.role_settings("agent:2"), sup.role_settings("agent:2")
+    named = ["--swarm", "s1", "--settings", "-", "--supervisor", str(os.getpid())]
+    agent_argv, data = sup.command("agent:2")
+    assert agent_argv[agent_argv.index("zenswarm") + 1 :] == ["agent", "--id", "2", *named]
+    first, again = decode_role(data), decode_role(sup.command("agent:2")[1])
     assert (first.kill_at_tick, again.kill_at_tick) == (50, None)
-    assert sup.role_settings("plant").expect == ("recorder",) and sup.role_settings("leader").expect == ()
-    assert "--settings" not in " ".join(sup.child_argv("recorder"))  # the edges' processes still take their flags
+    started = {"agent:2": (agent_argv, data), "plant": sup.command("plant"), "leader": sup.command("leader")}
+    assert decode_role(started["plant"][1]).expect == ("recorder",) and decode_role(started["leader"][1]).expect == ()
+    argv, rec = sup.command("recorder")  # the edges too: named on the command line, their settings on stdin
+    assert argv[argv.index("zenswarm") + 1 :] == ["record", *named] and rec
 
     ran = _recording_runs(monkeypatch)
-    for role, settings in (("agent:2", first), ("plant", sup.role_settings("plant")), ("leader", sup.role_settings("leader"))):
-        _stdin(monkeypatch, encode(settings))
-        words = sup.child_argv(role)
+    for words, settings in started.values():
+        _stdin(monkeypatch, settings)
         assert run_role(words[words.index("zenswarm") + 1 :]) == 0
     assert [name for name, _ in ran] == ["agent:2", "plant", "leader"]
     o = ran[0][1]
     assert o.scenario == args.scenario and o.connect == ("tcp/127.0.0.1:7111",) and o.kill_at_tick == 50 and o.link_loss == "0.1"
+
+
+def _launch(tmp_path: Path, *flags: str) -> Any:
+    """A flight of EX1 with these flags, as its supervisor knows it once the router listens (a
+    secured one: keys and TLS; MAVLink vehicles on 14600+, Crazyflies on 19900+ with --plant
+    crazyflie; realtime with vehicles, as :class:`zenswarm.compose.supervisor.Supervisor` makes it)."""
+    from zenswarm.compose.commands import Launch
+    from zenswarm.compose.up import up_options
+
+    flight = up_options(_flags("--record", str(tmp_path / "r.mcap"), "--link-loss", "0.1", "--seed", "7", "--tls", *flags))
+    flight = msgspec.structs.replace(flight, realtime=flight.plant != "sim")  # as the Supervisor takes it
+    cf = 19900 if flight.plant == "crazyflie" else None
+    return Launch(flight, ("tls/127.0.0.1:7111",), tmp_path / "keys", 14600, cf, 4321)
+
+
+def test_the_edges_get_what_their_command_lines_said(tmp_path: Path) -> None:
+    """The recorder, the MAVLink and Crazyflie bridges and their simulated vehicles: the settings
+    the supervisor hands them equal those their own commands build from the words the supervisor
+    used to write (the scenario itself in place of its file; the vehicles' command had no swarm)."""
+    from zenswarm.bridge.recording.recorder import recorder_settings
+    from zenswarm.bridge.vehicles import crazyflie, mavlink
+    from zenswarm.compose.commands import command, edge_settings
+    from zenswarm.compose.roles import crazyflie_fleet_settings, mavlink_fleet_settings
+
+    at = _launch(tmp_path, "--plant", "mavlink")
+    join = ["--swarm", "s1", "--connect", "tls/127.0.0.1:7111", "--keys", str(tmp_path / "keys"), "--tls"]
+    faults = at.flight.faults.argv()
+    assert faults == ["--link-loss", "0.1", "--seed", "7"]
+    p = build_parser()
+    old = recorder_settings(p.parse_args(["record", "--out", str(tmp_path / "r.mcap"), "--scenario", str(EX1), "--realtime", *join,
+                                          *faults]))  # fmt: skip
+    assert edge_settings("recorder", at) == old and old.mode == "realtime" and old.scenario == at.flight.scenario
+    conns = [w for i in range(3) for w in ("--conn", f"{i + 1}=udpin:127.0.0.1:{14600 + i}")]
+    gz = at.flight.scenario.mavlink.ground_z if at.flight.scenario.mavlink is not None else 0.0
+    origins = [w for i, q in enumerate(at.flight.scenario.initial_positions) for w in ("--origin", f"{i + 1}={q[0]!r},{q[1]!r},{gz!r}")]
+    old = mavlink.bridge_settings(p.parse_args(["bridge", "mavlink", str(EX1), "--base-port", "14600", *join, *conns, *origins, *faults,
+                                               "--expect", "recorder"]))  # fmt: skip
+    assert edge_settings("bridge", at) == old and old.process.realtime and old.process.tls and old.conn[3] == "udpin:127.0.0.1:14602"
+    old = mavlink_fleet_settings(p.parse_args(["mavlink-vehicle", str(EX1), "--base-port", "14600", "--telemetry-hz", "100",
+                                               "--own-origin", "--sitl-ports"]))  # fmt: skip
+    assert edge_settings("vehicles", at) == msgspec.structs.replace(old, swarm="s1")
+
+    at = _launch(tmp_path, "--plant", "crazyflie")
+    uris = [w for i in range(3) for w in ("--uri", f"{i + 1}=udp://127.0.0.1:{19900 + i}")]
+    old = crazyflie.bridge_settings(p.parse_args(["bridge", "crazyflie", str(EX1), *join, *uris, *faults, "--expect", "recorder"]))
+    assert edge_settings("bridge", at) == old and old.uri[1] == "udp://127.0.0.1:19900"
+    old = crazyflie_fleet_settings(p.parse_args(["crazyflie-vehicle", str(EX1), "--base-port", "19900"]))
+    assert edge_settings("vehicles", at) == msgspec.structs.replace(old, swarm="s1")
+    # each started as the roles are: named on its command line (--swarm for the process table), its settings on stdin
+    for role, words in (("recorder", ["record"]), ("bridge", ["bridge", "crazyflie"]), ("vehicles", ["crazyflie-vehicle"])):
+        argv, data = command(role, at)
+        assert argv[argv.index("zenswarm") + 1 :] == [*words, "--swarm", "s1", "--settings", "-", "--supervisor", "4321"] and data
+
+
+@pytest.mark.parametrize("words", [["record"], ["bridge", "mavlink"], ["bridge", "crazyflie"], ["mavlink-vehicle"], ["crazyflie-vehicle"]])
+def test_an_edge_runs_with_the_settings_on_its_stdin(words: list[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """``zenswarm COMMAND --swarm S --settings - --supervisor PID``: the edge runs with the
+    settings it reads, equal to those sent; those of another swarm, or bytes that are none, are
+    exit 2 naming --settings, nothing run."""
+    from zenswarm.compose import commands
+
+    plant = "crazyflie" if "crazyflie" in words[-1] else "mavlink"
+    at = _launch(tmp_path, "--plant", plant)
+    argv, data = commands.command({"record": "recorder", "bridge": "bridge"}.get(words[0], "vehicles"), at)
+    ran: list[Any] = []
+    kind, _ = commands.EDGES[tuple(words)]()
+    monkeypatch.setitem(commands.EDGES, tuple(words), lambda: (kind, lambda s: ran.append(s) or 0))
+    named = argv[argv.index("zenswarm") + 1 :]
+    assert named[: len(words)] == words
+    _stdin(monkeypatch, data)
+    assert cli_main(named) == 0 and len(ran) == 1 and encode(ran[0]) == data and isinstance(ran[0], kind)
+    for swarm, bad, needle in (("s2", data, "not of swarm 's2'"), ("s1", b"\x93junk", f"not the {kind.__name__} of a flight")):
+        _stdin(monkeypatch, bad)
+        assert cli_main([*words, "--swarm", swarm, "--settings", "-"]) == 2
+        err = capsys.readouterr().err
+        assert "--settings" in err and needle in err, err
+    assert len(ran) == 1
 
 
 def test_settings_of_another_role_or_swarm_are_refused(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:

@@ -71,15 +71,18 @@ from pathlib import Path
 from typing import Any, Final
 
 import msgpack
+import msgspec
 
 from zenswarm import __version__, bus
-from zenswarm.bridge.args import add_fault_args, add_plugin_args, add_security_args, client_security, link_faults
+from zenswarm.bridge.args import add_fault_args, add_plugin_args, add_security_args, link_faults
 from zenswarm.bridge.recording.mcapio import DROPPED_OVERSIZE, MESSAGE_ENCODING, METADATA_NAME, RECORDER_END
 from zenswarm.bus import wire
+from zenswarm.link import LinkFaults
 from zenswarm.process import security
 from zenswarm.process.paths import check_output_file
 from zenswarm.process.runtime import gc_policy, gc_safe_point, gc_startup_done
 from zenswarm.process.signals import SignalRelay
+from zenswarm.scenario.config import Scenario
 
 __all__ = [
     "PROCESS_NAME",
@@ -90,7 +93,10 @@ __all__ = [
     "payload_limit",
     "sim_time",
     "build_metadata",
+    "RecorderSettings",
+    "recorder_settings",
     "run",
+    "run_settings",
     "main",
     "add_parser",
 ]
@@ -106,6 +112,54 @@ DROPPED_METADATA_INTERVAL_S: Final = 1.0
 """Rewrite the oversize-drop counts into the file at most this often while they change, s."""
 MAX_DROPPED_KEYS: Final = 1024
 """Distinct keys counted one by one in the oversize-drop counts; the rest under ``<other>``."""
+
+class RecorderSettings(msgspec.Struct, frozen=True, kw_only=True):
+    """What the recorder is started with: ``zenswarm record``'s flags (:func:`recorder_settings`)
+    or, under ``zenswarm up --record``, the flight's (msgpack on its standard input,
+    :mod:`zenswarm.compose.commands`). One way in: :func:`run_settings`.
+
+    out: the MCAP file. scenario: stored in the file (its plug-in names applied); None: asked of
+    the leader's mission. scenario_source: what the metadata says it came from (``file:PATH``).
+    mode: ``lockstep``, ``realtime`` or ``unknown`` (metadata; realtime also sets the GC policy).
+    connect: router endpoints (empty: ``tcp/127.0.0.1:7447``); keys, tls: credentials of a
+    secured router. faults: the swarm's link faults, not applied, stored for ``replay --verify``.
+    Durations in seconds; chunk_size in bytes."""
+
+    out: Path
+    swarm: str = "default"
+    connect: tuple[str, ...] = ()
+    scenario: Scenario | None = None
+    scenario_source: str = ""
+    duration: float | None = None
+    mode: str = "lockstep"
+    connect_timeout: float = DEFAULT_CONNECT_TIMEOUT_S
+    flush_interval: float = DEFAULT_FLUSH_INTERVAL_S
+    chunk_size: int = DEFAULT_CHUNK_SIZE
+    compression: str = "zstd"
+    keys: Path | None = None
+    tls: bool = False
+    diag_interval: float = 1.0
+    faults: LinkFaults = msgspec.field(default_factory=LinkFaults)
+
+
+def recorder_settings(args: argparse.Namespace) -> RecorderSettings:
+    """``zenswarm record``'s flags (:func:`add_parser`) as :class:`RecorderSettings`: the
+    ``--scenario`` file parsed, the plug-in flags applied to it (what ``verify`` rebuilds the
+    agents from); a bad file is a ScenarioError naming it (exit 2)."""
+    from zenswarm.scenario.config import load_scenario
+    from zenswarm.scenario.plugins import select
+
+    scenario = None
+    if args.scenario is not None:
+        scenario = select(load_scenario(args.scenario), args.controller, args.planner, getattr(args, "plant_model", None))
+    return RecorderSettings(
+        out=args.out, swarm=args.swarm, connect=tuple(args.connect or ()), scenario=scenario,
+        scenario_source=f"file:{args.scenario}" if scenario is not None else "", duration=args.duration,
+        mode="realtime" if args.realtime else args.mode, connect_timeout=args.connect_timeout,
+        flush_interval=args.flush_interval, chunk_size=args.chunk_size, compression=args.compression,
+        keys=args.keys, tls=bool(args.tls), diag_interval=args.diag_interval, faults=link_faults(args),
+    )  # fmt: skip
+
 
 _STOP = object()
 _META = object()
@@ -632,14 +686,14 @@ def _subscribe_all(session: Any, keys: wire.Keys, sink: McapSink) -> Any:
     return session.declare_subscriber(keys.all, on_sample)
 
 
-def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: wire.Keys, sink: McapSink, out: Path) -> None:
+def _wait_and_report(s: RecorderSettings, stop: _Stop, session: Any, keys: wire.Keys, sink: McapSink, out: Path) -> None:
     """Until a stop request, ``--duration`` or a writer failure (``stop.why``), publishing the
     recorder's counters on diag/recorder every ``--diag-interval`` s."""
-    deadline = None if args.duration is None else time.monotonic() + args.duration
-    diag_pub = session.declare_publisher(keys.diag(PROCESS_NAME)) if args.diag_interval > 0 else None
+    deadline = None if s.duration is None else time.monotonic() + s.duration
+    diag_pub = session.declare_publisher(keys.diag(PROCESS_NAME)) if s.diag_interval > 0 else None
     diag_seq = 0
-    next_diag = time.monotonic() + (args.diag_interval if diag_pub is not None else 1e18)
-    if args.realtime or getattr(args, "mode", None) == "realtime":
+    next_diag = time.monotonic() + (s.diag_interval if diag_pub is not None else 1e18)
+    if s.mode == "realtime":
         gc_startup_done()  # subscribed, writer running: see zenswarm.process.runtime.GcPolicy (realtime only)
     while not stop.event.is_set():
         gc_safe_point()
@@ -648,7 +702,7 @@ def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: 
         if deadline is not None:
             left = min(left, deadline - now)
             if left <= 0:
-                stop.why = f"duration of {args.duration:g} s reached"
+                stop.why = f"duration of {s.duration:g} s reached"
                 break
         if left > 0:
             stop.event.wait(left)
@@ -657,7 +711,7 @@ def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: 
             break
         if diag_pub is not None and time.monotonic() >= next_diag:
             diag_seq += 1
-            next_diag += args.diag_interval
+            next_diag += s.diag_interval
             st = sink.stats
             diag = wire.Diag(
                 t=st.last_sim_t, seq=diag_seq, process=PROCESS_NAME, counters={**st.counters(sink.backlog), **gc_policy().counters()},
@@ -666,42 +720,39 @@ def _wait_and_report(args: argparse.Namespace, stop: _Stop, session: Any, keys: 
             diag_pub.put(wire.encode(diag))
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run the recorder until SIGTERM/SIGINT or ``--duration``. Exit code 0 on a clean stop."""
+def run(s: RecorderSettings, exit_hard: bool = True) -> int:
+    """Run the recorder until SIGTERM/SIGINT or ``--duration``. Exit code 0 on a clean stop.
+    ``exit_hard`` False (in-process): the signal handlers are restored at the end."""
     gc_policy()  # a bad ZENSWARM_GC: exit 2 before any work
     stop = _Stop()
     stop.install()
     try:
-        return _run(args, stop)
+        return _run(s, stop)
     finally:
-        if not getattr(args, "exit_hard", True):  # in-process: restore the handlers; the command
+        if not exit_hard:  # in-process: restore the handlers; the command
             stop.close()  # exits at once (main), where a second signal must change nothing
 
 
-def _run(args: argparse.Namespace, stop: _Stop) -> int:
+def _run(s: RecorderSettings, stop: _Stop) -> int:
     # One session's life in order (open, subscribe, record, close in one try/finally): reads better
     # whole than with its setup and its end in other functions.
-    from zenswarm.scenario.config import load_scenario, scenario_to_dict
+    from zenswarm.scenario.config import scenario_to_dict
 
     def log(text: str) -> None:
         print(text, flush=True)
 
-    keys = wire.Keys(args.swarm)
-    mode = "realtime" if args.realtime else args.mode
-    scenario: dict[str, Any] | None = None
-    if args.scenario is not None:
-        from zenswarm.scenario.plugins import select
-
-        scenario = scenario_to_dict(select(load_scenario(args.scenario), args.controller, args.planner, getattr(args, "plant_model", None)))
-    connect = args.connect or ["tcp/127.0.0.1:7447"]
-    out: Path = check_output_file(args.out, "--out")  # before joining: exit 2, nothing recorded in vain
+    keys = wire.Keys(s.swarm)
+    mode = s.mode
+    scenario: dict[str, Any] | None = None if s.scenario is None else scenario_to_dict(s.scenario)
+    connect = list(s.connect) or ["tcp/127.0.0.1:7447"]
+    out: Path = check_output_file(s.out, "--out")  # before joining: exit 2, nothing recorded in vain
     conf = bus.client_config(
         connect,
-        connect_timeout_s=args.connect_timeout,
+        connect_timeout_s=s.connect_timeout,
         # retry quickly while the swarm's router is not up yet
         settings={
             "connect/retry": {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2},
-            **security.client_fragments(PROCESS_NAME, client_security(args), connect=args.connect or (), swarm=args.swarm),
+            **security.client_fragments(PROCESS_NAME, security.ClientSecurity(keys=s.keys, tls=s.tls), connect=s.connect, swarm=s.swarm),
         },
     )
     try:
@@ -712,16 +763,16 @@ def _run(args: argparse.Namespace, stop: _Stop) -> int:
         return 3
     sink: McapSink | None = None
     fetcher: threading.Thread | None = None
-    source = f"file:{args.scenario}" if scenario is not None else "pending: asking the leader's mission"
-    fault_args = link_faults(args).argv()
+    source = s.scenario_source if scenario is not None else "pending: asking the leader's mission"
+    fault_args = s.faults.argv()
     try:
         sink = McapSink(
             out,
             keys,
-            flush_interval_s=args.flush_interval,
-            chunk_size=args.chunk_size,
-            compression=args.compression,
-            metadata=build_metadata(args.swarm, mode, scenario, source, fault_args),
+            flush_interval_s=s.flush_interval,
+            chunk_size=s.chunk_size,
+            compression=s.compression,
+            metadata=build_metadata(s.swarm, mode, scenario, source, fault_args),
         )
         sink.start()
         sub = _subscribe_all(session, keys, sink)
@@ -730,7 +781,7 @@ def _run(args: argparse.Namespace, stop: _Stop) -> int:
             the_sink = sink
 
             def on_mission(d: dict[str, Any]) -> None:
-                the_sink.set_metadata(build_metadata(args.swarm, mode, d, "mission", fault_args))
+                the_sink.set_metadata(build_metadata(s.swarm, mode, d, "mission", fault_args))
 
             fetcher = threading.Thread(
                 target=_fetch_mission,
@@ -741,9 +792,9 @@ def _run(args: argparse.Namespace, stop: _Stop) -> int:
             fetcher.start()
         log(
             f"recorder: recording {keys.all} from {', '.join(connect)} to {out} "
-            f"(chunks flushed every {args.flush_interval:g} s; {mode})"
+            f"(chunks flushed every {s.flush_interval:g} s; {mode})"
         )
-        _wait_and_report(args, stop, session, keys, sink, out)
+        _wait_and_report(s, stop, session, keys, sink, out)
         stop.event.set()
         _undeclare(token, sub)
         if fetcher is not None:
@@ -763,17 +814,24 @@ def _run(args: argparse.Namespace, stop: _Stop) -> int:
     return 0
 
 
-def main(args: argparse.Namespace) -> int:
-    rc = run(args)
+def run_settings(s: RecorderSettings, exit_hard: bool = True) -> int:
+    """The recorder command with these settings (``zenswarm record``, or ``zenswarm up``'s
+    recorder reading them on its standard input): :func:`run`, then the process ends."""
+    rc = run(s, exit_hard)
     # The file is complete and closed, the session closed: leave without the interpreter's
     # shutdown, where a zenoh helper thread still unwinding native frames can abort the process
     # ("FATAL: exception not rethrown", seen once under load), which would turn a clean stop
     # into a crash report. Only when run as the `zenswarm record` command, not in-process.
-    if getattr(args, "exit_hard", True):
+    if exit_hard:
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(rc)
     return rc
+
+
+def main(args: argparse.Namespace) -> int:
+    """``zenswarm record``: its flags as :class:`RecorderSettings`, recorded with them."""
+    return run_settings(recorder_settings(args), getattr(args, "exit_hard", True))
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

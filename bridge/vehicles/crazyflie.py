@@ -70,6 +70,7 @@ from typing import Any
 
 import numpy as np
 
+from zenswarm.bridge.vehicles.settings import CrazyflieBridgeSettings
 from zenswarm.errors import ScenarioError
 from zenswarm.vehicle import crazyflie as cfu
 from zenswarm.vehicle.crazyflie_settings import CrazyflieSettings, crazyflie_settings
@@ -622,7 +623,7 @@ def _run(proc: Any) -> int:
     from zenswarm.link import FaultState
 
     sc = proc.scenario
-    settings = crazyflie_settings(sc, _cli_overrides(proc.args))
+    settings = crazyflie_settings(sc, proc.args.overrides())
     cmd_keys = [proc.keys.cmd(i + 1) for i in range(sc.n)]
     inbox = proc.inbox
 
@@ -695,26 +696,58 @@ def _cli_overrides(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def _main_args(args: argparse.Namespace) -> int:
-    from zenswarm.errors import ZenswarmError
-    from zenswarm.process.runtime import run_process
+def bridge_settings(args: argparse.Namespace) -> CrazyflieBridgeSettings:
+    """``zenswarm bridge crazyflie``'s flags as :class:`CrazyflieBridgeSettings`: the scenario
+    file parsed (none given: fetched from the leader's mission), realtime; a bad file or flag is
+    a ScenarioError naming it."""
+    from zenswarm.bridge.args import process_settings
     from zenswarm.scenario.config import load_scenario
 
-    if getattr(args, "scenario_path", None) is not None:
-        args.scenario = args.scenario_path
-    args.realtime = True
+    path = args.scenario_path if getattr(args, "scenario_path", None) is not None else args.scenario
+    sc = None if path is None else load_scenario(path)
+    return CrazyflieBridgeSettings(process=process_settings(args, "bridge", sc, realtime=True), no_wait_alive=bool(args.no_wait_alive),
+                                   **_cli_overrides(args))  # fmt: skip
+
+
+def _no_cflib() -> bool:
+    """cflib is not installed (said, exit 2)."""
     try:
         import cflib  # noqa: F401
     except ImportError:
         print("bridge: error: cflib is not installed: pip install 'zenswarm[crazyflie]'", file=sys.stderr, flush=True)
+        return True
+    return False
+
+
+def run(s: CrazyflieBridgeSettings) -> int:
+    """Run the bridge with these settings (its command's flags, or ``zenswarm up``'s on its
+    standard input). Without cflib, or with bad ``[crazyflie]`` settings or overrides: exit 2
+    naming the field before any work."""
+    from zenswarm.errors import ZenswarmError
+    from zenswarm.process.runtime import run_process
+
+    if _no_cflib():
         return 2
-    if getattr(args, "scenario", None) is not None:
-        try:  # bad [crazyflie] settings or flags: exit 2 naming the field before any work
-            crazyflie_settings(load_scenario(args.scenario), _cli_overrides(args))
+    if s.process.scenario is not None:
+        try:
+            crazyflie_settings(s.process.scenario, s.overrides())
         except ZenswarmError as e:
             print(f"bridge: error: {e}", file=sys.stderr, flush=True)
             return 2
-    return run_process(_run, "bridge", args)
+    return run_process(_run, "bridge", s)
+
+
+def _main_args(args: argparse.Namespace) -> int:
+    from zenswarm.errors import ZenswarmError
+
+    if _no_cflib():
+        return 2
+    try:
+        s = bridge_settings(args)
+    except ZenswarmError as e:
+        print(f"bridge: error: {e}", file=sys.stderr, flush=True)
+        return 2
+    return run(s)
 
 
 def add_crazyflie_parser(bridge_sub: argparse._SubParsersAction) -> None:

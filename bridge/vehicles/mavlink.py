@@ -74,6 +74,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from zenswarm.bridge.vehicles.settings import MavlinkBridgeSettings
 from zenswarm.errors import ScenarioError
 from zenswarm.scenario.config import Scenario
 from zenswarm.vehicle import frames
@@ -1417,7 +1418,7 @@ class _BridgeLoop:
 
 
 def _run(proc: Any) -> int:
-    settings = mavlink_settings(proc.scenario, _cli_overrides(proc.args))
+    settings = mavlink_settings(proc.scenario, proc.args.overrides())
     bridge = _make_bridge(proc, settings)
     proc.announce()
     n = proc.scenario.n
@@ -1465,25 +1466,45 @@ def _cli_overrides(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def _main_args(args: argparse.Namespace) -> int:
+def bridge_settings(args: argparse.Namespace) -> MavlinkBridgeSettings:
+    """``zenswarm bridge mavlink``'s flags as :class:`MavlinkBridgeSettings`: the scenario file
+    parsed (none given: fetched from the leader's mission), realtime; a bad file or flag is a
+    ScenarioError naming it."""
+    from zenswarm.bridge.args import process_settings
+    from zenswarm.scenario.config import load_scenario
+
+    path = args.scenario_path if getattr(args, "scenario_path", None) is not None else args.scenario
+    sc = None if path is None else load_scenario(path)
+    return MavlinkBridgeSettings(process=process_settings(args, "bridge", sc, realtime=True), no_wait_alive=bool(args.no_wait_alive),
+                                 **_cli_overrides(args))  # fmt: skip
+
+
+def run(s: MavlinkBridgeSettings) -> int:
+    """Run the bridge with these settings (its command's flags, or ``zenswarm up``'s on its
+    standard input). Bad ``[mavlink]`` settings or overrides (ids, timeouts): exit 2 naming the
+    field before any work (no Zenoh session, no MAVLink link opened); the process checks again
+    with the scenario it runs (fetched from the leader if none is given)."""
+    from zenswarm.errors import ZenswarmError
     from zenswarm.process.runtime import run_process
 
-    if getattr(args, "scenario_path", None) is not None:
-        args.scenario = args.scenario_path
-    args.realtime = True
-    if getattr(args, "scenario", None) is not None:
-        # bad [mavlink] settings or flags (ids, timeouts): exit 2 naming the field before any
-        # work (no Zenoh session, no MAVLink link opened); the process checks again with the
-        # scenario it loads
-        from zenswarm.errors import ZenswarmError
-        from zenswarm.scenario.config import load_scenario
-
+    if s.process.scenario is not None:
         try:
-            mavlink_settings(load_scenario(args.scenario), _cli_overrides(args))
+            mavlink_settings(s.process.scenario, s.overrides())
         except ZenswarmError as e:
             print(f"bridge: error: {e}", file=sys.stderr, flush=True)
             return 2
-    return run_process(_run, "bridge", args)
+    return run_process(_run, "bridge", s)
+
+
+def _main_args(args: argparse.Namespace) -> int:
+    from zenswarm.errors import ZenswarmError
+
+    try:
+        s = bridge_settings(args)
+    except ZenswarmError as e:
+        print(f"bridge: error: {e}", file=sys.stderr, flush=True)
+        return 2
+    return run(s)
 
 
 def _configure(p: argparse.ArgumentParser) -> None:

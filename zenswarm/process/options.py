@@ -73,9 +73,13 @@ class ProcessOptions:
     @classmethod
     def of(cls, obj: Any) -> ProcessOptions:
         """The options read off any object with these attribute names (e.g. a parsed command
-        line); a missing or None attribute takes the default."""
+        line); a missing or None attribute takes the default. An object with a
+        ``process_options()`` method (a role's or an edge's typed settings) gives its own."""
         if isinstance(obj, ProcessOptions):
             return obj
+        own = getattr(obj, "process_options", None)
+        if callable(own):
+            return own()  # type: ignore[no-any-return]
 
         def get(name: str, default: Any) -> Any:
             value = getattr(obj, name, None)

@@ -5,7 +5,9 @@ The front door builds a :class:`FlightSettings` once: ``zenswarm up``'s command 
 carries the scenario parsed and checked (overrides and plug-in names applied), so no process
 reads the scenario file again. The supervisor takes it, and hands each role it starts (plant,
 leader, agent i) that role's part, a :class:`RoleSettings`, in one serialized form: msgpack on the
-child's standard input (:func:`encode`, :func:`decode_role`). ``api.fly`` hands the whole
+child's standard input (:func:`encode`, :func:`decode_role`); the edges it starts (the recorder,
+a vehicle bridge, the simulated vehicles) get theirs the same way (:func:`decode_as`; what each
+process is started with: :mod:`zenswarm.compose.commands`). ``api.fly`` hands the whole
 :class:`FlightSettings` to its ``zenswarm up`` child the same way (:func:`decode_flight`).
 
 A role started by hand on another host (``zenswarm up --only agent:2 --connect ...``, or
@@ -31,7 +33,7 @@ from zenswarm.link import LinkFaults
 from zenswarm.process.options import DEFAULT_LOCKSTEP_TIMEOUT_S, DEFAULT_ROUTER_LOST_TIMEOUT_S, ProcessOptions
 from zenswarm.scenario.config import Scenario
 
-__all__ = ["FlightSettings", "RoleSettings", "LiveView", "encode", "decode_flight", "decode_role", "read_settings",
+__all__ = ["FlightSettings", "RoleSettings", "LiveView", "encode", "decode_as", "decode_flight", "decode_role", "read_settings",
            "DEFAULT_EXTERNAL_TIMEOUT_S"]
 
 DEFAULT_EXTERNAL_TIMEOUT_S = 60.0
@@ -58,7 +60,7 @@ class RoleSettings(msgspec.Struct, frozen=True, kw_only=True):
     :mod:`zenswarm.process.security`). Durations in wall seconds."""
 
     role: str
-    scenario: Scenario
+    scenario: Scenario | None = None  # None: fetched from the leader's mission key (an edge started by hand without a file)
     swarm: str = "default"
     connect: tuple[str, ...] = ()
     realtime: bool = False
@@ -94,9 +96,8 @@ class FlightSettings(msgspec.Struct, frozen=True, kw_only=True):
 
     scenario: parsed and checked once by the front door (overrides and ``--controller`` /
     ``--planner`` / ``--plant-model`` applied; ``--seed`` is in ``faults``). scenario_file: the
-    file it came from (with overrides, the effective one the supervisor wrote), for the
-    processes that still take a file: the recorder, the MAVLink and Crazyflie bridges and their
-    simulated vehicles. Built by :func:`zenswarm.compose.up.flight_settings` (the
+    file it came from (with overrides, the effective one the supervisor wrote): what a recording
+    names as its scenario's source (no process reads it). Built by :func:`zenswarm.compose.up.flight_settings` (the
     command line) or by :func:`zenswarm.api.fly`."""
 
     scenario: Scenario
@@ -155,13 +156,9 @@ class FlightSettings(msgspec.Struct, frozen=True, kw_only=True):
             router_lost_timeout=DEFAULT_ROUTER_LOST_TIMEOUT_S if rlt is None else rlt, kill_at_tick=kill_at_tick, expect=expect,
         )  # fmt: skip
 
-    def rt_argv(self) -> list[str]:
-        """``--rt-priority P`` for the processes started by command line (if given)."""
-        return [] if self.rt_priority is None else ["--rt-priority", str(self.rt_priority)]
-
     def plugin_argv(self) -> list[str]:
-        """``--controller NAME`` / ``--planner NAME`` / ``--plant-model NAME`` for the processes
-        started by command line (those given)."""
+        """``--controller NAME`` / ``--planner NAME`` / ``--plant-model NAME``: the plug-in flags
+        of these settings (those given), for a command line of a process started by hand."""
         words: list[str] = []
         for flag, name in (("--controller", self.controller), ("--planner", self.planner), ("--plant-model", self.plant_model)):
             if name is not None:
@@ -182,10 +179,10 @@ def _dec_hook(tp: Any, obj: Any) -> Any:
 
 
 _ENCODER = msgspec.msgpack.Encoder(enc_hook=_enc_hook)
-_T = TypeVar("_T", FlightSettings, RoleSettings)
+_T = TypeVar("_T", bound=msgspec.Struct)
 
 
-def encode(settings: FlightSettings | RoleSettings) -> bytes:
+def encode(settings: msgspec.Struct) -> bytes:
     """The settings as msgpack (what a child reads on its standard input). A scenario built in
     code with values msgpack cannot carry (a numpy array, say) is a ScenarioError naming it."""
     try:
@@ -194,7 +191,9 @@ def encode(settings: FlightSettings | RoleSettings) -> bytes:
         raise ScenarioError("scenario", f"cannot be handed to the swarm's processes: {e}") from None
 
 
-def _decode(data: bytes, tp: type[_T]) -> _T:
+def decode_as(data: bytes, tp: type[_T]) -> _T:
+    """The settings of type ``tp`` (a frozen msgspec struct: a role's, an edge's) from
+    :func:`encode`'s bytes (ScenarioError naming ``--settings`` otherwise)."""
     try:
         return msgspec.msgpack.decode(data, type=tp, dec_hook=_dec_hook)
     except msgspec.MsgspecError as e:
@@ -203,12 +202,12 @@ def _decode(data: bytes, tp: type[_T]) -> _T:
 
 def decode_flight(data: bytes) -> FlightSettings:
     """:class:`FlightSettings` from :func:`encode`'s bytes (ScenarioError naming ``--settings`` otherwise)."""
-    return _decode(data, FlightSettings)
+    return decode_as(data, FlightSettings)
 
 
 def decode_role(data: bytes) -> RoleSettings:
     """:class:`RoleSettings` from :func:`encode`'s bytes (ScenarioError naming ``--settings`` otherwise)."""
-    return _decode(data, RoleSettings)
+    return decode_as(data, RoleSettings)
 
 
 def read_settings(where: str) -> bytes:
