@@ -32,10 +32,11 @@ from zenswarm.compose.children import Child, start_local
 from zenswarm.compose.credentials import router_security
 from zenswarm.compose.flight_results import judge_and_write, recording_lost, run_facts
 from zenswarm.compose.hooks import EndHook, FlightEnd, Tap
+from zenswarm.compose.kills import split_kills
 from zenswarm.compose.liveliness import EXTERNAL_GONE_GRACE_S, ExternalRoles, Tokens
 from zenswarm.compose.plugin_failures import PluginFailures, failure_settled
 from zenswarm.compose.policy import restart_policy
-from zenswarm.compose.progress import SwarmProgress
+from zenswarm.compose.progress import SwarmProgress, children_health
 from zenswarm.compose.router import open_router
 from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED
 from zenswarm.judge.verdict import criteria_from_scenario
@@ -101,16 +102,9 @@ class Supervisor:
         self.stop = threading.Event()
         self.stop_reason = ""
         self.print_lock = threading.Lock()
-        self.pending_kills: dict[str, int] = {role: wire.t_ns(t) for role, t in (args.kill or ())}
-        # lockstep: a swarm role kills itself at the exact tick (--kill-at-tick, its first start
-        # only), so the fault falls on the same tick in every run; the rest are killed from here
-        # when the collector's sim time gets there (the recorder, realtime flights)
-        self.kill_ticks: dict[str, int] = {}
+        # --kill: killed from here at a sim time (ns), or (lockstep roles) by themselves at a tick (compose/kills.py)
+        self.pending_kills, self.kill_ticks = split_kills(args.kill or (), realtime=args.realtime, dt=scenario.timing.dt)
         self.self_killed: dict[str, int] = {}  # role -> the tick it was started to kill itself at
-        if not args.realtime:
-            dt_ns = wire.t_ns(scenario.timing.dt)
-            for role in [r for r in self.pending_kills if r in ("plant", "leader") or r.startswith("agent:")]:
-                self.kill_ticks[role] = -(-self.pending_kills.pop(role) // dt_ns)  # the first tick at or after T
         self.policy = restart_policy(scenario.restart, force=args.restart)
         self.connect_endpoints: list[str] = []  # where the roles join the router, once it listens
         self.tokens = Tokens(self.keys, lambda: self.collector.sim_t_ns if self.collector is not None else -1)
@@ -405,30 +399,11 @@ class Supervisor:
         self.failed = death["process"]
         return EXIT_PROCESS_FAILED
 
-    def _child_state(self, name: str, c: Child) -> str:
-        """One of our roles for the progress line: up, exit N, leaving or starting. The simulated
-        MAVLink vehicles have no Zenoh session (no liveliness token): they are up while their
-        process runs and the bridge reports a vehicle past ``connecting`` (it hears them)."""
-        if name in self.tokens.alive:
-            return "up"
-        if c.returncode is not None:
-            return "exit " + str(c.returncode)
-        if name == "vehicles" and c.proc.poll() is None and self._bridge_hears_vehicles():
-            return "up"
-        return "leaving" if name in self.tokens.seen else "starting"
-
-    def _bridge_hears_vehicles(self) -> bool:
-        """The bridge's last diag shows a UAV past ``connecting`` (``phases`` = "1:ready,...")."""
-        d = self.collector.diag.get("bridge", {}) if self.collector is not None else {}
-        phases = str(d.get("phases", ""))
-        return any(p.partition(":")[2] not in ("", "connecting") for p in phases.split(","))
-
     def _health(self) -> str:
-        """The roles' states for the progress line: ours (up, starting, leaving, exit N) and the external
-        ones (waiting until their token appears, up, gone)."""
-        out = [f"{name}:{self._child_state(name, c)}" for name, c in self.children.items()]
-        out += self.external.health()
-        return " ".join(out)
+        """The roles' states for the progress line: ours (up, starting, leaving, exit N:
+        :func:`~zenswarm.compose.progress.children_health`) and the external ones (waiting, up, gone)."""
+        bridge = self.collector.diag.get("bridge", {}) if self.collector is not None else {}
+        return " ".join(children_health(self.children, self.tokens.alive, self.tokens.seen, bridge) + self.external.health())
 
     def _watch(self, collector: Collector) -> int:
         """Watch the flight until it ends; returns the exit code so far (see :meth:`_finish`)."""
