@@ -18,7 +18,6 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -30,8 +29,8 @@ from zenswarm import bus
 from zenswarm.bus import wire
 from zenswarm.compose.children import Child, start_local
 from zenswarm.compose.credentials import router_security
-from zenswarm.compose.flight_results import judge_and_write, recording_lost, run_facts
-from zenswarm.compose.hooks import EndHook, FlightEnd, Tap
+from zenswarm.compose.flight_results import await_last_tick, judge_and_write, recording_lost, run_facts
+from zenswarm.compose.hooks import EndHook, FlightEnd, Tap, feeds
 from zenswarm.compose.kills import split_kills
 from zenswarm.compose.liveliness import EXTERNAL_GONE_GRACE_S, ExternalRoles, Tokens
 from zenswarm.compose.plugin_failures import PluginFailures, failure_settled
@@ -343,7 +342,7 @@ class Supervisor:
             finally:
                 self.terminate_all()
                 if self._bus_sub is not None:
-                    collector.poll(self._bus_sub, self._tap())  # what arrived after the last loop
+                    collector.poll(self._bus_sub, feeds(self.taps))  # what arrived after the last loop
                 for t in self.taps:
                     t.publish()  # the flight's last frame
                 for s in subs:
@@ -411,7 +410,7 @@ class Supervisor:
         wall0 = time.monotonic()
         a, sc = self.args, self.sc
         progress = SwarmProgress(sc.leader.goal, sc.timing.time_limit_s, a.progress_every, a.quiet, self.say, wall0)
-        tap = self._tap()
+        tap = feeds(self.taps)
         while True:
             collector.poll(self._bus_sub, tap)
             for t in self.taps:
@@ -428,8 +427,9 @@ class Supervisor:
                 code = self._watch_external(collector, now, wall0)
             if code is not None:
                 return code
-            if done:
-                self._await_last_tick(collector)
+            if done:  # lockstep: the last ticks' messages may still be on their way
+                await_last_tick(collector, lambda: collector.poll(self._bus_sub, tap), realtime=a.realtime,
+                                timeout_s=a.lockstep_timeout, stop=self.stop, say=self.say)  # fmt: skip
                 return EXIT_OK
             self._inject_kills(collector)
             if now - last_check >= LIVE_CHECK_S:
@@ -441,36 +441,6 @@ class Supervisor:
             progress(time.monotonic(), collector.sim_t_ns, collector.leader_q, self._health)
             gc_safe_point()
             time.sleep(0.05)
-
-    def _await_last_tick(self, collector: Collector) -> None:
-        """Lockstep, every process done: a process's last messages (the last ticks' clock, refs and
-        commands) are sent as it exits and may still be on their way through the router, so poll
-        until the last tick flown (:meth:`Collector.last_tick_flown`) is complete, at most
-        ``--lockstep-timeout``. Without this wait a loaded machine judged a series whose last ticks
-        were partly missing (NaN where the simulator has values). Realtime: nothing to wait for (a
-        tick without a message holds the previous value)."""
-        if self.args.realtime or collector.sim_t_ns < 0:
-            return
-        deadline = time.monotonic() + self.args.lockstep_timeout
-        while not collector.tick_complete(last := collector.last_tick_flown()):
-            if time.monotonic() > deadline or self.stop.is_set():
-                self.say(f"the messages of tick {last} did not all arrive within {self.args.lockstep_timeout:g} s "
-                         "(--lockstep-timeout) after the processes ended; judging what arrived")
-                return
-            time.sleep(0.01)
-            collector.poll(self._bus_sub, self._tap())
-
-    def _tap(self) -> Callable[[str, bytes], None] | None:
-        """What the collector hands each message it takes to: the taps' feeds (None without one)."""
-        if len(self.taps) <= 1:
-            return self.taps[0].feed if self.taps else None
-        taps = list(self.taps)
-
-        def feed(key: str, payload: bytes) -> None:
-            for t in taps:
-                t.feed(key, payload)
-
-        return feed
 
     def _check_children(self, collector: Collector, now: float) -> tuple[bool, int | None]:
         """One look at the processes started here (restarting those due): (all done, exit code
@@ -515,7 +485,7 @@ class Supervisor:
         the simulator: :meth:`EndWatch.plugin_failed`). Returns 4, or 0 when the run was decided before."""
         deadline = time.monotonic() + self.args.lockstep_timeout + 10.0
         while True:
-            collector.poll(self._bus_sub, self._tap())
+            collector.poll(self._bus_sub, feeds(self.taps))
             for c in list(self.children.values()):
                 rc = c.proc.poll()
                 if rc is not None and c.returncode is None:
