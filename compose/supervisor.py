@@ -1,12 +1,18 @@
-"""The supervisor of ``zenswarm up``: start a Zenoh router, then the plant, the leader and N agents
-as separate OS processes; watch them, show progress, merge their logs, stop them cleanly, write
-results. It takes a checked :class:`zenswarm.process.settings.FlightSettings`; the command line,
-its checks and the settings' building are :mod:`zenswarm.compose.up`'s.
+"""The supervisor of ``zenswarm up``: it supervises. It opens the swarm's Zenoh router
+(:func:`zenswarm.compose.router.open_router`, secured by :mod:`zenswarm.compose.credentials`),
+starts the plant, the leader and N agents as separate OS processes, restarts them by the policy,
+watches them (their exit statuses; their liveliness tokens and the ``--external`` roles',
+:mod:`zenswarm.compose.liveliness`; the plug-in failures they report,
+:mod:`zenswarm.compose.plugin_failures`), merges their logs and stops them cleanly. It takes a
+checked :class:`zenswarm.process.settings.FlightSettings`; the command line, its checks and the
+settings' building are :mod:`zenswarm.compose.up`'s, which also attaches what only looks on: the
+live view (a :class:`~zenswarm.compose.hooks.Tap`) and the report (an end hook).
 
-The supervisor's router session subscribes to the swarm's whole key space to assemble the
-flight's time series (the same :class:`zenswarm.judge.metrics.TimeSeries` the in-process simulator
-writes), so ``results.json`` is computed by the same code for both. Apart from the recorder it
-is the only subscriber to the whole key space; the swarm's processes see only their graph rows.
+The router session subscribes to the swarm's whole key space to assemble the flight's time series
+(the same :class:`zenswarm.judge.metrics.TimeSeries` the in-process simulator writes); when the
+flight ends is :class:`zenswarm.judge.watch.EndWatch`'s, and ``results.json`` is written by the same
+code for both (:mod:`zenswarm.compose.flight_results`). Apart from the recorder it is the only
+subscriber to the whole key space; the swarm's processes see only their graph rows.
 """
 
 from __future__ import annotations
