@@ -2,12 +2,14 @@
 :class:`~zenswarm.judge.watch.EndWatch` says), written and said by the code the simulator's are
 (:mod:`zenswarm.judge.results`), with what only the supervisor knows beside the verdict
 (:func:`run_facts`: the mode, the router, its processes, their deaths and restarts, the vehicles as
-the bridge reported them, the recording and its loss, :func:`recording_lost`).
+the bridge reported them, the recording and its loss, :func:`recording_lost`). In lockstep the
+series is judged once the last tick's messages arrived (:func:`await_last_tick`).
 """
 
 from __future__ import annotations
 
 import signal
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -23,7 +25,7 @@ from zenswarm.process.collector import Collector
 from zenswarm.process.settings import FlightSettings
 from zenswarm.scenario.config import Scenario
 
-__all__ = ["exit_how", "judge_and_write", "recording_lost", "run_facts", "vehicles_figures"]
+__all__ = ["await_last_tick", "exit_how", "judge_and_write", "recording_lost", "run_facts", "vehicles_figures"]
 
 BRIDGE_FIGURES = ("phases", "armed_uavs", "airborne_uavs", "unhealthy_uavs", "max_latency_ms", "max_state_age_ms", "refused",
                   "link_lost", "positioning", "max_extpos_age_ms")  # fmt: skip
@@ -33,6 +35,27 @@ BRIDGE_FIGURES = ("phases", "armed_uavs", "airborne_uavs", "unhealthy_uavs", "ma
 def exit_how(rc: int) -> str:
     """``killed by SIGKILL`` or ``exit status 3``: how a process ended, as said and in results.json."""
     return f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
+
+
+def await_last_tick(
+    collector: Collector, poll: Callable[[], object], *, realtime: bool, timeout_s: float, stop: threading.Event, say: Callable[[str], None]
+) -> None:
+    """Lockstep, every process done: a process's last messages (the last ticks' clock, refs and
+    commands) are sent as it exits and may still be on their way through the router, so ``poll``
+    until the last tick flown (:meth:`Collector.last_tick_flown`) is complete, at most
+    ``timeout_s`` (``--lockstep-timeout``; then said) or until ``stop``. Without this wait a loaded
+    machine judged a series whose last ticks were partly missing (NaN where the simulator has
+    values). Realtime: nothing to wait for (a tick without a message holds the previous value)."""
+    if realtime or collector.sim_t_ns < 0:
+        return
+    deadline = time.monotonic() + timeout_s
+    while not collector.tick_complete(last := collector.last_tick_flown()):
+        if time.monotonic() > deadline or stop.is_set():
+            say(f"the messages of tick {last} did not all arrive within {timeout_s:g} s "
+                "(--lockstep-timeout) after the processes ended; judging what arrived")  # fmt: skip
+            return
+        time.sleep(0.01)
+        poll()
 
 
 def judge_and_write(

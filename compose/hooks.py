@@ -6,12 +6,12 @@ are written (the flight report).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-__all__ = ["Tap", "FlightEnd", "EndHook"]
+__all__ = ["Tap", "feeds", "FlightEnd", "EndHook"]
 
 
 class Tap(Protocol):
@@ -25,6 +25,19 @@ class Tap(Protocol):
 
     def publish(self) -> bool:
         """The flight's last frame, once its processes are stopped."""
+
+
+def feeds(taps: Sequence[Tap]) -> Callable[[str, bytes], None] | None:
+    """One callable feeding every tap of ``taps`` a message (the collector's ``tap``); None without a tap."""
+    if len(taps) <= 1:
+        return taps[0].feed if taps else None
+    fed = list(taps)
+
+    def feed(key: str, payload: bytes) -> None:
+        for t in fed:
+            t.feed(key, payload)
+
+    return feed
 
 
 @dataclass(frozen=True)

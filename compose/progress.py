@@ -1,14 +1,19 @@
 """``zenswarm up``'s progress line: how far the flight is (sim time of the time limit, speed-up over
-wall time, the leader's distance to the goal) and the roles' health, said on the supervisor's console."""
+wall time, the leader's distance to the goal) and the roles' health (:func:`children_health`; the
+``--external`` roles' is :meth:`zenswarm.compose.liveliness.ExternalRoles.health`), said on the
+supervisor's console."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Collection, Mapping
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["PROGRESS_SAME_T_S", "SwarmProgress"]
+from zenswarm.compose.children import Child
+
+__all__ = ["PROGRESS_SAME_T_S", "SwarmProgress", "children_health", "child_state"]
 
 PROGRESS_SAME_T_S = 10.0
 """Wall seconds between two progress lines at the same sim time (the processes starting, a
@@ -43,3 +48,26 @@ class SwarmProgress:
         t = max(sim_t_ns, 0) / 1e9
         dist = f"{np.linalg.norm(leader_q - self.goal):.3f} m" if leader_q is not None else "-"
         self.say(f"t={t:6.2f}/{self.time_limit_s:g} s  {t / el if el > 0 else 0:5.1f}x  leader->goal {dist}  {health()}")
+
+
+def children_health(
+    children: Mapping[str, Child], alive: Collection[str], seen: Collection[str], bridge_diag: Mapping[str, Any]
+) -> list[str]:
+    """``name:state`` of each process the supervisor started (:func:`child_state`)."""
+    return [f"{name}:{child_state(name, c, alive, seen, bridge_diag)}" for name, c in children.items()]
+
+
+def child_state(name: str, c: Child, alive: Collection[str], seen: Collection[str], bridge_diag: Mapping[str, Any]) -> str:
+    """One started role for the progress line: up (its liveliness token is ``alive``), exit N,
+    leaving (its token was ``seen``, and went away) or starting. The simulated MAVLink vehicles
+    have no Zenoh session (no token): they are up while their process runs and the bridge's last
+    diagnostics (``bridge_diag``) show a vehicle past ``connecting`` (``phases`` = "1:ready,...": it hears them)."""
+    if name in alive:
+        return "up"
+    if c.returncode is not None:
+        return "exit " + str(c.returncode)
+    if name == "vehicles" and c.proc.poll() is None:
+        phases = str(bridge_diag.get("phases", ""))
+        if any(p.partition(":")[2] not in ("", "connecting") for p in phases.split(",")):
+            return "up"
+    return "leaving" if name in seen else "starting"

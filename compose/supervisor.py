@@ -1,12 +1,18 @@
-"""The supervisor of ``zenswarm up``: start a Zenoh router, then the plant, the leader and N agents
-as separate OS processes; watch them, show progress, merge their logs, stop them cleanly, write
-results. It takes a checked :class:`zenswarm.process.settings.FlightSettings`; the command line,
-its checks and the settings' building are :mod:`zenswarm.compose.up`'s.
+"""The supervisor of ``zenswarm up``: it supervises. It opens the swarm's Zenoh router
+(:func:`zenswarm.compose.router.open_router`, secured by :mod:`zenswarm.compose.credentials`),
+starts the plant, the leader and N agents as separate OS processes, restarts them by the policy,
+watches them (their exit statuses; their liveliness tokens and the ``--external`` roles',
+:mod:`zenswarm.compose.liveliness`; the plug-in failures they report,
+:mod:`zenswarm.compose.plugin_failures`), merges their logs and stops them cleanly. It takes a
+checked :class:`zenswarm.process.settings.FlightSettings`; the command line, its checks and the
+settings' building are :mod:`zenswarm.compose.up`'s, which also attaches what only looks on: the
+live view (a :class:`~zenswarm.compose.hooks.Tap`) and the report (an end hook).
 
-The supervisor's router session subscribes to the swarm's whole key space to assemble the
-flight's time series (the same :class:`zenswarm.judge.metrics.TimeSeries` the in-process simulator
-writes), so ``results.json`` is computed by the same code for both. Apart from the recorder it
-is the only subscriber to the whole key space; the swarm's processes see only their graph rows.
+The router session subscribes to the swarm's whole key space to assemble the flight's time series
+(the same :class:`zenswarm.judge.metrics.TimeSeries` the in-process simulator writes); when the
+flight ends is :class:`zenswarm.judge.watch.EndWatch`'s, and ``results.json`` is written by the same
+code for both (:mod:`zenswarm.compose.flight_results`). Apart from the recorder it is the only
+subscriber to the whole key space; the swarm's processes see only their graph rows.
 """
 
 from __future__ import annotations
@@ -17,7 +23,6 @@ import subprocess
 import tempfile
 import threading
 import time
-from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -30,12 +35,13 @@ from zenswarm.bus import wire
 from zenswarm.compose import commands
 from zenswarm.compose.children import Child, start_local
 from zenswarm.compose.credentials import router_security
-from zenswarm.compose.flight_results import judge_and_write, recording_lost, run_facts
-from zenswarm.compose.hooks import EndHook, FlightEnd, Tap
+from zenswarm.compose.flight_results import await_last_tick, judge_and_write, recording_lost, run_facts
+from zenswarm.compose.hooks import EndHook, FlightEnd, Tap, feeds
+from zenswarm.compose.kills import split_kills
 from zenswarm.compose.liveliness import EXTERNAL_GONE_GRACE_S, ExternalRoles, Tokens
 from zenswarm.compose.plugin_failures import PluginFailures, failure_settled
 from zenswarm.compose.policy import restart_policy
-from zenswarm.compose.progress import SwarmProgress
+from zenswarm.compose.progress import SwarmProgress, children_health
 from zenswarm.compose.router import open_router
 from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED
 from zenswarm.judge.verdict import criteria_from_scenario
@@ -94,16 +100,9 @@ class Supervisor:
         self.stop = threading.Event()
         self.stop_reason = ""
         self.print_lock = threading.Lock()
-        self.pending_kills: dict[str, int] = {role: wire.t_ns(t) for role, t in (args.kill or ())}
-        # lockstep: a swarm role kills itself at the exact tick (--kill-at-tick, its first start
-        # only), so the fault falls on the same tick in every run; the rest are killed from here
-        # when the collector's sim time gets there (the recorder, realtime flights)
-        self.kill_ticks: dict[str, int] = {}
+        # --kill: killed from here at a sim time (ns), or (lockstep roles) by themselves at a tick (compose/kills.py)
+        self.pending_kills, self.kill_ticks = split_kills(args.kill or (), realtime=args.realtime, dt=scenario.timing.dt)
         self.self_killed: dict[str, int] = {}  # role -> the tick it was started to kill itself at
-        if not args.realtime:
-            dt_ns = wire.t_ns(scenario.timing.dt)
-            for role in [r for r in self.pending_kills if r in ("plant", "leader") or r.startswith("agent:")]:
-                self.kill_ticks[role] = -(-self.pending_kills.pop(role) // dt_ns)  # the first tick at or after T
         self.policy = restart_policy(scenario.restart, force=args.restart)
         self.connect_endpoints: list[str] = []  # where the roles join the router, once it listens
         self.tokens = Tokens(self.keys, lambda: self.collector.sim_t_ns if self.collector is not None else -1)
@@ -290,7 +289,7 @@ class Supervisor:
             finally:
                 self.terminate_all()
                 if self._bus_sub is not None:
-                    collector.poll(self._bus_sub, self._tap())  # what arrived after the last loop
+                    collector.poll(self._bus_sub, feeds(self.taps))  # what arrived after the last loop
                 for t in self.taps:
                     t.publish()  # the flight's last frame
                 for s in subs:
@@ -346,30 +345,11 @@ class Supervisor:
         self.failed = death["process"]
         return EXIT_PROCESS_FAILED
 
-    def _child_state(self, name: str, c: Child) -> str:
-        """One of our roles for the progress line: up, exit N, leaving or starting. The simulated
-        MAVLink vehicles have no Zenoh session (no liveliness token): they are up while their
-        process runs and the bridge reports a vehicle past ``connecting`` (it hears them)."""
-        if name in self.tokens.alive:
-            return "up"
-        if c.returncode is not None:
-            return "exit " + str(c.returncode)
-        if name == "vehicles" and c.proc.poll() is None and self._bridge_hears_vehicles():
-            return "up"
-        return "leaving" if name in self.tokens.seen else "starting"
-
-    def _bridge_hears_vehicles(self) -> bool:
-        """The bridge's last diag shows a UAV past ``connecting`` (``phases`` = "1:ready,...")."""
-        d = self.collector.diag.get("bridge", {}) if self.collector is not None else {}
-        phases = str(d.get("phases", ""))
-        return any(p.partition(":")[2] not in ("", "connecting") for p in phases.split(","))
-
     def _health(self) -> str:
-        """The roles' states for the progress line: ours (up, starting, leaving, exit N) and the external
-        ones (waiting until their token appears, up, gone)."""
-        out = [f"{name}:{self._child_state(name, c)}" for name, c in self.children.items()]
-        out += self.external.health()
-        return " ".join(out)
+        """The roles' states for the progress line: ours (up, starting, leaving, exit N:
+        :func:`~zenswarm.compose.progress.children_health`) and the external ones (waiting, up, gone)."""
+        bridge = self.collector.diag.get("bridge", {}) if self.collector is not None else {}
+        return " ".join(children_health(self.children, self.tokens.alive, self.tokens.seen, bridge) + self.external.health())
 
     def _watch(self, collector: Collector) -> int:
         """Watch the flight until it ends; returns the exit code so far (see :meth:`_finish`)."""
@@ -377,7 +357,7 @@ class Supervisor:
         wall0 = time.monotonic()
         a, sc = self.args, self.sc
         progress = SwarmProgress(sc.leader.goal, sc.timing.time_limit_s, a.progress_every, a.quiet, self.say, wall0)
-        tap = self._tap()
+        tap = feeds(self.taps)
         while True:
             collector.poll(self._bus_sub, tap)
             for t in self.taps:
@@ -394,8 +374,9 @@ class Supervisor:
                 code = self._watch_external(collector, now, wall0)
             if code is not None:
                 return code
-            if done:
-                self._await_last_tick(collector)
+            if done:  # lockstep: the last ticks' messages may still be on their way
+                await_last_tick(collector, lambda: collector.poll(self._bus_sub, tap), realtime=a.realtime,
+                                timeout_s=a.lockstep_timeout, stop=self.stop, say=self.say)  # fmt: skip
                 return EXIT_OK
             self._inject_kills(collector)
             if now - last_check >= LIVE_CHECK_S:
@@ -407,38 +388,6 @@ class Supervisor:
             progress(time.monotonic(), collector.sim_t_ns, collector.leader_q, self._health)
             gc_safe_point()
             time.sleep(0.05)
-
-    def _await_last_tick(self, collector: Collector) -> None:
-        """Lockstep, every process done: a process's last messages (the last ticks' clock, refs and
-        commands) are sent as it exits and may still be on their way through the router, so poll
-        until the last tick flown (:meth:`Collector.last_tick_flown`) is complete, at most
-        ``--lockstep-timeout``. Without this wait a loaded machine judged a series whose last ticks
-        were partly missing (NaN where the simulator has values). Realtime: nothing to wait for (a
-        tick without a message holds the previous value)."""
-        if self.args.realtime or collector.sim_t_ns < 0:
-            return
-        deadline = time.monotonic() + self.args.lockstep_timeout
-        while not collector.tick_complete(last := collector.last_tick_flown()):
-            if time.monotonic() > deadline or self.stop.is_set():
-                self.say(
-                    f"the messages of tick {last} did not all arrive within {self.args.lockstep_timeout:g} s "
-                    "(--lockstep-timeout) after the processes ended; judging what arrived"
-                )
-                return
-            time.sleep(0.01)
-            collector.poll(self._bus_sub, self._tap())
-
-    def _tap(self) -> Callable[[str, bytes], None] | None:
-        """What the collector hands each message it takes to: the taps' feeds (None without one)."""
-        if len(self.taps) <= 1:
-            return self.taps[0].feed if self.taps else None
-        taps = list(self.taps)
-
-        def feed(key: str, payload: bytes) -> None:
-            for t in taps:
-                t.feed(key, payload)
-
-        return feed
 
     def _check_children(self, collector: Collector, now: float) -> tuple[bool, int | None]:
         """One look at the processes started here (restarting those due): (all done, exit code
@@ -483,7 +432,7 @@ class Supervisor:
         the simulator: :meth:`EndWatch.plugin_failed`). Returns 4, or 0 when the run was decided before."""
         deadline = time.monotonic() + self.args.lockstep_timeout + 10.0
         while True:
-            collector.poll(self._bus_sub, self._tap())
+            collector.poll(self._bus_sub, feeds(self.taps))
             for c in list(self.children.values()):
                 rc = c.proc.poll()
                 if rc is not None and c.returncode is None:
