@@ -17,7 +17,6 @@ table), ``--settings -`` and ``--supervisor PID``. The edges' own commands (``ze
 
 from __future__ import annotations
 
-import argparse
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -204,12 +203,10 @@ def run_edge(argv: list[str]) -> int:
     words = edge_of(argv)
     if words is None:
         raise ValueError(f"not an edge's settings command line: {argv[:2]!r}")
+    from zenswarm.compose.roles import settings_words
+
     kind, run = EDGES[words]()
-    p = argparse.ArgumentParser(prog=f"zenswarm {' '.join(words)}", description="run an edge process with its typed settings")
-    p.add_argument("--swarm", required=True)
-    p.add_argument("--settings", required=True, metavar="FILE", help="msgpack of its settings; - for standard input")
-    p.add_argument("--supervisor", type=int, metavar="PID", help="the supervisor that started it (a label for the process table)")
-    ns = p.parse_args(argv[len(words) :])
+    ns = settings_words(f"zenswarm {' '.join(words)}", argv[len(words) :])
     settings: Any = decode_as(read_settings(ns.settings), kind)
     if settings.swarm != ns.swarm:
         raise ScenarioError("--settings", f"the settings of swarm {settings.swarm!r}, not of swarm {ns.swarm!r}")

@@ -334,19 +334,26 @@ def run_settings(settings: RoleSettings) -> int:
     raise ScenarioError("--settings", f"unknown role {role!r}: expected plant, leader or agent:<i>")
 
 
+def settings_words(prog: str, words: list[str], with_id: bool = False) -> argparse.Namespace:
+    """``[--id I] --swarm NAME --settings FILE [--supervisor PID]``: the words after the command
+    of a process ``zenswarm up`` hands its settings to (a role, or an edge:
+    :func:`zenswarm.compose.commands.run_edge`); ``--id`` with ``with_id`` (an agent)."""
+    p = argparse.ArgumentParser(prog=prog, description="run a process of zenswarm up with its typed settings")
+    if with_id:
+        p.add_argument("--id", type=int, required=True, metavar="I")
+    p.add_argument("--swarm", required=True)
+    p.add_argument("--settings", required=True, metavar="FILE", help="msgpack of its settings; - for standard input")
+    p.add_argument("--supervisor", type=int, metavar="PID", help="the supervisor that started it (a label for the process table)")
+    return p.parse_args(words)
+
+
 def _settings_of(argv: list[str]) -> RoleSettings:
     """``ROLE [--id I] --swarm NAME --settings FILE [--supervisor PID]`` (what the supervisor
     starts): the :class:`RoleSettings` in FILE (``-``: standard input), which must be this role's
     and this swarm's."""
     from zenswarm.process.settings import decode_role, read_settings
 
-    p = argparse.ArgumentParser(prog=f"zenswarm {argv[0]}", description="run a role with its typed settings (zenswarm up's child)")
-    if argv[0] == "agent":
-        p.add_argument("--id", type=int, required=True, metavar="I")
-    p.add_argument("--swarm", required=True)
-    p.add_argument("--settings", required=True, metavar="FILE", help="msgpack of the RoleSettings; - for standard input")
-    p.add_argument("--supervisor", type=int, metavar="PID", help="the supervisor that started it (a label for the process table)")
-    ns = p.parse_args(argv[1:])
+    ns = settings_words(f"zenswarm {argv[0]}", argv[1:], with_id=argv[0] == "agent")
     settings = decode_role(read_settings(ns.settings))
     role = f"agent:{ns.id}" if argv[0] == "agent" else argv[0]
     if (settings.role, settings.swarm) != (role, ns.swarm):

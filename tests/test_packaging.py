@@ -42,11 +42,13 @@ def test_namespace_packages_come_from_the_repository_folders(tmp_path: Path) -> 
 def test_package_dir_maps_every_folder() -> None:
     cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
     assert cfg["package-dir"] == {"zenswarm": "zenswarm", **{f"zenswarm.{n}": n for n in ROLES_AND_EDGES}}
-    # the sub-packages of every folder (the base's zenswarm/<name>/, the bridge's bridge/<name>/) install
-    # from it: each must be listed, or a wheel would leave it out while an editable install still finds it
+    # the sub-packages of every folder, at every depth (the base's zenswarm/<name>/, the bridge's
+    # bridge/<name>/ and bridge/vehicles/mavlink/) install from it: each must be listed, or a wheel would
+    # leave it out while an editable install still finds it
     subs = sorted(
-        f"{pkg}.{d.name}" for pkg, folder in cfg["package-dir"].items() for d in (ROOT / folder).iterdir() if (d / "__init__.py").is_file()
-    )
+        ".".join((pkg, *d.relative_to(ROOT / folder).parts)) for pkg, folder in cfg["package-dir"].items()
+        for d in (ROOT / folder).rglob("*") if d.is_dir() and (d / "__init__.py").is_file()
+    )  # fmt: skip
     assert "zenswarm.link" in subs and "zenswarm.bridge.recording" in subs, subs
     assert sorted(cfg["packages"]) == sorted([*cfg["package-dir"], *subs])
 

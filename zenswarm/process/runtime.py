@@ -79,7 +79,7 @@ class SwarmProcess:
     def __init__(self, name: str, options: ProcessOptions | Any) -> None:
         self.name = name
         self.options = ProcessOptions.of(options)
-        self.args = options  # what it was started with: an edge's own flags (bridge/vehicles/mavlink.py)
+        self.args = options  # what it was started with: an edge's own settings (bridge/vehicles/settings.py)
         self.keys = wire.Keys(self.options.swarm)
         self.decoder = _KeyedDecoder()
         self.inbox = Inbox()

@@ -2,7 +2,7 @@
 
 The flight-mode tables of both autopilots (HEARTBEAT ``custom_mode`` numbers, as the vehicles
 report them and as MAV_CMD_DO_SET_MODE asks for them) and the scenario's ``[mavlink]`` table
-(:func:`mavlink_settings`). Both the MAVLink bridge (``bridge/vehicles/mavlink.py``) and the simulated
+(:func:`mavlink_settings`). Both the MAVLink bridge (``bridge/vehicles/mavlink/``) and the simulated
 MAVLink vehicles (``plant/mavlink_vehicle.py``) use them, so they live in the base layer.
 Standard library only; :func:`load_mavutil` imports pymavlink when called.
 """
