@@ -192,7 +192,7 @@ def test_the_edges_get_what_their_command_lines_said(tmp_path: Path) -> None:
     from zenswarm.compose.commands import command, edge_settings
     from zenswarm.compose.roles import crazyflie_fleet_settings, mavlink_fleet_settings
 
-    at = _launch(tmp_path, "--plant", "mavlink")
+    at = _launch(tmp_path, "--plant", "mavlink", "--rt-priority", "10")
     join = ["--swarm", "s1", "--connect", "tls/127.0.0.1:7111", "--keys", str(tmp_path / "keys"), "--tls"]
     faults = at.flight.faults.argv()
     assert faults == ["--link-loss", "0.1", "--seed", "7"]
@@ -204,13 +204,13 @@ def test_the_edges_get_what_their_command_lines_said(tmp_path: Path) -> None:
     gz = at.flight.scenario.mavlink.ground_z if at.flight.scenario.mavlink is not None else 0.0
     origins = [w for i, q in enumerate(at.flight.scenario.initial_positions) for w in ("--origin", f"{i + 1}={q[0]!r},{q[1]!r},{gz!r}")]
     old = mavlink.bridge_settings(p.parse_args(["bridge", "mavlink", str(EX1), "--base-port", "14600", *join, *conns, *origins, *faults,
-                                               "--expect", "recorder"]))  # fmt: skip
+                                               "--expect", "recorder", "--rt-priority", "10"]))  # fmt: skip
     assert edge_settings("bridge", at) == old and old.process.realtime and old.process.tls and old.conn[3] == "udpin:127.0.0.1:14602"
     old = mavlink_fleet_settings(p.parse_args(["mavlink-vehicle", str(EX1), "--base-port", "14600", "--telemetry-hz", "100",
-                                               "--own-origin", "--sitl-ports"]))  # fmt: skip
+                                               "--own-origin", "--sitl-ports", "--rt-priority", "10"]))  # fmt: skip
     assert edge_settings("vehicles", at) == msgspec.structs.replace(old, swarm="s1")
 
-    at = _launch(tmp_path, "--plant", "crazyflie")
+    at = _launch(tmp_path, "--plant", "crazyflie", "--rt-priority", "10")  # neither the Crazyflie bridge nor its vehicles take it
     uris = [w for i in range(3) for w in ("--uri", f"{i + 1}=udp://127.0.0.1:{19900 + i}")]
     old = crazyflie.bridge_settings(p.parse_args(["bridge", "crazyflie", str(EX1), *join, *uris, *faults, "--expect", "recorder"]))
     assert edge_settings("bridge", at) == old and old.uri[1] == "udp://127.0.0.1:19900"

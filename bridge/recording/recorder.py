@@ -113,6 +113,7 @@ DROPPED_METADATA_INTERVAL_S: Final = 1.0
 MAX_DROPPED_KEYS: Final = 1024
 """Distinct keys counted one by one in the oversize-drop counts; the rest under ``<other>``."""
 
+
 class RecorderSettings(msgspec.Struct, frozen=True, kw_only=True):
     """What the recorder is started with: ``zenswarm record``'s flags (:func:`recorder_settings`)
     or, under ``zenswarm up --record``, the flight's (msgpack on its standard input,
