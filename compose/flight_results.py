@@ -127,6 +127,7 @@ def recording_lost(child: Child, rc: int, sim_t_ns: int, recording: Path | None,
     as results.json's ``recording_loss`` (when, how, the file; why, in the recorder's words, e.g.
     the disk is full), said now. The recorder is not a vehicle: the flight goes on; the file keeps
     what was written (chunks are flushed every 0.25 s; ``zenswarm recover`` closes it)."""
+    child.join_output(1.0)  # its last lines (why it stopped): the output ends with it, read by another thread
     how = exit_how(rc)
     t = max(sim_t_ns, 0) / 1e9
     loss: dict[str, Any] = {"died_at_sim_time_s": t, "how": how, "recording": str(recording)}
