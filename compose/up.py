@@ -30,7 +30,6 @@ from zenswarm.bridge.args import (
 )
 from zenswarm.bridge.views.live import FOXGLOVE_DEFAULT, LIVE_HELP, LiveTarget, live_target
 from zenswarm.bus import wire
-from zenswarm.compose.end_report import report_hook
 from zenswarm.compose.supervisor import SITL_SEND_OFFSET, Supervisor, role_names, swarm_roles
 from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.process import rtsched
@@ -216,8 +215,10 @@ def fly(args: FlightSettings) -> int:
         view = open_view(LiveTarget(args.live.viewer, args.live.port), sc, args.swarm)
         sup.taps.append(view)  # fed from the supervisor's bus loop
         sup.say(view.how_to_open())
-    if args.record is not None and args.report:
-        sup.on_end.append(report_hook(args.report_format, full_time=args.full_time))  # from the recording, once results are written
+    if args.record is not None and args.report:  # from the recording, once the results are written
+        from zenswarm.compose.end_report import report_hook
+
+        sup.on_end.append(report_hook(args.report_format, full_time=args.full_time))
     try:
         sup.t_start = time.monotonic()
         rc = sup.run()
