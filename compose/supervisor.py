@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -135,6 +136,7 @@ class Supervisor:
         self.cf_base_port = (args.crazyflie_base_port or bus.free_udp_block(scenario.n)) if args.plant == "crazyflie" else None
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
         self.live: Any = None  # --live: the view (zenswarm.bridge.views.live.open_view), bound by _run_up before run()
+        self.cluster: Any = None  # --scheduler: the Dask cluster the roles run on (zenswarm.compose.cluster.Cluster), set by run()
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -238,16 +240,21 @@ class Supervisor:
         env.setdefault("PYTHONUNBUFFERED", "1")
         if self.user_runtime is None:  # the swarm's processes: zenoh on one thread (bus.use_swarm_runtime)
             env["ZENOH_RUNTIME"] = bus.ZENOH_RUNTIME_DEFAULT
-        stdin: Any = subprocess.DEVNULL
-        if role.partition(":")[0] in ROLES_BY_SETTINGS:  # its settings on stdin: a file of its own, already gone from the disk
-            stdin = tempfile.TemporaryFile()
-            stdin.write(encode(self.role_settings(role)))
-            stdin.seek(0)
-        try:
-            c = start_local(role, self.child_argv(role), env, stdin, term_on_parent_death=role == "recorder")
-        finally:
-            if stdin is not subprocess.DEVNULL:
-                stdin.close()  # the child holds its own descriptor
+        by_settings = role.partition(":")[0] in ROLES_BY_SETTINGS
+        if by_settings and self.cluster is not None:  # --scheduler: on its worker, the settings travel with the start
+            wanted = {k: env[k] for k in ("PYTHONUNBUFFERED", "ZENOH_RUNTIME") if k in env}
+            c = self.cluster.start(role, self.role_settings(role), self.child_argv(role)[1:], wanted)
+        else:
+            stdin: Any = subprocess.DEVNULL
+            if by_settings:  # its settings on stdin: a file of its own, already gone from the disk
+                stdin = tempfile.TemporaryFile()
+                stdin.write(encode(self.role_settings(role)))
+                stdin.seek(0)
+            try:
+                c = start_local(role, self.child_argv(role), env, stdin, term_on_parent_death=role == "recorder")
+            finally:
+                if stdin is not subprocess.DEVNULL:
+                    stdin.close()  # the child holds its own descriptor
         c.read(self._on_line)
         self.children[role] = c
         return c
@@ -312,13 +319,23 @@ class Supervisor:
         a = self.args
         out: Path = a.out
         listen = list(a.listen) or [f"tcp/127.0.0.1:{bus.free_port()}"]
-        settings, listen = self._security(listen, out)
-        # a second flight into this OUT would overwrite our results: exit 2 naming --out, now
-        out_lock = lock_output_dir(out, "--out")
+        if a.scheduler is not None:  # the cluster, its workers and the plan: bad input exits 2 before anything starts
+            from zenswarm.compose.cluster import Cluster
+
+            self.cluster = Cluster(a.scheduler, a.placement, self.say)
+            placed = [r for r in self.roles() if r.partition(":")[0] in ROLES_BY_SETTINGS]
+            self.cluster.open(placed, self.sc.n, list(a.connect) or listen, a.swarm)
         try:
-            return self._run_locked(listen, settings, out)
+            settings, listen = self._security(listen, out)
+            # a second flight into this OUT would overwrite our results: exit 2 naming --out, now
+            out_lock = lock_output_dir(out, "--out")
+            try:
+                return self._run_locked(listen, settings, out)
+            finally:
+                out_lock.release()
         finally:
-            out_lock.release()
+            if self.cluster is not None:
+                self.cluster.close()  # every role it placed ends, on every worker
 
     def _run_locked(self, listen: list[str], settings: dict, out: Path) -> int:
         """:meth:`run` once the output directory is locked: the router, the processes, the watch."""
@@ -789,6 +806,7 @@ class Supervisor:
         """A process of ours exited with status ``rc`` != 0: schedule its restart (None) when the
         policy allows, else the exit code (3)."""
         how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
+        how = getattr(c.proc, "lost", None) or how  # --scheduler: its worker was lost (zenswarm.compose.cluster)
         c.join_output(1.0)  # its output ended with it: its last lines are read at once
         tail = "; last output: " + " | ".join(c.lines[-3:]) if c.lines else ""
         t_s = max(collector.sim_t_ns, 0) / 1e9  # when the collector's clock (a few ticks behind, loaded) saw it
@@ -850,9 +868,12 @@ class Supervisor:
             "router": list(self.listen),  # the endpoints the router listened on (its port: chosen free without --listen)
             # a child stopped by terminate_all has its code on its process only (returncode is set when one dies)
             "processes": {name: c.status() for name, c in self.children.items()},
+            "where": {name: c.proc.where() if hasattr(c.proc, "where") else {"host": socket.gethostname(), "pid": c.proc.pid}
+                      for name, c in self.children.items()},  # fmt: skip
             "vehicles": self._vehicles_figures(collector),
             "process_deaths": self.deaths,
             "restarts": self.restarts,
+            **({"scheduler": a.scheduler, "lost_workers": self.cluster.lost} if self.cluster is not None else {}),
             **collector.facts(),  # failsafe, diagnostics, decoder_rejects, foreign_samples
             "supervisor_zenoh_threads": bus.zenoh_threads(),  # the router's (ZENOH_RUNTIME_ROUTER)
         }
