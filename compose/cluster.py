@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import os
 import queue
+import re
 import shutil
 import signal
 import socket
@@ -70,6 +71,28 @@ TERM_GRACE_S = 2.0
 
 # ============================================================================ the worker's side
 
+_KEYS_DIR = re.compile(r"^zenswarm-.+-w(\d+)-[^-]+$")
+
+
+def sweep_stale_keys(tmp: Path | None = None) -> list[Path]:
+    """Remove the credentials left in this host's temporary directory by a worker that was killed
+    (it could not remove them: ``zenswarm-<swarm>-w<pid>-*`` whose worker pid is gone); run by each
+    new :class:`RoleHost`. The directories removed."""
+    gone = []
+    for d in Path(tmp or tempfile.gettempdir()).glob("zenswarm-*-w*-*"):
+        m = _KEYS_DIR.match(d.name)
+        if m is None or not d.is_dir():
+            continue
+        try:
+            os.kill(int(m.group(1)), 0)
+        except ProcessLookupError:
+            shutil.rmtree(d, ignore_errors=True)
+            gone.append(d)
+        except PermissionError:  # another user's worker, alive
+            pass
+    return gone
+
+
 
 class RoleHost:
     """The role processes of one supervisor on one worker (a Dask actor: ``client.submit(RoleHost,
@@ -86,7 +109,8 @@ class RoleHost:
         self.key_dirs: dict[int, Path] = {}
         self.lock = threading.Lock()
         self.closed = threading.Event()
-        self.keys_root = Path(tempfile.mkdtemp(prefix=f"zenswarm-{swarm}-"))  # 0700: mkdtemp's own mode
+        sweep_stale_keys()
+        self.keys_root = Path(tempfile.mkdtemp(prefix=f"zenswarm-{swarm}-w{os.getpid()}-"))  # 0700: mkdtemp's own mode
         self._starts: queue.Queue[tuple[Callable[[], Any], Future[Any]] | None] = queue.Queue()
         threading.Thread(target=self._forker, name="zenswarm-forker", daemon=True).start()
         threading.Thread(target=self._watchdog, name="zenswarm-watchdog", daemon=True).start()
@@ -435,20 +459,30 @@ class Cluster:
     # ---------------------------------------------------------------- the heartbeat
     def _poll_loop(self) -> None:
         while not self._stop.is_set():
-            self.poll_once()
+            try:
+                self.poll_once()
+            except Exception as e:  # noqa: BLE001 - the heartbeat must go on: a dead poll thread would end every role
+                self.say(f"cluster: a poll of the workers failed: {e!r}")
             self._stop.wait(POLL_S)
 
     def poll_once(self) -> None:
         """Poll every live worker at once; hand each role its new lines and exit status; a worker
         that fails or does not answer within :data:`HOST_LOST_S` is lost."""
-        calls = [(h, h.actor.poll()) for h in list(self.hosts.values()) if h.actor is not None and h.lost is None]
+        calls = []
+        for h in list(self.hosts.values()):
+            if h.actor is None or h.lost is not None:
+                continue
+            try:
+                calls.append((h, h.actor.poll()))
+            except Exception as e:  # noqa: BLE001 - Dask already knows the worker is gone ("Worker holding Actor was lost")
+                self._lose(h, f"it is gone ({e})")
         deadline = time.monotonic() + HOST_LOST_S
         for h, fut in calls:
             try:
                 got = fut.result(timeout=max(0.0, deadline - time.monotonic()))
             except Exception as e:  # noqa: BLE001 - a worker that does not answer is lost, whatever the error
                 if not self._stop.is_set():
-                    self._lose(h, f"it did not answer ({type(e).__name__})")
+                    self._lose(h, f"no answer within {HOST_LOST_S:g} s" if isinstance(e, TimeoutError) else f"its connection failed ({type(e).__name__})")
                 continue
             procs = self.procs.get(h.worker.address, {})
             for pid, (rc, lines) in got.items():
@@ -466,7 +500,7 @@ class Cluster:
         host = (h.info or {}).get("host", h.worker.host)
         live = [p for p in self.procs.get(h.worker.address, {}).values() if not p.ended.is_set()]
         roles = [p.role for p in live]
-        h.lost = f"host lost: worker {h.worker.name} ({h.worker.address}, host {host}) {why}; it held {', '.join(roles) or 'no role'}"
+        h.lost = f"host lost: worker {h.worker.name} ({h.worker.address}, host {host}): {why}; it held {', '.join(roles) or 'no role'}"
         self.lost.append({"worker": h.worker.address, "worker_name": h.worker.name, "host": host, "roles": roles, "why": why})
         self.say(h.lost)
         for p in live:

@@ -13,7 +13,9 @@ A rule is ``ROLES=TARGET`` (``--placement``, repeatable):
   ``resource:NAME``: the workers that offer the Dask resource NAME (``dask worker --resources
   "NAME=1"``), the roles spread evenly over them.
 
-Roles no rule names are spread evenly over every worker. Spreading is deterministic: each role,
+Roles no rule names are spread evenly over every worker. A role restarted (``--restart``) after its
+worker was lost goes to the least loaded live worker its rule allows (:func:`replace`; a rule
+naming the lost worker allows any). Spreading is deterministic: each role,
 in start order, goes to the worker holding the fewest roles so far (ties: the workers in the
 order of their names), so the same cluster and rules give the same plan.
 """
@@ -164,12 +166,16 @@ def plan(roles: Sequence[str], workers: Sequence[Worker], rules: Sequence[Rule],
 
 def replace(role: str, rule: Rule | None, workers: Sequence[Worker], where: dict[str, str]) -> str | None:
     """Where a role goes again when it is restarted and its worker is gone: the least loaded of
-    the live ``workers`` its rule allows (``where``: the roles' current workers); None if none."""
+    the live ``workers`` its rule allows (``where``: the roles' current workers). A role pinned to
+    a worker by name or address goes to the least loaded live worker once that one is lost; one
+    that needs a resource only to a live worker offering it. None if there is none."""
     load: dict[str, int] = {}
     for r, addr in where.items():
         if r != role:
             load[addr] = load.get(addr, 0) + 1
     candidates = [w for w in workers if rule is None or rule.matches(w)]
+    if not candidates and rule is not None and rule.worker is not None:
+        candidates = list(workers)
     return _least_loaded(candidates, load).address if candidates else None
 
 

@@ -89,3 +89,5 @@ def test_a_restarted_role_goes_to_the_least_loaded_live_worker_its_rule_allows()
     by_role = rules_by_role(ROLES, [parse_rule("agent:1=resource:gpu")], 8)
     assert replace("agent:1", by_role["agent:1"], live, where) is None  # only w2 offers gpu
     assert replace("agent:2", None, [], where) is None
+    # pinned to w2 by name: once w2 is lost, anywhere
+    assert replace("agent:3", parse_rule("agent:3=w2"), live, where) == W[0].address
