@@ -482,7 +482,8 @@ class Cluster:
                 got = fut.result(timeout=max(0.0, deadline - time.monotonic()))
             except Exception as e:  # noqa: BLE001 - a worker that does not answer is lost, whatever the error
                 if not self._stop.is_set():
-                    self._lose(h, f"no answer within {HOST_LOST_S:g} s" if isinstance(e, TimeoutError) else f"its connection failed ({type(e).__name__})")
+                    timed_out = isinstance(e, TimeoutError)
+                    self._lose(h, f"no answer within {HOST_LOST_S:g} s" if timed_out else f"its connection failed ({type(e).__name__})")
                 continue
             procs = self.procs.get(h.worker.address, {})
             for pid, (rc, lines) in got.items():

@@ -207,7 +207,8 @@ def test_a_worker_killed_mid_flight_is_host_lost_naming_its_roles(tmp_path: Path
     assert re.search(r"host lost: worker w2 \(tcp://[\d.]+:\d+, host \S+\): .*; it held agent:1, agent:2, agent:3", log), log[-3000:]
     res = read_results(out)
     assert res["success"] is False and [(f["cause"], f.get("process")) for f in res["failures"]] == [("process_died", "agent:1")], res
-    assert [w["worker_name"] for w in res["lost_workers"]] == ["w2"] and res["lost_workers"][0]["roles"] == ["agent:1", "agent:2", "agent:3"]
+    lost = res["lost_workers"]
+    assert [w["worker_name"] for w in lost] == ["w2"] and lost[0]["roles"] == ["agent:1", "agent:2", "agent:3"], lost
     death = res["process_deaths"][0]
     assert death["process"].startswith("agent:") and death["how"].startswith("host lost: worker w2"), death
     assert res["where"]["plant"]["worker_name"] == "w1" and res["where"]["agent:2"]["worker_name"] == "w2"
@@ -258,7 +259,8 @@ def test_bad_input_exits_2_within_seconds_and_starts_nothing(tmp_path: Path, clu
     sc = str(SCENARIOS / "paper_example1.toml")
     cases = [
         (["--scheduler", cluster.scheduler], "--listen: the router listens on loopback only"),  # the workers are not on this host
-        (["--scheduler", cluster.scheduler, "--listen", f"tcp/{cluster.router_ip}:{free_port(cluster.router_ip)}", "--placement", "plant=w9"],
+        (["--scheduler", cluster.scheduler, "--listen", f"tcp/{cluster.router_ip}:{free_port(cluster.router_ip)}",
+          "--placement", "plant=w9"],
          "--placement: 'plant=w9': no worker is named 'w9'"),
         (["--scheduler", cluster.scheduler, "--placement", "agent:4=w1"], "--placement: 'agent:4=w1': agent:4 is not a role of this swarm"),
         (["--scheduler", f"tcp://127.0.0.1:{free_port()}"], "--scheduler: cannot reach the Dask scheduler"),
@@ -284,7 +286,8 @@ def test_a_scheduler_without_workers_exits_2(tmp_path: Path) -> None:
         addr = f"tcp://127.0.0.1:{port}"
         _wait_workers(addr, 0, timeout=30)
         cp = subprocess.run([sys.executable, "-m", "zenswarm", "up", str(SCENARIOS / "paper_example1.toml"), "--out", str(tmp_path / "o"),
-                             "--scheduler", addr], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=60, cwd=ROOT)  # fmt: skip
+                             "--scheduler", addr],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=60, cwd=ROOT)  # fmt: skip
     finally:
         os.killpg(sched.pid, signal.SIGKILL)
         sched.wait(10)
