@@ -30,6 +30,7 @@ from pathlib import Path
 
 import pytest
 
+from zenswarm.api import fly
 from zenswarm.bus import free_port
 from zenswarm.compose.cluster import HEARTBEAT_LOST_S, sweep_stale_keys
 from zenswarm.scenario.generate import generate_scenario, to_toml
@@ -144,9 +145,20 @@ def test_example1_and_a_generated_8_uav_swarm_on_two_namespace_workers_equal_the
     lockstep, equal to the simulator bit for bit; results.json says where each process ran."""
     for scenario, n in ((SCENARIOS / "paper_example1.toml", 3), (_gen8(tmp_path), 8)):
         out = tmp_path / scenario.stem
-        cp = _up(cluster, scenario, out, unique_swarm("c"))
-        assert cp.returncode in (0, 1), cp.stdout[-3000:]  # gen8 (4 s) cannot reach its goal
-        assert "secure mode: user/password" in cp.stdout, cp.stdout[-3000:]
+        if n == 3:  # zenswarm up --scheduler
+            cp = _up(cluster, scenario, out, unique_swarm("c"))
+            code, log = cp.returncode, cp.stdout
+        else:  # api.fly(scheduler=...)
+            swarm = unique_swarm("c")
+            try:
+                f = fly(scenario, mode="swarm", scheduler=cluster.scheduler, out=out, swarm=swarm,
+                        listen=f"tcp/{cluster.router_ip}:{free_port(cluster.router_ip)}")
+            finally:
+                left = _leftovers(swarm)
+            assert not left, f"left behind: {left}"
+            code, log = f.exit_code, f.log
+        assert code in (0, 1), log[-3000:]  # gen8 (4 s) cannot reach its goal
+        assert "secure mode: user/password" in log, log[-3000:]
         _assert_equal_to_sim(scenario, out)
         res = read_results(out)
         roles = ["plant", "leader"] + [f"agent:{i}" for i in range(1, n + 1)]

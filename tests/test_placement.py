@@ -91,3 +91,12 @@ def test_a_restarted_role_goes_to_the_least_loaded_live_worker_its_rule_allows()
     assert replace("agent:2", None, [], where) is None
     # pinned to w2 by name: once w2 is lost, anywhere
     assert replace("agent:3", parse_rule("agent:3=w2"), live, where) == W[0].address
+
+
+@pytest.mark.parametrize("kw", [{"scheduler": "tcp://127.0.0.1:8786"}, {"placement": ["plant=w1"]}, {"listen": "tcp/10.0.0.1:7447"}])
+def test_the_simulator_refuses_a_cluster(kw: dict) -> None:
+    from zenswarm.api import fly
+
+    with pytest.raises(ScenarioError) as e:
+        fly("paper_example1", duration=0.1, **kw)
+    assert e.value.field == next(iter(kw)) and "mode='swarm'" in str(e.value)
