@@ -56,11 +56,13 @@ __all__ = ["RoleHost", "Cluster", "DaskProc", "connect", "local_address", "HEART
 POLL_S = 0.1
 """Wall seconds between two polls of every worker (the heartbeat)."""
 
-HEARTBEAT_LOST_S = 4.0
-"""A worker ends its roles when no poll came for this long (the supervisor is gone or cut off)."""
+HEARTBEAT_LOST_S = 6.0
+"""A worker ends its roles when no call came for this long (the supervisor is gone or cut off)."""
 
-HOST_LOST_S = 5.0
-"""The supervisor counts a worker lost when a poll gets no answer within this long (or fails)."""
+HOST_LOST_S = 4.0
+"""The supervisor counts a worker lost when a poll gets no answer within this long (or fails);
+shorter than :data:`HEARTBEAT_LOST_S`, so a worker slow to answer is declared lost (its roles
+named) before its watchdog ends them. Each worker is polled from a thread of its own."""
 
 CONNECT_TIMEOUT_S = 5.0
 """How long the supervisor tries to reach the scheduler (and a new worker) before exit 2."""
@@ -91,7 +93,6 @@ def sweep_stale_keys(tmp: Path | None = None) -> list[Path]:
         except PermissionError:  # another user's worker, alive
             pass
     return gone
-
 
 
 class RoleHost:
@@ -183,6 +184,7 @@ class RoleHost:
         fut: Future[subprocess.Popen[str]] = Future()
         self._starts.put((fork, fut))
         p = fut.result(timeout=30)
+        self.last_call = time.monotonic()
         with self.lock:
             self.procs[p.pid] = p
             self.lines[p.pid] = []
@@ -298,6 +300,7 @@ class _Host:
 
     worker: Worker
     actor: Any = None
+    future: Any = None  # the actor's future: the actor lives on the worker as long as it is held
     info: dict[str, Any] | None = None
     lost: str | None = None
 
@@ -318,6 +321,13 @@ class DaskProc:
         info = self.host.info or {}
         return {"worker": self.host.worker.address, "worker_name": self.host.worker.name,
                 "host": info.get("host", self.host.worker.host), "pid": self.pid}  # fmt: skip
+
+    def deliver(self, rc: int | None, lines: list[str]) -> None:
+        """What a poll brought: new output lines, and the exit status once it ended."""
+        for line in lines:
+            self.lines.put(line)
+        if rc is not None:
+            self._end(rc)
 
     def _end(self, rc: int, lost: str | None = None) -> None:
         if self.ended.is_set():
@@ -369,7 +379,9 @@ class Cluster:
         self.where: dict[str, str] = {}  # role -> the worker it runs (or last ran) on
         self.lost: list[dict[str, Any]] = []  # the workers lost: {"worker", "host", "roles", "why"}
         self._stop = threading.Event()
-        self._poller: threading.Thread | None = None
+        self._lock = threading.Lock()  # the roles' registry, shared by the poll threads and start
+        self._early: dict[tuple[str, int], tuple[int | None, list[str]]] = {}  # polled before its start returned
+        self._pollers: list[threading.Thread] = []
         self.swarm = ""
 
     # ---------------------------------------------------------------- before anything starts
@@ -415,11 +427,10 @@ class Cluster:
             except Exception as e:
                 self._lose(h, f"could not start its role host: {e!r}")
                 raise
-            h.future = fut  # type: ignore[attr-defined]  # the actor lives as long as its future is held
-            self.procs.setdefault(address, {})
-        if self._poller is None:
-            self._poller = threading.Thread(target=self._poll_loop, name="zenswarm-cluster-poll", daemon=True)
-            self._poller.start()
+            h.future = fut
+            t = threading.Thread(target=self._poll_loop, args=(h,), name=f"zenswarm-poll-{h.worker.name}", daemon=True)
+            self._pollers.append(t)
+            t.start()
         return h
 
     # ---------------------------------------------------------------- starting roles
@@ -446,7 +457,11 @@ class Cluster:
         except Exception as e:  # noqa: BLE001 - the worker failed to start it: the role died
             return self._lost_child(role, f"could not start on worker {addr}: {e!r}")
         proc = DaskProc(self, h, role, pid)
-        self.procs[addr][pid] = proc
+        with self._lock:
+            self.procs.setdefault(addr, {})[pid] = proc
+            early = self._early.pop((addr, pid), None)
+        if early is not None:
+            proc.deliver(*early)
         self.where[role] = addr
         return Child(role, proc, time.monotonic())
 
@@ -457,49 +472,41 @@ class Cluster:
         return Child(role, proc, time.monotonic())
 
     # ---------------------------------------------------------------- the heartbeat
-    def _poll_loop(self) -> None:
-        while not self._stop.is_set():
+    def _poll_loop(self, h: _Host) -> None:
+        """One worker's polls (a thread per worker: one that hangs delays no other's heartbeat)."""
+        while not self._stop.is_set() and h.lost is None:
             try:
-                self.poll_once()
-            except Exception as e:  # noqa: BLE001 - the heartbeat must go on: a dead poll thread would end every role
-                self.say(f"cluster: a poll of the workers failed: {e!r}")
+                self.poll_once(h)
+            except Exception as e:  # noqa: BLE001 - the heartbeat must go on: a dead poll thread would end the worker's roles
+                self.say(f"cluster: a poll of worker {h.worker.name} failed: {e!r}")
             self._stop.wait(POLL_S)
 
-    def poll_once(self) -> None:
-        """Poll every live worker at once; hand each role its new lines and exit status; a worker
-        that fails or does not answer within :data:`HOST_LOST_S` is lost."""
-        calls = []
-        for h in list(self.hosts.values()):
-            if h.actor is None or h.lost is not None:
-                continue
-            try:
-                calls.append((h, h.actor.poll()))
-            except Exception as e:  # noqa: BLE001 - Dask already knows the worker is gone ("Worker holding Actor was lost")
-                self._lose(h, f"it is gone ({e})")
-        deadline = time.monotonic() + HOST_LOST_S
-        for h, fut in calls:
-            try:
-                got = fut.result(timeout=max(0.0, deadline - time.monotonic()))
-            except Exception as e:  # noqa: BLE001 - a worker that does not answer is lost, whatever the error
-                if not self._stop.is_set():
-                    timed_out = isinstance(e, TimeoutError)
-                    self._lose(h, f"no answer within {HOST_LOST_S:g} s" if timed_out else f"its connection failed ({type(e).__name__})")
-                continue
-            procs = self.procs.get(h.worker.address, {})
+    def poll_once(self, h: _Host) -> None:
+        """Poll one worker; hand each of its roles its new lines and exit status. A worker whose
+        poll fails or gets no answer within :data:`HOST_LOST_S` is lost."""
+        try:
+            got = h.actor.poll().result(timeout=HOST_LOST_S)
+        except Exception as e:  # noqa: BLE001 - a worker that does not answer is lost, whatever the error
+            if not self._stop.is_set():
+                why = f"no answer within {HOST_LOST_S:g} s" if isinstance(e, TimeoutError) else f"it is gone ({type(e).__name__}: {e})"
+                self._lose(h, why)
+            return
+        with self._lock:
+            procs = self.procs.setdefault(h.worker.address, {})
             for pid, (rc, lines) in got.items():
                 p = procs.get(pid)
-                if p is None:
+                if p is None:  # started a moment ago: its start has not returned yet
+                    early = self._early.setdefault((h.worker.address, pid), (None, []))
+                    self._early[(h.worker.address, pid)] = (rc if rc is not None else early[0], early[1] + lines)
                     continue
-                for line in lines:
-                    p.lines.put(line)
-                if rc is not None:
-                    p._end(rc)
+                p.deliver(rc, lines)
 
     def _lose(self, h: _Host, why: str) -> None:
         """The worker is gone: each role it held ends as SIGKILLed (the worker's death killed
         it: PR_SET_PDEATHSIG), named host lost."""
         host = (h.info or {}).get("host", h.worker.host)
-        live = [p for p in self.procs.get(h.worker.address, {}).values() if not p.ended.is_set()]
+        with self._lock:
+            live = [p for p in self.procs.get(h.worker.address, {}).values() if not p.ended.is_set()]
         roles = [p.role for p in live]
         h.lost = f"host lost: worker {h.worker.name} ({h.worker.address}, host {host}): {why}; it held {', '.join(roles) or 'no role'}"
         self.lost.append({"worker": h.worker.address, "worker_name": h.worker.name, "host": host, "roles": roles, "why": why})
@@ -511,8 +518,8 @@ class Cluster:
     def close(self) -> None:
         """Stop polling, end every role still running on every worker, close the client."""
         self._stop.set()
-        if self._poller is not None:
-            self._poller.join(timeout=HOST_LOST_S + 1)
+        for t in self._pollers:
+            t.join(timeout=HOST_LOST_S + 1)
         closes = []
         for h in self.hosts.values():
             if h.actor is not None and h.lost is None:
