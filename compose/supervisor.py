@@ -240,21 +240,27 @@ class Supervisor:
         env.setdefault("PYTHONUNBUFFERED", "1")
         if self.user_runtime is None:  # the swarm's processes: zenoh on one thread (bus.use_swarm_runtime)
             env["ZENOH_RUNTIME"] = bus.ZENOH_RUNTIME_DEFAULT
-        by_settings = role.partition(":")[0] in ROLES_BY_SETTINGS
-        if by_settings and self.cluster is not None:  # --scheduler: on its worker, the settings travel with the start
-            wanted = {k: env[k] for k in ("PYTHONUNBUFFERED", "ZENOH_RUNTIME") if k in env}
-            c = self.cluster.start(role, self.role_settings(role), self.child_argv(role)[1:], wanted)
-        else:
-            stdin: Any = subprocess.DEVNULL
-            if by_settings:  # its settings on stdin: a file of its own, already gone from the disk
-                stdin = tempfile.TemporaryFile()
-                stdin.write(encode(self.role_settings(role)))
-                stdin.seek(0)
-            try:
-                c = start_local(role, self.child_argv(role), env, stdin, term_on_parent_death=role == "recorder")
-            finally:
-                if stdin is not subprocess.DEVNULL:
-                    stdin.close()  # the child holds its own descriptor
+        if self.cluster is not None and role.partition(":")[0] in ROLES_BY_SETTINGS:
+            return self._spawn_placed(role, env)
+        stdin: Any = subprocess.DEVNULL
+        if role.partition(":")[0] in ROLES_BY_SETTINGS:  # its settings on stdin: a file of its own, already gone from the disk
+            stdin = tempfile.TemporaryFile()
+            stdin.write(encode(self.role_settings(role)))
+            stdin.seek(0)
+        try:
+            c = start_local(role, self.child_argv(role), env, stdin, term_on_parent_death=role == "recorder")
+        finally:
+            if stdin is not subprocess.DEVNULL:
+                stdin.close()  # the child holds its own descriptor
+        c.read(self._on_line)
+        self.children[role] = c
+        return c
+
+    def _spawn_placed(self, role: str, env: dict[str, str]) -> Child:
+        """``--scheduler``: start ``role`` on its worker (:class:`zenswarm.compose.cluster.Cluster`),
+        its settings and environment travelling with the start; watched as a local one."""
+        wanted = {k: env[k] for k in ("PYTHONUNBUFFERED", "ZENOH_RUNTIME") if k in env}
+        c: Child = self.cluster.start(role, self.role_settings(role), self.child_argv(role)[1:], wanted)
         c.read(self._on_line)
         self.children[role] = c
         return c
