@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -36,7 +37,7 @@ from zenswarm.compose.cluster import HEARTBEAT_LOST_S, sweep_stale_keys
 from zenswarm.scenario.generate import generate_scenario, to_toml
 
 from netns import Netns, namespace
-from swarmtest import ROOT, SCENARIOS, kill_mentioning, processes_mentioning, read_results, scenario_variant, unique_swarm, wait_port_free
+from swarmtest import ROOT, SCENARIOS, kill_mentioning, processes_mentioning, read_results, scenario_variant, unique_swarm
 from test_swarm import _assert_equal_to_sim
 
 pytestmark = pytest.mark.swarm  # a Dask scheduler, two workers in namespaces, swarms
@@ -95,7 +96,6 @@ def cluster(tmp_path: Path) -> Iterator[DaskCluster]:
                 if p.poll() is None:
                     os.killpg(p.pid, signal.SIGKILL)
                     p.wait(10)
-            assert wait_port_free(port) or True  # the scheduler's port (on the veth address) goes with it
 
 
 def _leftovers(swarm: str, wait_s: float = 0.0, killed_worker: int | None = None) -> list[tuple[int, str]]:
@@ -120,6 +120,21 @@ def _leftovers(swarm: str, wait_s: float = 0.0, killed_worker: int | None = None
     return found + [(-1, str(k)) for k in keys if k not in stale]
 
 
+def _port_free(ip: str, port: int, timeout: float = 10.0) -> bool:
+    """True once nothing listens on ip:port (the router's, on the veth address)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        with socket.socket() as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind((ip, port))
+                return True
+            except OSError:
+                if time.monotonic() > deadline:
+                    return False
+        time.sleep(0.1)
+
+
 def _up(dc: DaskCluster, scenario: Path, out: Path, swarm: str, *extra: str, timeout: float = 300.0) -> subprocess.CompletedProcess:
     port = free_port(dc.router_ip)
     try:
@@ -131,6 +146,7 @@ def _up(dc: DaskCluster, scenario: Path, out: Path, swarm: str, *extra: str, tim
     finally:
         left = _leftovers(swarm)
     assert not left, f"left behind: {left}"
+    assert _port_free(dc.router_ip, port), f"router port {dc.router_ip}:{port} still bound"
     return cp
 
 
