@@ -100,3 +100,26 @@ def test_the_simulator_refuses_a_cluster(kw: dict) -> None:
     with pytest.raises(ScenarioError) as e:
         fly("paper_example1", duration=0.1, **kw)
     assert e.value.field == next(iter(kw)) and "mode='swarm'" in str(e.value)
+
+
+@pytest.mark.parametrize(
+    "kw, field, named",
+    [
+        ({"placement": ("plant=w1",)}, "--placement", "give --scheduler"),
+        ({"scheduler": "tcp://h:8786", "only": "agent:1"}, "--scheduler", "not with --only"),
+        ({"scheduler": "tcp://h:8786", "external": ("agent:2",), "placement": ("agent:1-2=w1",)}, "--placement", "agent:2 is --external"),
+        ({"scheduler": "tcp://h:8786", "placement": ("agent:4=w1",)}, "--placement", "agent:4 is not a role of this swarm"),
+        ({"scheduler": " "}, "--scheduler", "expected a Dask scheduler's address"),
+    ],
+)
+def test_the_cluster_flags_are_checked_before_anything_starts(kw: dict, field: str, named: str, tmp_path) -> None:
+    from zenswarm.compose.up import check_up_args
+    from zenswarm.process.settings import FlightSettings
+    from zenswarm.scenario.config import load_scenario
+
+    from swarmtest import SCENARIOS
+
+    sc = load_scenario(SCENARIOS / "paper_example1.toml")
+    with pytest.raises(ScenarioError) as e:
+        check_up_args(FlightSettings(scenario=sc, scenario_file=SCENARIOS / "paper_example1.toml", out=tmp_path / "o", **kw), sc)
+    assert e.value.field == field and named in str(e.value), str(e.value)
