@@ -442,6 +442,8 @@ class Cluster:
         addr = self.where.get(role, self.plan.get(role))
         planned = self.hosts.get(addr) if addr is not None else None
         if addr is None or (planned is not None and planned.lost is not None):
+            with contextlib.suppress(Exception):  # workers may have joined since (a nanny's restart, a new job)
+                self.workers = workers_of(self.client)
             live = [w for w in self.workers if self.hosts.get(w.address) is None or self.hosts[w.address].lost is None]
             addr = replace(role, self.by_role.get(role), live, self.where)
         if addr is None:
