@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import ctypes
 import signal
+import socket
 import subprocess
 import threading
 import time
@@ -43,6 +44,9 @@ class Proc(Protocol):
     def output(self) -> Iterable[str]:
         """Its output (stdout and stderr), line by line, newline stripped, until it ends."""
 
+    def where(self) -> dict[str, Any]:
+        """Where it runs, for results.json: ``host`` (name) and ``pid``; a cluster's adds its worker."""
+
 
 class LocalProc:
     """A :class:`Proc` on this host: a :class:`subprocess.Popen` with its output on a text pipe."""
@@ -65,6 +69,9 @@ class LocalProc:
 
     def kill(self) -> None:
         self.popen.kill()
+
+    def where(self) -> dict[str, Any]:
+        return {"host": socket.gethostname(), "pid": self.pid}
 
     def output(self) -> Iterable[str]:
         assert self.popen.stdout is not None

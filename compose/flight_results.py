@@ -83,20 +83,24 @@ def judge_and_write(
 
 def run_facts(
     args: FlightSettings, collector: Collector, *, listen: Sequence[str], children: Mapping[str, Child], deaths: list[dict[str, Any]],
-    restarts: dict[str, int], recording_loss: dict[str, Any] | None,
+    restarts: dict[str, int], recording_loss: dict[str, Any] | None, cluster: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:  # fmt: skip
     """What results.json says of the run beside the verdict: mode, router (the endpoints it
-    listened on), processes (exit statuses), vehicles, deaths, restarts, the collector's facts
-    (failsafe, diagnostics, decoder rejects, foreign samples), the recording and its loss."""
+    listened on), processes (exit statuses) and where each ran (host, pid; on a cluster its
+    worker too), vehicles, deaths, restarts, the collector's facts (failsafe, diagnostics, decoder
+    rejects, foreign samples), the recording and its loss; with ``--scheduler`` the ``cluster``'s
+    facts (the scheduler, the workers lost)."""
     res: dict[str, Any] = {
         "mode": "realtime" if args.realtime else "lockstep",
         "swarm": args.swarm,
         "router": list(listen),  # its port: chosen free without --listen
         # a child stopped by terminate_all has its code on its process only (returncode is set when one dies)
         "processes": {name: c.status() for name, c in children.items()},
+        "where": {name: c.proc.where() for name, c in children.items()},
         "vehicles": vehicles_figures(children, collector.diag),
         "process_deaths": deaths,
         "restarts": restarts,
+        **(cluster or {}),
         **collector.facts(),
         "supervisor_zenoh_threads": bus.zenoh_threads(),  # the router's (ZENOH_RUNTIME_ROUTER)
     }

@@ -49,9 +49,7 @@ from zenswarm.judge.watch import EndWatch
 from zenswarm.process.collector import Collector
 from zenswarm.process.paths import lock_output_dir
 from zenswarm.process.runtime import gc_safe_point, gc_startup_done, kill_self_line
-from zenswarm.process.settings import (
-    FlightSettings,
-)
+from zenswarm.process.settings import FlightSettings, decode_role
 from zenswarm.scenario.config import Scenario
 
 __all__ = ["Supervisor", "role_names", "swarm_roles", "EXTERNAL_GONE_GRACE_S"]
@@ -137,6 +135,7 @@ class Supervisor:
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
         self.taps: list[Tap] = []  # views fed every message of the bus (--live: attached by compose/up.py)
         self.on_end: list[EndHook] = []  # called once the results are written (--report: attached by compose/up.py)
+        self.cluster: Any = None  # --scheduler: the Dask cluster the roles run on (zenswarm.compose.cluster.Cluster), set by run()
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -171,6 +170,8 @@ class Supervisor:
         if self.user_runtime is None:  # the swarm's processes: zenoh on one thread (bus.use_swarm_runtime)
             env["ZENOH_RUNTIME"] = bus.ZENOH_RUNTIME_DEFAULT
         argv, settings = self.command(role)
+        if self.cluster is not None and role.partition(":")[0] in commands.ROLES_BY_SETTINGS:
+            return self._spawn_placed(role, argv, settings, env)
         stdin = tempfile.TemporaryFile()  # its settings on stdin: a file of its own, already gone from the disk
         stdin.write(settings)
         stdin.seek(0)
@@ -178,6 +179,15 @@ class Supervisor:
             c = start_local(role, argv, env, stdin, term_on_parent_death=role == "recorder")
         finally:
             stdin.close()  # the child holds its own descriptor
+        c.read(self._on_line)
+        self.children[role] = c
+        return c
+
+    def _spawn_placed(self, role: str, argv: list[str], settings: bytes, env: dict[str, str]) -> Child:
+        """``--scheduler``: start ``role`` on its worker (:class:`zenswarm.compose.cluster.Cluster`),
+        its settings and environment travelling with the start; watched as a local one."""
+        wanted = {k: env[k] for k in ("PYTHONUNBUFFERED", "ZENOH_RUNTIME") if k in env}
+        c: Child = self.cluster.start(role, decode_role(settings), argv[1:], wanted)
         c.read(self._on_line)
         self.children[role] = c
         return c
@@ -242,13 +252,23 @@ class Supervisor:
         a = self.args
         out: Path = a.out
         listen = list(a.listen) or [f"tcp/127.0.0.1:{bus.free_port()}"]
-        settings, listen = self._security(listen, out)
-        # a second flight into this OUT would overwrite our results: exit 2 naming --out, now
-        out_lock = lock_output_dir(out, "--out")
+        if a.scheduler is not None:  # the cluster, its workers and the plan: bad input exits 2 before anything starts
+            from zenswarm.compose.cluster import Cluster
+
+            self.cluster = Cluster(a.scheduler, a.placement, self.say)
+            placed = [r for r in self.roles() if r.partition(":")[0] in commands.ROLES_BY_SETTINGS]
+            self.cluster.open(placed, self.sc.n, list(a.connect) or listen, a.swarm)
         try:
-            return self._run_locked(listen, settings, out)
+            settings, listen = self._security(listen, out)
+            # a second flight into this OUT would overwrite our results: exit 2 naming --out, now
+            out_lock = lock_output_dir(out, "--out")
+            try:
+                return self._run_locked(listen, settings, out)
+            finally:
+                out_lock.release()
         finally:
-            out_lock.release()
+            if self.cluster is not None:
+                self.cluster.close()  # every role it placed ends, on every worker
 
     def _run_locked(self, listen: list[str], settings: dict, out: Path) -> int:
         """:meth:`run` once the output directory is locked: the router, the processes, the watch."""
@@ -469,6 +489,7 @@ class Supervisor:
         """A process of ours exited with status ``rc`` != 0: schedule its restart (None) when the
         policy allows, else the exit code (3)."""
         how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
+        how = getattr(c.proc, "lost", None) or how  # --scheduler: its worker was lost (zenswarm.compose.cluster)
         c.join_output(1.0)  # its output ended with it: its last lines are read at once
         tail = "; last output: " + " | ".join(c.lines[-3:]) if c.lines else ""
         t_s = max(collector.sim_t_ns, 0) / 1e9  # when the collector's clock (a few ticks behind, loaded) saw it
@@ -503,7 +524,8 @@ class Supervisor:
         dead = getattr(self, "failed", "?")  # exit 3: the process that died for good
         how = next((d["how"] for d in reversed(self.deaths) if d["process"] == dead), "unknown")
         facts = partial(run_facts, a, collector, listen=self.listen, children=self.children, deaths=self.deaths,
-                        restarts=self.restarts, recording_loss=self.recording_loss)  # fmt: skip
+                        restarts=self.restarts, recording_loss=self.recording_loss,
+                        cluster=self.cluster.facts() if self.cluster is not None else None)  # fmt: skip
         res = judge_and_write(
             collector, self.watch, self.sc, out, stopped=code not in (EXIT_OK, EXIT_PLUGIN_FAILED), fill=a.realtime or bool(self.deaths),
             full_time=a.full_time, faults=a.faults.plan(self.sc), facts=facts, t_start=self.t_start,

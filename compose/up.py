@@ -30,6 +30,7 @@ from zenswarm.bridge.args import (
 )
 from zenswarm.bridge.views.live import FOXGLOVE_DEFAULT, LIVE_HELP, LiveTarget, live_target
 from zenswarm.bus import wire
+from zenswarm.compose.placement import PLACEMENT_HELP, parse_rule
 from zenswarm.compose.supervisor import SITL_SEND_OFFSET, Supervisor, role_names, swarm_roles
 from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.process import rtsched
@@ -90,6 +91,8 @@ def flight_settings(args: argparse.Namespace) -> tuple[FlightSettings, dict[str,
         live=None if live is None else LiveView(live.viewer, live.port),
         rt_priority=args.rt_priority,
         router_lost_timeout=args.router_lost_timeout,
+        scheduler=args.scheduler,
+        placement=tuple(args.placement or ()),
     )
     return settings, overrides
 
@@ -109,6 +112,7 @@ def check_up_args(args: FlightSettings, sc: Scenario) -> None:
     bus.check_endpoint_syntax(list(args.connect), "--connect")
     bus.check_endpoint_syntax(list(args.router_connect), "--router-connect")
     check_rt_priority(args)
+    check_cluster_args(args, sc)
     if args.only:
         if args.only not in role_names(sc.n):
             raise ScenarioError("--only", f"unknown role {args.only!r}: this swarm's roles are {', '.join(role_names(sc.n))}")
@@ -131,6 +135,25 @@ def check_up_args(args: FlightSettings, sc: Scenario) -> None:
     check_output_dir(args.out, "--out")
     if args.record is not None:
         check_output_file(args.record, "--record")
+
+
+def check_cluster_args(args: FlightSettings, sc: Scenario) -> None:
+    """``--scheduler`` and ``--placement``: the rules' syntax and roles (which workers exist is
+    checked against the scheduler by :class:`zenswarm.compose.cluster.Cluster`, still before
+    anything starts); ScenarioError naming the flag (exit 2)."""
+    if args.scheduler is None:
+        if args.placement:
+            raise ScenarioError("--placement", "places roles on a Dask cluster: give --scheduler tcp://HOST:PORT too")
+        return
+    if not args.scheduler.strip() or any(c.isspace() for c in args.scheduler):
+        raise ScenarioError("--scheduler", f"expected a Dask scheduler's address (tcp://HOST:PORT), got {args.scheduler!r}")
+    if args.only:
+        raise ScenarioError("--scheduler", "not with --only: one role runs here; --scheduler places a whole swarm on a cluster")
+    for text in args.placement:
+        rule = parse_rule(text)
+        for role in rule.names(sc.n):
+            if role in args.external:
+                raise ScenarioError("--placement", f"{text!r}: {role} is --external, not started by this supervisor")
 
 
 def check_rt_priority(args: FlightSettings) -> None:
@@ -406,6 +429,13 @@ def _add_network_args(p: argparse.ArgumentParser) -> None:
         metavar="ROLE",
         help="run a single role here (plant, leader, agent:<i>) against a router elsewhere (--connect)",
     )
+    p.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:PORT",
+        help="run the plant, the leader and every agent as processes on this Dask scheduler's workers (each still its own "
+        "OS process); the router stays here: --listen on an address the workers reach (docs/cluster.md)",
+    )
+    p.add_argument("--placement", action="append", metavar="ROLES=TARGET", help=PLACEMENT_HELP)
     p.add_argument(
         "--router-lost-timeout",
         type=positive_float,

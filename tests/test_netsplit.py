@@ -14,16 +14,13 @@ Skipped (with the reason) only where network namespaces cannot be created (no pr
 
 from __future__ import annotations
 
-import ipaddress
 import json
-import random
 import re
-import shutil
 import subprocess
 import sys
 import threading
 import time
-import uuid
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +30,7 @@ from zenswarm.bus import free_port
 from zenswarm.judge.metrics import TimeSeries
 from zenswarm.scenario.config import load_scenario
 
+from netns import Netns, namespace
 from swarmtest import ROOT, kill_mentioning, processes_mentioning, read_results, scenario_variant, unique_swarm, wait_port_free
 
 pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
@@ -42,81 +40,10 @@ CUT_FOR_S = 3.0  # wall seconds it stays down
 LOCKSTEP_TIMEOUT_S = 0.5
 
 
-def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess:
-    return subprocess.run(["ip", *args], capture_output=True, text=True, check=check)
-
-
-def _used_networks() -> list[ipaddress.IPv4Network]:
-    out = _ip("-4", "-o", "addr", "show", check=False).stdout + _ip("-4", "route", "show", "table", "all", check=False).stdout
-    nets = []
-    for m in re.finditer(r"\b(\d+\.\d+\.\d+\.\d+)(/\d+)?", out):
-        try:
-            nets.append(ipaddress.ip_network(m.group(1) + (m.group(2) or "/32"), strict=False))
-        except ValueError:
-            pass
-    return nets
-
-
-class Netns:
-    """One network namespace with a veth pair to the root namespace and a private /30 out of
-    10.213.0.0/16 that nothing on this machine uses. Everything is removed by :meth:`remove`."""
-
-    def __init__(self) -> None:
-        tag = uuid.uuid4().hex[:8]
-        self.name = f"zsnet{tag}"
-        self.root_if, self.ns_if = f"zr{tag}", f"zn{tag}"
-        self.created = False
-        self.root_ip = self.ns_ip = ""
-
-    def create(self) -> None:
-        r = _ip("netns", "add", self.name, check=False)
-        if r.returncode != 0:
-            err = r.stderr.strip()
-            if any(s in err.lower() for s in ("permission", "operation not permitted", "not supported")):
-                pytest.skip(f"cannot create a network namespace here: {err}")
-            raise RuntimeError(f"ip netns add {self.name}: {err}")
-        self.created = True
-        used = _used_networks()
-        rng = random.Random()
-        for _ in range(200):
-            net = ipaddress.ip_network(f"10.213.{rng.randrange(256)}.{4 * rng.randrange(64)}/30")
-            if not any(net.overlaps(u) for u in used):
-                break
-        else:
-            raise RuntimeError("no free /30 in 10.213.0.0/16")
-        hosts = list(net.hosts())
-        self.root_ip, self.ns_ip = str(hosts[0]), str(hosts[1])
-        _ip("link", "add", self.root_if, "type", "veth", "peer", "name", self.ns_if, "netns", self.name)
-        _ip("addr", "add", f"{self.root_ip}/30", "dev", self.root_if)
-        _ip("link", "set", self.root_if, "up")
-        _ip("-n", self.name, "addr", "add", f"{self.ns_ip}/30", "dev", self.ns_if)
-        _ip("-n", self.name, "link", "set", self.ns_if, "up")
-        _ip("-n", self.name, "link", "set", "lo", "up")
-
-    def link(self, up: bool) -> None:
-        _ip("link", "set", self.root_if, "up" if up else "down")
-
-    def remove(self) -> None:
-        _ip("link", "del", self.root_if, check=False)  # removes both ends
-        if self.created:
-            _ip("netns", "del", self.name, check=False)
-
-    def exists(self) -> bool:
-        names = _ip("netns", "list", check=False).stdout.split()
-        return self.name in names or _ip("link", "show", self.root_if, check=False).returncode == 0
-
-
 @pytest.fixture
-def netns():
-    if shutil.which("ip") is None:
-        pytest.skip("no `ip` command (iproute2) on this machine")
-    ns = Netns()
-    try:
-        ns.create()
+def netns() -> Iterator[Netns]:
+    with namespace() as ns:
         yield ns
-    finally:
-        ns.remove()
-        assert not ns.exists(), f"namespace {ns.name} or its veth left behind"
 
 
 def test_agent_in_its_own_namespace_survives_a_link_cut(tmp_path: Path, netns: Netns) -> None:

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import msgspec
 import numpy as np
 
 from zenswarm.bus.wire import validate_process
@@ -379,6 +380,9 @@ def fly(
     lockstep_timeout: float = 5.0,
     timeout: float = DEFAULT_SWARM_TIMEOUT_S,
     rt_priority: int | None = None,
+    scheduler: str | None = None,
+    placement: Sequence[str] = (),
+    listen: str | None = None,
 ) -> Flight:
     """Fly ``scenario`` and return the judged :class:`Flight`.
 
@@ -409,6 +413,12 @@ def fly(
     ``rt_priority`` (realtime swarm flights only): the flying processes under ``SCHED_FIFO`` at
     this priority once started, as ``zenswarm up --rt-priority`` (:mod:`zenswarm.process.rtsched`; needs
     root or an ``RLIMIT_RTPRIO``, else :class:`ScenarioError` naming ``rt_priority``).
+
+    Cluster (swarm mode, as ``zenswarm up --scheduler``, docs/cluster.md): ``scheduler`` a Dask
+    scheduler's address (``tcp://HOST:8786``) whose workers run the plant, the leader and the agents;
+    ``placement`` its ``--placement`` rules (``"agent:1-4=w1"``); ``listen`` the router's endpoint
+    (``tcp/ADDRESS:PORT``), an address of this host the workers reach (default: loopback, enough for
+    workers on this host only).
 
     Raises :class:`ScenarioError` / :class:`OverrideError` naming the argument or field on bad
     input (nothing flown), :class:`FlightError` when the swarm could not fly to its end.
@@ -443,7 +453,8 @@ def fly(
     )):  # as --lockstep-timeout (exit 2 of the supervisor before the settings went typed)
         raise ScenarioError("lockstep_timeout", f"must be a finite number of wall seconds > 0, got {lockstep_timeout!r}")
     if mode == "sim":
-        for name, given in (("kill", kills), ("restart", restart), ("realtime", realtime), ("record", record is not None)):
+        cluster = (("scheduler", scheduler is not None), ("placement", bool(placement)), ("listen", listen is not None))
+        for name, given in (("kill", kills), ("restart", restart), ("realtime", realtime), ("record", record is not None), *cluster):
             if given:
                 raise ScenarioError(name, "process faults, realtime and recordings need mode='swarm' (the simulator has no processes)")
         if out is not None:
@@ -452,8 +463,9 @@ def fly(
         if out is not None:
             write_outputs(out, res.series, res.results)
         return _flight("sim", sc, res.results, res.series, exit_code_of(res.results), out)
+    where = {"scheduler": scheduler, "placement": tuple(placement), "listen": (listen,) if listen else ()}
     return _fly_swarm(sc, doc, faults, kills, restart, realtime, full_time, record, out, swarm, port, lockstep_timeout, timeout,
-                      rt_priority)
+                      rt_priority, where)
 
 
 def _flight(
@@ -480,7 +492,7 @@ def _flight(
 def _fly_swarm(
     sc: Scenario, doc: dict[str, Any] | None, faults: LinkFaults, kills: tuple[tuple[str, float], ...], restart: bool,
     realtime: bool, full_time: bool, record: Path | None, out: Path | None, swarm: str | None, port: int | None,
-    lockstep_timeout: float, timeout: float, rt_priority: int | None = None,
+    lockstep_timeout: float, timeout: float, rt_priority: int | None = None, where: Mapping[str, Any] | None = None,
 ) -> Flight:
     """``zenswarm up`` as a child process group; its results read back from its output directory.
     Without ``port`` the supervisor chooses a free one for its router (and another if that one is
@@ -498,6 +510,8 @@ def _fly_swarm(
             lockstep_timeout=lockstep_timeout, kill=kills, restart=restart, full_time=full_time, faults=faults,
             listen=(f"tcp/127.0.0.1:{port}",) if port else (), rt_priority=rt_priority, progress_every=5.0,
         )
+        if where:  # a cluster (scheduler, placement) and the router's endpoint the workers reach
+            opts = msgspec.structs.replace(opts, **{k: v for k, v in where.items() if v})
         check_up_args(opts, sc)  # the supervisor's own checks, here: bad input raises before anything starts
         run = run_up(opts, timeout)
         code, log, leftovers = run.exit_code, run.log, run.leftovers

@@ -238,11 +238,10 @@ class DaskBackend(Backend):
     def __init__(self, address: str) -> None:
         import distributed
 
+        from zenswarm.compose.cluster import connect  # zenswarm up --scheduler's: the same errors
+
         self._dist: Any = distributed  # untyped
-        try:
-            self.client: Any = self._dist.Client(address, timeout=10)
-        except OSError as e:
-            raise ScenarioError("--scheduler", f"cannot reach the Dask scheduler at {address}: {e}") from None
+        self.client: Any = connect(address, timeout=10)
         self._futures: list[Any] = []
 
     def submit(self, task: dict[str, Any]) -> Any:

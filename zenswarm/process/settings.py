@@ -136,6 +136,8 @@ class FlightSettings(msgspec.Struct, frozen=True, kw_only=True):
     live: LiveView | None = None  # --live: serve the flight to a viewer (zenswarm.bridge.views.live)
     rt_priority: int | None = None  # --rt-priority P: the flying processes under SCHED_FIFO P (zenswarm.process.rtsched)
     router_lost_timeout: float | None = None  # --only: give up on a lost router after S s (zenswarm.process.runtime)
+    scheduler: str | None = None  # --scheduler: the Dask scheduler whose workers run the roles (zenswarm.compose.cluster)
+    placement: tuple[str, ...] = ()  # --placement ROLES=TARGET rules (zenswarm.compose.placement)
 
     @property
     def mode(self) -> str:
