@@ -223,7 +223,10 @@ def _fly_and_kill_worker(dc: DaskCluster, scenario: Path, out: Path, swarm: str,
             time.sleep(0.05)
         assert sim_t[0] >= 2.0, "\n".join(lines[-30:])
         dc.kill_worker("w2")
-        sup.wait(timeout=180)
+        try:
+            sup.wait(timeout=180)
+        except subprocess.TimeoutExpired:
+            raise AssertionError("the supervisor did not end within 180 s of the worker's loss:\n" + "\n".join(lines[-60:])) from None
     finally:
         if sup.poll() is None:
             sup.kill()
