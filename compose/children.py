@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-__all__ = ["Proc", "LocalProc", "Child", "start_local", "pdeathsig", "pdeathsig_term"]
+__all__ = ["Proc", "LocalProc", "Child", "start_local", "await_exit", "stop_children", "pdeathsig", "pdeathsig_term"]
 
 LINES_KEPT = 50
 """How many of a child's last output lines are kept (the tail said when it dies)."""
@@ -143,3 +143,31 @@ def start_local(name: str, argv: list[str], env: dict[str, str], stdin: Any, *, 
         env=env,
     )
     return Child(name, LocalProc(p), time.monotonic())
+
+
+def await_exit(children: Iterable[Child], grace_s: float) -> None:
+    """Wait (at most ``grace_s`` in all) for ``children`` to exit by themselves."""
+    deadline = time.monotonic() + grace_s
+    for c in children:
+        try:
+            c.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            pass
+
+
+def stop_children(children: list[Child], grace_s: float, say: Callable[[str], None]) -> None:
+    """SIGTERM each of ``children`` still running, wait ``grace_s`` in all, then SIGKILL (said)
+    those still there; read their last lines."""
+    for c in children:
+        if c.proc.poll() is None:
+            c.proc.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    for c in children:
+        try:
+            c.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            say(f"{c.name} did not stop within {grace_s:.0f} s; killing it")
+            c.proc.kill()
+            c.proc.wait()
+    for c in children:
+        c.join_output(2.0)

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
 import tempfile
 import threading
 import time
@@ -33,7 +32,7 @@ import zenoh
 from zenswarm import bus
 from zenswarm.bus import wire
 from zenswarm.compose import commands
-from zenswarm.compose.children import Child, start_local
+from zenswarm.compose.children import Child, await_exit, start_local, stop_children
 from zenswarm.compose.credentials import router_security
 from zenswarm.compose.flight_results import await_last_tick, judge_and_write, recording_lost, run_facts
 from zenswarm.compose.hooks import EndHook, FlightEnd, Tap, feeds
@@ -59,6 +58,10 @@ LIVE_CHECK_S = 0.25
 
 COLLECTOR_QUEUE = 4_000_000
 """Capacity of the supervisor's bus queue, in messages (drained every ~50 ms, so it never fills)."""
+
+FLIGHT_OVER_GRACE_S = 5.0
+"""Once the plant ended the flight, the other roles leave by themselves within this long (plus
+``--lockstep-timeout``); one still running then is stopped (:meth:`Supervisor._flight_over`)."""
 
 EXIT_OK, EXIT_MISSION_FAILED, EXIT_PROCESS_FAILED = 0, 1, 3
 """``zenswarm up``'s own exit statuses: the mission succeeded, it failed, a process died (bad input 2,
@@ -135,6 +138,7 @@ class Supervisor:
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
         self.taps: list[Tap] = []  # views fed every message of the bus (--live: attached by compose/up.py)
         self.on_end: list[EndHook] = []  # called once the results are written (--report: attached by compose/up.py)
+        self.flight_over_at: float | None = None  # monotonic s when the flight's clock ended it (_flight_over)
         self.cluster: Any = None  # --scheduler: the Dask cluster the roles run on (zenswarm.compose.cluster.Cluster), set by run()
 
     # ------------------------------------------------------------------ output
@@ -203,7 +207,7 @@ class Supervisor:
         failed = {f.process for f in self.plugin_failures}
         leaving = [c for c in self.children.values() if c.name in failed and c.name not in last]
         self._terminate([c for c in self.children.values() if c.name not in last and c not in leaving], grace_s)
-        self._await_exit(leaving, grace_s)
+        await_exit(leaving, grace_s)
         self._terminate(leaving, grace_s)
         # MAVLink: the bridge lands and disarms its vehicles, which must still be running for that
         for name, grace in (("bridge", 25.0), ("vehicles", grace_s)):
@@ -217,31 +221,8 @@ class Supervisor:
             for line in rec.lines[-1:] if self.recording_loss is None and self.args.quiet_children else ():
                 self.say(line)
 
-    @staticmethod
-    def _await_exit(children: list, grace_s: float) -> None:
-        """Wait (at most ``grace_s`` in all) for ``children`` to exit by themselves."""
-        deadline = time.monotonic() + grace_s
-        for c in children:
-            try:
-                c.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                pass
-
-    def _terminate(self, children: list, grace_s: float) -> None:
-        for c in children:
-            if c.proc.poll() is None:
-                c.proc.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + grace_s
-        for c in children:
-            left = max(0.0, deadline - time.monotonic())
-            try:
-                c.proc.wait(timeout=left)
-            except subprocess.TimeoutExpired:
-                self.say(f"{c.name} did not stop within {grace_s:.0f} s; killing it")
-                c.proc.kill()
-                c.proc.wait()
-        for c in children:
-            c.join_output(2.0)
+    def _terminate(self, children: list[Child], grace_s: float) -> None:
+        stop_children(children, grace_s, self.say)
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         self.stop_reason = f"received {signal.Signals(signum).name}"
@@ -436,7 +417,22 @@ class Supervisor:
                 if code is not None:
                     return done, code
                 done = False
-        return done, None
+        return done or self._flight_over(now), None
+
+    def _flight_over(self, now: float) -> bool:
+        """The process that keeps the flight's clock (the plant; the bridge with real or simulated
+        vehicles) ended it (exit 0): a restart still due is not made, and a process still running
+        :data:`FLIGHT_OVER_GRACE_S` later (one restarted after the end waits for a tick that never
+        comes) no longer keeps the run going: it is stopped with the rest."""
+        clock = self.children.get("bridge" if self.args.plant in ("mavlink", "crazyflie") else "plant")
+        if clock is None or clock.returncode != 0:
+            return False
+        for role in list(self.restart_at):
+            del self.restart_at[role]
+            self.say(f"{role}: not restarted, the flight is over ({clock.name} ended it)")
+        if self.flight_over_at is None:
+            self.flight_over_at = now
+        return now - self.flight_over_at >= FLIGHT_OVER_GRACE_S + self.args.lockstep_timeout
 
     def _took_plugin_failure(self, c: Child) -> bool:
         """A child that exited with 4: did it report its plug-in's failure

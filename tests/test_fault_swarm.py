@@ -148,3 +148,15 @@ def test_sigkill_with_restart_under_link_faults_rejoins(zenswarm_fly) -> None:
     stalls = {p: (d[p].get("forced_ticks", 0), d[p].get("cmd_timeouts", 0) + d[p].get("input_timeouts", 0))
               for p in ("plant", "agent:1", "agent:3")}
     assert all(v == (0, 0) for v in stalls.values()), stalls
+
+
+def test_a_restart_due_after_the_flight_ended_is_not_made(zenswarm_fly) -> None:
+    """Realtime: agent 2 is killed 0.1 s before the time limit with a 1 s restart delay, so its
+    restart falls after the plant ended the flight. It is not made (a restarted agent would wait
+    for a tick that never comes, and the supervisor with it), and the flight ends as usual."""
+    f = zenswarm_fly(EX1, mode="swarm", realtime=True, duration=2.0, kill=[("agent:2", 1.9)], restart=True,
+                     overrides={"restart.initial_delay_s": 1.0}, timeout=60.0)  # fmt: skip
+    assert f.exit_code in (0, 1), f.log[-3000:]
+    assert [d["process"] for d in f.process_deaths] == ["agent:2"], f.process_deaths
+    assert f.restarts == {}, f.log[-3000:]
+    assert "agent:2: not restarted, the flight is over (plant ended it)" in f.log, f.log[-3000:]
