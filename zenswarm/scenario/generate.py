@@ -366,12 +366,7 @@ def generate_scenario(
     r_f = float(np.max(np.linalg.norm(h, axis=1)))
     d0 = PAPER_LEADER["d0"]
 
-    start = np.array(START, dtype=float)
-    length = max(3.0, 6.0 * r_f + 1.0)
-    goal = start + np.array(
-        [length * math.cos(GOAL_HEADING_RAD), length * math.sin(GOAL_HEADING_RAD), GOAL_RISE_M]
-    )
-    goal = np.array([_r(v, 3) for v in goal])
+    start, goal = _start_goal(r_f)
 
     jitter_bound = 0.1 * spacing
     jitter = np.clip(rng_jitter.normal(0.0, 0.05 * spacing, size=(n, 3)), -jitter_bound, jitter_bound)
@@ -397,19 +392,44 @@ def generate_scenario(
     if name is None:
         name = f"gen_{shape}_{topology}_n{n}_s{seed}"
     topo_desc = f"knn (k={k})" if topology == "knn" else topology
+    description = (
+        f"generated: {n} UAV{'s' if n != 1 else ''}, {shape} formation (spacing {spacing:g} m), {topo_desc} graph, "
+        f"pinning {pinning} ({int(b.sum())} pinned), {n_obstacles} obstacles, seed {seed}"
+    )
+    graph = {  # by name: a few bytes at any N (the dense matrix was N^2 numbers)
+        "topology": topology,
+        **({"k": int(k)} if topology == "knn" else {}),
+        "pinning": [float(v) for v in b],
+    }
+    d = _document({"name": name, "description": description, "seed": seed}, float(time_limit_s), start, goal, obstacles, h, q0, graph)
+    scenario_from_dict(d)  # always valid: raises ScenarioError naming the field otherwise
+    return d
+
+
+def _start_goal(r_f: float) -> tuple[np.ndarray, np.ndarray]:
+    """The leader's start and goal, m, ENU: the goal at GOAL_HEADING_RAD, GOAL_RISE_M up, 6 formation
+    radii r_f (m) + 1 m away (at least 3 m), rounded to mm."""
+    start = np.array(START, dtype=float)
+    length = max(3.0, 6.0 * r_f + 1.0)
+    goal = start + np.array(
+        [length * math.cos(GOAL_HEADING_RAD), length * math.sin(GOAL_HEADING_RAD), GOAL_RISE_M]
+    )
+    goal = np.array([_r(v, 3) for v in goal])
+    return start, goal
+
+
+def _document(
+    scenario: dict[str, Any], time_limit_s: float, start: np.ndarray, goal: np.ndarray, obstacles: list[dict[str, Any]],
+    h: np.ndarray, q0: np.ndarray, graph: dict[str, Any],
+) -> dict[str, Any]:
+    """The scenario document of :func:`generate_scenario` from its parts (the paper's gains, the
+    example files' rates and tolerances)."""
     d: dict[str, Any] = {
-        "scenario": {
-            "name": name,
-            "description": (
-                f"generated: {n} UAV{'s' if n != 1 else ''}, {shape} formation (spacing {spacing:g} m), {topo_desc} graph, "
-                f"pinning {pinning} ({int(b.sum())} pinned), {n_obstacles} obstacles, seed {seed}"
-            ),
-            "seed": seed,
-        },
+        "scenario": scenario,
         "timing": {
             "control_rate_hz": 100.0,
             "physics_rate_hz": 1000.0,
-            "time_limit_s": float(time_limit_s),
+            "time_limit_s": time_limit_s,
             "settle_time_s": 30.0,
             "goal_tolerance_m": GOAL_TOLERANCE_M,
         },
@@ -426,16 +446,11 @@ def generate_scenario(
             "offsets": [[float(v) for v in row] for row in h],
             "initial_positions": [[float(v) for v in row] for row in q0],
         },
-        "graph": {  # by name: a few bytes at any N (the dense matrix was N^2 numbers)
-            "topology": topology,
-            **({"k": int(k)} if topology == "knn" else {}),
-            "pinning": [float(v) for v in b],
-        },
+        "graph": graph,
         "generator": dict(PAPER_GENERATOR),
         "eso": {"beta": list(PAPER_ESO["beta"]), "enabled": PAPER_ESO["enabled"]},
         "controller": {"kp": list(PAPER_CONTROLLER["kp"]), "kd": list(PAPER_CONTROLLER["kd"]), "yaw": PAPER_CONTROLLER["yaw"]},
     }
-    scenario_from_dict(d)  # always valid: raises ScenarioError naming the field otherwise
     return d
 
 
