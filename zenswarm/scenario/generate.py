@@ -167,52 +167,15 @@ def connected_components(adjacency: np.ndarray) -> list[list[int]]:
 
 
 def adjacency_matrix(offsets: np.ndarray, topology: str = "ring", k: int = 2) -> np.ndarray:
-    """Symmetric 0/1 adjacency A (N, N) of a connected graph, zero diagonal.
-
-    ``ring``: i ~ i+1 (mod N); ``star``: UAV 1 ~ every other; ``complete``: all pairs;
-    ``knn``: each UAV ~ its k nearest UAVs by offset distance (ties broken by index), then
-    symmetrised (a_ij = max(a_ij, a_ji)); while disconnected, the closest pair of UAVs between
-    the component of UAV 1 and the rest is joined (at most N - 1 joins). k is clamped to N - 1.
-    offsets: (N, 3) m. The dense form of what a scenario's ``[graph] topology`` names (the
-    scenario builds it as neighbour lists, :func:`zenswarm.scenario.graph.topology_neighbours`,
-    edge for edge the same: ``tests/test_graph.py``).
+    """Symmetric 0/1 adjacency A (N, N) of a connected graph, zero diagonal: the dense form of
+    what a scenario's ``[graph] topology`` names, built from its neighbour lists
+    (:func:`zenswarm.scenario.graph.topology_neighbours`, which says how each topology is made;
+    ValueError for an unknown topology or a bad k). offsets: (N, 3) m.
     """
-    h = np.asarray(offsets, dtype=float)
-    n = h.shape[0]
-    if topology not in TOPOLOGIES:
-        raise ValueError(f"unknown topology {topology!r} (choose from {', '.join(TOPOLOGIES)})")
-    if topology == "knn" and (isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1):
-        raise ValueError(f"k must be an integer >= 1 (neighbours per UAV for knn), got {k!r}")
-    A = np.zeros((n, n))
-    if n == 1:
-        return A
-    if topology == "ring":
-        for i in range(n):
-            j = (i + 1) % n
-            A[i, j] = A[j, i] = 1.0
-    elif topology == "star":
-        A[0, 1:] = A[1:, 0] = 1.0
-    elif topology == "complete":
-        A[:] = 1.0
-        np.fill_diagonal(A, 0.0)
-    else:  # knn
-        kk = min(k, n - 1)
-        D = np.linalg.norm(h[:, None, :] - h[None, :, :], axis=2)
-        np.fill_diagonal(D, np.inf)
-        for i in range(n):
-            for j in np.argsort(D[i], kind="stable")[:kk]:
-                A[i, j] = 1.0
-        A = np.maximum(A, A.T)
-        for _ in range(n - 1):  # bounded: each join merges two components
-            comps = connected_components(A)
-            if len(comps) == 1:
-                break
-            inside = np.zeros(n, dtype=bool)
-            inside[comps[0]] = True
-            sub = D[np.ix_(inside, ~inside)]
-            a, b = np.unravel_index(int(np.argmin(sub)), sub.shape)
-            i, j = int(np.flatnonzero(inside)[a]), int(np.flatnonzero(~inside)[b])
-            A[i, j] = A[j, i] = 1.0
+    nbr = topology_neighbours(offsets, topology, k)
+    A = np.zeros((len(nbr), len(nbr)))
+    for i, row in enumerate(nbr):
+        A[i, row] = 1.0
     return A
 
 
