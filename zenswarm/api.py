@@ -414,10 +414,9 @@ def fly(
     input (nothing flown), :class:`FlightError` when the swarm could not fly to its end.
     A failed mission is not an error: see ``Flight.success`` and ``Flight.failures``.
     """
-    if mode not in ("sim", "swarm"):
-        raise ScenarioError("mode", f"expected 'sim' or 'swarm', got {mode!r}")
-    ov = _shortcut_overrides(overrides, duration, seed, controller, planner, plant_model)
-    sc, doc = _resolve(scenario, ov)  # converted once; the plug-ins resolve, their params decode (errors naming them)
+    _check_mode(mode)
+    # the scenario converted once; the plug-ins resolve, their params decode (errors naming them)
+    sc, doc = _resolve(scenario, _shortcut_overrides(overrides, duration, seed, controller, planner, plant_model))
     faults, plan = _link_faults(sc, link_loss, link_delay, link_jitter, partitions, link_range, link_fade, link_capacity,
                                 link_queue, link_medium, link_trace)  # bad values: ScenarioError naming the argument
     kills, record, out = _kills(kill), _path(record), _path(out)
@@ -425,9 +424,13 @@ def fly(
     if mode == "sim":
         _swarm_only(kill=bool(kills), restart=restart, realtime=realtime, record=record is not None)
         return _fly_sim(sc, plan, full_time, out)
-    _check_lockstep_timeout(lockstep_timeout)
     return _fly_swarm(sc, doc, faults, kills, restart, realtime, full_time, record, out, swarm, port, lockstep_timeout, timeout,
                       rt_priority)
+
+
+def _check_mode(mode: Any) -> None:
+    if mode not in ("sim", "swarm"):
+        raise ScenarioError("mode", f"expected 'sim' or 'swarm', got {mode!r}")
 
 
 def _shortcut_overrides(
@@ -523,6 +526,7 @@ def _fly_swarm(
     """``zenswarm up`` as a child process group; its results read back from its output directory.
     Without ``port`` the supervisor chooses a free one for its router (and another if that one is
     taken before the router binds it: two flights started at once)."""
+    _check_lockstep_timeout(lockstep_timeout)
     swarm = swarm or unique_swarm_name()
     with tempfile.TemporaryDirectory(prefix="zenswarm-fly-") as tmp:
         run_dir = Path(tmp)
