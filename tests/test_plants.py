@@ -86,18 +86,13 @@ class RaisingPlant(TickCounting):
         super().step(thrust, rpy, disturbance)
 
 
-class ExitingPlant(QuadrotorModel):
+class ExitingPlant(TickCounting):
     name = "exiting"
     description = "calls sys.exit(5) at tick 4"
-
-    def __init__(self, ctx: Any, params: Any) -> None:
-        super().__init__(ctx, params)
-        self.k = 0
 
     def step(self, thrust: np.ndarray, rpy: np.ndarray, disturbance: Any) -> None:
         if self.k == 4:
             sys.exit(5)
-        self.k += 1
         super().step(thrust, rpy, disturbance)
 
 
