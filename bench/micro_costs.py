@@ -49,20 +49,21 @@ def bench(fn, calls: int) -> float:
 
 
 def cases(tmpdir: Path):
-    import numpy as np
-
-    from zenswarm.agents.core import AgentCore, AgentRow
-    from zenswarm.agents.generator import generator_rates_all
-    from zenswarm.bus import wire
-    from zenswarm.leader.aapf import AapfParams, integrate_leader
-    from zenswarm.plant.quadrotor import initial_state, step, step_held
+    """The measured calls, as (label, fn), in the report's order."""
     from zenswarm.scenario.config import load_scenario
     from zenswarm.vehicle.params import QuadParams
 
     ex1 = load_scenario(C.PAPER["example1"])
     params = QuadParams.from_vehicle(ex1.vehicle)
-    out = []
+    return _agent_cases(ex1, params, tmpdir) + _wire_cases() + _plant_cases(ex1, params) + _simulator_cases(ex1)
 
+
+def _agent_cases(ex1, params, tmpdir: Path) -> list:
+    import numpy as np
+
+    from zenswarm.agents.core import AgentCore, AgentRow
+
+    out = []
     for n, label in ((3, "example1 (UAV 1: 2 neighbours)"), (16, "gen16 (UAV 1: 4 neighbours)")):
         sc = ex1 if n == 3 else __import__("zenswarm.scenario.config", fromlist=["load_scenario"]).load_scenario(
             C.generated_scenario(16, tmpdir))
@@ -77,7 +78,15 @@ def cases(tmpdir: Path):
         v0 = np.array([0.05, 0.02, 0.0])
         out.append((f"agent: AgentCore.tick, {label}", lambda core=core, q=q, v=v, qn=qn, vn=vn, q0=q0, v0=v0:
                     core.tick(q, v, qn, vn, q0, v0)))
+    return out
 
+
+def _wire_cases() -> list:
+    import numpy as np
+
+    from zenswarm.bus import wire
+
+    out = []
     v3 = np.array([0.1, -0.2, 0.3])
     msgs = {
         "State": ("state", wire.State(t=10_000_000, seq=1, q=v3, v=v3, rpy=v3, w=v3)),
@@ -92,7 +101,15 @@ def cases(tmpdir: Path):
         if name == "State":
             out.append(("wire: construct State (validation) + encode",
                         lambda: wire.encode(wire.State(t=10_000_000, seq=1, q=v3.copy(), v=v3.copy(), rpy=v3.copy(), w=v3.copy()))))
+    return out
 
+
+def _plant_cases(ex1, params) -> list:
+    import numpy as np
+
+    from zenswarm.plant.quadrotor import initial_state, step, step_held
+
+    out = []
     h = ex1.timing.dt / ex1.timing.substeps
     for n in (3, 16, 32):
         st = initial_state(np.zeros((n, 3)) + np.array([0.0, 0.0, 0.4]))
@@ -114,7 +131,17 @@ def cases(tmpdir: Path):
             step_held(st, F, rpy, params, h, ex1.timing.substeps)
 
         out.append((f"plant: step_held, one control period ({ex1.timing.substeps} physics steps), N={n}", held))
+    return out
 
+
+def _simulator_cases(ex1) -> list:
+    import numpy as np
+
+    from zenswarm.agents.generator import generator_rates_all
+    from zenswarm.leader.aapf import AapfParams, integrate_leader
+
+    out = []
+    v3 = np.array([0.1, -0.2, 0.3])
     for n in (3, 16, 32):
         rng = np.random.default_rng(0)
         A = np.zeros((n, n))

@@ -482,6 +482,17 @@ def run(args: argparse.Namespace, out: Any = None) -> dict[str, Any]:
             **info,
         },
     }
+    _print_summary(out, sc.name, dt, ana, res, info, tol)
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(json_safe(result), indent=2, sort_keys=True) + "\n")
+    return result
+
+
+def _print_summary(out: Any, name: str, dt: float, ana: dict[str, Any], res: MarginResult, info: dict[str, Any], tol: int) -> None:
+    """The lines of :func:`run` after the search: the analytic margin (``ana``), the empirical one
+    (``res``, ``info``; delays in ticks of ``dt`` s, ``tol`` ticks) and the fully delayed bound."""
+    emp_s = res.margin_ticks * dt
     emp_txt = (
         f">= {emp_s:.3f} s (converged at every delay tried up to --max-delay)"
         if res.at_least
@@ -492,7 +503,7 @@ def run(args: argparse.Namespace, out: Any = None) -> dict[str, Any]:
         )
     )
     print(
-        f"{sc.name}: N={ana['n']} dt={dt:g} s mu1={ana['mu1']:g} mu2={ana['mu2']:g} "
+        f"{name}: N={ana['n']} dt={dt:g} s mu1={ana['mu1']:g} mu2={ana['mu2']:g} "
         f"lambda(M) in [{ana['lambda_min_M']:.4g}, {ana['lambda_max_M']:.4g}]",
         file=out,
     )
@@ -513,10 +524,6 @@ def run(args: argparse.Namespace, out: Any = None) -> dict[str, Any]:
         f"pi / (2 mu2 lambda_max) = {ana['fully_delayed_bound_s']:.4f} s; Euler at dt: {ana['fully_delayed_discrete_margin_s']:.3f} s",
         file=out,
     )
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(json_safe(result), indent=2, sort_keys=True) + "\n")
-    return result
 
 
 def json_safe(x: Any) -> Any:

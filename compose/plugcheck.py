@@ -7,10 +7,10 @@ it that need it:
 1. **interface**: the class resolves (:func:`zenswarm.scenario.plugins.resolve`), has a one-line ``name``
    and ``description``, a ``Params`` that is a frozen :class:`msgspec.Struct` refusing unknown
    keys (checked by decoding an unknown key), and the scenario's params table decodes; a
-   controller's ``shares`` maps names to shapes of positive ints; a plant model's ``vehicle()``
-   gives a :class:`zenswarm.vehicle.params.QuadParams`, and its ``records`` declaration (names
-   to :class:`zenswarm.scenario.plugins.Signal` with shapes and units) is checked before anything
-   (a bad one is bad input: exit 2 naming ``records.<name>``); the methods the runners call
+   plant model's ``vehicle()`` gives a :class:`zenswarm.vehicle.params.QuadParams`; a controller's
+   ``shares`` (names to shapes of positive ints) and a plant model's ``records`` declaration (names
+   to :class:`zenswarm.scenario.plugins.Signal` with shapes and units) are checked before anything
+   (a bad one is bad input: exit 2 naming ``shares`` or ``records.<name>``); the methods the runners call
    take the arguments they are called with (``step(q, v, neighbours, leader, dt)``, a two-phase
    controller's ``prepare(neighbours, leader)`` and ``finish(q, v, prepared, dt)``, ``reset(q,
    v)``, ``share()``; a planner's ``ref()`` and ``advance()``; a plant model's
@@ -82,6 +82,7 @@ from zenswarm.scenario.plugins import (
     records_of,
     resolve,
     select,
+    shares_of,
 )
 
 __all__ = ["add_check_parser", "run_check", "Check", "check_plugin"]
@@ -207,15 +208,7 @@ def _interface(kind: str, cls: type, sc: Scenario) -> tuple[list[str], Any]:
                 problems.append(f"vehicle(): {e}")
             except Exception as e:  # noqa: BLE001 - a plug-in's own error is a failed check, reported
                 problems.append(f"vehicle() raised {type(e).__name__}: {e}")
-    problems += _signatures(kind, cls)
-    if kind == "controller":
-        shares = getattr(cls, "shares", {})
-        try:
-            ok = all(isinstance(k, str) and all(isinstance(d, int) and d > 0 for d in s) for k, s in dict(shares).items())
-        except TypeError:
-            ok = False
-        if not ok:
-            problems.append(f"shares must map names to shapes (tuples of positive ints), got {shares!r}")
+    problems += _signatures(kind, cls)  # a controller's shares: checked before (shares_of, bad input)
     return problems, params
 
 
@@ -519,6 +512,8 @@ def check_plugin(
     kind, cls = resolve_kind(name, kind)
     if kind == "plant":
         records_of(cls, f"plant {name!r}")  # a bad declaration is bad input (exit 2, naming records.<name>)
+    elif kind == "controller":
+        shares_of(cls, f"controller {name!r}")  # the same for a controller's (exit 2, naming shares)
     sc = _scenario_for(kind, name, sc, duration)
     checks: list[Check] = []
     try:

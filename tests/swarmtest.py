@@ -89,6 +89,24 @@ def read_results(out: Path) -> dict:
     return json.loads((out / "results.json").read_text())
 
 
+def udp_ports_free(base: int, n: int) -> bool:
+    """True when the n UDP ports from ``base`` on 127.0.0.1 can all be bound (nothing holds them)."""
+    import socket
+
+    socks = []
+    try:
+        for k in range(n):
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            socks.append(s)
+            s.bind(("127.0.0.1", base + k))
+        return True
+    except OSError:
+        return False
+    finally:
+        for s in socks:
+            s.close()
+
+
 def wait_port_free(port: int, timeout: float = 10.0) -> bool:
     """True once nothing listens on 127.0.0.1:port (connections in TIME_WAIT do not count)."""
     from zenswarm.pytest_plugin import port_free

@@ -32,6 +32,7 @@ from swarmtest import (
     kill_mentioning,
     processes_mentioning,
     read_results,
+    udp_ports_free,
     unique_swarm,
     wait_port_free,
     zenswarm,
@@ -40,21 +41,6 @@ from swarmtest import (
 pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm processes or CLI subprocesses
 
 N_UAV = 3
-
-
-def _udp_free(base: int, n: int) -> bool:
-    socks = []
-    try:
-        for k in range(n):
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            socks.append(s)
-            s.bind(("127.0.0.1", base + k))
-        return True
-    except OSError:
-        return False
-    finally:
-        for s in socks:
-            s.close()
 
 
 def _scenario(tmp: Path, crazyflie: dict | None = None, **timing: float) -> Path:
@@ -93,7 +79,7 @@ def test_example1_through_the_crazyflie_bridge_reaches_the_goal_and_lands(tmp_pa
         left = processes_mentioning(f"--base-port {base}")
         kill_mentioning(f"--base-port {base}")
     assert not left, f"vehicles left behind: {left}"
-    assert _udp_free(base, N_UAV), "the simulated Crazyflies' ports are still bound"
+    assert udp_ports_free(base, N_UAV), "the simulated Crazyflies' ports are still bound"
     _no_traceback(cp.stdout)
     res = read_results(out)
     assert cp.returncode == 0, cp.stdout[-4000:]

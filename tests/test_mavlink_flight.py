@@ -10,7 +10,6 @@ there sees process stalls of a few hundred milliseconds.
 from __future__ import annotations
 
 import re
-import socket
 from pathlib import Path
 
 import pytest
@@ -23,6 +22,7 @@ from swarmtest import (
     processes_mentioning,
     read_results,
     scenario_variant,
+    udp_ports_free,
     unique_swarm,
     wait_port_free,
     zenswarm,
@@ -33,21 +33,6 @@ pytestmark = pytest.mark.swarm  # starts processes: zenoh routers, swarm process
 N_UAV = 3  # paper example 1
 
 
-
-
-def _udp_free(base: int, n: int) -> bool:
-    socks = []
-    try:
-        for k in range(n):
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            socks.append(s)
-            s.bind(("127.0.0.1", base + k))
-        return True
-    except OSError:
-        return False
-    finally:
-        for s in socks:
-            s.close()
 
 
 def _up_mavlink(scenario: Path, out: Path, *extra: str, timeout: float = 240.0):
@@ -70,7 +55,7 @@ def _up_mavlink(scenario: Path, out: Path, *extra: str, timeout: float = 240.0):
             kill_mentioning(m)
     assert not leftovers, f"processes left behind: {leftovers}"
     assert wait_port_free(port), f"router port {port} still bound after exit"
-    assert _udp_free(base, N_UAV), f"vehicle UDP ports {base}..{base + N_UAV - 1} still bound after exit"
+    assert udp_ports_free(base, N_UAV), f"vehicle UDP ports {base}..{base + N_UAV - 1} still bound after exit"
     return cp
 
 

@@ -37,6 +37,7 @@ from zenswarm.scenario.config import load_scenario
 from zenswarm.scenario.plugins import STAGE_BUILD, STAGE_PLANT, plant_records, records_of, resolve, select
 from zenswarm.vehicle.params import ARM_LENGTH, KM_OVER_KF, QuadParams
 
+from plant_fixtures import TickCounting
 from swarmtest import SCENARIOS
 
 EX1 = SCENARIOS / "paper_example1.toml"
@@ -63,17 +64,9 @@ class NotSignalDecl(QuadrotorModel):
     records = {"thrust": (4,)}  # type: ignore[dict-item]
 
 
-class RaisingRecord(QuadrotorModel):
+class RaisingRecord(TickCounting):
     name = "raising-record"
     description = "record() raises after tick 2"
-
-    def __init__(self, ctx: Any, params: Any) -> None:
-        super().__init__(ctx, params)
-        self.k = 0
-
-    def step(self, thrust: np.ndarray, rpy: np.ndarray, disturbance: Any) -> None:
-        super().step(thrust, rpy, disturbance)
-        self.k += 1
 
     def record(self) -> Any:
         if self.k > 2:
@@ -99,17 +92,9 @@ class UndeclaredRecord(QuadrotorModel):
         return {**super().record(), "secret": np.zeros((self.ctx.n, 2))}
 
 
-class NanRecord(QuadrotorModel):
+class NanRecord(TickCounting):
     name = "nan-record"
     description = "UAV 3's torque record is NaN from tick 4"
-
-    def __init__(self, ctx: Any, params: Any) -> None:
-        super().__init__(ctx, params)
-        self.k = 0
-
-    def step(self, thrust: np.ndarray, rpy: np.ndarray, disturbance: Any) -> None:
-        super().step(thrust, rpy, disturbance)
-        self.k += 1
 
     def record(self) -> Any:
         got = {k: np.array(v) for k, v in super().record().items()}

@@ -37,6 +37,7 @@ from zenswarm.scenario.generate import to_toml
 from zenswarm.scenario.plugins import DEFAULTS, GROUPS, KINDS, STAGE_PLANT, available, check_selection, plant_vehicle, resolve, select
 from zenswarm.vehicle.params import QuadParams
 
+from plant_fixtures import TickCounting
 from swarmtest import SCENARIOS, read_results, scenario_variant, unique_swarm, zenswarm
 
 EX1 = SCENARIOS / "paper_example1.toml"
@@ -45,19 +46,14 @@ SC = load_scenario(EX1)
 # ----------------------------------------------------------------------------- test-only models
 
 
-class NanPlant(QuadrotorModel):
+class NanPlant(TickCounting):
     """The built-in, but UAV 2's velocity turns NaN at tick 5."""
 
     name = "nan"
     description = "the built-in; UAV 2's velocity is NaN from tick 5"
 
-    def __init__(self, ctx: Any, params: Any) -> None:
-        super().__init__(ctx, params)
-        self.k = 0
-
     def step(self, thrust: np.ndarray, rpy: np.ndarray, disturbance: Any) -> None:
         super().step(thrust, rpy, disturbance)
-        self.k += 1
         if self.k > 5:
             self.state.v[1, 2] = np.nan
 
@@ -80,33 +76,23 @@ class SlowExitPlant(NanPlant):
             atexit.register(time.sleep, 2.0)
 
 
-class RaisingPlant(QuadrotorModel):
+class RaisingPlant(TickCounting):
     name = "raising"
     description = "raises at tick 3"
-
-    def __init__(self, ctx: Any, params: Any) -> None:
-        super().__init__(ctx, params)
-        self.k = 0
 
     def step(self, thrust: np.ndarray, rpy: np.ndarray, disturbance: Any) -> None:
         if self.k == 3:
             raise ZeroDivisionError("the model's own bug")
-        self.k += 1
         super().step(thrust, rpy, disturbance)
 
 
-class ExitingPlant(QuadrotorModel):
+class ExitingPlant(TickCounting):
     name = "exiting"
     description = "calls sys.exit(5) at tick 4"
-
-    def __init__(self, ctx: Any, params: Any) -> None:
-        super().__init__(ctx, params)
-        self.k = 0
 
     def step(self, thrust: np.ndarray, rpy: np.ndarray, disturbance: Any) -> None:
         if self.k == 4:
             sys.exit(5)
-        self.k += 1
         super().step(thrust, rpy, disturbance)
 
 

@@ -65,6 +65,18 @@ class NanController(PaperController):
         return Command(float("nan") if self.k > 5 else cmd.thrust, cmd.rpy, cmd.u, cmd.d_hat)
 
 
+class BadSharesController(PaperController):
+    name = "bad-shares"
+    description = "declares a shape of zero"
+    shares = {"meas": (0, 3)}
+
+
+class NotMappingSharesController(PaperController):
+    name = "not-a-mapping"
+    description = "declares its shares as a list"
+    shares = ["meas"]  # type: ignore[assignment]  # the wrong type on purpose
+
+
 class LateRaiseController(PaperController):
     name = "late-raise"
     description = "raises at its tick 150 (past the first second), UAV 2 only"
@@ -226,6 +238,15 @@ def test_exit_status_and_report(capsys: pytest.CaptureFixture[str]) -> None:
     assert "no controller, planner or plant model named 'no-such-plugin'" in capsys.readouterr().err
     assert main(["plugins", "check", "paper", "--duration", "0"]) == 2
     assert "--duration" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("plugin", ["BadSharesController", "NotMappingSharesController"])
+def test_a_bad_shares_declaration_is_bad_input_exit_2_naming_shares(capsys: pytest.CaptureFixture[str], plugin: str) -> None:
+    """As a plant model's bad ``records``: exit 2 before any check, naming the field."""
+    assert main(["plugins", "check", f"test_plugcheck:{plugin}", "--no-swarm"]) == 2
+    out = capsys.readouterr()
+    assert "shares: " in out.err and "must map names to shapes" in out.err, out.err
+    assert "PASS" not in out.out and "FAIL" not in out.out, out.out
 
 
 def test_set_overrides_the_scenario_as_on_sim_and_up(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:

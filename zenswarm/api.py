@@ -45,7 +45,7 @@ from zenswarm.compose.sim import simulate, summary_line, write_outputs
 from zenswarm.compose.up import check_up_args
 from zenswarm.errors import EXIT_PLUGIN_FAILED, ScenarioError, ZenswarmError
 from zenswarm.judge.metrics import TimeSeries, exit_code_of, flight_differences
-from zenswarm.link import LinkFaults
+from zenswarm.link import FaultPlan, LinkFaults
 from zenswarm.process import rtsched
 from zenswarm.process.paths import check_output_dir
 from zenswarm.process.settings import FlightSettings
@@ -424,8 +424,32 @@ def fly(
     input (nothing flown), :class:`FlightError` when the swarm could not fly to its end.
     A failed mission is not an error: see ``Flight.success`` and ``Flight.failures``.
     """
+    _check_mode(mode)
+    # the scenario converted once; the plug-ins resolve, their params decode (errors naming them)
+    sc, doc = _resolve(scenario, _shortcut_overrides(overrides, duration, seed, controller, planner, plant_model))
+    faults, plan = _link_faults(sc, link_loss, link_delay, link_jitter, partitions, link_range, link_fade, link_capacity,
+                                link_queue, link_medium, link_trace)  # bad values: ScenarioError naming the argument
+    kills, record, out = _kills(kill), _path(record), _path(out)
+    rtsched.validate(rt_priority, realtime=realtime and mode == "swarm", how="mode='swarm', realtime=True", field="rt_priority")
+    if mode == "sim":
+        _swarm_only(kill=bool(kills), restart=restart, realtime=realtime, record=record is not None, scheduler=scheduler is not None,
+                    placement=bool(placement), listen=listen is not None)  # fmt: skip
+        return _fly_sim(sc, plan, full_time, out)
+    where = {"scheduler": scheduler, "placement": tuple(placement), "listen": (listen,) if listen else ()}
+    return _fly_swarm(sc, doc, faults, kills, restart, realtime, full_time, record, out, swarm, port, lockstep_timeout, timeout,
+                      rt_priority, where)
+
+
+def _check_mode(mode: Any) -> None:
     if mode not in ("sim", "swarm"):
         raise ScenarioError("mode", f"expected 'sim' or 'swarm', got {mode!r}")
+
+
+def _shortcut_overrides(
+    overrides: Mapping[str, Any] | None, duration: float | None, seed: int | None, controller: str | None, planner: str | None,
+    plant_model: str | None,
+) -> dict[str, Any]:
+    """:func:`fly`'s ``overrides`` with its shortcut arguments (those not None) as dotted paths."""
     ov: dict[str, Any] = dict(overrides or {})
     shortcuts = {
         "timing.time_limit_s": duration, "scenario.seed": seed, "agents.controller": controller, "leader.planner": planner,
@@ -434,7 +458,16 @@ def fly(
     ov.update({key: value for key, value in shortcuts.items() if value is not None})
     if planner is not None:  # as --planner: the named planner decides ([leader] adaptive is its older spelling)
         ov["leader.adaptive"] = planner != "apf"
-    sc, doc = _resolve(scenario, ov)  # converted once; the plug-ins resolve, their params decode (errors naming them)
+    return ov
+
+
+def _link_faults(
+    sc: Scenario, link_loss: float | str | None, link_delay: float | str | None, link_jitter: float | str | None, partitions: Sequence[str],
+    link_range: float | str | None, link_fade: str | None, link_capacity: str | None, link_queue: str | int | None,
+    link_medium: str | None, link_trace: str | Path | None,
+) -> tuple[LinkFaults, FaultPlan | None]:
+    """:func:`fly`'s link-fault arguments as the ``--link-*`` flags' :class:`LinkFaults` and their plan for ``sc``
+    (bad values: :class:`ScenarioError` naming the flag, before any work)."""
     loss = None if link_loss is None else (link_loss if isinstance(link_loss, str) else repr(float(link_loss)))
     rng = None if link_range is None else (link_range if isinstance(link_range, str) else repr(float(link_range)))
     faults = LinkFaults(
@@ -443,29 +476,37 @@ def fly(
         link_capacity=link_capacity, link_queue=None if link_queue is None else str(link_queue), link_medium=link_medium,
         link_trace=None if link_trace is None else str(Path(link_trace).absolute()),
     )  # fmt: skip
-    plan = faults.plan(sc)  # bad values: ScenarioError naming the flag, before any work
-    kills = _kills(kill)
-    record = None if record is None else Path(record)  # a path given as text works as well
-    out = None if out is None else Path(out)
-    rtsched.validate(rt_priority, realtime=realtime and mode == "swarm", how="mode='swarm', realtime=True", field="rt_priority")
-    if mode == "swarm" and (isinstance(lockstep_timeout, bool) or not isinstance(lockstep_timeout, (int, float)) or not (
+    return faults, faults.plan(sc)
+
+
+def _path(path: str | Path | None) -> Path | None:
+    """A path given as text works as well."""
+    return None if path is None else Path(path)
+
+
+def _swarm_only(**given: bool) -> None:
+    """Refuse, in sim mode, the first of :func:`fly`'s swarm-only arguments that was given (by its name)."""
+    for name, was_given in given.items():
+        if was_given:
+            raise ScenarioError(name, "process faults, realtime and recordings need mode='swarm' (the simulator has no processes)")
+
+
+def _fly_sim(sc: Scenario, plan: FaultPlan | None, full_time: bool, out: Path | None) -> Flight:
+    """:func:`fly` in sim mode: ``zenswarm sim`` in this process; its outputs kept in ``out`` if given."""
+    if out is not None:
+        check_output_dir(out, "out")
+    res = simulate(sc, faults=plan, full_time=full_time)
+    if out is not None:
+        write_outputs(out, res.series, res.results)
+    return _flight("sim", sc, res.results, res.series, exit_code_of(res.results), out)
+
+
+def _check_lockstep_timeout(lockstep_timeout: Any) -> None:
+    """As ``--lockstep-timeout`` (exit 2 of the supervisor before the settings went typed)."""
+    if isinstance(lockstep_timeout, bool) or not isinstance(lockstep_timeout, (int, float)) or not (
         np.isfinite(lockstep_timeout) and lockstep_timeout > 0
-    )):  # as --lockstep-timeout (exit 2 of the supervisor before the settings went typed)
+    ):
         raise ScenarioError("lockstep_timeout", f"must be a finite number of wall seconds > 0, got {lockstep_timeout!r}")
-    if mode == "sim":
-        cluster = (("scheduler", scheduler is not None), ("placement", bool(placement)), ("listen", listen is not None))
-        for name, given in (("kill", kills), ("restart", restart), ("realtime", realtime), ("record", record is not None), *cluster):
-            if given:
-                raise ScenarioError(name, "process faults, realtime and recordings need mode='swarm' (the simulator has no processes)")
-        if out is not None:
-            check_output_dir(out, "out")
-        res = simulate(sc, faults=plan, full_time=full_time)
-        if out is not None:
-            write_outputs(out, res.series, res.results)
-        return _flight("sim", sc, res.results, res.series, exit_code_of(res.results), out)
-    where = {"scheduler": scheduler, "placement": tuple(placement), "listen": (listen,) if listen else ()}
-    return _fly_swarm(sc, doc, faults, kills, restart, realtime, full_time, record, out, swarm, port, lockstep_timeout, timeout,
-                      rt_priority, where)
 
 
 def _flight(
@@ -497,6 +538,7 @@ def _fly_swarm(
     """``zenswarm up`` as a child process group; its results read back from its output directory.
     Without ``port`` the supervisor chooses a free one for its router (and another if that one is
     taken before the router binds it: two flights started at once)."""
+    _check_lockstep_timeout(lockstep_timeout)
     swarm = swarm or unique_swarm_name()
     with tempfile.TemporaryDirectory(prefix="zenswarm-fly-") as tmp:
         run_dir = Path(tmp)

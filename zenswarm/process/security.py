@@ -632,7 +632,13 @@ _ALL_MESSAGES = (
 )
 
 
-def _grants(process: str, sc: Scenario, k: wire.Keys) -> list[tuple[tuple[str, ...], str, list[str]]]:
+_Grant = tuple[tuple[str, ...], str, list[str]]
+"""(messages, flow, key expressions) of an ACL rule: see :func:`_grants`."""
+
+_OBSERVERS = ("recorder", "supervisor")
+
+
+def _grants(process: str, sc: Scenario, k: wire.Keys) -> list[_Grant]:
     """What ``process`` may do, as (messages, flow, key expressions).
 
     flow ``ingress`` = from the process into the router, ``egress`` = from the router to it.
@@ -651,77 +657,93 @@ def _grants(process: str, sc: Scenario, k: wire.Keys) -> list[tuple[tuple[str, .
     ``alive/<p>`` of the processes it waits for or outlives (the leader: the plant, whose exit
     ends the flight) and ``alive/<p>/*`` of its inputs' senders.
     """
-    P = k.prefix
-    own_alive = k.alive(process)
-    own_diag = k.diag(process)
-    pub: list[str] = [own_diag]
-    sub: list[str] = []
-    extra: list[tuple[tuple[str, ...], str, list[str]]] = []
-    # Every process may fetch the mission (late joiners, other hosts without the scenario file).
-    query_mission = [(("query",), "ingress", [k.mission]), (("reply",), "egress", [k.mission])]
-    liveliness_watch = [
-        (("liveliness_query", "declare_liveliness_subscriber"), "ingress", [k.alive_all]),
-        (("liveliness_token",), "egress", [k.alive_all]),
-    ]
-    agents = [wire.agent(j) for j in range(1, sc.n + 1)]
-
-    def watching(tokens: list[str]) -> list[tuple[tuple[str, ...], str, list[str]]]:
-        # a liveliness subscriber with history also queries: both need the tokens sent back
-        return [
-            (("liveliness_query", "declare_liveliness_subscriber"), "ingress", tokens),
-            (("liveliness_token",), "egress", tokens),
-        ]
-
-    def sender_tokens(names: list[str]) -> list[str]:
-        return [k.alive(p) + "/*" for p in names]
-
     i = wire.process_uav(process)
     if i is not None:  # agent i: its graph row, nothing more
-        if i > sc.n:
-            raise CredentialsError(f"{process}: scenario {sc.name!r} has only {sc.n} UAVs")
-        pub += [k.ref(i), k.cmd(i)]
-        sub += [k.state(i)] + [k.ref(j + 1) for j in sc.neighbours(i - 1)]
-        if sc.graph.pinning[i - 1] > 0:
-            sub.append(k.leader_ref)
-        # an agent watches the liveliness of the processes it waits for (not to wait on the dead),
-        # and the sender tokens of its inputs (its state comes from the plant or the bridge)
-        nbrs = [wire.agent(j + 1) for j in sc.neighbours(i - 1)]
-        lead = ["leader"] if sc.graph.pinning[i - 1] > 0 else []
-        watch = [k.alive(p) for p in ["plant"] + nbrs + lead] + sender_tokens(["plant", "bridge"] + nbrs + lead)
-        extra += query_mission + watching(watch)
+        pub, sub, extra = _agent_grants(process, i, sc, k)
     elif process in ("plant", "bridge"):
-        pub += [f"{P}/uav/*/state", k.clock]
-        sub += [f"{P}/uav/*/cmd"]
-        if process == "bridge":  # the MAVLink bridge forwards commands, or references as position setpoints
-            sub += [f"{P}/uav/*/ref"]
-        extra += query_mission + liveliness_watch + watching(sender_tokens(agents))
+        pub, sub, extra = _vehicles_grants(process, sc, k)
     elif process == "leader":
-        pub += [k.leader_ref]
-        sub += [k.clock]
-        extra += [
-            (("declare_queryable", "reply"), "ingress", [k.mission]),
-            (("query",), "egress", [k.mission]),
-        ]
-        # it keeps its token until the plant is gone (the end of a lockstep flight), and follows
-        # who sends the clock
-        extra += query_mission + watching([k.alive("plant")] + sender_tokens(["plant", "bridge"]))
-    elif process in ("recorder", "supervisor"):
-        sub += [k.all]
-        extra += query_mission + [
+        pub, sub, extra = _leader_grants(k)
+    elif process in _OBSERVERS:
+        pub, sub = [], [k.all]
+        extra = _query_mission(k) + [
             (("liveliness_query", "declare_liveliness_subscriber"), "ingress", [k.all]),
             (("liveliness_token",), "egress", [k.all]),
         ]
     else:  # pragma: no cover - validate_process above rejects anything else
         raise CredentialsError(f"unknown process {process!r}")
-    grants: list[tuple[tuple[str, ...], str, list[str]]] = [
-        (("put",), "ingress", pub),
+    own_alive = k.alive(process)
+    grants: list[_Grant] = [
+        (("put",), "ingress", [k.diag(process)] + pub),
         (("declare_subscriber",), "egress", [k.all]),
         # its token, and (a swarm process, not the observers) its session's: alive/<self>/<zid>
-        (("liveliness_token",), "ingress", [own_alive] + ([] if process in ("recorder", "supervisor") else [own_alive + "/*"])),
+        (("liveliness_token",), "ingress", [own_alive] + ([] if process in _OBSERVERS else [own_alive + "/*"])),
     ]
     if sub:
         grants += [(("declare_subscriber",), "ingress", sub), (("put",), "egress", sub)]
     return grants + extra
+
+
+def _query_mission(k: wire.Keys) -> list[_Grant]:
+    """Every process may fetch the mission (late joiners, other hosts without the scenario file)."""
+    return [(("query",), "ingress", [k.mission]), (("reply",), "egress", [k.mission])]
+
+
+def _watching(tokens: list[str]) -> list[_Grant]:
+    """Watch the liveliness ``tokens``: a liveliness subscriber with history also queries, both
+    need the tokens sent back."""
+    return [
+        (("liveliness_query", "declare_liveliness_subscriber"), "ingress", tokens),
+        (("liveliness_token",), "egress", tokens),
+    ]
+
+
+def _sender_tokens(k: wire.Keys, names: list[str]) -> list[str]:
+    """The session tokens ``alive/<p>/*`` of the processes ``names``."""
+    return [k.alive(p) + "/*" for p in names]
+
+
+def _agent_grants(process: str, i: int, sc: Scenario, k: wire.Keys) -> tuple[list[str], list[str], list[_Grant]]:
+    """Agent i's own keys to put, keys to subscribe and further rules (:func:`_grants`)."""
+    if i > sc.n:
+        raise CredentialsError(f"{process}: scenario {sc.name!r} has only {sc.n} UAVs")
+    pub = [k.ref(i), k.cmd(i)]
+    sub = [k.state(i)] + [k.ref(j + 1) for j in sc.neighbours(i - 1)]
+    if sc.graph.pinning[i - 1] > 0:
+        sub.append(k.leader_ref)
+    # an agent watches the liveliness of the processes it waits for (not to wait on the dead),
+    # and the sender tokens of its inputs (its state comes from the plant or the bridge)
+    nbrs = [wire.agent(j + 1) for j in sc.neighbours(i - 1)]
+    lead = ["leader"] if sc.graph.pinning[i - 1] > 0 else []
+    watch = [k.alive(p) for p in ["plant"] + nbrs + lead] + _sender_tokens(k, ["plant", "bridge"] + nbrs + lead)
+    return pub, sub, _query_mission(k) + _watching(watch)
+
+
+def _vehicles_grants(process: str, sc: Scenario, k: wire.Keys) -> tuple[list[str], list[str], list[_Grant]]:
+    """The plant's or the MAVLink bridge's keys to put, keys to subscribe and further rules (:func:`_grants`)."""
+    P = k.prefix
+    pub = [f"{P}/uav/*/state", k.clock]
+    sub = [f"{P}/uav/*/cmd"]
+    if process == "bridge":  # the MAVLink bridge forwards commands, or references as position setpoints
+        sub += [f"{P}/uav/*/ref"]
+    liveliness_watch: list[_Grant] = [
+        (("liveliness_query", "declare_liveliness_subscriber"), "ingress", [k.alive_all]),
+        (("liveliness_token",), "egress", [k.alive_all]),
+    ]
+    agents = [wire.agent(j) for j in range(1, sc.n + 1)]
+    return pub, sub, _query_mission(k) + liveliness_watch + _watching(_sender_tokens(k, agents))
+
+
+def _leader_grants(k: wire.Keys) -> tuple[list[str], list[str], list[_Grant]]:
+    """The leader's keys to put, keys to subscribe and further rules (:func:`_grants`)."""
+    extra: list[_Grant] = [
+        (("declare_queryable", "reply"), "ingress", [k.mission]),
+        (("query",), "egress", [k.mission]),
+    ]
+    # it keeps its token until the plant is gone (the end of a lockstep flight), and follows
+    # who sends the clock
+    extra += _query_mission(k) + _watching([k.alive("plant")] + _sender_tokens(k, ["plant", "bridge"]))
+    return [k.leader_ref], [k.clock], extra
 
 
 def acl_rules(

@@ -167,52 +167,15 @@ def connected_components(adjacency: np.ndarray) -> list[list[int]]:
 
 
 def adjacency_matrix(offsets: np.ndarray, topology: str = "ring", k: int = 2) -> np.ndarray:
-    """Symmetric 0/1 adjacency A (N, N) of a connected graph, zero diagonal.
-
-    ``ring``: i ~ i+1 (mod N); ``star``: UAV 1 ~ every other; ``complete``: all pairs;
-    ``knn``: each UAV ~ its k nearest UAVs by offset distance (ties broken by index), then
-    symmetrised (a_ij = max(a_ij, a_ji)); while disconnected, the closest pair of UAVs between
-    the component of UAV 1 and the rest is joined (at most N - 1 joins). k is clamped to N - 1.
-    offsets: (N, 3) m. The dense form of what a scenario's ``[graph] topology`` names (the
-    scenario builds it as neighbour lists, :func:`zenswarm.scenario.graph.topology_neighbours`,
-    edge for edge the same: ``tests/test_graph.py``).
+    """Symmetric 0/1 adjacency A (N, N) of a connected graph, zero diagonal: the dense form of
+    what a scenario's ``[graph] topology`` names, built from its neighbour lists
+    (:func:`zenswarm.scenario.graph.topology_neighbours`, which says how each topology is made;
+    ValueError for an unknown topology or a bad k). offsets: (N, 3) m.
     """
-    h = np.asarray(offsets, dtype=float)
-    n = h.shape[0]
-    if topology not in TOPOLOGIES:
-        raise ValueError(f"unknown topology {topology!r} (choose from {', '.join(TOPOLOGIES)})")
-    if topology == "knn" and (isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1):
-        raise ValueError(f"k must be an integer >= 1 (neighbours per UAV for knn), got {k!r}")
-    A = np.zeros((n, n))
-    if n == 1:
-        return A
-    if topology == "ring":
-        for i in range(n):
-            j = (i + 1) % n
-            A[i, j] = A[j, i] = 1.0
-    elif topology == "star":
-        A[0, 1:] = A[1:, 0] = 1.0
-    elif topology == "complete":
-        A[:] = 1.0
-        np.fill_diagonal(A, 0.0)
-    else:  # knn
-        kk = min(k, n - 1)
-        D = np.linalg.norm(h[:, None, :] - h[None, :, :], axis=2)
-        np.fill_diagonal(D, np.inf)
-        for i in range(n):
-            for j in np.argsort(D[i], kind="stable")[:kk]:
-                A[i, j] = 1.0
-        A = np.maximum(A, A.T)
-        for _ in range(n - 1):  # bounded: each join merges two components
-            comps = connected_components(A)
-            if len(comps) == 1:
-                break
-            inside = np.zeros(n, dtype=bool)
-            inside[comps[0]] = True
-            sub = D[np.ix_(inside, ~inside)]
-            a, b = np.unravel_index(int(np.argmin(sub)), sub.shape)
-            i, j = int(np.flatnonzero(inside)[a]), int(np.flatnonzero(~inside)[b])
-            A[i, j] = A[j, i] = 1.0
+    nbr = topology_neighbours(offsets, topology, k)
+    A = np.zeros((len(nbr), len(nbr)))
+    for i, row in enumerate(nbr):
+        A[i, row] = 1.0
     return A
 
 
@@ -366,12 +329,7 @@ def generate_scenario(
     r_f = float(np.max(np.linalg.norm(h, axis=1)))
     d0 = PAPER_LEADER["d0"]
 
-    start = np.array(START, dtype=float)
-    length = max(3.0, 6.0 * r_f + 1.0)
-    goal = start + np.array(
-        [length * math.cos(GOAL_HEADING_RAD), length * math.sin(GOAL_HEADING_RAD), GOAL_RISE_M]
-    )
-    goal = np.array([_r(v, 3) for v in goal])
+    start, goal = _start_goal(r_f)
 
     jitter_bound = 0.1 * spacing
     jitter = np.clip(rng_jitter.normal(0.0, 0.05 * spacing, size=(n, 3)), -jitter_bound, jitter_bound)
@@ -397,19 +355,44 @@ def generate_scenario(
     if name is None:
         name = f"gen_{shape}_{topology}_n{n}_s{seed}"
     topo_desc = f"knn (k={k})" if topology == "knn" else topology
+    description = (
+        f"generated: {n} UAV{'s' if n != 1 else ''}, {shape} formation (spacing {spacing:g} m), {topo_desc} graph, "
+        f"pinning {pinning} ({int(b.sum())} pinned), {n_obstacles} obstacles, seed {seed}"
+    )
+    graph = {  # by name: a few bytes at any N (the dense matrix was N^2 numbers)
+        "topology": topology,
+        **({"k": int(k)} if topology == "knn" else {}),
+        "pinning": [float(v) for v in b],
+    }
+    d = _document({"name": name, "description": description, "seed": seed}, float(time_limit_s), start, goal, obstacles, h, q0, graph)
+    scenario_from_dict(d)  # always valid: raises ScenarioError naming the field otherwise
+    return d
+
+
+def _start_goal(r_f: float) -> tuple[np.ndarray, np.ndarray]:
+    """The leader's start and goal, m, ENU: the goal at GOAL_HEADING_RAD, GOAL_RISE_M up, 6 formation
+    radii r_f (m) + 1 m away (at least 3 m), rounded to mm."""
+    start = np.array(START, dtype=float)
+    length = max(3.0, 6.0 * r_f + 1.0)
+    goal = start + np.array(
+        [length * math.cos(GOAL_HEADING_RAD), length * math.sin(GOAL_HEADING_RAD), GOAL_RISE_M]
+    )
+    goal = np.array([_r(v, 3) for v in goal])
+    return start, goal
+
+
+def _document(
+    scenario: dict[str, Any], time_limit_s: float, start: np.ndarray, goal: np.ndarray, obstacles: list[dict[str, Any]],
+    h: np.ndarray, q0: np.ndarray, graph: dict[str, Any],
+) -> dict[str, Any]:
+    """The scenario document of :func:`generate_scenario` from its parts (the paper's gains, the
+    example files' rates and tolerances)."""
     d: dict[str, Any] = {
-        "scenario": {
-            "name": name,
-            "description": (
-                f"generated: {n} UAV{'s' if n != 1 else ''}, {shape} formation (spacing {spacing:g} m), {topo_desc} graph, "
-                f"pinning {pinning} ({int(b.sum())} pinned), {n_obstacles} obstacles, seed {seed}"
-            ),
-            "seed": seed,
-        },
+        "scenario": scenario,
         "timing": {
             "control_rate_hz": 100.0,
             "physics_rate_hz": 1000.0,
-            "time_limit_s": float(time_limit_s),
+            "time_limit_s": time_limit_s,
             "settle_time_s": 30.0,
             "goal_tolerance_m": GOAL_TOLERANCE_M,
         },
@@ -426,16 +409,11 @@ def generate_scenario(
             "offsets": [[float(v) for v in row] for row in h],
             "initial_positions": [[float(v) for v in row] for row in q0],
         },
-        "graph": {  # by name: a few bytes at any N (the dense matrix was N^2 numbers)
-            "topology": topology,
-            **({"k": int(k)} if topology == "knn" else {}),
-            "pinning": [float(v) for v in b],
-        },
+        "graph": graph,
         "generator": dict(PAPER_GENERATOR),
         "eso": {"beta": list(PAPER_ESO["beta"]), "enabled": PAPER_ESO["enabled"]},
         "controller": {"kp": list(PAPER_CONTROLLER["kp"]), "kd": list(PAPER_CONTROLLER["kd"]), "yaw": PAPER_CONTROLLER["yaw"]},
     }
-    scenario_from_dict(d)  # always valid: raises ScenarioError naming the field otherwise
     return d
 
 

@@ -7,8 +7,8 @@ A scenario's ``[graph]`` gives the undirected weighted graph A (N, N) in one of 
 * ``edges``: a list of ``[i, j, a_ij]`` with UAV numbers 1..N and a weight > 0; each undirected
   edge once (listing it in both directions is allowed when both carry the same weight);
 * ``topology``: one of the generator's topologies by name (``ring``, ``star``, ``complete``,
-  ``knn`` with ``k``), built from the formation offsets exactly as
-  :func:`zenswarm.scenario.generate.adjacency_matrix` builds it (unit weights).
+  ``knn`` with ``k``), built from the formation offsets by :func:`topology_neighbours` (unit
+  weights; :func:`zenswarm.scenario.generate.adjacency_matrix` is its dense form).
 
 :class:`CommGraph` holds it once per scenario as neighbour lists (row i: the 0-based indices j
 with a_ij > 0, increasing, and their weights): building and checking it is O(N + E) for the
@@ -193,8 +193,8 @@ def components(nbr: Sequence[Any]) -> list[list[int]]:
 
 
 def topology_neighbours(offsets: Any, topology: str, k: int = 2) -> list[list[int]]:
-    """Neighbour lists (increasing) of a named topology over the offsets (N, 3) m: the graph of
-    :func:`zenswarm.scenario.generate.adjacency_matrix`, edge for edge, without the (N, N) matrix.
+    """Neighbour lists (increasing) of a named topology over the offsets (N, 3) m, without an
+    (N, N) matrix (:func:`zenswarm.scenario.generate.adjacency_matrix` is their dense form).
 
     ``ring``: i ~ i+1 (mod N); ``star``: UAV 1 ~ every other; ``complete``: all pairs; ``knn``:
     each UAV ~ its k nearest by offset distance (ties by index; k clamped to N - 1), symmetrised,
@@ -223,7 +223,7 @@ def topology_neighbours(offsets: Any, topology: str, k: int = 2) -> list[list[in
         return [[j for j in range(n) if j != i] for i in range(n)]
     else:
         kk = min(int(k), n - 1)
-        for lo in range(0, n, _KNN_BLOCK):  # the distances a block of rows at a time, as the dense builder's
+        for lo in range(0, n, _KNN_BLOCK):  # the distances a block of rows at a time
             D = np.linalg.norm(h[lo:lo + _KNN_BLOCK, None, :] - h[None, :, :], axis=2)
             for r in range(D.shape[0]):
                 D[r, lo + r] = np.inf

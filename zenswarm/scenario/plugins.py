@@ -67,6 +67,7 @@ __all__ = [
     "Signal",
     "plant_records",
     "records_of",
+    "shares_of",
     "MAX_RECORDS",
     "MAX_RECORD_VALUES",
     "PluginFailure",
@@ -460,6 +461,21 @@ MAX_RECORD_VALUES: Final = 1024
 :data:`zenswarm.bus.wire.MAX_PAYLOAD`)."""
 
 _RECORD_NAME: Final = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}")
+
+
+def shares_of(cls: type, who: str = "controller") -> dict[str, tuple[int, ...]]:
+    """The extra values controller class ``cls`` shares with its neighbours (its ``shares``),
+    checked: a mapping of names (str) to shapes (positive ints). A bad declaration raises
+    :class:`PluginError` (exit 2) naming ``shares``, as :func:`records_of` does a plant model's."""
+    shares = getattr(cls, "shares", {})
+    try:
+        out = {k: tuple(s) for k, s in dict(shares).items()}
+        ok = all(isinstance(k, str) and all(isinstance(d, int) and d > 0 for d in s) for k, s in out.items())
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise PluginError("shares", f"{who}: must map names to shapes (tuples of positive ints), got {shares!r}")
+    return out
 
 
 def records_of(cls: type, who: str = "plant model") -> dict[str, Signal]:
