@@ -46,17 +46,67 @@ def _same_series(a: TimeSeries, b: TimeSeries) -> None:
 # ----------------------------------------------------------------------------- the three forms
 
 
+def _components(A: np.ndarray) -> list[list[int]]:
+    """Connected components of a 0/1 matrix, UAV 1's first (a breadth-first search of its own)."""
+    left, comps = set(range(A.shape[0])), []
+    while left:
+        seen, todo = set(), [min(left)]
+        while todo:
+            i = todo.pop()
+            if i not in seen:
+                seen.add(i)
+                todo.extend(int(j) for j in np.flatnonzero(A[i]) if j not in seen)
+        comps.append(sorted(seen))
+        left -= seen
+    return comps
+
+
+def _dense_reference(h: np.ndarray, topology: str, k: int) -> np.ndarray:
+    """The named topologies built densely, the way the docs describe them, independent of the
+    neighbour-list builder: ring, star, complete; knn = each UAV's k nearest (ties by index, k
+    clamped to N - 1), symmetrised, then the closest pair between UAV 1's component and the
+    rest joined while the graph is disconnected."""
+    n = h.shape[0]
+    A = np.zeros((n, n))
+    if n == 1:
+        return A
+    if topology == "ring":
+        for i in range(n):
+            A[i, (i + 1) % n] = A[(i + 1) % n, i] = 1.0
+    elif topology == "star":
+        A[0, 1:] = A[1:, 0] = 1.0
+    elif topology == "complete":
+        A[:] = 1.0
+        np.fill_diagonal(A, 0.0)
+    else:
+        D = np.linalg.norm(h[:, None, :] - h[None, :, :], axis=2)
+        np.fill_diagonal(D, np.inf)
+        for i in range(n):
+            A[i, np.argsort(D[i], kind="stable")[: min(k, n - 1)]] = 1.0
+        A = np.maximum(A, A.T)
+        while len(comps := _components(A)) > 1:
+            inside = np.zeros(n, dtype=bool)
+            inside[comps[0]] = True
+            sub = D[np.ix_(inside, ~inside)]
+            a, b = np.unravel_index(int(np.argmin(sub)), sub.shape)
+            i, j = int(np.flatnonzero(inside)[a]), int(np.flatnonzero(~inside)[b])
+            A[i, j] = A[j, i] = 1.0
+    return A
+
+
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 16, 40])
 @pytest.mark.parametrize("shape", ["circle", "v", "grid"])
 def test_topology_by_name_is_the_generators_graph_edge_for_edge(n: int, shape: str) -> None:
-    """The neighbour-list builder equals the dense :func:`adjacency_matrix` (ties, clamping, and
-    the joins of a disconnected knn graph included)."""
+    """The neighbour-list builder, its dense form :func:`adjacency_matrix` and the graph of a
+    scenario equal a dense reference built here independently (ties, clamping, and the joins of
+    a disconnected knn graph included)."""
     rng = np.random.default_rng(n)
     clusters = np.vstack([rng.normal(size=(n // 2, 3)), 50.0 + rng.normal(size=(n - n // 2, 3))])  # knn disconnected
     for h in (formation_offsets(n, shape, 0.3), np.round(rng.normal(size=(n, 3)), 1), clusters):
         for topo, k in [("ring", 2), ("star", 2), ("complete", 2), ("knn", 1), ("knn", 3), ("knn", 4), ("knn", 50)]:
             g = CommGraph.from_topology(topo, k, h, np.ones(n))
             assert np.array_equal(g.dense(), adjacency_matrix(h, topo, k)), (topo, k)
+            assert np.array_equal(adjacency_matrix(h, topo, k), _dense_reference(h, topo, k)), (topo, k)
             assert [list(x) for x in g.nbr] == topology_neighbours(h, topo, k)
 
 
