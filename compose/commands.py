@@ -26,7 +26,20 @@ from typing import Any
 from zenswarm.errors import ScenarioError
 from zenswarm.process.settings import FlightSettings, RoleSettings, decode_as, encode, read_settings
 
-__all__ = ["Launch", "ROLES_BY_SETTINGS", "EDGES", "command", "role_settings", "edge_settings", "run_edge"]
+__all__ = ["role_names", "swarm_roles", "Launch", "ROLES_BY_SETTINGS", "EDGES", "command", "role_settings", "edge_settings", "run_edge"]
+
+def role_names(n: int) -> list[str]:
+    """Process names of a swarm of n UAVs, in start order."""
+    return ["plant", "leader"] + [f"agent:{i}" for i in range(1, n + 1)]
+
+
+def swarm_roles(n: int, plant: str = "sim") -> list[str]:
+    """The roles ``zenswarm up --plant PLANT`` runs for n UAVs, in start order (the recorder,
+    started first with ``--record``, aside): with ``mavlink`` the simulated vehicles and the
+    bridge take the plant's place (also with ``crazyflie``: simulated Crazyflies and the Crazyflie bridge)."""
+    names = role_names(n)
+    return ["vehicles", "bridge"] + names[1:] if plant in ("mavlink", "crazyflie") else names
+
 
 ROLES_BY_SETTINGS = ("plant", "leader", "agent")
 """The roles (:func:`zenswarm.compose.roles.run_role` reads their settings)."""

@@ -33,6 +33,7 @@ from zenswarm import bus
 from zenswarm.bus import wire
 from zenswarm.compose import commands
 from zenswarm.compose.children import Child, await_exit, start_local, stop_children
+from zenswarm.compose.commands import role_names, swarm_roles
 from zenswarm.compose.credentials import router_security
 from zenswarm.compose.flight_results import await_last_tick, judge_and_write, recording_lost, run_facts
 from zenswarm.compose.hooks import EndHook, FlightEnd, Tap, feeds
@@ -71,19 +72,6 @@ SITL_SEND_OFFSET = 40
 """With ``--plant mavlink`` simulated vehicle i sends from UDP P+40+i (PX4 SITL: 14580+i -> 14540+i)."""
 
 
-def role_names(n: int) -> list[str]:
-    """Process names of a swarm of n UAVs, in start order."""
-    return ["plant", "leader"] + [f"agent:{i}" for i in range(1, n + 1)]
-
-
-def swarm_roles(n: int, plant: str = "sim") -> list[str]:
-    """The roles ``zenswarm up --plant PLANT`` runs for n UAVs, in start order (the recorder,
-    started first with ``--record``, aside): with ``mavlink`` the simulated vehicles and the
-    bridge take the plant's place (also with ``crazyflie``: simulated Crazyflies and the Crazyflie bridge)."""
-    names = role_names(n)
-    return ["vehicles", "bridge"] + names[1:] if plant in ("mavlink", "crazyflie") else names
-
-
 class Supervisor:
     """Starts and watches one swarm. ``run()`` returns the exit code."""
 
@@ -109,26 +97,14 @@ class Supervisor:
         self.tokens = Tokens(self.keys, lambda: self.collector.sim_t_ns if self.collector is not None else -1)
         self._on_liveliness, self.gone_at = self.tokens.on_token, self.tokens.gone_at  # (tests drive the tokens by these)
         watched = [r for r in self.all_roles() if r in args.external and r != "vehicles"]  # the vehicles: no Zenoh, no token
-        self.external = ExternalRoles(
-            watched,
-            self.tokens,
-            timeout_s=args.external_timeout,
-            swarm=args.swarm,
-            time_limit_s=scenario.timing.time_limit_s,
-            policy=self.policy,
-            say=lambda text: self.say(text),
-        )
+        self.external = ExternalRoles(watched, self.tokens, timeout_s=args.external_timeout, swarm=args.swarm,
+                                      time_limit_s=scenario.timing.time_limit_s, policy=self.policy, say=lambda text: self.say(text))
         self.restart_at: dict[str, float] = {}
         self.restarts: dict[str, int] = {}
         self.deaths: list[dict] = []
         # when the flight ends (decided, --stop-at-goal, a plug-in failed) and which ticks are judged
-        self.watch = EndWatch(
-            criteria_from_scenario(scenario),
-            scenario.timing.n_ticks,
-            full_time=args.full_time,
-            stop_at_goal=args.stop_at_goal,
-            realtime=args.realtime,
-        )
+        self.watch = EndWatch(criteria_from_scenario(scenario), scenario.timing.n_ticks, full_time=args.full_time,
+                              stop_at_goal=args.stop_at_goal, realtime=args.realtime)
         self.recording_loss: dict | None = None  # the recorder died mid-flight (_recorder_died)
         self.plugin_failures = PluginFailures(lambda text: self.say(text))  # what processes that exited with 4 reported
         # the vehicles' ports P+i (the bridge listens) and their send ports P+40+i, all free
