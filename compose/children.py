@@ -12,13 +12,15 @@ import ctypes
 import signal
 import socket
 import subprocess
+import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-__all__ = ["Proc", "LocalProc", "Child", "start_local", "await_exit", "stop_children", "pdeathsig", "pdeathsig_term"]
+__all__ = ["Proc", "LocalProc", "Child", "start_local", "start_with_settings", "await_exit", "stop_children", "stop_in_order", "pdeathsig",
+           "pdeathsig_term"]
 
 LINES_KEPT = 50
 """How many of a child's last output lines are kept (the tail said when it dies)."""
@@ -171,3 +173,38 @@ def stop_children(children: list[Child], grace_s: float, say: Callable[[str], No
             c.proc.wait()
     for c in children:
         c.join_output(2.0)
+
+
+def start_with_settings(name: str, argv: list[str], settings: bytes, env: dict[str, str], *, term_on_parent_death: bool = False) -> Child:
+    """:func:`start_local` with ``settings`` on the child's standard input: a file of its own,
+    already gone from the disk (the child holds its own descriptor)."""
+    with tempfile.TemporaryFile() as stdin:
+        stdin.write(settings)
+        stdin.seek(0)
+        return start_local(name, argv, env, stdin, term_on_parent_death=term_on_parent_death)
+
+
+STOPPED_LAST = ("recorder", "bridge", "vehicles")
+"""Stopped after the flying roles, in this order: the bridge lands and disarms its vehicles, which
+must still run for that; the recorder drains what is still in flight."""
+
+
+def stop_in_order(children: Mapping[str, Child], leaving: Collection[str], grace_s: float, say: Callable[[str], None]) -> None:
+    """SIGTERM a swarm's started roles and wait (then SIGKILL), in order: the flying roles; then
+    those ``leaving`` by themselves (a plug-in failed: status 4 after its report), given the grace
+    before any signal, so results.json says 4, not the signal that caught them on their way out;
+    then the bridge (25 s to land), the vehicles, and the recorder last, after a moment for
+    messages in flight, with 60 s to drain its queue and write its summary."""
+    rest = [c for c in children.values() if c.name not in STOPPED_LAST]
+    going = [c for c in rest if c.name in leaving]
+    stop_children([c for c in rest if c not in going], grace_s, say)
+    await_exit(going, grace_s)
+    stop_children(going, grace_s, say)
+    for name, grace in (("bridge", 25.0), ("vehicles", grace_s)):
+        if name in children:
+            stop_children([children[name]], grace, say)
+    rec = children.get("recorder")
+    if rec is not None:
+        if rec.proc.poll() is None:
+            time.sleep(0.3)
+        stop_children([rec], 60.0, say)

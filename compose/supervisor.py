@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import os
 import signal
-import tempfile
 import threading
 import time
 from functools import partial
@@ -32,7 +31,7 @@ import zenoh
 from zenswarm import bus
 from zenswarm.bus import wire
 from zenswarm.compose import commands
-from zenswarm.compose.children import Child, await_exit, start_local, stop_children
+from zenswarm.compose.children import Child, start_with_settings, stop_in_order
 from zenswarm.compose.commands import role_names, swarm_roles
 from zenswarm.compose.credentials import router_security
 from zenswarm.compose.flight_results import await_last_tick, judge_and_write, recording_lost, run_facts
@@ -145,60 +144,29 @@ class Supervisor:
         return commands.command(role, at, kill_at)
 
     def spawn(self, role: str) -> Child:
+        """Start ``role`` (here, or with ``--scheduler`` a plant, leader or agent on its worker) with
+        its settings on standard input, and read its output (:meth:`_on_line`)."""
         env = dict(os.environ)
         env.setdefault("PYTHONUNBUFFERED", "1")
         if self.user_runtime is None:  # the swarm's processes: zenoh on one thread (bus.use_swarm_runtime)
             env["ZENOH_RUNTIME"] = bus.ZENOH_RUNTIME_DEFAULT
         argv, settings = self.command(role)
-        if self.cluster is not None and role.partition(":")[0] in commands.ROLES_BY_SETTINGS:
-            return self._spawn_placed(role, argv, settings, env)
-        stdin = tempfile.TemporaryFile()  # its settings on stdin: a file of its own, already gone from the disk
-        stdin.write(settings)
-        stdin.seek(0)
-        try:
-            c = start_local(role, argv, env, stdin, term_on_parent_death=role == "recorder")
-        finally:
-            stdin.close()  # the child holds its own descriptor
-        c.read(self._on_line)
-        self.children[role] = c
-        return c
-
-    def _spawn_placed(self, role: str, argv: list[str], settings: bytes, env: dict[str, str]) -> Child:
-        """``--scheduler``: start ``role`` on its worker (:class:`zenswarm.compose.cluster.Cluster`),
-        its settings and environment travelling with the start; watched as a local one."""
-        wanted = {k: env[k] for k in ("PYTHONUNBUFFERED", "ZENOH_RUNTIME") if k in env}
-        c: Child = self.cluster.start(role, decode_role(settings), argv[1:], wanted)
+        if self.cluster is not None and role.partition(":")[0] in commands.ROLES_BY_SETTINGS:  # its settings travel with the start
+            wanted = {k: env[k] for k in ("PYTHONUNBUFFERED", "ZENOH_RUNTIME") if k in env}
+            c: Child = self.cluster.start(role, decode_role(settings), argv[1:], wanted)
+        else:
+            c = start_with_settings(role, argv, settings, env, term_on_parent_death=role == "recorder")
         c.read(self._on_line)
         self.children[role] = c
         return c
 
     def terminate_all(self, grace_s: float = 5.0) -> None:
-        """SIGTERM the swarm's roles and wait (then SIGKILL); the recorder last, after a moment for
-        messages in flight, with time to drain its queue and write the summary."""
+        """Stop every started role (:func:`zenswarm.compose.children.stop_in_order`: the recorder
+        last) and say the recorder's closing line (what it wrote) when children are quiet."""
+        stop_in_order(self.children, {f.process for f in self.plugin_failures}, grace_s, self.say)
         rec = self.children.get("recorder")
-        last = ("recorder", "bridge", "vehicles")
-        # a process whose plug-in failed is leaving by itself with status 4 (after its report):
-        # the others are stopped first, then it is given the grace to exit before any signal, so
-        # results.json's processes say 4, not the signal that caught it on its way out
-        failed = {f.process for f in self.plugin_failures}
-        leaving = [c for c in self.children.values() if c.name in failed and c.name not in last]
-        self._terminate([c for c in self.children.values() if c.name not in last and c not in leaving], grace_s)
-        await_exit(leaving, grace_s)
-        self._terminate(leaving, grace_s)
-        # MAVLink: the bridge lands and disarms its vehicles, which must still be running for that
-        for name, grace in (("bridge", 25.0), ("vehicles", grace_s)):
-            if name in self.children:
-                self._terminate([self.children[name]], grace)
-        if rec is not None:
-            if rec.proc.poll() is None:
-                time.sleep(0.3)
-            self._terminate([rec], 60.0)
-            # its closing line (what it wrote): already on the console unless children are quiet
-            for line in rec.lines[-1:] if self.recording_loss is None and self.args.quiet_children else ():
-                self.say(line)
-
-    def _terminate(self, children: list[Child], grace_s: float) -> None:
-        stop_children(children, grace_s, self.say)
+        for line in rec.lines[-1:] if rec is not None and self.recording_loss is None and self.args.quiet_children else ():
+            self.say(line)
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         self.stop_reason = f"received {signal.Signals(signum).name}"
