@@ -7,7 +7,9 @@
 * running ``zenswarm up`` as a child, sampling its process tree (/proc) while it flies, and
   cleaning up every process it started (by pid, only processes whose command line carries our
   unique swarm name);
-* medians, a plain-text table and JSON output.
+* the swarm's process-tree CPU by role over a flight, the message stamps of bench/stamps;
+* a benchmark's start (cleanup on signals, temporary directory, machine printed), medians, a
+  plain-text table and the JSON report.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import signal
 import statistics
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Iterable, Sequence
@@ -29,6 +32,7 @@ from typing import Any
 
 REPO = Path(__file__).resolve().parent.parent
 SCEN_DIR = REPO / "compose" / "scenarios"
+STAMPS = Path(__file__).resolve().parent / "stamps"
 PAPER = {"example1": SCEN_DIR / "paper_example1.toml", "example2": SCEN_DIR / "paper_example2.toml"}
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 PAGE_KB = os.sysconf("SC_PAGE_SIZE") // 1024
@@ -155,6 +159,12 @@ def wait_for_quiet(max_background: float, max_wait_s: float, probe_s: float = 2.
         bg = (_proc_stat_busy_s() - b0) / (time.monotonic() - t0)
         if bg <= max_background or time.monotonic() >= deadline:
             return bg
+
+
+def quiet_wait(max_background: float, max_wait_s: float = 120.0) -> None:
+    """``--quiet-wait CORES``: :func:`wait_for_quiet` when CORES > 0 (0 = don't wait)."""
+    if max_background > 0:
+        wait_for_quiet(max_background, max_wait_s)
 
 
 # --------------------------------------------------------------------------- scenarios
@@ -372,6 +382,43 @@ class TreeSampler(threading.Thread):
         return {p.role: p for p in self.procs.values()}
 
 
+def flight_cores(procs: dict[str, ProcSample], flight_s: float) -> dict[str, float] | None:
+    """Mean CPU cores by role (the agents summed as ``agents``) over the middle 80 % of a flight of
+    ``flight_s`` wall seconds that ended when the plant was last seen; None without a plant."""
+    pl = procs.get("plant")
+    if pl is None:
+        return None
+    t0, t1 = pl.last_seen - 0.9 * flight_s, pl.last_seen - 0.1 * flight_s
+    cores: dict[str, float] = {}
+    for role, ps in procs.items():
+        c = ps.cpu_cores(t0, t1)
+        if c is not None:
+            key = "agents" if role.startswith("agent:") else role
+            cores[key] = cores.get(key, 0.0) + c
+    return cores
+
+
+# --------------------------------------------------------------------------- message stamps (bench/stamps)
+def stamps_env(stamp_dir: Path) -> dict[str, str]:
+    """:func:`bench_env` with bench/stamps/sitecustomize.py on ``PYTHONPATH``: every process of the
+    swarm then writes the stamps of its messages to ``stamp_dir`` (one JSON file each)."""
+    env = bench_env()
+    env["PYTHONPATH"] = os.pathsep.join([str(STAMPS)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    env["ZENSWARM_BENCH_STAMPS"] = str(stamp_dir)
+    return env
+
+
+def load_stamps(stamp_dir: Path) -> list[dict[str, Any]]:
+    """The stamp files of one run (a process killed while writing leaves none or a broken one: skipped)."""
+    out = []
+    for p in sorted(stamp_dir.glob("*.json")):
+        try:
+            out.append(json.loads(p.read_text()))
+        except (OSError, ValueError):
+            pass
+    return out
+
+
 # --------------------------------------------------------------------------- zenswarm up
 def free_port() -> int:
     """A TCP port free on 127.0.0.1 a moment ago (zenswarm.bus.free_port; imported here only when asked)."""
@@ -425,6 +472,12 @@ def py_spy_dumps(root_pid: int, roles: Sequence[str] = ("plant", "leader", "agen
             except (subprocess.TimeoutExpired, OSError) as e:
                 out[role] = f"py-spy failed: {e}"
     return out
+
+
+def print_hang_dumps(dumps: dict[str, str]) -> None:
+    """The py-spy dumps of a stuck run (:func:`py_spy_dumps`), indented, 60 lines each."""
+    for role, text in dumps.items():
+        print(f"    py-spy dump of {role}:\n" + "\n".join("      " + x for x in text.splitlines()[:60]))
 
 
 _LIVE: dict[int, tuple[subprocess.Popen, str]] = {}
@@ -482,6 +535,17 @@ def install_cleanup() -> None:
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+
+
+def start_bench(tmp_prefix: str) -> tuple[tempfile.TemporaryDirectory[str], dict[str, Any]]:
+    """A swarm benchmark's start: every swarm it starts stopped on Ctrl-C/SIGTERM, a temporary
+    directory (removed when the returned object goes), the machine described and printed."""
+    install_cleanup()
+    tmp = tempfile.TemporaryDirectory(prefix=tmp_prefix)
+    info = machine_info()
+    for line in machine_lines(info):
+        print(line)
+    return tmp, info
 
 
 def run_up(
@@ -603,3 +667,10 @@ def write_json(path: Path | None, payload: dict[str, Any]) -> None:
 
 def command_line() -> str:
     return " ".join([Path(sys.executable).name, *sys.argv])
+
+
+def write_report(path: Path | None, benchmark: str, info: dict[str, Any], **figures: Any) -> None:
+    """:func:`write_json` of a benchmark's report: its name, command line, machine (``info``),
+    load average at the end and ``figures`` (top-level keys of their own)."""
+    write_json(path, {"benchmark": benchmark, "command": command_line(), "machine": info,
+                      "loadavg_at_end": list(os.getloadavg()), **figures})

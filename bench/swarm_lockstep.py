@@ -38,19 +38,32 @@ bound after a run are reported. Not a test: numbers depend on the machine and it
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import sys
-import tempfile
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _common as C
 
 DEFAULT_SCENARIOS = ["example1", "example2", "gen3", "gen8", "gen16", "gen32", "gen64"]
-STAMPS = Path(__file__).resolve().parent / "stamps"
 PARTS = ("plant publish spread", "hop plant->agent", "agent", "hop agent->plant", "plant integrate+publish")
+# the per-run figures whose median over the finished runs the summary gives
+MEDIANS = ("flight_wall_s", "up_wall_s", "startup_shutdown_s", "ms_per_tick", "plant_step_ms", "plant_wait_ms",
+           "agent_step_ms_mean", "leader_step_ms", "flight_cores_total", "background_cores")
+Scenarios = list[tuple[str, Path]]  # (label, TOML file)
+
+
+# --------------------------------------------------------------------------- figures of one run
+def _by_uav_tick(streams: dict[str, list], suffix: str, dt_ns: int, into: dict[tuple[int, int], int]) -> None:
+    """Stamps of the messages on keys ``.../<uav>/<suffix>``, by (uav, tick); a message's tick is
+    its sim time ``t`` in control periods of ``dt_ns``."""
+    for key, lst in streams.items():
+        if key.endswith("/" + suffix):
+            i = int(key.split("/")[-2])
+            for _, t, st in lst:
+                into[(i, (t + dt_ns // 2) // dt_ns)] = st
 
 
 def tick_breakdown(stamp_dir: Path, dt_ns: int) -> dict:
@@ -59,9 +72,7 @@ def tick_breakdown(stamp_dir: Path, dt_ns: int) -> dict:
     (R_ik), publishes cmd(k) (C_ik), the plant receives it (Q_ik; the critical agent is the one
     whose command arrives last), and the plant publishes the first state of tick k+1 (P0_k+1).
     tick = (P_ik - P0_k) + (R - P) + (C - R) + (Q - C) + (P0_k+1 - Q). Medians over ticks, ms."""
-    import json as _json
-
-    stamps = [_json.loads(p.read_text()) for p in sorted(stamp_dir.glob("*.json"))]
+    stamps = C.load_stamps(stamp_dir)
     plant = next((x for x in stamps if x["role"] == "plant"), None)
     if plant is None:
         return {}
@@ -69,30 +80,13 @@ def tick_breakdown(stamp_dir: Path, dt_ns: int) -> dict:
     Q: dict = {}
     R: dict = {}
     Cm: dict = {}
-
-    def idx(key: str) -> int:
-        return int(key.split("/")[-2])
-
-    for key, lst in plant["pub"].items():
-        if key.endswith("/state"):
-            for _, t, st in lst:
-                Pi[(idx(key), (t + dt_ns // 2) // dt_ns)] = st
-    for key, lst in plant["rx"].items():
-        if key.endswith("/cmd"):
-            for _, t, st in lst:
-                Q[(idx(key), (t + dt_ns // 2) // dt_ns)] = st
-    uavs = sorted({i for i, _ in Pi})
+    _by_uav_tick(plant["pub"], "state", dt_ns, Pi)
+    _by_uav_tick(plant["rx"], "cmd", dt_ns, Q)
     for x in stamps:
-        if not x["role"].startswith("agent"):
-            continue
-        for key, lst in x["rx"].items():
-            if key.endswith("/state"):
-                for _, t, st in lst:
-                    R[(idx(key), (t + dt_ns // 2) // dt_ns)] = st
-        for key, lst in x["pub"].items():
-            if key.endswith("/cmd"):
-                for _, t, st in lst:
-                    Cm[(idx(key), (t + dt_ns // 2) // dt_ns)] = st
+        if x["role"].startswith("agent"):
+            _by_uav_tick(x["rx"], "state", dt_ns, R)
+            _by_uav_tick(x["pub"], "cmd", dt_ns, Cm)
+    uavs = sorted({i for i, _ in Pi})
     ks = sorted({k for _, k in Pi})
     parts: dict[str, list[float]] = {p: [] for p in ("tick",) + PARTS}
     for k in ks[1:-1]:
@@ -142,24 +136,15 @@ def analyse(run: C.UpRun, facts: dict) -> dict:
             out["agent_step_ms_max"] = max(d.get("step_ms_mean", 0.0) for d in agents)
         if "leader" in diag:
             out["leader_step_ms"] = diag["leader"].get("step_ms_mean")
-        # CPU by role over the middle 80 % of the flight
-        pl = run.procs.get("plant")
-        if pl is not None and fw > 0.5:
-            t1 = pl.last_seen - 0.1 * fw
-            t0 = pl.last_seen - 0.9 * fw
-            cores: dict[str, float] = {}
-            for role, ps in run.procs.items():
-                c = ps.cpu_cores(t0, t1)
-                if c is None:
-                    continue
-                key = "agents" if role.startswith("agent:") else role
-                cores[key] = cores.get(key, 0.0) + c
+        cores = C.flight_cores(run.procs, fw) if fw > 0.5 else None
+        if cores is not None:
             out["flight_cores"] = cores
             out["flight_cores_total"] = sum(cores.values())
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
+# --------------------------------------------------------------------------- the runs
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=3, help="runs per scenario (median reported; default 3)")
     ap.add_argument("--scenarios", nargs="+", default=DEFAULT_SCENARIOS, metavar="S",
@@ -175,129 +160,159 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=900.0, metavar="S", help="per-run limit of zenswarm up (default 900 s)")
     ap.add_argument("--quiet-wait", type=float, default=0.0, metavar="CORES",
                     help="before each run wait (up to 120 s) until other jobs use at most CORES cores (0 = don't wait)")
-    a = ap.parse_args(argv)
-    C.install_cleanup()
+    return ap.parse_args(argv)
 
-    tmp = tempfile.TemporaryDirectory(prefix="zenswarm-lockstep-bench-")
-    tmpdir = Path(tmp.name)
-    info = C.machine_info()
-    for line in C.machine_lines(info):
-        print(line)
-    scen = [C.scenario_file(s, tmpdir, a.gen_time_limit or None) for s in a.scenarios]
-    facts = {label: C.scenario_facts(p) for label, p in scen}
+
+def fly(a: argparse.Namespace, path: Path, out: Path, tag: str, facts: dict,
+        env: dict[str, str] | None = None) -> tuple[C.UpRun, dict]:
+    """One ``zenswarm up`` of ``path`` into ``out`` and its figures; its results.json kept as
+    ``--keep``/<out's name>.json if asked, ``out`` removed."""
+    run = C.run_up(path, out, tag=tag, env=env, timeout_s=a.timeout)
+    m = analyse(run, facts)
+    if a.keep is not None and (out / "results.json").exists():
+        a.keep.mkdir(parents=True, exist_ok=True)
+        shutil.copy(out / "results.json", a.keep / f"{out.name}.json")
+    shutil.rmtree(out, ignore_errors=True)
+    return run, m
+
+
+def print_run(a: argparse.Namespace, r: int, label: str, run: C.UpRun, m: dict, sim: dict[str, Any] | None) -> None:
+    """The line of one timed run (or why it failed, with the py-spy dumps of a stuck swarm)."""
+    if not m["finished"]:
+        print(f"  run {r + 1}/{a.runs} {label}: the plant did not finish (exit {run.returncode});"
+              f" output:\n{run.output_tail}", flush=True)
+        C.print_hang_dumps(run.hang_dumps)
+        return
+    sim_txt = f"  sim {sim['wall_s']:.2f} s ({sim['x_real_time']:.1f}x)" if sim is not None else ""
+    print(f"  run {r + 1}/{a.runs} {label:9s} flight {m['flight_wall_s']:7.2f} s = {m['x_real_time']:5.2f}x real time"
+          f" ({m['ms_per_tick']:.2f} ms/tick: plant step {m['plant_step_ms']:.2f} + wait {m['plant_wait_ms']:.2f})"
+          f"  up {m['up_wall_s']:.1f} s{sim_txt}  cpu cores in flight {m.get('flight_cores_total', 0):.2f}"
+          f"  background {m['background_cores']:.2f}", flush=True)
+
+
+def timed_runs(a: argparse.Namespace, scen: Scenarios, facts: dict, tmpdir: Path) -> tuple[dict, dict, int]:
+    """``--runs`` rounds over the scenarios: the simulator (unless ``--no-sim``), then the swarm.
+    Returns the swarm's figures and the simulator's by scenario, and how many runs did not finish."""
     swarm_runs: dict[str, list[dict]] = {label: [] for label, _ in scen}
     sim_runs: dict[str, list[dict]] = {label: [] for label, _ in scen}
     failures = 0
+    for r in range(a.runs):
+        for label, path in scen:
+            sim = None
+            if not a.no_sim:
+                C.quiet_wait(a.quiet_wait)
+                sim = C.run_sim_worker(path)
+                sim_runs[label].append(sim)
+            C.quiet_wait(a.quiet_wait)
+            run, m = fly(a, path, tmpdir / f"{label}-run{r + 1}", f"ls{r}", facts[label])
+            swarm_runs[label].append(m)
+            if not m["finished"]:
+                failures += 1
+            print_run(a, r, label, run, m, sim)
+    return swarm_runs, sim_runs, failures
+
+
+def breakdown_runs(a: argparse.Namespace, scen: Scenarios, facts: dict, tmpdir: Path) -> dict[str, dict]:
+    """``--breakdown``: one instrumented run per scenario, its figures and :func:`tick_breakdown`."""
+    breakdowns: dict[str, dict] = {}
+    for label, path in scen:
+        C.quiet_wait(a.quiet_wait)
+        sd = tmpdir / f"stamps-{label}"
+        sd.mkdir()
+        run = C.run_up(path, tmpdir / f"{label}-breakdown", tag="lsb", env=C.stamps_env(sd), timeout_s=a.timeout)
+        dt_ns = round(1e9 / facts[label]["control_rate_hz"])
+        breakdowns[label] = {"run": analyse(run, facts[label]), "parts": tick_breakdown(sd, dt_ns)}
+        if not breakdowns[label]["parts"].get("ticks"):
+            print(f"  WARNING {label}: no tick could be followed through the stamps; the wrappers in"
+                  " bench/stamps/sitecustomize.py may no longer match zenswarm.process.runtime/zenswarm.bus.wire", flush=True)
+        shutil.rmtree(sd, ignore_errors=True)
+        shutil.rmtree(tmpdir / f"{label}-breakdown", ignore_errors=True)
+    return breakdowns
+
+
+# --------------------------------------------------------------------------- summary and report
+def summarise(runs: list[dict], sims: list[dict], f: dict) -> dict:
+    """Medians over the finished runs of one scenario (``{"runs_ok": 0}`` if none finished)."""
+    ok = [m for m in runs if m["finished"]]
+    if not ok:
+        return {"runs_ok": 0}
+    sm: dict = {"n_uav": f["n_uav"], "sim_time_s": f["sim_time_s"], "runs_ok": len(ok), "runs": len(runs)}
+    for k in MEDIANS:
+        sm[k] = C.median(m.get(k) for m in ok)
+    roles = sorted({k for m in ok for k in m.get("flight_cores", {})})
+    sm["flight_cores"] = {k: C.median(m.get("flight_cores", {}).get(k) for m in ok) for k in roles}
+    sm["x_real_time"] = f["sim_time_s"] / sm["flight_wall_s"]
+    sm["leftover_processes"] = sum(m["leftover_processes"] for m in runs)
+    sm["port_left_bound"] = sum(not m["port_free_after"] for m in runs)
+    sm["forced_ticks"] = sum(m["forced_ticks"] for m in ok)
+    if sims:
+        sw = C.median(s["wall_s"] for s in sims)
+        sm["sim_wall_s"] = sw
+        sm["sim_x_real_time"] = f["sim_time_s"] / sw
+        sm["ratio_swarm_over_sim"] = sm["flight_wall_s"] / sw
+    return sm
+
+
+def summary_row(label: str, f: dict, sm: dict) -> list:
+    """A scenario's row of the summary table."""
+    if not sm["runs_ok"]:
+        return [label, f["n_uav"], f"{f['sim_time_s']:g}"] + ["-"] * 11
+    fc = sm["flight_cores"]
+    return [
+        label, f["n_uav"], f"{f['sim_time_s']:g}", sm["flight_wall_s"], f"{sm['x_real_time']:.2f}x",
+        sm["ms_per_tick"], f"{sm['plant_step_ms']:.2f} / {sm['plant_wait_ms']:.2f}", sm["agent_step_ms_mean"],
+        sm["startup_shutdown_s"],
+        f"{sm['sim_x_real_time']:.1f}x" if "sim_x_real_time" in sm else "-",
+        f"{sm['ratio_swarm_over_sim']:.1f}" if "ratio_swarm_over_sim" in sm else "-",
+        " ".join(f"{k[:3]}={v:.2f}" for k, v in fc.items() if v is not None) or "-",
+        sm["background_cores"], f"{sm['runs_ok']}/{sm['runs']}",
+    ]
+
+
+def print_summary(runs: int, facts: dict, summary: dict[str, dict]) -> None:
+    print()
+    print(f"lockstep swarm (zenswarm up) vs in-process simulator, median of {runs} runs")
+    print(C.table(["scenario", "UAVs", "sim s", "flight wall s", "x real time", "ms/tick", "plant step/wait ms",
+                   "agent step ms", "start+stop s", "simulator", "swarm/sim", "CPU cores in flight by role",
+                   "background cores", "ok runs"], [summary_row(label, facts[label], sm) for label, sm in summary.items()]))
+
+
+def print_breakdowns(facts: dict, breakdowns: dict[str, dict]) -> None:
+    print()
+    print("where a lockstep tick goes (one instrumented run per scenario; median over ticks, ms; see --help)")
+    brows = []
+    for label, b in breakdowns.items():
+        p = b["parts"]
+        if not p:
+            continue
+        brows.append([label, facts[label]["n_uav"], p["ticks"], p["tick"]["median"]] + [p[x]["median"] for x in PARTS]
+                     + [b["run"].get("ms_per_tick")])
+    print(C.table(["scenario", "UAVs", "ticks", "tick"] + list(PARTS) + ["ms/tick (diag, mean)"], brows))
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = parse_args(argv)
+    tmp, info = C.start_bench("zenswarm-lockstep-bench-")
+    tmpdir = Path(tmp.name)
+    scen = [C.scenario_file(s, tmpdir, a.gen_time_limit or None) for s in a.scenarios]
+    facts = {label: C.scenario_facts(p) for label, p in scen}
     breakdowns: dict[str, dict] = {}
     try:
-        for r in range(a.runs):
-            for label, path in scen:
-                f = facts[label]
-                if not a.no_sim:
-                    if a.quiet_wait > 0:
-                        C.wait_for_quiet(a.quiet_wait, 120.0)
-                    s = C.run_sim_worker(path)
-                    sim_runs[label].append(s)
-                if a.quiet_wait > 0:
-                    C.wait_for_quiet(a.quiet_wait, 120.0)
-                out = tmpdir / f"{label}-run{r + 1}"
-                run = C.run_up(path, out, tag=f"ls{r}", timeout_s=a.timeout)
-                m = analyse(run, f)
-                swarm_runs[label].append(m)
-                if a.keep is not None and (out / "results.json").exists():
-                    a.keep.mkdir(parents=True, exist_ok=True)
-                    shutil.copy(out / "results.json", a.keep / f"{label}-run{r + 1}.json")
-                shutil.rmtree(out, ignore_errors=True)
-                if not m["finished"]:
-                    failures += 1
-                    print(f"  run {r + 1}/{a.runs} {label}: the plant did not finish (exit {run.returncode});"
-                          f" output:\n{run.output_tail}", flush=True)
-                    for role, text in run.hang_dumps.items():
-                        print(f"    py-spy dump of {role}:\n" + "\n".join("      " + x for x in text.splitlines()[:60]))
-                    continue
-                sim_txt = f"  sim {s['wall_s']:.2f} s ({s['x_real_time']:.1f}x)" if not a.no_sim else ""
-                print(f"  run {r + 1}/{a.runs} {label:9s} flight {m['flight_wall_s']:7.2f} s = {m['x_real_time']:5.2f}x real time"
-                      f" ({m['ms_per_tick']:.2f} ms/tick: plant step {m['plant_step_ms']:.2f} + wait {m['plant_wait_ms']:.2f})"
-                      f"  up {m['up_wall_s']:.1f} s{sim_txt}  cpu cores in flight {m.get('flight_cores_total', 0):.2f}"
-                      f"  background {m['background_cores']:.2f}", flush=True)
+        swarm_runs, sim_runs, failures = timed_runs(a, scen, facts, tmpdir)
         if a.breakdown:
-            for label, path in scen:
-                if a.quiet_wait > 0:
-                    C.wait_for_quiet(a.quiet_wait, 120.0)
-                sd = tmpdir / f"stamps-{label}"
-                sd.mkdir()
-                env = C.bench_env()
-                env["PYTHONPATH"] = os.pathsep.join([str(STAMPS)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
-                env["ZENSWARM_BENCH_STAMPS"] = str(sd)
-                out = tmpdir / f"{label}-breakdown"
-                run = C.run_up(path, out, tag="lsb", env=env, timeout_s=a.timeout)
-                m = analyse(run, facts[label])
-                dt_ns = round(1e9 / facts[label]["control_rate_hz"])
-                breakdowns[label] = {"run": m, "parts": tick_breakdown(sd, dt_ns)}
-                if not breakdowns[label]["parts"].get("ticks"):
-                    print(f"  WARNING {label}: no tick could be followed through the stamps; the wrappers in"
-                          " bench/stamps/sitecustomize.py may no longer match zenswarm.process.runtime/zenswarm.bus.wire", flush=True)
-                shutil.rmtree(sd, ignore_errors=True)
-                shutil.rmtree(out, ignore_errors=True)
+            breakdowns = breakdown_runs(a, scen, facts, tmpdir)
     finally:
         C.cleanup_all()
 
-    rows, summary = [], {}
-    for label, _ in scen:
-        ok = [m for m in swarm_runs[label] if m["finished"]]
-        f = facts[label]
-        if not ok:
-            summary[label] = {"runs_ok": 0}
-            rows.append([label, f["n_uav"], f"{f['sim_time_s']:g}"] + ["-"] * 11)
-            continue
-        sm: dict = {"n_uav": f["n_uav"], "sim_time_s": f["sim_time_s"], "runs_ok": len(ok), "runs": len(swarm_runs[label])}
-        for k in ("flight_wall_s", "up_wall_s", "startup_shutdown_s", "ms_per_tick", "plant_step_ms", "plant_wait_ms",
-                  "agent_step_ms_mean", "leader_step_ms", "flight_cores_total", "background_cores"):
-            sm[k] = C.median(m.get(k) for m in ok)
-        roles = sorted({k for m in ok for k in m.get("flight_cores", {})})
-        sm["flight_cores"] = {k: C.median(m.get("flight_cores", {}).get(k) for m in ok) for k in roles}
-        sm["x_real_time"] = f["sim_time_s"] / sm["flight_wall_s"]
-        sm["leftover_processes"] = sum(m["leftover_processes"] for m in swarm_runs[label])
-        sm["port_left_bound"] = sum(not m["port_free_after"] for m in swarm_runs[label])
-        sm["forced_ticks"] = sum(m["forced_ticks"] for m in ok)
-        if sim_runs[label]:
-            sw = C.median(s["wall_s"] for s in sim_runs[label])
-            sm["sim_wall_s"] = sw
-            sm["sim_x_real_time"] = f["sim_time_s"] / sw
-            sm["ratio_swarm_over_sim"] = sm["flight_wall_s"] / sw
-        summary[label] = sm
-        fc = sm["flight_cores"]
-        rows.append([
-            label, f["n_uav"], f"{f['sim_time_s']:g}", sm["flight_wall_s"], f"{sm['x_real_time']:.2f}x",
-            sm["ms_per_tick"], f"{sm['plant_step_ms']:.2f} / {sm['plant_wait_ms']:.2f}", sm["agent_step_ms_mean"],
-            sm["startup_shutdown_s"],
-            f"{sm['sim_x_real_time']:.1f}x" if "sim_x_real_time" in sm else "-",
-            f"{sm['ratio_swarm_over_sim']:.1f}" if "ratio_swarm_over_sim" in sm else "-",
-            " ".join(f"{k[:3]}={v:.2f}" for k, v in fc.items() if v is not None) or "-",
-            sm["background_cores"], f"{sm['runs_ok']}/{sm['runs']}",
-        ])
-    print()
-    print(f"lockstep swarm (zenswarm up) vs in-process simulator, median of {a.runs} runs")
-    print(C.table(["scenario", "UAVs", "sim s", "flight wall s", "x real time", "ms/tick", "plant step/wait ms",
-                   "agent step ms", "start+stop s", "simulator", "swarm/sim", "CPU cores in flight by role",
-                   "background cores", "ok runs"], rows))
+    summary = {label: summarise(swarm_runs[label], sim_runs[label], facts[label]) for label, _ in scen}
+    print_summary(a.runs, facts, summary)
     if breakdowns:
-        print()
-        print("where a lockstep tick goes (one instrumented run per scenario; median over ticks, ms; see --help)")
-        brows = []
-        for label, b in breakdowns.items():
-            p = b["parts"]
-            if not p:
-                continue
-            brows.append([label, facts[label]["n_uav"], p["ticks"], p["tick"]["median"]] + [p[x]["median"] for x in PARTS]
-                         + [b["run"].get("ms_per_tick")])
-        print(C.table(["scenario", "UAVs", "ticks", "tick"] + list(PARTS) + ["ms/tick (diag, mean)"], brows))
+        print_breakdowns(facts, breakdowns)
     leftovers = sum(s.get("leftover_processes", 0) for s in summary.values())
     bound = sum(s.get("port_left_bound", 0) for s in summary.values())
     print(f"cleanup: {leftovers} leftover processes, {bound} ports left bound")
-    C.write_json(a.json, {"benchmark": "swarm_lockstep", "command": C.command_line(), "machine": info,
-                          "loadavg_at_end": list(os.getloadavg()), "scenarios": facts, "summary": summary,
-                          "swarm_runs": swarm_runs, "sim_runs": sim_runs, "breakdown": breakdowns})
+    C.write_report(a.json, "swarm_lockstep", info, scenarios=facts, summary=summary, swarm_runs=swarm_runs,
+                   sim_runs=sim_runs, breakdown=breakdowns)
     return 1 if failures else 0
 
 

@@ -38,30 +38,21 @@ the machine and its load.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import shutil
 import sys
-import tempfile
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _common as C
 
-STAMPS = Path(__file__).resolve().parent / "stamps"
+# the per-run figures of the summary: loop counters by role group, message latency statistics
+LOOP_STATS = ("missed_pct", "missed", "loop_ticks", "jitter_mean_ms", "jitter_max_ms")
+LATENCY_STATS = ("n", "p50", "p90", "p99", "p99.9", "max", "over_1ms_pct")
 
 
-def load_stamps(d: Path) -> list[dict]:
-    out = []
-    for p in sorted(d.glob("*.json")):
-        try:
-            out.append(json.loads(p.read_text()))
-        except (OSError, ValueError):
-            pass
-    return out
-
-
+# --------------------------------------------------------------------------- figures of one run
 def key_kind(key: str) -> str:
     parts = key.split("/")
     if parts[-2:] == ["leader", "ref"]:
@@ -173,7 +164,7 @@ def analyse(run: C.UpRun, stamp_dir: Path, facts: dict) -> dict:
     m["missed_pct_all"] = 100.0 * tot_m / tot_t if tot_t else None
     m["processes_reporting_loops"] = sum(g["processes"] for g in groups.values())
 
-    stamps = load_stamps(stamp_dir)
+    stamps = C.load_stamps(stamp_dir)
     m["stamp_files"] = len(stamps)
     lat, unmatched = latencies(stamps)
     m["latency_unmatched"] = unmatched
@@ -191,22 +182,15 @@ def analyse(run: C.UpRun, stamp_dir: Path, facts: dict) -> dict:
     b_all = sum(b for _, b in fm.values())
     m["in_flight_missed_pct_all"] = 100.0 * a_all / b_all if b_all else None
 
-    pl = run.procs.get("plant")
-    fw = facts["sim_time_s"]
-    if pl is not None:
-        t1, t0 = pl.last_seen - 0.1 * fw, pl.last_seen - 0.9 * fw
-        cores: dict[str, float] = {}
-        for role, ps in run.procs.items():
-            c = ps.cpu_cores(t0, t1)
-            if c is not None:
-                key = "agents" if role.startswith("agent:") else role
-                cores[key] = cores.get(key, 0.0) + c
+    cores = C.flight_cores(run.procs, facts["sim_time_s"])
+    if cores is not None:
         m["flight_cores"] = cores
         m["flight_cores_total"] = sum(cores.values())
     return m
 
 
-def main(argv: list[str] | None = None) -> int:
+# --------------------------------------------------------------------------- the runs
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=3, help="runs (median reported; default 3)")
     ap.add_argument("--n", type=int, default=16, help="UAVs (default 16)")
@@ -225,78 +209,77 @@ def main(argv: list[str] | None = None) -> int:
                     " py-spy (if installed) and stopped")
     ap.add_argument("--quiet-wait", type=float, default=0.0, metavar="CORES",
                     help="before each run wait (up to 120 s) until other jobs use at most CORES cores (0 = don't wait)")
-    a = ap.parse_args(argv)
-    C.install_cleanup()
+    return ap.parse_args(argv)
 
-    tmp = tempfile.TemporaryDirectory(prefix="zenswarm-rt-bench-")
-    tmpdir = Path(tmp.name)
-    info = C.machine_info()
-    for line in C.machine_lines(info):
-        print(line)
+
+def scenario(a: argparse.Namespace, tmpdir: Path) -> tuple[Path, dict]:
+    """The scenario flown (``--scenario``, or ``gen<--n>`` generated with ``--flight`` s), printed; its facts."""
     if a.scenario is not None:
         label, path = a.scenario.stem, a.scenario
     else:
         label, path = f"gen{a.n}", C.generated_scenario(a.n, tmpdir, a.flight)
     facts = C.scenario_facts(path)
     print(f"scenario {label}: {facts['n_uav']} UAVs, {facts['sim_time_s']:g} s at {facts['control_rate_hz']:g} Hz")
+    return path, facts
 
-    runs, sims = [], []
-    try:
-        for r in range(a.runs):
-            if not a.no_sim:
-                sims.append(C.run_sim_worker(path))
-            if a.quiet_wait > 0:
-                C.wait_for_quiet(a.quiet_wait, 120.0)
-            sd = tmpdir / f"stamps{r}"
-            sd.mkdir()
-            env = C.bench_env()
-            if not a.no_stamps:
-                env["PYTHONPATH"] = os.pathsep.join([str(STAMPS)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
-                env["ZENSWARM_BENCH_STAMPS"] = str(sd)
-            out = tmpdir / f"run{r}"
-            run = C.run_up(path, out, tag=f"rt{r}", extra=["--realtime"], env=env,
-                           timeout_s=a.timeout or facts["sim_time_s"] + 120.0, end_grace_s=a.end_grace)
-            m = analyse(run, sd, facts)
-            runs.append(m)
-            if a.keep is not None:
-                dst = a.keep / f"run{r + 1}"
-                dst.mkdir(parents=True, exist_ok=True)
-                if (out / "results.json").exists():
-                    shutil.copy(out / "results.json", dst / "results.json")
-                shutil.copytree(sd, dst / "stamps", dirs_exist_ok=True)
-            shutil.rmtree(sd, ignore_errors=True)
-            shutil.rmtree(out, ignore_errors=True)
-            nb = m["latency_ms"]["neighbour ref (agent->agent)"]
-            print(f"  run {r + 1}/{a.runs}: missed {m['missed_pct_all'] if m['missed_pct_all'] is not None else float('nan'):.3f} %"
-                  f" (in flight {m['in_flight_missed_pct_all'] if m['in_flight_missed_pct_all'] is not None else float('nan'):.3f} %)"
-                  f"  neighbour latency p50 {C.fmt(nb['p50'], 3)} p99 {C.fmt(nb['p99'], 3)} max {C.fmt(nb['max'], 2)} ms"
-                  f" (n={nb['n']})  cores in flight {m.get('flight_cores_total', 0):.2f}  background {m['background_cores']:.2f}"
-                  f"  exit {run.returncode}", flush=True)
-            if not a.no_stamps and nb["n"] == 0:
-                print(f"    WARNING: no neighbour message was stamped ({m['stamp_files']} stamp files): the wrappers in"
-                      " bench/stamps/sitecustomize.py may no longer match zenswarm.process.runtime/zenswarm.bus.wire")
-            if m["hung_after_plant_exit"]:
-                print(f"    HUNG AT THE END: {len(m['still_running_after_plant'])} processes kept running after the plant exited"
-                      f" ({', '.join(m['still_running_after_plant'][:6])}{', ...' if len(m['still_running_after_plant']) > 6 else ''});"
-                      f" plant's final diagnostics received: {m['plant_finished']}")
-            if not m["plant_finished"] and not m["hung_after_plant_exit"]:
-                print(f"    the plant did not finish; output:\n{run.output_tail}")
-                for role, text in run.hang_dumps.items():
-                    print(f"    py-spy dump of {role}:\n" + "\n".join("      " + x for x in text.splitlines()[:60]))
-    finally:
-        C.cleanup_all()
 
+def fly(a: argparse.Namespace, r: int, path: Path, facts: dict, tmpdir: Path) -> tuple[C.UpRun, dict]:
+    """Run ``r``: ``zenswarm up --realtime`` (stamped unless ``--no-stamps``) and its figures; its
+    results.json and stamps kept under ``--keep``/run<r+1> if asked."""
+    sd = tmpdir / f"stamps{r}"
+    sd.mkdir()
+    out = tmpdir / f"run{r}"
+    run = C.run_up(path, out, tag=f"rt{r}", extra=["--realtime"], env=C.bench_env() if a.no_stamps else C.stamps_env(sd),
+                   timeout_s=a.timeout or facts["sim_time_s"] + 120.0, end_grace_s=a.end_grace)
+    m = analyse(run, sd, facts)
+    if a.keep is not None:
+        dst = a.keep / f"run{r + 1}"
+        dst.mkdir(parents=True, exist_ok=True)
+        if (out / "results.json").exists():
+            shutil.copy(out / "results.json", dst / "results.json")
+        shutil.copytree(sd, dst / "stamps", dirs_exist_ok=True)
+    shutil.rmtree(sd, ignore_errors=True)
+    shutil.rmtree(out, ignore_errors=True)
+    return run, m
+
+
+def _pct_or_nan(x: float | None) -> float:
+    return x if x is not None else float("nan")
+
+
+def print_run(a: argparse.Namespace, r: int, run: C.UpRun, m: dict) -> None:
+    """The line of one run, and what went wrong in it if anything did."""
+    nb = m["latency_ms"]["neighbour ref (agent->agent)"]
+    print(f"  run {r + 1}/{a.runs}: missed {_pct_or_nan(m['missed_pct_all']):.3f} %"
+          f" (in flight {_pct_or_nan(m['in_flight_missed_pct_all']):.3f} %)"
+          f"  neighbour latency p50 {C.fmt(nb['p50'], 3)} p99 {C.fmt(nb['p99'], 3)} max {C.fmt(nb['max'], 2)} ms"
+          f" (n={nb['n']})  cores in flight {m.get('flight_cores_total', 0):.2f}  background {m['background_cores']:.2f}"
+          f"  exit {run.returncode}", flush=True)
+    if not a.no_stamps and nb["n"] == 0:
+        print(f"    WARNING: no neighbour message was stamped ({m['stamp_files']} stamp files): the wrappers in"
+              " bench/stamps/sitecustomize.py may no longer match zenswarm.process.runtime/zenswarm.bus.wire")
+    still = m["still_running_after_plant"]
+    if m["hung_after_plant_exit"]:
+        print(f"    HUNG AT THE END: {len(still)} processes kept running after the plant exited"
+              f" ({', '.join(still[:6])}{', ...' if len(still) > 6 else ''});"
+              f" plant's final diagnostics received: {m['plant_finished']}")
+    if not m["plant_finished"] and not m["hung_after_plant_exit"]:
+        print(f"    the plant did not finish; output:\n{run.output_tail}")
+        C.print_hang_dumps(run.hang_dumps)
+
+
+# --------------------------------------------------------------------------- summary and report
+def summarise(runs: list[dict], sims: list[dict], facts: dict) -> dict:
+    """Medians over the runs (sums for the cleanup counts); the simulator's figures beside them."""
     med = C.median
     summary: dict = {"n_uav": facts["n_uav"], "flight_s": facts["sim_time_s"], "runs": len(runs)}
     summary["missed_pct_all"] = med(m["missed_pct_all"] for m in runs)
     summary["in_flight_missed_pct_all"] = med(m["in_flight_missed_pct_all"] for m in runs)
     groups = sorted({g for m in runs for g in m["loops"]})
-    summary["loops"] = {g: {k: med(m["loops"].get(g, {}).get(k) for m in runs)
-                            for k in ("missed_pct", "missed", "loop_ticks", "jitter_mean_ms", "jitter_max_ms")} for g in groups}
+    summary["loops"] = {g: {k: med(m["loops"].get(g, {}).get(k) for m in runs) for k in LOOP_STATS} for g in groups}
     summary["in_flight_missed"] = {g: med(m["in_flight_missed"].get(g, {}).get("pct") for m in runs) for g in groups}
     classes = list(runs[0]["latency_ms"]) if runs else []
-    stats = ("n", "p50", "p90", "p99", "p99.9", "max", "over_1ms_pct")
-    summary["latency_ms"] = {c: {k: med(m["latency_ms"][c][k] for m in runs) for k in stats} for c in classes}
+    summary["latency_ms"] = {c: {k: med(m["latency_ms"][c][k] for m in runs) for k in LATENCY_STATS} for c in classes}
     summary["period_jitter_ms"] = {g: {k: med(m["period_jitter_ms"][g][k] for m in runs) for k in ("p50", "p99", "max")}
                                    for g in ("plant", "leader", "agents")}
     summary["flight_cores_total"] = med(m.get("flight_cores_total") for m in runs)
@@ -313,23 +296,36 @@ def main(argv: list[str] | None = None) -> int:
         summary["sim_rms_tracking_error_m"] = med(s["rms_tracking_error_m"] for s in sims)
         if summary["flight_cores_total"]:
             summary["cpu_ratio_swarm_over_sim"] = summary["flight_cores_total"] / summary["sim_cores_for_real_time"]
+    return summary
 
-    print()
-    print(f"realtime swarm, {facts['n_uav']} UAVs at {facts['control_rate_hz']:g} Hz, {facts['sim_time_s']:g} s of flight; "
-          f"median of {len(runs)} runs")
-    rows = []
-    for g in groups:
-        s = summary["loops"][g]
+
+def print_loops(summary: dict) -> None:
+    """Loop counters by role group, and all together."""
+    rows: list[list[Any]] = []
+    for g, s in summary["loops"].items():
         rows.append([g, s["loop_ticks"], s["missed"], f"{C.fmt(s['missed_pct'], 3)} %", f"{C.fmt(summary['in_flight_missed'].get(g), 3)} %",
                      s["jitter_mean_ms"], s["jitter_max_ms"], C.fmt(summary["period_jitter_ms"].get(g, {}).get("p99"), 2)])
     rows.append(["all", "", "", f"{C.fmt(summary['missed_pct_all'], 3)} %", f"{C.fmt(summary['in_flight_missed_pct_all'], 3)} %",
                  "", "", ""])
     print(C.table(["loops", "loop ticks", "missed", "missed %", "missed % in flight", "jitter mean ms", "jitter max ms",
                    "period |dT-10ms| p99 ms"], rows))
-    print()
+
+
+def print_latencies(summary: dict) -> None:
     print(C.table(["message latency (send->receive callback)", "n", "p50 ms", "p90 ms", "p99 ms", "p99.9 ms", "max ms", "> 1 ms"],
                   [[c, int(s["n"] or 0), C.fmt(s["p50"], 3), C.fmt(s["p90"], 3), C.fmt(s["p99"], 3), C.fmt(s["p99.9"], 3),
                     C.fmt(s["max"], 2), f"{C.fmt(s['over_1ms_pct'], 2)} %"] for c, s in summary["latency_ms"].items()]))
+
+
+def print_summary(summary: dict, facts: dict, sims: list[dict]) -> None:
+    """The tables (loops, message latency), CPU against the simulator, what was left behind."""
+    runs = summary["runs"]
+    print()
+    print(f"realtime swarm, {facts['n_uav']} UAVs at {facts['control_rate_hz']:g} Hz, {facts['sim_time_s']:g} s of flight; "
+          f"median of {runs} runs")
+    print_loops(summary)
+    print()
+    print_latencies(summary)
     print()
     fc = summary["flight_cores"]
     print("CPU cores in flight: " + " ".join(f"{k}={v:.2f}" for k, v in fc.items() if v is not None)
@@ -339,11 +335,29 @@ def main(argv: list[str] | None = None) -> int:
               f"{summary['sim_cores_for_real_time']:.3f} cores to keep up with real time -> swarm/sim CPU "
               f"{C.fmt(summary.get('cpu_ratio_swarm_over_sim'), 1)}; rms tracking error swarm {C.fmt(summary['rms_tracking_error_m'], 4)} m"
               f" vs simulator {C.fmt(summary['sim_rms_tracking_error_m'], 4)} m")
-    print(f"runs where processes kept running after the plant exited (stopped by the bench): {summary['runs_hung_at_end']} of {len(runs)}")
+    print(f"runs where processes kept running after the plant exited (stopped by the bench): {summary['runs_hung_at_end']} of {runs}")
     print(f"cleanup: {summary['leftover_processes']} leftover processes, {summary['ports_left_bound']} ports left bound")
-    C.write_json(a.json, {"benchmark": "swarm_realtime", "command": C.command_line(), "machine": info,
-                          "loadavg_at_end": list(os.getloadavg()), "scenario": facts, "summary": summary,
-                          "runs": runs, "sim_runs": sims})
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = parse_args(argv)
+    tmp, info = C.start_bench("zenswarm-rt-bench-")
+    tmpdir = Path(tmp.name)
+    path, facts = scenario(a, tmpdir)
+    runs, sims = [], []
+    try:
+        for r in range(a.runs):
+            if not a.no_sim:
+                sims.append(C.run_sim_worker(path))
+            C.quiet_wait(a.quiet_wait)
+            run, m = fly(a, r, path, facts, tmpdir)
+            runs.append(m)
+            print_run(a, r, run, m)
+    finally:
+        C.cleanup_all()
+    summary = summarise(runs, sims, facts)
+    print_summary(summary, facts, sims)
+    C.write_report(a.json, "swarm_realtime", info, scenario=facts, summary=summary, runs=runs, sim_runs=sims)
     return 0
 
 
