@@ -30,13 +30,20 @@ time of this process, ``time.process_time_ns``, so other jobs on the machine mat
 from __future__ import annotations
 
 import argparse
+import collections
+import hashlib
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _common as C
+
+if TYPE_CHECKING:
+    from zenswarm.process import runtime as rt
 
 
 def bench(fn, calls: int) -> float:
@@ -230,15 +237,65 @@ class _Sample:
 
 
 
-def process_layer(scenario: Path, ticks: int) -> dict[str, float]:
-    """CPU of the swarm's process layer per lockstep tick, zenoh left out: the plant, the leader
-    and every agent (their ``SwarmProcess`` and lockstep shells, as ``zenswarm up`` starts them)
-    in this one process, each message handed from the publisher's ``put`` to every subscriber's
-    ``handle_sample`` by a plain call (decode, input guard, inbox, lockstep, control law or
-    physics, encode), in the order a router would deliver it. CPU us per tick of this process
-    (``total``), shared out by role in proportion of their wall time."""
-    import collections
+class _LoopbackBus:
+    """The bus of :func:`process_layer`, zenoh left out: a ``put`` queues (key, payload);
+    :meth:`deliver_while` hands each queued message to every subscriber's ``handle_sample`` by a
+    plain call, in the order a router would deliver it, timing the calls by role."""
 
+    def __init__(self) -> None:
+        self.queue: collections.deque[tuple[str, bytes]] = collections.deque()
+        self.subs: dict[str, list[tuple[rt.SwarmProcess, str, Any, str]]] = collections.defaultdict(list)
+        self.wall_ns: dict[str, int] = collections.defaultdict(int)  # by role
+
+    def publisher(self, key: str) -> _LoopbackPub:
+        return _LoopbackPub(self.queue, key)
+
+    def subscribe(self, p: rt.SwarmProcess, key: str, kind: str, role: str) -> None:
+        from zenswarm.process import runtime as rt
+
+        senders = rt.expected_senders(p.keys, key)
+        p.guard  # noqa: B018
+        self.subs[key].append((p, kind, senders, role))
+
+    def deliver_while(self, go_on: Callable[[], bool]) -> int:
+        """Deliver the queued messages, and those they cause, while ``go_on()``; CPU ns of this process."""
+        clock = time.perf_counter_ns  # the shares (process_time_ns costs 4 us a call here)
+        c_start = time.process_time_ns()
+        while self.queue and go_on():
+            key, payload = self.queue.popleft()
+            for p, kind, senders, role in self.subs.get(key, ()):
+                c0 = clock()
+                p.handle_sample(key, kind, _Sample(payload), senders)
+                self.wall_ns[role] += clock() - c0
+        return time.process_time_ns() - c_start
+
+
+class _LoopbackPub:
+    """What SwarmProcess uses of a zenoh publisher: ``put`` (here: onto the loopback bus's queue)."""
+
+    def __init__(self, queue: collections.deque[tuple[str, bytes]], key: str) -> None:
+        self.queue = queue
+        self.key = key
+        self.id = None
+
+    def put(self, payload: bytes, source_info: object = None) -> None:
+        self.queue.append((self.key, payload))
+
+
+def _patch_runtime(bus: _LoopbackBus) -> None:
+    """Every SwarmProcess of this interpreter publishes on ``bus``, without diagnostics (for good:
+    :func:`process_layer` runs in an interpreter of its own)."""
+    from zenswarm.process import runtime as rt
+
+    rt.zenoh.SourceInfo = lambda *a: None  # type: ignore[assignment,misc]
+    rt.SwarmProcess.publisher = lambda self, key: self._pubs.setdefault(key, bus.publisher(key))  # type: ignore[method-assign]
+    rt.SwarmProcess.publish_diag = lambda self, *a, **k: None  # type: ignore[method-assign]
+
+
+def _in_process_swarm(scenario: Path, bus: _LoopbackBus) -> tuple[Any, Any, rt.Lockstep, list[Any]]:
+    """The plant, the leader and every agent of ``scenario`` (their ``SwarmProcess`` and lockstep
+    shells, as ``zenswarm up`` starts them) subscribed on ``bus``: (plant, its lockstep shell, the
+    leader's lockstep, the agents' lockstep shells)."""
     from zenswarm.agents import process as ap
     from zenswarm.bus import wire
     from zenswarm.leader import process as lp
@@ -247,43 +304,23 @@ def process_layer(scenario: Path, ticks: int) -> dict[str, float]:
     from zenswarm.scenario.config import load_scenario
 
     sc = load_scenario(scenario)
-    queue: collections.deque = collections.deque()
-    subs: dict[str, list] = collections.defaultdict(list)
-    cpu: dict[str, int] = collections.defaultdict(int)
-
-    class Pub:
-        def __init__(self, key: str) -> None:
-            self.key = key
-            self.id = None
-
-        def put(self, payload: bytes, source_info: object = None) -> None:
-            queue.append((self.key, payload))
-
-    rt.zenoh.SourceInfo = lambda *a: None  # type: ignore[assignment,misc]
-    rt.SwarmProcess.publisher = lambda self, key: self._pubs.setdefault(key, Pub(key))  # type: ignore[method-assign]
-    rt.SwarmProcess.publish_diag = lambda self, *a, **k: None  # type: ignore[method-assign]
 
     def proc(name: str) -> rt.SwarmProcess:
         p = rt.SwarmProcess(name, rt.ProcessOptions(swarm="bench"))
         p.scenario = sc
         return p
 
-    def sub(p: rt.SwarmProcess, key: str, kind: str, role: str) -> None:
-        senders = rt.expected_senders(p.keys, key)
-        p.guard  # noqa: B018
-        subs[key].append((p, kind, senders, role))
-
     plant_p = proc("plant")
     plant = pp._Plant(plant_p)
     lsp = pp._LockstepPlant(plant)
     plant_p.on_input = lsp.ls.poke
     for key in plant.cmd_keys:
-        sub(plant_p, key, "cmd", "plant")
+        bus.subscribe(plant_p, key, "cmd", "plant")
     lead_p = proc("leader")
     leader = lp._Leader(lead_p)
     lsl = rt.Lockstep(leader.n_ticks, leader.ready, leader.step, 5.0, lead_p.stop, can_force=lambda k: False)
     lead_p.on_input = lsl.poke
-    sub(lead_p, lead_p.keys.clock, "clock", "leader")
+    bus.subscribe(lead_p, lead_p.keys.clock, "clock", "leader")
     agents = []
     for i in range(1, sc.n + 1):
         p = proc(wire.agent(i))
@@ -291,44 +328,44 @@ def process_layer(scenario: Path, ticks: int) -> dict[str, float]:
         la = ap._LockstepAgent(a)
         p.on_input = la.ls.poke
         for key, kind in ap.subscriptions(a.keys, a.row):
-            sub(p, key, kind, "agents")
+            bus.subscribe(p, key, kind, "agents")
         agents.append(la)
-    t0 = time.process_time_ns()
+    return plant, lsp, lsl, agents
+
+
+def process_layer(scenario: Path, ticks: int) -> dict[str, float]:
+    """CPU of the swarm's process layer per lockstep tick, zenoh left out: the plant, the leader
+    and every agent (their ``SwarmProcess`` and lockstep shells, as ``zenswarm up`` starts them)
+    in this one process, each message handed from the publisher's ``put`` to every subscriber's
+    ``handle_sample`` by a plain call (decode, input guard, inbox, lockstep, control law or
+    physics, encode), in the order a router would deliver it. CPU us per tick of this process
+    (``total``), shared out by role in proportion of their wall time."""
+    bus = _LoopbackBus()
+    _patch_runtime(bus)
+    plant, lsp, lsl, agents = _in_process_swarm(scenario, bus)
     lsl.poke()
     for la in agents:
         la.ls.poke()
     with lsp.ls.lock:
         plant.publish_tick(0)
-    cpu["start"] += time.process_time_ns() - t0
-    clock = time.perf_counter_ns  # the shares (process_time_ns costs 4 us a call here)
-    c_start = time.process_time_ns()
-    while queue and lsp.ls.k < ticks:
-        key, payload = queue.popleft()
-        for p, kind, senders, role in subs.get(key, ()):
-            c0 = clock()
-            p.handle_sample(key, kind, _Sample(payload), senders)
-            cpu[role] += clock() - c0
-    c_all = time.process_time_ns() - c_start
+    c_all = bus.deliver_while(lambda: lsp.ls.k < ticks)
     for ls in [lsp.ls, lsl] + [la.ls for la in agents]:
         if ls.error is not None:
             raise ls.error
     n = lsp.ls.k
     if n < min(ticks, plant.n_ticks):
         raise SystemExit(f"process layer: the plant stopped at tick {n} of {min(ticks, plant.n_ticks)}")
-    import hashlib
-
     st = plant.core.state
     digest = hashlib.sha256(b"".join(x.tobytes() for x in (st.q, st.v, st.rpy, st.w))).hexdigest()[:16]
     roles = ("plant", "leader", "agents")
-    wall = sum(cpu[r] for r in roles)
+    wall = sum(bus.wall_ns[r] for r in roles)
     return {"ticks": n, "state_sha256": digest, "total": c_all / n / 1e3} | {
-        role: c_all * cpu[role] / wall / n / 1e3 for role in roles}
+        role: c_all * bus.wall_ns[role] / wall / n / 1e3 for role in roles}
 
 
 def _main_process_layer(a: argparse.Namespace, info: dict) -> int:
     """--process-layer: each run in a fresh interpreter (the patches of process_layer stay there)."""
     import json
-    import os
     import subprocess
     import tempfile
 
@@ -347,13 +384,11 @@ def _main_process_layer(a: argparse.Namespace, info: dict) -> int:
             out[label] = {"median_us_per_tick": med, "ticks": runs[0]["ticks"], "state_sha256": runs[0]["state_sha256"], "runs": runs}
             rows.append([label, runs[0]["ticks"], med["total"], med["plant"], med["leader"], med["agents"], runs[0]["state_sha256"]])
     print(C.table(["scenario", "ticks", "CPU us/tick", "plant", "leader", "agents", "final state sha256"], rows))
-    C.write_json(a.json, {"benchmark": "micro_costs --process-layer", "command": C.command_line(), "machine": info,
-                          "loadavg_at_end": list(os.getloadavg()), "summary": out})
+    C.write_report(a.json, "micro_costs --process-layer", info, summary=out)
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    import os
     import tempfile
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -385,8 +420,7 @@ def main(argv: list[str] | None = None) -> int:
         print()
         print(C.table(["call", "wall us/put (median)", "CPU us/put, all threads (median)"],
                       [[k, v["wall_us_median"], v["cpu_us_median"]] for k, v in bc.items()]))
-    C.write_json(a.json, {"benchmark": "micro_costs", "command": C.command_line(), "machine": info,
-                          "loadavg_at_end": list(os.getloadavg()), "summary": summary, "runs": res})
+    C.write_report(a.json, "micro_costs", info, summary=summary, runs=res)
     return 0
 
 
