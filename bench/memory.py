@@ -23,10 +23,8 @@ Every process a run starts is stopped at the end (or on Ctrl-C). Not a test.
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -76,13 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=900.0, metavar="S", help="per-run limit of zenswarm up (default 900 s)")
     ap.add_argument("--no-sim", action="store_true", help="skip the simulator baseline (its peak RSS on the same scenario)")
     a = ap.parse_args(argv)
-    C.install_cleanup()
-
-    tmp = tempfile.TemporaryDirectory(prefix="zenswarm-mem-bench-")
+    tmp, info = C.start_bench("zenswarm-mem-bench-")
     tmpdir = Path(tmp.name)
-    info = C.machine_info()
-    for line in C.machine_lines(info):
-        print(line)
     scen = [C.scenario_file(s, tmpdir, a.gen_time_limit or None) for s in a.scenarios]
     facts = {label: C.scenario_facts(p) for label, p in scen}
     runs: dict[str, list[dict]] = {label: [] for label, _ in scen}
@@ -124,8 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     print(C.table(["scenario", "UAVs", "mode", "agent RSS max", "agent RSS median", "agent peak (VmHWM)", "agent PSS median",
                    "agent anon RSS max", "agent threads", f"<= {TARGET_MB:g} MB", "plant RSS", "leader RSS", "supervisor RSS",
                    "all agents PSS", "simulator RSS", "agent/sim"], rows))
-    C.write_json(a.json, {"benchmark": "memory", "command": C.command_line(), "machine": info,
-                          "loadavg_at_end": list(os.getloadavg()), "scenarios": facts, "summary": summary, "runs": runs})
+    C.write_report(a.json, "memory", info, scenarios=facts, summary=summary, runs=runs)
     return 0
 
 

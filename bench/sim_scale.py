@@ -108,8 +108,7 @@ def main() -> int:
             runs: dict[str, list[dict]] = {py: [] for py in a.python}
             for r in range(a.runs):
                 for x, py in enumerate(a.python):
-                    if a.quiet_wait > 0:
-                        C.wait_for_quiet(a.quiet_wait, 60.0)
+                    C.quiet_wait(a.quiet_wait, 60.0)
                     res = run_once(py, scen[py], Path(tmp) / f"out{n}_{x}_{r}", a.early_end)
                     runs[py].append(res)
                     print(f"N={n} [{x}] run {r + 1}: exit {res['exit']} start-up {C.fmt(res['startup_s'])} s, whole "

@@ -85,8 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     runs: dict[str, list[dict]] = {label: [] for label, _ in scen}
     for r in range(a.runs):
         for label, path in scen:
-            if a.quiet_wait > 0:
-                C.wait_for_quiet(a.quiet_wait, 60.0)
+            C.quiet_wait(a.quiet_wait, 60.0)
             res = C.run_sim_worker(path, a.keep_openblas_env)
             runs[label].append(res)
             print(f"  run {r + 1}/{a.runs} {label:9s} wall {res['wall_s']:7.3f} s  {res['x_real_time']:6.1f}x real time"
@@ -117,9 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"in-process simulator, median of {a.runs} runs")
     print(C.table(["scenario", "UAVs", "sim s", "wall s (median)", "wall s (min)", "x real time", "x real time (CPU)",
                    "ms/tick", "background cores", "mission ok"], rows))
-    C.write_json(a.json, {"benchmark": "sim_speed", "command": C.command_line(), "machine": info,
-                          "loadavg_at_end": list(__import__("os").getloadavg()), "scenarios": facts,
-                          "summary": summary, "runs": runs})
+    C.write_report(a.json, "sim_speed", info, scenarios=facts, summary=summary, runs=runs)
     return 0
 
 

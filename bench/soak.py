@@ -36,9 +36,7 @@ Every process a run starts is stopped at the end (or on Ctrl-C).
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -144,12 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     # this sampling period; a hung swarm is stopped at the time limit + 180 s)
     ap.add_argument("--json", type=Path, metavar="FILE", help="write every run to FILE")
     a = ap.parse_args(argv)
-    C.install_cleanup()
-    tmp = tempfile.TemporaryDirectory(prefix="zenswarm-soak-")
+    tmp, info = C.start_bench("zenswarm-soak-")
     tmpdir = Path(tmp.name)
-    info = C.machine_info()
-    for line in C.machine_lines(info):
-        print(line)
     flight = 60.0 * a.minutes
     path = C.generated_scenario(a.n, tmpdir, flight, seed=SOAK_SEED)
     facts = C.scenario_facts(path)
@@ -171,8 +165,7 @@ def main(argv: list[str] | None = None) -> int:
                 print_run(f"run {r + 1} gc={mode}", m)
     finally:
         C.cleanup_all()
-    C.write_json(a.json, {"benchmark": "soak", "command": C.command_line(), "machine": info,
-                          "loadavg_at_end": list(os.getloadavg()), "scenario": facts, "runs": runs})
+    C.write_report(a.json, "soak", info, scenario=facts, runs=runs)
     return 0
 
 
