@@ -104,7 +104,7 @@ def _vehicles_settings(at: Launch) -> Any:
     if at.cf_base_port is not None:
         mocap = sc.crazyflie is not None and sc.crazyflie.positioning == "extpos"
         return CrazyflieFleetSettings(scenario=sc, base_port=at.cf_base_port, swarm=a.swarm, mocap=mocap,
-                                      connect=at.connect if mocap else ())  # fmt: skip
+                                      connect=at.connect if mocap else (), rt_priority=a.rt_priority)  # fmt: skip
     return MavlinkFleetSettings(scenario=sc, swarm=a.swarm, base_port=at.mav_base_port, telemetry_hz=100.0, own_origin=True,
                                 sitl_ports=True, rt_priority=a.rt_priority)  # fmt: skip
 
@@ -118,9 +118,8 @@ def _bridge_settings(at: Launch) -> Any:
 
     a, sc = at.flight, at.flight.scenario
     expect = ("recorder",) if a.record is not None else ()
-    rt_priority = a.rt_priority if at.cf_base_port is None else None  # the Crazyflie bridge takes the normal scheduler
     process = RoleSettings(role="bridge", scenario=sc, swarm=a.swarm, connect=at.connect, realtime=True, keys=at.keys, tls=at.tls,
-                           faults=a.faults, rt_priority=rt_priority, expect=expect)  # fmt: skip
+                           faults=a.faults, rt_priority=a.rt_priority, expect=expect)  # fmt: skip
     if at.cf_base_port is not None:
         uri = {} if "vehicles" in a.external else {i + 1: f"udp://127.0.0.1:{at.cf_base_port + i}" for i in range(sc.n)}
         return CrazyflieBridgeSettings(process=process, uri=uri)

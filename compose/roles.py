@@ -192,7 +192,7 @@ class CrazyflieFleetSettings(msgspec.Struct, frozen=True, kw_only=True):
     --plant crazyflie`` hands them on standard input): the scenario (parsed), Crazyflie i at
     ``udp://HOST:base_port+i-1``, ``duration`` (s; None: until SIGTERM/SIGINT), and with
     ``mocap`` the motion-capture feed they publish at ``mocap_hz`` on ``swarm``'s bus through
-    ``connect``."""
+    ``connect``; ``rt_priority``: their loop under ``SCHED_FIFO`` once they are up (``--rt-priority``)."""
 
     scenario: Scenario
     base_port: int
@@ -202,6 +202,7 @@ class CrazyflieFleetSettings(msgspec.Struct, frozen=True, kw_only=True):
     mocap: bool = False
     mocap_hz: float = 100.0
     connect: tuple[str, ...] = ()
+    rt_priority: int | None = None
 
 
 def crazyflie_fleet_settings(args: argparse.Namespace) -> CrazyflieFleetSettings:
@@ -211,7 +212,7 @@ def crazyflie_fleet_settings(args: argparse.Namespace) -> CrazyflieFleetSettings
 
     return CrazyflieFleetSettings(
         scenario=load_scenario(args.scenario), base_port=args.base_port, swarm=args.swarm, host=args.host, duration=args.duration,
-        mocap=bool(args.mocap), mocap_hz=args.mocap_hz, connect=tuple(args.connect or ()),
+        mocap=bool(args.mocap), mocap_hz=args.mocap_hz, connect=tuple(args.connect or ()), rt_priority=args.rt_priority,
     )  # fmt: skip
 
 
@@ -238,7 +239,8 @@ def run_crazyflie_fleet(s: CrazyflieFleetSettings) -> int:
         mocap = (validate_swarm_name(s.swarm), bus.check_endpoint_syntax(list(s.connect), "--connect"))
     if not s.mocap_hz > 0:
         raise ScenarioError("--mocap-hz", f"must be > 0, got {s.mocap_hz}")
-    return run_fleet(sc, base_port=s.base_port, host=s.host, duration=s.duration, mocap=mocap, mocap_hz=s.mocap_hz)
+    return run_fleet(sc, base_port=s.base_port, host=s.host, duration=s.duration, mocap=mocap, mocap_hz=s.mocap_hz,
+                     rt_priority=s.rt_priority)  # fmt: skip
 
 
 def _main_crazyflie_fleet(args: argparse.Namespace) -> int:
@@ -275,6 +277,7 @@ def add_crazyflie_vehicles_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mocap-hz", type=float, default=100.0, metavar="HZ", help="the feed's rate (default 100 Hz)")
     p.add_argument("--swarm", metavar="NAME", help="swarm name of the mocap feed")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="Zenoh router of the mocap feed (repeatable)")
+    add_rt_priority_arg(p)
     p.set_defaults(func=_main_crazyflie_fleet)
 
 
