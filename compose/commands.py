@@ -97,14 +97,16 @@ def _vehicles_settings(at: Launch) -> Any:
     """The simulated vehicles (no Zenoh: the bridge talks to them over UDP). MAVLink: as PX4 SITL
     and real autopilots, each vehicle's NED about where it booted, and vehicle i sending from
     P+40+i to P+i where the bridge listens (udpin). Crazyflies (CRTP over UDP): with
-    ``positioning = "extpos"`` they are the mocap system too, on the swarm's bus."""
+    ``positioning = "extpos"`` they are the mocap system too, on the swarm's bus (a secured one:
+    as its own user, :data:`zenswarm.process.security.MOCAP_FEEDER`, allowed the mocap keys only)."""
     from zenswarm.compose.roles import CrazyflieFleetSettings, MavlinkFleetSettings
 
     a, sc = at.flight, at.flight.scenario
     if at.cf_base_port is not None:
         mocap = sc.crazyflie is not None and sc.crazyflie.positioning == "extpos"
         return CrazyflieFleetSettings(scenario=sc, base_port=at.cf_base_port, swarm=a.swarm, mocap=mocap,
-                                      connect=at.connect if mocap else (), rt_priority=a.rt_priority)  # fmt: skip
+                                      connect=at.connect if mocap else (), rt_priority=a.rt_priority,
+                                      keys=at.keys if mocap else None, tls=at.tls and mocap)  # fmt: skip
     return MavlinkFleetSettings(scenario=sc, swarm=a.swarm, base_port=at.mav_base_port, telemetry_hz=100.0, own_origin=True,
                                 sitl_ports=True, rt_priority=a.rt_priority)  # fmt: skip
 

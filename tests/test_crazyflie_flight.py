@@ -257,6 +257,34 @@ def test_flight_with_extpos_forwards_the_mocap_feed_to_the_vehicles(tmp_path: Pa
     assert "mission clock started with UAV(s) [1, 2, 3]" in cp.stdout
 
 
+@pytest.mark.parametrize(("flag", "said"), [("--secure", "user/password"), ("--tls", "mutual TLS")])
+def test_secure_flight_with_extpos_feeds_the_mocap_as_its_own_user(tmp_path: Path, flag: str, said: str) -> None:
+    """``--secure`` (and ``--tls``) with positioning = "extpos": the simulated vehicles' mocap feed
+    joins the secured router as its own user (``mocap@<swarm>``, or the certificate ``mocap``; put
+    ``mocap/<i>`` only), the bridge may subscribe to it, and the feed reaches every vehicle as in
+    the open flight (before: the feed had no keys, its session timed out and the vehicles died)."""
+    swarm, port, base = unique_swarm("cfs"), free_port(), free_udp_block(N_UAV)
+    out = tmp_path / "run"
+    scenario = _scenario(tmp_path, {"positioning": "extpos"})
+    try:
+        cp = _up(scenario, out, swarm, port, "--crazyflie-base-port", str(base), "--duration", "6", flag)
+    finally:
+        left = processes_mentioning(f"--base-port {base}")
+        kill_mentioning(f"--base-port {base}")
+    assert not left, f"vehicles left behind: {left}"
+    _no_traceback(cp.stdout)
+    assert f"secure mode: {said}" in cp.stdout, cp.stdout[-3000:]
+    assert (out / "keys" / "mocap" / "credentials.json").exists()
+    assert f"mocap on swarm/{swarm}/mocap/<i>" in cp.stdout, cp.stdout[-3000:]
+    res = read_results(out)
+    veh = res["vehicles"]
+    assert veh["positioning"] == "extpos" and not res["failsafe"], (veh, res["failsafe"])
+    assert veh["phases"] == "1:done,2:done,3:done", veh  # armed only with a fed position, flown, landed
+    assert 0 <= veh["max_extpos_age_ms"] < 1000, veh
+    assert res["diagnostics"]["bridge"]["extpos_sent"] > 900, res["diagnostics"]["bridge"]
+    assert "mission clock started with UAV(s) [1, 2, 3]" in cp.stdout
+
+
 def test_bad_positioning_exits_2_naming_it(tmp_path: Path) -> None:
     cp = _bridge(_scenario(tmp_path, {"positioning": "vicon"}))
     assert cp.returncode == 2, cp.stdout
