@@ -315,3 +315,19 @@ def test_api_refuses_a_bad_lockstep_timeout_before_anything_starts() -> None:
     for bad in (0.0, -1.0, float("nan"), float("inf"), True):
         with pytest.raises(ScenarioError, match="lockstep_timeout"):
             api.fly(EX1, mode="swarm", lockstep_timeout=bad, duration=0.1)
+
+
+def test_crazyflie_vehicle_keys_are_the_mocap_feeds(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``crazyflie-vehicle --keys DIR``: the credentials of the mocap feed (the user ``mocap``), so
+    without ``--mocap`` they are exit 2 naming --keys, and credentials without that user (a
+    scenario without extpos) are exit 2 naming it, before any port is bound or session opened."""
+    from zenswarm.process.security import generate_credentials
+
+    generate_credentials(EX1, tmp_path / "keys", "s1")
+    assert cli_main(["crazyflie-vehicle", str(EX1), "--keys", str(tmp_path / "keys")]) == 2
+    err = capsys.readouterr().err
+    assert "--keys" in err and "--mocap" in err, err
+    flags = ["--mocap", "--swarm", "s1", "--connect", "tcp/127.0.0.1:1", "--keys", str(tmp_path / "keys")]
+    assert cli_main(["crazyflie-vehicle", str(EX1), *flags]) == 2
+    err = capsys.readouterr().err
+    assert "no credentials for mocap" in err and "Traceback" not in err, err
