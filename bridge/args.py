@@ -30,6 +30,8 @@ __all__ = [
     "client_security",
     "add_process_args",
     "process_settings",
+    "add_full_time_arg",
+    "add_flight_args",
 ]
 
 
@@ -246,6 +248,26 @@ def add_override_args(p: argparse.ArgumentParser) -> None:
         "--duration", type=float, default=None, metavar="S",
         help="fly S sim seconds (sets timing.time_limit_s; default: the scenario's)",
     )
+
+
+def add_full_time_arg(p: argparse.ArgumentParser) -> None:
+    """``--full-time`` (``zenswarm sim``, ``zenswarm up``): fly the whole time limit."""
+    p.add_argument(
+        "--full-time",
+        action="store_true",
+        help="fly the whole time limit even after the outcome is decided (by default a stalled leader or a "
+        "diverged UAV ends the run early; the verdict names the failure either way)",
+    )
+
+
+def add_flight_args(p: argparse.ArgumentParser) -> None:
+    """What a flight of a scenario takes besides its own flags (``zenswarm sim``, ``zenswarm up``):
+    the link faults (:func:`add_fault_args`, read back with :func:`link_faults`), the plug-ins
+    (:func:`add_plugin_args`) and the scenario overrides (:func:`add_override_args`; the scenario
+    with both: :func:`scenario_of`), in that order."""
+    add_fault_args(p)
+    add_plugin_args(p)
+    add_override_args(p)
 
 
 def overrides_of(args: argparse.Namespace) -> dict[str, Any]:

@@ -10,7 +10,15 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from zenswarm.bridge.args import add_fault_args, add_override_args, add_plugin_args, link_faults, positive_float, scenario_of
+from zenswarm.bridge.args import (
+    add_flight_args,
+    add_full_time_arg,
+    add_override_args,
+    add_plugin_args,
+    link_faults,
+    positive_float,
+    scenario_of,
+)
 from zenswarm.errors import ZenswarmError, run_command
 
 EPILOG = """\
@@ -48,15 +56,8 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
         help="use the fixed-gain APF with K_rep = K instead of the adaptive gain (12), for comparison",
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
-    p.add_argument(
-        "--full-time",
-        action="store_true",
-        help="fly the whole time limit even after the outcome is decided (by default a stalled leader or a "
-        "diverged UAV ends the run early; the verdict names the failure either way)",
-    )
-    add_fault_args(p)
-    add_plugin_args(p)
-    add_override_args(p)
+    add_full_time_arg(p)
+    add_flight_args(p)
     p.set_defaults(func=_run_sim)
 
 

@@ -97,14 +97,16 @@ def _vehicles_settings(at: Launch) -> Any:
     """The simulated vehicles (no Zenoh: the bridge talks to them over UDP). MAVLink: as PX4 SITL
     and real autopilots, each vehicle's NED about where it booted, and vehicle i sending from
     P+40+i to P+i where the bridge listens (udpin). Crazyflies (CRTP over UDP): with
-    ``positioning = "extpos"`` they are the mocap system too, on the swarm's bus."""
+    ``positioning = "extpos"`` they are the mocap system too, on the swarm's bus (a secured one:
+    as its own user, :data:`zenswarm.process.security.MOCAP_FEEDER`, allowed the mocap keys only)."""
     from zenswarm.compose.roles import CrazyflieFleetSettings, MavlinkFleetSettings
 
     a, sc = at.flight, at.flight.scenario
     if at.cf_base_port is not None:
         mocap = sc.crazyflie is not None and sc.crazyflie.positioning == "extpos"
         return CrazyflieFleetSettings(scenario=sc, base_port=at.cf_base_port, swarm=a.swarm, mocap=mocap,
-                                      connect=at.connect if mocap else ())  # fmt: skip
+                                      connect=at.connect if mocap else (), rt_priority=a.rt_priority,
+                                      keys=at.keys if mocap else None, tls=at.tls and mocap)  # fmt: skip
     return MavlinkFleetSettings(scenario=sc, swarm=a.swarm, base_port=at.mav_base_port, telemetry_hz=100.0, own_origin=True,
                                 sitl_ports=True, rt_priority=a.rt_priority)  # fmt: skip
 
@@ -118,9 +120,8 @@ def _bridge_settings(at: Launch) -> Any:
 
     a, sc = at.flight, at.flight.scenario
     expect = ("recorder",) if a.record is not None else ()
-    rt_priority = a.rt_priority if at.cf_base_port is None else None  # the Crazyflie bridge takes the normal scheduler
     process = RoleSettings(role="bridge", scenario=sc, swarm=a.swarm, connect=at.connect, realtime=True, keys=at.keys, tls=at.tls,
-                           faults=a.faults, rt_priority=rt_priority, expect=expect)  # fmt: skip
+                           faults=a.faults, rt_priority=a.rt_priority, expect=expect)  # fmt: skip
     if at.cf_base_port is not None:
         uri = {} if "vehicles" in a.external else {i + 1: f"udp://127.0.0.1:{at.cf_base_port + i}" for i in range(sc.n)}
         return CrazyflieBridgeSettings(process=process, uri=uri)

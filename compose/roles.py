@@ -20,10 +20,12 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 import msgspec
 
-from zenswarm.bridge.args import add_process_args, add_rt_priority_arg
+from zenswarm.bridge.args import add_process_args, add_rt_priority_arg, add_security_args
 from zenswarm.errors import ScenarioError
 from zenswarm.process.runtime import ProcessOptions
 from zenswarm.process.settings import RoleSettings
@@ -192,7 +194,9 @@ class CrazyflieFleetSettings(msgspec.Struct, frozen=True, kw_only=True):
     --plant crazyflie`` hands them on standard input): the scenario (parsed), Crazyflie i at
     ``udp://HOST:base_port+i-1``, ``duration`` (s; None: until SIGTERM/SIGINT), and with
     ``mocap`` the motion-capture feed they publish at ``mocap_hz`` on ``swarm``'s bus through
-    ``connect``."""
+    ``connect``, as the user :data:`zenswarm.process.security.MOCAP_FEEDER` of the credentials in
+    ``keys`` (mutual TLS with ``tls``; None: an open router); ``rt_priority``: their loop under
+    ``SCHED_FIFO`` once they are up (``--rt-priority``)."""
 
     scenario: Scenario
     base_port: int
@@ -202,6 +206,9 @@ class CrazyflieFleetSettings(msgspec.Struct, frozen=True, kw_only=True):
     mocap: bool = False
     mocap_hz: float = 100.0
     connect: tuple[str, ...] = ()
+    rt_priority: int | None = None
+    keys: Path | None = None
+    tls: bool = False
 
 
 def crazyflie_fleet_settings(args: argparse.Namespace) -> CrazyflieFleetSettings:
@@ -211,7 +218,8 @@ def crazyflie_fleet_settings(args: argparse.Namespace) -> CrazyflieFleetSettings
 
     return CrazyflieFleetSettings(
         scenario=load_scenario(args.scenario), base_port=args.base_port, swarm=args.swarm, host=args.host, duration=args.duration,
-        mocap=bool(args.mocap), mocap_hz=args.mocap_hz, connect=tuple(args.connect or ()),
+        mocap=bool(args.mocap), mocap_hz=args.mocap_hz, connect=tuple(args.connect or ()), rt_priority=args.rt_priority,
+        keys=args.keys, tls=bool(args.tls),
     )  # fmt: skip
 
 
@@ -229,16 +237,23 @@ def run_crazyflie_fleet(s: CrazyflieFleetSettings) -> int:
     if not 1 <= s.base_port <= 65535 - sc.n:
         raise ScenarioError("--base-port", f"must leave room for {sc.n} UDP ports below 65536, got {s.base_port}")
     mocap = None
+    mocap_security: dict[str, Any] = {}
     if s.mocap:
         from zenswarm import bus
         from zenswarm.bus.wire import validate_swarm_name
+        from zenswarm.process.security import MOCAP_FEEDER, ClientSecurity, client_fragments
 
         if not s.swarm or not s.connect:
             raise ScenarioError("--mocap", "needs --swarm NAME and --connect ENDPOINT (where the bridge listens for the feed)")
         mocap = (validate_swarm_name(s.swarm), bus.check_endpoint_syntax(list(s.connect), "--connect"))
+        # its own user on a secured router (a CredentialsError naming what is missing: exit 2)
+        mocap_security = client_fragments(MOCAP_FEEDER, ClientSecurity(s.keys, s.tls), connect=s.connect, swarm=s.swarm)
+    elif s.keys is not None or s.tls:
+        raise ScenarioError("--keys", "the credentials are the mocap feed's: give --mocap too")
     if not s.mocap_hz > 0:
         raise ScenarioError("--mocap-hz", f"must be > 0, got {s.mocap_hz}")
-    return run_fleet(sc, base_port=s.base_port, host=s.host, duration=s.duration, mocap=mocap, mocap_hz=s.mocap_hz)
+    return run_fleet(sc, base_port=s.base_port, host=s.host, duration=s.duration, mocap=mocap, mocap_hz=s.mocap_hz,
+                     rt_priority=s.rt_priority, mocap_security=mocap_security)  # fmt: skip
 
 
 def _main_crazyflie_fleet(args: argparse.Namespace) -> int:
@@ -275,6 +290,8 @@ def add_crazyflie_vehicles_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mocap-hz", type=float, default=100.0, metavar="HZ", help="the feed's rate (default 100 Hz)")
     p.add_argument("--swarm", metavar="NAME", help="swarm name of the mocap feed")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="Zenoh router of the mocap feed (repeatable)")
+    add_security_args(p)
+    add_rt_priority_arg(p)
     p.set_defaults(func=_main_crazyflie_fleet)
 
 

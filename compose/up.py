@@ -19,9 +19,8 @@ import msgspec
 
 from zenswarm import bus
 from zenswarm.bridge.args import (
-    add_fault_args,
-    add_override_args,
-    add_plugin_args,
+    add_flight_args,
+    add_full_time_arg,
     add_rt_priority_arg,
     figure_formats,
     link_faults,
@@ -477,12 +476,7 @@ def _add_run_args(p: argparse.ArgumentParser) -> None:
         help="end the run as soon as its success is decided: the leader reached the goal and every UAV has been "
         "within mission.slot_tolerance_m of its slot for mission.settle_window_s (useful in realtime mode)",
     )
-    p.add_argument(
-        "--full-time",
-        action="store_true",
-        help="fly the whole time limit even after the outcome is decided (by default a stalled leader or a "
-        "diverged UAV ends the run early; the verdict names the failure either way)",
-    )
+    add_full_time_arg(p)
     p.add_argument("--progress-every", type=float, default=1.0, metavar="S", help="seconds between progress lines while sim time moves "
                    "(at the same sim time, e.g. while the processes start: every 10 s)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -519,7 +513,5 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     _add_network_args(p)
     _add_run_args(p)
     add_rt_priority_arg(p)
-    add_fault_args(p)
-    add_plugin_args(p)
-    add_override_args(p)
+    add_flight_args(p)
     p.set_defaults(func=_run_up)

@@ -87,7 +87,7 @@ import struct
 import threading
 import time
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -989,12 +989,20 @@ class MocapFeeder:
 
 def run_fleet(
     sc: Any, *, base_port: int = DEFAULT_BASE_PORT, host: str = "127.0.0.1", duration: float | None = None,
-    mocap: tuple[str, list[str]] | None = None, mocap_hz: float = 100.0,
+    mocap: tuple[str, list[str]] | None = None, mocap_hz: float = 100.0, rt_priority: int | None = None,
+    mocap_security: Mapping[str, Any] | None = None,
 ) -> int:  # fmt: skip
     """Run the fleet of scenario ``sc`` in the calling thread until SIGTERM/SIGINT (or
     ``duration`` s). A port that cannot be bound: :class:`ScenarioError` naming it (exit 2).
     ``mocap`` = (swarm name, Zenoh connect endpoints): also publish the vehicles' true positions
-    as a motion-capture feed (:class:`MocapFeeder`) at ``mocap_hz``."""
+    as a motion-capture feed (:class:`MocapFeeder`) at ``mocap_hz``, its session configured with
+    ``mocap_security`` (:func:`zenswarm.process.security.client_fragments`: a secured router's
+    credentials; None: an open one). ``rt_priority``: run under
+    ``SCHED_FIFO`` at this priority once the fleet is up (:mod:`zenswarm.process.rtsched`; checked
+    first, exit 2 if not permitted)."""
+    from zenswarm.process import rtsched
+
+    rtsched.set_requested(rtsched.validate(rt_priority, realtime=True))  # out of range or not permitted: exit 2 now
     fleet = CrazyflieFleet.from_scenario(sc, base_port=base_port, host=host)
     if mocap is None:
         return _run_fleet(fleet, duration)
@@ -1002,7 +1010,7 @@ def run_fleet(
     from zenswarm.bus.wire import Keys
 
     try:
-        with bus.open_session(bus.client_config(mocap[1]), handle_signals=False) as session:
+        with bus.open_session(bus.client_config(mocap[1], settings=mocap_security), handle_signals=False) as session:
             feeder = MocapFeeder(fleet, session, Keys(mocap[0]).prefix, mocap_hz)
             fleet.on_tick = feeder
             try:
@@ -1015,6 +1023,8 @@ def run_fleet(
 
 
 def _run_fleet(fleet: CrazyflieFleet, duration: float | None, extra: str = "") -> int:
+    from zenswarm.process import rtsched
+
     stop = threading.Event()
 
     def on_signal(signum: int, frame: Any) -> None:
@@ -1024,6 +1034,7 @@ def _run_fleet(fleet: CrazyflieFleet, duration: float | None, extra: str = "") -
         signal.signal(sig, on_signal)
     try:
         print(f"crazyflie-vehicle: ready: {fleet.n} Crazyflie(s) at " + ", ".join(fleet.uris()) + extra, flush=True)
+        rtsched.apply_after_startup(lambda text: print(f"crazyflie-vehicle: {text}", flush=True))  # --rt-priority
         why = fleet.run(stop, duration)
         print(f"crazyflie-vehicle: stopped ({why}); overruns {fleet.overruns}; {fleet.status()}", flush=True)
     finally:

@@ -98,6 +98,37 @@ def test_example1_through_the_crazyflie_bridge_reaches_the_goal_and_lands(tmp_pa
     assert "landed by the high-level commander" in cp.stdout
 
 
+def test_rt_priority_raises_the_crazyflie_bridge_and_its_simulated_vehicles(tmp_path: Path) -> None:
+    """``--plant crazyflie --rt-priority P``: the Crazyflie bridge (its diagnostics) and the
+    simulated Crazyflies (their log line) run under ``SCHED_FIFO`` P once started, as the leader
+    and the agents do, and the flight is flown and landed. Needs the privilege (skipped, with the
+    reason, where this user may not use ``SCHED_FIFO``)."""
+    from zenswarm.process import rtsched
+
+    try:
+        rtsched.probe(7)
+    except rtsched.RtPriorityError as e:
+        print(f"skipped: this user may not use SCHED_FIFO ({e})")
+        pytest.skip(f"missing privilege: {e}")
+    swarm, port, base = unique_swarm("cfrt"), free_port(), free_udp_block(N_UAV)
+    out = tmp_path / "run"
+    try:
+        cp = _up(SCENARIOS / "paper_example1.toml", out, swarm, port, "--crazyflie-base-port", str(base), "--duration", "4",
+                 "--rt-priority", "7")  # fmt: skip
+    finally:
+        left = processes_mentioning(f"--base-port {base}")
+        kill_mentioning(f"--base-port {base}")
+    assert not left, f"vehicles left behind: {left}"
+    _no_traceback(cp.stdout)
+    res = read_results(out)
+    diag = res["diagnostics"]
+    for name in ["bridge", "leader"] + [f"agent:{i}" for i in range(1, N_UAV + 1)]:
+        assert diag[name]["rt.priority"] == 7 and diag[name]["rt.threads"] >= 2, (name, diag[name])
+    assert "crazyflie-vehicle: real-time scheduling: " in cp.stdout and "threads under SCHED_FIFO priority 7" in cp.stdout
+    assert res["vehicles"]["phases"] == "1:done,2:done,3:done", res["vehicles"]
+    assert "mission clock started with UAV(s) [1, 2, 3]" in cp.stdout
+
+
 def test_link_lost_mid_flight_is_the_named_failsafe_and_results_are_written(tmp_path: Path) -> None:
     sc = load_scenario(SCENARIOS / "paper_example1.toml")
     base = free_udp_block(N_UAV)
@@ -223,6 +254,34 @@ def test_flight_with_extpos_forwards_the_mocap_feed_to_the_vehicles(tmp_path: Pa
     # forwarded at the feed's rate (100 Hz) to 3 vehicles through takeoff, about 6 s of mission and the landing
     assert res["diagnostics"]["bridge"]["extpos_sent"] > 900, res["diagnostics"]["bridge"]
     assert res["decoder_rejects"]["rejected"] == 0
+    assert "mission clock started with UAV(s) [1, 2, 3]" in cp.stdout
+
+
+@pytest.mark.parametrize(("flag", "said"), [("--secure", "user/password"), ("--tls", "mutual TLS")])
+def test_secure_flight_with_extpos_feeds_the_mocap_as_its_own_user(tmp_path: Path, flag: str, said: str) -> None:
+    """``--secure`` (and ``--tls``) with positioning = "extpos": the simulated vehicles' mocap feed
+    joins the secured router as its own user (``mocap@<swarm>``, or the certificate ``mocap``; put
+    ``mocap/<i>`` only), the bridge may subscribe to it, and the feed reaches every vehicle as in
+    the open flight (before: the feed had no keys, its session timed out and the vehicles died)."""
+    swarm, port, base = unique_swarm("cfs"), free_port(), free_udp_block(N_UAV)
+    out = tmp_path / "run"
+    scenario = _scenario(tmp_path, {"positioning": "extpos"})
+    try:
+        cp = _up(scenario, out, swarm, port, "--crazyflie-base-port", str(base), "--duration", "6", flag)
+    finally:
+        left = processes_mentioning(f"--base-port {base}")
+        kill_mentioning(f"--base-port {base}")
+    assert not left, f"vehicles left behind: {left}"
+    _no_traceback(cp.stdout)
+    assert f"secure mode: {said}" in cp.stdout, cp.stdout[-3000:]
+    assert (out / "keys" / "mocap" / "credentials.json").exists()
+    assert f"mocap on swarm/{swarm}/mocap/<i>" in cp.stdout, cp.stdout[-3000:]
+    res = read_results(out)
+    veh = res["vehicles"]
+    assert veh["positioning"] == "extpos" and not res["failsafe"], (veh, res["failsafe"])
+    assert veh["phases"] == "1:done,2:done,3:done", veh  # armed only with a fed position, flown, landed
+    assert 0 <= veh["max_extpos_age_ms"] < 1000, veh
+    assert res["diagnostics"]["bridge"]["extpos_sent"] > 900, res["diagnostics"]["bridge"]
     assert "mission clock started with UAV(s) [1, 2, 3]" in cp.stdout
 
 

@@ -578,6 +578,39 @@ def test_acl_follows_the_graph(ex1):
     assert {s["id"]: s["cert_common_names"] for s in tls["subjects"]}["g.agent-2"] == ["agent:2"]
 
 
+def test_the_mocap_feed_has_its_own_user_only_with_extpos(tmp_path, ex1):
+    """positioning = "extpos": a user ``mocap@<swarm>`` allowed to put ``mocap/<i>`` (i = 1..N)
+    and nothing else, and the bridge may subscribe to ``mocap/*``; without it neither exists
+    (a scenario without the feed is unchanged), and credentials without it do not fit."""
+    from dataclasses import replace
+
+    from zenswarm.process.security import generate_credentials, load_manifest, manifest_mismatch
+    from zenswarm.schema import CrazyflieTable
+
+    k = wire.Keys("g")
+    assert "mocap" not in {s["id"].split(".", 1)[1] for s in acl_rules(ex1, "g")["subjects"]}
+    assert _allowed(acl_rules(ex1, "g"), "bridge", "declare_subscriber", "ingress") == {"swarm/g/uav/*/cmd", "swarm/g/uav/*/ref"}
+    ext = replace(ex1, crazyflie=CrazyflieTable(positioning="extpos"))
+    acl = acl_rules(ext, "g")
+    mocap = {f"{k.prefix}/mocap/{i}" for i in range(1, ext.n + 1)}
+    assert _allowed(acl, "mocap", "put", "ingress") == mocap
+    assert _allowed(acl, "mocap", "declare_subscriber", "egress") == {k.all}  # sees who subscribes, no data
+    for message, flow in (("declare_subscriber", "ingress"), ("put", "egress"), ("liveliness_token", "ingress"),
+                          ("query", "ingress"), ("liveliness_query", "ingress"), ("declare_queryable", "ingress")):
+        assert _allowed(acl, "mocap", message, flow) == set(), (message, flow)
+    assert _allowed(acl, "bridge", "declare_subscriber", "ingress") == {"swarm/g/uav/*/cmd", "swarm/g/uav/*/ref", "swarm/g/mocap/*"}
+    assert _allowed(acl, "bridge", "put", "egress") >= {"swarm/g/mocap/*"}
+    assert _allowed(acl, "plant", "declare_subscriber", "ingress") == {"swarm/g/uav/*/cmd"}
+    assert {s["id"]: s["usernames"] for s in acl["subjects"]}["g.mocap"] == ["mocap@g"]
+    assert {s["id"]: s["cert_common_names"] for s in acl_rules(ext, "g", auth="tls")["subjects"]}["g.mocap"] == ["mocap"]
+    old = generate_credentials(ex1, tmp_path / "old", "g")
+    assert "mocap" not in {p.process for p in old.processes} and manifest_mismatch(old, ex1, "g") is None
+    assert "no credentials for mocap" in (manifest_mismatch(old, ext, "g") or "")
+    new = load_manifest(generate_credentials(ext, tmp_path / "new", "g").root)
+    assert new.process("mocap").user == "mocap@g" and manifest_mismatch(new, ext, "g", all_files=True) is None
+    assert client_security_config("mocap", tmp_path / "new")["transport/auth/usrpwd/user"] == "mocap@g"
+
+
 @pytest.mark.swarm
 def test_router_config_is_accepted_by_zenoh(tmp_path, ex1):
     import zenoh

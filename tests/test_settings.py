@@ -210,12 +210,13 @@ def test_the_edges_get_what_their_command_lines_said(tmp_path: Path) -> None:
                                                "--own-origin", "--sitl-ports", "--rt-priority", "10"]))  # fmt: skip
     assert edge_settings("vehicles", at) == msgspec.structs.replace(old, swarm="s1")
 
-    at = _launch(tmp_path, "--plant", "crazyflie", "--rt-priority", "10")  # neither the Crazyflie bridge nor its vehicles take it
+    at = _launch(tmp_path, "--plant", "crazyflie", "--rt-priority", "10")  # the Crazyflie bridge and its vehicles take it too
     uris = [w for i in range(3) for w in ("--uri", f"{i + 1}=udp://127.0.0.1:{19900 + i}")]
-    old = crazyflie.bridge_settings(p.parse_args(["bridge", "crazyflie", str(EX1), *join, *uris, *faults, "--expect", "recorder"]))
-    assert edge_settings("bridge", at) == old and old.uri[1] == "udp://127.0.0.1:19900"
-    old = crazyflie_fleet_settings(p.parse_args(["crazyflie-vehicle", str(EX1), "--base-port", "19900"]))
-    assert edge_settings("vehicles", at) == msgspec.structs.replace(old, swarm="s1")
+    old = crazyflie.bridge_settings(p.parse_args(["bridge", "crazyflie", str(EX1), *join, *uris, *faults, "--expect", "recorder",
+                                                 "--rt-priority", "10"]))  # fmt: skip
+    assert edge_settings("bridge", at) == old and old.uri[1] == "udp://127.0.0.1:19900" and old.process.rt_priority == 10
+    old = crazyflie_fleet_settings(p.parse_args(["crazyflie-vehicle", str(EX1), "--base-port", "19900", "--rt-priority", "10"]))
+    assert edge_settings("vehicles", at) == msgspec.structs.replace(old, swarm="s1") and old.rt_priority == 10
     # each started as the roles are: named on its command line (--swarm for the process table), its settings on stdin
     for role, words in (("recorder", ["record"]), ("bridge", ["bridge", "crazyflie"]), ("vehicles", ["crazyflie-vehicle"])):
         argv, data = command(role, at)
@@ -314,3 +315,19 @@ def test_api_refuses_a_bad_lockstep_timeout_before_anything_starts() -> None:
     for bad in (0.0, -1.0, float("nan"), float("inf"), True):
         with pytest.raises(ScenarioError, match="lockstep_timeout"):
             api.fly(EX1, mode="swarm", lockstep_timeout=bad, duration=0.1)
+
+
+def test_crazyflie_vehicle_keys_are_the_mocap_feeds(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``crazyflie-vehicle --keys DIR``: the credentials of the mocap feed (the user ``mocap``), so
+    without ``--mocap`` they are exit 2 naming --keys, and credentials without that user (a
+    scenario without extpos) are exit 2 naming it, before any port is bound or session opened."""
+    from zenswarm.process.security import generate_credentials
+
+    generate_credentials(EX1, tmp_path / "keys", "s1")
+    assert cli_main(["crazyflie-vehicle", str(EX1), "--keys", str(tmp_path / "keys")]) == 2
+    err = capsys.readouterr().err
+    assert "--keys" in err and "--mocap" in err, err
+    flags = ["--mocap", "--swarm", "s1", "--connect", "tcp/127.0.0.1:1", "--keys", str(tmp_path / "keys")]
+    assert cli_main(["crazyflie-vehicle", str(EX1), *flags]) == 2
+    err = capsys.readouterr().err
+    assert "no credentials for mocap" in err and "Traceback" not in err, err

@@ -70,7 +70,7 @@ from typing import Any
 
 import numpy as np
 
-from zenswarm.bridge.vehicles.settings import CrazyflieBridgeSettings
+from zenswarm.bridge.vehicles.settings import CrazyflieBridgeSettings, bridge_main, run_bridge
 from zenswarm.errors import ScenarioError
 from zenswarm.vehicle import crazyflie as cfu
 from zenswarm.vehicle.crazyflie_settings import CrazyflieSettings, crazyflie_settings
@@ -723,31 +723,14 @@ def run(s: CrazyflieBridgeSettings) -> int:
     """Run the bridge with these settings (its command's flags, or ``zenswarm up``'s on its
     standard input). Without cflib, or with bad ``[crazyflie]`` settings or overrides: exit 2
     naming the field before any work."""
-    from zenswarm.errors import ZenswarmError
-    from zenswarm.process.runtime import run_process
+    return 2 if _no_cflib() else run_bridge(s, crazyflie_settings, _run)
 
-    if _no_cflib():
-        return 2
-    if s.process.scenario is not None:
-        try:
-            crazyflie_settings(s.process.scenario, s.overrides())
-        except ZenswarmError as e:
-            print(f"bridge: error: {e}", file=sys.stderr, flush=True)
-            return 2
-    return run_process(_run, "bridge", s)
+
+_main_flags = bridge_main(bridge_settings, run)
 
 
 def _main_args(args: argparse.Namespace) -> int:
-    from zenswarm.errors import ZenswarmError
-
-    if _no_cflib():
-        return 2
-    try:
-        s = bridge_settings(args)
-    except ZenswarmError as e:
-        print(f"bridge: error: {e}", file=sys.stderr, flush=True)
-        return 2
-    return run(s)
+    return 2 if _no_cflib() else _main_flags(args)
 
 
 def add_crazyflie_parser(bridge_sub: argparse._SubParsersAction) -> None:

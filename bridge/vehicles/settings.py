@@ -12,14 +12,19 @@ library: the supervisor builds these without pymavlink or cflib.
 
 from __future__ import annotations
 
-from typing import Any
+import argparse
+import sys
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 import msgspec
 
+from zenswarm.errors import EXIT_BAD_INPUT, ZenswarmError
 from zenswarm.process.options import ProcessOptions
 from zenswarm.process.settings import RoleSettings
+from zenswarm.scenario.config import Scenario
 
-__all__ = ["MavlinkBridgeSettings", "CrazyflieBridgeSettings"]
+__all__ = ["MavlinkBridgeSettings", "CrazyflieBridgeSettings", "run_bridge", "bridge_main"]
 
 
 class _BridgeSettings(msgspec.Struct, frozen=True, kw_only=True):
@@ -41,6 +46,10 @@ class _BridgeSettings(msgspec.Struct, frozen=True, kw_only=True):
     def process_options(self) -> ProcessOptions:
         """The options of the bridge's :class:`zenswarm.process.runtime.SwarmProcess`."""
         return self.process.process_options()
+
+    def overrides(self) -> dict[str, Any]:
+        """The overrides of the scenario's vehicle table (each bridge's own)."""
+        raise NotImplementedError
 
 
 class MavlinkBridgeSettings(_BridgeSettings, frozen=True, kw_only=True):
@@ -95,3 +104,41 @@ class CrazyflieBridgeSettings(_BridgeSettings, frozen=True, kw_only=True):
 
 _CRAZYFLIE_KEYS = ("uri", "base_port", "host", "rate_hz", "takeoff", "link_timeout_s", "land_timeout_s", "connect_timeout_s",
                    "start_timeout_s", "positioning")  # fmt: skip
+
+
+_S = TypeVar("_S", bound=_BridgeSettings)
+
+
+def _bad_input(e: ZenswarmError) -> int:
+    """``bridge: error: ...`` on stderr; exit status 2."""
+    print(f"bridge: error: {e}", file=sys.stderr, flush=True)
+    return EXIT_BAD_INPUT
+
+
+def run_bridge(s: _S, check: Callable[[Scenario, dict[str, Any]], object], body: Callable[[Any], int]) -> int:
+    """Run a vehicle bridge with settings ``s`` as the swarm process ``bridge`` (``body`` takes
+    its :class:`zenswarm.process.runtime.SwarmProcess`). With the scenario at hand, ``check`` of
+    it and the overrides first (``mavlink_settings``, ``crazyflie_settings``): a bad table or
+    override is exit 2 naming the field, before any work (no Zenoh session, no vehicle link)."""
+    from zenswarm.process.runtime import run_process
+
+    if s.process.scenario is not None:
+        try:
+            check(s.process.scenario, s.overrides())
+        except ZenswarmError as e:
+            return _bad_input(e)
+    return run_process(body, "bridge", s)
+
+
+def bridge_main(build: Callable[[argparse.Namespace], _S], run: Callable[[_S], int]) -> Callable[[argparse.Namespace], int]:
+    """The ``func`` of a ``zenswarm bridge KIND`` command: its settings ``build`` from the flags
+    (a :class:`ZenswarmError`: exit 2 naming the flag or file), then ``run`` with them."""
+
+    def main(args: argparse.Namespace) -> int:
+        try:
+            s = build(args)
+        except ZenswarmError as e:
+            return _bad_input(e)
+        return run(s)
+
+    return main

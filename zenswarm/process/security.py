@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from zenswarm.bus import wire
+from zenswarm.bus.mocap import mocap_all, mocap_key
 from zenswarm.errors import ZenswarmError
 from zenswarm.scenario.config import Scenario, load_scenario
 
@@ -57,6 +58,8 @@ __all__ = [
     "ProcessCredentials",
     "AuthMode",
     "ROLES",
+    "MOCAP_FEEDER",
+    "feeder_names",
     "MANIFEST_FILE",
     "process_names",
     "process_slug",
@@ -83,6 +86,11 @@ AuthMode = Literal["usrpwd", "tls"]
 ROLES = ("plant", "leader", "recorder", "bridge", "supervisor")
 """Process names other than the agents'."""
 
+MOCAP_FEEDER = "mocap"
+"""The motion-capture feed's own user (the simulated Crazyflies' ``--mocap``, or a lab's feeder):
+it may only put ``swarm/<name>/mocap/<i>``. Not a swarm process (no liveliness, no diagnostics):
+credentials and access rules only, and only for a scenario flying ``positioning = "extpos"``."""
+
 MANIFEST_FILE = "manifest.json"
 MANIFEST_VERSION = 1
 DEFAULT_DAYS = 365
@@ -107,8 +115,20 @@ def process_names(n: int) -> list[str]:
     return ["plant", "leader"] + [wire.agent(i) for i in range(1, n + 1)] + ["recorder", "bridge", "supervisor"]
 
 
+def feeder_names(sc: Scenario) -> list[str]:
+    """The users beside the swarm's processes that ``sc`` needs: :data:`MOCAP_FEEDER` when its
+    Crazyflies fly on an external positioning feed (``[crazyflie] positioning = "extpos"``)."""
+    return [MOCAP_FEEDER] if _flies_extpos(sc) else []
+
+
+def _flies_extpos(sc: Scenario) -> bool:
+    return sc.crazyflie is not None and sc.crazyflie.positioning == "extpos"
+
+
 def process_slug(process: str) -> str:
     """File-system (and user-name) form of a process name: ``agent:2`` -> ``agent-2``."""
+    if process == MOCAP_FEEDER:
+        return process
     return wire.validate_process(process).replace(":", "-")
 
 
@@ -243,7 +263,7 @@ def manifest_mismatch(m: Manifest, scenario: Scenario, swarm: str, *, all_files:
     if m.swarm != swarm:
         return f"are for swarm {m.swarm!r}, not {swarm!r}"
     have = {p.process for p in m.processes}
-    missing = [p for p in process_names(scenario.n) if p not in have]
+    missing = [p for p in process_names(scenario.n) + feeder_names(scenario) if p not in have]
     if m.n != scenario.n or missing:
         return (f"are for {m.n} UAVs (scenario {m.scenario!r}), not the {scenario.n} of scenario {scenario.name!r}"
                 + (f" (no credentials for {', '.join(missing)})" if missing else ""))
@@ -439,7 +459,7 @@ def _as_scenario(scenario: Scenario | str | Path) -> Scenario:
 
 def _plan(root: Path, swarm: str, sc: Scenario, hosts: tuple[str, ...], not_after: str) -> Manifest:
     procs = []
-    for name in process_names(sc.n):
+    for name in process_names(sc.n) + feeder_names(sc):
         d = root / process_slug(name)
         procs.append(
             ProcessCredentials(
@@ -477,7 +497,7 @@ def generate_credentials(
 ) -> Manifest:
     """Generate every credential of ``swarm`` flying ``scenario`` under ``out_dir``.
 
-    Per process (:func:`process_names`): a user name (:func:`username`) and a random password
+    Per process (:func:`process_names`, and :func:`feeder_names`): a user name (:func:`username`) and a random password
     (``secrets.token_urlsafe(32)``, 256 bits) in ``<p>/credentials.json`` and in the router's
     ``router/usrpwd.txt``; an ECDSA P-256 key and a certificate (CN = process name) signed by the
     swarm's new CA. The supervisor's certificate is also the router's: its subjectAltNames are
@@ -657,6 +677,8 @@ def _grants(process: str, sc: Scenario, k: wire.Keys) -> list[_Grant]:
     ``alive/<p>`` of the processes it waits for or outlives (the leader: the plant, whose exit
     ends the flight) and ``alive/<p>/*`` of its inputs' senders.
     """
+    if process == MOCAP_FEEDER:  # puts the positions, nothing more (it sees the subscribers' declarations: see above)
+        return [(("put",), "ingress", [mocap_key(k.prefix, i) for i in range(1, sc.n + 1)]), (("declare_subscriber",), "egress", [k.all])]
     i = wire.process_uav(process)
     if i is not None:  # agent i: its graph row, nothing more
         pub, sub, extra = _agent_grants(process, i, sc, k)
@@ -726,6 +748,8 @@ def _vehicles_grants(process: str, sc: Scenario, k: wire.Keys) -> tuple[list[str
     sub = [f"{P}/uav/*/cmd"]
     if process == "bridge":  # the MAVLink bridge forwards commands, or references as position setpoints
         sub += [f"{P}/uav/*/ref"]
+        if _flies_extpos(sc):  # the Crazyflie bridge forwards the positioning feed
+            sub += [mocap_all(P)]
     liveliness_watch: list[_Grant] = [
         (("liveliness_query", "declare_liveliness_subscriber"), "ingress", [k.alive_all]),
         (("liveliness_token",), "egress", [k.alive_all]),
@@ -770,15 +794,19 @@ def acl_rules(
       bridge also ``uav/*/ref``, for position setpoints); liveliness query/subscribe ``alive/*``;
     * ``leader``: put ``leader/ref``; subscribe ``clock``; queryable and replies on ``mission``;
       liveliness-subscribe ``alive/plant`` (it keeps its token until the plant is gone);
-    * ``recorder``, ``supervisor``: subscribe and liveliness-subscribe ``P/**`` (read only).
+    * ``recorder``, ``supervisor``: subscribe and liveliness-subscribe ``P/**`` (read only);
+    * ``mocap`` (:data:`MOCAP_FEEDER`, a scenario flying ``positioning = "extpos"``): put
+      ``mocap/<i>`` for i = 1..N and nothing else (no diagnostics, no liveliness); the bridge
+      then also subscribes ``mocap/*``.
 
-    ``processes`` restricts the policy to some processes (default: all of :func:`process_names`).
+    ``processes`` restricts the policy to some processes (default: all of :func:`process_names`
+    and :func:`feeder_names`).
     """
     sc = _as_scenario(scenario)
     k = wire.Keys(swarm)
     if auth not in ("usrpwd", "tls"):
         raise CredentialsError(f"auth: expected 'usrpwd' or 'tls', got {auth!r}")
-    names = list(processes) if processes is not None else process_names(sc.n)
+    names = list(processes) if processes is not None else process_names(sc.n) + feeder_names(sc)
     rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []

@@ -8,13 +8,12 @@ the bridge run with them (:func:`run`; also what ``zenswarm up`` starts, the set
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from zenswarm.bridge.vehicles.mavlink.loop import _run
-from zenswarm.bridge.vehicles.settings import MavlinkBridgeSettings
+from zenswarm.bridge.vehicles.settings import MavlinkBridgeSettings, bridge_main, run_bridge
 from zenswarm.errors import ScenarioError
 from zenswarm.vehicle.autopilot import mavlink_settings
 
@@ -70,27 +69,10 @@ def run(s: MavlinkBridgeSettings) -> int:
     standard input). Bad ``[mavlink]`` settings or overrides (ids, timeouts): exit 2 naming the
     field before any work (no Zenoh session, no MAVLink link opened); the process checks again
     with the scenario it runs (fetched from the leader if none is given)."""
-    from zenswarm.errors import ZenswarmError
-    from zenswarm.process.runtime import run_process
-
-    if s.process.scenario is not None:
-        try:
-            mavlink_settings(s.process.scenario, s.overrides())
-        except ZenswarmError as e:
-            print(f"bridge: error: {e}", file=sys.stderr, flush=True)
-            return 2
-    return run_process(_run, "bridge", s)
+    return run_bridge(s, mavlink_settings, _run)
 
 
-def _main_args(args: argparse.Namespace) -> int:
-    from zenswarm.errors import ZenswarmError
-
-    try:
-        s = bridge_settings(args)
-    except ZenswarmError as e:
-        print(f"bridge: error: {e}", file=sys.stderr, flush=True)
-        return 2
-    return run(s)
+_main_args = bridge_main(bridge_settings, run)
 
 
 def _configure(p: argparse.ArgumentParser) -> None:
