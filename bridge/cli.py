@@ -13,7 +13,7 @@ import json
 import sys
 from pathlib import Path
 
-__all__ = ["add_parsers"]
+__all__ = ["BRIDGE_COMMANDS", "add_parsers"]
 
 
 def _run_recover(args: argparse.Namespace) -> int:
@@ -64,16 +64,41 @@ def _add_recover(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run_recover)
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:
-    """Register ``record``, ``replay``, ``verify``, ``recover``, ``info`` (and ``report``/``export``
-    when :mod:`zenswarm.bridge.reports.report` / :mod:`zenswarm.bridge.views.export` exist)."""
-    from zenswarm.bridge.recording import info, recorder
-    from zenswarm.bridge.replay import replay
+#: The subcommands :func:`add_parsers` registers, in its order.
+BRIDGE_COMMANDS = ("record", "replay", "verify", "info", "recover", "bridge", "report", "export")
 
-    recorder.add_parser(sub)
-    replay.add_parsers(sub)
-    info.add_parser(sub)
-    _add_recover(sub)
+
+def add_parsers(sub: argparse._SubParsersAction, only: str | None = None) -> None:
+    """Register ``record``, ``replay``, ``verify``, ``recover``, ``info``, ``bridge`` (and
+    ``report``/``export`` when :mod:`zenswarm.bridge.reports.report` /
+    :mod:`zenswarm.bridge.views.export` exist); with ``only`` (one of :data:`BRIDGE_COMMANDS`),
+    only the module that registers it is imported and asked."""
+
+    def wanted(*names: str) -> bool:
+        return only is None or only in names
+
+    if wanted("record"):
+        from zenswarm.bridge.recording import recorder
+
+        recorder.add_parser(sub)
+    if wanted("replay", "verify"):
+        from zenswarm.bridge.replay import replay
+
+        replay.add_parsers(sub)
+    if wanted("info"):
+        from zenswarm.bridge.recording import info
+
+        info.add_parser(sub)
+    if wanted("recover"):
+        _add_recover(sub)
+    if wanted("bridge"):
+        _add_bridge(sub)
+    for name, modname in (("report", "zenswarm.bridge.reports.report"), ("export", "zenswarm.bridge.views.export")):
+        if wanted(name):
+            _add_optional(sub, modname)
+
+
+def _add_bridge(sub: argparse._SubParsersAction) -> None:
     from zenswarm.bridge.vehicles import crazyflie, mavlink
 
     b = sub.add_parser(
@@ -84,14 +109,17 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     bsub = b.add_subparsers(dest="bridge_cmd", metavar="{mavlink,crazyflie}", required=True)
     mavlink.add_mavlink_parser(bsub)
     crazyflie.add_crazyflie_parser(bsub)
-    for modname in ("zenswarm.bridge.reports.report", "zenswarm.bridge.views.export"):
-        try:
-            mod = __import__(modname, fromlist=["add_parser"])
-        except ImportError as e:
-            if not (e.name and modname.startswith(e.name)):
-                # present but broken (a missing dependency): keep every other command working
-                print(f"zenswarm: warning: {modname} not available: {e}", file=sys.stderr)
-            continue
-        register = getattr(mod, "add_parsers", None) or getattr(mod, "add_parser", None)
-        if register is not None:
-            register(sub)
+
+
+def _add_optional(sub: argparse._SubParsersAction, modname: str) -> None:
+    """The subcommand of ``modname`` (``report``, ``export``), when that module imports."""
+    try:
+        mod = __import__(modname, fromlist=["add_parser"])
+    except ImportError as e:
+        if not (e.name and modname.startswith(e.name)):
+            # present but broken (a missing dependency): keep every other command working
+            print(f"zenswarm: warning: {modname} not available: {e}", file=sys.stderr)
+        return
+    register = getattr(mod, "add_parsers", None) or getattr(mod, "add_parser", None)
+    if register is not None:
+        register(sub)

@@ -19,6 +19,7 @@ from zenswarm.bridge.args import (
     positive_float,
     scenario_of,
 )
+from zenswarm.bridge.cli import BRIDGE_COMMANDS
 from zenswarm.errors import ZenswarmError, run_command
 
 EPILOG = """\
@@ -157,7 +158,24 @@ def _run_sweep_here(args: argparse.Namespace) -> int:
     return 2
 
 
-def build_parser() -> argparse.ArgumentParser:
+#: The subcommands the front door's own functions register, by name (``zenswarm --help`` lists them first).
+_OWN = {"sim": _add_sim, "scenario": _add_scenario, "plugins": _add_plugins, "sweep": _add_sweep}
+
+#: The modules that register the other subcommands (their ``add_parsers(sub)``), with the names
+#: each registers, in the order ``zenswarm --help`` lists them. ``zenswarm COMMAND ...`` builds
+#: the parser of its own module only (:func:`build_parser`), so it imports what it runs and not the
+#: whole CLI; ``tests/test_cli_parsers.py`` holds this table against the whole parser.
+_MODULES: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("zenswarm.compose.up", ("up",)),
+    ("zenswarm.compose.roles", ("plant", "mavlink-vehicle", "crazyflie-vehicle", "leader", "agent")),
+    ("zenswarm.bridge.cli", BRIDGE_COMMANDS),
+    ("zenswarm.compose.keys", ("keys",)),
+)
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``zenswarm`` parser: every subcommand, or with ``command`` (a subcommand's name) only
+    the subcommands registered with it, which parse and print ``--help`` as in the whole parser."""
     parser = argparse.ArgumentParser(
         prog="zenswarm",
         description=(
@@ -169,19 +187,29 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    _add_sim(sub)
-    _add_scenario(sub)
-    _add_plugins(sub)
-    _add_sweep(sub)
-    for modname in ("zenswarm.compose.up", "zenswarm.compose.roles", "zenswarm.bridge.cli", "zenswarm.compose.keys"):
+    for name, add in _OWN.items():
+        if command in (None, name):
+            add(sub)
+    for modname, names in _MODULES:
+        if command is not None and command not in names:
+            continue
         try:
             mod = __import__(modname, fromlist=["add_parsers"])
         except ImportError as e:
             if e.name and modname.startswith(e.name):
                 continue  # subsystem not installed in this build
             raise
-        mod.add_parsers(sub)
+        if modname == "zenswarm.bridge.cli":
+            mod.add_parsers(sub, only=command)
+        else:
+            mod.add_parsers(sub)
     return parser
+
+
+def _known(argv: Sequence[str]) -> str | None:
+    """The subcommand ``argv`` names (its first word), if it is one: only its parser is built."""
+    name = argv[0] if argv else None
+    return name if name in _OWN or any(name in names for _, names in _MODULES) else None
 
 
 def run_standalone(prog: str, doc: str | None, configure, argv: Sequence[str] | None, label: str) -> int:
@@ -216,7 +244,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         def func() -> int:
             return run_edge(argv)
     else:
-        args = build_parser().parse_args(argv)
+        args = build_parser(_known(argv)).parse_args(argv)
 
         def func() -> int:
             return int(args.func(args) or 0)
