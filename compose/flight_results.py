@@ -22,7 +22,6 @@ from zenswarm.judge.results import closing_lines, flight_results, write_outputs
 from zenswarm.judge.watch import EndWatch
 from zenswarm.link import FaultPlan
 from zenswarm.process.collector import Collector
-from zenswarm.process.settings import FlightSettings
 from zenswarm.scenario.config import Scenario
 
 __all__ = ["await_last_tick", "exit_how", "judge_and_write", "recording_lost", "run_facts", "vehicles_figures"]
@@ -82,17 +81,17 @@ def judge_and_write(
 
 
 def run_facts(
-    args: FlightSettings, collector: Collector, *, listen: Sequence[str], children: Mapping[str, Child], deaths: list[dict[str, Any]],
-    restarts: dict[str, int], recording_loss: dict[str, Any] | None, cluster: Mapping[str, Any] | None = None,
+    collector: Collector, *, realtime: bool, swarm: str, record: Path | None, listen: Sequence[str], children: Mapping[str, Child],
+    deaths: list[dict[str, Any]], restarts: dict[str, int], recording_loss: dict[str, Any] | None, cluster: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:  # fmt: skip
-    """What results.json says of the run beside the verdict: mode, router (the endpoints it
-    listened on), processes (exit statuses) and where each ran (host, pid; on a cluster its
-    worker too), vehicles, deaths, restarts, the collector's facts (failsafe, diagnostics, decoder
-    rejects, foreign samples), the recording and its loss; with ``--scheduler`` the ``cluster``'s
-    facts (the scheduler, the workers lost)."""
+    """What results.json says of the run beside the verdict: mode (``realtime`` or lockstep),
+    swarm, router (the endpoints it listened on), processes (exit statuses) and where each ran
+    (host, pid; on a cluster its worker too), vehicles, deaths, restarts, the collector's facts
+    (failsafe, diagnostics, decoder rejects, foreign samples), the recording (``record``) and its
+    loss; with ``--scheduler`` the ``cluster``'s facts (the scheduler, the workers lost)."""
     res: dict[str, Any] = {
-        "mode": "realtime" if args.realtime else "lockstep",
-        "swarm": args.swarm,
+        "mode": "realtime" if realtime else "lockstep",
+        "swarm": swarm,
         "router": list(listen),  # its port: chosen free without --listen
         # a child stopped by terminate_all has its code on its process only (returncode is set when one dies)
         "processes": {name: c.status() for name, c in children.items()},
@@ -104,8 +103,8 @@ def run_facts(
         **collector.facts(),
         "supervisor_zenoh_threads": bus.zenoh_threads(),  # the router's (ZENOH_RUNTIME_ROUTER)
     }
-    if args.record is not None:
-        res["recording"] = str(args.record)
+    if record is not None:
+        res["recording"] = str(record)
         if recording_loss is not None:
             res["recording_loss"] = recording_loss
     return res

@@ -38,9 +38,10 @@ from zenswarm.compose.flight_results import await_last_tick, judge_and_write, re
 from zenswarm.compose.hooks import EndHook, FlightEnd, Tap, feeds
 from zenswarm.compose.kills import split_kills
 from zenswarm.compose.liveliness import EXTERNAL_GONE_GRACE_S, ExternalRoles, Tokens
-from zenswarm.compose.plugin_failures import PluginFailures, failure_settled
+from zenswarm.compose.plugin_failures import SETTLE_GRACE_S, PluginFailures, await_settled
 from zenswarm.compose.policy import restart_policy
 from zenswarm.compose.progress import SwarmProgress, children_health
+from zenswarm.compose.restarts import Restarts
 from zenswarm.compose.router import open_router
 from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED
 from zenswarm.judge.verdict import criteria_from_scenario
@@ -98,9 +99,8 @@ class Supervisor:
         watched = [r for r in self.all_roles() if r in args.external and r != "vehicles"]  # the vehicles: no Zenoh, no token
         self.external = ExternalRoles(watched, self.tokens, timeout_s=args.external_timeout, swarm=args.swarm,
                                       time_limit_s=scenario.timing.time_limit_s, policy=self.policy, say=lambda text: self.say(text))
-        self.restart_at: dict[str, float] = {}
-        self.restarts: dict[str, int] = {}
-        self.deaths: list[dict] = []
+        self.restarts = Restarts(self.policy)  # the processes' deaths, the restarts due and made
+        self.deaths = self.restarts.deaths  # (tests read them here)
         # when the flight ends (decided, --stop-at-goal, a plug-in failed) and which ticks are judged
         self.watch = EndWatch(criteria_from_scenario(scenario), scenario.timing.n_ticks, full_time=args.full_time,
                               stop_at_goal=args.stop_at_goal, realtime=args.realtime)
@@ -255,7 +255,10 @@ class Supervisor:
 
     def _security(self, listen: list[str], out: Path) -> tuple[dict, list[str]]:
         """The router's settings and listen endpoints (:func:`~zenswarm.compose.credentials.router_security`); keeps the keys' dir."""
-        sec = router_security(self.args, self.sc, listen, out, self.say)
+        a = self.args
+        sec = router_security(
+            self.sc, listen, out, self.say, swarm=a.swarm, connect=a.connect, secure=a.secure, tls=a.tls, insecure=a.insecure, keys=a.keys
+        )
         self.keys_dir = sec.keys_dir
         return sec.settings, sec.listen
 
@@ -286,7 +289,7 @@ class Supervisor:
         death = self.external.check(collector, now, since, self.connect_endpoints)
         if death is None:
             return None
-        self.deaths.append(death)
+        self.restarts.deaths.append(death)
         self.failed = death["process"]
         return EXIT_PROCESS_FAILED
 
@@ -339,7 +342,7 @@ class Supervisor:
         if one died for good, else None). The recorder and the vehicles never keep the run going."""
         done = True
         for c in list(self.children.values()):
-            if c.name in self.restart_at:
+            if self.restarts.waiting(c.name):
                 done = False
                 self._restart_if_due(c, now)
                 continue
@@ -371,8 +374,7 @@ class Supervisor:
         clock = self.children.get("bridge" if self.args.plant in ("mavlink", "crazyflie") else "plant")
         if clock is None or clock.returncode != 0:
             return False
-        for role in list(self.restart_at):
-            del self.restart_at[role]
+        for role in self.restarts.cancel():
             self.say(f"{role}: not restarted, the flight is over ({clock.name} ended it)")
         if self.flight_over_at is None:
             self.flight_over_at = now
@@ -387,29 +389,12 @@ class Supervisor:
     def _drain_plugin_failures(self, collector: Collector) -> int:
         """A plug-in failed: wait until the flight before it is complete and every process
         that could fail in the same (tick, stage) has either given its output of that stage or
-        failed too (the processes run concurrently; the simulator calls them in turn), then
-        judge: the ticks before the failed one, unless the outcome was decided before it (as
-        the simulator: :meth:`EndWatch.plugin_failed`). Returns 4, or 0 when the run was decided before."""
-        deadline = time.monotonic() + self.args.lockstep_timeout + 10.0
-        while True:
-            collector.poll(self._bus_sub, feeds(self.taps))
-            for c in list(self.children.values()):
-                rc = c.proc.poll()
-                if rc is not None and c.returncode is None:
-                    c.returncode = rc
-                    if rc == EXIT_PLUGIN_FAILED:
-                        self._took_plugin_failure(c)  # its last lines read
-            self.plugin_failures.from_diagnostics(collector.diag, self.external.names)
-            first = self.plugin_failures.first()
-            exited = {name for name, c in self.children.items() if c.returncode is not None}
-            settled = failure_settled(collector, first, realtime=self.args.realtime, roles=self.roles(), announced=self.tokens.seen,
-                                      exited=exited)  # fmt: skip
-            if settled or self.stop.is_set():
-                break
-            if time.monotonic() > deadline:
-                self.say("not every process gave its output of the failed tick in time; judging what arrived")
-                break
-            time.sleep(0.02)
+        failed too (:func:`~zenswarm.compose.plugin_failures.await_settled`), then judge: the ticks
+        before the failed one, unless the outcome was decided before it (as the simulator:
+        :meth:`EndWatch.plugin_failed`). Returns 4, or 0 when the run was decided before."""
+        first = await_settled(self.plugin_failures, collector, partial(self._reap, collector), realtime=self.args.realtime,
+                              roles=self.roles(), announced=self.tokens.seen, timeout_s=self.args.lockstep_timeout + SETTLE_GRACE_S,
+                              stop=self.stop, say=self.say)  # fmt: skip
         end = self.watch.plugin_failed(collector, first[0].tick)
         if not end.plugin_failed:  # decided before the plug-in failed: the run had ended there
             self.plugin_failures.keep([])
@@ -418,11 +403,23 @@ class Supervisor:
         self.plugin_failures.keep(first)
         return EXIT_PLUGIN_FAILED
 
+    def _reap(self, collector: Collector) -> set[str]:
+        """One look while a plug-in's failure settles: the bus drained, the processes' exits taken
+        (with their failure reports) and the external roles' failures; the processes that exited."""
+        collector.poll(self._bus_sub, feeds(self.taps))
+        for c in list(self.children.values()):
+            rc = c.proc.poll()
+            if rc is not None and c.returncode is None:
+                c.returncode = rc
+                if rc == EXIT_PLUGIN_FAILED:
+                    self._took_plugin_failure(c)  # its last lines read
+        self.plugin_failures.from_diagnostics(collector.diag, self.external.names)
+        return {name for name, c in self.children.items() if c.returncode is not None}
+
     def _restart_if_due(self, c: Child, now: float) -> None:
-        if now >= self.restart_at[c.name]:
-            del self.restart_at[c.name]
-            self.restarts[c.name] = self.restarts.get(c.name, 0) + 1
-            self.say(f"restarting {c.name} (restart {self.restarts[c.name]} of {self.policy.max_restarts})")
+        n = self.restarts.due(c.name, now)
+        if n is not None:
+            self.say(f"restarting {c.name} (restart {n} of {self.policy.max_restarts})")
             self.spawn(c.name)
 
     def _child_died(self, c: Child, rc: int, collector: Collector, now: float) -> int | None:
@@ -437,13 +434,11 @@ class Supervisor:
         if k is not None and rc == -signal.SIGKILL and any(ln.endswith(kill_self_line(k)) for ln in c.lines[-3:]):
             t_s = k * self.sc.timing.dt  # --kill in lockstep: it killed itself just before this tick
         self.say(f"process {c.name} died ({how}) at sim time {t_s:.2f} s{tail}")
-        self.deaths.append({"process": c.name, "how": how, "sim_time_s": t_s})
-        delay = self.policy.delay(self.restarts.get(c.name, 0)) if self.policy.allows(c.name) else None
+        delay = self.restarts.died({"process": c.name, "how": how, "sim_time_s": t_s}, now)
         if delay is not None:
-            self.restart_at[c.name] = now + delay
             self.say(f"{c.name} will be restarted in {delay:.2f} s")
             return None
-        if self.policy.enabled and self.policy.allows(c.name):
+        if self.restarts.limit_reached(c.name):
             self.say(f"{c.name}: restart limit ({self.policy.max_restarts}) reached; aborting the mission")
         self.failed = c.name
         return EXIT_PROCESS_FAILED
@@ -463,8 +458,8 @@ class Supervisor:
         a = self.args
         dead = getattr(self, "failed", "?")  # exit 3: the process that died for good
         how = next((d["how"] for d in reversed(self.deaths) if d["process"] == dead), "unknown")
-        facts = partial(run_facts, a, collector, listen=self.listen, children=self.children, deaths=self.deaths,
-                        restarts=self.restarts, recording_loss=self.recording_loss,
+        facts = partial(run_facts, collector, realtime=a.realtime, swarm=a.swarm, record=a.record, listen=self.listen,
+                        children=self.children, deaths=self.deaths, restarts=self.restarts.done, recording_loss=self.recording_loss,
                         cluster=self.cluster.facts() if self.cluster is not None else None)  # fmt: skip
         res = judge_and_write(
             collector, self.watch, self.sc, out, stopped=code not in (EXIT_OK, EXIT_PLUGIN_FAILED), fill=a.realtime or bool(self.deaths),
