@@ -2,7 +2,8 @@
 :class:`~zenswarm.judge.watch.EndWatch` says), written and said by the code the simulator's are
 (:mod:`zenswarm.judge.results`), with what only the supervisor knows beside the verdict
 (:func:`run_facts`: the mode, the router, its processes, their deaths and restarts, the vehicles as
-the bridge reported them, the recording and its loss, :func:`recording_lost`). In lockstep the
+the bridge reported them, the recording and its loss, :func:`recording_lost`; each death as it
+comes, :func:`process_death`). In lockstep the
 series is judged once the last tick's messages arrived (:func:`await_last_tick`).
 """
 
@@ -24,7 +25,7 @@ from zenswarm.link import FaultPlan
 from zenswarm.process.collector import Collector
 from zenswarm.scenario.config import Scenario
 
-__all__ = ["await_last_tick", "exit_how", "judge_and_write", "recording_lost", "run_facts", "vehicles_figures"]
+__all__ = ["await_last_tick", "exit_how", "judge_and_write", "process_death", "recording_lost", "run_facts", "vehicles_figures"]
 
 BRIDGE_FIGURES = ("phases", "armed_uavs", "airborne_uavs", "unhealthy_uavs", "max_latency_ms", "max_state_age_ms", "refused",
                   "link_lost", "positioning", "max_extpos_age_ms")  # fmt: skip
@@ -123,6 +124,17 @@ def vehicles_figures(children: Mapping[str, Child], diag: Mapping[str, dict[str,
     if c is not None:
         out["process_exit"] = c.status()
     return out
+
+
+def process_death(child: Child, rc: int, t_s: float, say: Callable[[str], None]) -> dict[str, Any]:
+    """A process of the flight (``child``, its output read to its end) exited with ``rc`` != 0 at
+    sim time ``t_s``: said (how, when, its last output), and the death as results.json's
+    ``process_deaths`` keeps it (process, how, sim_time_s). With ``--scheduler`` a process whose
+    worker was lost says so (its ``lost``, :mod:`zenswarm.compose.cluster`)."""
+    how = getattr(child.proc, "lost", None) or exit_how(rc)
+    tail = "; last output: " + " | ".join(child.lines[-3:]) if child.lines else ""
+    say(f"process {child.name} died ({how}) at sim time {t_s:.2f} s{tail}")
+    return {"process": child.name, "how": how, "sim_time_s": t_s}
 
 
 def recording_lost(child: Child, rc: int, sim_t_ns: int, recording: Path | None, say: Callable[[str], None]) -> dict[str, Any]:

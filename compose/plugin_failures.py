@@ -22,6 +22,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from zenswarm.bus import wire
+from zenswarm.compose.children import Child
 from zenswarm.errors import PluginFailure
 from zenswarm.process.runtime import PLUGIN_FAILURE_MARK
 from zenswarm.scenario.plugins import STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
@@ -79,6 +80,12 @@ class PluginFailures:
     def reported_by(self, process: str) -> bool:
         """Has ``process`` reported its plug-in's failure?"""
         return any(f.process == process for f in self.reported)
+
+    def reported_at_exit(self, child: Child) -> bool:
+        """``child`` exited with 4: did it report its plug-in's failure (its last lines read, up to 5
+        s: its output ends with it)? If not, it died."""
+        child.join_output(5.0)
+        return self.reported_by(child.name)
 
     def first(self) -> list[PluginFailure]:
         """The failures of the first (tick, stage): what the flight ends on."""

@@ -20,9 +20,9 @@ def test_each_restart_waits_its_backoff_and_the_limit_ends_them() -> None:
         d = r.died(death("agent:2"), now)
         assert d is not None and r.waiting("agent:2")
         delays.append(d)
-        assert r.due("agent:2", now + d - 1e-6) is None, "not due before its delay"
-        assert r.due("agent:2", now + d) == n and not r.waiting("agent:2")
-        assert r.due("agent:2", now + d + 1) is None, "made once"
+        assert r.restart_now("agent:2", now + d - 1e-6) is None, "not due before its delay"
+        assert r.restart_now("agent:2", now + d) == n and not r.waiting("agent:2")
+        assert r.restart_now("agent:2", now + d + 1) is None, "made once"
         now += 10.0
     assert delays == [0.5, 1.5, 2.0]
     assert r.died(death("agent:2"), now) is None and not r.waiting("agent:2")
@@ -32,10 +32,10 @@ def test_each_restart_waits_its_backoff_and_the_limit_ends_them() -> None:
 
 def test_each_role_counts_its_own_restarts() -> None:
     r = Restarts(RestartPolicy(enabled=True, initial_delay_s=0.2, factor=2.0, max_delay_s=5.0, max_restarts=2))
-    assert r.died(death("agent:1"), 0.0) == 0.2 and r.due("agent:1", 0.2) == 1
+    assert r.died(death("agent:1"), 0.0) == 0.2 and r.restart_now("agent:1", 0.2) == 1
     assert r.died(death("agent:1"), 1.0) == 0.4  # its second: 0.2 * 2
     assert r.died(death("leader"), 1.0) == 0.2  # the leader's first
-    assert r.due("leader", 1.3) == 1 and r.due("agent:1", 1.3) is None and r.due("agent:1", 1.4) == 2
+    assert r.restart_now("leader", 1.3) == 1 and r.restart_now("agent:1", 1.3) is None and r.restart_now("agent:1", 1.4) == 2
     assert r.done == {"agent:1": 2, "leader": 1}
 
 
@@ -51,5 +51,14 @@ def test_the_flights_end_cancels_the_restarts_waited_for() -> None:
     r = Restarts(RestartPolicy(enabled=True, initial_delay_s=1.0))
     r.died(death("agent:1"), 0.0)
     r.died(death("agent:3"), 0.5)
-    assert sorted(r.cancel()) == ["agent:1", "agent:3"] and r.cancel() == []
-    assert r.due("agent:1", 10.0) is None and r.done == {}
+    assert sorted(r.cancel_pending()) == ["agent:1", "agent:3"] and r.cancel_pending() == []
+    assert r.restart_now("agent:1", 10.0) is None and r.done == {}
+
+
+def test_after_the_flights_end_no_restart_and_a_grace_then_over() -> None:
+    r = Restarts(RestartPolicy(enabled=True, initial_delay_s=1.0))
+    r.died(death("agent:2"), 10.0)
+    assert r.flight_ended(10.5, grace_s=3.0) == (["agent:2"], False), "the restart due at 11.0 is not made"
+    assert r.restart_now("agent:2", 11.0) is None and r.done == {}
+    assert r.flight_ended(13.49, grace_s=3.0) == ([], False), "the grace counts from the end first seen (10.5)"
+    assert r.flight_ended(13.5, grace_s=3.0) == ([], True)
