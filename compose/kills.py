@@ -8,7 +8,7 @@ the collector's sim time gets to T (:class:`Kills`: both, for one flight). Pure.
 from __future__ import annotations
 
 import signal
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 
 from zenswarm.bus import wire
 from zenswarm.process.lockstep import kill_self_line
@@ -58,10 +58,10 @@ class Kills:
             return k * self.dt
         return t_s
 
-    def kills_due(self, sim_t_ns: int, running: Callable[[str], bool]) -> list[str]:
+    def kills_due(self, sim_t_ns: int, running: Collection[str]) -> list[str]:
         """The roles the supervisor SIGKILLs now: their sim time has come (``sim_t_ns``, the
-        collector's) and they are ``running``; taken (each is killed once)."""
-        due = [r for r, at_ns in self.pending.items() if sim_t_ns >= at_ns and running(r)]
+        collector's) and they are ``running`` (a role not running yet waits); taken (each is killed once)."""
+        due = [r for r, at_ns in self.pending.items() if sim_t_ns >= at_ns and r in running]
         for r in due:
             del self.pending[r]
         return due

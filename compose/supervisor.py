@@ -1,12 +1,13 @@
 """The supervisor of ``zenswarm up``: it supervises. It opens the swarm's Zenoh router
 (:func:`zenswarm.compose.router.open_router`, secured by :mod:`zenswarm.compose.credentials`),
-starts the plant, the leader and N agents as separate OS processes, restarts them by the policy,
-watches them (their exit statuses; their liveliness tokens and the ``--external`` roles',
-:mod:`zenswarm.compose.liveliness`; the plug-in failures they report,
+starts the plant, the leader and N agents as separate OS processes, restarts them by the policy
+(:mod:`zenswarm.compose.restarts`), watches them (their exit statuses; their liveliness tokens and
+the ``--external`` roles', :mod:`zenswarm.compose.liveliness`; the plug-in failures they report,
 :mod:`zenswarm.compose.plugin_failures`), merges their logs and stops them cleanly. It takes a
-checked :class:`zenswarm.process.settings.FlightSettings`; the command line, its checks and the
-settings' building are :mod:`zenswarm.compose.up`'s, which also attaches what only looks on: the
-live view (a :class:`~zenswarm.compose.hooks.Tap`) and the report (an end hook).
+checked :class:`zenswarm.process.settings.FlightSettings` and hands each part what it reads; the
+command line, its checks and the settings' building are :mod:`zenswarm.compose.up`'s, which also
+attaches what only looks on: the live view (a :class:`~zenswarm.compose.hooks.Tap`) and the
+report (an end hook).
 
 The router session subscribes to the swarm's whole key space to assemble the flight's time series
 (the same :class:`zenswarm.judge.metrics.TimeSeries` the in-process simulator writes); when the
@@ -300,8 +301,9 @@ class Supervisor:
                 await_last_tick(collector, lambda: collector.poll(self._bus_sub, tap), realtime=a.realtime,
                                 timeout_s=a.lockstep_timeout, stop=self.stop, say=self.say)  # fmt: skip
                 return EXIT_OK
-            for role in self.kills.kills_due(collector.sim_t_ns, lambda r: r in self.children and self.children[r].proc.poll() is None):
-                self.say(f"injecting SIGKILL into {role} at sim time {collector.sim_t_ns / 1e9:.2f} s (--kill)")  # --kill ROLE@T
+            running = [name for name, c in self.children.items() if c.proc.poll() is None] if self.kills.pending else []
+            for role in self.kills.kills_due(collector.sim_t_ns, running):  # --kill ROLE@T
+                self.say(f"injecting SIGKILL into {role} at sim time {collector.sim_t_ns / 1e9:.2f} s (--kill)")
                 self.children[role].proc.kill()
             if now - last_check >= LIVE_CHECK_S:
                 last_check = now
@@ -358,11 +360,10 @@ class Supervisor:
         return over
 
     def _drain_plugin_failures(self, collector: Collector) -> int:
-        """A plug-in failed: wait until the flight before it is complete and every process
-        that could fail in the same (tick, stage) has either given its output of that stage or
-        failed too (:func:`~zenswarm.compose.plugin_failures.await_settled`), then judge: the ticks
-        before the failed one, unless the outcome was decided before it (as the simulator:
-        :meth:`EndWatch.plugin_failed`). Returns 4, or 0 when the run was decided before."""
+        """A plug-in failed: wait until its (tick, stage) is settled
+        (:func:`~zenswarm.compose.plugin_failures.await_settled`), then judge the ticks before it,
+        unless the outcome was decided before (as the simulator: :meth:`EndWatch.plugin_failed`).
+        Returns 4, or 0 when the run was decided before."""
         first = await_settled(self.plugin_failures, collector, partial(self._reap, collector), realtime=self.args.realtime,
                               roles=self.started, announced=self.tokens.seen, timeout_s=self.args.lockstep_timeout + SETTLE_GRACE_S,
                               stop=self.stop, say=self.say)  # fmt: skip

@@ -25,10 +25,9 @@ def test_a_flights_kills_first_start_only_its_death_time_and_the_supervisors_due
     said = ["agent:2: its last step", f"agent:2: {kill_self_line(100)}"]
     assert k.death_time("agent:2", -9, said, t_s=1.07) == 1.0, "it killed itself just before tick 100"
     assert k.death_time("agent:2", -9, said, t_s=1.07) == 1.07, "taken once: its restart dies at the time seen"
-    running = {"recorder": False}  # the recorder is the supervisor's to kill, once its sim time came and it runs
-    assert k.kills_due(400_000_000, running.get) == [] and k.kills_due(500_000_000, running.get) == []
-    running["recorder"] = True
-    assert k.kills_due(500_000_000, running.get) == ["recorder"] and k.kills_due(900_000_000, running.get) == []
+    # the recorder is the supervisor's to kill, once its sim time came and it runs
+    assert k.kills_due(400_000_000, ["recorder"]) == [] and k.kills_due(500_000_000, ["plant"]) == []
+    assert k.kills_due(500_000_000, ["plant", "recorder"]) == ["recorder"] and k.kills_due(900_000_000, ["recorder"]) == []
 
 
 def test_a_death_that_was_not_the_kill_is_dated_when_seen() -> None:
