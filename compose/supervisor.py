@@ -364,11 +364,12 @@ class Supervisor:
         (:func:`~zenswarm.compose.plugin_failures.await_settled`), then judge the ticks before it,
         unless the outcome was decided before (as the simulator: :meth:`EndWatch.plugin_failed`).
         Returns 4, or 0 when the run was decided before."""
-        first = await_settled(self.plugin_failures, collector, partial(self._reap, collector), realtime=self.args.realtime,
-                              roles=self.started, announced=self.tokens.seen, timeout_s=self.args.lockstep_timeout + SETTLE_GRACE_S,
-                              stop=self.stop, say=self.say)  # fmt: skip
+        a = self.args
+        first = await_settled(self.plugin_failures, collector, partial(self._reap, collector), realtime=a.realtime,
+                              roles=self.started, announced=self.tokens.seen, stop=self.stop, say=self.say,
+                              timeout_s=a.lockstep_timeout + SETTLE_GRACE_S)  # fmt: skip
         end = self.watch.plugin_failed(collector, first[0].tick)
-        self.plugin_failures.keep(first if end.plugin_failed else [])  # none: decided before the plug-in failed, the run ended there
+        self.plugin_failures.keep(first if end.plugin_failed else [])  # none when decided before: the run ended there
         if not end.plugin_failed:
             self.say(end.why)
         return EXIT_PLUGIN_FAILED if end.plugin_failed else EXIT_OK
@@ -390,7 +391,7 @@ class Supervisor:
         """A process of ours exited with status ``rc`` != 0: schedule its restart (None) when the
         policy allows, else the exit code (3)."""
         c.join_output(1.0)  # its output ended with it: its last lines are read at once
-        # when the collector's clock (a few ticks behind, loaded) saw it, or (--kill in lockstep) the tick it killed itself at
+        # when the collector's clock saw it (a few ticks behind, loaded), or the tick it killed itself at (--kill)
         t_s = self.kills.death_time(c.name, rc, c.lines, max(collector.sim_t_ns, 0) / 1e9)
         delay = self.restarts.died(process_death(c, rc, t_s, self.say), now)
         if delay is not None:
@@ -409,7 +410,8 @@ class Supervisor:
         dead = getattr(self, "failed", "?")  # exit 3: the process that died for good
         how = self.restarts.how_died(dead)
         facts = partial(run_facts, collector, realtime=a.realtime, swarm=a.swarm, record=a.record, listen=self.listen,
-                        children=self.children, deaths=self.deaths, restarts=self.restarts.done, recording_loss=self.recording_loss,
+                        children=self.children, deaths=self.deaths, restarts=self.restarts.done,
+                        recording_loss=self.recording_loss,
                         cluster=self.cluster.facts() if self.cluster is not None else None)  # fmt: skip
         res = judge_and_write(
             collector, self.watch, self.sc, out, stopped=code not in (EXIT_OK, EXIT_PLUGIN_FAILED), fill=a.realtime or bool(self.deaths),
