@@ -6,7 +6,7 @@ credentials' directory the roles join with (the user's ``--keys DIR``, else gene
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -14,7 +14,6 @@ from typing import Any
 from zenswarm.errors import ScenarioError
 from zenswarm.process import security
 from zenswarm.process.paths import check_output_dir
-from zenswarm.process.settings import FlightSettings
 from zenswarm.scenario.config import Scenario
 
 __all__ = ["RouterSecurity", "router_security", "user_keys", "run_keys"]
@@ -31,28 +30,42 @@ class RouterSecurity:
     keys_dir: Path | None
 
 
-def router_security(args: FlightSettings, sc: Scenario, listen: list[str], out: Path, say: Callable[[str], None]) -> RouterSecurity:
-    """The router's security for ``--secure``/``--tls``/``--keys`` (secure by default off
-    loopback, unless ``--insecure``: then a warning is said). An endpoint secure mode cannot use,
-    or credentials that do not fit this swarm: an error before anything starts (exit 2)."""
+def router_security(
+    sc: Scenario,
+    listen: list[str],
+    out: Path,
+    say: Callable[[str], None],
+    *,
+    swarm: str,
+    connect: Sequence[str],
+    secure: bool,
+    tls: bool,
+    insecure: bool,
+    keys: Path | None,
+) -> RouterSecurity:
+    """The router of swarm ``swarm`` (the roles join it on ``connect``): its security for
+    ``secure``/``tls``/``keys`` (``--secure``, ``--tls``, ``--keys DIR``; secure by default off
+    loopback, unless ``insecure``, ``--insecure``: then a warning is said). An endpoint secure
+    mode cannot use, or credentials that do not fit this swarm: an error before anything starts
+    (exit 2)."""
     open_net = not all(security.is_loopback_endpoint(e) for e in listen)
-    asked = args.secure or args.tls or args.keys is not None
-    if not (asked or (open_net and not args.insecure)):
+    asked = secure or tls or keys is not None
+    if not (asked or (open_net and not insecure)):
         if open_net:
             say("WARNING: --insecure on a non-loopback address: anyone who reaches the router can command the swarm")
         return RouterSecurity({}, listen, None)
-    auth: security.AuthMode = "tls" if args.tls else "usrpwd"
-    if args.tls:
+    auth: security.AuthMode = "tls" if tls else "usrpwd"
+    if tls:
         listen = [security.tls_endpoint(e) for e in listen]
     # before anything starts: the processes would each die on such an endpoint
     try:
-        security.check_endpoints([*listen, *args.connect], auth)
+        security.check_endpoints([*listen, *connect], auth)
     except security.CredentialsError as e:
         why = "secure mode" if asked else "secure mode (the default when the router is not on loopback only)"
         raise security.CredentialsError(f"{why}: {e}") from None
-    keys_dir = user_keys(args.keys, sc, args.swarm) if args.keys is not None else run_keys(out / "keys", sc, args.swarm, say)
-    say(f"secure mode: {'mutual TLS' if args.tls else 'user/password'} authentication, access control from the graph")
-    return RouterSecurity(security.router_security_config(keys_dir, sc, args.swarm, auth=auth), listen, keys_dir)
+    keys_dir = user_keys(keys, sc, swarm) if keys is not None else run_keys(out / "keys", sc, swarm, say)
+    say(f"secure mode: {'mutual TLS' if tls else 'user/password'} authentication, access control from the graph")
+    return RouterSecurity(security.router_security_config(keys_dir, sc, swarm, auth=auth), listen, keys_dir)
 
 
 def user_keys(keys: Path, sc: Scenario, swarm: str) -> Path:

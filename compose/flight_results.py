@@ -2,7 +2,8 @@
 :class:`~zenswarm.judge.watch.EndWatch` says), written and said by the code the simulator's are
 (:mod:`zenswarm.judge.results`), with what only the supervisor knows beside the verdict
 (:func:`run_facts`: the mode, the router, its processes, their deaths and restarts, the vehicles as
-the bridge reported them, the recording and its loss, :func:`recording_lost`). In lockstep the
+the bridge reported them, the recording and its loss, :func:`recording_lost`; each death as it
+comes, :func:`process_death`). In lockstep the
 series is judged once the last tick's messages arrived (:func:`await_last_tick`).
 """
 
@@ -22,10 +23,9 @@ from zenswarm.judge.results import closing_lines, flight_results, write_outputs
 from zenswarm.judge.watch import EndWatch
 from zenswarm.link import FaultPlan
 from zenswarm.process.collector import Collector
-from zenswarm.process.settings import FlightSettings
 from zenswarm.scenario.config import Scenario
 
-__all__ = ["await_last_tick", "exit_how", "judge_and_write", "recording_lost", "run_facts", "vehicles_figures"]
+__all__ = ["await_last_tick", "exit_how", "judge_and_write", "process_death", "recording_lost", "run_facts", "vehicles_figures"]
 
 BRIDGE_FIGURES = ("phases", "armed_uavs", "airborne_uavs", "unhealthy_uavs", "max_latency_ms", "max_state_age_ms", "refused",
                   "link_lost", "positioning", "max_extpos_age_ms")  # fmt: skip
@@ -82,17 +82,17 @@ def judge_and_write(
 
 
 def run_facts(
-    args: FlightSettings, collector: Collector, *, listen: Sequence[str], children: Mapping[str, Child], deaths: list[dict[str, Any]],
-    restarts: dict[str, int], recording_loss: dict[str, Any] | None, cluster: Mapping[str, Any] | None = None,
+    collector: Collector, *, realtime: bool, swarm: str, record: Path | None, listen: Sequence[str], children: Mapping[str, Child],
+    deaths: list[dict[str, Any]], restarts: dict[str, int], recording_loss: dict[str, Any] | None, cluster: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:  # fmt: skip
-    """What results.json says of the run beside the verdict: mode, router (the endpoints it
-    listened on), processes (exit statuses) and where each ran (host, pid; on a cluster its
-    worker too), vehicles, deaths, restarts, the collector's facts (failsafe, diagnostics, decoder
-    rejects, foreign samples), the recording and its loss; with ``--scheduler`` the ``cluster``'s
-    facts (the scheduler, the workers lost)."""
+    """What results.json says of the run beside the verdict: mode (``realtime`` or lockstep),
+    swarm, router (the endpoints it listened on), processes (exit statuses) and where each ran
+    (host, pid; on a cluster its worker too), vehicles, deaths, restarts, the collector's facts
+    (failsafe, diagnostics, decoder rejects, foreign samples), the recording (``record``) and its
+    loss; with ``--scheduler`` the ``cluster``'s facts (the scheduler, the workers lost)."""
     res: dict[str, Any] = {
-        "mode": "realtime" if args.realtime else "lockstep",
-        "swarm": args.swarm,
+        "mode": "realtime" if realtime else "lockstep",
+        "swarm": swarm,
         "router": list(listen),  # its port: chosen free without --listen
         # a child stopped by terminate_all has its code on its process only (returncode is set when one dies)
         "processes": {name: c.status() for name, c in children.items()},
@@ -104,8 +104,8 @@ def run_facts(
         **collector.facts(),
         "supervisor_zenoh_threads": bus.zenoh_threads(),  # the router's (ZENOH_RUNTIME_ROUTER)
     }
-    if args.record is not None:
-        res["recording"] = str(args.record)
+    if record is not None:
+        res["recording"] = str(record)
         if recording_loss is not None:
             res["recording_loss"] = recording_loss
     return res
@@ -124,6 +124,17 @@ def vehicles_figures(children: Mapping[str, Child], diag: Mapping[str, dict[str,
     if c is not None:
         out["process_exit"] = c.status()
     return out
+
+
+def process_death(child: Child, rc: int, t_s: float, say: Callable[[str], None]) -> dict[str, Any]:
+    """A process of the flight (``child``, its output read to its end) exited with ``rc`` != 0 at
+    sim time ``t_s``: said (how, when, its last output), and the death as results.json's
+    ``process_deaths`` keeps it (process, how, sim_time_s). With ``--scheduler`` a process whose
+    worker was lost says so (its ``lost``, :mod:`zenswarm.compose.cluster`)."""
+    how = getattr(child.proc, "lost", None) or exit_how(rc)
+    tail = "; last output: " + " | ".join(child.lines[-3:]) if child.lines else ""
+    say(f"process {child.name} died ({how}) at sim time {t_s:.2f} s{tail}")
+    return {"process": child.name, "how": how, "sim_time_s": t_s}
 
 
 def recording_lost(child: Child, rc: int, sim_t_ns: int, recording: Path | None, say: Callable[[str], None]) -> dict[str, Any]:

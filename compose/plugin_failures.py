@@ -6,24 +6,31 @@ and the failure as JSON) and exits 4; a role on another host (``--external``) pu
 its diagnostics (``plugin_failure``). :class:`PluginFailures` takes both. The processes run
 concurrently, where the simulator calls the plug-ins in turn, so the flight is judged only once
 the failed (tick, stage) is settled (:func:`failure_settled`, pure over the collector: the ticks
-before it complete and every other process past that stage or failed in it); then the watch
-judges it as the simulator does (:meth:`zenswarm.judge.watch.EndWatch.plugin_failed`).
+before it complete and every other process past that stage or failed in it), which the supervisor
+waits for (:func:`await_settled`); then the watch judges it as the simulator does
+(:meth:`zenswarm.judge.watch.EndWatch.plugin_failed`).
 """
 
 from __future__ import annotations
 
 import json
+import threading
+import time
 from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from typing import Any, Protocol
 
 import numpy as np
 
 from zenswarm.bus import wire
+from zenswarm.compose.children import Child
 from zenswarm.errors import PluginFailure
 from zenswarm.process.runtime import PLUGIN_FAILURE_MARK
 from zenswarm.scenario.plugins import STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
 
-__all__ = ["PluginFailures", "TickOutputs", "failure_settled", "parse_failure"]
+__all__ = ["SETTLE_GRACE_S", "PluginFailures", "TickOutputs", "await_settled", "failure_settled", "parse_failure"]
+
+SETTLE_GRACE_S = 10.0
+"""How long past ``--lockstep-timeout`` the supervisor waits for a failed (tick, stage) to settle (:func:`await_settled`)."""
 
 
 def parse_failure(text: str) -> PluginFailure | None:
@@ -74,6 +81,12 @@ class PluginFailures:
         """Has ``process`` reported its plug-in's failure?"""
         return any(f.process == process for f in self.reported)
 
+    def reported_at_exit(self, child: Child) -> bool:
+        """``child`` exited with 4: did it report its plug-in's failure (its last lines read, up to 5
+        s: its output ends with it)? If not, it died."""
+        child.join_output(5.0)
+        return self.reported_by(child.name)
+
     def first(self) -> list[PluginFailure]:
         """The failures of the first (tick, stage): what the flight ends on."""
         return first_failures(self.reported)
@@ -121,3 +134,33 @@ def failure_settled(
         agents = [wire.agent(i + 1) for i in range(len(have))]
         return all(have[i] or a in failed or a in exited for i, a in enumerate(agents))
     return True
+
+
+def await_settled(
+    failures: PluginFailures,
+    flight: TickOutputs,
+    poll: Callable[[], Collection[str]],
+    *,
+    realtime: bool,
+    roles: Sequence[str],
+    announced: Collection[str],
+    timeout_s: float,
+    stop: threading.Event,
+    say: Callable[[str], None],
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
+) -> list[PluginFailure]:
+    """A plug-in failed: ``poll`` (one look at the flight: its messages taken into ``flight``, the
+    processes' exits and failures into ``failures``; the processes that exited) until the
+    failures of the first (tick, stage) are settled (:func:`failure_settled`), ``stop`` is set, or
+    ``timeout_s`` wall seconds (``clock``) went by (then said); those failures."""
+    deadline = clock() + timeout_s
+    while True:
+        exited = poll()
+        first = failures.first()
+        if failure_settled(flight, first, realtime=realtime, roles=roles, announced=announced, exited=exited) or stop.is_set():
+            return first
+        if clock() > deadline:
+            say("not every process gave its output of the failed tick in time; judging what arrived")
+            return first
+        sleep(0.02)

@@ -1,5 +1,6 @@
 """A swarm's Zenoh router: the one ``zenswarm up``'s supervisor opens in its own process
-(:func:`open_router`, a free port taken again if another program bound it first), and
+(:func:`open_router`, a free port taken again if another program bound it first; its session's
+channel of every message of the swarm, :func:`swarm_channel`), and
 ``python -m zenswarm.compose.router --listen tcp/127.0.0.1:7447 [--connect EP] [--set PATH=JSON ...]``:
 run a swarm router (:func:`zenswarm.bus.serve_router`) until SIGTERM/SIGINT (exit 0). Prints one
 line ``ready <zid> <endpoints...>`` once listening; exit 1 with a message on stderr if it cannot
@@ -16,8 +17,21 @@ from typing import Any
 import zenoh
 
 from zenswarm import bus
+from zenswarm.bus import wire
 
-__all__ = ["ROUTER_PORT_TRIES", "open_router", "build_parser", "parse_settings", "main"]
+__all__ = [
+    "COLLECTOR_QUEUE",
+    "ROUTER_PORT_TRIES",
+    "open_router",
+    "swarm_channel",
+    "undeclare_all",
+    "build_parser",
+    "parse_settings",
+    "main",
+]
+
+COLLECTOR_QUEUE = 4_000_000
+"""Capacity of the supervisor's bus queue, in messages (drained every ~50 ms, so it never fills)."""
 
 ROUTER_PORT_TRIES = 5
 """Without ``--listen`` the router's port is a free one, chosen a moment before the router binds
@@ -49,6 +63,23 @@ def open_router(
                 f"taking port {port}")
             listen = [ep.rpartition(":")[0] + f":{port}" for ep in listen]
     raise AssertionError("unreachable")  # the last try returns or raises
+
+
+def swarm_channel(session: zenoh.Session, keys: wire.Keys) -> Any:
+    """A subscriber of ``session`` to the swarm's whole key space (``keys.all``), as a channel of
+    :data:`COLLECTOR_QUEUE` messages the supervisor's watch loop drains: no Python callback per
+    message (each would wake a thread of this process, on the cores the swarm shares). The capacity
+    holds minutes of a large swarm's traffic, so the router never waits on this queue."""
+    return session.declare_subscriber(keys.all, zenoh.handlers.FifoChannel(COLLECTOR_QUEUE))
+
+
+def undeclare_all(subs: Sequence[Any]) -> None:
+    """Undeclare each subscriber of ``subs``, best effort (on shutdown: one that fails does not stop the rest)."""
+    for s in subs:
+        try:
+            s.undeclare()
+        except Exception:  # noqa: BLE001 - best effort on shutdown
+            pass
 
 
 def build_parser() -> argparse.ArgumentParser:

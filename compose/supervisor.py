@@ -1,12 +1,13 @@
 """The supervisor of ``zenswarm up``: it supervises. It opens the swarm's Zenoh router
 (:func:`zenswarm.compose.router.open_router`, secured by :mod:`zenswarm.compose.credentials`),
-starts the plant, the leader and N agents as separate OS processes, restarts them by the policy,
-watches them (their exit statuses; their liveliness tokens and the ``--external`` roles',
-:mod:`zenswarm.compose.liveliness`; the plug-in failures they report,
+starts the plant, the leader and N agents as separate OS processes, restarts them by the policy
+(:mod:`zenswarm.compose.restarts`), watches them (their exit statuses; their liveliness tokens and
+the ``--external`` roles', :mod:`zenswarm.compose.liveliness`; the plug-in failures they report,
 :mod:`zenswarm.compose.plugin_failures`), merges their logs and stops them cleanly. It takes a
-checked :class:`zenswarm.process.settings.FlightSettings`; the command line, its checks and the
-settings' building are :mod:`zenswarm.compose.up`'s, which also attaches what only looks on: the
-live view (a :class:`~zenswarm.compose.hooks.Tap`) and the report (an end hook).
+checked :class:`zenswarm.process.settings.FlightSettings` and hands each part what it reads; the
+command line, its checks and the settings' building are :mod:`zenswarm.compose.up`'s, which also
+attaches what only looks on: the live view (a :class:`~zenswarm.compose.hooks.Tap`) and the
+report (an end hook).
 
 The router session subscribes to the swarm's whole key space to assemble the flight's time series
 (the same :class:`zenswarm.judge.metrics.TimeSeries` the in-process simulator writes); when the
@@ -34,20 +35,21 @@ from zenswarm.compose import commands
 from zenswarm.compose.children import Child, start_with_settings, stop_in_order
 from zenswarm.compose.commands import role_names, swarm_roles
 from zenswarm.compose.credentials import router_security
-from zenswarm.compose.flight_results import await_last_tick, judge_and_write, recording_lost, run_facts
+from zenswarm.compose.flight_results import await_last_tick, judge_and_write, process_death, recording_lost, run_facts
 from zenswarm.compose.hooks import EndHook, FlightEnd, Tap, feeds
-from zenswarm.compose.kills import split_kills
+from zenswarm.compose.kills import Kills
 from zenswarm.compose.liveliness import EXTERNAL_GONE_GRACE_S, ExternalRoles, Tokens
-from zenswarm.compose.plugin_failures import PluginFailures, failure_settled
+from zenswarm.compose.plugin_failures import SETTLE_GRACE_S, PluginFailures, await_settled
 from zenswarm.compose.policy import restart_policy
 from zenswarm.compose.progress import SwarmProgress, children_health
-from zenswarm.compose.router import open_router
+from zenswarm.compose.restarts import FLIGHT_OVER_GRACE_S, Restarts
+from zenswarm.compose.router import open_router, swarm_channel, undeclare_all
 from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED
 from zenswarm.judge.verdict import criteria_from_scenario
 from zenswarm.judge.watch import EndWatch
 from zenswarm.process.collector import Collector
 from zenswarm.process.paths import lock_output_dir
-from zenswarm.process.runtime import gc_safe_point, gc_startup_done, kill_self_line
+from zenswarm.process.runtime import gc_safe_point, gc_startup_done
 from zenswarm.process.settings import FlightSettings, decode_role
 from zenswarm.scenario.config import Scenario
 
@@ -55,13 +57,6 @@ __all__ = ["Supervisor", "role_names", "swarm_roles", "EXTERNAL_GONE_GRACE_S"]
 
 LIVE_CHECK_S = 0.25
 """Wall seconds between two looks at whether the flight's outcome is decided (early end)."""
-
-COLLECTOR_QUEUE = 4_000_000
-"""Capacity of the supervisor's bus queue, in messages (drained every ~50 ms, so it never fills)."""
-
-FLIGHT_OVER_GRACE_S = 5.0
-"""Once the plant ended the flight, the other roles leave by themselves within this long (plus
-``--lockstep-timeout``); one still running then is stopped (:meth:`Supervisor._flight_over`)."""
 
 EXIT_OK, EXIT_MISSION_FAILED, EXIT_PROCESS_FAILED = 0, 1, 3
 """``zenswarm up``'s own exit statuses: the mission succeeded, it failed, a process died (bad input 2,
@@ -88,23 +83,23 @@ class Supervisor:
         self.stop = threading.Event()
         self.stop_reason = ""
         self.print_lock = threading.Lock()
-        # --kill: killed from here at a sim time (ns), or (lockstep roles) by themselves at a tick (compose/kills.py)
-        self.pending_kills, self.kill_ticks = split_kills(args.kill or (), realtime=args.realtime, dt=scenario.timing.dt)
-        self.self_killed: dict[str, int] = {}  # role -> the tick it was started to kill itself at
+        # --kill: killed from here at a sim time, or (lockstep roles) by themselves at a tick
+        self.kills = Kills(args.kill or (), realtime=args.realtime, dt=scenario.timing.dt)
         self.policy = restart_policy(scenario.restart, force=args.restart)
         self.connect_endpoints: list[str] = []  # where the roles join the router, once it listens
         self.tokens = Tokens(self.keys, lambda: self.collector.sim_t_ns if self.collector is not None else -1)
         self._on_liveliness, self.gone_at = self.tokens.on_token, self.tokens.gone_at  # (tests drive the tokens by these)
-        watched = [r for r in self.all_roles() if r in args.external and r != "vehicles"]  # the vehicles: no Zenoh, no token
+        everyone = swarm_roles(scenario.n, args.plant)  # every role of this swarm (whoever starts it), in start order
+        self.started = [r for r in everyone if r not in args.external]  # those started here (:meth:`roles`)
+        watched = [r for r in everyone if r in args.external and r != "vehicles"]  # the vehicles: no Zenoh, no token
         self.external = ExternalRoles(watched, self.tokens, timeout_s=args.external_timeout, swarm=args.swarm,
                                       time_limit_s=scenario.timing.time_limit_s, policy=self.policy, say=lambda text: self.say(text))
-        self.restart_at: dict[str, float] = {}
-        self.restarts: dict[str, int] = {}
-        self.deaths: list[dict] = []
+        self.restarts = Restarts(self.policy)  # the processes' deaths, the restarts due and made
+        self.deaths = self.restarts.deaths  # (tests read them here)
         # when the flight ends (decided, --stop-at-goal, a plug-in failed) and which ticks are judged
         self.watch = EndWatch(criteria_from_scenario(scenario), scenario.timing.n_ticks, full_time=args.full_time,
                               stop_at_goal=args.stop_at_goal, realtime=args.realtime)
-        self.recording_loss: dict | None = None  # the recorder died mid-flight (_recorder_died)
+        self.recording_loss: dict | None = None  # the recorder died mid-flight (_check_children)
         self.plugin_failures = PluginFailures(lambda text: self.say(text))  # what processes that exited with 4 reported
         # the vehicles' ports P+i (the bridge listens) and their send ports P+40+i, all free
         self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n, also=(SITL_SEND_OFFSET,))
@@ -113,7 +108,6 @@ class Supervisor:
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
         self.taps: list[Tap] = []  # views fed every message of the bus (--live: attached by compose/up.py)
         self.on_end: list[EndHook] = []  # called once the results are written (--report: attached by compose/up.py)
-        self.flight_over_at: float | None = None  # monotonic s when the flight's clock ended it (_flight_over)
         self.cluster: Any = None  # --scheduler: the Dask cluster the roles run on (zenswarm.compose.cluster.Cluster), set by run()
 
     # ------------------------------------------------------------------ output
@@ -136,9 +130,8 @@ class Supervisor:
         """What ``role`` is started with: its command line and its settings
         (:func:`zenswarm.compose.commands.command`). A role named by ``--kill`` in lockstep kills
         itself at the tick, on its first start only."""
-        kill_at = self.kill_ticks.pop(role, None)  # the first start only: a restarted process is not killed again
+        kill_at = self.kills.take_tick(role)  # the first start only: a restarted process is not killed again
         if kill_at is not None:
-            self.self_killed[role] = kill_at
             self.say(f"{role} will SIGKILL itself just before tick {kill_at} (sim time {kill_at * self.sc.timing.dt:.2f} s; --kill)")
         at = commands.Launch(self.args, tuple(self.connect_endpoints), self.keys_dir, self.mav_base_port, self.cf_base_port, os.getpid())
         return commands.command(role, at, kill_at)
@@ -181,7 +174,7 @@ class Supervisor:
             from zenswarm.compose.cluster import Cluster
 
             self.cluster = Cluster(a.scheduler, a.placement, self.say)
-            placed = [r for r in self.roles() if r.partition(":")[0] in commands.ROLES_BY_SETTINGS]
+            placed = [r for r in self.started if r.partition(":")[0] in commands.ROLES_BY_SETTINGS]
             self.cluster.open(placed, self.sc.n, list(a.connect) or listen, a.swarm)
         try:
             settings, listen = self._security(listen, out)
@@ -213,10 +206,7 @@ class Supervisor:
         subs = []
         try:
             try:
-                # A channel, drained by _watch every loop: no Python callback per message (each would
-                # wake a thread of this process, on the cores the swarm shares). The capacity holds
-                # minutes of a large swarm's traffic, so the router never waits on this queue.
-                self._bus_sub = session.declare_subscriber(self.keys.all, zenoh.handlers.FifoChannel(COLLECTOR_QUEUE))
+                self._bus_sub = swarm_channel(session, self.keys)  # drained by _watch every loop
                 subs.append(self._bus_sub)
                 subs += self.tokens.subscribe(session, collector.token)
                 self.say(
@@ -226,7 +216,7 @@ class Supervisor:
                 if a.record is not None:
                     a.record.parent.mkdir(parents=True, exist_ok=True)
                     self.spawn("recorder")  # first: the plant waits for it, so no tick goes unrecorded
-                for role in self.roles():
+                for role in self.started:
                     self.spawn(role)
                 if a.realtime:
                     gc_startup_done()  # the children are started: see zenswarm.process.runtime.GcPolicy (realtime only)
@@ -237,11 +227,7 @@ class Supervisor:
                     collector.poll(self._bus_sub, feeds(self.taps))  # what arrived after the last loop
                 for t in self.taps:
                     t.publish()  # the flight's last frame
-                for s in subs:
-                    try:
-                        s.undeclare()
-                    except Exception:  # noqa: BLE001 - best effort on shutdown
-                        pass
+                undeclare_all(subs)
             # results first, then the router's close: with a link to a host that is gone (a cut
             # cable, a dead remote role) zenoh's close waits about 10 s for it to time out
             return self._finish(collector, code, out)
@@ -255,29 +241,21 @@ class Supervisor:
 
     def _security(self, listen: list[str], out: Path) -> tuple[dict, list[str]]:
         """The router's settings and listen endpoints (:func:`~zenswarm.compose.credentials.router_security`); keeps the keys' dir."""
-        sec = router_security(self.args, self.sc, listen, out, self.say)
+        a = self.args
+        sec = router_security(
+            self.sc, listen, out, self.say, swarm=a.swarm, connect=a.connect, secure=a.secure, tls=a.tls, insecure=a.insecure, keys=a.keys
+        )
         self.keys_dir = sec.keys_dir
         return sec.settings, sec.listen
 
-    def all_roles(self) -> list[str]:
-        """Every role of this swarm (whoever starts it), in start order."""
-        return swarm_roles(self.sc.n, self.args.plant)
-
     def roles(self) -> list[str]:
         """The processes this supervisor starts, in start order (``--external`` ones excluded)."""
-        external = set(self.args.external)
-        return [r for r in self.all_roles() if r not in external]
+        return list(self.started)
 
     def external_roles(self) -> list[str]:
         """The ``--external`` roles this supervisor watches through their liveliness tokens (the
         simulated MAVLink vehicles have no Zenoh session: they cannot be watched)."""
         return self.external.names
-
-    def _recorder_died(self, child: Child, rc: int, collector: Collector) -> None:
-        """The recorder is not a vehicle: its death does not end the flight; the loss is said and
-        kept for results.json (:func:`~zenswarm.compose.flight_results.recording_lost`). The plant
-        waited for the recorder only before tick 0, so nothing waits for it now."""
-        self.recording_loss = recording_lost(child, rc, collector.sim_t_ns, self.args.record, self.say)
 
     def _watch_external(self, collector: Collector, now: float, since: float) -> int | None:
         """``--external`` roles, known only through their liveliness tokens: one whose token went
@@ -286,7 +264,7 @@ class Supervisor:
         death = self.external.check(collector, now, since, self.connect_endpoints)
         if death is None:
             return None
-        self.deaths.append(death)
+        self.restarts.deaths.append(death)
         self.failed = death["process"]
         return EXIT_PROCESS_FAILED
 
@@ -323,7 +301,10 @@ class Supervisor:
                 await_last_tick(collector, lambda: collector.poll(self._bus_sub, tap), realtime=a.realtime,
                                 timeout_s=a.lockstep_timeout, stop=self.stop, say=self.say)  # fmt: skip
                 return EXIT_OK
-            self._inject_kills(collector)
+            running = [name for name, c in self.children.items() if c.proc.poll() is None] if self.kills.pending else []
+            for role in self.kills.kills_due(collector.sim_t_ns, running):  # --kill ROLE@T
+                self.say(f"injecting SIGKILL into {role} at sim time {collector.sim_t_ns / 1e9:.2f} s (--kill)")
+                self.children[role].proc.kill()
             if now - last_check >= LIVE_CHECK_S:
                 last_check = now
                 end = self.watch.look(collector)  # has the flight's outcome been decided (or, --stop-at-goal, the goal)?
@@ -339,9 +320,11 @@ class Supervisor:
         if one died for good, else None). The recorder and the vehicles never keep the run going."""
         done = True
         for c in list(self.children.values()):
-            if c.name in self.restart_at:
+            if self.restarts.waiting(c.name):
                 done = False
-                self._restart_if_due(c, now)
+                if (n := self.restarts.restart_now(c.name, now)) is not None:
+                    self.say(f"restarting {c.name} (restart {n} of {self.policy.max_restarts})")
+                    self.spawn(c.name)
                 continue
             rc = c.proc.poll()
             if rc is None:
@@ -351,10 +334,10 @@ class Supervisor:
             if c.returncode is not None:
                 continue
             c.returncode = rc
-            if c.name == "recorder":  # any exit before the end is a loss, never a failure
-                self._recorder_died(c, rc, collector)
+            if c.name == "recorder":  # any exit before the end is a loss (said; results.json), never a failure
+                self.recording_loss = recording_lost(c, rc, collector.sim_t_ns, self.args.record, self.say)
                 continue
-            if rc == EXIT_PLUGIN_FAILED and self._took_plugin_failure(c):
+            if rc == EXIT_PLUGIN_FAILED and self.plugin_failures.reported_at_exit(c):
                 return done, EXIT_PLUGIN_FAILED
             if rc != 0:
                 code = self._child_died(c, rc, collector, now)
@@ -371,90 +354,53 @@ class Supervisor:
         clock = self.children.get("bridge" if self.args.plant in ("mavlink", "crazyflie") else "plant")
         if clock is None or clock.returncode != 0:
             return False
-        for role in list(self.restart_at):
-            del self.restart_at[role]
+        cancelled, over = self.restarts.flight_ended(now, FLIGHT_OVER_GRACE_S + self.args.lockstep_timeout)
+        for role in cancelled:
             self.say(f"{role}: not restarted, the flight is over ({clock.name} ended it)")
-        if self.flight_over_at is None:
-            self.flight_over_at = now
-        return now - self.flight_over_at >= FLIGHT_OVER_GRACE_S + self.args.lockstep_timeout
-
-    def _took_plugin_failure(self, c: Child) -> bool:
-        """A child that exited with 4: did it report its plug-in's failure
-        (:data:`zenswarm.process.runtime.PLUGIN_FAILURE_MARK`, read by :meth:`_pump`)? If not, it died."""
-        c.join_output(5.0)  # its last lines: the output ends with the process
-        return self.plugin_failures.reported_by(c.name)
+        return over
 
     def _drain_plugin_failures(self, collector: Collector) -> int:
-        """A plug-in failed: wait until the flight before it is complete and every process
-        that could fail in the same (tick, stage) has either given its output of that stage or
-        failed too (the processes run concurrently; the simulator calls them in turn), then
-        judge: the ticks before the failed one, unless the outcome was decided before it (as
-        the simulator: :meth:`EndWatch.plugin_failed`). Returns 4, or 0 when the run was decided before."""
-        deadline = time.monotonic() + self.args.lockstep_timeout + 10.0
-        while True:
-            collector.poll(self._bus_sub, feeds(self.taps))
-            for c in list(self.children.values()):
-                rc = c.proc.poll()
-                if rc is not None and c.returncode is None:
-                    c.returncode = rc
-                    if rc == EXIT_PLUGIN_FAILED:
-                        self._took_plugin_failure(c)  # its last lines read
-            self.plugin_failures.from_diagnostics(collector.diag, self.external.names)
-            first = self.plugin_failures.first()
-            exited = {name for name, c in self.children.items() if c.returncode is not None}
-            settled = failure_settled(collector, first, realtime=self.args.realtime, roles=self.roles(), announced=self.tokens.seen,
-                                      exited=exited)  # fmt: skip
-            if settled or self.stop.is_set():
-                break
-            if time.monotonic() > deadline:
-                self.say("not every process gave its output of the failed tick in time; judging what arrived")
-                break
-            time.sleep(0.02)
+        """A plug-in failed: wait until its (tick, stage) is settled
+        (:func:`~zenswarm.compose.plugin_failures.await_settled`), then judge the ticks before it,
+        unless the outcome was decided before (as the simulator: :meth:`EndWatch.plugin_failed`).
+        Returns 4, or 0 when the run was decided before."""
+        a = self.args
+        first = await_settled(self.plugin_failures, collector, partial(self._reap, collector), realtime=a.realtime,
+                              roles=self.started, announced=self.tokens.seen, stop=self.stop, say=self.say,
+                              timeout_s=a.lockstep_timeout + SETTLE_GRACE_S)  # fmt: skip
         end = self.watch.plugin_failed(collector, first[0].tick)
-        if not end.plugin_failed:  # decided before the plug-in failed: the run had ended there
-            self.plugin_failures.keep([])
+        self.plugin_failures.keep(first if end.plugin_failed else [])  # none when decided before: the run ended there
+        if not end.plugin_failed:
             self.say(end.why)
-            return EXIT_OK
-        self.plugin_failures.keep(first)
-        return EXIT_PLUGIN_FAILED
+        return EXIT_PLUGIN_FAILED if end.plugin_failed else EXIT_OK
 
-    def _restart_if_due(self, c: Child, now: float) -> None:
-        if now >= self.restart_at[c.name]:
-            del self.restart_at[c.name]
-            self.restarts[c.name] = self.restarts.get(c.name, 0) + 1
-            self.say(f"restarting {c.name} (restart {self.restarts[c.name]} of {self.policy.max_restarts})")
-            self.spawn(c.name)
+    def _reap(self, collector: Collector) -> set[str]:
+        """One look while a plug-in's failure settles: the bus drained, the processes' exits taken
+        (with their failure reports) and the external roles' failures; the processes that exited."""
+        collector.poll(self._bus_sub, feeds(self.taps))
+        for c in list(self.children.values()):
+            rc = c.proc.poll()
+            if rc is not None and c.returncode is None:
+                c.returncode = rc
+                if rc == EXIT_PLUGIN_FAILED:
+                    self.plugin_failures.reported_at_exit(c)  # its last lines read
+        self.plugin_failures.from_diagnostics(collector.diag, self.external.names)
+        return {name for name, c in self.children.items() if c.returncode is not None}
 
     def _child_died(self, c: Child, rc: int, collector: Collector, now: float) -> int | None:
         """A process of ours exited with status ``rc`` != 0: schedule its restart (None) when the
         policy allows, else the exit code (3)."""
-        how = f"killed by {signal.Signals(-rc).name}" if rc < 0 else f"exit status {rc}"
-        how = getattr(c.proc, "lost", None) or how  # --scheduler: its worker was lost (zenswarm.compose.cluster)
         c.join_output(1.0)  # its output ended with it: its last lines are read at once
-        tail = "; last output: " + " | ".join(c.lines[-3:]) if c.lines else ""
-        t_s = max(collector.sim_t_ns, 0) / 1e9  # when the collector's clock (a few ticks behind, loaded) saw it
-        k = self.self_killed.pop(c.name, None)
-        if k is not None and rc == -signal.SIGKILL and any(ln.endswith(kill_self_line(k)) for ln in c.lines[-3:]):
-            t_s = k * self.sc.timing.dt  # --kill in lockstep: it killed itself just before this tick
-        self.say(f"process {c.name} died ({how}) at sim time {t_s:.2f} s{tail}")
-        self.deaths.append({"process": c.name, "how": how, "sim_time_s": t_s})
-        delay = self.policy.delay(self.restarts.get(c.name, 0)) if self.policy.allows(c.name) else None
+        # when the collector's clock saw it (a few ticks behind, loaded), or the tick it killed itself at (--kill)
+        t_s = self.kills.death_time(c.name, rc, c.lines, max(collector.sim_t_ns, 0) / 1e9)
+        delay = self.restarts.died(process_death(c, rc, t_s, self.say), now)
         if delay is not None:
-            self.restart_at[c.name] = now + delay
             self.say(f"{c.name} will be restarted in {delay:.2f} s")
             return None
-        if self.policy.enabled and self.policy.allows(c.name):
+        if self.restarts.limit_reached(c.name):
             self.say(f"{c.name}: restart limit ({self.policy.max_restarts}) reached; aborting the mission")
         self.failed = c.name
         return EXIT_PROCESS_FAILED
-
-    def _inject_kills(self, collector: Collector) -> None:
-        """``--kill ROLE@T``: SIGKILL each role whose time has come (sim time)."""
-        for role, at_ns in list(self.pending_kills.items()):
-            if collector.sim_t_ns >= at_ns and role in self.children and self.children[role].proc.poll() is None:
-                self.say(f"injecting SIGKILL into {role} at sim time {collector.sim_t_ns / 1e9:.2f} s (--kill)")
-                self.children[role].proc.kill()
-                del self.pending_kills[role]
 
     def _finish(self, collector: Collector, code: int, out: Path) -> int:
         """Judge the flight, write OUT/results.json and OUT/timeseries.npz
@@ -462,9 +408,10 @@ class Supervisor:
         report with ``--report``); the exit code: ``code`` if not 0, else 0 or 1 by the verdict."""
         a = self.args
         dead = getattr(self, "failed", "?")  # exit 3: the process that died for good
-        how = next((d["how"] for d in reversed(self.deaths) if d["process"] == dead), "unknown")
-        facts = partial(run_facts, a, collector, listen=self.listen, children=self.children, deaths=self.deaths,
-                        restarts=self.restarts, recording_loss=self.recording_loss,
+        how = self.restarts.how_died(dead)
+        facts = partial(run_facts, collector, realtime=a.realtime, swarm=a.swarm, record=a.record, listen=self.listen,
+                        children=self.children, deaths=self.deaths, restarts=self.restarts.done,
+                        recording_loss=self.recording_loss,
                         cluster=self.cluster.facts() if self.cluster is not None else None)  # fmt: skip
         res = judge_and_write(
             collector, self.watch, self.sc, out, stopped=code not in (EXIT_OK, EXIT_PLUGIN_FAILED), fill=a.realtime or bool(self.deaths),

@@ -5,10 +5,12 @@ rule is tests/test_plugin_failures.py (the same named failure in sim, up and api
 from __future__ import annotations
 
 import json
+import threading
+from collections.abc import Callable
 
 import numpy as np
 
-from zenswarm.compose.plugin_failures import PluginFailures, failure_settled, parse_failure
+from zenswarm.compose.plugin_failures import PluginFailures, await_settled, failure_settled, parse_failure
 from zenswarm.errors import PluginFailure
 from zenswarm.process.runtime import PLUGIN_FAILURE_MARK
 from zenswarm.scenario.plugins import STAGE_BUILD, STAGE_PLANT, STAGE_SHARE, STAGE_STEP
@@ -89,3 +91,70 @@ def test_reports_are_taken_from_a_childs_line_and_an_external_roles_diagnostics(
     assert [x.process for x in fails.first()] == ["agent:1"], "the first (tick, stage): the share before the step"
     fails.keep([])
     assert not fails and parse_failure("[]") is None
+
+
+class Clock:
+    """Wall time that moves only when the wait sleeps (s)."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+    def sleep(self, s: float) -> None:
+        self.t += s
+
+
+def wait(
+    fails: PluginFailures, flight: Flight, poll: Callable[[], set[str]], clock: Clock, stop: threading.Event | None = None
+) -> list[str]:
+    """The supervisor's wait (at most 1 s of ``clock``) on ``flight``: the processes of the failures it ends on."""
+    first = await_settled(
+        fails,
+        flight,
+        poll,
+        realtime=False,
+        roles=ROLES,
+        announced=set(),
+        timeout_s=1.0,
+        stop=stop or threading.Event(),
+        say=fails.say,
+        clock=clock,
+        sleep=clock.sleep,
+    )
+    return [f.process for f in first]
+
+
+def test_the_wait_ends_once_settled_with_the_first_failures() -> None:
+    said: list[str] = []
+    fails = PluginFailures(said.append)
+    fails.reported = [failure("agent:2", 5, STAGE_STEP)]
+    flight = Flight(T=10, complete=5, outputs={"cmd": {5: [True, False, False]}})  # agent:1 gave its command
+    clock, looks = Clock(), []
+
+    def poll() -> set[str]:  # agent:3 fails too, seen on the third look
+        looks.append(clock())
+        if len(looks) == 3:
+            fails.reported.append(failure("agent:3", 5, STAGE_STEP))
+        return set()
+
+    assert wait(fails, flight, poll, clock) == ["agent:2", "agent:3"] and len(looks) == 3 and clock() < 0.1
+    assert said == [], "settled in time: nothing said"
+    clock.t = 0.0
+    assert wait(fails, Flight(T=10, complete=5), lambda: {"agent:1"}, clock) == ["agent:2", "agent:3"], "agent:1 exited"
+    assert clock() == 0.0 and said == []
+
+
+def test_the_wait_stops_at_its_deadline_and_says_so_or_at_once_when_stopped() -> None:
+    said: list[str] = []
+    fails = PluginFailures(said.append)
+    fails.reported = [failure("agent:2", 5, STAGE_STEP)]
+    flight = Flight(T=10, complete=5)  # no other agent ever gives its command of tick 5
+    clock = Clock()
+    assert wait(fails, flight, set, clock) == ["agent:2"] and 1.0 < clock() < 1.1
+    assert said == ["not every process gave its output of the failed tick in time; judging what arrived"]
+    stop = threading.Event()
+    stop.set()
+    clock.t, said[:] = 0.0, []
+    assert wait(fails, flight, set, clock, stop) == ["agent:2"] and clock() == 0.0 and said == [], "stopped: no wait, nothing said"
