@@ -23,8 +23,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from zenswarm import bus
 from zenswarm.errors import ScenarioError
 from zenswarm.process.settings import FlightSettings, RoleSettings, decode_as, encode, read_settings
+from zenswarm.vehicle.autopilot import SITL_SEND_OFFSET
 
 __all__ = ["role_names", "swarm_roles", "Launch", "ROLES_BY_SETTINGS", "EDGES", "command", "role_settings", "edge_settings", "run_edge"]
 
@@ -39,6 +41,15 @@ def swarm_roles(n: int, plant: str = "sim") -> list[str]:
     bridge take the plant's place (also with ``crazyflie``: simulated Crazyflies and the Crazyflie bridge)."""
     names = role_names(n)
     return ["vehicles", "bridge"] + names[1:] if plant in ("mavlink", "crazyflie") else names
+
+
+def vehicle_ports(flight: FlightSettings, n: int) -> tuple[int, int | None]:
+    """The simulated vehicles' UDP base ports (:class:`Launch`), those given or free ones: MAVLink
+    vehicle i on P+i and its send port P+40+i (:data:`SITL_SEND_OFFSET`); with ``--plant
+    crazyflie``, Crazyflie i on P+i (else None)."""
+    mav = flight.mavlink_base_port or bus.free_udp_block(n, also=(SITL_SEND_OFFSET,))
+    cf = (flight.crazyflie_base_port or bus.free_udp_block(n)) if flight.plant == "crazyflie" else None
+    return mav, cf
 
 
 ROLES_BY_SETTINGS = ("plant", "leader", "agent")

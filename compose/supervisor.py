@@ -62,10 +62,6 @@ EXIT_OK, EXIT_MISSION_FAILED, EXIT_PROCESS_FAILED = 0, 1, 3
 """``zenswarm up``'s own exit statuses: the mission succeeded, it failed, a process died (bad input 2,
 a plug-in failure 4 and Ctrl-C 130 are :mod:`zenswarm.errors`'s)."""
 
-SITL_SEND_OFFSET = 40
-"""With ``--plant mavlink`` simulated vehicle i sends from UDP P+40+i (PX4 SITL: 14580+i -> 14540+i)."""
-
-
 class Supervisor:
     """Starts and watches one swarm. ``run()`` returns the exit code."""
 
@@ -101,10 +97,7 @@ class Supervisor:
                               stop_at_goal=args.stop_at_goal, realtime=args.realtime)
         self.recording_loss: dict | None = None  # the recorder died mid-flight (_check_children)
         self.plugin_failures = PluginFailures(lambda text: self.say(text))  # what processes that exited with 4 reported
-        # the vehicles' ports P+i (the bridge listens) and their send ports P+40+i, all free
-        self.mav_base_port = args.mavlink_base_port or bus.free_udp_block(scenario.n, also=(SITL_SEND_OFFSET,))
-        # --plant crazyflie: simulated Crazyflie i on udp://127.0.0.1:P+i
-        self.cf_base_port = (args.crazyflie_base_port or bus.free_udp_block(scenario.n)) if args.plant == "crazyflie" else None
+        self.mav_base_port, self.cf_base_port = commands.vehicle_ports(args, scenario.n)  # the simulated vehicles' UDP ports
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
         self.taps: list[Tap] = []  # views fed every message of the bus (--live: attached by compose/up.py)
         self.on_end: list[EndHook] = []  # called once the results are written (--report: attached by compose/up.py)

@@ -30,7 +30,7 @@ from zenswarm.bridge.args import (
 from zenswarm.bridge.views.live import FOXGLOVE_DEFAULT, LIVE_HELP, LiveTarget, live_target
 from zenswarm.bus import wire
 from zenswarm.compose.placement import PLACEMENT_HELP, parse_rule
-from zenswarm.compose.supervisor import SITL_SEND_OFFSET, Supervisor, role_names, swarm_roles
+from zenswarm.compose.supervisor import Supervisor, role_names, swarm_roles
 from zenswarm.errors import ScenarioError, ZenswarmError
 from zenswarm.process import rtsched
 from zenswarm.process.paths import check_output_dir, check_output_file
@@ -38,6 +38,7 @@ from zenswarm.process.runtime import gc_policy
 from zenswarm.process.settings import DEFAULT_EXTERNAL_TIMEOUT_S, FlightSettings, LiveView, decode_flight, read_settings
 from zenswarm.scenario.config import Scenario
 from zenswarm.scenario.plugins import DEFAULTS
+from zenswarm.vehicle.autopilot import SITL_SEND_OFFSET
 
 __all__ = ["add_parsers", "UpOptions", "flight_settings", "up_options", "check_up_args", "fly", "run_settings_argv"]
 
@@ -156,10 +157,11 @@ def check_cluster_args(args: FlightSettings, sc: Scenario) -> None:
 
 
 def check_rt_priority(args: FlightSettings) -> None:
-    """``--rt-priority P``: 1-99, a realtime flight (``--realtime`` or ``--plant mavlink``), and
-    permitted to this user (:func:`zenswarm.process.rtsched.probe`): else :class:`ScenarioError` naming the
-    flag and the remedy, before anything starts."""
-    rtsched.validate(args.rt_priority, realtime=args.realtime or args.plant != "sim", how="--realtime or --plant mavlink")
+    """``--rt-priority P``: 1-99, a realtime flight (``--realtime``, ``--plant mavlink`` or ``--plant
+    crazyflie``), and permitted to this user (:func:`zenswarm.process.rtsched.probe`): else
+    :class:`ScenarioError` naming the flag and the remedy, before anything starts."""
+    how = "--realtime, --plant mavlink or --plant crazyflie"
+    rtsched.validate(args.rt_priority, realtime=args.realtime or args.plant != "sim", how=how)
 
 
 def check_crazyflie(args: FlightSettings, sc: Scenario) -> None:

@@ -87,6 +87,7 @@ from zenswarm.vehicle.autopilot import (
     PX4_LAND,
     PX4_MAIN,
     PX4_OFFBOARD,
+    SITL_SEND_OFFSET,
     load_mavutil,
     mavlink_settings,
     mode_name,
@@ -209,9 +210,6 @@ class VehicleOptions:
         return None
 
 
-SITL_SEND_OFFSET = 40
-"""With ``sitl_ports``, vehicle i (0-based) sends from UDP ``base_port + 40 + i`` (PX4 SITL:
-14580+i -> 14540+i)."""
 
 
 class SimVehicle:

@@ -17,6 +17,7 @@ from zenswarm.errors import ScenarioError
 from zenswarm.schema import MavlinkTable, ScenarioTables, convert, to_builtins
 
 __all__ = [
+    "SITL_SEND_OFFSET",
     "PX4_MAIN",
     "PX4_AUTO_SUB",
     "AP_COPTER_MODES",
@@ -38,6 +39,10 @@ __all__ = [
     "vehicle_params",
     "param_value",
 ]
+
+SITL_SEND_OFFSET = 40
+"""Simulated MAVLink vehicle i (0-based) on UDP ``base_port + i`` sends from ``base_port + 40 + i``
+(PX4 SITL: 14580+i -> 14540+i): the bridge, ``zenswarm up`` and the simulated vehicles agree on it."""
 
 
 def load_mavutil() -> Any:
