@@ -20,7 +20,7 @@ from zenswarm.bridge.args import (
     scenario_of,
 )
 from zenswarm.bridge.cli import BRIDGE_COMMANDS
-from zenswarm.errors import ZenswarmError, run_command
+from zenswarm.errors import run_command
 
 EPILOG = """\
 Quick start:
@@ -210,19 +210,6 @@ def _known(argv: Sequence[str]) -> str | None:
     """The subcommand ``argv`` names (its first word), if it is one: only its parser is built."""
     name = argv[0] if argv else None
     return name if name in _OWN or any(name in names for _, names in _MODULES) else None
-
-
-def run_standalone(prog: str, doc: str | None, configure, argv: Sequence[str] | None, label: str) -> int:
-    """``python -m MODULE`` entry of a subcommand module: build its parser with ``configure``, run
-    it, and turn a :class:`ZenswarmError` into ``label: error: ...`` and exit status 2."""
-    p = argparse.ArgumentParser(prog=prog, description=(doc or "").split("\n\n")[0])
-    configure(p)
-    args = p.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except ZenswarmError as e:
-        print(f"{label}: error: {e}", file=sys.stderr)
-        return 2
 
 
 def main(argv: Sequence[str] | None = None) -> int:

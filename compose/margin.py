@@ -63,7 +63,7 @@ from zenswarm.campaign.delaymargin import (
     graph_matrix,
     steady_lag_factors,
 )
-from zenswarm.errors import ScenarioError, ZenswarmError
+from zenswarm.errors import ScenarioError, run_command
 from zenswarm.link import FaultPlan, LinkFaultSpec, delivery_tick, parse_duration
 from zenswarm.scenario.config import Scenario, load_scenario
 
@@ -544,12 +544,12 @@ def cli(argv: Sequence[str]) -> int:
         args = p.parse_args(list(argv))
     except SystemExit as e:  # argparse: --help is 0, bad usage 2
         return int(e.code or 0)
-    try:
+
+    def body() -> int:
         run(args)
-    except ZenswarmError as e:
-        print(f"zenswarm sweep margin: error: {e}", file=sys.stderr)
-        return 2
-    return 0
+        return 0
+
+    return run_command(body, "zenswarm sweep margin")
 
 
 if __name__ == "__main__":  # pragma: no cover - `python -m zenswarm.compose.margin` (the same as `zenswarm sweep margin`)
