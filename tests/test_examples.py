@@ -41,7 +41,10 @@ def _env() -> dict[str, str]:
 def venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A venv with the examples installed (and nothing else); its bin/ directory."""
     d = tmp_path_factory.mktemp("venv") / "v"
-    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(d)], check=True, timeout=120)
+    # --without-pip: no copy of pip bootstrapped into it (ensurepip took several seconds of CPU);
+    # the pip that installs the examples below is this interpreter's, found through the .pth
+    # file, and installs into this venv (the interpreter running it is the venv's)
+    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", str(d)], check=True, timeout=120)
     py = d / "bin" / "python"
     purelib = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
                              capture_output=True, text=True, check=True).stdout.strip()

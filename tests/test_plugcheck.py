@@ -181,8 +181,20 @@ class UnseededPlanner(AapfPlanner):
 
 
 def _status(name: str, **kw: Any) -> dict[str, str]:
-    _, _, checks = check_plugin(f"test_plugcheck:{name}", EX1, swarm=False, **kw)
-    return {c.name: f"{c.status} {c.detail}" for c in checks}
+    """The checks of ``test_plugcheck:NAME`` (no swarm flight): check name -> "STATUS detail".
+
+    Several parametrizations below look for different words in the same check of the same
+    plug-in: the checks are run once per plug-in and arguments in this process, and each of
+    those tests reads that report (a copy). The checks are deterministic in what they report,
+    DriftController's module-level counter included (its detail names tick 0 whatever the count)."""
+    key = (name, tuple(sorted(kw.items())))
+    if key not in _STATUS:
+        _, _, checks = check_plugin(f"test_plugcheck:{name}", EX1, swarm=False, **kw)
+        _STATUS[key] = {c.name: f"{c.status} {c.detail}" for c in checks}
+    return dict(_STATUS[key])
+
+
+_STATUS: dict[tuple[str, tuple[tuple[str, Any], ...]], dict[str, str]] = {}
 
 
 @pytest.mark.parametrize(

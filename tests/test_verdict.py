@@ -338,18 +338,35 @@ EXPECTED = {
 }
 
 
-@pytest.mark.parametrize("case", sorted(EXPECTED))
-@pytest.mark.swarm
-def test_sim_names_what_happened_to_the_vehicles(case: str, tmp_path) -> None:
+@pytest.fixture(scope="module")
+def sim_of(tmp_path_factory):
+    """``zenswarm sim CASE.toml --out OUT --quiet`` of a bad-vehicle case, run once per case in
+    this process (the sim is deterministic): (scenario file, the completed process, its
+    results.json). Both the sim's own test and the swarm's comparison with it read this run."""
     import json
 
     from swarmtest import zenswarm
 
-    scen = bad_vehicles(tmp_path)[case]
-    out = tmp_path / "out"
-    cp = zenswarm("sim", str(scen), "--out", str(out), "--quiet", timeout=120)
+    tmp = tmp_path_factory.mktemp("bad_vehicles")
+    scens = bad_vehicles(tmp)
+    runs: dict = {}
+
+    def get(case: str):
+        if case not in runs:
+            out = tmp / f"sim_{case}"
+            cp = zenswarm("sim", str(scens[case]), "--out", str(out), "--quiet", timeout=120)
+            assert cp.returncode == 1, cp.stdout
+            runs[case] = (scens[case], cp, json.loads((out / "results.json").read_text()))
+        return runs[case]
+
+    return get
+
+
+@pytest.mark.parametrize("case", sorted(EXPECTED))
+@pytest.mark.swarm
+def test_sim_names_what_happened_to_the_vehicles(case: str, sim_of) -> None:
+    _, cp, res = sim_of(case)
     assert cp.returncode == 1, cp.stdout
-    res = json.loads((out / "results.json").read_text())
     got = {f["cause"] for f in res["failures"]}
     assert set(EXPECTED[case]) <= got, res["failures"]
     assert res["success"] is False and res["ended_early"] is True and res["schema_version"] == 2
@@ -411,7 +428,7 @@ def test_sim_ctrl_c_writes_what_was_flown(tmp_path) -> None:
 
 @pytest.mark.parametrize("case", sorted(EXPECTED))
 @pytest.mark.swarm
-def test_swarm_gives_the_simulator_s_verdict_and_ends_as_early(case: str, tmp_path) -> None:
+def test_swarm_gives_the_simulator_s_verdict_and_ends_as_early(case: str, tmp_path, sim_of) -> None:
     """`zenswarm up` (lockstep) judges the same vehicles the same way: every flight field equal,
     failures included, and the run ends at the same deciding tick; so does `zenswarm report` from
     the run's recording (which holds ticks past the decision: the swarm stops a moment later)."""
@@ -419,13 +436,11 @@ def test_swarm_gives_the_simulator_s_verdict_and_ends_as_early(case: str, tmp_pa
 
     from zenswarm.judge.metrics import FLIGHT_FIELDS
 
-    from swarmtest import unique_swarm, zenswarm
+    from swarmtest import unique_swarm
     from test_swarm import _up
 
-    scen = bad_vehicles(tmp_path)[case]
-    cp = zenswarm("sim", str(scen), "--out", str(tmp_path / "sim"), "--quiet", timeout=120)
+    scen, cp, ref = sim_of(case)  # `zenswarm sim` of the same scenario file
     assert cp.returncode == 1
-    ref = json.loads((tmp_path / "sim" / "results.json").read_text())
     up = tmp_path / "up"
     cp = _up(scen, up, unique_swarm("v"), "--quiet-children", "--record", str(up / "f.mcap"), "--report", timeout=300)
     assert cp.returncode == 1, cp.stdout[-3000:]
