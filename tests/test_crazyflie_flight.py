@@ -235,7 +235,9 @@ def test_flight_with_extpos_forwards_the_mocap_feed_to_the_vehicles(tmp_path: Pa
     --mocap``, swarm/<name>/mocap/<i>), the bridge forwards each position with cflib's extpos."""
     swarm, port, base = unique_swarm("cfx"), free_port(), free_udp_block(N_UAV)
     out = tmp_path / "run"
-    scenario = _scenario(tmp_path, {"positioning": "extpos"})
+    # link_timeout_s 2 s (default 0.5 s): the simulated Crazyflies and their feed are one Python process
+    # sharing 2 cores with the other tests; a stall of it under load is not what this test is about
+    scenario = _scenario(tmp_path, {"positioning": "extpos", "link_timeout_s": 2.0})
     try:
         cp = _up(scenario, out, swarm, port, "--crazyflie-base-port", str(base), "--duration", "6")
     finally:
@@ -265,7 +267,9 @@ def test_secure_flight_with_extpos_feeds_the_mocap_as_its_own_user(tmp_path: Pat
     the open flight (before: the feed had no keys, its session timed out and the vehicles died)."""
     swarm, port, base = unique_swarm("cfs"), free_port(), free_udp_block(N_UAV)
     out = tmp_path / "run"
-    scenario = _scenario(tmp_path, {"positioning": "extpos"})
+    # link_timeout_s 2 s (default 0.5 s): the simulated Crazyflies and their feed are one Python process
+    # sharing 2 cores with the other tests; a stall of it under load is not what this test is about
+    scenario = _scenario(tmp_path, {"positioning": "extpos", "link_timeout_s": 2.0})
     try:
         cp = _up(scenario, out, swarm, port, "--crazyflie-base-port", str(base), "--duration", "6", flag)
     finally:
