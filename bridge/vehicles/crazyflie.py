@@ -610,6 +610,12 @@ class CrazyflieBridge:
                 link.probe.close()
             if link.cf is not None:
                 try:
+                    # cflib's latency pings first (joined from here): a ping sent on the link being
+                    # closed fails in the ping thread, whose error callback then joins itself
+                    # (RuntimeError "cannot join current thread", a traceback at the flight's end)
+                    stats = getattr(link.cf, "link_statistics", None)
+                    if stats is not None:
+                        stats.stop()
                     link.cf.close_link()
                 except Exception as e:  # noqa: BLE001 - closing is best effort; say why
                     self.log(f"bridge: uav {link.uav}: closing the link: {e}")

@@ -404,13 +404,17 @@ def zenoh_threads() -> str:
     Linux names them; ``""`` where /proc is not readable. For diagnostics."""
     names = []
     try:
-        for tid in os.listdir("/proc/self/task"):
-            with open(f"/proc/self/task/{tid}/comm") as f:
-                name = f.read().strip()
-            if name.split("-")[0] in ("app", "acc", "tx", "rx", "net"):
-                names.append(name)
+        tids = os.listdir("/proc/self/task")
     except OSError:
         return ""
+    for tid in tids:
+        try:
+            with open(f"/proc/self/task/{tid}/comm") as f:
+                name = f.read().strip()
+        except OSError:  # a thread that ended since the listing: not one of them any more
+            continue
+        if name.split("-")[0] in ("app", "acc", "tx", "rx", "net"):
+            names.append(name)
     return ",".join(sorted(names))
 
 
