@@ -23,7 +23,7 @@ import numpy as np
 
 from zenswarm.bus import wire
 from zenswarm.compose.children import Child
-from zenswarm.errors import PluginFailure
+from zenswarm.errors import EXIT_PLUGIN_FAILED, PluginFailure
 from zenswarm.process.runtime import PLUGIN_FAILURE_MARK
 from zenswarm.scenario.plugins import STAGE_BUILD, STAGE_SHARE, STAGE_STEP, first_failures
 
@@ -86,6 +86,17 @@ class PluginFailures:
         s: its output ends with it)? If not, it died."""
         child.join_output(5.0)
         return self.reported_by(child.name)
+
+    def take_exits(self, children: Iterable[Child]) -> set[str]:
+        """The exit statuses of ``children`` that ended since the last look, taken (with the reports
+        of those that exited with 4: their last lines read); the names of every child that exited."""
+        for c in children:
+            rc = c.proc.poll()
+            if rc is not None and c.returncode is None:
+                c.returncode = rc
+                if rc == EXIT_PLUGIN_FAILED:
+                    self.reported_at_exit(c)
+        return {c.name for c in children if c.returncode is not None}
 
     def first(self) -> list[PluginFailure]:
         """The failures of the first (tick, stage): what the flight ends on."""

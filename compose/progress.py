@@ -12,6 +12,7 @@ import numpy as np
 import numpy.typing as npt
 
 from zenswarm.compose.children import Child
+from zenswarm.compose.liveliness import ExternalRoles, Tokens
 
 __all__ = ["PROGRESS_SAME_T_S", "SwarmProgress", "children_health", "child_state"]
 
@@ -48,6 +49,13 @@ class SwarmProgress:
         t = max(sim_t_ns, 0) / 1e9
         dist = f"{np.linalg.norm(leader_q - self.goal):.3f} m" if leader_q is not None else "-"
         self.say(f"t={t:6.2f}/{self.time_limit_s:g} s  {t / el if el > 0 else 0:5.1f}x  leader->goal {dist}  {health()}")
+
+
+def swarm_health(children: Mapping[str, Child], tokens: Tokens, external: ExternalRoles, diag: Mapping[str, Any]) -> str:
+    """The roles' states for the progress line: those started here (up, starting, leaving, exit N:
+    :func:`children_health`, by the liveliness ``tokens``) and the ``external`` ones (waiting, up,
+    gone: :meth:`zenswarm.compose.liveliness.ExternalRoles.health`). ``diag``: the last diagnostics by process."""
+    return " ".join(children_health(children, tokens.alive, tokens.seen, diag.get("bridge", {})) + external.health())
 
 
 def children_health(

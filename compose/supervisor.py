@@ -5,9 +5,9 @@ starts the plant, the leader and N agents as separate OS processes, restarts the
 the ``--external`` roles', :mod:`zenswarm.compose.liveliness`; the plug-in failures they report,
 :mod:`zenswarm.compose.plugin_failures`), merges their logs and stops them cleanly. It takes a
 checked :class:`zenswarm.process.settings.FlightSettings` and hands each part what it reads; the
-command line, its checks and the settings' building are :mod:`zenswarm.compose.up`'s, which also
-attaches what only looks on: the live view (a :class:`~zenswarm.compose.hooks.Tap`) and the
-report (an end hook).
+command line and the settings' building are :mod:`zenswarm.compose.up`'s (their checks
+:mod:`zenswarm.compose.flight_checks`'), which also attaches what only looks on: the live view (a
+:class:`~zenswarm.compose.hooks.Tap`) and the report (an end hook).
 
 The router session subscribes to the swarm's whole key space to assemble the flight's time series
 (the same :class:`zenswarm.judge.metrics.TimeSeries` the in-process simulator writes); when the
@@ -41,10 +41,10 @@ from zenswarm.compose.kills import Kills
 from zenswarm.compose.liveliness import EXTERNAL_GONE_GRACE_S, ExternalRoles, Tokens
 from zenswarm.compose.plugin_failures import SETTLE_GRACE_S, PluginFailures, await_settled
 from zenswarm.compose.policy import restart_policy
-from zenswarm.compose.progress import SwarmProgress, children_health
+from zenswarm.compose.progress import SwarmProgress, swarm_health
 from zenswarm.compose.restarts import FLIGHT_OVER_GRACE_S, Restarts
 from zenswarm.compose.router import open_router, swarm_channel, undeclare_all
-from zenswarm.errors import EXIT_INTERRUPTED, EXIT_PLUGIN_FAILED
+from zenswarm.errors import EXIT_INTERRUPTED, EXIT_MISSION_FAILED, EXIT_OK, EXIT_PLUGIN_FAILED, EXIT_PROCESS_FAILED
 from zenswarm.judge.verdict import criteria_from_scenario
 from zenswarm.judge.watch import EndWatch
 from zenswarm.process.collector import Collector
@@ -53,14 +53,11 @@ from zenswarm.process.runtime import gc_safe_point, gc_startup_done
 from zenswarm.process.settings import FlightSettings, decode_role
 from zenswarm.scenario.config import Scenario
 
-__all__ = ["Supervisor", "role_names", "swarm_roles", "EXTERNAL_GONE_GRACE_S"]
+__all__ = ["Supervisor", "role_names", "swarm_roles", "EXTERNAL_GONE_GRACE_S", "EXIT_OK", "EXIT_MISSION_FAILED", "EXIT_PROCESS_FAILED"]
 
 LIVE_CHECK_S = 0.25
 """Wall seconds between two looks at whether the flight's outcome is decided (early end)."""
 
-EXIT_OK, EXIT_MISSION_FAILED, EXIT_PROCESS_FAILED = 0, 1, 3
-"""``zenswarm up``'s own exit statuses: the mission succeeded, it failed, a process died (bad input 2,
-a plug-in failure 4 and Ctrl-C 130 are :mod:`zenswarm.errors`'s)."""
 
 class Supervisor:
     """Starts and watches one swarm. ``run()`` returns the exit code."""
@@ -82,22 +79,22 @@ class Supervisor:
         # --kill: killed from here at a sim time, or (lockstep roles) by themselves at a tick
         self.kills = Kills(args.kill or (), realtime=args.realtime, dt=scenario.timing.dt)
         self.policy = restart_policy(scenario.restart, force=args.restart)
+        self.restarts = Restarts(self.policy)  # the processes' deaths, the restarts due and made
+        self.deaths = self.restarts.deaths  # (tests read them here)
+        everyone = swarm_roles(scenario.n, args.plant)  # every role of this swarm (whoever starts it), in start order
+        self.started = [r for r in everyone if r not in args.external]  # those started here
+        self.mav_base_port, self.cf_base_port = commands.vehicle_ports(args, scenario.n)  # the simulated vehicles' UDP ports
         self.connect_endpoints: list[str] = []  # where the roles join the router, once it listens
         self.tokens = Tokens(self.keys, lambda: self.collector.sim_t_ns if self.collector is not None else -1)
         self._on_liveliness, self.gone_at = self.tokens.on_token, self.tokens.gone_at  # (tests drive the tokens by these)
-        everyone = swarm_roles(scenario.n, args.plant)  # every role of this swarm (whoever starts it), in start order
-        self.started = [r for r in everyone if r not in args.external]  # those started here (:meth:`roles`)
         watched = [r for r in everyone if r in args.external and r != "vehicles"]  # the vehicles: no Zenoh, no token
         self.external = ExternalRoles(watched, self.tokens, timeout_s=args.external_timeout, swarm=args.swarm,
                                       time_limit_s=scenario.timing.time_limit_s, policy=self.policy, say=lambda text: self.say(text))
-        self.restarts = Restarts(self.policy)  # the processes' deaths, the restarts due and made
-        self.deaths = self.restarts.deaths  # (tests read them here)
         # when the flight ends (decided, --stop-at-goal, a plug-in failed) and which ticks are judged
         self.watch = EndWatch(criteria_from_scenario(scenario), scenario.timing.n_ticks, full_time=args.full_time,
                               stop_at_goal=args.stop_at_goal, realtime=args.realtime)
         self.recording_loss: dict | None = None  # the recorder died mid-flight (_check_children)
         self.plugin_failures = PluginFailures(lambda text: self.say(text))  # what processes that exited with 4 reported
-        self.mav_base_port, self.cf_base_port = commands.vehicle_ports(args, scenario.n)  # the simulated vehicles' UDP ports
         self.t_start: float  # monotonic s when the run starts (set by _run_up, just before run())
         self.taps: list[Tap] = []  # views fed every message of the bus (--live: attached by compose/up.py)
         self.on_end: list[EndHook] = []  # called once the results are written (--report: attached by compose/up.py)
@@ -241,15 +238,6 @@ class Supervisor:
         self.keys_dir = sec.keys_dir
         return sec.settings, sec.listen
 
-    def roles(self) -> list[str]:
-        """The processes this supervisor starts, in start order (``--external`` ones excluded)."""
-        return list(self.started)
-
-    def external_roles(self) -> list[str]:
-        """The ``--external`` roles this supervisor watches through their liveliness tokens (the
-        simulated MAVLink vehicles have no Zenoh session: they cannot be watched)."""
-        return self.external.names
-
     def _watch_external(self, collector: Collector, now: float, since: float) -> int | None:
         """``--external`` roles, known only through their liveliness tokens: one whose token went
         away before it finished, or that never announced itself within ``--external-timeout``, is a
@@ -262,10 +250,8 @@ class Supervisor:
         return EXIT_PROCESS_FAILED
 
     def _health(self) -> str:
-        """The roles' states for the progress line: ours (up, starting, leaving, exit N:
-        :func:`~zenswarm.compose.progress.children_health`) and the external ones (waiting, up, gone)."""
-        bridge = self.collector.diag.get("bridge", {}) if self.collector is not None else {}
-        return " ".join(children_health(self.children, self.tokens.alive, self.tokens.seen, bridge) + self.external.health())
+        """The roles' states for the progress line (:func:`~zenswarm.compose.progress.swarm_health`)."""
+        return swarm_health(self.children, self.tokens, self.external, self.collector.diag if self.collector is not None else {})
 
     def _watch(self, collector: Collector) -> int:
         """Watch the flight until it ends; returns the exit code so far (see :meth:`_finish`)."""
@@ -371,14 +357,9 @@ class Supervisor:
         """One look while a plug-in's failure settles: the bus drained, the processes' exits taken
         (with their failure reports) and the external roles' failures; the processes that exited."""
         collector.poll(self._bus_sub, feeds(self.taps))
-        for c in list(self.children.values()):
-            rc = c.proc.poll()
-            if rc is not None and c.returncode is None:
-                c.returncode = rc
-                if rc == EXIT_PLUGIN_FAILED:
-                    self.plugin_failures.reported_at_exit(c)  # its last lines read
+        exited = self.plugin_failures.take_exits(list(self.children.values()))
         self.plugin_failures.from_diagnostics(collector.diag, self.external.names)
-        return {name for name, c in self.children.items() if c.returncode is not None}
+        return exited
 
     def _child_died(self, c: Child, rc: int, collector: Collector, now: float) -> int | None:
         """A process of ours exited with status ``rc`` != 0: schedule its restart (None) when the

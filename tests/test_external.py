@@ -207,7 +207,7 @@ def test_external_watch_logic_without_processes(tmp_path: Path) -> None:
         sup._on_liveliness(SimpleNamespace(key_expr=wire.Keys("u").alive(process), kind=kind))
 
     sup, col = supervisor("--external", "plant", "--external", "agent:2", "--external-timeout", "5")
-    assert sup.external_roles() == ["plant", "agent:2"] and "agent:2" not in sup.roles()
+    assert sup.external.names == ["plant", "agent:2"] and "agent:2" not in sup.started
     t0 = 1000.0
     assert sup._watch_external(col, t0 + 4.9, t0) is None
     assert sup._health().endswith("plant:waiting(external) agent:2:waiting(external)")

@@ -40,9 +40,9 @@ import msgspec
 import numpy as np
 
 from zenswarm.bus.wire import validate_process
+from zenswarm.compose.flight_checks import check_up_args
 from zenswarm.compose.launch import kill_processes_of, live_flights, processes_of, run_up, stop_flight
 from zenswarm.compose.sim import simulate, summary_line, write_outputs
-from zenswarm.compose.up import check_up_args
 from zenswarm.errors import EXIT_PLUGIN_FAILED, ScenarioError, ZenswarmError
 from zenswarm.judge.metrics import TimeSeries, exit_code_of, flight_differences
 from zenswarm.link import FaultPlan, LinkFaults
@@ -325,7 +325,7 @@ def _duration_text(value: float | str | None, name: str) -> str | None:
 
 def _kills(kill: Iterable[tuple[str, float] | str]) -> tuple[tuple[str, float], ...]:
     """``[("agent:2", 1.0), "leader@2s"]`` -> ((process, sim time s), ...), checked."""
-    from zenswarm.compose.up import _parse_kill
+    from zenswarm.compose.flight_checks import parse_kill
 
     out = []
     for k in kill:
@@ -333,7 +333,7 @@ def _kills(kill: Iterable[tuple[str, float] | str]) -> tuple[tuple[str, float], 
             import argparse
 
             try:
-                out.append(_parse_kill(k))
+                out.append(parse_kill(k))
             except argparse.ArgumentTypeError as e:
                 raise ScenarioError("kill", str(e)) from None
             continue

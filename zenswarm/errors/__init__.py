@@ -36,6 +36,10 @@ class CampaignError(ZenswarmError):
     """A campaign directory (``zenswarm sweep --out DIR``) is missing, unreadable or malformed."""
 
 
+EXIT_OK, EXIT_MISSION_FAILED, EXIT_PROCESS_FAILED = 0, 1, 3
+"""Exit statuses of a flight (``zenswarm sim``, ``zenswarm up``): the mission succeeded, it
+failed (goal not reached, a collision), a process died for good (``zenswarm up``)."""
+
 EXIT_BAD_INPUT = 2
 """Exit status of a command refused before any work: a :class:`ZenswarmError` (bad input, a busy
 port, a missing file, ...), said on stderr."""
