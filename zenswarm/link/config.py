@@ -27,9 +27,9 @@ by :func:`zenswarm.link.swarm.plan_for`.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import replace
-from typing import Any
+from typing import Any, TypeVar
 
 from zenswarm.errors import ScenarioError
 from zenswarm.link.names import KIND_ROLES, KINDS, check_exists, parse_process, parse_target, role_of
@@ -40,6 +40,17 @@ from zenswarm.link.units import parse_duration, parse_loss
 from zenswarm.schema import BurstTable, FadeTable, FaultsTable, LinkFaultsTable, PartitionTable, convert
 
 __all__ = ["plan_from_cli", "plan_from_scenario", "plan_with_radio"]
+
+T = TypeVar("T")
+
+
+def _parsed(field: str, parse: Callable[..., T], text: Any, **kw: Any) -> T:
+    """``parse(text)``; its ValueError as a :class:`ScenarioError` naming ``field`` (a flag or a
+    scenario path)."""
+    try:
+        return parse(text, **kw)
+    except ValueError as e:
+        raise ScenarioError(field, str(e)) from None
 
 
 def plan_from_cli(
@@ -65,27 +76,15 @@ def plan_from_cli(
     base = base if base is not None else FaultPlan(seed=seed)
     d = base.default
     delay, jitter, loss = d.delay_s, d.jitter_s, d.loss
-    try:
-        if link_delay is not None:
-            delay = parse_duration(link_delay)
-    except ValueError as e:
-        raise ScenarioError("--link-delay", str(e)) from None
-    try:
-        if link_jitter is not None:
-            jitter = parse_duration(link_jitter)
-    except ValueError as e:
-        raise ScenarioError("--link-jitter", str(e)) from None
-    try:
-        if link_loss is not None:
-            loss = parse_loss(link_loss)
-    except ValueError as e:
-        raise ScenarioError("--link-loss", str(e)) from None
+    if link_delay is not None:
+        delay = _parsed("--link-delay", parse_duration, link_delay)
+    if link_jitter is not None:
+        jitter = _parsed("--link-jitter", parse_duration, link_jitter)
+    if link_loss is not None:
+        loss = _parsed("--link-loss", parse_loss, link_loss)
     parts = list(base.partitions)
     for text in partitions or ():
-        try:
-            parts.append(parse_partition(text))
-        except ValueError as e:
-            raise ScenarioError("--partition", str(e)) from None
+        parts.append(_parsed("--partition", parse_partition, text))
         check_exists("--partition", parts[-1].process_or_link, n)
     queue = queue_spec(("--link-capacity", "--link-queue", "--link-medium"), link_capacity, link_queue, link_medium, d.queue)
     default = LinkFaultSpec(delay, jitter, loss, d.burst, d.partitions, radio=d.radio, queue=queue)
@@ -97,10 +96,7 @@ def _duration_field(path: str, x: Any) -> float:
         return 0.0
     if not isinstance(x, str):
         raise ScenarioError(path, f"expected a duration string with a unit such as \"50ms\", got {x!r}")
-    try:
-        return parse_duration(x)
-    except ValueError as e:
-        raise ScenarioError(path, str(e)) from None
+    return _parsed(path, parse_duration, x)
 
 
 def _burst_field(path: str, x: BurstTable | bool) -> GilbertElliott | None:
@@ -113,14 +109,8 @@ def _burst_field(path: str, x: BurstTable | bool) -> GilbertElliott | None:
 
 def _partition_field(path: str, x: str | PartitionTable) -> Partition:
     if isinstance(x, str):
-        try:
-            return parse_partition(x)
-        except ValueError as e:
-            raise ScenarioError(path, str(e)) from None
-    try:
-        target = parse_target(x.target)
-    except ValueError as e:
-        raise ScenarioError(f"{path}.target", str(e)) from None
+        return _parsed(path, parse_partition, x)
+    target = _parsed(f"{path}.target", parse_target, x.target)
     t0 = _duration_field(f"{path}.start", x.start)
     if isinstance(x.end, str) and x.end.strip() in ("inf", "end"):
         t1 = math.inf
@@ -137,10 +127,7 @@ def _endpoint_field(path: str, x: str) -> str:
         raise ScenarioError(path, f"expected a process name or glob (plant, leader, agent:<i>, agent:*, *), got {x!r}")
     if any(c in x for c in "*?["):
         return x
-    try:
-        return parse_process(x)
-    except ValueError as e:
-        raise ScenarioError(path, str(e)) from None
+    return _parsed(path, parse_process, x)
 
 
 def _link_key(p: str, e: LinkFaultsTable, n_uavs: int | None) -> tuple[str, str, str]:
@@ -165,10 +152,7 @@ def _link_key(p: str, e: LinkFaultsTable, n_uavs: int | None) -> tuple[str, str,
 def _distance_field(path: str, x: Any, allow_inf: bool = True) -> float:
     if isinstance(x, bool) or not isinstance(x, (str, int, float)):
         raise ScenarioError(path, f"expected a distance such as \"1.5m\" (or metres), got {x!r}")
-    try:
-        return parse_distance(x, allow_inf=allow_inf)
-    except ValueError as e:
-        raise ScenarioError(path, str(e)) from None
+    return _parsed(path, parse_distance, x, allow_inf=allow_inf)
 
 
 def _radio_field(p: str, e: FaultsTable | LinkFaultsTable, inherit: RadioModel | None) -> RadioModel | None:
@@ -247,16 +231,10 @@ def plan_with_radio(plan: FaultPlan, link_range: str | None = None, link_fade: s
         return plan
     rng: float | None = None
     fade: tuple[float, float] | None = None
-    try:
-        if link_range is not None:
-            rng = parse_distance(link_range)
-    except ValueError as e:
-        raise ScenarioError("--link-range", str(e)) from None
-    try:
-        if link_fade is not None:
-            fade = parse_fade(link_fade)
-    except ValueError as e:
-        raise ScenarioError("--link-fade", str(e)) from None
+    if link_range is not None:
+        rng = _parsed("--link-range", parse_distance, link_range)
+    if link_fade is not None:
+        fade = _parsed("--link-fade", parse_fade, link_fade)
 
     def with_radio(spec: LinkFaultSpec) -> LinkFaultSpec:
         r = spec.radio if spec.radio is not None else RadioModel()
