@@ -2,6 +2,10 @@
 (user/password or mutual TLS, with access control generated from the scenario's graph), and the
 credentials' directory the roles join with (the user's ``--keys DIR``, else generated into
 ``OUT/keys``). Secure is the default whenever the router listens on a non-loopback address.
+
+:func:`router_security` decides in one order: open or secure, the endpoints
+(:func:`secure_endpoints`), the credentials (:func:`user_keys` or :func:`run_keys`), then the
+router's configuration (:mod:`zenswarm.process.security`).
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from zenswarm.process import security
 from zenswarm.process.paths import check_output_dir
 from zenswarm.scenario.config import Scenario
 
-__all__ = ["RouterSecurity", "router_security", "user_keys", "run_keys"]
+__all__ = ["RouterSecurity", "router_security", "secure_endpoints", "user_keys", "run_keys"]
 
 
 @dataclass(frozen=True)
@@ -55,17 +59,25 @@ def router_security(
             say("WARNING: --insecure on a non-loopback address: anyone who reaches the router can command the swarm")
         return RouterSecurity({}, listen, None)
     auth: security.AuthMode = "tls" if tls else "usrpwd"
-    if tls:
+    listen = secure_endpoints(listen, connect, auth, asked=asked)
+    keys_dir = user_keys(keys, sc, swarm) if keys is not None else run_keys(out / "keys", sc, swarm, say)
+    say(f"secure mode: {'mutual TLS' if tls else 'user/password'} authentication, access control from the graph")
+    return RouterSecurity(security.router_security_config(keys_dir, sc, swarm, auth=auth), listen, keys_dir)
+
+
+def secure_endpoints(listen: list[str], connect: Sequence[str], auth: security.AuthMode, *, asked: bool) -> list[str]:
+    """The router's ``listen`` endpoints in ``auth`` mode (``tls/`` ones for mutual TLS), checked
+    with the roles' ``connect`` before anything starts: the processes would each die on an
+    endpoint the mode cannot use. :class:`~zenswarm.process.security.CredentialsError` naming
+    it, and whether secure mode was ``asked`` for or is the default off loopback."""
+    if auth == "tls":
         listen = [security.tls_endpoint(e) for e in listen]
-    # before anything starts: the processes would each die on such an endpoint
     try:
         security.check_endpoints([*listen, *connect], auth)
     except security.CredentialsError as e:
         why = "secure mode" if asked else "secure mode (the default when the router is not on loopback only)"
         raise security.CredentialsError(f"{why}: {e}") from None
-    keys_dir = user_keys(keys, sc, swarm) if keys is not None else run_keys(out / "keys", sc, swarm, say)
-    say(f"secure mode: {'mutual TLS' if tls else 'user/password'} authentication, access control from the graph")
-    return RouterSecurity(security.router_security_config(keys_dir, sc, swarm, auth=auth), listen, keys_dir)
+    return listen
 
 
 def user_keys(keys: Path, sc: Scenario, swarm: str) -> Path:
