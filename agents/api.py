@@ -3,7 +3,7 @@
 A controller is pure and deterministic: no clock, no I/O; randomness only from the seeded
 :class:`numpy.random.Generator` of its context. The in-process simulator
 (:mod:`zenswarm.compose.sim`), the agent process (:mod:`zenswarm.agents.process`) and
-``zenswarm verify`` (:mod:`zenswarm.bridge.replay.replay`) call it the same way, so any such controller
+``zenswarm verify`` (:mod:`zenswarm.bridge.replay.verify`) call it the same way, so any such controller
 flies bit for bit the same in ``zenswarm sim`` and in the lockstep swarm, with and without link
 faults. The paper's generator + ESO + composite controller is the built-in
 :class:`zenswarm.agents.paper.PaperController` (name ``paper``, the default).

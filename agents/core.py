@@ -4,7 +4,7 @@
 (q*_i, v*_i), its ESO estimate and its row of the graph. It performs steps 2-6 of a control tick
 as documented in :mod:`zenswarm.compose.sim`. It is THE agent tick: the agent process
 (:mod:`zenswarm.agents.process`), the in-process simulator (:mod:`zenswarm.compose.sim`) and
-``zenswarm verify`` (:mod:`zenswarm.bridge.replay.replay`) all run it, so a lockstep swarm reproduces the
+``zenswarm verify`` (:mod:`zenswarm.bridge.replay.verify`) all run it, so a lockstep swarm reproduces the
 simulator and a recording reproduces its agents bit for bit.
 
 :class:`StackedAgents` is the same tick for all N agents at once (the simulator's fast path

@@ -1,7 +1,8 @@
 """Subcommands of the flight recorder, wired into ``zenswarm`` by :func:`add_parsers`.
 
-``record`` (:mod:`zenswarm.bridge.recording.recorder`), ``replay`` and ``verify`` (:mod:`zenswarm.bridge.replay.replay`),
-``recover`` (:mod:`zenswarm.bridge.recording.mcapio`), ``info`` (:mod:`zenswarm.bridge.recording.info`);
+``record`` (:mod:`zenswarm.bridge.recording.recorder`), ``replay`` (:mod:`zenswarm.bridge.replay.replay`),
+``verify`` (:mod:`zenswarm.bridge.replay.verify`), ``recover`` (:mod:`zenswarm.bridge.recording.mcapio`),
+``info`` (:mod:`zenswarm.bridge.recording.info`);
 ``report`` (:mod:`zenswarm.bridge.reports.report`) and ``export``
 (:mod:`zenswarm.bridge.views.export`) when those modules are present.
 """
@@ -81,10 +82,14 @@ def add_parsers(sub: argparse._SubParsersAction, only: str | None = None) -> Non
         from zenswarm.bridge.recording import recorder
 
         recorder.add_parser(sub)
-    if wanted("replay", "verify"):
+    if wanted("replay"):
         from zenswarm.bridge.replay import replay
 
-        replay.add_parsers(sub)
+        replay.add_parser(sub)
+    if wanted("verify"):
+        from zenswarm.bridge.replay import verify
+
+        verify.add_parser(sub)
     if wanted("info"):
         from zenswarm.bridge.recording import info
 

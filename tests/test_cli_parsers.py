@@ -51,7 +51,8 @@ def test_an_unknown_command_is_refused_naming_every_command() -> None:
     [
         (["replay", "--help"], ["zenswarm.compose.supervisor", "zenswarm.bridge.vehicles.mavlink", "pymavlink",
                                 "zenswarm.bridge.reports.report"]),
-        (["info", "--help"], ["zenswarm.compose.up", "zenswarm.bridge.replay.replay", "cflib"]),
+        (["verify", "--help"], ["zenswarm.bridge.replay.replay", "zenswarm.bridge.views.live", "zenswarm.bridge.reports.report"]),
+        (["info", "--help"], ["zenswarm.compose.up", "zenswarm.bridge.replay.replay", "zenswarm.bridge.replay.verify", "cflib"]),
         (["up", "--help"], ["zenswarm.bridge.recording.info", "zenswarm.plant.mavlink_vehicle", "zenswarm.compose.plugcheck"]),
     ],
 )

@@ -2,7 +2,7 @@
 under an obstacle only where it hides them, the snapshot labels off the goal marker, the settle
 time on the error figures, links.png without all-zero counters, and SVG/PDF on request
 (``zenswarm report --format``, ``up --report-format``). Figures are inspected as matplotlib
-draws them (the Figure handed to ``report._save``)."""
+draws them (the Figure handed to ``figures._save``, bridge/reports/figures.py)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from test_report import SWARM, _toml, flight, recording  # noqa: F401  (fixtures)
 
+from zenswarm.bridge.reports import figures as report_figures
 from zenswarm.bridge.reports import report
 from zenswarm.compose.cli import main as cli_main
 from zenswarm.scenario.config import scenario_to_dict
@@ -19,13 +20,13 @@ from zenswarm.scenario.config import scenario_to_dict
 def figures(monkeypatch):
     """The Figures the report saves, by file name (stem)."""
     got: dict = {}
-    save = report._save
+    save = report_figures._save
 
     def keep(fig, path, formats=("png",)):
         got[path.stem] = fig
         return save(fig, path, formats)
 
-    monkeypatch.setattr(report, "_save", keep)
+    monkeypatch.setattr(report_figures, "_save", keep)
     return got
 
 
@@ -106,7 +107,7 @@ def test_error_figures_mark_the_settle_time(flight, tmp_path, figures):  # noqa:
 
 def test_links_figure_draws_only_the_nonzero_counters(flight, recording, tmp_path, figures):  # noqa: F811
     fl = report.flight_from_recording(report.load_recording(recording[0]))
-    faults = report._fault_counters(fl)
+    faults = report_figures._fault_counters(fl)
     nonzero = [lab for lab, v in faults if v]
     assert 0 < len(nonzero) < len(faults)  # the recording has both
     report.plot_links(fl, tmp_path / "links.png")

@@ -1,5 +1,7 @@
-"""The parts of ``zenswarm replay`` that need no Zenoh: topic filters, the playback clock, loop
-re-stamping and the keyboard controls. :mod:`zenswarm.bridge.replay.replay` puts them together.
+"""The parts of ``zenswarm replay`` that need no Zenoh: topic filters, the swarm a recording's keys
+are under (and their rewriting under another), the playback clock, loop re-stamping and the
+keyboard controls. :mod:`zenswarm.bridge.replay.replay` puts them together;
+:mod:`zenswarm.bridge.replay.verify` takes the swarm name from here too.
 
 Times: sim time = a payload's ``t`` (ns, MCAP ``publish_time``); receive time = MCAP
 ``log_time`` (ns since the Unix epoch); wall pacing on ``time.monotonic()`` (s).
@@ -13,14 +15,17 @@ import select
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgpack
 
 from zenswarm.bus import wire
 from zenswarm.errors import ScenarioError
 
-__all__ = ["TopicFilter", "restamp", "Pacer", "Controls", "KeyboardControls", "parse_keys"]
+if TYPE_CHECKING:
+    from zenswarm.bridge.recording.mcapio import Recording
+
+__all__ = ["TopicFilter", "original_swarm", "rewrite_topic", "restamp", "Pacer", "Controls", "KeyboardControls", "parse_keys"]
 
 
 # --------------------------------------------------------------------------- topic filters
@@ -86,6 +91,31 @@ class TopicFilter:
                     raise ScenarioError(flag, f"{p!r} matches none of the keys recorded in {path}: {shown or 'none'}")
         if topics and not any(self(t) for t in topics):
             raise ScenarioError("--exclude", f"the filters leave none of the keys recorded in {path} to replay: {shown}")
+
+
+# --------------------------------------------------------------------------- swarm names
+
+
+def original_swarm(rec: Recording, first_topic: str | None) -> str | None:
+    """The swarm ``rec`` was recorded from: its metadata's, else the ``<name>`` of
+    ``first_topic`` when that is ``swarm/<name>/...``; None if neither says."""
+    if rec.swarm:
+        return rec.swarm
+    if first_topic and first_topic.startswith("swarm/"):
+        parts = first_topic.split("/")
+        if len(parts) > 2:
+            return parts[1]
+    return None
+
+
+def rewrite_topic(topic: str, orig: str | None, new: str | None) -> str:
+    """``swarm/<orig>/rest`` -> ``swarm/<new>/rest`` (unchanged if not under ``swarm/<orig>/``)."""
+    if not new or not orig or new == orig:
+        return topic
+    prefix = f"swarm/{orig}/"
+    if topic.startswith(prefix):
+        return f"swarm/{new}/" + topic[len(prefix) :]
+    return topic
 
 
 # --------------------------------------------------------------------------- loop re-stamping

@@ -1,3 +1,3 @@
 """Reports: a flight's figures and results from its recording (:mod:`.report`, ``zenswarm
-report``) and a campaign's report from its results table (:mod:`.sweep_report`, ``zenswarm sweep
-report``)."""
+report``: the flight loaded from the recording, :mod:`.flight`; its figures, :mod:`.figures`) and
+a campaign's report from its results table (:mod:`.sweep_report`, ``zenswarm sweep report``)."""

@@ -317,7 +317,7 @@ def export_foxglove(recording: str | Path, out: str | Path, *, scene_hz: float =
     import foxglove
     from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 
-    from zenswarm.bridge.reports.report import flight_from_recording, load_recording
+    from zenswarm.bridge.reports.flight import flight_from_recording, load_recording
 
     if not scene_hz > 0 or not math.isfinite(scene_hz):
         raise ZenswarmError(f"--scene-hz must be a positive number, got {scene_hz}")

@@ -549,7 +549,7 @@ def open_view(target: LiveTarget, sc: Any, swarm: str, *, flag: str = "--live") 
 def replay_viewer(path: Path, swarm: str | None, target: LiveTarget, connect: list[str]) -> BusViewer:
     """``zenswarm replay FILE --live [PORT|rerun]``: the live view of the swarm the replay
     publishes (``swarm``, or the recorded one), scenario from the recording's metadata."""
-    from zenswarm.bridge.reports.report import load_recording
+    from zenswarm.bridge.reports.flight import load_recording
 
     rec = load_recording(path)
     view = open_view(target, rec.scenario, swarm or rec.swarm)

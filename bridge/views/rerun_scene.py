@@ -278,7 +278,7 @@ def export_rerun(recording: str | Path, out: str | Path, *, scene_hz: float = 20
     and renamed into place when complete. Raises RecordingError for an unusable input."""
     import rerun as rr
 
-    from zenswarm.bridge.reports.report import flight_from_recording, load_recording
+    from zenswarm.bridge.reports.flight import flight_from_recording, load_recording
     from zenswarm.bridge.views.foxglove import ExportSummary, _json_items, interleave, scene_frames
     from zenswarm.bridge.views.scene import frame_from_series
     from zenswarm.bus import wire
