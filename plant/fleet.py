@@ -1,17 +1,23 @@
-"""A fleet of simulated vehicles whose loop runs in a daemon thread: start, stop, context manager.
+"""What the simulated fleets share: the thread around a fleet's loop (start, stop, context
+manager), the flat ground the vehicles stand on, and the command line's run until a signal.
 
-Shared by the simulated MAVLink vehicles (``plant/mavlink_vehicle.py``) and the simulated
-Crazyflies (``plant/crazyflie_vehicle.py``). A subclass sets, in its ``__init__``, ``vehicles``
-(each with ``close()``), ``_stop`` (a ``threading.Event``), ``_thread = None`` and ``error = None``,
-and implements ``run(stop)``: the loop, returning why it ended.
+Shared by the simulated MAVLink vehicles (``plant/mavlink_fleet.py``) and the simulated
+Crazyflies (``plant/crazyflie_fleet.py``). A subclass of :class:`FleetThread` sets, in its
+``__init__``, ``vehicles`` (each with ``close()``), ``_stop`` (a ``threading.Event``),
+``_thread = None``, ``error = None`` and ``overruns = 0``, and implements ``run(stop, duration_s)``:
+the loop, returning why it ended, and ``status()``: one line of facts per vehicle. Positions are
+the plant's, m ENU.
 """
 
 from __future__ import annotations
 
+import signal
 import threading
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, Protocol, Self
+
+from zenswarm.plant.quadrotor import PlantState
 
 
 class _Closable(Protocol):
@@ -26,10 +32,15 @@ class FleetThread(ABC):
     _stop: threading.Event
     _thread: threading.Thread | None
     error: BaseException | None
+    overruns: int
 
     @abstractmethod
-    def run(self, stop: threading.Event) -> str:
-        """The fleet's loop until ``stop`` is set (or its own end); returns the reason it ended."""
+    def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> str:
+        """The fleet's loop until ``stop`` is set (or ``duration_s`` s passed); returns the reason it ended."""
+
+    @abstractmethod
+    def status(self) -> list[dict[str, Any]]:
+        """One line of facts per vehicle (for logs and tests)."""
 
     def start(self) -> Self:
         """Run the loop in a daemon thread."""
@@ -63,3 +74,52 @@ class FleetThread(ABC):
 
     def __exit__(self, *exc: Any) -> None:
         self.stop()
+
+
+def ground_contact(st: PlantState, ground_z: float) -> None:
+    """Flat ground at ``ground_z`` (m, ENU z): a vehicle below it is put back on it, at rest and
+    level (in place; runs every physics sub-step, so the common case returns at once)."""
+    if st.q[:, 2].min() >= ground_z:
+        return
+    below = st.q[:, 2] < ground_z
+    st.q[below, 2] = ground_z
+    st.v[below] = 0.0
+    st.w[below] = 0.0
+    st.rpy[below, 0:2] = 0.0
+    st.rate_int[below] = 0.0
+
+
+def run_until_signal(
+    fleet: FleetThread,
+    name: str,
+    ready: str,
+    duration: float | None,
+    *,
+    on_ready: Callable[[], None] | None = None,
+    counters: Callable[[], str] | None = None,
+) -> int:
+    """Run ``fleet`` in the calling thread until SIGTERM/SIGINT (or ``duration`` s), then close it;
+    returns the exit status (0). Prints ``NAME: ready: READY``, calls ``on_ready`` (start-up is
+    over), applies the requested real-time priority (:func:`zenswarm.process.rtsched.apply_after_startup`,
+    its lines prefixed ``NAME:``), and at the end ``NAME: stopped (why); overruns K; [COUNTERS; ]STATUS``
+    (``counters()``, then :meth:`FleetThread.status`)."""
+    from zenswarm.process import rtsched
+
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: Any) -> None:
+        stop.set()
+
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, on_signal)
+    try:
+        print(f"{name}: ready: {ready}", flush=True)
+        if on_ready is not None:
+            on_ready()
+        rtsched.apply_after_startup(lambda text: print(f"{name}: {text}", flush=True))  # --rt-priority
+        why = fleet.run(stop, duration)
+        extra = f"{counters()}; " if counters is not None else ""
+        print(f"{name}: stopped ({why}); overruns {fleet.overruns}; {extra}{fleet.status()}", flush=True)
+    finally:
+        fleet.close()
+    return 0
