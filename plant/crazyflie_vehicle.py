@@ -76,12 +76,12 @@ Test hooks: :meth:`CrazyflieFleet.silence` drops one vehicle's traffic both ways
 system: :class:`MocapFeeder` publishes the true positions on ``swarm/S/mocap/<i>``.
 
 This module is the simulated Crazyflies' front door: :func:`run_fleet`, and every name of its
-parts, which live one idea a module: :mod:`zenswarm.plant.crtp` (the protocol's numbers and
-encodings: ports, header, TOC, log blocks), :mod:`zenswarm.plant.crazyflie_log` (the log service,
-:data:`LOG_VARS`), :mod:`zenswarm.plant.crazyflie_params` (the parameter service, :data:`PARAMS`),
-:mod:`zenswarm.plant.crazyflie_planner` (the high-level commander's segments, :class:`HlPlan`),
-:mod:`zenswarm.plant.crazyflie_firmware` (one vehicle, :class:`SimCrazyflie`),
-:mod:`zenswarm.plant.crazyflie_fleet` (:class:`CrazyflieFleet`), :mod:`zenswarm.plant.mocap_feeder`
+parts, which live one idea a module: :mod:`zenswarm.plant.crazyflie.crtp` (the protocol's numbers and
+encodings: ports, header, TOC, log blocks), :mod:`zenswarm.plant.crazyflie.log` (the log service,
+:data:`LOG_VARS`), :mod:`zenswarm.plant.crazyflie.params` (the parameter service, :data:`PARAMS`),
+:mod:`zenswarm.plant.crazyflie.planner` (the high-level commander's segments, :class:`HlPlan`),
+:mod:`zenswarm.plant.crazyflie.firmware` (one vehicle, :class:`SimCrazyflie`),
+:mod:`zenswarm.plant.crazyflie.fleet` (:class:`CrazyflieFleet`), :mod:`zenswarm.plant.crazyflie.mocap_feeder`
 (:class:`MocapFeeder`); the position controller is :mod:`zenswarm.plant.position_control`'s, shared
 with the simulated MAVLink vehicles, and the run until a signal :mod:`zenswarm.plant.fleet`'s.
 """
@@ -91,7 +91,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from zenswarm.plant.crazyflie_firmware import (  # noqa: F401 - the parts' names, importable here as before they moved
+from zenswarm.plant.crazyflie.crtp import *  # noqa: F403 - the protocol's names, importable here as before they moved
+from zenswarm.plant.crazyflie.crtp import DEFAULT_BASE_PORT, header, toc_crc, toc_item
+from zenswarm.plant.crazyflie.firmware import (  # noqa: F401 - the parts' names, importable here as before they moved
     ESTIMATOR_DRIFT_M_S,
     FIRMWARE_NAME,
     IS_FLYING_HYSTERESIS_S,
@@ -105,16 +107,14 @@ from zenswarm.plant.crazyflie_firmware import (  # noqa: F401 - the parts' names
     WDT_STABILIZE_S,
     SimCrazyflie,
 )
-from zenswarm.plant.crazyflie_fleet import CrazyflieFleet
-from zenswarm.plant.crazyflie_log import LOG_VARS  # noqa: F401
-from zenswarm.plant.crazyflie_params import PARAMS  # noqa: F401
-from zenswarm.plant.crazyflie_planner import HlPlan  # noqa: F401
-from zenswarm.plant.crtp import *  # noqa: F403 - the protocol's names, importable here as before they moved
-from zenswarm.plant.crtp import DEFAULT_BASE_PORT, header, toc_crc, toc_item
+from zenswarm.plant.crazyflie.fleet import CrazyflieFleet
+from zenswarm.plant.crazyflie.log import LOG_VARS  # noqa: F401
+from zenswarm.plant.crazyflie.mocap_feeder import MocapFeeder
+from zenswarm.plant.crazyflie.params import PARAMS  # noqa: F401
+from zenswarm.plant.crazyflie.planner import HlPlan  # noqa: F401
 from zenswarm.plant.fleet import run_until_signal
-from zenswarm.plant.mocap_feeder import MocapFeeder
 
-# the protocol helpers' names before they moved to zenswarm.plant.crtp
+# the protocol helpers' names before they moved to zenswarm.plant.crazyflie.crtp
 _toc_crc, _toc_item, _header = toc_crc, toc_item, header
 
 

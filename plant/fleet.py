@@ -1,8 +1,8 @@
 """What the simulated fleets share: the thread around a fleet's loop (start, stop, context
 manager), the flat ground the vehicles stand on, and the command line's run until a signal.
 
-Shared by the simulated MAVLink vehicles (``plant/mavlink_fleet.py``) and the simulated
-Crazyflies (``plant/crazyflie_fleet.py``). A subclass of :class:`FleetThread` sets, in its
+Shared by the simulated MAVLink vehicles (``plant/mavlink/fleet.py``) and the simulated
+Crazyflies (``plant/crazyflie/fleet.py``). A subclass of :class:`FleetThread` sets, in its
 ``__init__``, ``vehicles`` (each with ``close()``), ``_stop`` (a ``threading.Event``),
 ``_thread = None``, ``error = None`` and ``overruns = 0``, and implements ``run(stop, duration_s)``:
 the loop, returning why it ended, and ``status()``: one line of facts per vehicle. Positions are

@@ -21,7 +21,7 @@ heartbeat and behaviours; each behaviour cites its autopilot source next to its 
 * LOCAL_POSITION_NED and ATTITUDE (PX4: and ATTITUDE_QUATERNION) at ``telemetry_hz`` (50 Hz),
   GLOBAL_POSITION_INT at a fifth of it (a simulated GPS about PX4 SITL's default home);
   local NED about the swarm origin, or with ``own_origin`` about where each vehicle booted;
-* the parameter protocol with each autopilot's parameters (:mod:`zenswarm.plant.mavlink_params`),
+* the parameter protocol with each autopilot's parameters (:mod:`zenswarm.plant.mavlink.params`),
   which the vehicle follows (COM_OF_LOSS_T, MIS_TAKEOFF_ALT, MPC_TKO_SPEED, MPC_LAND_SPEED,
   COM_DISARM_LAND, RTL_RETURN_ALT; GUID_OPTIONS, GUID_TIMEOUT, WPNAV_SPEED_UP/DN, LAND_SPEED,
   DISARM_DELAY, RTL_ALT);
@@ -63,11 +63,11 @@ SCENARIO --base-port P``) runs the fleet until
 SIGTERM/SIGINT (:func:`run_fleet`). Importing this module sets ``MAVLINK20=1`` (see bridge.mavlink).
 
 This module is the simulated MAVLink vehicles' front door: :func:`run_fleet`, and every name of
-its parts, which live one idea a module: :mod:`zenswarm.plant.mavlink_options` (what a vehicle is
-configured with, :class:`VehicleOptions`; the mode kinds), :mod:`zenswarm.plant.mavlink_params`
-(the autopilots' parameters), :mod:`zenswarm.plant.mavlink_link` (the UDP endpoint, the messages
-in and out, the GPS about :data:`REF_LLA`), :mod:`zenswarm.plant.mavlink_autopilot` (one vehicle's
-autopilot, :class:`SimVehicle`), :mod:`zenswarm.plant.mavlink_fleet` (:class:`MavlinkFleet`); the
+its parts, which live one idea a module: :mod:`zenswarm.plant.mavlink.options` (what a vehicle is
+configured with, :class:`VehicleOptions`; the mode kinds), :mod:`zenswarm.plant.mavlink.params`
+(the autopilots' parameters), :mod:`zenswarm.plant.mavlink.link` (the UDP endpoint, the messages
+in and out, the GPS about :data:`REF_LLA`), :mod:`zenswarm.plant.mavlink.autopilot` (one vehicle's
+autopilot, :class:`SimVehicle`), :mod:`zenswarm.plant.mavlink.fleet` (:class:`MavlinkFleet`); the
 position loop is :mod:`zenswarm.plant.position_control`'s, shared with the simulated Crazyflies,
 and the run until a signal :mod:`zenswarm.plant.fleet`'s. The wire is MAVLink's local NED (body
 FRD); the plant and the autopilot's state the swarm's ENU (body FLU).
@@ -79,7 +79,7 @@ from dataclasses import replace
 from typing import Any
 
 from zenswarm.plant.fleet import run_until_signal
-from zenswarm.plant.mavlink_autopilot import (  # noqa: F401 - the parts' names, importable here as before they moved
+from zenswarm.plant.mavlink.autopilot import (  # noqa: F401 - the parts' names, importable here as before they moved
     _FORCE_MAGIC,
     _GUID_THRUST_AS_THRUST,
     SUB_ANGLE,
@@ -89,9 +89,9 @@ from zenswarm.plant.mavlink_autopilot import (  # noqa: F401 - the parts' names,
     SUB_VEL,
     SimVehicle,
 )
-from zenswarm.plant.mavlink_fleet import MavlinkFleet
-from zenswarm.plant.mavlink_link import _EARTH_R, REF_LLA, mavlink, mavutil  # noqa: F401
-from zenswarm.plant.mavlink_options import HOLD, LAND, OFFBOARD, RTL, TAKEOFF, VehicleOptions, vehicle_options  # noqa: F401
+from zenswarm.plant.mavlink.fleet import MavlinkFleet
+from zenswarm.plant.mavlink.link import _EARTH_R, REF_LLA, mavlink, mavutil  # noqa: F401
+from zenswarm.plant.mavlink.options import HOLD, LAND, OFFBOARD, RTL, TAKEOFF, VehicleOptions, vehicle_options  # noqa: F401
 
 __all__ = ["VehicleOptions", "SimVehicle", "MavlinkFleet", "run_fleet"]
 

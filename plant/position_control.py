@@ -1,6 +1,6 @@
 """The simulated vehicles' onboard position controller: the loop a PX4 / ArduCopter autopilot
-(:mod:`zenswarm.plant.mavlink_autopilot`) and a Crazyflie's firmware
-(:mod:`zenswarm.plant.crazyflie_firmware`) close around a position or velocity setpoint, before
+(:mod:`zenswarm.plant.mavlink.autopilot`) and a Crazyflie's firmware
+(:mod:`zenswarm.plant.crazyflie.firmware`) close around a position or velocity setpoint, before
 their attitude controller (the plant's onboard PID, :func:`zenswarm.plant.quadrotor.step`).
 
 Pure numerics (numpy + math). Frame: the swarm's ENU (positions m, velocities m/s), Euler angles

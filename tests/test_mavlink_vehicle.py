@@ -2,7 +2,7 @@
 ground station over UDP on 127.0.0.1 (the vehicles run in a thread of the test process).
 
 Each test flies a few seconds at most; the behaviours and their sources are documented in
-:mod:`zenswarm.plant.mavlink_vehicle` and :mod:`zenswarm.plant.mavlink_params`.
+:mod:`zenswarm.plant.mavlink_vehicle` and :mod:`zenswarm.plant.mavlink.params`.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from zenswarm.plant.mavlink_params import INT32, REAL32, ParamStore, decode, encode, px4_params
+from zenswarm.plant.mavlink.params import INT32, REAL32, ParamStore, decode, encode, px4_params
 from zenswarm.plant.mavlink_vehicle import MavlinkFleet, VehicleOptions, mavlink, mavutil
 from zenswarm.vehicle.params import QuadParams
 

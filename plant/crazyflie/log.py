@@ -7,8 +7,8 @@ m/s, the positioning system's frame: the swarm's ENU here), ``stateEstimate.{rol
 (deg, pitch inverted: :mod:`zenswarm.vehicle.crazyflie`), ``gyro.{x,y,z}`` (deg/s, body),
 ``stabilizer.thrust``, ``motor.m1..m4`` (uint16), ``pm.vbat`` (V), ``pm.batteryLevel`` (%),
 ``pm.state``, ``radio.rssi``, ``supervisor.info``. Their values come from the fleet
-(:meth:`zenswarm.plant.crazyflie_fleet.CrazyflieFleet.tick`); the encoding is
-:mod:`zenswarm.plant.crtp`'s.
+(:meth:`zenswarm.plant.crazyflie.fleet.CrazyflieFleet.tick`); the encoding is
+:mod:`zenswarm.plant.crazyflie.crtp`'s.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import errno
 import struct
 from collections.abc import Callable, Iterator
 
-from zenswarm.plant.crtp import (
+from zenswarm.plant.crazyflie.crtp import (
     LOG_FLOAT,
     LOG_INT8,
     LOG_MAX_BLOCKS,
@@ -45,7 +45,7 @@ LOG_VARS: list[tuple[str, int]] = [
 
 class LogService:
     """The log TOC and blocks of one vehicle. Requests in, answers out (payload bytes); the
-    vehicle sends them (:meth:`zenswarm.plant.crazyflie_firmware.SimCrazyflie.send`)."""
+    vehicle sends them (:meth:`zenswarm.plant.crazyflie.firmware.SimCrazyflie.send`)."""
 
     def __init__(self) -> None:
         self.blocks: dict[int, LogBlock] = {}

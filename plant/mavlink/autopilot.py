@@ -4,9 +4,9 @@ source next to its code): its modes, arming and pre-arm checks, the commands it 
 answered with a MAV_RESULT), the setpoints it follows, the offboard-loss failsafe, takeoff,
 return and landing, the auto-disarm, and the position loop
 (:func:`zenswarm.plant.position_control.position_loop`) that turns a setpoint into the thrust and
-attitude the plant flies. Its parameters are :mod:`zenswarm.plant.mavlink_params`'; the messages
-in and out are its link's (:class:`zenswarm.plant.mavlink_link.MavlinkLink`); the physics the
-fleet's (:mod:`zenswarm.plant.mavlink_fleet`).
+attitude the plant flies. Its parameters are :mod:`zenswarm.plant.mavlink.params`'; the messages
+in and out are its link's (:class:`zenswarm.plant.mavlink.link.MavlinkLink`); the physics the
+fleet's (:mod:`zenswarm.plant.mavlink.fleet`).
 
 Frames: the autopilot works in the swarm's ENU frame (positions m, attitude ZYX rad, ``home_enu``
 and its estimator ``origin`` m ENU); the setpoints it keeps from the wire stay in MAVLink's local
@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from zenswarm.plant.mavlink_link import REF_LLA, MavlinkLink, decode_attitude_target, decode_position_target, mavlink
-from zenswarm.plant.mavlink_options import HOLD, LAND, OFFBOARD, RTL, TAKEOFF, VehicleOptions
-from zenswarm.plant.mavlink_params import ParamStore, ardupilot_params, px4_params
+from zenswarm.plant.mavlink.link import REF_LLA, MavlinkLink, decode_attitude_target, decode_position_target, mavlink
+from zenswarm.plant.mavlink.options import HOLD, LAND, OFFBOARD, RTL, TAKEOFF, VehicleOptions
+from zenswarm.plant.mavlink.params import ParamStore, ardupilot_params, px4_params
 from zenswarm.plant.position_control import position_loop
 from zenswarm.vehicle import frames
 from zenswarm.vehicle.autopilot import AP_COPTER_MODES, PX4_AUTO_SUB, mode_name, px4_custom_mode
@@ -42,7 +42,7 @@ _GUID_THRUST_AS_THRUST = 8  # GUID_OPTIONS bit 3 (ArduCopter mode.h ModeGuided::
 class SimVehicle:
     """One simulated vehicle: its autopilot's logic, and its MAVLink endpoint (``link``, a
     :class:`MavlinkLink`); not its physics, which
-    :class:`zenswarm.plant.mavlink_fleet.MavlinkFleet` integrates for all vehicles at once. Row
+    :class:`zenswarm.plant.mavlink.fleet.MavlinkFleet` integrates for all vehicles at once. Row
     ``index`` of the fleet."""
 
     def __init__(self, index: int, sysid: int, port: int, opts: VehicleOptions, params: QuadParams, boot: float, spawn: Any = None) -> None:
@@ -169,7 +169,7 @@ class SimVehicle:
         elif mtype == "HEARTBEAT":
             self._count("peer_heartbeats")
         elif mtype in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET"):
-            self.link.serve_params(m, self.ap_params)  # the parameter protocol (zenswarm.plant.mavlink_params)
+            self.link.serve_params(m, self.ap_params)  # the parameter protocol (zenswarm.plant.mavlink.params)
         elif mtype == "TIMESYNC":
             self.link.timesync(m, now)
         else:

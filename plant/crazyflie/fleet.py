@@ -2,9 +2,9 @@
 (:func:`zenswarm.plant.quadrotor.step`, eqs 1-5 with the onboard attitude PID) for all vehicles
 at once, ``timing.substeps`` sub-steps at ``timing.physics_rate_hz`` per loop period on the wall
 clock, a flat ground at z = 0, and between ticks the vehicles' sockets
-(:class:`zenswarm.plant.crazyflie_firmware.SimCrazyflie`). Vehicle i (0-based) listens on UDP
+(:class:`zenswarm.plant.crazyflie.firmware.SimCrazyflie`). Vehicle i (0-based) listens on UDP
 ``host:base_port + i``. Positions in the swarm's ENU frame (m); the log variables' values are
-the firmware's units (:mod:`zenswarm.plant.crazyflie_log`).
+the firmware's units (:mod:`zenswarm.plant.crazyflie.log`).
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from zenswarm.plant.crazyflie_firmware import SimCrazyflie
-from zenswarm.plant.crazyflie_log import LOG_VARS
-from zenswarm.plant.crtp import DEFAULT_BASE_PORT
+from zenswarm.plant.crazyflie.crtp import DEFAULT_BASE_PORT
+from zenswarm.plant.crazyflie.firmware import SimCrazyflie
+from zenswarm.plant.crazyflie.log import LOG_VARS
 from zenswarm.plant.fleet import FleetThread, ground_contact
 from zenswarm.plant.quadrotor import PlantState, initial_state, step
 from zenswarm.vehicle import crazyflie as cfu

@@ -8,7 +8,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from zenswarm.plant.crazyflie_fleet import CrazyflieFleet
+from zenswarm.plant.crazyflie.fleet import CrazyflieFleet
 
 
 class MocapFeeder:

@@ -5,7 +5,7 @@ custom modes mapped to offboard, hold, land, takeoff, rtl: :meth:`VehicleOptions
 the options of a scenario's ``[mavlink]`` table (:func:`vehicle_options`).
 
 Units inline; positions (``ground_z``) in the swarm's ENU frame, m (the MAVLink side is NED: see
-:mod:`zenswarm.plant.mavlink_link`).
+:mod:`zenswarm.plant.mavlink.link`).
 """
 
 from __future__ import annotations

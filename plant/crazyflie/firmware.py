@@ -1,11 +1,11 @@
 """One simulated Crazyflie's firmware (:mod:`zenswarm.plant.crazyflie_vehicle` says what it
 answers): its UDP socket and the CRTP services on it (link, platform, memory, localization, and
-the log and parameter services it owns: :mod:`zenswarm.plant.crazyflie_log`,
-:mod:`zenswarm.plant.crazyflie_params`), the commander (setpoint priorities, the RPYT, generic
+the log and parameter services it owns: :mod:`zenswarm.plant.crazyflie.log`,
+:mod:`zenswarm.plant.crazyflie.params`), the commander (setpoint priorities, the RPYT, generic
 and high-level commanders), the supervisor's state machine and the commander watchdog, the
 estimator (external positions), and the position controller
 (:func:`zenswarm.plant.position_control.position_loop`). It does not move: the fleet
-(:mod:`zenswarm.plant.crazyflie_fleet`) integrates the physics and asks :meth:`SimCrazyflie.control`
+(:mod:`zenswarm.plant.crazyflie.fleet`) integrates the physics and asks :meth:`SimCrazyflie.control`
 for the thrust and attitude to fly.
 
 Frames and units: positions and velocities in the positioning system's frame, the swarm's ENU
@@ -25,10 +25,7 @@ from typing import Any
 import numpy as np
 
 from zenswarm.errors import ScenarioError
-from zenswarm.plant.crazyflie_log import LOG_VARS, LogService
-from zenswarm.plant.crazyflie_params import ParamService
-from zenswarm.plant.crazyflie_planner import HlPlan
-from zenswarm.plant.crtp import (
+from zenswarm.plant.crazyflie.crtp import (
     BIT_CAN_BE_ARMED,
     BIT_CAN_FLY,
     BIT_HL_ACTIVE,
@@ -50,6 +47,9 @@ from zenswarm.plant.crtp import (
     PORT_SUPERVISOR,
     header,
 )
+from zenswarm.plant.crazyflie.log import LOG_VARS, LogService
+from zenswarm.plant.crazyflie.params import ParamService
+from zenswarm.plant.crazyflie.planner import HlPlan
 from zenswarm.plant.position_control import position_loop
 from zenswarm.vehicle import crazyflie as cfu
 from zenswarm.vehicle.params import QuadParams
@@ -284,7 +284,7 @@ class SimCrazyflie:
         elif ch == 0 and d[0] == 2:
             self._recover(now)
 
-    # ---- log and param (their services: zenswarm.plant.crazyflie_log, zenswarm.plant.crazyflie_params)
+    # ---- log and param (their services: zenswarm.plant.crazyflie.log, zenswarm.plant.crazyflie.params)
     def _log(self, ch: int, d: bytes, now: float) -> None:
         if ch == 0:
             reply = self.log_service.toc(d)

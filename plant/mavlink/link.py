@@ -1,5 +1,5 @@
 """One simulated MAVLink vehicle's link (:class:`MavlinkLink`): its UDP endpoint and what crosses
-it, encoded and decoded, for the autopilot (:mod:`zenswarm.plant.mavlink_autopilot`) that owns
+it, encoded and decoded, for the autopilot (:mod:`zenswarm.plant.mavlink.autopilot`) that owns
 it. No flight logic: the autopilot hands over its state (armed, mode, home, ...) and gets typed
 setpoints back.
 
@@ -12,7 +12,7 @@ setpoints back.
   drops all traffic both ways (a test hook: a lost link);
 * in: SET_ATTITUDE_TARGET and SET_POSITION_TARGET_LOCAL_NED decoded and checked
   (:func:`decode_attitude_target`, :func:`decode_position_target`), the parameter protocol
-  (:class:`zenswarm.plant.mavlink_params.ParamStore`), TIMESYNC;
+  (:class:`zenswarm.plant.mavlink.params.ParamStore`), TIMESYNC;
 * out: COMMAND_ACK, STATUSTEXT, LOCAL_POSITION_NED, ATTITUDE (PX4: and ATTITUDE_QUATERNION),
   GLOBAL_POSITION_INT at a fifth of their rate, HEARTBEAT, SYS_STATUS, EXTENDED_SYS_STATE,
   HOME_POSITION, AUTOPILOT_VERSION, each as the flavour (PX4 or ArduCopter) sends it.
@@ -33,12 +33,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from zenswarm.errors import ScenarioError
-from zenswarm.plant.mavlink_params import ParamStore
+from zenswarm.plant.mavlink.params import ParamStore
 from zenswarm.vehicle import frames
 from zenswarm.vehicle.autopilot import SITL_SEND_OFFSET, load_mavutil
 
 if TYPE_CHECKING:
-    from zenswarm.plant.mavlink_options import VehicleOptions
+    from zenswarm.plant.mavlink.options import VehicleOptions
 
 mavutil = load_mavutil()
 mavlink = mavutil.mavlink
@@ -228,7 +228,7 @@ class MavlinkLink:
         self.conn.mav.timesync_send(int((now - self.boot) * 1e9), int(m.ts1))
 
     def serve_params(self, m: Any, store: ParamStore) -> None:
-        """The parameter protocol (see :mod:`zenswarm.plant.mavlink_params`) on ``store``."""
+        """The parameter protocol (see :mod:`zenswarm.plant.mavlink.params`) on ``store``."""
         mtype = m.get_type()
         i: int | None
         if mtype == "PARAM_REQUEST_LIST":

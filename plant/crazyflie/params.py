@@ -1,7 +1,7 @@
 """A simulated Crazyflie's parameter service (CRTP port 2, ``param_logic.c``): its table of
 contents (:data:`PARAMS`) and values; TOC v2, read (channel 1, ``[id, status, value]``), write
 (channel 2, echoed), set by name (channel 3); read-only parameters refuse writes. The encoding is
-:mod:`zenswarm.plant.crtp`'s.
+:mod:`zenswarm.plant.crazyflie.crtp`'s.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import math
 import struct
 from collections.abc import Callable
 
-from zenswarm.plant.crtp import (
+from zenswarm.plant.crazyflie.crtp import (
     PARAM_FLOAT,
     PARAM_RONLY,
     PARAM_UINT8,

@@ -3,7 +3,7 @@ physics (:func:`zenswarm.plant.quadrotor.step`, eqs 1-5 with the onboard attitud
 vehicles at once, ``timing.physics_rate_hz`` sub-steps in chunks of ``timing.substeps`` at
 ``timing.control_rate_hz`` on the wall clock, plus the scenario's disturbances and a flat ground
 at ``ground_z``; each loop period every vehicle's autopilot
-(:class:`zenswarm.plant.mavlink_autopilot.SimVehicle`) reads its messages, commands its thrust and
+(:class:`zenswarm.plant.mavlink.autopilot.SimVehicle`) reads its messages, commands its thrust and
 attitude, and streams its telemetry at its rate.
 
 Frames: the plant's state is in the swarm's ENU frame (m, m/s, rad; body rates FLU); the
@@ -21,8 +21,8 @@ import numpy as np
 
 from zenswarm.plant.disturbance import DisturbanceModel
 from zenswarm.plant.fleet import FleetThread, ground_contact
-from zenswarm.plant.mavlink_autopilot import SimVehicle
-from zenswarm.plant.mavlink_options import VehicleOptions, vehicle_options
+from zenswarm.plant.mavlink.autopilot import SimVehicle
+from zenswarm.plant.mavlink.options import VehicleOptions, vehicle_options
 from zenswarm.plant.quadrotor import PlantState, initial_state, step
 from zenswarm.vehicle import frames
 from zenswarm.vehicle.autopilot import mavlink_settings
