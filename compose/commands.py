@@ -163,13 +163,11 @@ def command(role: str, at: Launch, kill_at_tick: int | None = None) -> tuple[lis
     """What ``role`` (a swarm role, or ``recorder``, ``vehicles``, ``bridge``) is started with:
     its command line (this interpreter's; the process's name, ``--swarm``, ``--settings -``,
     ``--supervisor PID``) and its settings, msgpack for its standard input."""
-    argv = [sys.executable, "-m", "zenswarm"]
-    if role.partition(":")[0] in ROLES_BY_SETTINGS:
-        settings: Any = role_settings(role, at, kill_at_tick)
-    else:
-        settings = edge_settings(role, at)
-    named = ["--swarm", at.flight.swarm, "--settings", "-", "--supervisor", str(at.supervisor)]
-    return argv + _words(role, at) + named, encode(settings)
+    argv = [sys.executable, "-m", "zenswarm", *_words(role, at), "--swarm", at.flight.swarm, "--settings", "-",
+            "--supervisor", str(at.supervisor)]  # fmt: skip
+    if role.partition(":")[0] not in ROLES_BY_SETTINGS:  # the recorder, the vehicles, the bridge
+        return argv, encode(edge_settings(role, at))
+    return argv, encode(role_settings(role, at, kill_at_tick))
 
 
 # ----------------------------------------------------------------------------- the child's side
