@@ -165,9 +165,9 @@ def command(role: str, at: Launch, kill_at_tick: int | None = None) -> tuple[lis
     ``--supervisor PID``) and its settings, msgpack for its standard input."""
     argv = [sys.executable, "-m", "zenswarm", *_words(role, at), "--swarm", at.flight.swarm, "--settings", "-",
             "--supervisor", str(at.supervisor)]  # fmt: skip
-    if role.partition(":")[0] not in ROLES_BY_SETTINGS:  # the recorder, the vehicles, the bridge
-        return argv, encode(edge_settings(role, at))
-    return argv, encode(role_settings(role, at, kill_at_tick))
+    edge = role.partition(":")[0] not in ROLES_BY_SETTINGS  # the recorder, the vehicles, the bridge
+    settings = edge_settings(role, at) if edge else role_settings(role, at, kill_at_tick)
+    return argv, encode(settings)
 
 
 # ----------------------------------------------------------------------------- the child's side
