@@ -25,6 +25,8 @@ __all__ = [
     "positive_float",
     "seed_arg",
     "add_fault_args",
+    "recorded_link_faults",
+    "recorded_fault_plan",
     "link_faults",
     "add_security_args",
     "client_security",
@@ -124,6 +126,35 @@ def link_faults(args: argparse.Namespace) -> LinkFaults:
         link_medium=getattr(args, "link_medium", None),
         link_trace=None if trace is None else str(Path(trace).absolute()),
     )  # fmt: skip
+
+
+def recorded_link_faults(fault_args: str, source: str | Path) -> LinkFaults:
+    """The fault flags a recorded run was flown with (its metadata ``fault_args``: a JSON list of
+    the words of :func:`add_fault_args`), typed. Unusable words are a :class:`RecordingError`
+    naming ``source`` (the recording), not an exit of argparse's."""
+    import json
+
+    from zenswarm.errors import RecordingError
+
+    p = argparse.ArgumentParser(add_help=False, exit_on_error=False)
+    add_fault_args(p)
+    try:
+        return link_faults(p.parse_args([str(w) for w in json.loads(fault_args)]))
+    except (ValueError, TypeError, SystemExit, argparse.ArgumentError) as e:
+        raise RecordingError(f"{source}: metadata fault_args unusable ({e})") from None
+
+
+def recorded_fault_plan(fault_args: str, scenario: Scenario, source: str | Path) -> Any:
+    """The link-fault plan (:class:`zenswarm.link.FaultPlan`, None when no fault was active) of a
+    recorded run: ``scenario``'s ``[faults]`` table plus its fault flags
+    (:func:`recorded_link_faults`); a :class:`RecordingError` naming ``source`` when unusable."""
+    from zenswarm.errors import RecordingError, ZenswarmError
+
+    faults = recorded_link_faults(fault_args, source)
+    try:
+        return faults.plan(scenario)
+    except ZenswarmError as e:
+        raise RecordingError(f"{source}: metadata fault_args unusable ({e})") from None
 
 
 def add_security_args(p: argparse.ArgumentParser) -> None:

@@ -402,3 +402,46 @@ def test_report_cli_warns_on_a_truncated_recording(flight, tmp_path):
     assert "did not record 4 payloads (400000 bytes)" in err and f"swarm/{SWARM}/uav/1/state: 4" in err, err
     assert "Traceback" not in err
     assert all((out / f).exists() for f in report.FIGURES)
+
+
+@pytest.mark.parametrize(
+    "fault_args, why, words_bad",
+    [
+        ("not json", "fault_args unusable", True),
+        (json.dumps(["--no-such-flag", "1"]), "fault_args unusable", True),  # argparse would have exited
+        (json.dumps(["--seed", "x"]), "fault_args unusable", True),  # a flag's type refuses it
+        (json.dumps(["--link-loss", "1.5"]), "--link-loss", False),  # the words parse; the plan refuses the value
+    ],
+)
+def test_a_recordings_unusable_fault_flags_are_a_recording_error_naming_it(fault_args, why, words_bad, tmp_path):
+    """The fault flags a recording carries (metadata fault_args), read once for the report, the
+    replay's verify and its seed (zenswarm.bridge.args.recorded_link_faults): unusable words are a
+    RecordingError naming the file and what is wrong, never argparse's exit."""
+    from zenswarm.bridge.args import recorded_fault_plan, recorded_link_faults
+    from zenswarm.scenario.config import load_scenario
+
+    sc = load_scenario(EX1)
+    src = tmp_path / "run.mcap"
+    with pytest.raises(RecordingError, match=why) as e:
+        recorded_fault_plan(fault_args, sc, src)
+    assert str(src) in str(e.value)
+    if words_bad:
+        with pytest.raises(RecordingError, match=why):
+            recorded_link_faults(fault_args, src)
+    else:
+        assert recorded_link_faults(fault_args, src).link_loss == "1.5"
+
+
+def test_a_recordings_fault_flags_give_the_plan_and_seed_they_were_flown_with(tmp_path):
+    """Usable words: the same plan as the flags given to zenswarm up, and the recorded --seed."""
+    from zenswarm.bridge.args import add_fault_args, link_faults, recorded_fault_plan, recorded_link_faults
+    from zenswarm.scenario.config import load_scenario
+
+    sc = load_scenario(EX1)
+    words = ["--link-loss", "0.2", "--link-delay", "50ms", "--partition", "agent:2@1s-2s", "--seed", "7"]
+    ap = argparse.ArgumentParser()
+    add_fault_args(ap)
+    assert recorded_fault_plan(json.dumps(words), sc, tmp_path / "r.mcap") == link_faults(ap.parse_args(words)).plan(sc)
+    assert recorded_link_faults(json.dumps(words), tmp_path / "r.mcap").seed == 7
+    assert recorded_link_faults("[]", tmp_path / "r.mcap").seed is None
+    assert recorded_fault_plan("[]", sc, tmp_path / "r.mcap") is None

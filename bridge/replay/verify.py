@@ -118,28 +118,20 @@ def _swarm_of(rec: Recording) -> str:
 def _recorded_seed(rec: Recording, sc: Any) -> Any:
     """The scenario with the run's ``--seed`` (recorded with the fault flags) applied: the
     controllers' random streams (:func:`zenswarm.scenario.plugins.plugin_rng`) derive from it."""
-    import json
     from dataclasses import replace
 
-    from zenswarm.bridge.args import add_fault_args
+    from zenswarm.bridge.args import recorded_link_faults
 
-    p = argparse.ArgumentParser(add_help=False)
-    add_fault_args(p)
-    seed = p.parse_args(json.loads(rec.info.get("fault_args", "[]"))).seed
+    seed = recorded_link_faults(rec.info.get("fault_args", "[]"), rec.path).seed
     return sc if seed is None else replace(sc, seed=int(seed))
 
 
 def _fault_plan(rec: Recording, sc: Any) -> Any:
     """The link-fault plan of the recorded run: the scenario's ``[faults]`` table plus the fault
     flags the recorder was given (metadata ``fault_args``). None when no fault was active."""
-    import json
+    from zenswarm.bridge.args import recorded_fault_plan
 
-    from zenswarm.bridge.args import add_fault_args, link_faults
-
-    p = argparse.ArgumentParser(add_help=False)
-    add_fault_args(p)
-    words = json.loads(rec.info.get("fault_args", "[]"))
-    return link_faults(p.parse_args(words)).plan(sc)
+    return recorded_fault_plan(rec.info.get("fault_args", "[]"), sc, rec.path)
 
 
 def verify_agent(path: str | Path, agent: int, *, strict: bool = False) -> VerifyResult:

@@ -12,8 +12,6 @@ scenario's ``[faults]`` and the recorded fault flags). The figures drawn from a 
 
 from __future__ import annotations
 
-import argparse
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +20,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from zenswarm.bus import wire
-from zenswarm.errors import RecordingError, ZenswarmError
+from zenswarm.errors import RecordingError
 from zenswarm.judge.metrics import TimeSeries
 from zenswarm.link import FaultPlan
 from zenswarm.scenario.config import Scenario
@@ -189,12 +187,6 @@ def flight_from_recording(rec: Recording) -> Flight:
 def recorded_fault_plan(rec: Recording) -> FaultPlan | None:
     """The link-fault plan of a recorded run: the scenario's ``[faults]`` table plus the fault
     flags the recorder was given (metadata ``fault_args``, as ``replay --verify`` reads them)."""
-    from zenswarm.bridge.args import add_fault_args, link_faults
+    from zenswarm.bridge.args import recorded_fault_plan as plan_of
 
-    p = argparse.ArgumentParser(add_help=False)
-    add_fault_args(p)
-    try:
-        words = json.loads(rec.metadata.get("fault_args", "[]"))
-        return link_faults(p.parse_args([str(w) for w in words])).plan(rec.scenario)
-    except (ValueError, SystemExit, ZenswarmError) as e:
-        raise RecordingError(f"{rec.path}: metadata fault_args unusable ({e})") from None
+    return plan_of(rec.metadata.get("fault_args", "[]"), rec.scenario, rec.path)
