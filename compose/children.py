@@ -175,6 +175,16 @@ def stop_children(children: list[Child], grace_s: float, say: Callable[[str], No
         c.join_output(2.0)
 
 
+def swarm_env(environ: Mapping[str, str], zenoh_runtime: str | None) -> dict[str, str]:
+    """The environment a swarm process starts with: ``environ`` with unbuffered output, and
+    ``ZENOH_RUNTIME`` set to ``zenoh_runtime`` when given (None: the user's own choice is kept)."""
+    env = dict(environ)
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    if zenoh_runtime is not None:
+        env["ZENOH_RUNTIME"] = zenoh_runtime
+    return env
+
+
 def start_with_settings(name: str, argv: list[str], settings: bytes, env: dict[str, str], *, term_on_parent_death: bool = False) -> Child:
     """:func:`start_local` with ``settings`` on the child's standard input: a file of its own,
     already gone from the disk (the child holds its own descriptor)."""

@@ -32,7 +32,7 @@ import zenoh
 from zenswarm import bus
 from zenswarm.bus import wire
 from zenswarm.compose import commands
-from zenswarm.compose.children import Child, start_with_settings, stop_in_order
+from zenswarm.compose.children import Child, start_with_settings, stop_in_order, swarm_env
 from zenswarm.compose.commands import role_names, swarm_roles
 from zenswarm.compose.credentials import router_security
 from zenswarm.compose.flight_results import await_last_tick, judge_and_write, process_death, recording_lost, run_facts
@@ -129,10 +129,8 @@ class Supervisor:
     def spawn(self, role: str) -> Child:
         """Start ``role`` (here, or with ``--scheduler`` a plant, leader or agent on its worker) with
         its settings on standard input, and read its output (:meth:`_on_line`)."""
-        env = dict(os.environ)
-        env.setdefault("PYTHONUNBUFFERED", "1")
-        if self.user_runtime is None:  # the swarm's processes: zenoh on one thread (bus.use_swarm_runtime)
-            env["ZENOH_RUNTIME"] = bus.ZENOH_RUNTIME_DEFAULT
+        # the swarm's processes: zenoh on one thread (bus.use_swarm_runtime), unless the user chose
+        env = swarm_env(os.environ, bus.ZENOH_RUNTIME_DEFAULT if self.user_runtime is None else None)
         argv, settings = self.command(role)
         if self.cluster is not None and role.partition(":")[0] in commands.ROLES_BY_SETTINGS:  # its settings travel with the start
             wanted = {k: env[k] for k in ("PYTHONUNBUFFERED", "ZENOH_RUNTIME") if k in env}

@@ -14,6 +14,7 @@ from typing import Any
 
 import pytest
 
+from zenswarm import bus
 from zenswarm.bridge.recording import recorder
 from zenswarm.bridge.recording.mcapio import RECORDER_END, read_recording
 from zenswarm.bridge.recording.recorder import McapSink, build_metadata
@@ -338,3 +339,13 @@ def test_the_routers_port_taken_before_it_binds_is_replaced_unless_given(tmp_pat
         sup = Supervisor(up_options(given), sc)
         with pytest.raises(bus.BusError, match=f"--listen tcp/127.0.0.1:{port}: the port is taken"):
             sup._open_router([f"tcp/127.0.0.1:{port}"], {})
+
+
+def test_a_swarm_process_starts_unbuffered_with_zenoh_on_one_thread_unless_the_user_chose() -> None:
+    """compose.children.swarm_env: the supervisor's environment for its roles."""
+    from zenswarm.compose.children import swarm_env
+
+    ours = swarm_env({"PATH": "/bin"}, bus.ZENOH_RUNTIME_DEFAULT)
+    assert ours == {"PATH": "/bin", "PYTHONUNBUFFERED": "1", "ZENOH_RUNTIME": bus.ZENOH_RUNTIME_DEFAULT}
+    users = {"PYTHONUNBUFFERED": "0", "ZENOH_RUNTIME": "(app: (worker_threads: 4))"}
+    assert swarm_env(users, None) == users  # the user's runtime and buffering kept
