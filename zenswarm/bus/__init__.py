@@ -1,6 +1,7 @@
 """Thin Zenoh helpers: configs, sessions that always close, liveliness (eclipse-zenoh 1.10.x).
 
-This is where messages cross the network; payloads are built and checked by :mod:`zenswarm.bus.wire`.
+This is where messages cross the network; payloads are built and checked by :mod:`zenswarm.bus.wire`,
+the keys they travel on are :mod:`zenswarm.bus.keys`.
 
 Topology: one router per swarm (``mode: router``, possibly inside a Python process, see
 ``python -m zenswarm.compose.router``) and every swarm process a client of it. Multicast scouting and
@@ -44,7 +45,7 @@ from typing import Any, Final, Protocol, cast
 
 import zenoh
 
-from zenswarm.bus.wire import InvalidKeyError, Keys, validate_process
+from zenswarm.bus.keys import InvalidKeyError, Keys, validate_process
 from zenswarm.errors import ScenarioError, ZenswarmError
 
 __all__ = [
