@@ -24,7 +24,7 @@ import numpy as np
 import numpy.typing as npt
 from msgspec import Meta
 
-from zenswarm.bus.keys import InvalidKeyError, validate_process
+from zenswarm.bus.keys import PROCESS_PATTERN, InvalidKeyError, validate_process
 from zenswarm.errors import DecodeError, ZenswarmError
 
 __all__ = [
@@ -312,8 +312,7 @@ Seq = Annotated[int, Meta(ge=0, le=MAX_SEQ), _Check(_mk_seq)]
 """Sequence number in [0, MAX_SEQ]."""
 Number = Annotated[float, Meta(ge=-_FMAX, le=_FMAX), _Check(_mk_float)]
 """Finite float64 (an int on the wire is accepted, bool is not)."""
-Process = Annotated[str, Meta(pattern=r"\A(?:plant|leader|recorder|bridge|supervisor|agent:[1-9][0-9]{0,8})\Z"),
-                    _Check(_mk_process)]
+Process = Annotated[str, Meta(pattern=rf"\A(?:{PROCESS_PATTERN})\Z"), _Check(_mk_process)]
 """A process name (see :func:`validate_process`)."""
 PlainMap = Annotated[dict[str, Any], _Check(_mk_map, _d_plain, dict)]
 """Nested plain types: None, bool, int, finite float, str, list, dict with str keys, <= MAX_DEPTH deep."""

@@ -47,7 +47,9 @@ KEY_KINDS: Final = MappingProxyType({
 """Key kind (as returned by :meth:`Keys.parse`) -> message kind carried there (None: a token)."""
 
 _SWARM_RE: Final = re.compile(r"[A-Za-z0-9_-]{1,64}")
-_PROCESS_RE: Final = re.compile(r"(plant|leader|recorder|bridge|supervisor)|agent:([1-9][0-9]{0,8})")
+PROCESS_PATTERN: Final = r"(plant|leader|recorder|bridge|supervisor)|agent:([1-9][0-9]{0,8})"
+"""A process name, whole: one of the named roles, or ``agent:<i>`` (i = 1..999999999, no leading zero)."""
+_PROCESS_RE: Final = re.compile(PROCESS_PATTERN)
 _INDEX_RE: Final = re.compile(r"[1-9][0-9]{0,8}")
 
 
