@@ -13,6 +13,7 @@ import math
 import re
 from collections import Counter
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -20,7 +21,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from zenswarm.bridge.reports import sweep_report
+from zenswarm.bridge.reports import campaign, sweep_figures, sweep_report, sweep_stats
 from zenswarm.bridge.reports.sweep_report import load_campaign, wilson_interval, write_report
 from zenswarm.errors import CampaignError, ZenswarmError
 
@@ -389,8 +390,10 @@ def test_without_pyarrow_a_clear_error(tmp_path: Path, monkeypatch: pytest.Monke
         write_report(d)
 
 
-def test_module_imports_pyarrow_and_matplotlib_lazily() -> None:
-    tree = ast.parse(Path(sweep_report.__file__).read_text())
+@pytest.mark.parametrize("module", [sweep_report, campaign, sweep_stats, sweep_figures], ids=lambda m: m.__name__.rsplit(".", 1)[1])
+def test_module_imports_pyarrow_and_matplotlib_lazily(module: ModuleType) -> None:
+    # the report's module and the three it reads from (the campaign, the statistics, the plots; issue 44)
+    tree = ast.parse(Path(module.__file__ or "").read_text())
     top = [n for n in tree.body if isinstance(n, ast.Import | ast.ImportFrom)]
     names = {a.name for n in top if isinstance(n, ast.Import) for a in n.names} | {n.module for n in top if isinstance(n, ast.ImportFrom)}
     assert not {m for m in names if m and m.split(".")[0] in ("pyarrow", "matplotlib", "pandas")}
