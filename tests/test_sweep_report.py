@@ -21,7 +21,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from zenswarm.bridge.reports import campaign, sweep_figures, sweep_report, sweep_stats
+from zenswarm.bridge.reports import sweep_campaign, sweep_figures, sweep_report, sweep_stats
 from zenswarm.bridge.reports.sweep_report import load_campaign, wilson_interval, write_report
 from zenswarm.errors import CampaignError, ZenswarmError
 
@@ -390,7 +390,7 @@ def test_without_pyarrow_a_clear_error(tmp_path: Path, monkeypatch: pytest.Monke
         write_report(d)
 
 
-@pytest.mark.parametrize("module", [sweep_report, campaign, sweep_stats, sweep_figures], ids=lambda m: m.__name__.rsplit(".", 1)[1])
+@pytest.mark.parametrize("module", [sweep_report, sweep_campaign, sweep_stats, sweep_figures], ids=lambda m: m.__name__.rsplit(".", 1)[1])
 def test_module_imports_pyarrow_and_matplotlib_lazily(module: ModuleType) -> None:
     # the report's module and the three it reads from (the campaign, the statistics, the plots; issue 44)
     tree = ast.parse(Path(module.__file__ or "").read_text())

@@ -13,7 +13,7 @@
 ``formation_error_hist.png``
     the formation error of every finished run (the only plot of a seeds-only campaign).
 
-:func:`draw_plots` draws those of a :class:`zenswarm.bridge.reports.campaign.Campaign` (its finished
+:func:`draw_plots` draws those of a :class:`zenswarm.bridge.reports.sweep_campaign.Campaign` (its finished
 runs only) and returns each file's name and caption for the report,
 :mod:`zenswarm.bridge.reports.sweep_report`.
 
@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from zenswarm.bridge.reports.campaign import FORMATION, Axis, Campaign, _fmt_value, _is_number, _num, _sort_key
+from zenswarm.bridge.reports.sweep_campaign import FORMATION, Axis, Campaign, _fmt_value, _is_number, _num, _sort_key
 from zenswarm.bridge.reports.sweep_stats import wilson_interval
 
 __all__ = ["MAX_SERIES", "draw_plots"]

@@ -1,7 +1,7 @@
 """``zenswarm sweep report DIR``: the analysis of a campaign directory (issue 17, point 4).
 
 Reads the campaign directory of ``zenswarm sweep`` (``DIR/campaign.json`` and ``DIR/runs.parquet``,
-docs/campaigns.md; :func:`load_campaign`, :mod:`zenswarm.bridge.reports.campaign`) and writes
+docs/campaigns.md; :func:`load_campaign`, :mod:`zenswarm.bridge.reports.sweep_campaign`) and writes
 
 ``DIR/report.md``      the header (scenario, command, zenswarm version, runs planned, finished,
                        crashed, and the runs still missing when the campaign is incomplete), one
@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 # The private helpers among them lived here before the split (issue 44): still importable from here.
-from zenswarm.bridge.reports.campaign import (  # noqa: F401
+from zenswarm.bridge.reports.sweep_campaign import (  # noqa: F401
     CAMPAIGN_VERSION,
     CLEARANCE,
     FORMATION,

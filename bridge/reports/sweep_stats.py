@@ -1,7 +1,7 @@
 """The statistics of a campaign per parameter cell (all inputs but the seed).
 
 :func:`summarize` gives one :class:`CellStats` per cell of a
-:class:`zenswarm.bridge.reports.campaign.Campaign`. Conventions: crashed runs (``error`` not null)
+:class:`zenswarm.bridge.reports.sweep_campaign.Campaign`. Conventions: crashed runs (``error`` not null)
 are counted on their own and left out of every rate and metric. The success rate of a cell is k/n
 over its finished runs, with the 95 % Wilson score interval (:func:`wilson_interval`). The
 formation error is the verdict's ``max_formation_error_m`` (the vehicles', docs/verdict.md).
@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from zenswarm.bridge.reports.campaign import CLEARANCE, FORMATION, SEPARATION, Campaign, _cell_keys, _num, _sort_key
+from zenswarm.bridge.reports.sweep_campaign import CLEARANCE, FORMATION, SEPARATION, Campaign, _cell_keys, _num, _sort_key
 
 __all__ = ["Z95", "CellStats", "wilson_interval", "summarize"]
 
