@@ -3,10 +3,10 @@ diagnostics, liveliness, and a clean exit on SIGINT/SIGTERM (:class:`SwarmProces
 
 The process shells (``agents/process.py``, ``leader/process.py``, ``plant/process.py``) are thin:
 decode -> pure step -> encode. This module is the glue they share; messages cross the network in
-:mod:`zenswarm.bus` (sessions), :mod:`zenswarm.bus.keys` (the key space) and :mod:`zenswarm.bus.wire`
-(payloads). Its parts, one
-concept a module, are importable from here as before: the options (:mod:`zenswarm.process.options`),
-the input guard (:mod:`zenswarm.process.guard`: malformed input and sender identity), the inbox
+:mod:`zenswarm.bus` (sessions), :mod:`zenswarm.bus.keys` (the key space) and
+:mod:`zenswarm.bus.wire` (payloads). Its parts, one concept a module, are importable from here as
+before: the options (:mod:`zenswarm.process.options`), the input guard
+(:mod:`zenswarm.process.guard`: malformed input and sender identity), the inbox
 (:mod:`zenswarm.process.inbox`), the realtime clock (:mod:`zenswarm.process.clocks`), the lockstep
 loop (:mod:`zenswarm.process.lockstep`) and the garbage-collector policy
 (:mod:`zenswarm.process.gcpolicy`).
