@@ -1,7 +1,7 @@
 """Subcommands of the flight recorder, wired into ``zenswarm`` by :func:`add_parsers`.
 
 ``record`` (:mod:`zenswarm.bridge.recording.recorder`), ``replay`` (:mod:`zenswarm.bridge.replay.replay`),
-``verify`` (:mod:`zenswarm.bridge.replay.verify`), ``recover`` (:mod:`zenswarm.bridge.recording.mcapio`),
+``verify`` (:mod:`zenswarm.bridge.replay.verify`), ``recover`` (:mod:`zenswarm.bridge.recording.recover`),
 ``info`` (:mod:`zenswarm.bridge.recording.info`);
 ``report`` (:mod:`zenswarm.bridge.reports.report`) and ``export``
 (:mod:`zenswarm.bridge.views.export`) when those modules are present.
@@ -18,7 +18,7 @@ __all__ = ["BRIDGE_COMMANDS", "add_parsers"]
 
 
 def _run_recover(args: argparse.Namespace) -> int:
-    from zenswarm.bridge.recording.mcapio import recover
+    from zenswarm.bridge.recording.recover import recover
     from zenswarm.process.paths import check_output_file
 
     check_output_file(args.out, "--out")

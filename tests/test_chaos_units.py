@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from zenswarm import bus
-from zenswarm.bridge.recording import recorder
+from zenswarm.bridge.recording import sink as sink_module
 from zenswarm.bridge.recording.mcapio import RECORDER_END, read_recording
 from zenswarm.bridge.recording.recorder import McapSink, build_metadata
 from zenswarm.bus import wire
@@ -48,7 +48,7 @@ def test_a_recording_on_a_full_disk_is_ended_readable(tmp_path: Path, monkeypatc
     flush and ends it (end marker naming the error, footer): readable as it is, every message
     written before the last flush, in order."""
     _FullDisk.room = room
-    monkeypatch.setattr(recorder, "open", lambda path, mode: _FullDisk(path, "w"), raising=False)
+    monkeypatch.setattr(sink_module, "open", lambda path, mode: _FullDisk(path, "w"), raising=False)  # McapSink opens its file
     keys = wire.Keys("disk")
     path = tmp_path / "full.mcap"
     sink = McapSink(path, keys, flush_interval_s=0.0, chunk_size=2048, metadata=build_metadata("disk", "lockstep", None, "test"))
