@@ -24,8 +24,9 @@ import pytest
 import zenoh
 
 from zenswarm import __version__
-from zenswarm.bridge.recording.mcapio import METADATA_NAME, file_is_complete, read_recording, recover
+from zenswarm.bridge.recording.mcapio import METADATA_NAME, file_is_complete, read_recording
 from zenswarm.bridge.recording.recorder import McapSink, build_metadata, sim_time
+from zenswarm.bridge.recording.recover import recover
 from zenswarm.bridge.replay.replay import verify_agent
 from zenswarm.bus import AliveWatcher, client_config, free_port, open_session, router_config, tcp_endpoint, wire
 from zenswarm.errors import RecordingError

@@ -3,7 +3,7 @@
 Pure-ish: the :mod:`mcap` library, the standard library and nothing of Zenoh. Shared by the
 recorder's tools (``zenswarm replay``, ``zenswarm info``, ``zenswarm recover``) and the flight
 report. Rewriting a damaged recording into a complete one is :mod:`zenswarm.bridge.recording.recover`
-(built on this reader; :func:`recover` and :class:`RecoverStats` are still importable from here).
+(built on this reader, which never imports it).
 
 A zenswarm recording (written by :mod:`zenswarm.bridge.recording.recorder` through its sink,
 :mod:`zenswarm.bridge.recording.sink`) is an MCAP file with
@@ -652,17 +652,3 @@ def read_recording(path: str | os.PathLike[str], *, strict: bool = True) -> Reco
     except McapError as e:  # pragma: no cover - _walk wraps parsing errors already
         raise RecordingError(f"{p}: {e}") from None
     return rec
-
-
-_MOVED_TO_RECOVER = frozenset({"RecoverStats", "recover"})
-"""Names that moved to :mod:`zenswarm.bridge.recording.recover` (issue 44), still importable from here."""
-
-
-def __getattr__(name: str) -> Any:
-    """``recover`` and ``RecoverStats``, from :mod:`zenswarm.bridge.recording.recover`, where they
-    live: looked up when asked for, so that the reader never imports the recovery built on it."""
-    if name in _MOVED_TO_RECOVER:
-        import importlib
-
-        return getattr(importlib.import_module("zenswarm.bridge.recording.recover"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
