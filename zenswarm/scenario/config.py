@@ -414,10 +414,15 @@ def read_document(path: str | Path) -> dict[str, Any]:
 def scenario_of_document(doc: dict[str, Any], path: str | Path) -> Scenario:
     """The validated scenario of a document :func:`read_document` read from ``path`` (a relative
     ``[faults] trace`` made relative to the file's directory)."""
-    sc = scenario_from_dict(doc)
-    if sc.faults is not None and sc.faults.trace is not None and not Path(sc.faults.trace).is_absolute():
-        sc = replace(sc, faults=msgspec.structs.replace(sc.faults, trace=str(Path(path).parent.absolute() / sc.faults.trace)))
-    return sc
+    return trace_beside(scenario_from_dict(doc), path)
+
+
+def trace_beside(sc: Scenario, path: str | Path) -> Scenario:
+    """``sc`` with a relative ``[faults] trace`` made relative to the directory of the scenario
+    file at ``path`` (where its author wrote it from); an absolute one, or none, as it is."""
+    if sc.faults is None or sc.faults.trace is None or Path(sc.faults.trace).is_absolute():
+        return sc
+    return replace(sc, faults=msgspec.structs.replace(sc.faults, trace=str(Path(path).parent.absolute() / sc.faults.trace)))
 
 
 def scenario_to_dict(s: Scenario) -> dict[str, Any]:

@@ -184,20 +184,10 @@ def check_plugins(
 def load_file(path: Any, overrides: Mapping[str, Any]) -> Scenario:
     """A scenario file (:func:`zenswarm.scenario.config.load_scenario`: its errors, its relative trace
     path) with ``overrides`` applied and validated (not the plug-ins: :func:`check_plugins`)."""
-    from pathlib import Path
-
-    import msgspec
-
-    from zenswarm.scenario.config import read_document, scenario_of_document
+    from zenswarm.scenario.config import read_document, scenario_of_document, trace_beside
 
     doc = read_document(path)  # parsed once (a large scenario's TOML is its slowest part)
     sc = scenario_of_document(doc, path)  # the file's own errors first, as such
     if not overrides:
         return sc
-    sc = validated(doc, overrides, plugins=False)
-    if sc.faults is not None and sc.faults.trace is not None and not Path(sc.faults.trace).is_absolute():
-        trace = str(Path(path).parent.absolute() / sc.faults.trace)
-        from dataclasses import replace
-
-        sc = replace(sc, faults=msgspec.structs.replace(sc.faults, trace=trace))
-    return sc
+    return trace_beside(validated(doc, overrides, plugins=False), path)
