@@ -165,16 +165,12 @@ def _write_effective(args: FlightSettings, overrides: dict[str, Any]) -> Path:
     """The scenario file with the overrides applied (``--set``, ``--duration``), written as
     OUT/scenario.toml: the scenario flown, kept with the run's outputs and named by a recording
     as its source (every process gets the scenario itself, :mod:`zenswarm.compose.commands`)."""
-    import tomllib
-
+    from zenswarm.scenario.config import document_trace_beside, read_document
     from zenswarm.scenario.generate import to_toml
     from zenswarm.scenario.overrides import apply
 
     src = Path(args.scenario_file)
-    doc = apply(tomllib.loads(src.read_text(encoding="utf-8")), overrides)
-    trace = (doc.get("faults") or {}).get("trace")
-    if isinstance(trace, str) and not Path(trace).is_absolute():  # relative to the original file
-        doc["faults"]["trace"] = str(src.parent.absolute() / trace)
+    doc = document_trace_beside(apply(read_document(src), overrides), src)  # a relative trace: beside the original file
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "scenario.toml"

@@ -202,7 +202,9 @@ def test_scenario_trace_is_relative_to_the_scenario_file(tmp_path: Path) -> None
 
 def test_trace_stays_beside_the_scenario_file_under_overrides(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """`--set` (scenario.overrides.load_file) keeps the file's own relative trace relative to the
-    scenario's directory, wherever the command runs from; an absolute one an override names stays."""
+    scenario's directory, wherever the command runs from, and a relative one an override names too
+    (an absolute one as it is); zenswarm.api.load/fly take the file the same way."""
+    from zenswarm import api
     from zenswarm.scenario.overrides import load_file
 
     (tmp_path / "tr.csv").write_text(TRACE.read_text())
@@ -218,6 +220,13 @@ def test_trace_stays_beside_the_scenario_file_under_overrides(tmp_path: Path, mo
     assert shorter.faults is not None and shorter.faults.trace == plain.faults.trace
     given = load_file(tmp_path / "s.toml", {"faults.trace": str(tmp_path / "tr2.csv")})  # absolute: as it is
     assert given.faults is not None and given.faults.trace == str(tmp_path / "tr2.csv")
+    beside = str(tmp_path.absolute() / "tr2.csv")  # a relative one an override names: beside the file too
+    other = load_file(tmp_path / "s.toml", {"faults.trace": "tr2.csv"})
+    assert other.faults is not None and other.faults.trace == beside
+    # zenswarm.api takes the file the same way: the scenario and the document written for the run
+    for overrides, want in (({}, plain.faults.trace), ({"timing.time_limit_s": 5.0}, plain.faults.trace), ({"faults.trace": "tr2.csv"}, beside)):
+        sc, doc = api.load(tmp_path / "s.toml", overrides)
+        assert sc.faults is not None and sc.faults.trace == want and doc["faults"]["trace"] == want, overrides
 
 
 @pytest.mark.parametrize(

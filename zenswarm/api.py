@@ -29,7 +29,6 @@ from __future__ import annotations
 import json
 import os
 import tempfile
-import tomllib
 import uuid
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -49,7 +48,7 @@ from zenswarm.link import FaultPlan, LinkFaults
 from zenswarm.process import rtsched
 from zenswarm.process.paths import check_output_dir
 from zenswarm.process.settings import FlightSettings
-from zenswarm.scenario.config import Scenario, scenario_to_dict
+from zenswarm.scenario.config import Scenario, document_trace_beside, read_document, scenario_to_dict, trace_beside
 from zenswarm.scenario.generate import to_toml
 from zenswarm.scenario.overrides import OverrideError, apply, copy_document, validated
 from zenswarm.scenario.plugins import check_selection
@@ -254,38 +253,26 @@ def scenario_path(name: str | Path) -> Path:
     return q
 
 
-def _document(scenario: str | Path | Mapping[str, Any]) -> dict[str, Any]:
-    """A scenario given as a file or a parsed document, as a TOML document (nested dicts; a copy).
-    A file's relative ``[faults] trace`` is made relative to the file's directory, as
-    :func:`zenswarm.scenario.config.load_scenario` makes it."""
-    if isinstance(scenario, Mapping):
-        copied: dict[str, Any] = copy_document(dict(scenario))
-        return copied
-    p = scenario_path(scenario)
-    try:
-        doc: dict[str, Any] = tomllib.loads(p.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise ScenarioError("file", f"{p} is not valid TOML: {e}") from None
-    faults = doc.get("faults")
-    if isinstance(faults, dict) and isinstance(faults.get("trace"), str) and not Path(faults["trace"]).is_absolute():
-        faults["trace"] = str(p.parent.absolute() / faults["trace"])
-    return doc
-
-
 def _resolve(
     scenario: str | Path | Scenario | Mapping[str, Any], overrides: Mapping[str, Any] | None
 ) -> tuple[Scenario, dict[str, Any] | None]:
     """The flight's scenario, converted once: a :class:`Scenario` without overrides is used as it
     is (its plug-ins checked); a file or document, with the overrides set in it, becomes one.
-    Also the document it came from (None for a Scenario used as it is)."""
+    Also the document it came from (None for a Scenario used as it is). A file's relative
+    ``[faults] trace``, its own or one an override names, is relative to the file's directory, as
+    ``zenswarm up/sim --set`` take it (:func:`zenswarm.scenario.overrides.load_file`)."""
     ov = dict(overrides or {})
     if isinstance(scenario, Scenario):
         if not ov:
             check_selection(scenario)
             return scenario, None
         doc = scenario_to_dict(scenario)  # overrides are edits of the document
+    elif isinstance(scenario, Mapping):
+        doc = copy_document(dict(scenario))
     else:
-        doc = _document(scenario)
+        path = scenario_path(scenario)
+        doc = read_document(path)
+        return trace_beside(validated(doc, ov), path), document_trace_beside(apply(doc, ov), path)
     return validated(doc, ov), apply(doc, ov) if ov else doc
 
 

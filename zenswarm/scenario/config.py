@@ -417,6 +417,16 @@ def scenario_of_document(doc: dict[str, Any], path: str | Path) -> Scenario:
     return trace_beside(scenario_from_dict(doc), path)
 
 
+def document_trace_beside(doc: dict[str, Any], path: str | Path) -> dict[str, Any]:
+    """A scenario document (as :func:`read_document` gives it; changed in place and returned) with
+    a relative ``faults.trace`` made relative to the directory of the scenario file at ``path``:
+    the document of :func:`trace_beside`'s scenario, for a copy of it written elsewhere."""
+    faults = doc.get("faults")
+    if isinstance(faults, dict) and isinstance(faults.get("trace"), str) and not Path(faults["trace"]).is_absolute():
+        faults["trace"] = str(Path(path).parent.absolute() / faults["trace"])
+    return doc
+
+
 def trace_beside(sc: Scenario, path: str | Path) -> Scenario:
     """``sc`` with a relative ``[faults] trace`` made relative to the directory of the scenario
     file at ``path`` (where its author wrote it from); an absolute one, or none, as it is."""
