@@ -19,7 +19,7 @@ faults each input goes through its link's :class:`zenswarm.link.swarm.Box` (hold
 exactly as in the in-process simulator. A (re)started agent joins at the first state it sees and
 restarts its generator from it.
 Realtime: the same computation at the control rate on the wall clock with the latest values
-(:class:`zenswarm.process.runtime.WallClock`), on each new state; when states were skipped (late, lost,
+(:class:`zenswarm.process.clocks.WallClock`), on each new state; when states were skipped (late, lost,
 or a MAVLink vehicle's telemetry slower than the control rate) the ESO and the generator integrate
 over the time that elapsed since the state last ticked on (its tick index, see
 :func:`zenswarm.agents.core.elapsed_dt` and :meth:`zenswarm.agents.core.AgentCore.advance_elapsed`),

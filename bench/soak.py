@@ -11,7 +11,7 @@ flight's verdict is printed: a soak that fails it is not a valid soak). ``--rt-p
 with ``zenswarm up --rt-priority P`` (the flying processes under ``SCHED_FIFO``, after start-up;
 :mod:`zenswarm.process.rtsched`; needs root or an RLIMIT_RTPRIO).
 
-``--gc managed`` is the swarm as shipped (:class:`zenswarm.process.runtime.GcPolicy`: frozen after
+``--gc managed`` is the swarm as shipped (:class:`zenswarm.process.gcpolicy.GcPolicy`: frozen after
 start-up, collected only at safe points); ``--gc python`` sets ``ZENSWARM_GC=python`` (CPython's
 own automatic collector, as before issue 16); ``--gc both`` alternates them run by run, so both
 see the same background load.
@@ -22,7 +22,7 @@ Figures:
   missed deadlines (wake-ups more than one period late) as a fraction of the loop ticks, worst
   and mean |wake-up - due time| (each process's own ``jitter_*`` counters from its last
   diagnostics in ``results.json``; the loop's flight: from the plant's start, an agent's first
-  state and the leader's first clock on, see :class:`zenswarm.process.runtime.LoopStats`), and the managed
+  state and the leader's first clock on, see :class:`zenswarm.process.clocks.LoopStats`), and the managed
   collector's collections, objects found unreachable and longest collection;
 * memory: each process's RSS sampled every ``--sample`` s (``/proc/<pid>/status``); reported per
   role: RSS at 10 % of the flight and at its end, and the slope of a least-squares line through

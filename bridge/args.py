@@ -68,7 +68,7 @@ def positive_float(text: str) -> float:
 
 
 def seed_arg(text: str) -> int:
-    """argparse ``type`` of ``--seed`` flags: :func:`zenswarm.scenario.config.check_seed` of an integer
+    """argparse ``type`` of ``--seed`` flags: :func:`zenswarm.schema.check_seed` of an integer
     literal (a usage error, exit status 2, otherwise)."""
     try:
         v = int(text)
@@ -197,7 +197,7 @@ def add_plugin_args(p: argparse.ArgumentParser) -> None:
 
 def add_process_args(p: argparse.ArgumentParser) -> None:
     """The flags every swarm process takes (read back with
-    :meth:`zenswarm.process.runtime.ProcessOptions.of`): ``--scenario``, ``--swarm``, ``--connect``,
+    :meth:`zenswarm.process.options.ProcessOptions.of`): ``--scenario``, ``--swarm``, ``--connect``,
     ``--realtime``, the credentials (:func:`add_security_args`), the link faults
     (:func:`add_fault_args`), the plug-ins (:func:`add_plugin_args`), ``--lockstep-timeout``,
     ``--router-lost-timeout``, ``--kill-at-tick`` and ``--rt-priority`` (:func:`add_rt_priority_arg`)."""

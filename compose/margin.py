@@ -10,7 +10,7 @@ faithful, not an approximation: in zenswarm the generator of agent i reads its o
 its neighbours' and the leader's references and nothing else (not the measured state,
 :meth:`zenswarm.agents.core.AgentCore.rates`), and the leader does not read the UAVs, so the
 references the swarm computes under such a delay do not depend on the plant at all. The delay
-becomes d = ceil(tau / dt - 1e-9) ticks (:func:`zenswarm.link.faults.delivery_tick`) and each
+becomes d = ceil(tau / dt - 1e-9) ticks (:func:`zenswarm.link.delivery_tick`) and each
 receiver holds the message of tick max(0, k - d) at tick k (:class:`zenswarm.link.swarm.Box`:
 the tick-0 message is there at once), so agent i integrates, by explicit Euler at dt,
 

@@ -1,7 +1,7 @@
 """CLI entry points of the swarm's processes (what the supervisor starts, one OS process each).
 
 The edge of the roles: here the command line of ``zenswarm plant|leader|agent`` is parsed and
-turned into the roles' typed options (:class:`zenswarm.process.runtime.ProcessOptions`,
+turned into the roles' typed options (:class:`zenswarm.process.options.ProcessOptions`,
 :class:`zenswarm.agents.process.AgentOptions`, :class:`zenswarm.plant.process.PlantOptions`),
 which their ``run`` functions take. A bad flag is a usage error (exit 2) before any work.
 

@@ -106,7 +106,7 @@ def _run_up(ns: argparse.Namespace) -> int:
 
 
 def fly(args: FlightSettings) -> int:
-    """Fly these settings (checked: :func:`check_up_args`): the whole swarm under a
+    """Fly these settings (checked: :func:`~zenswarm.compose.flight_checks.check_up_args`): the whole swarm under a
     :class:`Supervisor`, or one role with ``--only``. The exit status."""
     sc = args.scenario
     gc_policy()  # a bad ZENSWARM_GC: exit 2 now

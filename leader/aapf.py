@@ -4,7 +4,7 @@ Pure numerics: imports numpy and the standard library's ``math`` only; no I/O, n
 
 Conventions: positions are (3,) arrays in metres, inertial ENU frame (z up). An obstacle is any
 object with ``center`` (3,) = base centre c, ``radius`` r_o and ``height`` h_o (a vertical cylinder
-capped by an upper hemisphere, Remark 1), e.g. :class:`zenswarm.scenario.config.Obstacle`.
+capped by an upper hemisphere, Remark 1), e.g. :class:`zenswarm.schema.Obstacle`.
 
 Behaviour at and inside the boundary (the paper leaves it open): the repulsion (13) grows like
 1/d_obs^3 as d_obs -> 0. For evaluation the clearance is floored at ``d_floor = D_FLOOR_FRACTION *
@@ -61,7 +61,7 @@ MAX_SUBSTEPS = 20_000
 
 class ObstacleLike(Protocol):
     """A capped cylinder (read-only): ``center`` (3,) m, ``radius`` r_o m, ``height`` h_o m,
-    e.g. :class:`zenswarm.scenario.config.Obstacle`."""
+    e.g. :class:`zenswarm.schema.Obstacle`."""
 
     @property
     def center(self) -> Sequence[float]: ...

@@ -9,10 +9,10 @@ clock(c) (published every :data:`zenswarm.process.runtime.CLOCK_EVERY_TICKS` tic
 ref up to ref(c + :data:`zenswarm.process.runtime.LEADER_AHEAD_TICKS`), so pinned agents never wait for it
 (the plant starts the clock only once every process has subscribed, so nothing is published into
 the void; a leader that starts late catches up at once). Realtime: it follows the plant's clock on a fixed
-loop (:class:`zenswarm.process.runtime.WallClock`), integrating from its current time to the newest clock time.
+loop (:class:`zenswarm.process.clocks.WallClock`), integrating from its current time to the newest clock time.
 
 The leader's tick is :class:`zenswarm.leader.core.LeaderCore` (the in-process simulator runs the same).
-Started with :class:`zenswarm.process.runtime.ProcessOptions` by :func:`run` (the command line is parsed at
+Started with :class:`zenswarm.process.options.ProcessOptions` by :func:`run` (the command line is parsed at
 the edge, :mod:`zenswarm.compose.roles`).
 """
 

@@ -124,7 +124,7 @@ def run_fleet(
     mocap_security: Mapping[str, Any] | None = None,
 ) -> int:  # fmt: skip
     """Run the fleet of scenario ``sc`` in the calling thread until SIGTERM/SIGINT (or
-    ``duration`` s). A port that cannot be bound: :class:`ScenarioError` naming it (exit 2).
+    ``duration`` s). A port that cannot be bound: :class:`~zenswarm.errors.ScenarioError` naming it (exit 2).
     ``mocap`` = (swarm name, Zenoh connect endpoints): also publish the vehicles' true positions
     as a motion-capture feed (:class:`MocapFeeder`) at ``mocap_hz``, its session configured with
     ``mocap_security`` (:func:`zenswarm.process.security.client_fragments`: a secured router's

@@ -3,7 +3,7 @@
 Pure numerics: numpy and ``math`` only; randomness comes from an injected, seeded
 ``numpy.random.Generator`` (same seed and same call sequence -> the same samples).
 
-Model (``zenswarm.scenario.config.DisturbanceConfig``), all as accelerations::
+Model (``zenswarm.schema.DisturbanceConfig``), all as accelerations::
 
     d_p(t) = wind + sine_amplitude * sin(2 pi sine_freq_hz t) + gust(t)       m/s^2, ENU, (N, 3)
     d_a(t) = attitude_std * n(t)                                              rad/s^2, body, (N, 3)
@@ -44,7 +44,7 @@ class DisturbanceModel:
 
     Parameters
     ----------
-    cfg : zenswarm.scenario.config.DisturbanceConfig
+    cfg : zenswarm.schema.DisturbanceConfig
     n : int
         Number of UAVs N (>= 1).
     rng : numpy.random.Generator

@@ -1,5 +1,5 @@
 """Simulated quadrotors exposed as MAVLink vehicles over UDP: the subset of a PX4 multicopter
-that the MAVLink bridge (:mod:`zenswarm.bridge.mavlink`) uses, so the whole chain agents -> bridge ->
+that the MAVLink bridge (:mod:`zenswarm.bridge.vehicles.mavlink`) uses, so the whole chain agents -> bridge ->
 MAVLink/UDP -> vehicles runs on one machine and in CI.
 
 Each UAV i of the scenario is a vehicle with its own system id (default i) listening on its own
@@ -60,7 +60,7 @@ MAV_CMD_SET_MESSAGE_INTERVAL (answered UNSUPPORTED), missions, geofence, RC.
 
 ``zenswarm mavlink-vehicle SCENARIO --base-port P`` (or ``zenswarm plant --mavlink --scenario
 SCENARIO --base-port P``) runs the fleet until
-SIGTERM/SIGINT (:func:`run_fleet`). Importing this module sets ``MAVLINK20=1`` (see bridge.mavlink).
+SIGTERM/SIGINT (:func:`run_fleet`). Importing this module sets ``MAVLINK20=1`` (see bridge.vehicles.mavlink).
 
 This module is the simulated MAVLink vehicles' front door: :func:`run_fleet`, and every name of
 its parts, which live one idea a module: :mod:`zenswarm.plant.mavlink.options` (what a vehicle is
@@ -135,7 +135,7 @@ def run_fleet(
         + ", ".join(f"sysid {v.sysid} on udp {fleet.opts.host}:{v.port}" for v in fleet.vehicles)
         + f"; physics {1 / fleet.h:g} Hz in chunks of {fleet.chunk}, telemetry {fleet.loop_hz / fleet.tel_every:g} Hz"
     )
-    # once ready (sockets open, vehicles built) the GC's start-up is done: see zenswarm.process.runtime.GcPolicy (safe
+    # once ready (sockets open, vehicles built) the GC's start-up is done: see zenswarm.process.gcpolicy.GcPolicy (safe
     # points: WallClock.wait); its counters end the stopped line
     return run_until_signal(
         fleet, "mavlink-vehicle", ready, duration, on_ready=gc_startup_done, counters=lambda: str(gc_policy().counters())

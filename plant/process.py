@@ -14,7 +14,7 @@ held) until every live agent's command of the last tick has arrived, at most
 :data:`LAST_COMMANDS_TIMEOUT_S`: with delay on the command links its last tick needs only older
 commands, so it can finish while an agent is still ticking, and the leader and the agents leave
 once the plant is gone (a receiver does not wait for a sender whose token is gone).
-Realtime: a fixed-rate loop at the control rate (:class:`zenswarm.process.runtime.WallClock`); each period
+Realtime: a fixed-rate loop at the control rate (:class:`zenswarm.process.clocks.WallClock`); each period
 integrates one control period of physics with the latest command of each UAV (hover thrust, level,
 before the first one).
 

@@ -383,7 +383,7 @@ def fly(
     ``timing.time_limit_s``; ``seed`` sets ``scenario.seed`` (disturbances and fault decisions);
     ``controller`` / ``planner`` / ``plant_model`` set ``agents.controller`` / ``leader.planner`` /
     ``plant.model`` (a plug-in name; a plant model that fails mid-flight raises
-    :class:`zenswarm.scenario.plugins.PluginFailure` in sim mode).
+    :class:`zenswarm.errors.PluginFailure` in sim mode).
 
     Link faults on every link (docs/faults.md), as ``--link-loss`` and friends: ``link_loss``
     probability in [0, 1] (or ``"20%"``), ``link_delay`` / ``link_jitter`` seconds (or ``"50ms"``),

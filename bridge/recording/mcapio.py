@@ -11,7 +11,7 @@ A zenswarm recording (written by :mod:`zenswarm.bridge.recording.recorder` throu
 * one channel per concrete Zenoh key (``topic`` = the key, e.g. ``swarm/demo/uav/2/state``),
   ``message_encoding = "msgpack"`` (MCAP's well-known encoding), no schema (``schema_id = 0``,
   as the MCAP registry allows for self-describing encodings), channel metadata ``{"kind": ...}``
-  (the key kind of :meth:`zenswarm.bus.wire.Keys.parse`, empty for keys outside the swarm layout);
+  (the key kind of :meth:`zenswarm.bus.keys.Keys.parse`, empty for keys outside the swarm layout);
 * messages with ``log_time`` = receive wall time (ns since the Unix epoch; non-decreasing in
   file order), ``publish_time`` = the sender's sim time ``t`` (ns) when the payload carries one,
   else ``log_time``, ``sequence`` = running count per channel (1, 2, ..., modulo 2**32), and

@@ -269,7 +269,7 @@ def _wait_and_report(s: RecorderSettings, stop: _Stop, session: Any, keys: wire.
     diag_seq = 0
     next_diag = time.monotonic() + (s.diag_interval if diag_pub is not None else 1e18)
     if s.mode == "realtime":
-        gc_startup_done()  # subscribed, writer running: see zenswarm.process.runtime.GcPolicy (realtime only)
+        gc_startup_done()  # subscribed, writer running: see zenswarm.process.gcpolicy.GcPolicy (realtime only)
     while not stop.event.is_set():
         gc_safe_point()
         now = time.monotonic()

@@ -161,7 +161,8 @@ def report_from_series(
     """Write the figures that need only the time series (trajectories, formation and tracking
     errors, clearance) into ``out_dir`` (created), each in every format of ``formats``
     (:data:`zenswarm.bridge.args.FIGURE_FORMATS`); returns their paths. With ``faults`` (the run's link-fault plan) that has a
-    radio model, a capacity queue or a trace, also ``effective_graph.png`` (:func:`plot_effective_graph`)."""
+    radio model, a capacity queue or a trace, also ``effective_graph.png``
+    (:func:`~zenswarm.bridge.reports.figures.plot_effective_graph`)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if len(ts.t) == 0:
@@ -208,7 +209,7 @@ def report_recording(
 
     full_time: judge every recorded tick, as ``--full-time`` runs do. formats: the figures'
     formats (:data:`zenswarm.bridge.args.FIGURE_FORMATS`), each figure once per format. warn: called with each
-    thing the reader must know (:attr:`Recording.notes`): a truncated or damaged recording (then
+    thing the reader must know (:attr:`~zenswarm.bridge.reports.flight.Recording.notes`): a truncated or damaged recording (then
     also which sim time the report covers), payloads not recorded."""
     rec = load_recording(path)
     fl = flight_from_recording(rec)

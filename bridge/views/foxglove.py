@@ -148,7 +148,7 @@ def wire_json_schema(kind: str) -> dict[str, Any]:
 
 def wire_to_json(kind: str, payload: bytes) -> bytes:
     """Validate a msgpack wire payload with :func:`zenswarm.bus.wire.decode` and re-encode its wire
-    map as compact JSON. Raises :class:`zenswarm.bus.wire.WireDecodeError` when it is rejected."""
+    map as compact JSON. Raises :class:`zenswarm.bus.fields.WireDecodeError` when it is rejected."""
     wire.decode(kind, payload)
     obj = msgpack.unpackb(payload, raw=False, strict_map_key=True)
     return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()

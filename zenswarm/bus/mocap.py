@@ -30,7 +30,7 @@ _enc = msgspec.msgpack.Encoder()
 
 
 def mocap_key(prefix: str, i: int) -> str:
-    """``<prefix>/mocap/<i>`` (``prefix`` = ``swarm/<name>``, :attr:`zenswarm.bus.wire.Keys.prefix`)."""
+    """``<prefix>/mocap/<i>`` (``prefix`` = ``swarm/<name>``, :attr:`zenswarm.bus.keys.Keys.prefix`)."""
     if i < 1:
         raise ValueError(f"UAV index must be >= 1, got {i}")
     return f"{prefix}/mocap/{i}"

@@ -214,7 +214,7 @@ class FaultPlan:
       from the specs' ``queue`` and the scenario's graph by :func:`zenswarm.link.swarm.plan_for`).
     hold_s: the hold horizon of the references, s (``[faults] hold``; None: forever). On the
       ``ref`` and ``leader`` links a receive box holds its newest message only while it is at
-      most ``ceil(hold_s / dt)`` ticks old (counted from its send tick); older, :meth:`LinkInbox.at`
+      most ``ceil(hold_s / dt)`` ticks old (counted from its send tick); older, :meth:`zenswarm.link.inbox.LinkInbox.at`
       returns None: the neighbour (or leader) is not heard and eqs (16)-(17) leave it out.
     """
 

@@ -10,7 +10,7 @@ normally scheduled thread the moment it wakes: 6.4 and 9.7 ms in the runs beside
 
 ``--rt-priority P`` (1-99; :func:`check_priority`) runs a process's threads under
 ``SCHED_FIFO`` priority P, once its start-up is over (:func:`apply_after_startup`, the same
-moment the managed collector freezes: :class:`zenswarm.process.runtime.GcPolicy`). Start-up (imports,
+moment the managed collector freezes: :class:`zenswarm.process.gcpolicy.GcPolicy`). Start-up (imports,
 scenario, session) stays under the fair scheduler, so a process that is still importing numpy
 cannot hold a core against loops that already fly: ``SCHED_FIFO`` threads of one priority are
 never preempted by each other, only by a higher priority or by blocking. Every thread of the

@@ -3,7 +3,7 @@ d_obs, and the nearest pair of a point set.
 
 Pure (numpy only). Obstacles are any objects with ``center`` (3,) = base centre c, ``radius`` r_o
 and ``height`` h_o: a vertical cylinder capped by an upper hemisphere (paper, Remark 1), e.g.
-:class:`zenswarm.scenario.config.Obstacle`. Positions are in metres, inertial ENU frame (z up). :func:`obstacle_clearance`
+:class:`zenswarm.schema.Obstacle`. Positions are in metres, inertial ENU frame (z up). :func:`obstacle_clearance`
 is the scalar form used by the scenario's checks and the planner; the ``_many`` functions are
 vectorised twins for judging and plotting whole flights.
 """

@@ -192,7 +192,7 @@ class _BridgeLoop:
             self.proc.publish_diag(max(self.k_tick, 0) * self.dt_ns, {**bridge.info(now), **stats, **extra})
 
     def _pace(self) -> None:
-        """Sleep until the next iteration is due (:class:`zenswarm.process.runtime.WallClock`); more than
+        """Sleep until the next iteration is due (:class:`zenswarm.process.clocks.WallClock`); more than
         a period behind: start again from now, counted in ``loop_resync``."""
         resyncs = self.clock.resyncs
         self.clock.wait()
