@@ -207,7 +207,7 @@ class Supervisor:
                 for role in self.started:
                     self.spawn(role)
                 if a.realtime:
-                    gc_startup_done()  # the children are started: see zenswarm.process.runtime.GcPolicy (realtime only)
+                    gc_startup_done()  # the children are started: see zenswarm.process.gcpolicy.GcPolicy (realtime only)
                 code = self._watch(collector)
             finally:
                 self.terminate_all()

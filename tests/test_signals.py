@@ -42,7 +42,7 @@ def _child(code: str, timeout: float = 30.0) -> subprocess.CompletedProcess[str]
 
 def test_recorder_stop_signal_while_the_main_thread_holds_the_stop_events_lock() -> None:
     cp = _child(HELD.format(
-        setup="from zenswarm.bridge.recorder import _Stop\nstop = _Stop()\nstop.install()",
+        setup="from zenswarm.bridge.recording.recorder import _Stop\nstop = _Stop()\nstop.install()",
         event="stop.event",
         after="assert stop.why == 'received SIGTERM', stop.why\nstop.close()",
     ))  # fmt: skip
