@@ -53,7 +53,7 @@ def check_up_args(args: FlightSettings, sc: Scenario) -> None:
     if args.plant == "crazyflie":
         check_crazyflie(args, sc)
     if args.plant == "mavlink" and args.mavlink_base_port is not None:
-        check_mavlink_ports(args.mavlink_base_port, sc.n)
+        check_mavlink_ports(args.mavlink_base_port, sc.n, vehicles="vehicles" not in args.external, bridge="bridge" not in args.external)
     check_output_dir(args.out, "--out")
     if args.record is not None:
         check_output_file(args.record, "--record")
@@ -103,19 +103,24 @@ def check_crazyflie(args: FlightSettings, sc: Scenario) -> None:
                                 f"need P..P+{sc.n - 1} free (P = {base})")  # fmt: skip
 
 
-def check_mavlink_ports(base: int, n: int, host: str = "127.0.0.1") -> None:
+def check_mavlink_ports(base: int, n: int, host: str = "127.0.0.1", *, vehicles: bool = True, bridge: bool = True) -> None:
     """``--plant mavlink --mavlink-base-port P``: the simulated vehicle i (0-based) sends from UDP
-    P+40+i to P+i, where the bridge listens (PX4 SITL's direction): all 2n ports must be free on
-    ``host``, else :class:`ScenarioError` naming the flag and the first busy port (exit 2, before
-    anything starts; a busy port would otherwise kill the vehicles' process mid-start)."""
-    ports = [(base + i, f"where the bridge hears vehicle {i + 1}, P+{i}") for i in range(n)]
-    ports += [(base + SITL_SEND_OFFSET + i, f"vehicle {i + 1}'s send port, P+{SITL_SEND_OFFSET}+{i}") for i in range(n)]
+    P+40+i to P+i, where the bridge listens (PX4 SITL's direction): the ports of the processes
+    started here must be free on ``host`` (the bridge's P+i with ``bridge``, the vehicles' send
+    ports P+40+i with ``vehicles``; ``--external vehicles`` hold theirs already), else
+    :class:`ScenarioError` naming the flag and the first busy port (exit 2, before anything
+    starts; a busy port would otherwise kill the vehicles' process mid-start)."""
+    ports = [(base + i, f"where the bridge hears vehicle {i + 1}, P+{i}") for i in range(n)] if bridge else []
+    if vehicles:
+        ports += [(base + SITL_SEND_OFFSET + i, f"vehicle {i + 1}'s send port, P+{SITL_SEND_OFFSET}+{i}") for i in range(n)]
+    need = " and ".join(
+        ([f"P..P+{n - 1}"] if bridge else []) + ([f"P+{SITL_SEND_OFFSET}..P+{SITL_SEND_OFFSET + n - 1}"] if vehicles else [])
+    )
     for port, what in ports:
         if bus.udp_ports_in_use([port], host):
             raise ScenarioError(
                 "--mavlink-base-port",
-                f"UDP port {port} on {host} ({what}) is in use or not a port; the simulated vehicles need "
-                f"P..P+{n - 1} and P+{SITL_SEND_OFFSET}..P+{SITL_SEND_OFFSET + n - 1} free (P = {base})",
+                f"UDP port {port} on {host} ({what}) is in use or not a port; the simulated vehicles need {need} free (P = {base})",
             )
 
 
