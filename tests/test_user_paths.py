@@ -184,3 +184,66 @@ def test_up_external_mavlink_vehicles_at_the_given_base_port(tmp_path: Path) -> 
     _fly_with_external_vehicles(
         tmp_path, EX1, ["--base-port", str(base), "--sitl-ports", "--own-origin"], ["--mavlink-base-port", str(base)]
     )
+
+
+# ----------------------------------------------------------------------------- the processes' own flags
+
+
+def test_a_role_names_its_missing_scenario_before_asking_for_the_router() -> None:
+    """``zenswarm plant --scenario nofile.toml`` (leader, agent) with no router up waited for the
+    router and then said "cannot open zenoh session": the scenario was read only once connected.
+    Now the file is named at once, exit 2, whether a router answers or not."""
+    port = free_port()  # nothing listens there
+    for role in (["plant"], ["leader"], ["agent", "--id", "1"]):
+        t0 = time.monotonic()
+        r = zenswarm(*role, "--scenario", "nofile.toml", "--swarm", unique_swarm("ns"), "--connect", f"tcp/127.0.0.1:{port}",
+                     timeout=60)  # fmt: skip
+        _bad(r, "nofile.toml", "not found")
+        assert "zenoh" not in r.stdout, r.stdout
+        assert time.monotonic() - t0 < 4.0, "the router was waited for"  # zenoh's connect timeout is 5 s
+
+
+def test_an_agent_id_outside_the_scenario_names_the_flag(tmp_path: Path) -> None:
+    """``zenswarm agent --id 9`` of a 3-UAV scenario said "agent index 9 out of range 1..3",
+    without the process's error prefix or the flag; now ``agent:9: error: --id: ...``, exit 2."""
+    port = free_port()
+    router = subprocess.Popen([sys.executable, "-m", "zenswarm.compose.router", "--listen", f"tcp/127.0.0.1:{port}"],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT)  # fmt: skip
+    try:
+        assert router.stdout is not None
+        assert router.stdout.readline().startswith("ready"), "the router did not start"
+        r = zenswarm("agent", "--id", "9", "--scenario", str(EX1), "--swarm", unique_swarm("id"), "--connect",
+                     f"tcp/127.0.0.1:{port}", timeout=60)  # fmt: skip
+    finally:
+        router.terminate()
+        router.wait(timeout=30)
+    _bad(r, "agent:9: error: --id", "1..3")
+    assert wait_port_free(port)
+
+
+def test_a_bad_connect_endpoint_is_named_by_every_command(recording: Path, tmp_path: Path) -> None:
+    """``--connect bogus`` reached zenoh, whose message (a Json5Err with the path of its build)
+    named neither the flag nor the form; a port beyond 65535 waited for the connect timeout. Now
+    every client (replay, record, the roles, the bridges) says ``--connect: 'bogus' is not a zenoh
+    endpoint``, exit 2, at once."""
+    cases = [
+        ["replay", str(recording), "--connect", "bogus"],
+        ["record", "--swarm", "x", "--out", str(tmp_path / "r.mcap"), "--connect", "bogus"],
+        ["plant", "--scenario", str(EX1), "--swarm", "x", "--connect", "bogus"],
+        ["agent", "--id", "1", "--scenario", str(EX1), "--swarm", "x", "--connect", "tcp/127.0.0.1:99999"],
+        ["bridge", "mavlink", str(EX1), "--swarm", "x", "--connect", "tcp/nohostport"],
+    ]
+    for args in cases:
+        t0 = time.monotonic()
+        r = zenswarm(*args, timeout=60)
+        _bad(r, "--connect")
+        assert "Json5Err" not in r.stdout and "cargo" not in r.stdout, r.stdout
+        assert time.monotonic() - t0 < 4.0, (args, "the router was waited for")
+
+
+def test_keys_names_days_and_refuses_a_validity_past_9999(tmp_path: Path) -> None:
+    """``keys --days 0`` named ``days`` (the library's argument), and ``--days 100000000`` died in
+    an OverflowError traceback; now both exit 2 naming ``--days``, nothing written."""
+    _bad(zenswarm("keys", str(EX1), "--out", str(tmp_path / "k0"), "--days", "0", timeout=60), "--days")
+    _bad(zenswarm("keys", str(EX1), "--out", str(tmp_path / "k1"), "--days", "100000000", timeout=60), "--days", "9999")
+    assert not (tmp_path / "k0").exists() and not (tmp_path / "k1").exists()
