@@ -88,7 +88,8 @@ def check_rt_priority(args: FlightSettings) -> None:
 
 def check_crazyflie(args: FlightSettings, sc: Scenario) -> None:
     """``--plant crazyflie``: cflib installed, and ``--crazyflie-base-port P`` leaves P..P+N-1 free
-    (the simulated Crazyflies' ports), else :class:`ScenarioError` (exit 2, before anything starts)."""
+    (the simulated Crazyflies' ports; not with ``--external vehicles``, which are there already),
+    else :class:`ScenarioError` (exit 2, before anything starts)."""
     import importlib.util
 
     if importlib.util.find_spec("cflib") is None:
@@ -97,6 +98,8 @@ def check_crazyflie(args: FlightSettings, sc: Scenario) -> None:
     if base is not None:
         if not 1 <= base <= 65535 - sc.n + 1:
             raise ScenarioError("--crazyflie-base-port", f"expected a port in 1..{65535 - sc.n + 1} ({sc.n} UAVs), got {base}")
+        if "vehicles" in args.external:
+            return  # the user's simulated Crazyflies hold P..P+N-1 already: the bridge dials them there
         busy = [p for p in range(base, base + sc.n) if bus.udp_ports_in_use([p], "127.0.0.1")]
         if busy:
             raise ScenarioError("--crazyflie-base-port", f"UDP port {busy[0]} on 127.0.0.1 is in use; the simulated Crazyflies "

@@ -186,6 +186,34 @@ def test_up_external_mavlink_vehicles_at_the_given_base_port(tmp_path: Path) -> 
     )
 
 
+def test_up_external_crazyflies_at_the_given_base_port(tmp_path: Path) -> None:
+    """``--plant crazyflie --external vehicles --crazyflie-base-port P`` next to ``zenswarm
+    crazyflie-vehicle S --base-port P``: up refused the vehicles' own ports as busy (exit 2) and
+    would have given the bridge none of them. Now the bridge dials udp://127.0.0.1:P+i."""
+    base = free_udp_block(N_UAV)
+    swarm = unique_swarm("xc")
+    port = free_port()
+    vehicles = start_zenswarm("crazyflie-vehicle", str(EX1), "--base-port", str(base), "--duration", "120")
+    try:
+        assert vehicles.stdout is not None
+        first = vehicles.stdout.readline()  # the ready line: its ports are bound
+        assert "ready" in first, first
+        r = zenswarm("up", str(EX1), "--swarm", swarm, "--out", str(tmp_path / "out"), "--listen", f"tcp/127.0.0.1:{port}",
+                     "--plant", "crazyflie", "--external", "vehicles", "--crazyflie-base-port", str(base), "--duration", "2",
+                     "--quiet", timeout=240)  # fmt: skip
+    finally:
+        vehicles.terminate()
+        vehicles.wait(timeout=30)
+        left = processes_mentioning(f"--swarm {swarm}")
+        kill_mentioning(f"--swarm {swarm}")
+    assert not left, f"processes left behind: {left}"
+    assert wait_port_free(port)
+    assert r.returncode == 1, r.stdout  # 2 s: timeout, not bad input (2) nor a dead bridge (3)
+    res = read_results(tmp_path / "out")
+    assert {f["cause"] for f in res["failures"]} <= {"timeout", "off_slot"}, res["failures"]
+    assert res["sim_time_s"] >= 1.9, res["sim_time_s"]
+
+
 # ----------------------------------------------------------------------------- the processes' own flags
 
 
