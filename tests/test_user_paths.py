@@ -275,3 +275,18 @@ def test_keys_names_days_and_refuses_a_validity_past_9999(tmp_path: Path) -> Non
     _bad(zenswarm("keys", str(EX1), "--out", str(tmp_path / "k0"), "--days", "0", timeout=60), "--days")
     _bad(zenswarm("keys", str(EX1), "--out", str(tmp_path / "k1"), "--days", "100000000", timeout=60), "--days", "9999")
     assert not (tmp_path / "k0").exists() and not (tmp_path / "k1").exists()
+
+
+def test_fly_names_a_bad_swarm_name_or_port_before_anything_starts() -> None:
+    """``api.fly(..., mode="swarm", swarm="bad/name")`` started ``zenswarm up`` and raised
+    :class:`FlightError` from its exit 2 (docs/testing.md: bad input is a ScenarioError naming the
+    argument, nothing flown); ``port=99999`` was named ``--listen``. Now ``swarm`` and ``port``."""
+    from zenswarm import api
+    from zenswarm.errors import ScenarioError
+
+    for kwargs, field in (({"swarm": "bad/name"}, "swarm"), ({"port": 99999}, "port"), ({"port": "7447"}, "port")):
+        t0 = time.monotonic()
+        with pytest.raises(ScenarioError) as e:
+            api.fly("paper_example1", mode="swarm", duration=1.0, **kwargs)
+        assert e.value.field == field, (kwargs, e.value)
+        assert time.monotonic() - t0 < 2.0, "a supervisor was started"
