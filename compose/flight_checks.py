@@ -39,6 +39,8 @@ def check_up_args(args: FlightSettings, sc: Scenario) -> None:
         if args.only not in role_names(sc.n):
             raise ScenarioError("--only", f"unknown role {args.only!r}: this swarm's roles are {', '.join(role_names(sc.n))}")
         return  # one role here: nothing else is started, nothing written
+    if args.report and args.record is None:  # the report is made from the recording: it would be silently skipped
+        raise ScenarioError("--report", "makes the flight report from the recording: give --record FILE.mcap too")
     names = swarm_roles(sc.n, args.plant)
     for r in args.external:
         if r not in names:

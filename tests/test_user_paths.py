@@ -290,3 +290,18 @@ def test_fly_names_a_bad_swarm_name_or_port_before_anything_starts() -> None:
             api.fly("paper_example1", mode="swarm", duration=1.0, **kwargs)
         assert e.value.field == field, (kwargs, e.value)
         assert time.monotonic() - t0 < 2.0, "a supervisor was started"
+
+
+def test_up_report_without_record_is_refused(tmp_path: Path) -> None:
+    """``zenswarm up S --report`` without ``--record`` flew the whole flight and wrote no report,
+    silently (the report is made from the recording). Now exit 2 naming --report and --record,
+    before anything starts."""
+    swarm = unique_swarm("rp")
+    out = tmp_path / "out"
+    t0 = time.monotonic()
+    r = zenswarm("up", str(EX1), "--swarm", swarm, "--out", str(out), "--report", "--duration", "1", "--quiet", timeout=120)
+    _bad(r, "--report", "--record")
+    assert time.monotonic() - t0 < 20
+    assert "[supervisor]" not in r.stdout, r.stdout  # the router never opened
+    assert processes_mentioning(swarm) == []
+    assert not out.exists()
