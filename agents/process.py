@@ -48,6 +48,7 @@ from zenswarm.agents.api import (
 )
 from zenswarm.agents.core import AgentRow, elapsed_dt
 from zenswarm.bus import wire
+from zenswarm.errors import ScenarioError
 from zenswarm.link import Box, FaultState, box_counters, due_tick
 from zenswarm.process.runtime import (
     Lockstep,
@@ -397,9 +398,8 @@ def _run_realtime(a: _Agent) -> int:
 def _run(proc: SwarmProcess, index: int) -> int:
     sc = proc.scenario
     assert sc is not None, "the process loads its scenario on start"
-    if not 1 <= index <= sc.n:
-        proc.log(f"agent index {index} out of range 1..{sc.n}")
-        return 2
+    if not 1 <= index <= sc.n:  # exit 2 (run_process): "agent:I: error: --id: ..."
+        raise ScenarioError("--id", f"UAV {index} is not in this scenario: expected 1..{sc.n}")
     agent = _Agent(proc, index)
     agent.use_faults()
     if proc.options.realtime:

@@ -125,7 +125,9 @@ def _vehicles_settings(at: Launch) -> Any:
 def _bridge_settings(at: Launch) -> Any:
     """The MAVLink bridge to the simulated vehicles (own origins, SITL ports: it listens where
     vehicle i sends, and puts its origin where it boots, on the ground under its initial
-    position), or the Crazyflie bridge (to the simulated ones unless they are external); both
+    position; with ``--external vehicles`` too when ``--mavlink-base-port`` says where they are,
+    else the scenario's ``[mavlink]`` table), or the Crazyflie bridge (to the simulated ones
+    unless they are external and ``--crazyflie-base-port`` does not say where they are); both
     wait for the recorder with ``--record``."""
     from zenswarm.bridge.vehicles.settings import CrazyflieBridgeSettings, MavlinkBridgeSettings
 
@@ -134,8 +136,14 @@ def _bridge_settings(at: Launch) -> Any:
     process = RoleSettings(role="bridge", scenario=sc, swarm=a.swarm, connect=at.connect, realtime=True, keys=at.keys, tls=at.tls,
                            faults=a.faults, rt_priority=a.rt_priority, expect=expect)  # fmt: skip
     if at.cf_base_port is not None:
-        uri = {} if "vehicles" in a.external else {i + 1: f"udp://127.0.0.1:{at.cf_base_port + i}" for i in range(sc.n)}
+        # external vehicles: the scenario's [crazyflie] uris, unless --crazyflie-base-port says where they are
+        own = "vehicles" not in a.external or a.crazyflie_base_port is not None
+        uri = {i + 1: f"udp://127.0.0.1:{at.cf_base_port + i}" for i in range(sc.n)} if own else {}
         return CrazyflieBridgeSettings(process=process, uri=uri)
+    if "vehicles" in a.external and a.mavlink_base_port is None:
+        # vehicles of the user's own (PX4/ArduPilot SITL, real ones): the scenario's [mavlink]
+        # table says where they are (connections, sysids, origins), as `zenswarm bridge mavlink`
+        return MavlinkBridgeSettings(process=process)
     gz = sc.mavlink.ground_z if sc.mavlink is not None else 0.0
     return MavlinkBridgeSettings(
         process=process, base_port=at.mav_base_port,

@@ -39,6 +39,8 @@ def check_up_args(args: FlightSettings, sc: Scenario) -> None:
         if args.only not in role_names(sc.n):
             raise ScenarioError("--only", f"unknown role {args.only!r}: this swarm's roles are {', '.join(role_names(sc.n))}")
         return  # one role here: nothing else is started, nothing written
+    if args.report and args.record is None:  # the report is made from the recording: it would be silently skipped
+        raise ScenarioError("--report", "makes the flight report from the recording: give --record FILE.mcap too")
     names = swarm_roles(sc.n, args.plant)
     for r in args.external:
         if r not in names:
@@ -53,7 +55,7 @@ def check_up_args(args: FlightSettings, sc: Scenario) -> None:
     if args.plant == "crazyflie":
         check_crazyflie(args, sc)
     if args.plant == "mavlink" and args.mavlink_base_port is not None:
-        check_mavlink_ports(args.mavlink_base_port, sc.n)
+        check_mavlink_ports(args.mavlink_base_port, sc.n, vehicles="vehicles" not in args.external, bridge="bridge" not in args.external)
     check_output_dir(args.out, "--out")
     if args.record is not None:
         check_output_file(args.record, "--record")
@@ -88,7 +90,8 @@ def check_rt_priority(args: FlightSettings) -> None:
 
 def check_crazyflie(args: FlightSettings, sc: Scenario) -> None:
     """``--plant crazyflie``: cflib installed, and ``--crazyflie-base-port P`` leaves P..P+N-1 free
-    (the simulated Crazyflies' ports), else :class:`ScenarioError` (exit 2, before anything starts)."""
+    (the simulated Crazyflies' ports; not with ``--external vehicles``, which are there already),
+    else :class:`ScenarioError` (exit 2, before anything starts)."""
     import importlib.util
 
     if importlib.util.find_spec("cflib") is None:
@@ -97,25 +100,32 @@ def check_crazyflie(args: FlightSettings, sc: Scenario) -> None:
     if base is not None:
         if not 1 <= base <= 65535 - sc.n + 1:
             raise ScenarioError("--crazyflie-base-port", f"expected a port in 1..{65535 - sc.n + 1} ({sc.n} UAVs), got {base}")
+        if "vehicles" in args.external:
+            return  # the user's simulated Crazyflies hold P..P+N-1 already: the bridge dials them there
         busy = [p for p in range(base, base + sc.n) if bus.udp_ports_in_use([p], "127.0.0.1")]
         if busy:
             raise ScenarioError("--crazyflie-base-port", f"UDP port {busy[0]} on 127.0.0.1 is in use; the simulated Crazyflies "
                                 f"need P..P+{sc.n - 1} free (P = {base})")  # fmt: skip
 
 
-def check_mavlink_ports(base: int, n: int, host: str = "127.0.0.1") -> None:
+def check_mavlink_ports(base: int, n: int, host: str = "127.0.0.1", *, vehicles: bool = True, bridge: bool = True) -> None:
     """``--plant mavlink --mavlink-base-port P``: the simulated vehicle i (0-based) sends from UDP
-    P+40+i to P+i, where the bridge listens (PX4 SITL's direction): all 2n ports must be free on
-    ``host``, else :class:`ScenarioError` naming the flag and the first busy port (exit 2, before
-    anything starts; a busy port would otherwise kill the vehicles' process mid-start)."""
-    ports = [(base + i, f"where the bridge hears vehicle {i + 1}, P+{i}") for i in range(n)]
-    ports += [(base + SITL_SEND_OFFSET + i, f"vehicle {i + 1}'s send port, P+{SITL_SEND_OFFSET}+{i}") for i in range(n)]
+    P+40+i to P+i, where the bridge listens (PX4 SITL's direction): the ports of the processes
+    started here must be free on ``host`` (the bridge's P+i with ``bridge``, the vehicles' send
+    ports P+40+i with ``vehicles``; ``--external vehicles`` hold theirs already), else
+    :class:`ScenarioError` naming the flag and the first busy port (exit 2, before anything
+    starts; a busy port would otherwise kill the vehicles' process mid-start)."""
+    ports = [(base + i, f"where the bridge hears vehicle {i + 1}, P+{i}") for i in range(n)] if bridge else []
+    if vehicles:
+        ports += [(base + SITL_SEND_OFFSET + i, f"vehicle {i + 1}'s send port, P+{SITL_SEND_OFFSET}+{i}") for i in range(n)]
+    need = " and ".join(
+        ([f"P..P+{n - 1}"] if bridge else []) + ([f"P+{SITL_SEND_OFFSET}..P+{SITL_SEND_OFFSET + n - 1}"] if vehicles else [])
+    )
     for port, what in ports:
         if bus.udp_ports_in_use([port], host):
             raise ScenarioError(
                 "--mavlink-base-port",
-                f"UDP port {port} on {host} ({what}) is in use or not a port; the simulated vehicles need "
-                f"P..P+{n - 1} and P+{SITL_SEND_OFFSET}..P+{SITL_SEND_OFFSET + n - 1} free (P = {base})",
+                f"UDP port {port} on {host} ({what}) is in use or not a port; the simulated vehicles need {need} free (P = {base})",
             )
 
 

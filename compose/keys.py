@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import datetime as _dt
 import os
 import sys
 from pathlib import Path
 
+from zenswarm.errors import ScenarioError
 from zenswarm.process import security
 from zenswarm.process.paths import check_output_dir
 
@@ -46,6 +48,12 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_keys(args: argparse.Namespace) -> int:
+    if args.days < 1:  # the flag's name, not the library's argument's
+        raise ScenarioError("--days", f"expected a certificate validity of at least 1 day, got {args.days}")
+    try:
+        _dt.datetime.now(_dt.UTC) + _dt.timedelta(days=args.days + 1)
+    except OverflowError:
+        raise ScenarioError("--days", f"{args.days} days from now is past the year 9999 (a certificate's last date)") from None
     check_output_dir(args.out, "--out")
     m = security.generate_credentials(
         args.scenario, args.out, args.swarm, router_hosts=args.router_host, days=args.days, force=args.force

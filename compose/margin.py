@@ -65,6 +65,7 @@ from zenswarm.campaign.delaymargin import (
 )
 from zenswarm.errors import ScenarioError, run_command
 from zenswarm.link import FaultPlan, LinkFaultSpec, delivery_tick, parse_duration
+from zenswarm.process.paths import check_output_file
 from zenswarm.scenario.config import Scenario, load_scenario
 
 __all__ = [
@@ -456,8 +457,8 @@ def run(args: argparse.Namespace, out: Any = None) -> dict[str, Any]:
         raise ScenarioError("--scan", f"must be >= 2, got {args.scan}")
     if args.seed is not None and args.seed < 0:
         raise ScenarioError("--seed", f"must be >= 0, got {args.seed}")
-    if args.json is not None and args.json.is_dir():
-        raise ScenarioError("--json", f"{args.json} is a directory")
+    if args.json is not None:  # a directory, or nowhere to write it: exit 2 now, not after the search
+        check_output_file(args.json, "--json")
 
     max_ticks = delivery_tick(0, max_delay, dt)
     ana = analytic_summary(sc, max_ticks)

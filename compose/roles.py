@@ -114,6 +114,7 @@ def run_mavlink_fleet(s: MavlinkFleetSettings) -> int:
 
     from zenswarm.plant.mavlink_vehicle import run_fleet
     from zenswarm.scenario.plugins import DEFAULTS
+    from zenswarm.vehicle.autopilot import SITL_SEND_OFFSET
 
     sc = s.scenario
     model = s.plant_model or sc.plant.model
@@ -122,6 +123,9 @@ def run_mavlink_fleet(s: MavlinkFleetSettings) -> int:
             "--plant-model" if s.plant_model else "plant.model",
             f"plant model {model!r} cannot fly as MAVLink vehicles: they fly zenswarm's own model ({DEFAULTS['plant']!r})",
         )
+    top = 65535 - sc.n + 1 - (SITL_SEND_OFFSET if s.sitl_ports else 0)  # vehicle i on P+i-1 (sending from P+40+i-1)
+    if s.base_port is not None and not 1 <= s.base_port <= top:
+        raise ScenarioError("--base-port", f"must leave room for {sc.n} UDP ports below 65536: expected 1..{top}, got {s.base_port}")
     if s.seed is not None:
         sc = replace(sc, seed=int(s.seed))
     return run_fleet(

@@ -201,11 +201,13 @@ def _add_plant_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--crazyflie-base-port", type=int, metavar="P",
-        help="with --plant crazyflie: simulated Crazyflie i on udp://127.0.0.1:P+i-1; checked free (default: free ports)",
+        help="with --plant crazyflie: simulated Crazyflie i on udp://127.0.0.1:P+i-1; checked free (default: free ports); "
+        "with --external vehicles: where yours are (default: the scenario's [crazyflie] uris)",
     )
     p.add_argument(
         "--mavlink-base-port", type=int, metavar="P",
-        help="with --plant mavlink: vehicle i on UDP P+i-1, sending from P+40+i-1; all checked free (default: free ports)",
+        help="with --plant mavlink: vehicle i on UDP P+i-1, sending from P+40+i-1; all checked free (default: free ports); "
+        "with --external vehicles: where yours send to (default: the scenario's [mavlink] table)",
     )
     p.add_argument(
         "--external",

@@ -38,7 +38,7 @@ from typing import Any, Literal
 import msgspec
 import numpy as np
 
-from zenswarm.bus.wire import validate_process
+from zenswarm.bus.wire import validate_process, validate_swarm_name
 from zenswarm.compose.flight_checks import check_up_args
 from zenswarm.compose.launch import kill_processes_of, live_flights, processes_of, run_up, stop_flight
 from zenswarm.compose.sim import simulate, summary_line, write_outputs
@@ -528,6 +528,7 @@ def _fly_swarm(
     Without ``port`` the supervisor chooses a free one for its router (and another if that one is
     taken before the router binds it: two flights started at once)."""
     _check_lockstep_timeout(lockstep_timeout)
+    _check_swarm_and_port(swarm, port)
     swarm = swarm or unique_swarm_name()
     with tempfile.TemporaryDirectory(prefix="zenswarm-fly-") as tmp:
         run_dir = Path(tmp)
@@ -554,6 +555,18 @@ def _fly_swarm(
         results = json.loads((out_dir / "results.json").read_text())
         series = TimeSeries.load(str(out_dir / "timeseries.npz"))
     return _flight("swarm", sc, results, series, code, out, swarm, log, leftovers, port or _router_port(results))
+
+
+def _check_swarm_and_port(swarm: Any, port: Any) -> None:
+    """``swarm`` (``[A-Za-z0-9_-]{1,64}``; None or empty: a unique one) and ``port`` (a TCP port; 0 or None: a free one), named
+    by their arguments before anything starts (the supervisor would refuse them with exit 2)."""
+    if swarm:  # None or "": a unique name
+        try:
+            validate_swarm_name(swarm)
+        except ZenswarmError as e:
+            raise ScenarioError("swarm", str(e)) from None
+    if port is not None and (isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535):
+        raise ScenarioError("port", f"expected a TCP port in 1..65535 (or 0/None: a free one), got {port!r}")
 
 
 def _router_port(results: Mapping[str, Any]) -> int | None:

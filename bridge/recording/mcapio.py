@@ -639,8 +639,8 @@ def read_recording(path: str | os.PathLike[str], *, strict: bool = True) -> Reco
                 rec.problems.append(why)
                 if strict:
                     raise RecordingError(
-                        f"{p}: incomplete recording: {why}. Read it with strict=False, or rewrite it "
-                        f"with `zenswarm recover {p} --out FIXED.mcap`"
+                        f"{p}: incomplete recording: {why}. Read what it holds without strictness (`zenswarm verify` "
+                        f"without --strict; strict=False), or rewrite it with `zenswarm recover {p} --out FIXED.mcap`"
                     )
             else:
                 rec.complete = True

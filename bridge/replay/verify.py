@@ -450,10 +450,13 @@ def run_verify(args: argparse.Namespace) -> int:
     else:
         agents = [int(args.agent)]
     code = 0
+    warned: set[str] = set()  # the file's problems are the same for every agent: said once
     for i in agents:
         r = verify_agent(args.file, i, strict=args.strict)
         for p in r.problems:
-            print(f"verify: warning: {args.file}: {p}", file=sys.stderr)
+            if p not in warned:
+                warned.add(p)
+                print(f"verify: warning: {args.file}: {p}", file=sys.stderr)
         for n in r.notes:
             print(f"verify: agent {i}: note: {n}", file=sys.stderr)
         if r.ok:

@@ -14,6 +14,17 @@ __all__ = ["add_parsers"]
 
 
 
+def _not_the_source(source: str, out: str, flag: str) -> None:
+    """An output path that is the recording being read would overwrite it before it is read
+    through: :class:`ScenarioError` naming ``flag`` (exit 2), nothing written."""
+    import os
+
+    from zenswarm.errors import ScenarioError
+
+    if os.path.exists(source) and os.path.exists(out) and os.path.samefile(source, out):
+        raise ScenarioError(flag, f"{out} is the recording being exported ({source}): write to another file")
+
+
 def _run_export(args: argparse.Namespace) -> int:
     from zenswarm.errors import ScenarioError
     from zenswarm.process.paths import check_output_file
@@ -31,11 +42,13 @@ def _run_export(args: argparse.Namespace) -> int:
         raise ScenarioError("--out", "nothing to write: --out OUT.mcap (Foxglove) and/or --rerun OUT.rrd (Rerun)")
     if args.out is not None:
         check_output_file(args.out, "--out")
+        _not_the_source(source, args.out, "--out")
     if args.rerun is not None:
         from zenswarm.bridge.views.rerun_scene import require_rerun
 
         require_rerun("--rerun")
         check_output_file(args.rerun, "--rerun")
+        _not_the_source(source, args.rerun, "--rerun")
         if args.out is not None and Path(args.out).resolve() == Path(args.rerun).resolve():
             raise ScenarioError("--rerun", f"{args.rerun} is also --out")
     if args.out is not None:

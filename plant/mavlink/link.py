@@ -145,22 +145,24 @@ class MavlinkLink:
             )
             try:
                 self.conn.port.bind((opts.host, port + SITL_SEND_OFFSET))
-            except OSError as e:
+            except (OSError, OverflowError) as e:  # OverflowError: not a port number
                 self.conn.close()
+                why = getattr(e, "strerror", None) or e
                 raise ScenarioError(
                     "--base-port",
                     f"UDP port {opts.host}:{port + SITL_SEND_OFFSET} (vehicle {index + 1}'s send port, base port + "
-                    f"{SITL_SEND_OFFSET} + {index}, PX4 SITL's direction) cannot be bound: {e.strerror or e}",
+                    f"{SITL_SEND_OFFSET} + {index}, PX4 SITL's direction) cannot be bound: {why}",
                 ) from None
         else:
             try:
                 self.conn = mavutil.mavlink_connection(
                     f"udpin:{opts.host}:{port}", source_system=sysid, source_component=mavlink.MAV_COMP_ID_AUTOPILOT1, udp_timeout=5
                 )
-            except OSError as e:
+            except (OSError, OverflowError) as e:  # OverflowError: not a port number
+                why = getattr(e, "strerror", None) or e
                 raise ScenarioError(
                     "--base-port",
-                    f"UDP port {opts.host}:{port} (vehicle {index + 1}'s port, base port + {index}) cannot be bound: {e.strerror or e}",
+                    f"UDP port {opts.host}:{port} (vehicle {index + 1}'s port, base port + {index}) cannot be bound: {why}",
                 ) from None
         self.muted_until = -math.inf
         self.peer_seen = bool(opts.sitl_ports)

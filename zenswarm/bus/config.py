@@ -15,6 +15,7 @@ from typing import Any, Final
 import zenoh
 
 from zenswarm.bus.errors import BusError
+from zenswarm.bus.ports import check_endpoint_syntax
 
 __all__ = ["DEFAULT_CONNECT_TIMEOUT_S", "TX_QUEUE_BATCHES", "apply_settings", "router_config", "client_config"]
 
@@ -97,6 +98,7 @@ def client_config(
     """
     if not connect:
         raise BusError("a client needs at least one connect endpoint")
+    check_endpoint_syntax(connect, "--connect")  # what every command calls them: exit 2 naming the endpoint
     conf = _base_config("client")
     apply_settings(
         conf,

@@ -47,6 +47,11 @@ port, a missing file, ...), said on stderr."""
 EXIT_INTERRUPTED = 130
 """Exit status of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it)."""
 
+EXIT_BROKEN_PIPE = 141
+"""Exit status of a command whose standard output was closed by its reader (``zenswarm info F |
+head``): 128 + SIGPIPE, as a shell reports a program the closed pipe stopped; nothing more is
+printed, no traceback."""
+
 EXIT_PLUGIN_FAILED = 4
 """Exit status of ``zenswarm sim``, ``zenswarm up`` and a swarm process when a plug-in failed
 (:class:`PluginFailure`): distinct from 1 (the mission failed) and 3 (a process died)."""
@@ -115,7 +120,8 @@ class PluginFailure(ZenswarmError):
 def run_command(body: Callable[[], int | None], label: str = "zenswarm") -> int:
     """Run a command's ``body`` and return its exit status (None: 0). A :class:`ZenswarmError` is
     printed as ``label: error: ...`` on stderr, exit :data:`EXIT_BAD_INPUT`; Ctrl-C as ``label:
-    interrupted``, exit :data:`EXIT_INTERRUPTED`. The command lines' one wrapper (``zenswarm
+    interrupted``, exit :data:`EXIT_INTERRUPTED`; standard output closed by its reader (``| head``):
+    silence, exit :data:`EXIT_BROKEN_PIPE`. The command lines' one wrapper (``zenswarm
     sweep``, ``python -m zenswarm.bridge.reports.report``, ...)."""
     try:
         return int(body() or 0)
@@ -125,3 +131,13 @@ def run_command(body: Callable[[], int | None], label: str = "zenswarm") -> int:
     except KeyboardInterrupt:
         print(f"{label}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        # the reader of standard output went away (``| head``): stop quietly; what is still
+        # buffered goes nowhere, so the interpreter's last flush at exit does not fail again
+        import os
+
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):  # no file descriptor behind sys.stdout
+            pass
+        return EXIT_BROKEN_PIPE

@@ -156,6 +156,9 @@ class SwarmProcess:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
         bus.use_swarm_runtime()  # before the first session: zenoh reads it once per process
+        given = self.options.scenario is not None
+        if given:  # a missing or bad file, a bad plug-in: exit 2 naming it, before the router is asked
+            self.scenario = self._load_scenario()
         connect = list(self.options.connect) or ["tcp/127.0.0.1:7447"]
         conf = bus.client_config(connect, settings=security.client_fragments(
                 self.name,
@@ -169,7 +172,8 @@ class SwarmProcess:
             self._transport_listener = session.info.declare_transport_events_listener(self._on_transport)
         except Exception:  # noqa: BLE001 - diagnostics only
             self._transport_listener = None
-        self.scenario = self._load_scenario()
+        if not given:  # fetched from the leader over the session
+            self.scenario = self._load_scenario()
         return self
 
     def __exit__(self, *exc: Any) -> None:
