@@ -272,7 +272,7 @@ def add_override_args(p: argparse.ArgumentParser) -> None:
     the same keys as ``api.fly(overrides=)`` and ``zenswarm sweep --grid`` (:mod:`zenswarm.scenario.overrides`)."""
     p.add_argument(
         "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-        help="override a scenario field by its dotted path, e.g. --set agents.params.k2=0.5 --set leader.goal=[10,0,2] "
+        help="override a scenario field by its dotted path, e.g. --set controller.kp=[4,4,5] --set leader.goal=[10,0,2] "
         "--set obstacles[0].radius=0.4 (VALUE is read as TOML, else as a string; repeatable; validated as the file is)",
     )
     p.add_argument(

@@ -1,4 +1,4 @@
-"""Scenario overrides by dotted path: ``timing.time_limit_s``, ``agents.params.k2``,
+"""Scenario overrides by dotted path: ``timing.time_limit_s``, ``controller.kp``,
 ``obstacles[0].radius``, the same keys everywhere they are taken (``api.fly(overrides=)``,
 ``zenswarm sim/up --set KEY=VALUE``, ``zenswarm sweep --grid KEY=...``).
 
@@ -144,7 +144,7 @@ def parse_assignment(text: str, flag: str = "--set") -> tuple[str, Any]:
     key, eq, raw = text.partition("=")
     key, raw = key.strip(), raw.strip()
     if not eq or not key:
-        raise ScenarioError(flag, f"expected KEY=VALUE (e.g. agents.params.k2=0.5), got {text!r}")
+        raise ScenarioError(flag, f"expected KEY=VALUE (e.g. controller.kp=[4,4,5]), got {text!r}")
     _tokens_checked(key, flag)
     try:
         value = tomllib.loads(f"v = {raw}")["v"]
