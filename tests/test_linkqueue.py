@@ -224,7 +224,8 @@ def test_trace_stays_beside_the_scenario_file_under_overrides(tmp_path: Path, mo
     other = load_file(tmp_path / "s.toml", {"faults.trace": "tr2.csv"})
     assert other.faults is not None and other.faults.trace == beside
     # zenswarm.api takes the file the same way: the scenario and the document written for the run
-    for overrides, want in (({}, plain.faults.trace), ({"timing.time_limit_s": 5.0}, plain.faults.trace), ({"faults.trace": "tr2.csv"}, beside)):
+    cases = (({}, plain.faults.trace), ({"timing.time_limit_s": 5.0}, plain.faults.trace), ({"faults.trace": "tr2.csv"}, beside))
+    for overrides, want in cases:
         sc, doc = api.load(tmp_path / "s.toml", overrides)
         assert sc.faults is not None and sc.faults.trace == want and doc["faults"]["trace"] == want, overrides
 
