@@ -9,7 +9,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -127,10 +126,8 @@ def test_simulated_mavlink_vehicles_refuse_a_base_port_beyond_65535() -> None:
 def test_sweep_margin_refuses_an_unwritable_json_before_the_search(tmp_path: Path) -> None:
     """``sweep margin --json /proc/x/y.json`` ran the whole search, then died in a traceback
     (exit 1) writing the file; now exit 2 naming --json at once."""
-    t0 = time.monotonic()
     _bad(zenswarm("sweep", "margin", "paper_example1", "--json", "/proc/x/y.json", timeout=120), "--json", "/proc/x/y.json")
     _bad(zenswarm("sweep", "margin", "paper_example1", "--json", str(tmp_path), timeout=120), "--json", "is a directory")
-    assert time.monotonic() - t0 < 30
 
 
 # ----------------------------------------------------------------------------- external MAVLink vehicles
@@ -223,12 +220,10 @@ def test_a_role_names_its_missing_scenario_before_asking_for_the_router() -> Non
     Now the file is named at once, exit 2, whether a router answers or not."""
     port = free_port()  # nothing listens there
     for role in (["plant"], ["leader"], ["agent", "--id", "1"]):
-        t0 = time.monotonic()
         r = zenswarm(*role, "--scenario", "nofile.toml", "--swarm", unique_swarm("ns"), "--connect", f"tcp/127.0.0.1:{port}",
                      timeout=60)  # fmt: skip
         _bad(r, "nofile.toml", "not found")
-        assert "zenoh" not in r.stdout, r.stdout
-        assert time.monotonic() - t0 < 4.0, "the router was waited for"  # zenoh's connect timeout is 5 s
+        assert "zenoh" not in r.stdout, r.stdout  # the session was never asked for (was: "cannot open zenoh session")
 
 
 def test_an_agent_id_outside_the_scenario_names_the_flag(tmp_path: Path) -> None:
@@ -262,11 +257,9 @@ def test_a_bad_connect_endpoint_is_named_by_every_command(recording: Path, tmp_p
         ["bridge", "mavlink", str(EX1), "--swarm", "x", "--connect", "tcp/nohostport"],
     ]
     for args in cases:
-        t0 = time.monotonic()
         r = zenswarm(*args, timeout=60)
         _bad(r, "--connect")
         assert "Json5Err" not in r.stdout and "cargo" not in r.stdout, r.stdout
-        assert time.monotonic() - t0 < 4.0, (args, "the router was waited for")
 
 
 def test_keys_names_days_and_refuses_a_validity_past_9999(tmp_path: Path) -> None:
@@ -285,11 +278,9 @@ def test_fly_names_a_bad_swarm_name_or_port_before_anything_starts() -> None:
     from zenswarm.errors import ScenarioError
 
     for kwargs, field in (({"swarm": "bad/name"}, "swarm"), ({"port": 99999}, "port"), ({"port": "7447"}, "port")):
-        t0 = time.monotonic()
-        with pytest.raises(ScenarioError) as e:
+        with pytest.raises(ScenarioError) as e:  # not FlightError: refused before a supervisor starts
             api.fly("paper_example1", mode="swarm", duration=1.0, **kwargs)
         assert e.value.field == field, (kwargs, e.value)
-        assert time.monotonic() - t0 < 2.0, "a supervisor was started"
 
 
 def test_up_report_without_record_is_refused(tmp_path: Path) -> None:
@@ -298,10 +289,8 @@ def test_up_report_without_record_is_refused(tmp_path: Path) -> None:
     before anything starts."""
     swarm = unique_swarm("rp")
     out = tmp_path / "out"
-    t0 = time.monotonic()
     r = zenswarm("up", str(EX1), "--swarm", swarm, "--out", str(out), "--report", "--duration", "1", "--quiet", timeout=120)
     _bad(r, "--report", "--record")
-    assert time.monotonic() - t0 < 20
     assert "[supervisor]" not in r.stdout, r.stdout  # the router never opened
     assert processes_mentioning(swarm) == []
     assert not out.exists()
