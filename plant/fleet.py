@@ -4,9 +4,13 @@ manager), the flat ground the vehicles stand on, and the command line's run unti
 Shared by the simulated MAVLink vehicles (``plant/mavlink/fleet.py``) and the simulated
 Crazyflies (``plant/crazyflie/fleet.py``). A subclass of :class:`FleetThread` sets, in its
 ``__init__``, ``vehicles`` (each with ``close()``), ``_stop`` (a ``threading.Event``),
-``_thread = None``, ``error = None`` and ``overruns = 0``, and implements ``run(stop, duration_s)``:
-the loop, returning why it ended, and ``status()``: one line of facts per vehicle. Positions are
-the plant's, m ENU.
+``_thread = None``, ``error = None``, ``overruns = 0``, ``state`` (the plant's
+:class:`~zenswarm.plant.quadrotor.PlantState`) and ``_lock`` (a ``threading.Lock`` its loop holds
+while it integrates), and implements ``run(stop, duration_s)``: the loop, returning why it ended,
+and ``status()``: one line of facts per vehicle. Positions are the plant's, m ENU. Another thread
+reads the vehicles' state with :meth:`FleetThread.snapshot`: ``state`` itself is half-written
+while a physics sub-step runs (a vehicle resting on the ground reads a few micrometres below it
+between the integration and the ground contact).
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ class FleetThread(ABC):
     _thread: threading.Thread | None
     error: BaseException | None
     overruns: int
+    state: PlantState
+    _lock: threading.Lock
 
     @abstractmethod
     def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> str:
@@ -41,6 +47,12 @@ class FleetThread(ABC):
     @abstractmethod
     def status(self) -> list[dict[str, Any]]:
         """One line of facts per vehicle (for logs and tests)."""
+
+    def snapshot(self) -> PlantState:
+        """A copy of the plant's state between two physics chunks (ENU: m, m/s, rad; body rates
+        FLU, rad/s); safe to call from any thread while the loop runs."""
+        with self._lock:
+            return self.state.copy()
 
     def start(self) -> Self:
         """Run the loop in a daemon thread."""

@@ -344,5 +344,5 @@ def test_feed_lost_mid_flight_is_positioning_lost_and_the_vehicle_lands(tmp_path
     assert not [e for e in res["failsafe"] if e["uav"] != 2], res["failsafe"]
     # landed by its high-level commander, not cut by the watchdog
     assert fleet.vehicles[1].counters.get("hl_land", 0) >= 1 and fleet.vehicles[1].sup != "locked", fleet.status()[1]
-    assert fleet.state.q[1, 2] == 0.0, fleet.status()[1]
+    assert fleet.snapshot().q[1, 2] == 0.0, fleet.status()[1]
     assert res["vehicles"]["phases"] == "1:done,2:done,3:done", res["vehicles"]

@@ -355,7 +355,7 @@ def test_vehicle_offboard_loss_failsafe(one_vehicle):
     assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
     gcs.stream([2.0, 1.0, -0.3], 1.5)
     veh = fleet.vehicles[0]
-    assert veh.mode == "OFFBOARD" and veh.armed and fleet.state.q[0, 2] > 0.15
+    assert veh.mode == "OFFBOARD" and veh.armed and fleet.snapshot().q[0, 2] > 0.15
     t_stop = gcs.last_sp  # the last setpoint: stream() may return up to a receive timeout (and a loaded core) later
     wait_until(lambda: veh.mode == "AUTO.LOITER", 1.5, "the failsafe hold")
     assert time.monotonic() - t_stop >= 0.45  # not before the 0.5 s loss time (scheduling slack 50 ms)
@@ -367,7 +367,7 @@ def test_vehicle_offboard_loss_failsafe(one_vehicle):
     )
     wait_until(lambda: veh.mode == "AUTO.LAND", 2.5, "the failsafe land")
     wait_until(lambda: not veh.armed, 5.0, "the auto-disarm after touchdown")
-    assert fleet.state.q[0, 2] == pytest.approx(0.0, abs=0.01)
+    assert fleet.snapshot().q[0, 2] == pytest.approx(0.0, abs=0.01)
     assert veh.counters["failsafe_hold"] == 1 and veh.counters["failsafe_land"] == 1
 
 
@@ -514,7 +514,7 @@ def test_bridge_position_setpoints_on_ardupilot_vehicles_in_process():
 
     try:
         at_targets = lambda: all(  # noqa: E731
-            lk.phase == "ready" and np.linalg.norm(fleet.state.q[k] - targets[k + 1]) < 0.03 for k, lk in enumerate(b.links)
+            lk.phase == "ready" and np.linalg.norm(fleet.snapshot().q[k] - targets[k + 1]) < 0.03 for k, lk in enumerate(b.links)
         )
         assert spin(20.0, at_targets), (logs, fleet.status())
         for k, lk in enumerate(b.links):
@@ -525,7 +525,7 @@ def test_bridge_position_setpoints_on_ardupilot_vehicles_in_process():
         assert spin(15.0, lambda: b.land_step(time.monotonic())), (logs, fleet.status())
         for k in range(3):
             assert not fleet.vehicles[k].armed and fleet.vehicles[k].custom_mode == AP_COPTER_MODES["LAND"]
-            assert fleet.state.q[k, 2] == pytest.approx(0.0, abs=0.01)
+            assert fleet.snapshot().q[k, 2] == pytest.approx(0.0, abs=0.01)
     finally:
         b.close()
         fleet.stop()
@@ -659,7 +659,7 @@ def test_bridge_arms_takes_off_and_publishes_enu_state(flight):
         assert f.fleet.vehicles[k].armed and f.fleet.vehicles[k].mode == "OFFBOARD"
     # UAV 1's state on the bus is the vehicle's own ENU state (took off to (1, 2, 0.4))
     st = f.states[1]
-    q_true = f.fleet.state.q[0]
+    q_true = f.fleet.snapshot().q[0]
     np.testing.assert_allclose(st.q, q_true, atol=0.03)  # 50 Hz telemetry, a few ms apart
     np.testing.assert_allclose(st.q, [1.0, 2.0, 0.4], atol=0.1)  # the takeoff target
     assert abs(st.v).max() < 0.3
@@ -675,7 +675,7 @@ def test_bridge_arms_takes_off_and_publishes_enu_state(flight):
         t_ns = seq * wire.t_ns(f.sc.timing.dt)
         f.cmd_pub.put(wire.encode(wire.Cmd(t=t_ns, seq=seq, thrust=P.hover_thrust, rpy=rpy_cmd, u=[0, 0, 9.81], d_hat=[0, 0, 0])))
         time.sleep(0.02)
-    rpy_true = f.fleet.state.rpy[0].copy()
+    rpy_true = f.fleet.snapshot().rpy[0].copy()
     st = f.states[1]
     np.testing.assert_allclose(rpy_true, rpy_cmd, atol=0.01)  # the vehicle flies the commanded attitude
     np.testing.assert_allclose(st.rpy, rpy_true, atol=0.01)  # and the bus reports it in ENU
@@ -731,7 +731,7 @@ def test_silent_vehicle_marked_unhealthy_then_recovers(flight):
     assert veh.counters.get("failsafe_hold", 0) >= 1 and veh.armed
     n2 = f.n_states[2]
     wait_until(lambda: f.n_states[2] > n2 + 10, 10.0, "UAV 2 states again")
-    assert f.fleet.state.q[1, 2] > 0.25  # still flying
+    assert f.fleet.snapshot().q[1, 2] > 0.25  # still flying
 
 
 @pytest.mark.swarm
@@ -744,6 +744,6 @@ def test_bridge_lands_and_disarms_on_sigterm(flight):
     for k in (0, 1):
         veh = f.fleet.vehicles[k]
         assert not veh.armed and veh.mode == "AUTO.LAND", f.fleet.status()
-        assert f.fleet.state.q[k, 2] == pytest.approx(0.0, abs=0.01)
+        assert f.fleet.snapshot().q[k, 2] == pytest.approx(0.0, abs=0.01)
     assert not f.fleet.vehicles[2].armed  # the refused vehicle was never touched
     assert "landed and disarmed" in f.bridge.output

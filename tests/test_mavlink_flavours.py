@@ -67,7 +67,7 @@ def test_ardupilot_attitude_flight_sets_thrust_bit_and_takes_off_with_nav_takeof
         """The agents' stand-in: level, thrust from a PD altitude loop around the hover thrust (N)."""
         if not flying["on"]:
             return None, math.inf
-        st = fleet.state
+        st = fleet.snapshot()
         thrust = hover * (1.0 + 4.0 * (z_ref[i - 1] - st.q[i - 1, 2]) - 2.0 * st.v[i - 1, 2])
         return wire.Cmd(t=0, seq=1, thrust=thrust, rpy=[0.0, 0.0, sc.controller.yaw], u=[0.0] * 3, d_hat=[0.0] * 3), 0.0
 
@@ -87,14 +87,14 @@ def test_ardupilot_attitude_flight_sets_thrust_bit_and_takes_off_with_nav_takeof
             assert veh.ap_params["GUID_OPTIONS"] == 8, "the bridge did not set GUID_OPTIONS bit 3"
             assert veh.custom_mode == AP_COPTER_MODES["GUIDED"] and veh.armed
             assert lk.vparams is not None and lk.vparams.loss_timeout_s == 3.0  # GUID_TIMEOUT read
-            np.testing.assert_allclose(fleet.state.q[k], sc.initial_positions[k], atol=0.1)
+            np.testing.assert_allclose(fleet.snapshot().q[k], sc.initial_positions[k], atol=0.1)
         assert any("takeoff altitude" in s for s in logs) and counters["takeoff_requests"] == 3
         flying["on"] = True
         _spin(b, 2.5, lambda: False)  # 2.5 s of thrust commands as SET_ATTITUDE_TARGET
         assert counters["setpoints_attitude"] > 100
         # thrust as thrust: the loop holds its altitude (read as a climb rate, the same numbers
         # would settle where the throttle is 0.5, about 3 cm higher, only after seconds of drift)
-        np.testing.assert_allclose(fleet.state.q[:, 2], z_ref, atol=0.03)
+        np.testing.assert_allclose(fleet.snapshot().q[:, 2], z_ref, atol=0.03)
     finally:
         b.close()
         fleet.stop()
@@ -119,10 +119,10 @@ def test_px4_own_origins_and_sitl_port_direction():
         for k, lk in enumerate(b.links):
             # the vehicle reports NED about its own origin: near zero horizontally at the takeoff point
             assert np.linalg.norm(lk.tel.pos_ned[:2]) < 0.1, lk.tel.pos_ned
-            np.testing.assert_allclose(fleet.state.q[k], sc.initial_positions[k], atol=0.1)  # true position
+            np.testing.assert_allclose(fleet.snapshot().q[k], sc.initial_positions[k], atol=0.1)  # true position
             st = b.state_enu(lk, now)
             assert st is not None
-            np.testing.assert_allclose(st[0], fleet.state.q[k], atol=0.05)  # published = true, common frame
+            np.testing.assert_allclose(st[0], fleet.snapshot().q[k], atol=0.05)  # published = true, common frame
         # the vehicles answer TIMESYNC as PX4 does: the bridge measures the link's latency
         assert all(lk.tel.rtt_s is not None for lk in b.links), [lk.tel.rtt_s for lk in b.links]
         assert 0.0 <= b.info(time.monotonic())["max_latency_ms"] < 100.0

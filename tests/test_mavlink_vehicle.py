@@ -224,7 +224,7 @@ def test_mavsdk_flies_the_simulated_px4_vehicle() -> None:
         fleet.stop()
     assert fleet.error is None
     # where MAVSDK's local frame says (1.0, 0.5) NED from the boot point: ENU (3.5, 5.0)
-    np.testing.assert_allclose(fleet.state.q[0], [3.5, 5.0, 0.0], atol=0.08)
+    np.testing.assert_allclose(fleet.snapshot().q[0], [3.5, 5.0, 0.0], atol=0.08)
     assert fleet.vehicles[0].counters.get("takeoff_requests") == 1
 
 
@@ -298,7 +298,7 @@ def test_pymavlink_ardupilot_gcs_flies_the_simulated_copter(copter: tuple[Mavlin
     assert gcs.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
     assert gcs.recv("HEARTBEAT", 2.0, lambda h: h.custom_mode == LAND) is not None
     wait_until(lambda: not veh.armed, 8.0, "the disarm after landing")
-    assert fleet.state.q[0, 2] == pytest.approx(0.0, abs=0.01)
+    assert fleet.snapshot().q[0, 2] == pytest.approx(0.0, abs=0.01)
     assert gcs.recv("EXTENDED_SYS_STATE", 2.0, lambda m: m.landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND) is not None
 
 
@@ -314,7 +314,7 @@ def test_ardupilot_position_targets_while_landed_do_not_lift_off(copter: tuple[M
     for _ in range(30):
         gcs.position_target([0.0, 0.0, -1.0])
         time.sleep(0.05)
-    assert fleet.state.q[0, 2] < 0.2  # at most the first instants of the climb
+    assert fleet.snapshot().q[0, 2] < 0.2  # at most the first instants of the climb
     assert fleet.vehicles[0].guided_sub == "Pos" and fleet.vehicles[0].land_complete
     assert fleet.vehicles[0].mode == "GUIDED"
 
@@ -341,17 +341,17 @@ def test_ardupilot_guided_nogps_thrust_is_climb_rate_and_guid_timeout(copter: tu
             time.sleep(0.05)
 
     att(0.8, 1.0)  # climb at 0.6 * 2.5 m/s
-    z1 = float(fleet.state.q[0, 2])
+    z1 = float(fleet.snapshot().q[0, 2])
     assert z1 > 0.5
     att(0.5, 1.0)  # hold
-    z2 = float(fleet.state.q[0, 2])
-    assert abs(float(fleet.state.v[0, 2])) < 0.1
+    z2 = float(fleet.snapshot().q[0, 2])
+    assert abs(float(fleet.snapshot().v[0, 2])) < 0.1
     att(0.444, 1.0)  # the bridge's hover throttle: a descent of 0.17 m/s
-    assert float(fleet.state.q[0, 2]) < z2 - 0.08 and float(fleet.state.v[0, 2]) < -0.1
+    assert float(fleet.snapshot().q[0, 2]) < z2 - 0.08 and float(fleet.snapshot().v[0, 2]) < -0.1
     att(0.5, 0.5, pitch_deg=-10.0)  # nose down: accelerating north
-    assert float(fleet.state.v[0, 1]) > 0.2
+    assert float(fleet.snapshot().v[0, 1]) > 0.2
     time.sleep(1.5)  # > GUID_TIMEOUT without targets: level, hold altitude, still GUIDED_NOGPS
-    assert abs(float(fleet.state.rpy[0, 1])) < 0.03 and abs(float(fleet.state.v[0, 2])) < 0.1
+    assert abs(float(fleet.snapshot().rpy[0, 1])) < 0.03 and abs(float(fleet.snapshot().v[0, 2])) < 0.1
     assert veh.mode == "GUIDED_NOGPS" and veh.armed
 
 
@@ -380,14 +380,14 @@ def test_px4_addressing_prearm_body_rates_and_rtl() -> None:
         assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
         assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, *[math.nan] * 7) == mavlink.MAV_RESULT_ACCEPTED
         wait_until(lambda: veh.mode == "AUTO.LOITER", 4.0, "takeoff done -> hold")
-        assert float(fleet.state.q[0, 2]) == pytest.approx(1.0, abs=0.06)
+        assert float(fleet.snapshot().q[0, 2]) == pytest.approx(1.0, abs=0.06)
         # body rates only (attitude ignored): yaw at 0.5 rad/s FRD (clockwise seen from above)
         t_end = time.monotonic() + 1.0
         while time.monotonic() < t_end:
             gcs.c.mav.set_attitude_target_send(0, 1, 1, 0b1000_0000, [1, 0, 0, 0], 0, 0, 0.5, 0.444)
             time.sleep(0.05)
         assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0, timeout=2.0) == mavlink.MAV_RESULT_ACCEPTED  # OFFBOARD
-        yaw0 = float(fleet.state.rpy[0, 2])
+        yaw0 = float(fleet.snapshot().rpy[0, 2])
         t_end = time.monotonic() + 1.0
         while time.monotonic() < t_end:
             gcs.c.mav.set_attitude_target_send(0, 1, 1, 0b1000_0000, [1, 0, 0, 0], 0, 0, 0.5, float(P.hover_thrust / P.max_thrust))
@@ -395,11 +395,11 @@ def test_px4_addressing_prearm_body_rates_and_rtl() -> None:
         # the rate setpoint is integrated at 0.5 rad/s (scheduling slack); the airframe's slow yaw
         # loop follows it clockwise (ENU yaw decreasing)
         assert veh.att_int is not None and -0.65 < float(veh.att_int[2]) - yaw0 < -0.3
-        assert float(fleet.state.rpy[0, 2]) - yaw0 < -0.05
+        assert float(fleet.snapshot().rpy[0, 2]) - yaw0 < -0.05
         assert gcs.command(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH) == mavlink.MAV_RESULT_ACCEPTED
-        wait_until(lambda: float(fleet.state.q[0, 2]) > 1.4, 3.0, "the climb to RTL_RETURN_ALT")
+        wait_until(lambda: float(fleet.snapshot().q[0, 2]) > 1.4, 3.0, "the climb to RTL_RETURN_ALT")
         wait_until(lambda: not veh.armed, 12.0, "the landing and disarm at home")
-        assert np.linalg.norm(fleet.state.q[0, 0:2]) < 0.1 and veh.mode == "AUTO.RTL"
+        assert np.linalg.norm(fleet.snapshot().q[0, 0:2]) < 0.1 and veh.mode == "AUTO.RTL"
     finally:
         gcs.close()
         fleet.stop()

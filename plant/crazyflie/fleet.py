@@ -31,7 +31,8 @@ class CrazyflieFleet(FleetThread):
     """N simulated Crazyflies, integrated in real time; vehicle i (0-based) on UDP
     ``host:base_port + i``. :meth:`start` / :meth:`stop` run it in a background thread (tests,
     embedding), :meth:`run` in the calling thread (the CLI). ``state`` is the plant's
-    :class:`zenswarm.plant.quadrotor.PlantState` (ENU; read it, do not write it while running)."""
+    :class:`zenswarm.plant.quadrotor.PlantState` (ENU), written by the loop; from another thread
+    read :meth:`snapshot`, and do not write it while running."""
 
     thread_name = "crazyflie-fleet"
 
@@ -62,6 +63,7 @@ class CrazyflieFleet(FleetThread):
         self.ticks = 0
         self.overruns = 0
         self._stop = threading.Event()
+        self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
         self.on_tick: Callable[[float], None] | None = None  # called after every tick (the mocap feeder)
@@ -120,9 +122,10 @@ class CrazyflieFleet(FleetThread):
             f, att = veh.control(now, self.period, q_est, st.v[i].copy(), st.rpy[i].copy())
             self.thrust[i] = f
             self.rpy_cmd[i] = att
-        for _ in range(self.chunk):
-            step(st, self.thrust, self.rpy_cmd, self.params, self.h)
-            self._ground()
+        with self._lock:
+            for _ in range(self.chunk):
+                step(st, self.thrust, self.rpy_cmd, self.params, self.h)
+                self._ground()
         self.ticks += 1
         for i, veh in enumerate(self.vehicles):
             if veh.blocks:
@@ -161,8 +164,9 @@ class CrazyflieFleet(FleetThread):
 
     def status(self) -> list[dict[str, Any]]:
         """One line of facts per vehicle (for logs and tests)."""
+        q = self.snapshot().q
         return [
             {"port": v.port, "supervisor": v.sup, "armed": v.armed, "hl": v.hl.state, "setpoint": v.sp_kind,
-             "q": self.state.q[i].round(3).tolist(), **v.counters}
+             "q": q[i].round(3).tolist(), **v.counters}
             for i, v in enumerate(self.vehicles)
         ]  # fmt: skip

@@ -50,7 +50,8 @@ class MavlinkFleet(FleetThread):
 
     Use :meth:`start` / :meth:`stop` (a background thread, for tests and embedding) or
     :meth:`run` (in the calling thread, for the CLI). Attribute ``state`` is the
-    :class:`zenswarm.plant.quadrotor.PlantState` (ENU, read it, do not write it while running).
+    :class:`zenswarm.plant.quadrotor.PlantState` (ENU), written by the loop; from another thread
+    read :meth:`snapshot`, and do not write it while running.
     """
 
     thread_name = "mavlink-fleet"
@@ -219,6 +220,7 @@ class MavlinkFleet(FleetThread):
     def status(self) -> list[dict[str, Any]]:
         """One line of facts per vehicle (for logs and tests)."""
         out = []
+        q = self.snapshot().q
         for i, v in enumerate(self.vehicles):
             out.append(
                 {
@@ -226,7 +228,7 @@ class MavlinkFleet(FleetThread):
                     "port": v.port,
                     "armed": v.armed,
                     "mode": v.mode,
-                    "q": self.state.q[i].round(3).tolist(),
+                    "q": q[i].round(3).tolist(),
                     **v.counters,
                 }
             )
