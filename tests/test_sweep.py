@@ -27,9 +27,9 @@ from zenswarm.bus import free_port
 from zenswarm.campaign import GridAxis, Plan, SampleAxis, check_plan, expand, parse_grid, parse_sample, plan_from_toml
 from zenswarm.errors import ScenarioError
 from zenswarm.pytest_plugin import port_free
-from zenswarm.sweep import main, metric_columns
+from zenswarm.sweep import Progress, main, metric_columns
 
-from swarmtest import ROOT
+from swarmtest import ROOT, SCENARIOS
 
 pq = pytest.importorskip("pyarrow.parquet", reason="zenswarm[sweep] is in the test extra")
 
@@ -390,3 +390,32 @@ def test_console_script_help_and_bad_input(tmp_path: Path, capsys: pytest.Captur
         code = main(["margin", *scenario, *bad])
         err = capsys.readouterr().err
         assert code == 2 and named in err and "error" in err, (bad, err)
+
+
+def test_progress_counts_the_resumed_runs_failures_and_errors() -> None:
+    resumed = [{"success": True, "error": None}, {"success": False, "error": None}, {"success": False, "error": "FlightError: x"}]
+    p = Progress(5, resumed, quiet=True)
+    p.add({"success": False, "error": None})
+    line = p.line()
+    assert line.startswith("sweep: 4/5 done (3 resumed), 2 failed, 1 errors, "), line
+
+
+def test_grid_trace_beside_the_scenario(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """A relative `--grid faults.trace=` is read beside the scenario file, as `--set` and api.fly
+    take it, wherever the sweep runs from (the rows fly those traces; a missing one is named with
+    the path looked at, exit 2, before anything flies)."""
+    trace = (ROOT / "docs" / "example_trace.csv").read_text()
+    (tmp_path / "a.csv").write_text(trace)
+    (tmp_path / "b.csv").write_text(trace)
+    (tmp_path / "s.toml").write_text((SCENARIOS / "paper_example1.toml").read_text())
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    out = tmp_path / "c"
+    args = [str(tmp_path / "s.toml"), "--seeds", "1", "--duration", "1", "--workers", "1", "--quiet"]
+    assert main([*args, "--grid", "faults.trace=a.csv,nope.csv", "--out", str(out)]) == 2
+    assert str(tmp_path.absolute() / "nope.csv") in capsys.readouterr().err and not out.exists()
+    assert main([*args, "--grid", "faults.trace=a.csv,b.csv", "--out", str(out)]) == 0, capsys.readouterr().err
+    rows = _table(out)
+    assert [r["faults.trace"] for r in rows] == ["a.csv", "b.csv"]  # the table keeps what the user wrote
+    assert all(r["error"] is None for r in rows), rows

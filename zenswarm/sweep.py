@@ -116,6 +116,12 @@ def _task(run: Run, plan: Plan, doc: dict[str, Any] | None, mode: str | None = N
     if plan.scenario == GENERATE and "n" not in gen:
         gen["n"] = 3
     ov = {p: v for p, v in run.inputs.items() if p not in GENERATOR_FIELDS and p not in PLUGIN_FIELDS}
+    trace = ov.get("faults.trace")
+    if isinstance(trace, str) and not Path(trace).is_absolute():
+        # beside the scenario file, as `--set faults.trace=` and api.fly take it; a generated
+        # scenario has no file: the working directory. Absolute, so a Dask worker elsewhere finds it.
+        where = Path.cwd() if plan.scenario == GENERATE else scenario_path(plan.scenario).parent
+        ov["faults.trace"] = str(where.absolute() / trace)
     return {
         "run": run.run, "cell": run.cell, "seed": run.seed, "columns": dict(run.columns),
         "scenario": doc, "generate": gen if plan.scenario == GENERATE else None, "overrides": ov,
@@ -358,19 +364,27 @@ def _check_resume(out: Path, meta: Mapping[str, Any]) -> None:
 
 
 class Progress:
-    """``sweep: 12/90 done (3 resumed), 2 failed, 0 errors, 41.0 runs/min, ETA 1m02s`` on stderr."""
+    """``sweep: 12/90 done (3 resumed), 2 failed, 0 errors, 41.0 runs/min, ETA 1m02s`` on stderr.
 
-    def __init__(self, total: int, resumed: int, quiet: bool) -> None:
-        self.total, self.done, self.resumed, self.failed, self.errors = total, resumed, resumed, 0, 0
+    ``resumed`` are the rows already in the output directory: they count as done, and their
+    failures and errors are counted with the new runs'; the rate is the new runs'."""
+
+    def __init__(self, total: int, resumed: Sequence[Mapping[str, Any]], quiet: bool) -> None:
+        self.total, self.done, self.resumed, self.failed, self.errors = total, 0, len(resumed), 0, 0
+        for row in resumed:
+            self._count(row)
         self.t0 = time.monotonic()
         self.last = 0.0
         self.quiet = quiet
         self.tty = sys.stderr.isatty()
 
-    def add(self, row: Mapping[str, Any]) -> None:
+    def _count(self, row: Mapping[str, Any]) -> None:
         self.done += 1
         self.errors += row.get("error") is not None
         self.failed += not row.get("success") and row.get("error") is None
+
+    def add(self, row: Mapping[str, Any]) -> None:
+        self._count(row)
         self.show()
 
     def line(self) -> str:
@@ -480,7 +494,7 @@ def run_campaign(plan: Plan, out: Path, argv: Sequence[str], workers: int | None
     rows = {k: v for k, v in read_rows(out).items() if k < len(runs)}
     columns = _columns(plan, runs)
     todo = [r for r in runs if r.run not in rows]
-    progress = Progress(len(runs), len(rows), quiet)
+    progress = Progress(len(runs), list(rows.values()), quiet)
     if not quiet:
         where = f"Dask scheduler {scheduler}" if scheduler else f"{workers or os.cpu_count() or 1} local workers"
         print(f"sweep: {len(runs)} runs ({len(rows)} already in {out}), {len(todo)} to fly on {where}", file=sys.stderr)
