@@ -285,6 +285,30 @@ def router() -> Iterator[str]:
         yield ep
 
 
+def test_cli_loop_stopped_by_ctrl_c_says_so_and_exits_130(rec: Path) -> None:
+    """``--loop`` ends only by a signal: the last line is printed, and the exit status is 130, as
+    every zenswarm command interrupted (README). A signal before the first message is published
+    is an interruption too, not "nothing selected in the window" (the signal lands at once here)."""
+    import signal
+
+    with router() as ep:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "zenswarm", "replay", str(rec), "--connect", ep, "--loop", "--wait-subscribers", "0"],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL,
+        )  # fmt: skip
+        try:
+            assert proc.stderr is not None
+            first = proc.stderr.readline()  # the first progress line: it is playing
+            proc.send_signal(signal.SIGINT)
+            _, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+    assert proc.returncode == 130, first + err
+    assert err.strip().splitlines()[-1].startswith("replay: interrupted: "), first + err
+
+
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, Path]:
     """A 2 s lockstep flight of paper example 1, recorded; and a 10 s variant of its scenario."""

@@ -467,7 +467,8 @@ def _play_passes(
     while not stop.is_set() and not controls.quit:
         stats.loops += 1
         if not player.play_once(path, stats.loops == 1):
-            stats.stopped_by = "nothing selected in the window" if stats.loops == 1 else "interrupted"
+            stopped = stop.is_set() or controls.quit  # before the first message: not an empty window
+            stats.stopped_by = "nothing selected in the window" if stats.loops == 1 and not stopped else "interrupted"
             break
         if not repeat or (loops is not None and stats.loops >= loops):
             stats.stopped_by = "end of recording" if not (stop.is_set() or controls.quit) else "interrupted"
@@ -521,7 +522,7 @@ def _run_replay(args: argparse.Namespace) -> int:
         f"{st.loops} pass(es), by {st.clock} time, {st.span_s:.3f} s played in {st.wall_s:.2f} s wall, "
         f"max lag {1e3 * st.max_lag_s:.1f} ms"
     )
-    return 0
+    return 130 if stop.is_set() else 0  # only SIGINT/SIGTERM set `stop`: interrupted, as every command exits
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
