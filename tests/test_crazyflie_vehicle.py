@@ -28,6 +28,8 @@ from cflib.crazyflie.log import LogConfig
 from cflib.crazyflie.syncCrazyflie import SyncCrazyflie
 
 from zenswarm.bus import free_udp_block
+from zenswarm.plant.crazyflie.crtp import LOG_FLOAT
+from zenswarm.plant.crazyflie.log import LOG_VARS, LogService
 from zenswarm.plant.crazyflie_vehicle import CrazyflieFleet
 from zenswarm.vehicle import crazyflie as cfu
 from zenswarm.vehicle.params import QuadParams
@@ -136,13 +138,41 @@ def test_log_block_arrives_at_the_requested_rate(scf: SyncCrazyflie, fleet: Craz
     time.sleep(2.0)
     rate = (len(got) - n0) / (time.monotonic() - t0)
     lc.stop()
-    assert 30.0 <= rate <= 55.0, rate  # 50 Hz asked (generous: a loaded machine)
+    # 50 Hz asked. The schedule itself is checked on a synthetic clock (the test below); here, through
+    # real UDP and cflib, on a loaded machine (the fleet's loop is one thread of a busy process): the
+    # rate in a generous band (27 Hz was seen in CI beside a swarm flight), never a burst
+    assert 20.0 <= rate <= 55.0, rate
     ts = [t for t, _ in got[-40:]]
-    assert 18.0 <= (ts[-1] - ts[0]) / (len(ts) - 1) <= 33.0, ts  # the firmware's ms stamps, 20 ms apart
-    assert all(b - a >= 10 for a, b in zip(ts, ts[1:])), ts  # never a burst
+    assert 18.0 <= (ts[-1] - ts[0]) / (len(ts) - 1) <= 50.0, ts  # the firmware's ms stamps, 20 ms apart
+    assert all(b - a >= 18 for a, b in zip(ts, ts[1:])), ts  # never a burst
     d = got[-1][1]
     assert d["stateEstimate.x"] == pytest.approx(0.3, abs=1e-6) and d["stateEstimate.z"] == 0.0
     assert 3.0 < d["pm.vbat"] <= 4.2
+
+
+def test_log_block_is_due_every_period_and_a_late_loop_never_bursts() -> None:
+    """The log service on a synthetic clock (no thread, no socket): a 20 ms block polled by a
+    100 Hz loop sends every second tick, stamped 20 ms apart; a loop late by less than a period
+    sends late with the stamp of when it was due; late by more, it skips what it missed and stamps
+    now. Never two stamps closer than a period."""
+    svc = LogService()
+    x = [name for name, _ in LOG_VARS].index("stateEstimate.x")
+    assert svc.control(6, 1, bytes([6, 1]) + struct.pack("<BH", LOG_FLOAT, x), 0.0) == 0  # create block 1
+    assert svc.control(3, 1, bytes([3, 1, 2]), 0.0) == 0  # start it, period 2 x 10 ms
+
+    def stamps(ticks_ms: list[int]) -> list[int]:
+        out = []
+        for t in ticks_ms:
+            for pkt in svc.due(t / 1000.0, lambda ident: 0.5, lambda s: round(1000 * s)):
+                assert pkt[0] == 1 and struct.unpack_from("<f", pkt, 4)[0] == 0.5
+                out.append(int.from_bytes(pkt[1:4], "little"))
+        return out
+
+    assert stamps(list(range(0, 1000, 10))) == list(range(0, 1000, 20))  # 100 Hz loop: 50 Hz, on time
+    # late by 15 ms (due at 1000, polled at 1015): sent then, stamped 1000; the next on its period
+    assert stamps([1015, 1020, 1030, 1040]) == [1000, 1020, 1040]
+    # stalled from 1040 to 1105 (due at 1060, 1080, 1100 missed): one packet, stamped now; then 20 ms on
+    assert stamps([1105, 1115, 1125, 1135]) == [1105, 1125]
 
 
 @pytest.mark.slow
