@@ -7,9 +7,10 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
-from zenswarm.bridge.vehicles.crazyflie import rpyt_of
+from zenswarm.bridge.vehicles.crazyflie import CfLink, rpyt_of
 from zenswarm.errors import ScenarioError
 from zenswarm.scenario.config import load_scenario
 from zenswarm.schema import CrazyflieTable
@@ -122,3 +123,16 @@ def test_a_stall_of_the_landing_loop_is_no_link_lost() -> None:
     loop.land()
     assert counters["link_lost"] == 0 and all(lk.healthy for lk in bridge.links), counters
     assert counters["loop_stalls"] == 1
+
+
+def test_link_ages_are_never_negative_when_a_stamp_lands_after_now() -> None:
+    """cflib's and zenoh's threads stamp a link's last position and last fed mocap; a summary that
+    took ``now`` just before reads an age of 0, not -0.2 ms (seen in a flight under load)."""
+    link = CfLink(1, "udp://127.0.0.1:1", np.zeros(3))
+    assert link.info(10.0, 50.0)["extpos_age_ms"] == -1.0 and link.info(10.0, 50.0)["silent_s"] is None  # never stamped
+    link.mocap_rx = link.pos_rx = 10.0002
+    info = link.info(10.0, 50.0)
+    assert info["extpos_age_ms"] == 0.0 and info["silent_s"] == 0.0
+    link.mocap_rx = link.pos_rx = 9.75
+    info = link.info(10.0, 50.0)
+    assert info["extpos_age_ms"] == 250.0 and info["silent_s"] == 0.25

@@ -158,6 +158,8 @@ class CfLink:
         return round(min(1.0, n / (2.0 * rate_hz)), 3)
 
     def info(self, now: float, rate_hz: float) -> dict[str, Any]:
+        """The link's figures at ``now`` (monotonic s). An age is never negative: cflib's and
+        zenoh's threads stamp ``pos_rx`` and ``mocap_rx``, and one may land after ``now`` was taken."""
         return {
             "uri": self.uri, "phase": self.phase, "reason": self.reason, "healthy": self.healthy,
             "armed": bool(self.sup_info >= 0 and self.sup_info & BIT_ARMED),
@@ -165,10 +167,10 @@ class CfLink:
             "locked": bool(self.sup_info >= 0 and self.sup_info & BIT_LOCKED),
             "supervisor_info": self.sup_info, "vbat": None if math.isnan(self.vbat) else round(self.vbat, 3),
             "battery_pct": self.battery_pct, "rssi": self.rssi, "link_quality": self.link_quality(now, rate_hz),
-            "silent_s": round(now - self.pos_rx, 3) if math.isfinite(self.pos_rx) else None,
+            "silent_s": round(max(0.0, now - self.pos_rx), 3) if math.isfinite(self.pos_rx) else None,
             "state_age_ms": round(self.state_age_s * 1000.0, 2) if self.state_age_s is not None else -1.0,
             "extpos_sent": self.extpos_sent,
-            "extpos_age_ms": round((now - self.mocap_rx) * 1000.0, 1) if math.isfinite(self.mocap_rx) else -1.0,
+            "extpos_age_ms": round(max(0.0, now - self.mocap_rx) * 1000.0, 1) if math.isfinite(self.mocap_rx) else -1.0,
             **self.traffic,
         }  # fmt: skip
 
