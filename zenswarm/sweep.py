@@ -58,6 +58,7 @@ from zenswarm.campaign import (
 from zenswarm.errors import ScenarioError, run_command
 from zenswarm.link import plan_for
 from zenswarm.process.paths import check_output_dir
+from zenswarm.scenario.config import trace_in
 from zenswarm.scenario.plugins import check_selection
 
 __all__ = ["main", "run_one", "metric_columns", "read_rows", "INSTALL_HINT"]
@@ -119,9 +120,8 @@ def _task(run: Run, plan: Plan, doc: dict[str, Any] | None, mode: str | None = N
     trace = ov.get("faults.trace")
     if isinstance(trace, str) and not Path(trace).is_absolute():
         # beside the scenario file, as `--set faults.trace=` and api.fly take it; a generated
-        # scenario has no file: the working directory. Absolute, so a Dask worker elsewhere finds it.
-        where = Path.cwd() if plan.scenario == GENERATE else scenario_path(plan.scenario).parent
-        ov["faults.trace"] = str(where.absolute() / trace)
+        # scenario has no file: the working directory
+        ov["faults.trace"] = trace_in(trace, Path.cwd() if plan.scenario == GENERATE else scenario_path(plan.scenario).parent)
     return {
         "run": run.run, "cell": run.cell, "seed": run.seed, "columns": dict(run.columns),
         "scenario": doc, "generate": gen if plan.scenario == GENERATE else None, "overrides": ov,

@@ -417,13 +417,20 @@ def scenario_of_document(doc: dict[str, Any], path: str | Path) -> Scenario:
     return trace_beside(scenario_from_dict(doc), path)
 
 
+def trace_in(trace: str, directory: str | Path) -> str:
+    """The rule for a ``[faults] trace`` path: a relative one is taken in ``directory`` (the
+    scenario file's; made absolute, so it reads the same from any working directory or worker);
+    an absolute one as it is."""
+    return trace if Path(trace).is_absolute() else str(Path(directory).absolute() / trace)
+
+
 def document_trace_beside(doc: dict[str, Any], path: str | Path) -> dict[str, Any]:
     """A scenario document (as :func:`read_document` gives it; changed in place and returned) with
     a relative ``faults.trace`` made relative to the directory of the scenario file at ``path``:
     the document of :func:`trace_beside`'s scenario, for a copy of it written elsewhere."""
     faults = doc.get("faults")
-    if isinstance(faults, dict) and isinstance(faults.get("trace"), str) and not Path(faults["trace"]).is_absolute():
-        faults["trace"] = str(Path(path).parent.absolute() / faults["trace"])
+    if isinstance(faults, dict) and isinstance(faults.get("trace"), str):
+        faults["trace"] = trace_in(faults["trace"], Path(path).parent)
     return doc
 
 
@@ -432,7 +439,7 @@ def trace_beside(sc: Scenario, path: str | Path) -> Scenario:
     file at ``path`` (where its author wrote it from); an absolute one, or none, as it is."""
     if sc.faults is None or sc.faults.trace is None or Path(sc.faults.trace).is_absolute():
         return sc
-    return replace(sc, faults=msgspec.structs.replace(sc.faults, trace=str(Path(path).parent.absolute() / sc.faults.trace)))
+    return replace(sc, faults=msgspec.structs.replace(sc.faults, trace=trace_in(sc.faults.trace, Path(path).parent)))
 
 
 def scenario_to_dict(s: Scenario) -> dict[str, Any]:
