@@ -7,6 +7,7 @@ names and ports, and leave no process behind.
 from __future__ import annotations
 
 import os
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -87,7 +88,12 @@ def test_verify_strict_on_a_cut_recording_names_the_flag(recording: Path, tmp_pa
     agent. Now the message names --strict and each problem is said once."""
     cut = tmp_path / "cut.mcap"
     data = recording.read_bytes()
-    cut.write_bytes(data[: len(data) * 2 // 3])
+    # cut where the summary starts: every chunk whole (a cut at 2/3 of the bytes could leave only a
+    # first chunk written before agent 1's first command: flaky), the summary and footer gone. The
+    # MCAP footer: opcode, length, summary_start, summary_offset_start, crc; then the 8-byte magic.
+    summary_start = struct.unpack("<BQQQI", data[-8 - 29 : -8])[2]
+    assert 0 < summary_start < len(data), summary_start
+    cut.write_bytes(data[:summary_start])
     _bad(zenswarm("verify", "--strict", str(cut), timeout=60), "without --strict", "zenswarm recover")
     r = zenswarm("verify", str(cut), timeout=60)
     assert r.returncode == 0, r.stdout
